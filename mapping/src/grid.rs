@@ -1,0 +1,11 @@
+//! Regular 2D grids: the cell geometry ([`MapLimits`]) and the occupancy-probability grid that submaps
+//! are made of.
+
+mod map_limits;
+mod probability_grid;
+
+pub use map_limits::{CellIndex, MapLimits};
+pub use probability_grid::{
+    MAX_PROBABILITY, MIN_PROBABILITY, ProbabilityGrid, UNKNOWN_VALUE, probability_to_value,
+    value_to_probability,
+};
