@@ -4,9 +4,11 @@
 mod laser_scan;
 mod range_data;
 mod readings;
+mod sensor_event;
 mod timestamp;
 
 pub use laser_scan::{LaserScan, RangeConversionOptions, RangeStats};
 pub use range_data::RangeData;
 pub use readings::{ImuReading, OdometryReading};
+pub use sensor_event::SensorEvent;
 pub use timestamp::Timestamp;
