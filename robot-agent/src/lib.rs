@@ -1,3 +1,5 @@
 //! # robot-agent — the robot side of evermap
 //!
 //! Data sources (ROS1 bags, CARMEN logs) and the offline tools built on the `mapping` core.
+
+pub mod map_image;

@@ -1,0 +1,306 @@
+//! The global SLAM state machine.
+
+use std::collections::BTreeMap;
+use std::sync::Arc;
+
+use nalgebra::{Matrix3, Point2};
+
+use super::{
+    ConstraintBuilder, FixedRatioSampler, GlobalSlamOptions, GlobalSlamOptionsError, LoopClosure, SearchJob,
+};
+use crate::geometry::Rigid2;
+use crate::grid::ProbabilityGrid;
+use crate::pose_graph::{
+    Constraint, ConstraintKind, NodeId, OptimizationSummary, Optimizer, PoseGraph, RobustLoss, SubmapId, VariableId,
+};
+use crate::sensor::Timestamp;
+
+/// What global SLAM knows about a node.
+#[derive(Clone, Debug)]
+pub struct NodeRecord {
+    /// When the node's scan was taken.
+    pub time: Timestamp,
+    /// `local_from_tracking` from LLO.
+    pub local_pose: Rigid2,
+    /// The node's filtered scan points in its tracking frame (what GLM matches).
+    pub points: Arc<Vec<Point2<f32>>>,
+    /// Submaps the node was inserted into.
+    pub submaps: Vec<SubmapId>,
+}
+
+/// What global SLAM knows about a submap.
+#[derive(Clone, Debug)]
+pub struct SubmapRecord {
+    /// `local_from_submap` from LLO.
+    pub local_pose: Rigid2,
+    /// The finished grid (in the trajectory's local frame); `None` while LLO still inserts into it.
+    pub grid: Option<Arc<ProbabilityGrid>>,
+    /// Nodes inserted into the submap.
+    pub nodes: Vec<NodeId>,
+}
+
+/// Something global SLAM did that the shell may want to forward, store or display.
+#[derive(Clone, Debug)]
+pub enum GlobalSlamEvent {
+    /// A new submap variable joined the graph.
+    SubmapAdded(SubmapId),
+    /// A submap was finished and can now be matched against.
+    SubmapFinished(SubmapId),
+    /// A loop closure (GLM constraint) was accepted.
+    LoopClosureAdded(LoopClosure),
+    /// The graph was optimized.
+    Optimized(OptimizationSummary),
+}
+
+/// Pose graph, loop-closure search and optimization over LLO's output.
+pub struct GlobalSlam {
+    options: GlobalSlamOptions,
+    graph: PoseGraph,
+    optimizer: Optimizer,
+    builder: ConstraintBuilder,
+    nodes: BTreeMap<NodeId, NodeRecord>,
+    submaps: BTreeMap<SubmapId, SubmapRecord>,
+    samplers: BTreeMap<SubmapId, FixedRatioSampler>,
+    global_from_local: BTreeMap<u32, Rigid2>,
+    last_node: BTreeMap<u32, NodeId>,
+    pending_jobs: Vec<SearchJob>,
+    nodes_since_optimization: usize,
+    loop_closure_scores: Vec<f32>,
+}
+
+fn information(translation_sigma: f64, rotation_sigma: f64) -> Matrix3<f64> {
+    let t = 1.0 / (translation_sigma * translation_sigma);
+    Matrix3::from_diagonal(&nalgebra::Vector3::new(t, t, 1.0 / (rotation_sigma * rotation_sigma)))
+}
+
+impl GlobalSlam {
+    /// An empty map.
+    pub fn new(options: GlobalSlamOptions) -> Result<Self, GlobalSlamOptionsError> {
+        options.validate()?;
+        Ok(Self {
+            graph: PoseGraph::new(),
+            optimizer: Optimizer::new(options.optimizer.clone()),
+            builder: ConstraintBuilder::new(options.constraint_builder.clone()),
+            options,
+            nodes: BTreeMap::new(),
+            submaps: BTreeMap::new(),
+            samplers: BTreeMap::new(),
+            global_from_local: BTreeMap::new(),
+            last_node: BTreeMap::new(),
+            pending_jobs: Vec::new(),
+            nodes_since_optimization: 0,
+            loop_closure_scores: Vec::new(),
+        })
+    }
+
+    /// Adds a node that LLO inserted into the submaps `insertion_submaps` (`(index, local_from_submap)`
+    /// per submap, indices per trajectory), together with the submaps this insertion finished
+    /// (`(index, grid)`). Queues the loop-closure searches it makes possible (see
+    /// [`Self::take_search_jobs`]).
+    pub fn add_node(
+        &mut self,
+        trajectory: u32,
+        time: Timestamp,
+        local_pose: Rigid2,
+        points: Vec<Point2<f32>>,
+        insertion_submaps: &[(usize, Rigid2)],
+        finished_submaps: Vec<(usize, ProbabilityGrid)>,
+    ) -> (NodeId, Vec<GlobalSlamEvent>) {
+        let mut events = Vec::new();
+        let index = self.last_node.get(&trajectory).map_or(0, |n| n.index + 1);
+        let id = NodeId { trajectory, index };
+        let global_from_local = self.global_from_local(trajectory);
+        self.graph.add_variable(VariableId::Node(id), global_from_local * local_pose);
+        if self.nodes.is_empty() {
+            self.graph.set_fixed(VariableId::Node(id), true);
+        }
+
+        let mut node_submaps = Vec::with_capacity(insertion_submaps.len());
+        for &(submap_index, local_from_submap) in insertion_submaps {
+            let sid = SubmapId { trajectory, index: submap_index as u32 };
+            if !self.submaps.contains_key(&sid) {
+                self.graph.add_variable(VariableId::Submap(sid), global_from_local * local_from_submap);
+                self.submaps.insert(sid, SubmapRecord { local_pose: local_from_submap, grid: None, nodes: Vec::new() });
+                self.samplers.insert(sid, FixedRatioSampler::new(self.options.constraint_builder.sampling_ratio));
+                events.push(GlobalSlamEvent::SubmapAdded(sid));
+            }
+            let Some(submap) = self.submaps.get_mut(&sid) else { continue };
+            submap.nodes.push(id);
+            self.graph.add_constraint(Constraint {
+                kind: ConstraintKind::NodeToSubmapIntra,
+                from: VariableId::Submap(sid),
+                to: VariableId::Node(id),
+                from_from_to: submap.local_pose.inverse() * local_pose,
+                information: information(
+                    self.options.intra_submap_translation_sigma,
+                    self.options.intra_submap_rotation_sigma,
+                ),
+                loss: RobustLoss::Trivial,
+            });
+            node_submaps.push(sid);
+        }
+
+        if let Some(previous) = self.last_node.get(&trajectory).and_then(|p| self.nodes.get(p).map(|r| (*p, r))) {
+            let (previous_id, previous_record) = previous;
+            self.graph.add_constraint(Constraint {
+                kind: ConstraintKind::Odometry,
+                from: VariableId::Node(previous_id),
+                to: VariableId::Node(id),
+                from_from_to: previous_record.local_pose.inverse() * local_pose,
+                information: information(self.options.odometry_translation_sigma, self.options.odometry_rotation_sigma),
+                loss: RobustLoss::Trivial,
+            });
+        }
+        self.nodes.insert(id, NodeRecord { time, local_pose, points: Arc::new(points), submaps: node_submaps });
+        self.last_node.insert(trajectory, id);
+
+        for (submap_index, grid) in finished_submaps {
+            let sid = SubmapId { trajectory, index: submap_index as u32 };
+            self.finish_submap(sid, grid);
+            events.push(GlobalSlamEvent::SubmapFinished(sid));
+        }
+        self.queue_searches_for_node(id);
+        self.nodes_since_optimization += 1;
+        (id, events)
+    }
+
+    fn finish_submap(&mut self, sid: SubmapId, grid: ProbabilityGrid) {
+        let Some(submap) = self.submaps.get_mut(&sid) else { return };
+        let grid = Arc::new(grid);
+        submap.grid = Some(Arc::clone(&grid));
+        let local_pose = submap.local_pose;
+        self.builder.add_finished_submap(sid, local_pose, grid);
+        let node_ids: Vec<NodeId> = self.nodes.keys().copied().collect();
+        for node in node_ids {
+            self.maybe_queue_search(node, sid);
+        }
+    }
+
+    fn queue_searches_for_node(&mut self, node: NodeId) {
+        let finished: Vec<SubmapId> =
+            self.submaps.iter().filter(|(_, s)| s.grid.is_some()).map(|(id, _)| *id).collect();
+        for sid in finished {
+            self.maybe_queue_search(node, sid);
+        }
+    }
+
+    fn maybe_queue_search(&mut self, node: NodeId, sid: SubmapId) {
+        let (Some(record), Some(submap)) = (self.nodes.get(&node), self.submaps.get(&sid)) else { return };
+        if record.submaps.contains(&sid) {
+            return;
+        }
+        let (Some(global_node), Some(global_submap)) =
+            (self.graph.pose(VariableId::Node(node)), self.graph.pose(VariableId::Submap(sid)))
+        else {
+            return;
+        };
+        let submap_from_node = global_submap.inverse() * global_node;
+        if submap_from_node.translation.vector.norm() > self.options.constraint_builder.max_constraint_distance {
+            return;
+        }
+        debug_assert!(submap.grid.is_some());
+        if !self.samplers.get_mut(&sid).is_some_and(FixedRatioSampler::pulse) {
+            return;
+        }
+        self.pending_jobs.push(SearchJob {
+            submap: sid,
+            node,
+            points: Arc::clone(&record.points),
+            submap_from_node_estimate: Some(submap_from_node),
+        });
+    }
+
+    /// The loop-closure searches queued since the last call. Run them with
+    /// [`ConstraintBuilder::run`] (from [`Self::constraint_builder`], in parallel if you like) and hand
+    /// the accepted ones to [`Self::add_search_results`].
+    pub fn take_search_jobs(&mut self) -> Vec<SearchJob> {
+        std::mem::take(&mut self.pending_jobs)
+    }
+
+    /// The matcher that runs search jobs.
+    pub fn constraint_builder(&self) -> &ConstraintBuilder {
+        &self.builder
+    }
+
+    /// Adds accepted loop closures as robust node-to-submap constraints, then optimizes if
+    /// `optimize_every_n_nodes` nodes arrived since the last optimization.
+    pub fn add_search_results(&mut self, results: impl IntoIterator<Item = LoopClosure>) -> Vec<GlobalSlamEvent> {
+        let mut events = Vec::new();
+        let cb = &self.options.constraint_builder;
+        for closure in results {
+            if !self.nodes.contains_key(&closure.node) || !self.submaps.contains_key(&closure.submap) {
+                continue;
+            }
+            self.graph.add_constraint(Constraint {
+                kind: ConstraintKind::NodeToSubmapInter,
+                from: VariableId::Submap(closure.submap),
+                to: VariableId::Node(closure.node),
+                from_from_to: closure.submap_from_node,
+                information: information(cb.loop_closure_translation_sigma, cb.loop_closure_rotation_sigma),
+                loss: RobustLoss::Huber { delta: cb.huber_scale },
+            });
+            self.loop_closure_scores.push(closure.score);
+            events.push(GlobalSlamEvent::LoopClosureAdded(closure));
+        }
+        let n = self.options.optimize_every_n_nodes;
+        if n > 0 && self.nodes_since_optimization >= n {
+            events.push(GlobalSlamEvent::Optimized(self.optimize()));
+        }
+        events
+    }
+
+    /// Runs every queued search on this thread and adds the results.
+    pub fn run_pending_searches(&mut self) -> Vec<GlobalSlamEvent> {
+        let jobs = self.take_search_jobs();
+        let results: Vec<LoopClosure> = jobs.iter().filter_map(|j| self.builder.run(j)).collect();
+        self.add_search_results(results)
+    }
+
+    /// Optimizes the whole graph now and updates each trajectory's `global_from_local`.
+    pub fn optimize(&mut self) -> OptimizationSummary {
+        let summary = self.optimizer.optimize(&mut self.graph);
+        self.nodes_since_optimization = 0;
+        for (&trajectory, last) in &self.last_node {
+            if let (Some(global), Some(record)) = (self.graph.pose(VariableId::Node(*last)), self.nodes.get(last)) {
+                self.global_from_local.insert(trajectory, global * record.local_pose.inverse());
+            }
+        }
+        summary
+    }
+
+    /// `global_from_local` of a trajectory: where its LLO frame sits in the map (identity before its first
+    /// optimization).
+    pub fn global_from_local(&self, trajectory: u32) -> Rigid2 {
+        self.global_from_local.get(&trajectory).copied().unwrap_or_else(Rigid2::identity)
+    }
+
+    /// Current global pose of a node.
+    pub fn node_pose(&self, id: NodeId) -> Option<Rigid2> {
+        self.graph.pose(VariableId::Node(id))
+    }
+
+    /// Current global pose of a submap.
+    pub fn submap_pose(&self, id: SubmapId) -> Option<Rigid2> {
+        self.graph.pose(VariableId::Submap(id))
+    }
+
+    /// All nodes, by id.
+    pub fn nodes(&self) -> &BTreeMap<NodeId, NodeRecord> {
+        &self.nodes
+    }
+
+    /// All submaps, by id.
+    pub fn submaps(&self) -> &BTreeMap<SubmapId, SubmapRecord> {
+        &self.submaps
+    }
+
+    /// The pose graph.
+    pub fn graph(&self) -> &PoseGraph {
+        &self.graph
+    }
+
+    /// Scores of every accepted loop closure, in acceptance order (their mean is the paper's AMS).
+    pub fn loop_closure_scores(&self) -> &[f32] {
+        &self.loop_closure_scores
+    }
+}

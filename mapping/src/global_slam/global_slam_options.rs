@@ -1,0 +1,101 @@
+//! Options of the global SLAM back end.
+
+use serde::{Deserialize, Serialize};
+
+use super::ConstraintBuilderOptions;
+use crate::pose_graph::OptimizerOptions;
+
+/// Invalid [`GlobalSlamOptions`].
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum GlobalSlamOptionsError {
+    /// A standard deviation is not a positive finite number.
+    #[error("{name} must be a positive finite number of {unit}, got {value}")]
+    NonPositiveSigma {
+        /// Option name.
+        name: &'static str,
+        /// Its unit.
+        unit: &'static str,
+        /// Offending value.
+        value: f64,
+    },
+    /// A ratio is outside `[0, 1]`.
+    #[error("{name} must be in [0, 1], got {value}")]
+    RatioOutOfRange {
+        /// Option name.
+        name: &'static str,
+        /// Offending value.
+        value: f64,
+    },
+    /// Another option is invalid.
+    #[error("{0}")]
+    Invalid(String),
+}
+
+/// How LLO's nodes and submaps become a pose graph, and how often it is optimized.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct GlobalSlamOptions {
+    /// Optimize the graph every this many new nodes (0: only when asked). Default 90 (one submap's worth).
+    pub optimize_every_n_nodes: usize,
+    /// Standard deviation (m) of a node's translation relative to a submap it was inserted into, as given by
+    /// LLO's scan-to-submap matching. Default 0.05 m.
+    pub intra_submap_translation_sigma: f64,
+    /// Standard deviation (rad) of that relative rotation. Default 0.01 rad.
+    pub intra_submap_rotation_sigma: f64,
+    /// Standard deviation (m) of the translation between consecutive nodes of a trajectory, from LLO's
+    /// relative motion. Default 0.02 m.
+    pub odometry_translation_sigma: f64,
+    /// Standard deviation (rad) of the rotation between consecutive nodes. Default 0.005 rad.
+    pub odometry_rotation_sigma: f64,
+    /// Loop-closure search (GLM).
+    pub constraint_builder: ConstraintBuilderOptions,
+    /// Sparse Levenberg-Marquardt settings.
+    pub optimizer: OptimizerOptions,
+}
+
+impl Default for GlobalSlamOptions {
+    fn default() -> Self {
+        Self {
+            optimize_every_n_nodes: 90,
+            intra_submap_translation_sigma: 0.05,
+            intra_submap_rotation_sigma: 0.01,
+            odometry_translation_sigma: 0.02,
+            odometry_rotation_sigma: 0.005,
+            constraint_builder: ConstraintBuilderOptions::default(),
+            optimizer: OptimizerOptions::default(),
+        }
+    }
+}
+
+pub(crate) fn check_sigma(name: &'static str, unit: &'static str, value: f64) -> Result<(), GlobalSlamOptionsError> {
+    if value.is_finite() && value > 0.0 {
+        Ok(())
+    } else {
+        Err(GlobalSlamOptionsError::NonPositiveSigma { name, unit, value })
+    }
+}
+
+impl GlobalSlamOptions {
+    /// Checks every field.
+    pub fn validate(&self) -> Result<(), GlobalSlamOptionsError> {
+        check_sigma("intra_submap_translation_sigma", "m", self.intra_submap_translation_sigma)?;
+        check_sigma("intra_submap_rotation_sigma", "rad", self.intra_submap_rotation_sigma)?;
+        check_sigma("odometry_translation_sigma", "m", self.odometry_translation_sigma)?;
+        check_sigma("odometry_rotation_sigma", "rad", self.odometry_rotation_sigma)?;
+        self.constraint_builder.validate()?;
+        self.optimizer.validate().map_err(|e| GlobalSlamOptionsError::Invalid(e.to_string()))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_are_valid_and_bad_sigmas_are_named() {
+        assert_eq!(GlobalSlamOptions::default().validate(), Ok(()));
+        let bad = GlobalSlamOptions { odometry_rotation_sigma: 0.0, ..Default::default() };
+        let err = bad.validate().unwrap_err().to_string();
+        assert!(err.contains("odometry_rotation_sigma"), "{err}");
+    }
+}
