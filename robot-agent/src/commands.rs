@@ -1,0 +1,3 @@
+//! The agent's subcommands, one file each.
+
+pub mod offline;
