@@ -1,26 +1,12 @@
 //! `evermap-agent`: runs on each robot; also offers offline tools on recordings.
 
-mod commands;
+use clap::Parser;
 
-use clap::{Parser, Subcommand};
-
-/// evermap robot agent: local LiDAR odometry and global matching, and offline tools on recordings.
+/// evermap robot agent.
 #[derive(Parser)]
 #[command(version, about)]
-struct Cli {
-    #[command(subcommand)]
-    command: Command,
-}
+struct Cli {}
 
-#[derive(Subcommand)]
-enum Command {
-    /// Maps a whole recording (LLO + GLM + PGR in one process) and writes the trajectory, the map and a report.
-    Offline(commands::offline::OfflineArgs),
-}
-
-fn main() -> anyhow::Result<()> {
-    let cli = Cli::parse();
-    match cli.command {
-        Command::Offline(args) => commands::offline::run(&args),
-    }
+fn main() {
+    Cli::parse();
 }
