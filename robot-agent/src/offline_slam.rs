@@ -7,18 +7,18 @@ use std::collections::BTreeMap;
 use std::sync::mpsc;
 
 use mapping::geometry::Rigid2;
-use mapping::global_slam::{GlobalSlam, GlobalSlamEvent, GlobalSlamOptions, GlobalSlamOptionsError};
+use mapping::global_slam::{GlobalSlam, GlobalSlamError, GlobalSlamEvent, GlobalSlamOptions};
 use mapping::grid::ProbabilityGrid;
 use mapping::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
 use mapping::pose_graph::{NodeId, OptimizationSummary};
 use mapping::sensor::{RangeData, RangeStats, SensorEvent, Timestamp};
 use nalgebra::Point2;
-use serde::{Deserialize, Serialize};
+use serde::Deserialize;
 
 use crate::source::Recording;
 
 /// Everything the agent's SLAM can be configured with; one TOML file, every field optional.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct SlamConfig {
     /// Local LiDAR odometry (LLO).
@@ -30,9 +30,9 @@ pub struct SlamConfig {
 /// Errors of the offline pipeline.
 #[derive(Debug, thiserror::Error)]
 pub enum OfflineError {
-    /// The configuration is invalid.
-    #[error("invalid global SLAM configuration: {0}")]
-    GlobalOptions(#[from] GlobalSlamOptionsError),
+    /// Global SLAM refused the configuration or a node.
+    #[error("global SLAM: {0}")]
+    Global(#[from] GlobalSlamError),
     /// The configuration is invalid.
     #[error("invalid local SLAM configuration: {0}")]
     LocalOptions(String),
@@ -165,7 +165,7 @@ pub fn run_offline(
         drop(sender);
         let (global, optimizations, final_optimization) = worker
             .join()
-            .map_err(|_| OfflineError::Worker("the global SLAM thread panicked".into()))?;
+            .map_err(|_| OfflineError::Worker("the global SLAM thread panicked".into()))??;
 
         let scan_poses = anchors
             .iter()
@@ -194,17 +194,17 @@ pub fn run_offline(
 fn global_worker(
     mut global: GlobalSlam,
     receiver: &mpsc::Receiver<WorkerMessage>,
-) -> (GlobalSlam, usize, OptimizationSummary) {
+) -> Result<(GlobalSlam, usize, OptimizationSummary), GlobalSlamError> {
     let mut optimizations = 0;
     for message in receiver {
         match message {
             WorkerMessage::Node { time, local_pose, points, insertion_submaps, finished_submaps } => {
-                global.add_node(0, time, local_pose, points, &insertion_submaps, finished_submaps);
+                global.add_node(0, time, local_pose, points, &insertion_submaps, finished_submaps)?;
                 let events = global.run_pending_searches();
                 optimizations += events.iter().filter(|e| matches!(e, GlobalSlamEvent::Optimized(_))).count();
             }
         }
     }
     let summary = global.optimize();
-    (global, optimizations, summary)
+    Ok((global, optimizations, summary))
 }

@@ -9,7 +9,7 @@ use std::collections::BTreeMap;
 use std::sync::Arc;
 
 use nalgebra::Point2;
-use serde::{Deserialize, Serialize};
+use serde::Deserialize;
 
 use super::GlobalSlamOptionsError;
 use super::global_slam_options::check_sigma;
@@ -22,7 +22,7 @@ use crate::scan_matching::{
 };
 
 /// Loop-closure search settings.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct ConstraintBuilderOptions {
     /// Fraction of candidate (node, submap) pairs that are searched, in `[0, 1]`. Default 0.3.

@@ -11,7 +11,8 @@ use super::{
 use crate::geometry::Rigid2;
 use crate::grid::ProbabilityGrid;
 use crate::pose_graph::{
-    Constraint, ConstraintKind, NodeId, OptimizationSummary, Optimizer, PoseGraph, RobustLoss, SubmapId, VariableId,
+    Constraint, ConstraintKind, NodeId, OptimizationSummary, Optimizer, PoseGraph, PoseGraphError, RobustLoss, SubmapId,
+    VariableId,
 };
 use crate::sensor::Timestamp;
 
@@ -52,6 +53,22 @@ pub enum GlobalSlamEvent {
     Optimized(OptimizationSummary),
 }
 
+/// Errors of [`GlobalSlam`].
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum GlobalSlamError {
+    /// The options are invalid.
+    #[error(transparent)]
+    Options(#[from] GlobalSlamOptionsError),
+    /// A node or constraint was refused by the pose graph (non-finite pose, bad information matrix).
+    #[error("pose graph refused node {node:?}: {source}")]
+    Graph {
+        /// The node being added.
+        node: NodeId,
+        /// Why.
+        source: PoseGraphError,
+    },
+}
+
 /// Pose graph, loop-closure search and optimization over LLO's output.
 pub struct GlobalSlam {
     options: GlobalSlamOptions,
@@ -75,11 +92,13 @@ fn information(translation_sigma: f64, rotation_sigma: f64) -> Matrix3<f64> {
 
 impl GlobalSlam {
     /// An empty map.
-    pub fn new(options: GlobalSlamOptions) -> Result<Self, GlobalSlamOptionsError> {
+    pub fn new(options: GlobalSlamOptions) -> Result<Self, GlobalSlamError> {
         options.validate()?;
+        let optimizer = Optimizer::new(options.optimizer.clone())
+            .map_err(|e| GlobalSlamOptionsError::Invalid(e.to_string()))?;
         Ok(Self {
             graph: PoseGraph::new(),
-            optimizer: Optimizer::new(options.optimizer.clone()),
+            optimizer,
             builder: ConstraintBuilder::new(options.constraint_builder.clone()),
             options,
             nodes: BTreeMap::new(),
@@ -105,21 +124,24 @@ impl GlobalSlam {
         points: Vec<Point2<f32>>,
         insertion_submaps: &[(usize, Rigid2)],
         finished_submaps: Vec<(usize, ProbabilityGrid)>,
-    ) -> (NodeId, Vec<GlobalSlamEvent>) {
+    ) -> Result<(NodeId, Vec<GlobalSlamEvent>), GlobalSlamError> {
         let mut events = Vec::new();
         let index = self.last_node.get(&trajectory).map_or(0, |n| n.index + 1);
         let id = NodeId { trajectory, index };
+        let graph_error = |source| GlobalSlamError::Graph { node: id, source };
         let global_from_local = self.global_from_local(trajectory);
-        self.graph.add_variable(VariableId::Node(id), global_from_local * local_pose);
+        self.graph.add_variable(VariableId::Node(id), global_from_local * local_pose).map_err(graph_error)?;
         if self.nodes.is_empty() {
-            self.graph.set_fixed(VariableId::Node(id), true);
+            self.graph.set_fixed(VariableId::Node(id), true).map_err(graph_error)?;
         }
 
         let mut node_submaps = Vec::with_capacity(insertion_submaps.len());
         for &(submap_index, local_from_submap) in insertion_submaps {
             let sid = SubmapId { trajectory, index: submap_index as u32 };
             if !self.submaps.contains_key(&sid) {
-                self.graph.add_variable(VariableId::Submap(sid), global_from_local * local_from_submap);
+                self.graph
+                    .add_variable(VariableId::Submap(sid), global_from_local * local_from_submap)
+                    .map_err(graph_error)?;
                 self.submaps.insert(sid, SubmapRecord { local_pose: local_from_submap, grid: None, nodes: Vec::new() });
                 self.samplers.insert(sid, FixedRatioSampler::new(self.options.constraint_builder.sampling_ratio));
                 events.push(GlobalSlamEvent::SubmapAdded(sid));
@@ -136,7 +158,7 @@ impl GlobalSlam {
                     self.options.intra_submap_rotation_sigma,
                 ),
                 loss: RobustLoss::Trivial,
-            });
+            }).map_err(graph_error)?;
             node_submaps.push(sid);
         }
 
@@ -149,7 +171,7 @@ impl GlobalSlam {
                 from_from_to: previous_record.local_pose.inverse() * local_pose,
                 information: information(self.options.odometry_translation_sigma, self.options.odometry_rotation_sigma),
                 loss: RobustLoss::Trivial,
-            });
+            }).map_err(graph_error)?;
         }
         self.nodes.insert(id, NodeRecord { time, local_pose, points: Arc::new(points), submaps: node_submaps });
         self.last_node.insert(trajectory, id);
@@ -161,7 +183,7 @@ impl GlobalSlam {
         }
         self.queue_searches_for_node(id);
         self.nodes_since_optimization += 1;
-        (id, events)
+        Ok((id, events))
     }
 
     fn finish_submap(&mut self, sid: SubmapId, grid: ProbabilityGrid) {
@@ -231,7 +253,7 @@ impl GlobalSlam {
             if !self.nodes.contains_key(&closure.node) || !self.submaps.contains_key(&closure.submap) {
                 continue;
             }
-            self.graph.add_constraint(Constraint {
+            let added = self.graph.add_constraint(Constraint {
                 kind: ConstraintKind::NodeToSubmapInter,
                 from: VariableId::Submap(closure.submap),
                 to: VariableId::Node(closure.node),
@@ -239,6 +261,9 @@ impl GlobalSlam {
                 information: information(cb.loop_closure_translation_sigma, cb.loop_closure_rotation_sigma),
                 loss: RobustLoss::Huber { delta: cb.huber_scale },
             });
+            if added.is_err() {
+                continue; // a non-finite match; nothing to learn from it
+            }
             self.loop_closure_scores.push(closure.score);
             events.push(GlobalSlamEvent::LoopClosureAdded(closure));
         }

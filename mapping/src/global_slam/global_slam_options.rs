@@ -1,6 +1,6 @@
 //! Options of the global SLAM back end.
 
-use serde::{Deserialize, Serialize};
+use serde::Deserialize;
 
 use super::ConstraintBuilderOptions;
 use crate::pose_graph::OptimizerOptions;
@@ -32,7 +32,7 @@ pub enum GlobalSlamOptionsError {
 }
 
 /// How LLO's nodes and submaps become a pose graph, and how often it is optimized.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct GlobalSlamOptions {
     /// Optimize the graph every this many new nodes (0: only when asked). Default 90 (one submap's worth).
