@@ -18,6 +18,9 @@ pub struct OptimizeArgs {
     /// Write the optimized graph here, as g2o.
     #[arg(long, value_name = "FILE")]
     pub out: Option<PathBuf>,
+    /// Start from the file's values only, without trying the rotation-first initial guess.
+    #[arg(long)]
+    pub no_rotation_init: bool,
     /// Override the maximum number of Levenberg–Marquardt steps.
     #[arg(long)]
     pub max_iterations: Option<usize>,
@@ -31,10 +34,12 @@ pub fn run(args: &OptimizeArgs) -> Result<()> {
     let parsed = read_pose_graph(BufReader::new(file))
         .with_context(|| format!("cannot read pose graph {}", args.input.display()))?;
     let mut graph = parsed.graph;
-    let mut options = OptimizerOptions::default();
-    if let Some(max_iterations) = args.max_iterations {
-        options.max_iterations = max_iterations;
-    }
+    let defaults = OptimizerOptions::default();
+    let options = OptimizerOptions {
+        rotation_first_initialization: !args.no_rotation_init,
+        max_iterations: args.max_iterations.unwrap_or(defaults.max_iterations),
+        ..defaults
+    };
     let mut optimizer = Optimizer::new(options).context("invalid optimizer options")?;
     let start = Instant::now();
     let summary = optimizer.optimize(&mut graph);

@@ -381,3 +381,38 @@ fn degenerate_graphs_do_not_panic() {
     assert!(summary.termination.is_converged(), "{summary:?}");
     assert_eq!(lonely.pose(node(9)), Some(rigid2(4.0, 5.0, 6.0)));
 }
+
+#[test]
+fn rotation_first_initialization_solves_exact_graphs_from_scratch() {
+    let (mut graph, truth) = square_world(24, RobustLoss::Trivial);
+    let ids: Vec<VariableId> = graph.variables().map(|(id, _, _)| id).skip(1).collect();
+    for id in ids {
+        graph.set_pose(id, Rigid2::identity()).unwrap();
+    }
+    let options = OptimizerOptions {
+        rotation_first_initialization: true,
+        ..OptimizerOptions::default()
+    };
+    let summary = Optimizer::new(options).unwrap().optimize(&mut graph);
+    assert!(summary.termination.is_converged(), "{summary:?}");
+    // Noise-free measurements: the two linear solves land on the optimum, leaving LM nothing to do.
+    assert!(summary.iterations <= 2, "{summary:?}");
+    assert!(max_pose_error(&graph, &truth) < 1e-6);
+}
+
+#[test]
+fn rotation_first_initialization_is_ignored_when_worse_than_the_current_estimate() {
+    let (mut graph, truth) = square_world(24, RobustLoss::Trivial);
+    for (k, t) in truth.iter().enumerate() {
+        graph.set_pose(node(k as u32), *t).unwrap();
+    }
+    let options = OptimizerOptions {
+        rotation_first_initialization: true,
+        ..OptimizerOptions::default()
+    };
+    let summary = Optimizer::new(options).unwrap().optimize(&mut graph);
+    assert!(
+        summary.initial_chi2 < 1e-20 && summary.final_chi2 < 1e-20,
+        "{summary:?}"
+    );
+}
