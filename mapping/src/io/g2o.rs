@@ -367,3 +367,207 @@ pub fn write_pose_graph(graph: &PoseGraph, mut writer: impl Write) -> Result<(),
     }
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use approx::assert_relative_eq;
+
+    use super::*;
+
+    fn read(text: &str) -> Result<ParsedGraph, G2oError> {
+        read_pose_graph(text.as_bytes())
+    }
+
+    fn pose(graph: &PoseGraph, index: u32) -> Rigid2 {
+        graph.pose(node(index)).unwrap()
+    }
+
+    #[test]
+    fn reads_g2o_vertices_edges_and_full_information() {
+        let parsed = read(
+            "# comment\n\
+             VERTEX_SE2 0 0 0 0\n\
+             VERTEX_SE2 1 1.5 -0.5 0.25\n\
+             \n\
+             EDGE_SE2 0 1 1.4 -0.4 0.2 1 2 3 4 5 6\n\
+             FIX 0\n",
+        )
+        .unwrap();
+        assert_eq!(parsed.format, GraphFormat::G2o);
+        assert_eq!(
+            (
+                parsed.vertex_lines,
+                parsed.edge_lines,
+                parsed.initialized_from_edges
+            ),
+            (2, 1, 0)
+        );
+        let graph = &parsed.graph;
+        assert_relative_eq!(pose(graph, 1), rigid2(1.5, -0.5, 0.25));
+        assert_eq!(graph.is_fixed(node(0)), Some(true));
+        let (_, c) = graph.constraints().next().unwrap();
+        assert_eq!(c.kind, ConstraintKind::Odometry);
+        assert_eq!(
+            c.information,
+            Matrix3::new(1.0, 2.0, 3.0, 2.0, 4.0, 5.0, 3.0, 5.0, 6.0)
+        );
+        assert_relative_eq!(c.from_from_to, rigid2(1.4, -0.4, 0.2));
+    }
+
+    #[test]
+    fn reads_toro_information_order() {
+        // TORO: I11 I12 I22 I33 I13 I23.
+        let parsed =
+            read("VERTEX2 3 0 0 0\nVERTEX2 7 1 0 0\nEDGE2 3 7 1 0 0 1 2 4 6 3 5\n").unwrap();
+        assert_eq!(parsed.format, GraphFormat::Toro);
+        let (_, c) = parsed.graph.constraints().next().unwrap();
+        assert_eq!(c.kind, ConstraintKind::NodeToNode);
+        assert_eq!(
+            c.information,
+            Matrix3::new(1.0, 2.0, 3.0, 2.0, 4.0, 5.0, 3.0, 5.0, 6.0)
+        );
+    }
+
+    #[test]
+    fn edges_only_files_are_initialized_by_the_odometry_chain_then_bfs() {
+        let parsed = read(
+            "EDGE_SE2 0 1 1 0 1.5707963267948966 1 0 0 1 0 1\n\
+             EDGE_SE2 1 2 1 0 0 1 0 0 1 0 1\n\
+             EDGE_SE2 0 2 5 5 0 1 0 0 1 0 1\n\
+             EDGE_SE2 2 9 0 2 0 1 0 0 1 0 1\n",
+        )
+        .unwrap();
+        assert_eq!(parsed.vertex_lines, 0);
+        assert_eq!(parsed.initialized_from_edges, 4);
+        let graph = &parsed.graph;
+        assert_relative_eq!(pose(graph, 0), Rigid2::identity());
+        assert_relative_eq!(
+            pose(graph, 1),
+            rigid2(1.0, 0.0, std::f64::consts::FRAC_PI_2),
+            epsilon = 1e-12
+        );
+        // The chain (0→1→2), not the conflicting loop edge 0→2, places node 2.
+        assert_relative_eq!(
+            pose(graph, 2),
+            rigid2(1.0, 1.0, std::f64::consts::FRAC_PI_2),
+            epsilon = 1e-12
+        );
+        // Node 9 is off the chain: reached by BFS through 2→9.
+        assert_relative_eq!(
+            pose(graph, 9),
+            rigid2(-1.0, 1.0, std::f64::consts::FRAC_PI_2),
+            epsilon = 1e-12
+        );
+    }
+
+    #[test]
+    fn missing_vertices_chain_backwards_from_known_ones() {
+        let parsed = read("VERTEX_SE2 1 10 0 0\nEDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\n").unwrap();
+        assert_relative_eq!(
+            pose(&parsed.graph, 0),
+            rigid2(9.0, 0.0, 0.0),
+            epsilon = 1e-12
+        );
+    }
+
+    #[test]
+    fn errors_carry_line_numbers() {
+        let cases = [
+            (
+                "VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 0 0\n",
+                2,
+                "needs 4 fields",
+            ),
+            (
+                "VERTEX_SE2 0 0 0 0\n\nEDGE_SE2 0 1 a 0 0 1 0 0 1 0 1\n",
+                3,
+                "not a finite number",
+            ),
+            ("VERTEX_SE2 -1 0 0 0\n", 1, "not a valid vertex id"),
+            ("VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\n", 1, "unknown tag"),
+            (
+                "VERTEX_SE2 0 0 0 0\nVERTEX_SE2 0 1 0 0\n",
+                2,
+                "already exists",
+            ),
+            (
+                "VERTEX_SE2 0 0 0 0\nEDGE_SE2 0 0 1 0 0 1 0 0 1 0 1\n",
+                2,
+                "to itself",
+            ),
+            (
+                "VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 0 0 0\nEDGE_SE2 0 1 1 0 0 1 0 0 -1 0 1\n",
+                3,
+                "information",
+            ),
+        ];
+        assert!(cases.len() >= 3);
+        for (text, line, needle) in cases {
+            let message = read(text).unwrap_err().to_string();
+            assert!(message.starts_with(&format!("line {line}:")), "{message}");
+            assert!(message.contains(needle), "{message} lacks {needle:?}");
+        }
+        assert!(matches!(read("# nothing\n"), Err(G2oError::Empty)));
+    }
+
+    #[test]
+    fn write_then_read_round_trips_exactly() {
+        let text = "VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1.0000000000000002 -3.3 2.9\nVERTEX_SE2 5 7 8 -1\n\
+                    EDGE_SE2 0 1 1 0.1 0.3 10 0.5 0.25 20 0.125 30\nEDGE_SE2 1 5 2 2 2 1 0 0 1 0 1\nFIX 1\n";
+        let graph = read(text).unwrap().graph;
+        let mut out = Vec::new();
+        write_pose_graph(&graph, &mut out).unwrap();
+        let again = read_pose_graph(out.as_slice()).unwrap().graph;
+        assert_eq!(
+            graph.variables().collect::<Vec<_>>(),
+            again.variables().collect::<Vec<_>>()
+        );
+        let edges = |g: &PoseGraph| g.constraints().map(|(_, c)| c.clone()).collect::<Vec<_>>();
+        assert_eq!(edges(&graph), edges(&again));
+    }
+
+    #[test]
+    fn writer_rejects_ids_it_cannot_express() {
+        let mut graph = PoseGraph::new();
+        let id = VariableId::Node(NodeId {
+            trajectory: 1,
+            index: 0,
+        });
+        graph.add_variable(id, Rigid2::identity()).unwrap();
+        assert!(
+            matches!(write_pose_graph(&graph, Vec::new()), Err(G2oError::NotRepresentable(v)) if v == id)
+        );
+    }
+
+    #[test]
+    fn reads_csail_edges_only_file() {
+        let path = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+        let Some(path) = path
+            .ancestors()
+            .map(|d| d.join("shared/datasets/posegraphs/CSAIL.g2o"))
+            .find(|p| p.exists())
+        else {
+            panic!("CSAIL.g2o not found above {}", path.display());
+        };
+        let parsed =
+            read_pose_graph(std::io::BufReader::new(std::fs::File::open(path).unwrap())).unwrap();
+        assert_eq!(
+            (parsed.graph.num_variables(), parsed.graph.num_constraints()),
+            (1045, 1172)
+        );
+        assert_eq!(parsed.initialized_from_edges, 1045);
+        // Odometry edges are satisfied exactly by the chain initialisation.
+        for (_, c) in parsed
+            .graph
+            .constraints()
+            .filter(|(_, c)| c.kind == ConstraintKind::Odometry)
+            .take(50)
+        {
+            let chi2 = c.chi2(
+                &parsed.graph.pose(c.from).unwrap(),
+                &parsed.graph.pose(c.to).unwrap(),
+            );
+            assert!(chi2 < 1e-12, "{chi2}");
+        }
+    }
+}

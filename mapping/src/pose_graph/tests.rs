@@ -416,3 +416,22 @@ fn rotation_first_initialization_is_ignored_when_worse_than_the_current_estimate
         "{summary:?}"
     );
 }
+
+#[test]
+fn reaches_best_known_chi2_on_csail_from_the_odometry_chain() {
+    let graph = dataset("CSAIL.g2o");
+    for rotation_first_initialization in [false, true] {
+        let mut graph = graph.clone();
+        let options = OptimizerOptions {
+            rotation_first_initialization,
+            ..OptimizerOptions::default()
+        };
+        let summary = Optimizer::new(options).unwrap().optimize(&mut graph);
+        let best = 40.5551;
+        assert!(summary.termination.is_converged(), "{summary:?}");
+        assert!(
+            (summary.final_chi2 - best).abs() <= 1e-4 * best,
+            "{summary:?}"
+        );
+    }
+}
