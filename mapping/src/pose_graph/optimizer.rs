@@ -58,11 +58,11 @@ pub struct OptimizerOptions {
 }
 
 impl OptimizerOptions {
-    /// The defaults: tolerances tight enough to land within 1e-6 relative of the optimum on the
-    /// benchmark graphs.
+    /// The defaults: on the benchmark graphs (ring, CSAIL, Intel, M3500, City10000) they stop within
+    /// 2e-5 relative of the optimum, the looser GTSAM default (1e-5 relative decrease) within ~1e-4.
     pub const DEFAULT: Self = Self {
         max_iterations: 100,
-        function_tolerance: 1e-8,
+        function_tolerance: 1e-6,
         parameter_tolerance: 1e-10,
         gradient_tolerance: 1e-10,
         initial_lambda: 1e-8,
