@@ -836,3 +836,123 @@ fn levenberg_marquardt(
         nu *= 2.0;
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::rigid2;
+    use crate::pose_graph::{Constraint, ConstraintKind, NodeId, RobustLoss};
+
+    /// A small graph with mixed losses, full information matrices and one fixed variable.
+    fn graph() -> PoseGraph {
+        let node = |index| {
+            VariableId::Node(NodeId {
+                trajectory: 0,
+                index,
+            })
+        };
+        let mut graph = PoseGraph::new();
+        for k in 0..5u32 {
+            let t = f64::from(k);
+            graph
+                .add_variable(node(k), rigid2(t, 0.3 * t * t, 0.7 * t - 1.0))
+                .unwrap();
+        }
+        graph.set_fixed(node(2), true).unwrap();
+        let information = Matrix3::new(30.0, 2.0, 1.0, 2.0, 20.0, -1.5, 1.0, -1.5, 50.0);
+        let losses = [
+            RobustLoss::Trivial,
+            RobustLoss::Huber { delta: 0.5 },
+            RobustLoss::Cauchy { scale: 1.0 },
+        ];
+        let edges = [(0, 1), (1, 2), (2, 3), (3, 4), (0, 3), (4, 1), (2, 0)];
+        for (k, &(a, b)) in edges.iter().enumerate() {
+            graph
+                .add_constraint(Constraint {
+                    kind: ConstraintKind::NodeToNode,
+                    from: node(a),
+                    to: node(b),
+                    from_from_to: rigid2(0.9, -0.2 + 0.1 * k as f64, 0.5),
+                    information,
+                    loss: losses[k % 3],
+                })
+                .unwrap();
+        }
+        graph
+    }
+
+    #[test]
+    fn assembled_gradient_matches_finite_differences_of_the_cost() {
+        let graph = graph();
+        let mut problem = Problem::new(&graph);
+        assert_eq!(
+            problem.num_free, 4,
+            "node 2 is fixed, so no implicit gauge is added"
+        );
+        let pattern = BlockPattern::new(
+            problem.num_free,
+            problem
+                .edges
+                .iter()
+                .filter(|e| e.cross_block != NO_BLOCK)
+                .map(|e| {
+                    (
+                        problem.free_index[e.from as usize],
+                        problem.free_index[e.to as usize],
+                    )
+                }),
+        );
+        problem.assign_blocks(&pattern);
+        let mut hessian = vec![0.0; pattern.nnz()];
+        let mut gradient = vec![0.0; pattern.dim()];
+        problem.linearize(&pattern, &mut hessian, &mut gradient);
+        let h = 1e-6;
+        let mut checked = 0;
+        for (v, &f) in problem.free_index.iter().enumerate() {
+            if f == u32::MAX {
+                continue;
+            }
+            for k in 0..3 {
+                let mut plus = problem.poses.clone();
+                let mut minus = problem.poses.clone();
+                plus[v][k] += h;
+                minus[v][k] -= h;
+                let numeric =
+                    (problem.cost_and_chi2(&plus).0 - problem.cost_and_chi2(&minus).0) / (2.0 * h);
+                // F = Σ ρ(eᵀΩe), so ∂F/∂x = 2 Σ ρ' JᵀΩe = 2g.
+                let analytic = 2.0 * gradient[3 * f as usize + k];
+                assert!(
+                    (numeric - analytic).abs() <= 1e-5 * (1.0 + numeric.abs()),
+                    "{v} {k}: {numeric} vs {analytic}"
+                );
+                checked += 1;
+            }
+        }
+        assert_eq!(checked, 12);
+        assert!(
+            gradient.iter().any(|g| g.abs() > 1.0),
+            "the test point must not be a stationary point"
+        );
+        // Diagonal of H: positive.
+        assert!(pattern.diagonal_offsets().iter().all(|&d| hessian[d] > 0.0));
+    }
+
+    #[test]
+    fn retraction_turns_a_branch_rigidly_about_its_pivot() {
+        // Increment dθ·S·(t − c) with c the pivot: the pose must end exactly on the circle around c.
+        let pivot = nalgebra::Vector2::new(1.0, 2.0);
+        let pose = Vector3::new(4.0, 6.0, 0.3);
+        let dtheta = 0.4;
+        let arm = nalgebra::Vector2::new(pose.x - pivot.x, pose.y - pivot.y);
+        let moved = retract(&pose, -dtheta * arm.y, dtheta * arm.x, dtheta);
+        let expected = pivot + nalgebra::Rotation2::new(dtheta) * arm;
+        assert!(
+            (moved.x - expected.x).abs() < 1e-12 && (moved.y - expected.y).abs() < 1e-12,
+            "{moved:?}"
+        );
+        assert!((moved.z - 0.7).abs() < 1e-12);
+        // Small angles use the series and agree with the additive update to first order.
+        let tiny = retract(&pose, 0.1, -0.2, 1e-9);
+        assert!((tiny.x - 4.1).abs() < 1e-9 && (tiny.y - 5.8).abs() < 1e-9);
+    }
+}
