@@ -2,7 +2,7 @@
 //!
 //! Variables are `world_from_node` and `world_from_submap` poses ([`VariableId`]); constraints are
 //! measured relative poses with an information matrix and a robust loss ([`Constraint`]). The error of a
-//! constraint follows g2o's convention (see [`constraint`](self::Constraint)), so [`PoseGraph::chi2`] is
+//! constraint follows g2o's convention (see [`Constraint`]), so [`PoseGraph::chi2`] is
 //! directly comparable with published χ² values.
 //!
 //! ```

@@ -435,3 +435,40 @@ fn reaches_best_known_chi2_on_csail_from_the_odometry_chain() {
         );
     }
 }
+
+#[test]
+fn disconnected_components_without_an_anchor_still_converge() {
+    // Two separate squares; only the first contains the implicit gauge (node 0).
+    let (mut graph, _) = square_world(8, RobustLoss::Trivial);
+    let offset = 100;
+    let (other, _) = square_world(8, RobustLoss::Trivial);
+    for (id, pose, _) in other.variables() {
+        let VariableId::Node(n) = id else {
+            unreachable!()
+        };
+        graph
+            .add_variable(node(n.index + offset), rigid2(50.0, 0.0, 0.0) * pose)
+            .unwrap();
+    }
+    for (_, c) in other.constraints() {
+        let (VariableId::Node(a), VariableId::Node(b)) = (c.from, c.to) else {
+            unreachable!()
+        };
+        graph
+            .add_constraint(Constraint {
+                from: node(a.index + offset),
+                to: node(b.index + offset),
+                ..c.clone()
+            })
+            .unwrap();
+    }
+    let summary = optimizer().optimize(&mut graph);
+    assert!(summary.termination.is_converged(), "{summary:?}");
+    assert!(summary.final_chi2 < 1e-10, "{summary:?}");
+    for (_, pose, _) in graph.variables() {
+        assert!(
+            pose.translation.vector.norm() < 100.0,
+            "the floating component must not drift: {pose:?}"
+        );
+    }
+}
