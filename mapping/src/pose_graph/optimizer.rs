@@ -214,10 +214,10 @@ struct Edge {
     from: u32,
     to: u32,
     measurement: PreparedMeasurement,
-    /// Blocks of `H` this edge writes to, or [`NO_BLOCK`] for fixed endpoints.
+    /// Blocks of `H` this edge writes to, or [`NO_BLOCK`] for fixed endpoints (set by `assign_blocks`).
     from_block: u32,
     to_block: u32,
-    /// Off-diagonal block at (min, max) of the free indices.
+    /// Off-diagonal block at (min, max) of the free indices, or [`NO_BLOCK`] if an endpoint is fixed.
     cross_block: u32,
 }
 
@@ -265,19 +265,7 @@ impl Optimizer {
     /// Minimises the graph's cost, writing the best estimate found back into `graph`.
     pub fn optimize(&mut self, graph: &mut PoseGraph) -> OptimizationSummary {
         let mut problem = Problem::new(graph);
-        let pattern = BlockPattern::new(
-            problem.num_free,
-            problem
-                .edges
-                .iter()
-                .filter(|e| e.cross_block != NO_BLOCK)
-                .map(|e| {
-                    (
-                        problem.free_index[e.from as usize],
-                        problem.free_index[e.to as usize],
-                    )
-                }),
-        );
+        let pattern = problem.block_pattern();
         let (initial_cost, initial_chi2) = problem.cost_and_chi2(&problem.poses);
         let mut summary = OptimizationSummary {
             initial_chi2,
@@ -394,25 +382,30 @@ impl Problem {
                     measurement: PreparedMeasurement::new(c),
                     from_block: NO_BLOCK,
                     to_block: NO_BLOCK,
-                    cross_block: 0,
+                    cross_block: NO_BLOCK,
                 })
             })
             .collect::<Vec<_>>();
-        let mut problem = Self {
+        Self {
             ids,
             poses,
             free_index,
             num_free,
             edges,
-        };
-        // Mark which edges have an off-diagonal block (both ends free); resolved in `assign_blocks`.
-        for k in 0..problem.edges.len() {
-            let e = problem.edges[k];
-            let both_free = problem.free_index[e.from as usize] != u32::MAX
-                && problem.free_index[e.to as usize] != u32::MAX;
-            problem.edges[k].cross_block = if both_free { 0 } else { NO_BLOCK };
         }
-        problem
+    }
+
+    /// The sparsity pattern of `H`: one block per free variable, plus one per pair of free variables
+    /// joined by an edge.
+    fn block_pattern(&self) -> BlockPattern {
+        let free = &self.free_index;
+        BlockPattern::new(
+            self.num_free,
+            self.edges.iter().filter_map(|e| {
+                let (a, b) = (free[e.from as usize], free[e.to as usize]);
+                (a != u32::MAX && b != u32::MAX).then_some((a, b))
+            }),
+        )
     }
 
     fn assign_blocks(&mut self, pattern: &BlockPattern) {
@@ -889,19 +882,7 @@ mod tests {
             problem.num_free, 4,
             "node 2 is fixed, so no implicit gauge is added"
         );
-        let pattern = BlockPattern::new(
-            problem.num_free,
-            problem
-                .edges
-                .iter()
-                .filter(|e| e.cross_block != NO_BLOCK)
-                .map(|e| {
-                    (
-                        problem.free_index[e.from as usize],
-                        problem.free_index[e.to as usize],
-                    )
-                }),
-        );
+        let pattern = problem.block_pattern();
         problem.assign_blocks(&pattern);
         let mut hessian = vec![0.0; pattern.nnz()];
         let mut gradient = vec![0.0; pattern.dim()];
