@@ -10,4 +10,5 @@
 
 pub mod geometry;
 pub mod grid;
+pub mod scan_matching;
 pub mod sensor;
