@@ -16,15 +16,21 @@
 //! the transformed points, with unknown and out-of-grid cells reading as
 //! [`MIN_PROBABILITY`](crate::grid::MIN_PROBABILITY).
 
+mod branch_and_bound;
 mod correlative;
 mod interpolated_grid;
 mod least_squares;
+mod precomputation_grid;
 mod real_time_correlative;
 #[cfg(test)]
 mod test_support;
 
 use thiserror::Error;
 
+pub use branch_and_bound::{
+    FastCorrelativeScanMatcher, FastCorrelativeScanMatcherOptions, MAX_BRANCH_AND_BOUND_DEPTH,
+    Match,
+};
 pub use interpolated_grid::InterpolatedGrid;
 pub use least_squares::{
     LeastSquaresScanMatcher, LeastSquaresScanMatcherOptions, LeastSquaresSummary,

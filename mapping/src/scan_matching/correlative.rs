@@ -7,8 +7,6 @@
 //! is that translations are restricted to multiples of the grid resolution and rotations to a step chosen so
 //! that the farthest point moves by at most about one cell.
 
-#![allow(dead_code)] // Parts used only by the branch-and-bound matcher, coming next.
-
 use nalgebra::{Point2, Rotation2, Vector2};
 
 use crate::geometry::{Rigid2, Rigid2Ext as _, rigid2};
@@ -137,10 +135,10 @@ impl SearchSpace {
                 |(lo, hi), c| (lo.inf(c), hi.sup(c)),
             );
             let b = &mut self.bounds[k];
-            b.min_x = b.min_x.max(-hi.x);
-            b.max_x = b.max_x.min(limits.width - 1 - lo.x);
-            b.min_y = b.min_y.max(-hi.y);
-            b.max_y = b.max_y.min(limits.height - 1 - lo.y);
+            b.min_x = b.min_x.max(hi.x.saturating_neg());
+            b.max_x = b.max_x.min((limits.width - 1).saturating_sub(lo.x));
+            b.min_y = b.min_y.max(hi.y.saturating_neg());
+            b.max_y = b.max_y.min((limits.height - 1).saturating_sub(lo.y));
         }
     }
 

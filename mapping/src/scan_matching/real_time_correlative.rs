@@ -115,7 +115,7 @@ impl RealTimeCorrelativeScanMatcher {
                 for dx in bounds.min_x..=bounds.max_x {
                     let mut sum = 0.0f32;
                     for c in scan {
-                        let (x, y) = (c.x + dx, c.y + dy);
+                        let (x, y) = (c.x.wrapping_add(dx), c.y.wrapping_add(dy));
                         let value = if x >= 0 && y >= 0 && x < width && y < height {
                             values[y as usize * width as usize + x as usize]
                         } else {

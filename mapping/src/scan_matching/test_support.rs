@@ -83,3 +83,101 @@ pub(crate) fn mean_probability(
         .sum();
     sum / points.len() as f64
 }
+
+/// A segment `(a, b)` in world coordinates, metres.
+pub(crate) type Wall = ([f64; 2], [f64; 2]);
+
+/// A `size × size` metre square world (origin at 0) bounded by walls, with `clutter` random walls 0.3–3 m
+/// long inside.
+pub(crate) fn random_world(seed: u64, size: f64, clutter: usize) -> Vec<Wall> {
+    use rand::{Rng as _, SeedableRng as _};
+    let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
+    let mut walls = vec![
+        ([0.0, 0.0], [size, 0.0]),
+        ([size, 0.0], [size, size]),
+        ([size, size], [0.0, size]),
+        ([0.0, size], [0.0, 0.0]),
+    ];
+    for _ in 0..clutter {
+        let a = [
+            rng.random_range(0.5..size - 0.5),
+            rng.random_range(0.5..size - 0.5),
+        ];
+        let length = rng.random_range(0.3..3.0);
+        let angle: f64 = rng.random_range(0.0..std::f64::consts::TAU);
+        let b = [
+            (a[0] + length * angle.cos()).clamp(0.0, size),
+            (a[1] + length * angle.sin()).clamp(0.0, size),
+        ];
+        walls.push((a, b));
+    }
+    walls
+}
+
+/// Draws walls into a grid whose every cell is first set known-free: probabilities fall off from
+/// [`MAX_PROBABILITY`] with a Gaussian (σ = one cell) of the distance to the nearest wall.
+pub(crate) fn draw_walls(limits: &MapLimits, walls: &[Wall]) -> ProbabilityGrid {
+    let mut grid = ProbabilityGrid::new(limits.clone());
+    let mut probabilities = vec![f64::from(MIN_PROBABILITY); limits.num_cells()];
+    let sigma = limits.resolution;
+    let reach = (3.0 * sigma / limits.resolution).ceil() as i32 + 1;
+    for (a, b) in walls {
+        let (a, b) = (Vector2::from(*a), Vector2::from(*b));
+        let lo = limits.cell_index(&Point2::from(a.inf(&b)));
+        let hi = limits.cell_index(&Point2::from(a.sup(&b)));
+        for iy in lo.y - reach..=hi.y + reach {
+            for ix in lo.x - reach..=hi.x + reach {
+                let index = crate::grid::CellIndex::new(ix, iy);
+                let Some(flat) = limits.flat_index(&index) else {
+                    continue;
+                };
+                let d = distance_to_segment(&limits.cell_center(&index).coords, &a, &b);
+                let p = f64::from(MIN_PROBABILITY)
+                    + f64::from(MAX_PROBABILITY - MIN_PROBABILITY)
+                        * (-d * d / (2.0 * sigma * sigma)).exp();
+                probabilities[flat] = probabilities[flat].max(p);
+            }
+        }
+    }
+    for (value, p) in grid.values_mut().iter_mut().zip(probabilities) {
+        *value = crate::grid::probability_to_value(p as f32);
+    }
+    grid
+}
+
+/// A simulated laser scan in the frame of a robot at `world_from_robot`: `beams` rays evenly spread over
+/// `fov` radians centred on the robot's x axis, each returning the nearest wall within `max_range`.
+pub(crate) fn raycast_scan(
+    walls: &[Wall],
+    world_from_robot: &Rigid2,
+    beams: usize,
+    fov: f64,
+    max_range: f64,
+) -> Vec<Point2<f32>> {
+    let origin = world_from_robot.translation.vector;
+    let mut points = Vec::new();
+    for i in 0..beams {
+        let angle = -fov / 2.0 + fov * (i as f64 + 0.5) / beams as f64;
+        let direction = world_from_robot.rotation * Vector2::new(angle.cos(), angle.sin());
+        let mut nearest = max_range;
+        for (a, b) in walls {
+            let (a, b) = (Vector2::from(*a), Vector2::from(*b));
+            let e = b - a;
+            let denominator = direction.perp(&e);
+            if denominator.abs() < 1e-12 {
+                continue;
+            }
+            let w = a - origin;
+            let t = w.perp(&e) / denominator;
+            let s = w.perp(&direction) / denominator;
+            if t > 0.0 && (0.0..=1.0).contains(&s) {
+                nearest = nearest.min(t);
+            }
+        }
+        if nearest < max_range {
+            let p = Point2::new(angle.cos() * nearest, angle.sin() * nearest);
+            points.push(Point2::new(p.x as f32, p.y as f32));
+        }
+    }
+    points
+}
