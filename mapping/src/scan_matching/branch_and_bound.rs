@@ -199,6 +199,16 @@ impl FastCorrelativeScanMatcher {
         if n == 0 {
             return None;
         }
+        let threshold =
+            f64::from((min_score - MIN_PROBABILITY) / (MAX_PROBABILITY - MIN_PROBABILITY))
+                * UNITS_PER_PROBABILITY_RANGE
+                * n as f64;
+        let mut search = Search {
+            matcher: self,
+            space,
+            min_units: threshold.ceil().max(0.0) as u64,
+            best: None,
+        };
         let depth = self.levels.len() as u32;
         let step = 1usize << depth;
         let mut top = Vec::new();
@@ -207,28 +217,20 @@ impl FastCorrelativeScanMatcher {
             if b.is_empty() {
                 continue;
             }
-            let scan = space.scan(k);
             for dy in (b.min_y..=b.max_y).step_by(step) {
                 for dx in (b.min_x..=b.max_x).step_by(step) {
-                    top.push(Candidate {
-                        scan: k,
-                        dx,
-                        dy,
-                        units: self.units(depth, scan, dx, dy),
-                    });
+                    if let Some(units) = search.score(depth, k, dx, dy) {
+                        top.push(Candidate {
+                            scan: k,
+                            dx,
+                            dy,
+                            units,
+                        });
+                    }
                 }
             }
         }
         top.sort_unstable_by_key(|c| std::cmp::Reverse(c.units));
-        let mut search = Search {
-            matcher: self,
-            space,
-            threshold: f64::from(
-                (min_score - MIN_PROBABILITY) / (MAX_PROBABILITY - MIN_PROBABILITY),
-            ) * UNITS_PER_PROBABILITY_RANGE
-                * n as f64,
-            best: None,
-        };
         search.descend(&top, depth);
         search.best.map(|best| Match {
             pose: space.pose(best.scan, best.dx, best.dy),
@@ -237,44 +239,106 @@ impl FastCorrelativeScanMatcher {
                     / (UNITS_PER_PROBABILITY_RANGE * n as f64)) as f32,
         })
     }
+}
 
-    /// Score units of the node at `depth` for offset `(dx, dy)`: exact at depth 0, an upper bound above.
-    #[inline]
-    fn units(&self, depth: u32, scan: &[CellIndex], dx: i32, dy: i32) -> u64 {
-        if depth == 0 {
-            let (width, height) = (self.limits.width, self.limits.height);
-            let mut sum = 0u64;
-            for c in scan {
-                let (x, y) = (c.x.wrapping_add(dx), c.y.wrapping_add(dy));
-                if x >= 0 && y >= 0 && x < width && y < height {
-                    let value = self.values[y as usize * width as usize + x as usize];
-                    sum += u64::from(value.saturating_sub(1));
-                }
-            }
-            sum * LEAF_SCALE
-        } else {
-            let level = &self.levels[depth as usize - 1];
-            let sum: u64 = scan
-                .iter()
-                .map(|c| u64::from(level.get(c.x.wrapping_add(dx), c.y.wrapping_add(dy))))
-                .sum();
-            sum * BOUND_SCALE
+/// Points summed between two checks of the early cut-off in [`sum_unless_below`].
+const CUTOFF_CHUNK: usize = 16;
+
+/// `Σ read(c)` over `scan`, or `None` as soon as even `max_per_point` for every remaining point could not
+/// bring the sum to `need`.
+#[inline]
+fn sum_unless_below(
+    scan: &[CellIndex],
+    need: u64,
+    max_per_point: u64,
+    mut read: impl FnMut(&CellIndex) -> u64,
+) -> Option<u64> {
+    let mut sum = 0u64;
+    let mut remaining = scan.len() as u64;
+    for chunk in scan.chunks(CUTOFF_CHUNK) {
+        sum += chunk.iter().map(&mut read).sum::<u64>();
+        remaining -= chunk.len() as u64;
+        if sum + remaining * max_per_point < need {
+            return None;
         }
     }
+    Some(sum)
 }
 
 /// State of one depth-first search.
 struct Search<'a> {
     matcher: &'a FastCorrelativeScanMatcher,
     space: &'a SearchSpace,
-    /// `min_score` in score units.
-    threshold: f64,
+    /// `min_score` in score units, rounded up.
+    min_units: u64,
     best: Option<Candidate>,
 }
 
 impl Search<'_> {
+    /// The smallest score (units) that would improve on the best leaf so far and reach `min_score`.
+    fn need(&self) -> u64 {
+        self.best
+            .map_or(self.min_units, |best| self.min_units.max(best.units + 1))
+    }
+
+    /// Score units of the node at `depth` for rotated scan `k` and offset `(dx, dy)` — exact at depth 0, an
+    /// upper bound above — or `None` if it is certainly below [`Self::need`] (then the summation stops early).
+    #[inline]
+    fn score(&self, depth: u32, k: usize, dx: i32, dy: i32) -> Option<u64> {
+        let need = self.need();
+        let scan = self.space.scan(k);
+        let (lo, hi) = self.space.scan_box(k);
+        let offset = CellIndex::new(dx, dy);
+        let m = self.matcher;
+        if depth == 0 {
+            let (width, height) = (m.limits.width, m.limits.height);
+            let max_per_point = u64::from(MAX_GRID_VALUE - 1);
+            let need_raw = need.div_ceil(LEAF_SCALE);
+            let (dx64, dy64) = (i64::from(dx), i64::from(dy));
+            let inside = i64::from(lo.x) + dx64 >= 0
+                && i64::from(lo.y) + dy64 >= 0
+                && i64::from(hi.x) + dx64 < i64::from(width)
+                && i64::from(hi.y) + dy64 < i64::from(height);
+            let sum = if inside {
+                let base = dy as isize * width as isize + dx as isize;
+                let stride = width as isize;
+                sum_unless_below(scan, need_raw, max_per_point, |c| {
+                    let i = (base + c.y as isize * stride + c.x as isize) as usize;
+                    u64::from(m.values[i].saturating_sub(1))
+                })
+            } else {
+                sum_unless_below(scan, need_raw, max_per_point, |c| {
+                    let (x, y) = (c.x.wrapping_add(dx), c.y.wrapping_add(dy));
+                    if x >= 0 && y >= 0 && x < width && y < height {
+                        u64::from(
+                            m.values[y as usize * width as usize + x as usize].saturating_sub(1),
+                        )
+                    } else {
+                        0
+                    }
+                })
+            };
+            sum.map(|s| s * LEAF_SCALE)
+        } else {
+            let level = &m.levels[depth as usize - 1];
+            let max_per_point = u64::from(MAX_QUANTIZED);
+            let need_raw = need.div_ceil(BOUND_SCALE);
+            let sum = if let Some((base, stride)) = level.window(lo, hi, offset) {
+                let cells = level.cells();
+                sum_unless_below(scan, need_raw, max_per_point, |c| {
+                    u64::from(cells[(base + c.y as isize * stride + c.x as isize) as usize])
+                })
+            } else {
+                sum_unless_below(scan, need_raw, max_per_point, |c| {
+                    u64::from(level.get(c.x.wrapping_add(dx), c.y.wrapping_add(dy)))
+                })
+            };
+            sum.map(|s| s * BOUND_SCALE)
+        }
+    }
+
     fn can_improve(&self, units: u64) -> bool {
-        units as f64 >= self.threshold && self.best.is_none_or(|best| units > best.units)
+        units >= self.need()
     }
 
     /// Visits `candidates` (all at `depth`, sorted by decreasing score) best first.
@@ -291,7 +355,6 @@ impl Search<'_> {
             let child_depth = depth - 1;
             let half = 1 << child_depth;
             let bounds = self.space.bounds(candidate.scan);
-            let scan = self.space.scan(candidate.scan);
             let mut children = [Candidate::default(); 4];
             let mut count = 0;
             for (ox, oy) in [(0, 0), (half, 0), (0, half), (half, half)] {
@@ -299,13 +362,15 @@ impl Search<'_> {
                 if dx > bounds.max_x || dy > bounds.max_y {
                     continue;
                 }
-                children[count] = Candidate {
-                    scan: candidate.scan,
-                    dx,
-                    dy,
-                    units: self.matcher.units(child_depth, scan, dx, dy),
-                };
-                count += 1;
+                if let Some(units) = self.score(child_depth, candidate.scan, dx, dy) {
+                    children[count] = Candidate {
+                        scan: candidate.scan,
+                        dx,
+                        dy,
+                        units,
+                    };
+                    count += 1;
+                }
             }
             let children = &mut children[..count];
             children.sort_unstable_by_key(|c| std::cmp::Reverse(c.units));

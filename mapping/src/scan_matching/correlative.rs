@@ -52,6 +52,8 @@ pub(crate) struct SearchSpace {
     /// `angles.len() × num_points` cell indices: scan `k` is `cells[k·n .. (k+1)·n]`, the cells of the points
     /// under the pose `(center.translation, center.rotation + angles[k])`.
     cells: Vec<CellIndex>,
+    /// Bounding box `(lowest, highest)` of each rotated scan's cells.
+    boxes: Vec<(CellIndex, CellIndex)>,
     bounds: Vec<LinearBounds>,
 }
 
@@ -104,6 +106,15 @@ impl SearchSpace {
                 limits.cell_index(&Point2::from(q))
             }));
         }
+        let boxes = cells
+            .chunks(points.len().max(1))
+            .map(|scan| {
+                scan.iter().fold(
+                    (CellIndex::repeat(i32::MAX), CellIndex::repeat(i32::MIN)),
+                    |(lo, hi), c| (lo.inf(c), hi.sup(c)),
+                )
+            })
+            .collect();
         let bounds = vec![
             LinearBounds {
                 min_x: -r,
@@ -119,6 +130,7 @@ impl SearchSpace {
             num_points: points.len(),
             angles,
             cells,
+            boxes,
             bounds,
         }
     }
@@ -130,10 +142,7 @@ impl SearchSpace {
             return;
         }
         for k in 0..self.angles.len() {
-            let (lo, hi) = self.scan(k).iter().fold(
-                (CellIndex::repeat(i32::MAX), CellIndex::repeat(i32::MIN)),
-                |(lo, hi), c| (lo.inf(c), hi.sup(c)),
-            );
+            let (lo, hi) = self.boxes[k];
             let b = &mut self.bounds[k];
             b.min_x = b.min_x.max(hi.x.saturating_neg());
             b.max_x = b.max_x.min((limits.width - 1).saturating_sub(lo.x));
@@ -153,6 +162,11 @@ impl SearchSpace {
     /// The discretized points of rotated scan `k` at zero translation offset.
     pub fn scan(&self, k: usize) -> &[CellIndex] {
         &self.cells[k * self.num_points..(k + 1) * self.num_points]
+    }
+
+    /// Bounding box `(lowest, highest)` of [`Self::scan`]`(k)`; inverted (empty) for a scan without points.
+    pub fn scan_box(&self, k: usize) -> (CellIndex, CellIndex) {
+        self.boxes[k]
     }
 
     pub fn bounds(&self, k: usize) -> LinearBounds {

@@ -13,7 +13,7 @@
 //! bounds stay valid upper bounds of the exact score and a depth costs one byte per cell; the exact score of
 //! a leaf is read from the original grid.
 
-use crate::grid::{ProbabilityGrid, UNKNOWN_VALUE};
+use crate::grid::{CellIndex, ProbabilityGrid, UNKNOWN_VALUE};
 
 /// Largest stored grid value (probability [`MAX_PROBABILITY`](crate::grid::MAX_PROBABILITY)).
 pub(crate) const MAX_GRID_VALUE: u16 = 32767;
@@ -114,6 +114,36 @@ impl PrecomputationGrid {
         }
     }
 
+    /// If every original cell of the box `[lo + offset, hi + offset]` is stored, the flat index of original
+    /// cell `offset` (which may itself lie outside) and the row stride: cell `offset + c` for `c` in
+    /// `[lo, hi]` is then at `base + c.y·stride + c.x`, with no bounds to check but the slice's own.
+    #[inline]
+    pub fn window(
+        &self,
+        lo: CellIndex,
+        hi: CellIndex,
+        offset: CellIndex,
+    ) -> Option<(isize, isize)> {
+        let pad = i64::from(self.pad);
+        let (ox, oy) = (i64::from(offset.x) + pad, i64::from(offset.y) + pad);
+        let inside = i64::from(lo.x) + ox >= 0
+            && i64::from(lo.y) + oy >= 0
+            && i64::from(hi.x) + ox < i64::from(self.width)
+            && i64::from(hi.y) + oy < i64::from(self.height);
+        inside.then(|| {
+            (
+                (oy * i64::from(self.width) + ox) as isize,
+                self.width as isize,
+            )
+        })
+    }
+
+    /// Stored cells, row-major; see [`Self::window`].
+    #[inline]
+    pub fn cells(&self) -> &[u8] {
+        &self.cells
+    }
+
     /// Bytes of cell storage.
     pub fn memory_bytes(&self) -> usize {
         self.cells.len()
@@ -138,7 +168,7 @@ mod tests {
     use rand_pcg::Pcg64;
 
     use super::*;
-    use crate::grid::MapLimits;
+    use crate::grid::{CellIndex, MapLimits};
 
     #[test]
     fn quantization_rounds_up_and_is_monotone() {
@@ -190,5 +220,43 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn window_addresses_the_same_cells_as_get() {
+        let mut rng = Pcg64::seed_from_u64(8);
+        let mut grid = ProbabilityGrid::new(MapLimits::new(0.05, Vector2::zeros(), 11, 7));
+        for v in grid.values_mut() {
+            *v = rng.random_range(0..=MAX_GRID_VALUE);
+        }
+        let levels = build_stack(&grid, 2);
+        let level = &levels[1];
+        let (mut some, mut none) = (0, 0);
+        for _ in 0..2000 {
+            let lo = CellIndex::new(rng.random_range(-8..8), rng.random_range(-8..8));
+            let hi = lo + CellIndex::new(rng.random_range(0..6), rng.random_range(0..6));
+            let offset = CellIndex::new(rng.random_range(-6..6), rng.random_range(-6..6));
+            let stored = |c: CellIndex| {
+                let p = c + offset + CellIndex::repeat(3);
+                p.x >= 0 && p.y >= 0 && p.x < 11 + 3 && p.y < 7 + 3
+            };
+            match level.window(lo, hi, offset) {
+                Some((base, stride)) => {
+                    some += 1;
+                    assert!(stored(lo) && stored(hi));
+                    for y in lo.y..=hi.y {
+                        for x in lo.x..=hi.x {
+                            let i = (base + y as isize * stride + x as isize) as usize;
+                            assert_eq!(level.cells()[i], level.get(x + offset.x, y + offset.y));
+                        }
+                    }
+                }
+                None => {
+                    none += 1;
+                    assert!(!(stored(lo) && stored(hi)));
+                }
+            }
+        }
+        assert!(some > 100 && none > 100, "{some} {none}");
     }
 }
