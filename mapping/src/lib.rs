@@ -9,7 +9,9 @@
 //! Units are SI: metres, radians, seconds.
 
 pub mod geometry;
+pub mod global_slam;
 pub mod grid;
 pub mod io;
 pub mod pose_graph;
+pub mod scan_matching;
 pub mod sensor;

@@ -1,0 +1,183 @@
+//! Synthetic worlds shared by the scan matcher tests.
+
+use nalgebra::{Point2, Vector2};
+
+use crate::geometry::Rigid2;
+use crate::grid::{MAX_PROBABILITY, MIN_PROBABILITY, MapLimits, ProbabilityGrid};
+
+/// Walls of an asymmetric 6 m × 5 m room with a few obstacles, world frame, metres.
+pub(crate) const ROOM_WALLS: [([f64; 2], [f64; 2]); 8] = [
+    ([0.0, 0.0], [6.0, 0.0]),
+    ([6.0, 0.0], [6.0, 5.0]),
+    ([6.0, 5.0], [0.0, 5.0]),
+    ([0.0, 5.0], [0.0, 0.0]),
+    ([2.0, 0.0], [2.0, 1.5]),
+    ([4.0, 3.5], [5.0, 3.5]),
+    ([1.0, 3.0], [1.8, 3.8]),
+    ([3.2, 2.0], [3.6, 2.2]),
+];
+
+fn distance_to_segment(p: &Vector2<f64>, a: &Vector2<f64>, b: &Vector2<f64>) -> f64 {
+    let ab = b - a;
+    let t = ((p - a).dot(&ab) / ab.norm_squared()).clamp(0.0, 1.0);
+    (p - (a + ab * t)).norm()
+}
+
+/// The room drawn in a 5 cm grid with origin (−1, −1), 8 m × 7 m: each cell's probability falls off from
+/// [`MAX_PROBABILITY`] with a Gaussian (σ = 5 cm) of its centre's distance to the nearest wall. Cells more
+/// than 0.6 m outside the room stay unknown.
+pub(crate) fn room_grid() -> ProbabilityGrid {
+    let limits = MapLimits::new(0.05, Vector2::new(-1.0, -1.0), 160, 140);
+    let mut grid = ProbabilityGrid::new(limits.clone());
+    let sigma = 0.05;
+    for iy in 0..limits.height {
+        for ix in 0..limits.width {
+            let index = crate::grid::CellIndex::new(ix, iy);
+            let c = limits.cell_center(&index).coords;
+            if c.x < -0.6 || c.y < -0.6 || c.x > 6.6 || c.y > 5.6 {
+                continue;
+            }
+            let d = ROOM_WALLS
+                .iter()
+                .map(|(a, b)| distance_to_segment(&c, &Vector2::from(*a), &Vector2::from(*b)))
+                .fold(f64::INFINITY, f64::min);
+            let p = f64::from(MIN_PROBABILITY)
+                + f64::from(MAX_PROBABILITY - MIN_PROBABILITY)
+                    * (-d * d / (2.0 * sigma * sigma)).exp();
+            grid.set_probability(&index, p as f32);
+        }
+    }
+    grid
+}
+
+/// Points every 15 cm along every wall of [`ROOM_WALLS`], expressed in the frame of a robot at
+/// `world_from_robot` (about 190 points).
+pub(crate) fn room_scan(world_from_robot: &Rigid2) -> Vec<Point2<f32>> {
+    let robot_from_world = world_from_robot.inverse();
+    let mut points = Vec::new();
+    for (a, b) in ROOM_WALLS {
+        let (a, b) = (Vector2::from(a), Vector2::from(b));
+        let length = (b - a).norm();
+        let mut s = 0.037;
+        while s < length {
+            let p = robot_from_world * Point2::from(a + (b - a) * (s / length));
+            points.push(Point2::new(p.x as f32, p.y as f32));
+            s += 0.15;
+        }
+    }
+    points
+}
+
+/// Mean grid probability at the points transformed by `grid_from_tracking`, computed naively in f64.
+pub(crate) fn mean_probability(
+    grid: &ProbabilityGrid,
+    grid_from_tracking: &Rigid2,
+    points: &[Point2<f32>],
+) -> f64 {
+    let sum: f64 = points
+        .iter()
+        .map(|p| {
+            let q = grid_from_tracking * Point2::new(f64::from(p.x), f64::from(p.y));
+            f64::from(grid.probability(&grid.limits().cell_index(&q)))
+        })
+        .sum();
+    sum / points.len() as f64
+}
+
+/// A segment `(a, b)` in world coordinates, metres.
+pub(crate) type Wall = ([f64; 2], [f64; 2]);
+
+/// A `size × size` metre square world (origin at 0) bounded by walls, with `clutter` random walls 0.3–3 m
+/// long inside.
+pub(crate) fn random_world(seed: u64, size: f64, clutter: usize) -> Vec<Wall> {
+    use rand::{Rng as _, SeedableRng as _};
+    let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
+    let mut walls = vec![
+        ([0.0, 0.0], [size, 0.0]),
+        ([size, 0.0], [size, size]),
+        ([size, size], [0.0, size]),
+        ([0.0, size], [0.0, 0.0]),
+    ];
+    for _ in 0..clutter {
+        let a = [
+            rng.random_range(0.5..size - 0.5),
+            rng.random_range(0.5..size - 0.5),
+        ];
+        let length = rng.random_range(0.3..3.0);
+        let angle: f64 = rng.random_range(0.0..std::f64::consts::TAU);
+        let b = [
+            (a[0] + length * angle.cos()).clamp(0.0, size),
+            (a[1] + length * angle.sin()).clamp(0.0, size),
+        ];
+        walls.push((a, b));
+    }
+    walls
+}
+
+/// Draws walls into a grid whose every cell is first set known-free: probabilities fall off from
+/// [`MAX_PROBABILITY`] with a Gaussian (σ = one cell) of the distance to the nearest wall.
+pub(crate) fn draw_walls(limits: &MapLimits, walls: &[Wall]) -> ProbabilityGrid {
+    let mut grid = ProbabilityGrid::new(limits.clone());
+    let mut probabilities = vec![f64::from(MIN_PROBABILITY); limits.num_cells()];
+    let sigma = limits.resolution;
+    let reach = (3.0 * sigma / limits.resolution).ceil() as i32 + 1;
+    for (a, b) in walls {
+        let (a, b) = (Vector2::from(*a), Vector2::from(*b));
+        let lo = limits.cell_index(&Point2::from(a.inf(&b)));
+        let hi = limits.cell_index(&Point2::from(a.sup(&b)));
+        for iy in lo.y - reach..=hi.y + reach {
+            for ix in lo.x - reach..=hi.x + reach {
+                let index = crate::grid::CellIndex::new(ix, iy);
+                let Some(flat) = limits.flat_index(&index) else {
+                    continue;
+                };
+                let d = distance_to_segment(&limits.cell_center(&index).coords, &a, &b);
+                let p = f64::from(MIN_PROBABILITY)
+                    + f64::from(MAX_PROBABILITY - MIN_PROBABILITY)
+                        * (-d * d / (2.0 * sigma * sigma)).exp();
+                probabilities[flat] = probabilities[flat].max(p);
+            }
+        }
+    }
+    for (value, p) in grid.values_mut().iter_mut().zip(probabilities) {
+        *value = crate::grid::probability_to_value(p as f32);
+    }
+    grid
+}
+
+/// A simulated laser scan in the frame of a robot at `world_from_robot`: `beams` rays evenly spread over
+/// `fov` radians centred on the robot's x axis, each returning the nearest wall within `max_range`.
+pub(crate) fn raycast_scan(
+    walls: &[Wall],
+    world_from_robot: &Rigid2,
+    beams: usize,
+    fov: f64,
+    max_range: f64,
+) -> Vec<Point2<f32>> {
+    let origin = world_from_robot.translation.vector;
+    let mut points = Vec::new();
+    for i in 0..beams {
+        let angle = -fov / 2.0 + fov * (i as f64 + 0.5) / beams as f64;
+        let direction = world_from_robot.rotation * Vector2::new(angle.cos(), angle.sin());
+        let mut nearest = max_range;
+        for (a, b) in walls {
+            let (a, b) = (Vector2::from(*a), Vector2::from(*b));
+            let e = b - a;
+            let denominator = direction.perp(&e);
+            if denominator.abs() < 1e-12 {
+                continue;
+            }
+            let w = a - origin;
+            let t = w.perp(&e) / denominator;
+            let s = w.perp(&direction) / denominator;
+            if t > 0.0 && (0.0..=1.0).contains(&s) {
+                nearest = nearest.min(t);
+            }
+        }
+        if nearest < max_range {
+            let p = Point2::new(angle.cos() * nearest, angle.sin() * nearest);
+            points.push(Point2::new(p.x as f32, p.y as f32));
+        }
+    }
+    points
+}
