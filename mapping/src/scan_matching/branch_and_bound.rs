@@ -8,7 +8,9 @@
 //! leaf in the block. The search is depth-first: the top-level nodes (depth `D`) are sorted by bound, each
 //! node's (up to) four children are scored and visited best first, and a node is pruned as soon as its bound
 //! cannot beat the best leaf found so far (nor reach `min_score`). Leaves are scored exactly on the original
-//! grid, so the result is the exact maximum over the candidate set.
+//! grid, so the result is the exact maximum over the candidate set. Scores are integer sums (see
+//! `LEAF_SCALE`), so bounds and leaves compare exactly, and a node's summation stops as soon as the points
+//! left cannot lift it to the best leaf.
 //!
 //! Trade-off: the precomputation grids cost `O(D · cells)` time and about `D` bytes per cell (plus padding)
 //! once per grid, and the matcher is immutable — rebuild it if the grid changes. In exchange a search
