@@ -14,5 +14,7 @@ mod global_slam_options;
 
 pub use constraint_builder::{ConstraintBuilder, ConstraintBuilderOptions, LoopClosure, SearchJob};
 pub use fixed_ratio_sampler::FixedRatioSampler;
-pub use global_slam_core::{GlobalSlam, GlobalSlamError, GlobalSlamEvent, NodeRecord, SubmapRecord};
+pub use global_slam_core::{
+    GlobalSlam, GlobalSlamError, GlobalSlamEvent, NodeRecord, SubmapRecord,
+};
 pub use global_slam_options::{GlobalSlamOptions, GlobalSlamOptionsError};

@@ -3,3 +3,4 @@
 //! Data sources (ROS1 bags, CARMEN logs) and the offline tools built on the `mapping` core.
 
 pub mod map_image;
+pub mod source;

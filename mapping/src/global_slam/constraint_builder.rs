@@ -67,19 +67,43 @@ impl ConstraintBuilderOptions {
     /// Checks every field.
     pub fn validate(&self) -> Result<(), GlobalSlamOptionsError> {
         if !(0.0..=1.0).contains(&self.sampling_ratio) {
-            return Err(GlobalSlamOptionsError::RatioOutOfRange { name: "sampling_ratio", value: self.sampling_ratio });
+            return Err(GlobalSlamOptionsError::RatioOutOfRange {
+                name: "sampling_ratio",
+                value: self.sampling_ratio,
+            });
         }
-        for (name, v) in [("min_score", self.min_score), ("global_localization_min_score", self.global_localization_min_score)] {
+        for (name, v) in [
+            ("min_score", self.min_score),
+            (
+                "global_localization_min_score",
+                self.global_localization_min_score,
+            ),
+        ] {
             if !(0.0..=1.0).contains(&v) {
-                return Err(GlobalSlamOptionsError::RatioOutOfRange { name, value: f64::from(v) });
+                return Err(GlobalSlamOptionsError::RatioOutOfRange {
+                    name,
+                    value: f64::from(v),
+                });
             }
         }
         check_sigma("max_constraint_distance", "m", self.max_constraint_distance)?;
-        check_sigma("loop_closure_translation_sigma", "m", self.loop_closure_translation_sigma)?;
-        check_sigma("loop_closure_rotation_sigma", "rad", self.loop_closure_rotation_sigma)?;
+        check_sigma(
+            "loop_closure_translation_sigma",
+            "m",
+            self.loop_closure_translation_sigma,
+        )?;
+        check_sigma(
+            "loop_closure_rotation_sigma",
+            "rad",
+            self.loop_closure_rotation_sigma,
+        )?;
         check_sigma("huber_scale", "standard deviations", self.huber_scale)?;
-        self.fast_correlative.validate().map_err(|e| GlobalSlamOptionsError::Invalid(e.to_string()))?;
-        self.least_squares.validate().map_err(|e| GlobalSlamOptionsError::Invalid(e.to_string()))
+        self.fast_correlative
+            .validate()
+            .map_err(|e| GlobalSlamOptionsError::Invalid(e.to_string()))?;
+        self.least_squares
+            .validate()
+            .map_err(|e| GlobalSlamOptionsError::Invalid(e.to_string()))
     }
 }
 
@@ -127,7 +151,11 @@ impl ConstraintBuilder {
     /// A builder with no submaps.
     pub fn new(options: ConstraintBuilderOptions) -> Self {
         let least_squares = LeastSquaresScanMatcher::new(options.least_squares.clone());
-        Self { options, matchers: BTreeMap::new(), least_squares }
+        Self {
+            options,
+            matchers: BTreeMap::new(),
+            least_squares,
+        }
     }
 
     /// The options in use.
@@ -137,9 +165,21 @@ impl ConstraintBuilder {
 
     /// Precomputes the branch-and-bound grids of a finished submap. `grid` is in the submap's trajectory
     /// local frame; `local_from_submap` is the submap's local pose.
-    pub fn add_finished_submap(&mut self, id: SubmapId, local_from_submap: Rigid2, grid: Arc<ProbabilityGrid>) {
+    pub fn add_finished_submap(
+        &mut self,
+        id: SubmapId,
+        local_from_submap: Rigid2,
+        grid: Arc<ProbabilityGrid>,
+    ) {
         let matcher = FastCorrelativeScanMatcher::new(&grid, self.options.fast_correlative.clone());
-        self.matchers.insert(id, SubmapMatcher { local_from_submap, grid, matcher });
+        self.matchers.insert(
+            id,
+            SubmapMatcher {
+                local_from_submap,
+                grid,
+                matcher,
+            },
+        );
     }
 
     /// Forgets a submap (trimmed).
@@ -158,12 +198,20 @@ impl ConstraintBuilder {
         let found = match &job.submap_from_node_estimate {
             Some(estimate) => {
                 let initial = entry.local_from_submap * estimate;
-                entry.matcher.match_near(&initial, &job.points, self.options.min_score)
+                entry
+                    .matcher
+                    .match_near(&initial, &job.points, self.options.min_score)
             }
-            None => entry.matcher.match_full(&job.points, self.options.global_localization_min_score),
+            None => entry
+                .matcher
+                .match_full(&job.points, self.options.global_localization_min_score),
         }?;
-        let (refined, _summary) =
-            self.least_squares.match_pose(&found.pose.translation.vector, &found.pose, &job.points, &entry.grid);
+        let (refined, _summary) = self.least_squares.match_pose(
+            &found.pose.translation.vector,
+            &found.pose,
+            &job.points,
+            &entry.grid,
+        );
         Some(LoopClosure {
             submap: job.submap,
             node: job.node,

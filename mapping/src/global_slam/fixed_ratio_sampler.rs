@@ -12,7 +12,11 @@ pub struct FixedRatioSampler {
 impl FixedRatioSampler {
     /// A sampler accepting `ratio ∈ [0, 1]` of the pulses.
     pub fn new(ratio: f64) -> Self {
-        Self { ratio: ratio.clamp(0.0, 1.0), num_pulses: 0, num_samples: 0 }
+        Self {
+            ratio: ratio.clamp(0.0, 1.0),
+            num_pulses: 0,
+            num_samples: 0,
+        }
     }
 
     /// Registers one event and says whether to take it.
@@ -36,7 +40,10 @@ mod tests {
         for ratio in [0.0, 0.1, 0.3, 1.0] {
             let mut s = FixedRatioSampler::new(ratio);
             let taken = (0..1000).filter(|_| s.pulse()).count();
-            assert!((taken as f64 - 1000.0 * ratio).abs() <= 1.0, "ratio {ratio}: took {taken}");
+            assert!(
+                (taken as f64 - 1000.0 * ratio).abs() <= 1.0,
+                "ratio {ratio}: took {taken}"
+            );
         }
     }
 }

@@ -6,13 +6,14 @@ use std::sync::Arc;
 use nalgebra::{Matrix3, Point2};
 
 use super::{
-    ConstraintBuilder, FixedRatioSampler, GlobalSlamOptions, GlobalSlamOptionsError, LoopClosure, SearchJob,
+    ConstraintBuilder, FixedRatioSampler, GlobalSlamOptions, GlobalSlamOptionsError, LoopClosure,
+    SearchJob,
 };
 use crate::geometry::Rigid2;
 use crate::grid::ProbabilityGrid;
 use crate::pose_graph::{
-    Constraint, ConstraintKind, NodeId, OptimizationSummary, Optimizer, PoseGraph, PoseGraphError, RobustLoss, SubmapId,
-    VariableId,
+    Constraint, ConstraintKind, NodeId, OptimizationSummary, Optimizer, PoseGraph, PoseGraphError,
+    RobustLoss, SubmapId, VariableId,
 };
 use crate::sensor::Timestamp;
 
@@ -87,7 +88,11 @@ pub struct GlobalSlam {
 
 fn information(translation_sigma: f64, rotation_sigma: f64) -> Matrix3<f64> {
     let t = 1.0 / (translation_sigma * translation_sigma);
-    Matrix3::from_diagonal(&nalgebra::Vector3::new(t, t, 1.0 / (rotation_sigma * rotation_sigma)))
+    Matrix3::from_diagonal(&nalgebra::Vector3::new(
+        t,
+        t,
+        1.0 / (rotation_sigma * rotation_sigma),
+    ))
 }
 
 impl GlobalSlam {
@@ -130,54 +135,98 @@ impl GlobalSlam {
         let id = NodeId { trajectory, index };
         let graph_error = |source| GlobalSlamError::Graph { node: id, source };
         let global_from_local = self.global_from_local(trajectory);
-        self.graph.add_variable(VariableId::Node(id), global_from_local * local_pose).map_err(graph_error)?;
+        self.graph
+            .add_variable(VariableId::Node(id), global_from_local * local_pose)
+            .map_err(graph_error)?;
         if self.nodes.is_empty() {
-            self.graph.set_fixed(VariableId::Node(id), true).map_err(graph_error)?;
+            self.graph
+                .set_fixed(VariableId::Node(id), true)
+                .map_err(graph_error)?;
         }
 
         let mut node_submaps = Vec::with_capacity(insertion_submaps.len());
         for &(submap_index, local_from_submap) in insertion_submaps {
-            let sid = SubmapId { trajectory, index: submap_index as u32 };
+            let sid = SubmapId {
+                trajectory,
+                index: submap_index as u32,
+            };
             if !self.submaps.contains_key(&sid) {
                 self.graph
-                    .add_variable(VariableId::Submap(sid), global_from_local * local_from_submap)
+                    .add_variable(
+                        VariableId::Submap(sid),
+                        global_from_local * local_from_submap,
+                    )
                     .map_err(graph_error)?;
-                self.submaps.insert(sid, SubmapRecord { local_pose: local_from_submap, grid: None, nodes: Vec::new() });
-                self.samplers.insert(sid, FixedRatioSampler::new(self.options.constraint_builder.sampling_ratio));
+                self.submaps.insert(
+                    sid,
+                    SubmapRecord {
+                        local_pose: local_from_submap,
+                        grid: None,
+                        nodes: Vec::new(),
+                    },
+                );
+                self.samplers.insert(
+                    sid,
+                    FixedRatioSampler::new(self.options.constraint_builder.sampling_ratio),
+                );
                 events.push(GlobalSlamEvent::SubmapAdded(sid));
             }
-            let Some(submap) = self.submaps.get_mut(&sid) else { continue };
+            let Some(submap) = self.submaps.get_mut(&sid) else {
+                continue;
+            };
             submap.nodes.push(id);
-            self.graph.add_constraint(Constraint {
-                kind: ConstraintKind::NodeToSubmapIntra,
-                from: VariableId::Submap(sid),
-                to: VariableId::Node(id),
-                from_from_to: submap.local_pose.inverse() * local_pose,
-                information: information(
-                    self.options.intra_submap_translation_sigma,
-                    self.options.intra_submap_rotation_sigma,
-                ),
-                loss: RobustLoss::Trivial,
-            }).map_err(graph_error)?;
+            self.graph
+                .add_constraint(Constraint {
+                    kind: ConstraintKind::NodeToSubmapIntra,
+                    from: VariableId::Submap(sid),
+                    to: VariableId::Node(id),
+                    from_from_to: submap.local_pose.inverse() * local_pose,
+                    information: information(
+                        self.options.intra_submap_translation_sigma,
+                        self.options.intra_submap_rotation_sigma,
+                    ),
+                    loss: RobustLoss::Trivial,
+                })
+                .map_err(graph_error)?;
             node_submaps.push(sid);
         }
 
-        if let Some(previous) = self.last_node.get(&trajectory).and_then(|p| self.nodes.get(p).map(|r| (*p, r))) {
+        if let Some(previous) = self
+            .last_node
+            .get(&trajectory)
+            .and_then(|p| self.nodes.get(p).map(|r| (*p, r)))
+        {
             let (previous_id, previous_record) = previous;
-            self.graph.add_constraint(Constraint {
-                kind: ConstraintKind::Odometry,
-                from: VariableId::Node(previous_id),
-                to: VariableId::Node(id),
-                from_from_to: previous_record.local_pose.inverse() * local_pose,
-                information: information(self.options.odometry_translation_sigma, self.options.odometry_rotation_sigma),
-                loss: RobustLoss::Trivial,
-            }).map_err(graph_error)?;
+            self.graph
+                .add_constraint(Constraint {
+                    kind: ConstraintKind::Odometry,
+                    from: VariableId::Node(previous_id),
+                    to: VariableId::Node(id),
+                    from_from_to: previous_record.local_pose.inverse() * local_pose,
+                    information: information(
+                        self.options.odometry_translation_sigma,
+                        self.options.odometry_rotation_sigma,
+                    ),
+                    loss: RobustLoss::Trivial,
+                })
+                .map_err(graph_error)?;
         }
-        self.nodes.insert(id, NodeRecord { time, local_pose, points: Arc::new(points), submaps: node_submaps });
+        self.nodes.insert(
+            id,
+            NodeRecord {
+                time,
+                local_pose,
+                points: Arc::new(points),
+                submaps: node_submaps,
+            },
+        );
         self.last_node.insert(trajectory, id);
 
         for (submap_index, grid) in finished_submaps {
-            let sid = SubmapId { trajectory, index: submap_index as u32 };
+            let sid = SubmapId {
+                trajectory,
+                index: submap_index as u32,
+            };
             self.finish_submap(sid, grid);
             events.push(GlobalSlamEvent::SubmapFinished(sid));
         }
@@ -187,7 +236,9 @@ impl GlobalSlam {
     }
 
     fn finish_submap(&mut self, sid: SubmapId, grid: ProbabilityGrid) {
-        let Some(submap) = self.submaps.get_mut(&sid) else { return };
+        let Some(submap) = self.submaps.get_mut(&sid) else {
+            return;
+        };
         let grid = Arc::new(grid);
         submap.grid = Some(Arc::clone(&grid));
         let local_pose = submap.local_pose;
@@ -199,29 +250,42 @@ impl GlobalSlam {
     }
 
     fn queue_searches_for_node(&mut self, node: NodeId) {
-        let finished: Vec<SubmapId> =
-            self.submaps.iter().filter(|(_, s)| s.grid.is_some()).map(|(id, _)| *id).collect();
+        let finished: Vec<SubmapId> = self
+            .submaps
+            .iter()
+            .filter(|(_, s)| s.grid.is_some())
+            .map(|(id, _)| *id)
+            .collect();
         for sid in finished {
             self.maybe_queue_search(node, sid);
         }
     }
 
     fn maybe_queue_search(&mut self, node: NodeId, sid: SubmapId) {
-        let (Some(record), Some(submap)) = (self.nodes.get(&node), self.submaps.get(&sid)) else { return };
+        let (Some(record), Some(submap)) = (self.nodes.get(&node), self.submaps.get(&sid)) else {
+            return;
+        };
         if record.submaps.contains(&sid) {
             return;
         }
-        let (Some(global_node), Some(global_submap)) =
-            (self.graph.pose(VariableId::Node(node)), self.graph.pose(VariableId::Submap(sid)))
-        else {
+        let (Some(global_node), Some(global_submap)) = (
+            self.graph.pose(VariableId::Node(node)),
+            self.graph.pose(VariableId::Submap(sid)),
+        ) else {
             return;
         };
         let submap_from_node = global_submap.inverse() * global_node;
-        if submap_from_node.translation.vector.norm() > self.options.constraint_builder.max_constraint_distance {
+        if submap_from_node.translation.vector.norm()
+            > self.options.constraint_builder.max_constraint_distance
+        {
             return;
         }
         debug_assert!(submap.grid.is_some());
-        if !self.samplers.get_mut(&sid).is_some_and(FixedRatioSampler::pulse) {
+        if !self
+            .samplers
+            .get_mut(&sid)
+            .is_some_and(FixedRatioSampler::pulse)
+        {
             return;
         }
         self.pending_jobs.push(SearchJob {
@@ -246,11 +310,16 @@ impl GlobalSlam {
 
     /// Adds accepted loop closures as robust node-to-submap constraints, then optimizes if
     /// `optimize_every_n_nodes` nodes arrived since the last optimization.
-    pub fn add_search_results(&mut self, results: impl IntoIterator<Item = LoopClosure>) -> Vec<GlobalSlamEvent> {
+    pub fn add_search_results(
+        &mut self,
+        results: impl IntoIterator<Item = LoopClosure>,
+    ) -> Vec<GlobalSlamEvent> {
         let mut events = Vec::new();
         let cb = &self.options.constraint_builder;
         for closure in results {
-            if !self.nodes.contains_key(&closure.node) || !self.submaps.contains_key(&closure.submap) {
+            if !self.nodes.contains_key(&closure.node)
+                || !self.submaps.contains_key(&closure.submap)
+            {
                 continue;
             }
             let added = self.graph.add_constraint(Constraint {
@@ -258,8 +327,13 @@ impl GlobalSlam {
                 from: VariableId::Submap(closure.submap),
                 to: VariableId::Node(closure.node),
                 from_from_to: closure.submap_from_node,
-                information: information(cb.loop_closure_translation_sigma, cb.loop_closure_rotation_sigma),
-                loss: RobustLoss::Huber { delta: cb.huber_scale },
+                information: information(
+                    cb.loop_closure_translation_sigma,
+                    cb.loop_closure_rotation_sigma,
+                ),
+                loss: RobustLoss::Huber {
+                    delta: cb.huber_scale,
+                },
             });
             if added.is_err() {
                 continue; // a non-finite match; nothing to learn from it
@@ -286,8 +360,12 @@ impl GlobalSlam {
         let summary = self.optimizer.optimize(&mut self.graph);
         self.nodes_since_optimization = 0;
         for (&trajectory, last) in &self.last_node {
-            if let (Some(global), Some(record)) = (self.graph.pose(VariableId::Node(*last)), self.nodes.get(last)) {
-                self.global_from_local.insert(trajectory, global * record.local_pose.inverse());
+            if let (Some(global), Some(record)) = (
+                self.graph.pose(VariableId::Node(*last)),
+                self.nodes.get(last),
+            ) {
+                self.global_from_local
+                    .insert(trajectory, global * record.local_pose.inverse());
             }
         }
         summary
@@ -296,7 +374,10 @@ impl GlobalSlam {
     /// `global_from_local` of a trajectory: where its LLO frame sits in the map (identity before its first
     /// optimization).
     pub fn global_from_local(&self, trajectory: u32) -> Rigid2 {
-        self.global_from_local.get(&trajectory).copied().unwrap_or_else(Rigid2::identity)
+        self.global_from_local
+            .get(&trajectory)
+            .copied()
+            .unwrap_or_else(Rigid2::identity)
     }
 
     /// Current global pose of a node.

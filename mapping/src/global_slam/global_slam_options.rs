@@ -67,7 +67,11 @@ impl Default for GlobalSlamOptions {
     }
 }
 
-pub(crate) fn check_sigma(name: &'static str, unit: &'static str, value: f64) -> Result<(), GlobalSlamOptionsError> {
+pub(crate) fn check_sigma(
+    name: &'static str,
+    unit: &'static str,
+    value: f64,
+) -> Result<(), GlobalSlamOptionsError> {
     if value.is_finite() && value > 0.0 {
         Ok(())
     } else {
@@ -78,12 +82,30 @@ pub(crate) fn check_sigma(name: &'static str, unit: &'static str, value: f64) ->
 impl GlobalSlamOptions {
     /// Checks every field.
     pub fn validate(&self) -> Result<(), GlobalSlamOptionsError> {
-        check_sigma("intra_submap_translation_sigma", "m", self.intra_submap_translation_sigma)?;
-        check_sigma("intra_submap_rotation_sigma", "rad", self.intra_submap_rotation_sigma)?;
-        check_sigma("odometry_translation_sigma", "m", self.odometry_translation_sigma)?;
-        check_sigma("odometry_rotation_sigma", "rad", self.odometry_rotation_sigma)?;
+        check_sigma(
+            "intra_submap_translation_sigma",
+            "m",
+            self.intra_submap_translation_sigma,
+        )?;
+        check_sigma(
+            "intra_submap_rotation_sigma",
+            "rad",
+            self.intra_submap_rotation_sigma,
+        )?;
+        check_sigma(
+            "odometry_translation_sigma",
+            "m",
+            self.odometry_translation_sigma,
+        )?;
+        check_sigma(
+            "odometry_rotation_sigma",
+            "rad",
+            self.odometry_rotation_sigma,
+        )?;
         self.constraint_builder.validate()?;
-        self.optimizer.validate().map_err(|e| GlobalSlamOptionsError::Invalid(e.to_string()))
+        self.optimizer
+            .validate()
+            .map_err(|e| GlobalSlamOptionsError::Invalid(e.to_string()))
     }
 }
 
@@ -94,7 +116,10 @@ mod tests {
     #[test]
     fn defaults_are_valid_and_bad_sigmas_are_named() {
         assert_eq!(GlobalSlamOptions::default().validate(), Ok(()));
-        let bad = GlobalSlamOptions { odometry_rotation_sigma: 0.0, ..Default::default() };
+        let bad = GlobalSlamOptions {
+            odometry_rotation_sigma: 0.0,
+            ..Default::default()
+        };
         let err = bad.validate().unwrap_err().to_string();
         assert!(err.contains("odometry_rotation_sigma"), "{err}");
     }

@@ -1,0 +1,87 @@
+//! Recordings in: ROS1 bags and CARMEN logs become one time-ordered list of [`SensorEvent`]s plus the
+//! laser's mounting pose.
+
+mod carmen;
+mod recording;
+mod ros_messages;
+mod rosbag1;
+
+use std::path::Path;
+
+pub use recording::{ReadReport, Recording};
+
+/// Why a recording could not be read.
+#[derive(Debug, thiserror::Error)]
+pub enum SourceError {
+    /// The file could not be opened or read.
+    #[error("cannot read {path}: {source}")]
+    Io {
+        /// The file.
+        path: String,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// The file is in a format we do not read.
+    #[error("{path}: unsupported format: {what}")]
+    Unsupported {
+        /// The file.
+        path: String,
+        /// What was found.
+        what: String,
+    },
+    /// The file is damaged or not what its header says.
+    #[error("{path}: malformed {format} data: {what}")]
+    Malformed {
+        /// The file.
+        path: String,
+        /// `ROS1 bag` or `CARMEN log`.
+        format: &'static str,
+        /// What is wrong, and where.
+        what: String,
+    },
+}
+
+/// Reads a ROS1 bag (`#ROSBAG V2.0`) or a CARMEN log (`.clf`, `.log`, optionally gzip-compressed),
+/// recognised by content.
+pub fn read_recording(path: &Path) -> Result<Recording, SourceError> {
+    let io_error = |source| SourceError::Io {
+        path: path.display().to_string(),
+        source,
+    };
+    let mut head = [0u8; 32];
+    let n = {
+        use std::io::Read as _;
+        let mut file = std::fs::File::open(path).map_err(io_error)?;
+        let mut filled = 0;
+        while filled < head.len() {
+            let k = file.read(&mut head[filled..]).map_err(io_error)?;
+            if k == 0 {
+                break;
+            }
+            filled += k;
+        }
+        filled
+    };
+    let head = &head[..n];
+    if head.starts_with(b"#ROSBAG V2.0") {
+        rosbag1::read(path)
+    } else if head.starts_with(b"#ROSRECORD") || head.starts_with(b"#ROSBAG") {
+        let first_line = head.split(|&b| b == b'\n').next().unwrap_or_default();
+        let version = String::from_utf8_lossy(first_line).trim().to_string();
+        Err(SourceError::Unsupported {
+            path: path.display().to_string(),
+            what: format!(
+                "{version} (only ROS1 bag format 2.0 is supported; migrate it with `rosbag fix` from ROS1)"
+            ),
+        })
+    } else if head.starts_with(&[0x1f, 0x8b]) {
+        let file = std::fs::File::open(path).map_err(io_error)?;
+        carmen::read(
+            std::io::BufReader::new(flate2::read::MultiGzDecoder::new(file)),
+            path,
+        )
+    } else {
+        let file = std::fs::File::open(path).map_err(io_error)?;
+        carmen::read(std::io::BufReader::new(file), path)
+    }
+}
