@@ -2,3 +2,5 @@
 //! opening files is the caller's business.
 
 pub mod g2o;
+pub mod relations;
+pub mod tum;

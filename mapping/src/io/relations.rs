@@ -1,0 +1,86 @@
+//! Ground-truth relation files of the Freiburg SLAM benchmark (Kümmerle et al. 2009):
+//! one line per relation, `t1 t2 x y z roll pitch yaw`, the motion `X(t1)⁻¹·X(t2)` in the frame of
+//! the pose at `t1`; lines starting with `#` are comments.
+
+use std::io::BufRead;
+
+use crate::geometry::{Rigid2, rigid2};
+use crate::sensor::Timestamp;
+
+/// One reference relative motion.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Relation {
+    /// Stamp of the first pose.
+    pub t1: Timestamp,
+    /// Stamp of the second pose.
+    pub t2: Timestamp,
+    /// `pose(t1)⁻¹ · pose(t2)`.
+    pub delta: Rigid2,
+}
+
+/// A relation file that could not be read.
+#[derive(Debug, thiserror::Error)]
+pub enum RelationsError {
+    /// Reading failed.
+    #[error("cannot read relations: {0}")]
+    Io(#[from] std::io::Error),
+    /// A line is not `t1 t2 x y z roll pitch yaw`.
+    #[error("relations line {line}: {what}")]
+    Parse {
+        /// 1-based line number.
+        line: usize,
+        /// What is wrong.
+        what: String,
+    },
+}
+
+/// Reads every relation.
+pub fn read_relations(input: impl BufRead) -> Result<Vec<Relation>, RelationsError> {
+    let mut out = Vec::new();
+    for (i, line) in input.lines().enumerate() {
+        let line = line?;
+        let text = line.trim();
+        if text.is_empty() || text.starts_with('#') {
+            continue;
+        }
+        let values: Result<Vec<f64>, _> = text.split_whitespace().map(str::parse::<f64>).collect();
+        let values = values.map_err(|e| RelationsError::Parse {
+            line: i + 1,
+            what: e.to_string(),
+        })?;
+        if values.len() != 8 || values.iter().any(|v| !v.is_finite()) {
+            return Err(RelationsError::Parse {
+                line: i + 1,
+                what: format!(
+                    "expected 8 finite numbers `t1 t2 x y z roll pitch yaw`, got {}",
+                    values.len()
+                ),
+            });
+        }
+        out.push(Relation {
+            t1: Timestamp::from_secs_f64(values[0]),
+            t2: Timestamp::from_secs_f64(values[1]),
+            delta: rigid2(values[2], values[3], values[7]),
+        });
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parses_comments_and_reports_bad_lines() {
+        let text = "# t1 t2 x y z roll pitch yaw\n10.5 11.0 1 2 0 0 0 0.5\n\n";
+        let r = read_relations(text.as_bytes()).unwrap();
+        assert_eq!(r.len(), 1);
+        assert_eq!(r[0].t1, Timestamp::from_secs_f64(10.5));
+        assert!((r[0].delta.rotation.angle() - 0.5).abs() < 1e-12);
+        let err = read_relations("1 2 3\n".as_bytes())
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("line 1"), "{err}");
+        assert!(read_relations("1 2 3 4 5 6 7 x\n".as_bytes()).is_err());
+    }
+}
