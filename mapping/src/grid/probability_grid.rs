@@ -78,8 +78,8 @@ impl ProbabilityGrid {
     /// Applies an odds-update table to a cell (see [`crate::grid::RangeDataInserter`]); the cell is marked
     /// as updated until [`Self::finish_update`]. Returns `false` for a cell outside the grid or one already
     /// updated by this insertion.
-    pub(crate) fn apply_lookup_table(&mut self, index: &CellIndex, table: &[u16]) -> bool {
-        let Some(i) = self.limits.flat_index(index) else { return false };
+    pub(crate) fn apply_lookup_table(&mut self, index: CellIndex, table: &[u16]) -> bool {
+        let Some(i) = self.limits.flat_index(&index) else { return false };
         let value = self.cells[i];
         if value >= UPDATE_MARKER {
             return false;

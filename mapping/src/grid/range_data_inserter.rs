@@ -103,7 +103,7 @@ impl RangeDataInserter {
         // Hits first, so a cell both hit and crossed in one scan counts as hit (as in Cartographer).
         for p in &range_data.returns {
             let cell = grid.limits().cell_index(&p.cast::<f64>());
-            grid.apply_lookup_table(&cell, &self.hit_table);
+            grid.apply_lookup_table(cell, &self.hit_table);
         }
         if self.options.insert_free_space {
             for p in &range_data.returns {
@@ -121,7 +121,7 @@ impl RangeDataInserter {
         let (resolution, origin) = (grid.limits().resolution, grid.limits().origin);
         traverse(resolution, &origin, from, to, |cell, is_end| {
             if !is_end || include_end {
-                grid.apply_lookup_table(&cell, table);
+                grid.apply_lookup_table(cell, table);
             }
         });
     }
