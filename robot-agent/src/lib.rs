@@ -3,4 +3,6 @@
 //! Data sources (ROS1 bags, CARMEN logs) and the offline tools built on the `mapping` core.
 
 pub mod map_image;
+pub mod offline_slam;
+pub mod process_stats;
 pub mod source;

@@ -1,12 +1,26 @@
 //! `evermap-agent`: runs on each robot; also offers offline tools on recordings.
 
-use clap::Parser;
+mod commands;
 
-/// evermap robot agent.
+use clap::{Parser, Subcommand};
+
+/// evermap robot agent: local LiDAR odometry and global matching, and offline tools on recordings.
 #[derive(Parser)]
 #[command(version, about)]
-struct Cli {}
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
 
-fn main() {
-    Cli::parse();
+#[derive(Subcommand)]
+enum Command {
+    /// Maps a whole recording (LLO + GLM + PGR in one process) and writes the trajectory, the map and a report.
+    Offline(commands::offline::OfflineArgs),
+}
+
+fn main() -> anyhow::Result<()> {
+    let cli = Cli::parse();
+    match cli.command {
+        Command::Offline(args) => commands::offline::run(&args),
+    }
 }

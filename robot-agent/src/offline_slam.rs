@@ -8,7 +8,7 @@ use std::sync::mpsc;
 
 use mapping::geometry::Rigid2;
 use mapping::global_slam::{GlobalSlam, GlobalSlamError, GlobalSlamEvent, GlobalSlamOptions};
-use mapping::grid::ProbabilityGrid;
+use mapping::grid::{MapLimits, ProbabilityGrid, RangeDataInserter, RangeDataInserterOptions};
 use mapping::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
 use mapping::pose_graph::{NodeId, OptimizationSummary};
 use mapping::sensor::{RangeData, RangeStats, SensorEvent, Timestamp};
@@ -91,9 +91,16 @@ pub fn run_offline(
     config: &SlamConfig,
     progress: &mut dyn FnMut(usize),
 ) -> Result<SlamRun, OfflineError> {
-    config.local.validate().map_err(|e| OfflineError::LocalOptions(e.to_string()))?;
+    config
+        .local
+        .validate()
+        .map_err(|e| OfflineError::LocalOptions(e.to_string()))?;
     let global = GlobalSlam::new(config.global.clone())?;
-    let scans = recording.events.iter().filter(|e| matches!(e, SensorEvent::Scan(_))).count();
+    let scans = recording
+        .events
+        .iter()
+        .filter(|e| matches!(e, SensorEvent::Scan(_)))
+        .count();
     if scans == 0 {
         return Err(OfflineError::NoScans);
     }
@@ -131,7 +138,10 @@ pub fn run_offline(
                         continue;
                     };
                     if let Some(insertion) = result.insertion {
-                        let id = NodeId { trajectory: 0, index: next_node_index };
+                        let id = NodeId {
+                            trajectory: 0,
+                            index: next_node_index,
+                        };
                         next_node_index += 1;
                         last_node = Some(id);
                         node_range_data.insert(id, range_data);
@@ -154,7 +164,11 @@ pub fn run_offline(
                             break; // the worker died; its join below reports why
                         }
                     }
-                    anchors.push(ScanAnchor { time: result.time, local_pose: result.local_pose, node: last_node });
+                    anchors.push(ScanAnchor {
+                        time: result.time,
+                        local_pose: result.local_pose,
+                        node: last_node,
+                    });
                     if scans_done % 64 == 0 {
                         progress(scans_done);
                     }
@@ -170,8 +184,13 @@ pub fn run_offline(
         let scan_poses = anchors
             .iter()
             .map(|a| {
-                let pose = match a.node.and_then(|n| Some((global.node_pose(n)?, global.nodes().get(&n)?))) {
-                    Some((node_global, record)) => node_global * record.local_pose.inverse() * a.local_pose,
+                let pose = match a
+                    .node
+                    .and_then(|n| Some((global.node_pose(n)?, global.nodes().get(&n)?)))
+                {
+                    Some((node_global, record)) => {
+                        node_global * record.local_pose.inverse() * a.local_pose
+                    }
                     None => global.global_from_local(0) * a.local_pose,
                 };
                 (a.time, pose)
@@ -198,13 +217,57 @@ fn global_worker(
     let mut optimizations = 0;
     for message in receiver {
         match message {
-            WorkerMessage::Node { time, local_pose, points, insertion_submaps, finished_submaps } => {
-                global.add_node(0, time, local_pose, points, &insertion_submaps, finished_submaps)?;
+            WorkerMessage::Node {
+                time,
+                local_pose,
+                points,
+                insertion_submaps,
+                finished_submaps,
+            } => {
+                global.add_node(
+                    0,
+                    time,
+                    local_pose,
+                    points,
+                    &insertion_submaps,
+                    finished_submaps,
+                )?;
                 let events = global.run_pending_searches();
-                optimizations += events.iter().filter(|e| matches!(e, GlobalSlamEvent::Optimized(_))).count();
+                optimizations += events
+                    .iter()
+                    .filter(|e| matches!(e, GlobalSlamEvent::Optimized(_)))
+                    .count();
             }
         }
     }
     let summary = global.optimize();
     Ok((global, optimizations, summary))
+}
+
+/// Renders the optimized map at `resolution` by re-inserting every node's range data at its optimized
+/// global pose into one fresh grid (crisper than blending submaps).
+pub fn render_map(run: &SlamRun, resolution: f64) -> ProbabilityGrid {
+    let inserter = RangeDataInserter::new(RangeDataInserterOptions::default());
+    let mut grid = ProbabilityGrid::new(MapLimits::new(
+        resolution,
+        nalgebra::Vector2::new(-5.0, -5.0),
+        1,
+        1,
+    ));
+    let mut first = true;
+    for (id, range_data) in &run.node_range_data {
+        let Some(pose) = run.global.node_pose(*id) else {
+            continue;
+        };
+        let data = range_data.transformed(&pose);
+        if first {
+            let half = 100;
+            let origin =
+                data.origin - nalgebra::Vector2::new(f64::from(half), f64::from(half)) * resolution;
+            grid = ProbabilityGrid::new(MapLimits::new(resolution, origin, 2 * half, 2 * half));
+            first = false;
+        }
+        inserter.insert(&data, &mut grid);
+    }
+    grid.cropped_to_known()
 }

@@ -43,7 +43,11 @@ impl ProbabilityGrid {
     /// A grid with every cell unknown.
     pub fn new(limits: MapLimits) -> Self {
         let cells = vec![UNKNOWN_VALUE; limits.num_cells()];
-        Self { limits, cells, updated: Vec::new() }
+        Self {
+            limits,
+            cells,
+            updated: Vec::new(),
+        }
     }
 
     /// The cell geometry.
@@ -79,7 +83,9 @@ impl ProbabilityGrid {
     /// as updated until [`Self::finish_update`]. Returns `false` for a cell outside the grid or one already
     /// updated by this insertion.
     pub(crate) fn apply_lookup_table(&mut self, index: CellIndex, table: &[u16]) -> bool {
-        let Some(i) = self.limits.flat_index(&index) else { return false };
+        let Some(i) = self.limits.flat_index(&index) else {
+            return false;
+        };
         let value = self.cells[i];
         if value >= UPDATE_MARKER {
             return false;
@@ -99,7 +105,10 @@ impl ProbabilityGrid {
 
     /// Grows the grid (keeping every cell) so that all `points` fall inside it with a margin.
     pub fn grow_to_include(&mut self, points: impl IntoIterator<Item = nalgebra::Point2<f64>>) {
-        let (mut min, mut max) = (CellIndex::new(0, 0), CellIndex::new(self.limits.width - 1, self.limits.height - 1));
+        let (mut min, mut max) = (
+            CellIndex::new(0, 0),
+            CellIndex::new(self.limits.width - 1, self.limits.height - 1),
+        );
         let mut outside = false;
         for p in points {
             let c = self.limits.cell_index(&p);
@@ -116,11 +125,21 @@ impl ProbabilityGrid {
         let (w, h) = (self.limits.width, self.limits.height);
         let grow_x_lo = if min.x < 0 { (-min.x).max(w / 2) } else { 0 };
         let grow_y_lo = if min.y < 0 { (-min.y).max(h / 2) } else { 0 };
-        let grow_x_hi = if max.x >= w { (max.x - w + 1).max(w / 2) } else { 0 };
-        let grow_y_hi = if max.y >= h { (max.y - h + 1).max(h / 2) } else { 0 };
+        let grow_x_hi = if max.x >= w {
+            (max.x - w + 1).max(w / 2)
+        } else {
+            0
+        };
+        let grow_y_hi = if max.y >= h {
+            (max.y - h + 1).max(h / 2)
+        } else {
+            0
+        };
         let new_limits = MapLimits::new(
             self.limits.resolution,
-            self.limits.origin - nalgebra::Vector2::new(f64::from(grow_x_lo), f64::from(grow_y_lo)) * self.limits.resolution,
+            self.limits.origin
+                - nalgebra::Vector2::new(f64::from(grow_x_lo), f64::from(grow_y_lo))
+                    * self.limits.resolution,
             w + grow_x_lo + grow_x_hi,
             h + grow_y_lo + grow_y_hi,
         );
@@ -155,7 +174,8 @@ impl ProbabilityGrid {
         }
         let limits = MapLimits::new(
             self.limits.resolution,
-            self.limits.origin + nalgebra::Vector2::new(f64::from(x0), f64::from(y0)) * self.limits.resolution,
+            self.limits.origin
+                + nalgebra::Vector2::new(f64::from(x0), f64::from(y0)) * self.limits.resolution,
             x1 - x0 + 1,
             y1 - y0 + 1,
         );
@@ -164,7 +184,11 @@ impl ProbabilityGrid {
             let row = y as usize * w as usize;
             cells.extend_from_slice(&self.cells[row + x0 as usize..=row + x1 as usize]);
         }
-        Self { limits, cells, updated: Vec::new() }
+        Self {
+            limits,
+            cells,
+            updated: Vec::new(),
+        }
     }
 
     /// Sets a cell's probability. Returns `false` (and changes nothing) for a cell outside the grid.
@@ -201,13 +225,20 @@ mod tests {
         let c = CellIndex::new(1, 2);
         grid.set_probability(&c, 0.8);
         let world = grid.limits().cell_center(&c);
-        grid.grow_to_include([nalgebra::Point2::new(-3.0, 10.0), nalgebra::Point2::new(5.0, -1.0)]);
+        grid.grow_to_include([
+            nalgebra::Point2::new(-3.0, 10.0),
+            nalgebra::Point2::new(5.0, -1.0),
+        ]);
         let limits = grid.limits().clone();
         assert!(limits.contains(&limits.cell_index(&nalgebra::Point2::new(-3.0, 10.0))));
         assert!(limits.contains(&limits.cell_index(&nalgebra::Point2::new(5.0, -1.0))));
         let moved = limits.cell_index(&world);
         assert!((grid.probability(&moved) - 0.8).abs() < 1e-4);
-        let known = grid.values().iter().filter(|&&v| v != UNKNOWN_VALUE).count();
+        let known = grid
+            .values()
+            .iter()
+            .filter(|&&v| v != UNKNOWN_VALUE)
+            .count();
         assert_eq!(known, 1);
         let cropped = grid.cropped_to_known();
         assert_eq!((cropped.limits().width, cropped.limits().height), (1, 1));

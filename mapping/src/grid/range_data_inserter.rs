@@ -28,7 +28,11 @@ pub struct RangeDataInserterOptions {
 
 impl Default for RangeDataInserterOptions {
     fn default() -> Self {
-        Self { hit_probability: 0.55, miss_probability: 0.49, insert_free_space: true }
+        Self {
+            hit_probability: 0.55,
+            miss_probability: 0.49,
+            insert_free_space: true,
+        }
     }
 }
 
@@ -90,15 +94,24 @@ impl RangeDataInserter {
     pub fn new(options: RangeDataInserterOptions) -> Self {
         let hit_table = lookup_table(odds(options.hit_probability));
         let miss_table = lookup_table(odds(options.miss_probability));
-        Self { options, hit_table, miss_table }
+        Self {
+            options,
+            hit_table,
+            miss_table,
+        }
     }
 
     /// Inserts `range_data` (in the grid's frame), growing the grid as needed.
     pub fn insert(&self, range_data: &RangeData, grid: &mut ProbabilityGrid) {
         let origin = Point2::from(range_data.origin);
         grid.grow_to_include(
-            std::iter::once(origin)
-                .chain(range_data.returns.iter().chain(&range_data.misses).map(|p| p.cast::<f64>())),
+            std::iter::once(origin).chain(
+                range_data
+                    .returns
+                    .iter()
+                    .chain(&range_data.misses)
+                    .map(|p| p.cast::<f64>()),
+            ),
         );
         // Hits first, so a cell both hit and crossed in one scan counts as hit (as in Cartographer).
         for p in &range_data.returns {
@@ -116,7 +129,13 @@ impl RangeDataInserter {
         grid.finish_update();
     }
 
-    fn cast_ray(&self, grid: &mut ProbabilityGrid, from: &Point2<f64>, to: &Point2<f64>, include_end: bool) {
+    fn cast_ray(
+        &self,
+        grid: &mut ProbabilityGrid,
+        from: &Point2<f64>,
+        to: &Point2<f64>,
+        include_end: bool,
+    ) {
         let table = &self.miss_table;
         let (resolution, origin) = (grid.limits().resolution, grid.limits().origin);
         traverse(resolution, &origin, from, to, |cell, is_end| {
@@ -140,14 +159,33 @@ pub(crate) fn traverse(
     let mut cell = CellIndex::new(a.x.floor() as i32, a.y.floor() as i32);
     let end = CellIndex::new(b.x.floor() as i32, b.y.floor() as i32);
     let d = b - a;
-    let step = CellIndex::new(if d.x > 0.0 { 1 } else { -1 }, if d.y > 0.0 { 1 } else { -1 });
-    let t_delta = Vector2::new(if d.x == 0.0 { f64::INFINITY } else { 1.0 / d.x.abs() }, if d.y == 0.0 {
-        f64::INFINITY
-    } else {
-        1.0 / d.y.abs()
-    });
-    let boundary = |coord: f64, c: i32, s: i32| if s > 0 { f64::from(c + 1) - coord } else { coord - f64::from(c) };
-    let mut t_max = Vector2::new(boundary(a.x, cell.x, step.x) * t_delta.x, boundary(a.y, cell.y, step.y) * t_delta.y);
+    let step = CellIndex::new(
+        if d.x > 0.0 { 1 } else { -1 },
+        if d.y > 0.0 { 1 } else { -1 },
+    );
+    let t_delta = Vector2::new(
+        if d.x == 0.0 {
+            f64::INFINITY
+        } else {
+            1.0 / d.x.abs()
+        },
+        if d.y == 0.0 {
+            f64::INFINITY
+        } else {
+            1.0 / d.y.abs()
+        },
+    );
+    let boundary = |coord: f64, c: i32, s: i32| {
+        if s > 0 {
+            f64::from(c + 1) - coord
+        } else {
+            coord - f64::from(c)
+        }
+    };
+    let mut t_max = Vector2::new(
+        boundary(a.x, cell.x, step.x) * t_delta.x,
+        boundary(a.y, cell.y, step.y) * t_delta.y,
+    );
     // At most |Δx| + |Δy| + 2 steps: a hard bound that also protects against NaN input.
     let max_steps = ((end.x - cell.x).abs() + (end.y - cell.y).abs()) as usize + 2;
     for _ in 0..max_steps {
@@ -203,7 +241,11 @@ mod tests {
     fn grows_for_far_points() {
         let mut grid = ProbabilityGrid::new(MapLimits::new(0.1, Vector2::zeros(), 4, 4));
         let inserter = RangeDataInserter::new(RangeDataInserterOptions::default());
-        let data = RangeData { origin: Vector2::new(0.2, 0.2), returns: vec![Point2::new(5.0f32, -3.0)], misses: vec![] };
+        let data = RangeData {
+            origin: Vector2::new(0.2, 0.2),
+            returns: vec![Point2::new(5.0f32, -3.0)],
+            misses: vec![],
+        };
         inserter.insert(&data, &mut grid);
         let hit = grid.limits().cell_index(&Point2::new(5.0, -3.0));
         assert!(grid.limits().contains(&hit) && grid.probability(&hit) > 0.5);

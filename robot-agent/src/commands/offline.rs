@@ -29,18 +29,23 @@ pub struct OfflineArgs {
 
 /// Reads a TOML SLAM configuration, or the defaults.
 pub fn load_config(path: Option<&Path>) -> anyhow::Result<SlamConfig> {
-    let Some(path) = path else { return Ok(SlamConfig::default()) };
-    let text = std::fs::read_to_string(path).with_context(|| format!("cannot read config {}", path.display()))?;
+    let Some(path) = path else {
+        return Ok(SlamConfig::default());
+    };
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("cannot read config {}", path.display()))?;
     toml::from_str(&text).with_context(|| format!("invalid config {}", path.display()))
 }
 
 /// Runs the command.
 pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
     let config = load_config(args.config.as_deref())?;
-    std::fs::create_dir_all(&args.out).with_context(|| format!("cannot create {}", args.out.display()))?;
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("cannot create {}", args.out.display()))?;
     let relations = match &args.relations {
         Some(path) => {
-            let file = std::fs::File::open(path).with_context(|| format!("cannot open {}", path.display()))?;
+            let file = std::fs::File::open(path)
+                .with_context(|| format!("cannot open {}", path.display()))?;
             Some(
                 mapping::io::relations::read_relations(std::io::BufReader::new(file))
                     .with_context(|| format!("invalid relations file {}", path.display()))?,
@@ -55,15 +60,20 @@ pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
     let scans = recording.report.scans;
     let bar = ProgressBar::new(scans as u64);
     bar.set_style(
-        ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} scans ({per_sec}, eta {eta})")
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        ProgressStyle::with_template(
+            "{elapsed_precise} [{bar:40}] {pos}/{len} scans ({per_sec}, eta {eta})",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
-    let run = run_offline(&recording, &config, &mut |done| bar.set_position(done as u64))?;
+    let run = run_offline(&recording, &config, &mut |done| {
+        bar.set_position(done as u64);
+    })?;
     bar.finish_and_clear();
     let wall_time_s = start.elapsed().as_secs_f64();
 
     let tum_path = args.out.join("trajectory.tum");
-    let tum = std::fs::File::create(&tum_path).with_context(|| format!("cannot create {}", tum_path.display()))?;
+    let tum = std::fs::File::create(&tum_path)
+        .with_context(|| format!("cannot create {}", tum_path.display()))?;
     mapping::io::tum::write_tum(std::io::BufWriter::new(tum), &run.scan_poses)
         .with_context(|| format!("cannot write {}", tum_path.display()))?;
 
@@ -77,7 +87,11 @@ pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
         serde_json::to_value(error).unwrap_or_default()
     });
     let scores = run.global.loop_closure_scores();
-    let ams = if scores.is_empty() { 0.0 } else { scores.iter().map(|&s| f64::from(s)).sum::<f64>() / scores.len() as f64 };
+    let ams = if scores.is_empty() {
+        0.0
+    } else {
+        scores.iter().map(|&s| f64::from(s)).sum::<f64>() / scores.len() as f64
+    };
     let graph = run.global.graph();
     let report = json!({
         "input": args.input.display().to_string(),

@@ -1,0 +1,19 @@
+//! LLO, local LiDAR odometry: scan-to-submap matching into probability-grid submaps, fused with wheel
+//! odometry and IMU yaw rate (Cartographer's `LocalTrajectoryBuilder2D`).
+
+mod active_submaps;
+mod local_trajectory_builder;
+mod motion_filter;
+mod pose_extrapolator;
+mod submap;
+mod voxel_filter;
+
+pub use active_submaps::{ActiveSubmaps, SubmapsOptions};
+pub use local_trajectory_builder::{
+    InsertionResult, LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions,
+    LocalTrajectoryBuilderOptionsError, MatchingResult, TrajectoryNodeData,
+};
+pub use motion_filter::{MotionFilter, MotionFilterOptions};
+pub use pose_extrapolator::PoseExtrapolator;
+pub use submap::{Submap, SubmapRef};
+pub use voxel_filter::{AdaptiveVoxelFilterOptions, adaptive_voxel_filter, voxel_filter};

@@ -1,0 +1,271 @@
+//! Pose extrapolation between scans: where will the robot be at the next scan's time?
+//!
+//! With wheel odometry, the prediction is the last matched pose composed with the odometry motion
+//! between the two times (interpolated between readings). An IMU, when present, supplies the rotation
+//! instead (integrated yaw rate). Without either, a constant-velocity model from matched poses is used.
+//! Velocities are only ever estimated over at least `MIN_VELOCITY_WINDOW_S`: recordings deliver
+//! messages in bursts (Intel: thousands of intervals under 5 ms), and a velocity from a 0.2 ms gap is
+//! noise. Readings that go back in time are dropped and counted.
+
+use std::collections::VecDeque;
+
+use crate::geometry::{Rigid2, Rigid2Ext as _, normalize_angle, rigid2};
+use crate::sensor::{ImuReading, OdometryReading, Timestamp};
+
+/// Shortest time span a velocity is estimated over, seconds.
+const MIN_VELOCITY_WINDOW_S: f64 = 0.05;
+/// How long odometry may be held past its last reading before it is considered stale, seconds.
+const MAX_ODOMETRY_HOLD_S: f64 = 0.5;
+/// How much history is kept before the last matched pose, seconds.
+const HISTORY_S: f64 = 2.0;
+
+/// Predicts poses from matched poses, odometry and IMU.
+#[derive(Clone, Debug, Default)]
+pub struct PoseExtrapolator {
+    poses: VecDeque<(Timestamp, Rigid2)>,
+    odometry: VecDeque<OdometryReading>,
+    imu: VecDeque<ImuReading>,
+    rejected: usize,
+}
+
+fn interpolate(a: &OdometryReading, b: &OdometryReading, t: Timestamp) -> Rigid2 {
+    let span = b.time.seconds_since(a.time);
+    let s = if span > 0.0 {
+        (t.seconds_since(a.time) / span).clamp(0.0, 1.0)
+    } else {
+        1.0
+    };
+    let d = a.pose.inverse() * b.pose;
+    a.pose * rigid2(s * d.x(), s * d.y(), s * d.theta())
+}
+
+impl PoseExtrapolator {
+    /// An extrapolator with no data.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Readings and poses refused because their time went backwards or they were not finite.
+    pub fn rejected(&self) -> usize {
+        self.rejected
+    }
+
+    /// Adds a wheel-odometry reading.
+    pub fn add_odometry(&mut self, reading: &OdometryReading) {
+        let finite = reading
+            .pose
+            .translation
+            .vector
+            .iter()
+            .all(|v| v.is_finite())
+            && reading.pose.theta().is_finite();
+        if !finite
+            || self
+                .odometry
+                .back()
+                .is_some_and(|last| reading.time <= last.time)
+        {
+            self.rejected += 1;
+            return;
+        }
+        self.odometry.push_back(reading.clone());
+        self.trim();
+    }
+
+    /// Adds an IMU reading.
+    pub fn add_imu(&mut self, reading: &ImuReading) {
+        if !reading.yaw_rate.is_finite()
+            || self
+                .imu
+                .back()
+                .is_some_and(|last| reading.time <= last.time)
+        {
+            self.rejected += 1;
+            return;
+        }
+        self.imu.push_back(reading.clone());
+        self.trim();
+    }
+
+    /// Adds a scan-matched pose (`local_from_tracking`).
+    pub fn add_pose(&mut self, time: Timestamp, pose: Rigid2) {
+        if self.poses.back().is_some_and(|(t, _)| time < *t) {
+            self.rejected += 1;
+            return;
+        }
+        self.poses.push_back((time, pose));
+        self.trim();
+    }
+
+    /// The time of the last matched pose.
+    pub fn last_pose_time(&self) -> Option<Timestamp> {
+        self.poses.back().map(|(t, _)| *t)
+    }
+
+    fn trim(&mut self) {
+        let Some(&(last, _)) = self.poses.back() else {
+            return;
+        };
+        while self.poses.len() > 2
+            && self
+                .poses
+                .front()
+                .is_some_and(|(t, _)| last.seconds_since(*t) > HISTORY_S)
+        {
+            self.poses.pop_front();
+        }
+        // Keep one odometry reading at or before the last pose, for interpolation.
+        while self.odometry.len() > 2 && self.odometry.get(1).is_some_and(|o| o.time <= last) {
+            self.odometry.pop_front();
+        }
+        while self.imu.len() > 1 && self.imu.get(1).is_some_and(|i| i.time <= last) {
+            self.imu.pop_front();
+        }
+    }
+
+    fn odometry_at(&self, t: Timestamp) -> Option<Rigid2> {
+        let i = self.odometry.partition_point(|o| o.time <= t);
+        match (
+            i.checked_sub(1).and_then(|k| self.odometry.get(k)),
+            self.odometry.get(i),
+        ) {
+            (Some(a), Some(b)) => Some(interpolate(a, b, t)),
+            (Some(a), None) if t.seconds_since(a.time) <= MAX_ODOMETRY_HOLD_S => Some(a.pose),
+            _ => None,
+        }
+    }
+
+    /// Integrated IMU yaw between two times, if the IMU covers the span.
+    fn imu_rotation(&self, from: Timestamp, to: Timestamp) -> Option<f64> {
+        let first = self.imu.front()?;
+        if first.time > from || self.imu.back()?.time.seconds_since(to) < -MAX_ODOMETRY_HOLD_S {
+            return None;
+        }
+        let mut angle = 0.0;
+        let mut t = from;
+        for (k, reading) in self.imu.iter().enumerate() {
+            let next_time = self.imu.get(k + 1).map_or(to, |n| n.time.min(to));
+            if next_time <= t {
+                continue;
+            }
+            let start = if reading.time > t { reading.time } else { t };
+            angle += reading.yaw_rate * next_time.seconds_since(start);
+            t = next_time;
+            if t >= to {
+                break;
+            }
+        }
+        Some(angle)
+    }
+
+    fn constant_velocity_motion(&self, dt: f64) -> Rigid2 {
+        let Some(&(t1, p1)) = self.poses.back() else {
+            return Rigid2::identity();
+        };
+        let Some(&(t0, p0)) = self
+            .poses
+            .iter()
+            .rev()
+            .find(|(t, _)| t1.seconds_since(*t) >= MIN_VELOCITY_WINDOW_S)
+        else {
+            return Rigid2::identity();
+        };
+        let span = t1.seconds_since(t0);
+        let d = p0.inverse() * p1;
+        let s = dt / span;
+        rigid2(d.x() * s, d.y() * s, normalize_angle(d.theta()) * s)
+    }
+
+    /// Predicted `local_from_tracking` at `time` (identity before the first matched pose).
+    pub fn extrapolate(&self, time: Timestamp) -> Rigid2 {
+        let Some(&(last_time, last_pose)) = self.poses.back() else {
+            return Rigid2::identity();
+        };
+        let mut motion = match (self.odometry_at(last_time), self.odometry_at(time)) {
+            (Some(a), Some(b)) => a.inverse() * b,
+            _ => self.constant_velocity_motion(time.seconds_since(last_time)),
+        };
+        if let Some(yaw) = self.imu_rotation(last_time, time) {
+            motion = rigid2(motion.x(), motion.y(), yaw);
+        }
+        last_pose * motion
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use approx::assert_relative_eq;
+
+    use super::*;
+
+    fn s(secs: f64) -> Timestamp {
+        Timestamp::from_secs_f64(secs)
+    }
+
+    #[test]
+    fn odometry_motion_is_applied_in_the_robot_frame() {
+        let mut e = PoseExtrapolator::new();
+        e.add_pose(s(0.0), rigid2(10.0, 0.0, std::f64::consts::FRAC_PI_2));
+        e.add_odometry(&OdometryReading {
+            time: s(0.0),
+            pose: rigid2(0.0, 0.0, 0.0),
+        });
+        e.add_odometry(&OdometryReading {
+            time: s(1.0),
+            pose: rigid2(1.0, 0.0, 0.0),
+        });
+        // Halfway: 0.5 m forward, which is +y in the local frame.
+        assert_relative_eq!(
+            e.extrapolate(s(0.5)),
+            rigid2(10.0, 0.5, std::f64::consts::FRAC_PI_2),
+            epsilon = 1e-9
+        );
+    }
+
+    #[test]
+    fn time_going_backwards_is_rejected() {
+        let mut e = PoseExtrapolator::new();
+        e.add_odometry(&OdometryReading {
+            time: s(1.0),
+            pose: rigid2(0.0, 0.0, 0.0),
+        });
+        e.add_odometry(&OdometryReading {
+            time: s(0.5),
+            pose: rigid2(5.0, 0.0, 0.0),
+        });
+        e.add_odometry(&OdometryReading {
+            time: s(1.0),
+            pose: rigid2(5.0, 0.0, 0.0),
+        });
+        e.add_odometry(&OdometryReading {
+            time: s(2.0),
+            pose: rigid2(f64::NAN, 0.0, 0.0),
+        });
+        assert_eq!(e.rejected(), 3);
+    }
+
+    #[test]
+    fn constant_velocity_ignores_bursts() {
+        let mut e = PoseExtrapolator::new();
+        e.add_pose(s(0.0), rigid2(0.0, 0.0, 0.0));
+        e.add_pose(s(0.1), rigid2(0.1, 0.0, 0.0));
+        // A burst: 0.2 ms later, 1 cm further (would be 50 m/s from these two alone).
+        e.add_pose(s(0.1002), rigid2(0.11, 0.0, 0.0));
+        let p = e.extrapolate(s(0.2002));
+        assert!((p.x() - 0.21).abs() < 0.02, "{p:?}");
+    }
+
+    #[test]
+    fn imu_supplies_rotation() {
+        let mut e = PoseExtrapolator::new();
+        e.add_pose(s(0.0), Rigid2::identity());
+        for k in 0..=10 {
+            e.add_imu(&ImuReading {
+                time: s(f64::from(k) * 0.1),
+                yaw_rate: 0.5,
+            });
+        }
+        let p = e.extrapolate(s(1.0));
+        assert!((p.theta() - 0.5).abs() < 1e-6, "{p:?}");
+    }
+}
