@@ -14,7 +14,7 @@ use super::{
     ActiveSubmaps, AdaptiveVoxelFilterOptions, MotionFilter, MotionFilterOptions, PoseExtrapolator,
     Submap, SubmapRef, SubmapsOptions, adaptive_voxel_filter,
 };
-use crate::geometry::{Rigid2, Rigid2Ext as _};
+use crate::geometry::{Rigid2, Rigid2Ext as _, normalize_angle};
 use crate::scan_matching::{
     LeastSquaresScanMatcher, LeastSquaresScanMatcherOptions, RealTimeCorrelativeScanMatcher,
     RealTimeCorrelativeScanMatcherOptions,
@@ -141,6 +141,7 @@ pub struct LocalTrajectoryBuilder {
     motion_filter: MotionFilter,
     correlative: RealTimeCorrelativeScanMatcher,
     least_squares: LeastSquaresScanMatcher,
+    last_pose: Option<Rigid2>,
     dropped: usize,
 }
 
@@ -154,6 +155,7 @@ impl LocalTrajectoryBuilder {
             correlative: RealTimeCorrelativeScanMatcher::new(options.real_time_correlative.clone()),
             least_squares: LeastSquaresScanMatcher::new(options.least_squares.clone()),
             options,
+            last_pose: None,
             dropped: 0,
         }
     }
@@ -196,9 +198,33 @@ impl LocalTrajectoryBuilder {
         let pose = match self.active.matching_submap() {
             Some(submap) => {
                 let initial = if self.options.use_correlative_scan_matching {
-                    self.correlative
-                        .match_pose(&predicted, &filtered, &submap.grid)
-                        .0
+                    // Widen the angular window by the rotation the prediction claims: wheel odometry is
+                    // least trustworthy in turns (CSAIL: −46° reported where the scans say −21°).
+                    let claimed = self.last_pose.map_or(0.0, |last| normalize_angle(predicted.theta() - last.theta()).abs());
+                    let base = &self.options.real_time_correlative;
+                    let widened;
+                    let matcher = if claimed > 1e-3 {
+                        widened = RealTimeCorrelativeScanMatcher::new(RealTimeCorrelativeScanMatcherOptions {
+                            angular_search_window: (base.angular_search_window + claimed).min(std::f64::consts::PI),
+                            ..base.clone()
+                        });
+                        &widened
+                    } else {
+                        &self.correlative
+                    };
+                    let (mut best, mut best_score) = matcher.match_pose(&predicted, &filtered, &submap.grid);
+                    // Wheel odometry sometimes stalls and then jumps (CSAIL: frozen for 0.8 s in a turn, then
+                    // +85° at once). When the constant-velocity prediction disagrees by more than half the
+                    // window, search around it too and keep the better match.
+                    let velocity = self.extrapolator.extrapolate_constant_velocity(time);
+                    if normalize_angle(velocity.theta() - predicted.theta()).abs() > 0.5 * base.angular_search_window {
+                        let (pose, score) = self.correlative.match_pose(&velocity, &filtered, &submap.grid);
+                        if score > best_score {
+                            (best, best_score) = (pose, score);
+                        }
+                    }
+                    let _ = best_score;
+                    best
                 } else {
                     predicted
                 };
@@ -215,6 +241,7 @@ impl LocalTrajectoryBuilder {
             None => predicted,
         };
         self.extrapolator.add_pose(time, pose);
+        self.last_pose = Some(pose);
         if self.motion_filter.is_similar(time, &pose) {
             return Some(MatchingResult {
                 time,

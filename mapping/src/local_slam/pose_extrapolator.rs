@@ -176,6 +176,13 @@ impl PoseExtrapolator {
         rigid2(d.x() * s, d.y() * s, normalize_angle(d.theta()) * s)
     }
 
+    /// Predicted `local_from_tracking` at `time` from matched poses alone (constant velocity), ignoring
+    /// odometry and IMU: a second opinion for when odometry stalls or jumps.
+    pub fn extrapolate_constant_velocity(&self, time: Timestamp) -> Rigid2 {
+        let Some(&(last_time, last_pose)) = self.poses.back() else { return Rigid2::identity() };
+        last_pose * self.constant_velocity_motion(time.seconds_since(last_time))
+    }
+
     /// Predicted `local_from_tracking` at `time` (identity before the first matched pose).
     pub fn extrapolate(&self, time: Timestamp) -> Rigid2 {
         let Some(&(last_time, last_pose)) = self.poses.back() else {
