@@ -84,6 +84,7 @@ pub struct GlobalSlam {
     pending_jobs: Vec<SearchJob>,
     nodes_since_optimization: usize,
     loop_closure_scores: Vec<f32>,
+    searches_queued: usize,
 }
 
 fn information(translation_sigma: f64, rotation_sigma: f64) -> Matrix3<f64> {
@@ -114,6 +115,7 @@ impl GlobalSlam {
             pending_jobs: Vec::new(),
             nodes_since_optimization: 0,
             loop_closure_scores: Vec::new(),
+            searches_queued: 0,
         })
     }
 
@@ -288,6 +290,7 @@ impl GlobalSlam {
         {
             return;
         }
+        self.searches_queued += 1;
         self.pending_jobs.push(SearchJob {
             submap: sid,
             node,
@@ -403,6 +406,11 @@ impl GlobalSlam {
     /// The pose graph.
     pub fn graph(&self) -> &PoseGraph {
         &self.graph
+    }
+
+    /// Loop-closure searches queued so far.
+    pub fn searches_queued(&self) -> usize {
+        self.searches_queued
     }
 
     /// Scores of every accepted loop closure, in acceptance order (their mean is the paper's AMS).

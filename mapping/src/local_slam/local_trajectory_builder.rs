@@ -200,25 +200,35 @@ impl LocalTrajectoryBuilder {
                 let initial = if self.options.use_correlative_scan_matching {
                     // Widen the angular window by the rotation the prediction claims: wheel odometry is
                     // least trustworthy in turns (CSAIL: −46° reported where the scans say −21°).
-                    let claimed = self.last_pose.map_or(0.0, |last| normalize_angle(predicted.theta() - last.theta()).abs());
+                    let claimed = self.last_pose.map_or(0.0, |last| {
+                        normalize_angle(predicted.theta() - last.theta()).abs()
+                    });
                     let base = &self.options.real_time_correlative;
                     let widened;
                     let matcher = if claimed > 1e-3 {
-                        widened = RealTimeCorrelativeScanMatcher::new(RealTimeCorrelativeScanMatcherOptions {
-                            angular_search_window: (base.angular_search_window + claimed).min(std::f64::consts::PI),
-                            ..base.clone()
-                        });
+                        widened = RealTimeCorrelativeScanMatcher::new(
+                            RealTimeCorrelativeScanMatcherOptions {
+                                angular_search_window: (base.angular_search_window + claimed)
+                                    .min(std::f64::consts::PI),
+                                ..base.clone()
+                            },
+                        );
                         &widened
                     } else {
                         &self.correlative
                     };
-                    let (mut best, mut best_score) = matcher.match_pose(&predicted, &filtered, &submap.grid);
+                    let (mut best, mut best_score) =
+                        matcher.match_pose(&predicted, &filtered, &submap.grid);
                     // Wheel odometry sometimes stalls and then jumps (CSAIL: frozen for 0.8 s in a turn, then
                     // +85° at once). When the constant-velocity prediction disagrees by more than half the
                     // window, search around it too and keep the better match.
                     let velocity = self.extrapolator.extrapolate_constant_velocity(time);
-                    if normalize_angle(velocity.theta() - predicted.theta()).abs() > 0.5 * base.angular_search_window {
-                        let (pose, score) = self.correlative.match_pose(&velocity, &filtered, &submap.grid);
+                    if normalize_angle(velocity.theta() - predicted.theta()).abs()
+                        > 0.5 * base.angular_search_window
+                    {
+                        let (pose, score) =
+                            self.correlative
+                                .match_pose(&velocity, &filtered, &submap.grid);
                         if score > best_score {
                             (best, best_score) = (pose, score);
                         }

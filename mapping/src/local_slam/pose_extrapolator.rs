@@ -179,7 +179,9 @@ impl PoseExtrapolator {
     /// Predicted `local_from_tracking` at `time` from matched poses alone (constant velocity), ignoring
     /// odometry and IMU: a second opinion for when odometry stalls or jumps.
     pub fn extrapolate_constant_velocity(&self, time: Timestamp) -> Rigid2 {
-        let Some(&(last_time, last_pose)) = self.poses.back() else { return Rigid2::identity() };
+        let Some(&(last_time, last_pose)) = self.poses.back() else {
+            return Rigid2::identity();
+        };
         last_pose * self.constant_velocity_motion(time.seconds_since(last_time))
     }
 

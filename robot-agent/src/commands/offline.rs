@@ -104,6 +104,7 @@ pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
         "submaps": run.global.submaps().len(),
         "constraints": graph.num_constraints(),
         "loop_closures": scores.len(),
+        "loop_closure_searches": run.global.searches_queued(),
         "ams": ams,
         "optimizations": run.optimizations,
         "final_optimization": format!("{:?}", run.final_optimization),
