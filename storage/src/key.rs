@@ -32,7 +32,7 @@ pub(crate) fn site_key(site: &str) -> Vec<u8> {
 
 /// Prefix of every record of a site. Site ids are at most 255 bytes (checked before any call).
 pub(crate) fn site_prefix(site: &str) -> Vec<u8> {
-    debug_assert!(site.len() <= usize::from(u8::MAX));
+    debug_assert!(u8::try_from(site.len()).is_ok());
     let mut key = Vec::with_capacity(2 + site.len() + 1);
     key.push(NS_RECORD);
     key.push(site.len() as u8);
