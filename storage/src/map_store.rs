@@ -91,3 +91,29 @@ pub trait MapStore: Send + Sync {
     /// Durable when it returns `Ok`.
     fn import_site(&self, site: &str, input: &mut dyn Read) -> Result<TransferSummary>;
 }
+
+#[cfg(test)]
+mod tests {
+    use std::sync::Arc;
+
+    use super::*;
+    use crate::MemStore;
+
+    #[test]
+    fn usable_as_a_shared_trait_object() {
+        let store: Arc<dyn MapStore> = Arc::new(MemStore::new());
+        let id = RecordId::from("meta");
+        store.put("depot", RecordKind::SiteMeta, &id, b"v").unwrap();
+        assert_eq!(
+            store
+                .get("depot", RecordKind::SiteMeta, &id)
+                .unwrap()
+                .unwrap(),
+            b"v"
+        );
+        assert_eq!(
+            store.scan("depot", RecordKind::SiteMeta).unwrap().count(),
+            1
+        );
+    }
+}

@@ -25,7 +25,7 @@ use rand::{Rng as _, SeedableRng as _};
 use storage::{MapStore as _, RecordId, RecordKind, SledStore};
 
 /// Batches one child may write before exiting by itself (a safety bound; kills come much earlier).
-const MAX_BATCHES_PER_CHILD: u64 = 400;
+const MAX_BATCHES_PER_CHILD: u64 = 5_000;
 
 #[derive(Debug, Default)]
 struct Tally {
@@ -187,6 +187,13 @@ fn torture(cycles: u64, seed: u64, budget: Duration) -> Tally {
         tally.unacked_but_applied += last - max_acked.max(tally.last_seq);
         tally.last_seq = last;
         tally.cycles += 1;
+        if tally.cycles % 50 == 0 {
+            eprintln!(
+                "cycle {}: {tally:?}, {:.0} s",
+                tally.cycles,
+                start.elapsed().as_secs_f64()
+            );
+        }
     }
     let size = SledStore::open_path(&path).unwrap().size_on_disk().unwrap();
     eprintln!(
