@@ -100,7 +100,7 @@ impl_map_store_via_raw_kv!(MemStore);
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::{MapStore as _, RecordId, RecordKind, StorageError, conformance};
+    use crate::{MapStore as _, RecordId, RecordKind, StorageError, WriteBatch, conformance, key};
 
     #[test]
     fn conformance_suite() {
@@ -109,6 +109,30 @@ mod tests {
             cases >= conformance::MIN_CASES,
             "only {cases} conformance cases ran"
         );
+    }
+
+    #[test]
+    fn failure_inside_a_transaction_writes_nothing() {
+        let store = MemStore::new();
+        let mut batch = WriteBatch::new("depot");
+        batch.bump_map_version();
+        store.apply(&batch).unwrap();
+        let version_key = key::record_key("depot", key::KIND_MAP_VERSION, &[]);
+        store.with_raw(|map| map.get_mut(&version_key).unwrap()[5] ^= 0x01);
+        batch
+            .put(RecordKind::Node, 1, b"staged".to_vec())
+            .for_session("robot", 1);
+        assert!(matches!(
+            store.apply(&batch),
+            Err(StorageError::Corrupt { .. })
+        ));
+        assert_eq!(
+            store
+                .get("depot", RecordKind::Node, &RecordId::from(1))
+                .unwrap(),
+            None
+        );
+        assert_eq!(store.last_applied_seq("depot", "robot").unwrap(), None);
     }
 
     #[test]

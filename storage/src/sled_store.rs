@@ -224,10 +224,21 @@ mod tests {
             store.map_version("depot"),
             Err(StorageError::Corrupt { .. })
         ));
+        // The failure happens inside the transaction, after the puts were staged: none may land.
+        batch
+            .put(RecordKind::Node, 1, b"staged".to_vec())
+            .for_session("robot", 1);
         assert!(matches!(
             store.apply(&batch),
             Err(StorageError::Corrupt { .. })
         ));
+        assert_eq!(
+            store
+                .get("depot", RecordKind::Node, &RecordId::from(1))
+                .unwrap(),
+            None
+        );
+        assert_eq!(store.last_applied_seq("depot", "robot").unwrap(), None);
     }
 
     #[test]
