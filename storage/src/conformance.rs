@@ -1,0 +1,540 @@
+//! The behaviour every [`MapStore`] must show, as one generic suite that each store's tests run
+//! (`mem_store.rs`, `sled_store.rs`). `run_all` returns how many cases ran, which the callers check against
+//! [`MIN_CASES`] so the suite cannot pass by running nothing.
+
+use std::collections::BTreeSet;
+use std::thread;
+
+use crate::{BatchOutcome, MAX_ID_BYTES, MapStore, RecordId, RecordKind, StorageError, WriteBatch};
+
+/// Cases `run_all` must run.
+pub(crate) const MIN_CASES: usize = 13;
+
+type Case<S> = fn(&S);
+
+/// Runs every case on a fresh store from `make`; returns the number of cases run.
+pub(crate) fn run_all<S: MapStore>(make: &dyn Fn() -> S) -> usize {
+    let cases: [(&str, Case<S>); 13] = [
+        ("put_get_overwrite_delete", put_get_overwrite_delete),
+        (
+            "scan_is_per_site_and_kind_in_id_order",
+            scan_is_per_site_and_kind_in_id_order,
+        ),
+        ("invalid_batch_writes_nothing", invalid_batch_writes_nothing),
+        (
+            "map_version_is_per_site_and_monotonic",
+            map_version_is_per_site_and_monotonic,
+        ),
+        (
+            "session_sequence_applies_exactly_once",
+            session_sequence_applies_exactly_once,
+        ),
+        ("list_and_delete_sites", list_and_delete_sites),
+        ("export_import_round_trip", export_import_round_trip),
+        (
+            "import_refuses_non_empty_site",
+            import_refuses_non_empty_site,
+        ),
+        (
+            "corrupt_or_truncated_import_writes_nothing",
+            corrupt_or_truncated_import_writes_nothing,
+        ),
+        ("values_of_any_size", values_of_any_size),
+        ("names_and_ids_are_validated", names_and_ids_are_validated),
+        ("durable_apply_and_flush", durable_apply_and_flush),
+        (
+            "concurrent_bumps_are_serialized",
+            concurrent_bumps_are_serialized,
+        ),
+    ];
+    let mut ran = 0;
+    for (name, case) in cases {
+        let store = make();
+        eprintln!("conformance case {name}");
+        case(&store);
+        ran += 1;
+    }
+    ran
+}
+
+fn id(n: u64) -> RecordId {
+    RecordId::from_u64(n)
+}
+
+fn scan_all(store: &impl MapStore, site: &str, kind: RecordKind) -> Vec<(RecordId, Vec<u8>)> {
+    store
+        .scan(site, kind)
+        .unwrap()
+        .collect::<Result<_, _>>()
+        .unwrap()
+}
+
+fn put_get_overwrite_delete(store: &impl MapStore) {
+    assert_eq!(
+        store.get("depot", RecordKind::Submap, &id(1)).unwrap(),
+        None
+    );
+    assert!(
+        store
+            .put("depot", RecordKind::Submap, &id(1), b"first")
+            .unwrap()
+            .is_applied()
+    );
+    assert_eq!(
+        store
+            .get("depot", RecordKind::Submap, &id(1))
+            .unwrap()
+            .unwrap(),
+        b"first"
+    );
+    store
+        .put("depot", RecordKind::Submap, &id(1), b"second")
+        .unwrap();
+    assert_eq!(
+        store
+            .get("depot", RecordKind::Submap, &id(1))
+            .unwrap()
+            .unwrap(),
+        b"second"
+    );
+    assert_eq!(
+        store.get("depot", RecordKind::Node, &id(1)).unwrap(),
+        None,
+        "kinds are separate"
+    );
+    assert_eq!(
+        store.get("other", RecordKind::Submap, &id(1)).unwrap(),
+        None,
+        "sites are separate"
+    );
+    store.delete("depot", RecordKind::Submap, &id(1)).unwrap();
+    assert_eq!(
+        store.get("depot", RecordKind::Submap, &id(1)).unwrap(),
+        None
+    );
+    store.delete("depot", RecordKind::Submap, &id(1)).unwrap();
+
+    // Later ops of a batch win.
+    let mut batch = WriteBatch::new("depot");
+    batch
+        .put(RecordKind::Node, 5, b"a".to_vec())
+        .delete(RecordKind::Node, 5)
+        .put(RecordKind::Node, 6, b"x".to_vec());
+    batch.put(RecordKind::Node, 6, b"y".to_vec());
+    store.apply(&batch).unwrap();
+    assert_eq!(store.get("depot", RecordKind::Node, &id(5)).unwrap(), None);
+    assert_eq!(
+        store
+            .get("depot", RecordKind::Node, &id(6))
+            .unwrap()
+            .unwrap(),
+        b"y"
+    );
+}
+
+fn scan_is_per_site_and_kind_in_id_order(store: &impl MapStore) {
+    let mut batch = WriteBatch::new("a");
+    for n in [300_u64, 2, 70_000, 1] {
+        batch.put(RecordKind::Node, n, n.to_string().into_bytes());
+    }
+    batch.put(RecordKind::Submap, 9, b"submap".to_vec());
+    store.apply(&batch).unwrap();
+    let mut other = WriteBatch::new("ab");
+    other.put(RecordKind::Node, 4, b"other site".to_vec());
+    store.apply(&other).unwrap();
+
+    let nodes = scan_all(store, "a", RecordKind::Node);
+    let ids: Vec<u64> = nodes.iter().map(|(id, _)| id.as_u64().unwrap()).collect();
+    assert_eq!(ids, [1, 2, 300, 70_000]);
+    assert!(
+        nodes
+            .iter()
+            .all(|(id, value)| id.as_u64().unwrap().to_string().into_bytes() == *value)
+    );
+    assert_eq!(
+        scan_all(store, "a", RecordKind::Submap),
+        [(id(9), b"submap".to_vec())]
+    );
+    assert_eq!(
+        scan_all(store, "ab", RecordKind::Node),
+        [(id(4), b"other site".to_vec())]
+    );
+    assert!(scan_all(store, "a", RecordKind::Constraint).is_empty());
+    assert!(scan_all(store, "nowhere", RecordKind::Node).is_empty());
+}
+
+fn invalid_batch_writes_nothing(store: &impl MapStore) {
+    let mut batch = WriteBatch::new("depot");
+    batch
+        .put(RecordKind::Node, 1, b"ok".to_vec())
+        .bump_map_version()
+        .for_session("robot", 1);
+    batch.put(
+        RecordKind::Node,
+        RecordId::new(vec![0; MAX_ID_BYTES + 1]),
+        b"bad id".to_vec(),
+    );
+    assert!(matches!(
+        store.apply(&batch),
+        Err(StorageError::TooLarge { what: "id", .. })
+    ));
+    assert_eq!(store.get("depot", RecordKind::Node, &id(1)).unwrap(), None);
+    assert_eq!(store.map_version("depot").unwrap(), 0);
+    assert_eq!(store.last_applied_seq("depot", "robot").unwrap(), None);
+    assert!(store.list_sites().unwrap().is_empty());
+}
+
+fn map_version_is_per_site_and_monotonic(store: &impl MapStore) {
+    assert_eq!(store.map_version("depot").unwrap(), 0);
+    let mut plain = WriteBatch::new("depot");
+    plain.put(RecordKind::SiteMeta, "name", b"Depot".to_vec());
+    assert_eq!(
+        store.apply(&plain).unwrap(),
+        BatchOutcome::Applied { map_version: 0 }
+    );
+    for expected in 1..=5 {
+        let mut bump = WriteBatch::new("depot");
+        bump.put(RecordKind::Submap, expected, vec![1; 3])
+            .bump_map_version();
+        assert_eq!(
+            store.apply(&bump).unwrap(),
+            BatchOutcome::Applied {
+                map_version: expected
+            }
+        );
+    }
+    assert_eq!(
+        store.apply(&plain).unwrap(),
+        BatchOutcome::Applied { map_version: 5 }
+    );
+    assert_eq!(store.map_version("depot").unwrap(), 5);
+    assert_eq!(store.map_version("yard").unwrap(), 0);
+    let mut yard = WriteBatch::new("yard");
+    yard.bump_map_version();
+    assert_eq!(
+        store.apply(&yard).unwrap(),
+        BatchOutcome::Applied { map_version: 1 }
+    );
+    assert_eq!(store.map_version("depot").unwrap(), 5);
+}
+
+fn session_sequence_applies_exactly_once(store: &impl MapStore) {
+    let upload = |session: &str, seq: u64, record: u64| {
+        let mut batch = WriteBatch::new("depot");
+        batch
+            .put(RecordKind::Node, record, seq.to_le_bytes().to_vec())
+            .bump_map_version()
+            .for_session(session, seq);
+        store.apply(&batch).unwrap()
+    };
+    assert_eq!(store.last_applied_seq("depot", "r1").unwrap(), None);
+    assert_eq!(
+        upload("r1", 1, 10),
+        BatchOutcome::Applied { map_version: 1 }
+    );
+    assert_eq!(
+        upload("r1", 1, 11),
+        BatchOutcome::Duplicate { last_applied: 1 }
+    );
+    assert_eq!(
+        store.get("depot", RecordKind::Node, &id(11)).unwrap(),
+        None,
+        "a duplicate writes nothing"
+    );
+    assert_eq!(
+        store.map_version("depot").unwrap(),
+        1,
+        "a duplicate does not bump"
+    );
+    assert_eq!(
+        upload("r1", 3, 12),
+        BatchOutcome::Applied { map_version: 2 },
+        "gaps are allowed"
+    );
+    assert_eq!(
+        upload("r1", 2, 13),
+        BatchOutcome::Duplicate { last_applied: 3 }
+    );
+    assert_eq!(
+        upload("r2", 1, 14),
+        BatchOutcome::Applied { map_version: 3 },
+        "sessions are independent"
+    );
+    assert_eq!(store.last_applied_seq("depot", "r1").unwrap(), Some(3));
+    assert_eq!(store.last_applied_seq("depot", "r2").unwrap(), Some(1));
+    assert_eq!(
+        store.last_applied_seq("yard", "r1").unwrap(),
+        None,
+        "sites are independent"
+    );
+}
+
+fn list_and_delete_sites(store: &impl MapStore) {
+    assert!(store.list_sites().unwrap().is_empty());
+    for site in ["yard", "depot", "dock"] {
+        let mut batch = WriteBatch::new(site);
+        for n in 0..700 {
+            batch.put(RecordKind::Node, n, vec![7; 10]);
+        }
+        batch.bump_map_version().for_session("r", 5);
+        store.apply(&batch).unwrap();
+    }
+    assert_eq!(store.list_sites().unwrap(), ["depot", "dock", "yard"]);
+    store.delete_site("dock").unwrap();
+    assert_eq!(store.list_sites().unwrap(), ["depot", "yard"]);
+    assert!(scan_all(store, "dock", RecordKind::Node).is_empty());
+    assert_eq!(store.map_version("dock").unwrap(), 0);
+    assert_eq!(store.last_applied_seq("dock", "r").unwrap(), None);
+    assert_eq!(scan_all(store, "depot", RecordKind::Node).len(), 700);
+    store.delete_site("never-existed").unwrap();
+    // A deleted site can be used again from scratch.
+    let mut batch = WriteBatch::new("dock");
+    batch.bump_map_version();
+    assert_eq!(
+        store.apply(&batch).unwrap(),
+        BatchOutcome::Applied { map_version: 1 }
+    );
+}
+
+/// A site with every kind, counters, and enough records to span several import transactions.
+fn fill_sample_site(store: &impl MapStore, site: &str) {
+    for chunk in 0..3_u64 {
+        let mut batch = WriteBatch::new(site);
+        for n in 0..600 {
+            let record = chunk * 600 + n;
+            batch.put(
+                RecordKind::Node,
+                record,
+                format!("node {record}").into_bytes(),
+            );
+        }
+        batch.bump_map_version().for_session("robot-a", chunk + 1);
+        store.apply(&batch).unwrap();
+    }
+    let mut batch = WriteBatch::new(site);
+    for kind in RecordKind::ALL {
+        batch.put(kind, "k", format!("{kind} value").into_bytes());
+    }
+    batch.put(RecordKind::Submap, 1, vec![0xAB; 200_000]).put(
+        RecordKind::Constraint,
+        "empty",
+        Vec::new(),
+    );
+    batch.bump_map_version().for_session("robot-b", 42);
+    store.apply(&batch).unwrap();
+}
+
+fn site_contents(store: &impl MapStore, site: &str) -> Vec<(RecordKind, RecordId, Vec<u8>)> {
+    RecordKind::ALL
+        .into_iter()
+        .flat_map(|kind| {
+            scan_all(store, site, kind)
+                .into_iter()
+                .map(move |(id, value)| (kind, id, value))
+        })
+        .collect()
+}
+
+fn export_import_round_trip(store: &impl MapStore) {
+    fill_sample_site(store, "source");
+    let mut archive = Vec::new();
+    let exported = store.export_site("source", &mut archive).unwrap();
+    // 1800 nodes + 7 kinds + submap + constraint, + map version + 2 session counters.
+    assert_eq!(exported.records, 1800 + 7 + 2 + 3);
+    let imported = store.import_site("copy", &mut archive.as_slice()).unwrap();
+    assert_eq!(imported, exported);
+    assert_eq!(site_contents(store, "copy"), site_contents(store, "source"));
+    assert_eq!(site_contents(store, "copy").len(), 1809);
+    assert_eq!(store.map_version("copy").unwrap(), 4);
+    assert_eq!(store.last_applied_seq("copy", "robot-a").unwrap(), Some(3));
+    assert_eq!(store.last_applied_seq("copy", "robot-b").unwrap(), Some(42));
+    assert_eq!(store.list_sites().unwrap(), ["copy", "source"]);
+    // The copy exports to the same records (only the site id in the begin chunk differs).
+    let mut again = Vec::new();
+    store.export_site("copy", &mut again).unwrap();
+    let header = 8 + 2 + 8 + 1; // magic, version, chunk frame, begin tag
+    assert_eq!(
+        again[header + "copy".len()..],
+        archive[header + "source".len()..]
+    );
+    assert!(matches!(
+        store.export_site("nowhere", &mut Vec::new()),
+        Err(StorageError::SiteNotFound { .. })
+    ));
+}
+
+fn import_refuses_non_empty_site(store: &impl MapStore) {
+    fill_sample_site(store, "source");
+    let mut archive = Vec::new();
+    store.export_site("source", &mut archive).unwrap();
+    let before = site_contents(store, "source");
+    assert!(matches!(
+        store.import_site("source", &mut archive.as_slice()),
+        Err(StorageError::SiteNotEmpty { .. })
+    ));
+    assert_eq!(
+        site_contents(store, "source"),
+        before,
+        "a refused import leaves the site alone"
+    );
+}
+
+fn corrupt_or_truncated_import_writes_nothing(store: &impl MapStore) {
+    fill_sample_site(store, "source");
+    let mut archive = Vec::new();
+    store.export_site("source", &mut archive).unwrap();
+    let mut flipped_late = archive.clone();
+    let late = archive.len() - 1000; // inside the last records: earlier chunks were already written
+    flipped_late[late] ^= 0x01;
+    let truncated = &archive[..archive.len() - 17]; // exactly the end chunk missing
+    let mut trailing = archive.clone();
+    trailing.extend_from_slice(b"junk");
+    let mut bad_magic = archive.clone();
+    bad_magic[0] = b'X';
+    for (what, bad) in [
+        ("flipped byte", flipped_late.as_slice()),
+        ("truncated", truncated),
+        ("trailing bytes", trailing.as_slice()),
+        ("bad magic", bad_magic.as_slice()),
+        ("empty", &[][..]),
+    ] {
+        let mut input = bad;
+        let error = store.import_site("copy", &mut input).unwrap_err();
+        assert!(
+            matches!(error, StorageError::BadArchive { .. }),
+            "{what}: {error}"
+        );
+        assert!(
+            site_contents(store, "copy").is_empty(),
+            "{what}: records left behind"
+        );
+        assert_eq!(store.map_version("copy").unwrap(), 0, "{what}");
+        assert_eq!(
+            store.last_applied_seq("copy", "robot-a").unwrap(),
+            None,
+            "{what}"
+        );
+        assert_eq!(store.list_sites().unwrap(), ["source"], "{what}");
+    }
+    // The site is usable afterwards: a good import succeeds.
+    store.import_site("copy", &mut archive.as_slice()).unwrap();
+    assert_eq!(site_contents(store, "copy"), site_contents(store, "source"));
+}
+
+fn values_of_any_size(store: &impl MapStore) {
+    let big: Vec<u8> = (0..3_000_000_u32).map(|n| (n % 251) as u8).collect();
+    store
+        .put("depot", RecordKind::Submap, &id(1), &big)
+        .unwrap();
+    store.put("depot", RecordKind::Submap, &id(2), &[]).unwrap();
+    assert_eq!(
+        store
+            .get("depot", RecordKind::Submap, &id(1))
+            .unwrap()
+            .unwrap(),
+        big
+    );
+    assert_eq!(
+        store
+            .get("depot", RecordKind::Submap, &id(2))
+            .unwrap()
+            .unwrap(),
+        Vec::<u8>::new()
+    );
+    let max_id = RecordId::new(vec![0xFF; MAX_ID_BYTES]);
+    store.put("depot", RecordKind::Node, &max_id, b"v").unwrap();
+    assert_eq!(
+        store
+            .get("depot", RecordKind::Node, &max_id)
+            .unwrap()
+            .unwrap(),
+        b"v"
+    );
+}
+
+fn names_and_ids_are_validated(store: &impl MapStore) {
+    assert!(matches!(
+        store.put("", RecordKind::Node, &id(1), b"v"),
+        Err(StorageError::InvalidSiteId { .. })
+    ));
+    assert!(matches!(
+        store.get("a\u{0}b", RecordKind::Node, &id(1)),
+        Err(StorageError::InvalidSiteId { .. })
+    ));
+    let mut batch = WriteBatch::new("depot");
+    batch.for_session("", 1);
+    assert!(matches!(
+        store.apply(&batch),
+        Err(StorageError::InvalidSessionId { .. })
+    ));
+    assert!(matches!(
+        store.last_applied_seq("depot", ""),
+        Err(StorageError::InvalidSessionId { .. })
+    ));
+    let long_site = "s".repeat(255);
+    store
+        .put(&long_site, RecordKind::Node, &id(1), b"v")
+        .unwrap();
+    assert_eq!(store.list_sites().unwrap(), [long_site]);
+}
+
+fn durable_apply_and_flush(store: &impl MapStore) {
+    let mut batch = WriteBatch::new("depot");
+    batch
+        .put(RecordKind::Outbox, 1, b"upload".to_vec())
+        .bump_map_version();
+    assert_eq!(
+        store.apply_durable(&batch).unwrap(),
+        BatchOutcome::Applied { map_version: 1 }
+    );
+    store.flush().unwrap();
+    assert_eq!(
+        store
+            .get("depot", RecordKind::Outbox, &id(1))
+            .unwrap()
+            .unwrap(),
+        b"upload"
+    );
+}
+
+fn concurrent_bumps_are_serialized(store: &impl MapStore) {
+    const THREADS: u64 = 4;
+    const BUMPS: u64 = 40;
+    let versions: BTreeSet<u64> = thread::scope(|scope| {
+        let workers: Vec<_> = (0..THREADS)
+            .map(|worker| {
+                thread::Builder::new()
+                    .name(format!("bumper-{worker}"))
+                    .spawn_scoped(scope, move || {
+                        (0..BUMPS)
+                            .map(|n| {
+                                let mut batch = WriteBatch::new("depot");
+                                batch
+                                    .put(RecordKind::Node, worker * 1000 + n, vec![1])
+                                    .bump_map_version();
+                                match store.apply(&batch).unwrap() {
+                                    BatchOutcome::Applied { map_version } => map_version,
+                                    BatchOutcome::Duplicate { .. } => unreachable!("no session"),
+                                }
+                            })
+                            .collect::<Vec<_>>()
+                    })
+                    .unwrap()
+            })
+            .collect();
+        workers
+            .into_iter()
+            .flat_map(|worker| worker.join().unwrap())
+            .collect()
+    });
+    assert_eq!(
+        versions,
+        (1..=THREADS * BUMPS).collect(),
+        "every bump got its own version"
+    );
+    assert_eq!(store.map_version("depot").unwrap(), THREADS * BUMPS);
+    assert_eq!(
+        scan_all(store, "depot", RecordKind::Node).len() as u64,
+        THREADS * BUMPS
+    );
+}

@@ -1,0 +1,119 @@
+//! The persistence interface of the server and the agent.
+
+use std::io::{Read, Write};
+
+use crate::{BatchOutcome, RecordId, RecordKind, Result, TransferSummary, WriteBatch};
+
+/// Records of one (site, kind) in id order, each verified; an `Err` item is a corrupt record or a
+/// backend failure (iteration may continue past a corrupt record).
+pub type RecordIter<'a> = Box<dyn Iterator<Item = Result<(RecordId, Vec<u8>)>> + Send + 'a>;
+
+/// A store of versioned, checksummed records for many sites.
+///
+/// Records are addressed by (site id, [`RecordKind`], [`RecordId`]) and hold opaque bytes. Every value is
+/// stored with a format version byte and a CRC32 (over version, key and value); every read verifies both and
+/// returns [`crate::StorageError::Corrupt`] rather than a damaged value.
+///
+/// Writes go through [`WriteBatch`]es, applied all or nothing. A batch can bump the site's map version (stored
+/// atomically with the batch) and be conditional on an upload's session sequence number (exactly-once
+/// uploads). [`MapStore::apply`] makes the batch visible to readers at once; it is on disk after
+/// [`MapStore::flush`] (or when the backend's background flush runs). [`MapStore::apply_durable`] returns
+/// only once the batch is on disk: acknowledge uploads to robots only after it.
+///
+/// A site whose import or deletion was interrupted is *incomplete*: it is not listed, refuses batches with
+/// [`crate::StorageError::SiteIncomplete`], and is cleared by [`MapStore::delete_site`] or
+/// [`MapStore::import_site`]. Reads do not check this.
+///
+/// Scans and exports are not snapshots: do not write to a site while exporting it. Implementations are
+/// thread-safe; batches on the same site are serialized.
+pub trait MapStore: Send + Sync {
+    /// Applies `batch` atomically: every put and delete, the map version bump and the session sequence
+    /// number, or nothing. Returns [`BatchOutcome::Duplicate`] (and writes nothing) when the batch's session
+    /// sequence number was already applied.
+    fn apply(&self, batch: &WriteBatch) -> Result<BatchOutcome>;
+
+    /// Makes every batch applied so far durable (on disk, fsynced). A no-op for in-memory stores.
+    fn flush(&self) -> Result<()>;
+
+    /// [`MapStore::apply`] then [`MapStore::flush`]: returns only after the batch is on disk.
+    fn apply_durable(&self, batch: &WriteBatch) -> Result<BatchOutcome> {
+        let outcome = self.apply(batch)?;
+        self.flush()?;
+        Ok(outcome)
+    }
+
+    /// Puts one record (a batch of one put).
+    fn put(
+        &self,
+        site: &str,
+        kind: RecordKind,
+        id: &RecordId,
+        value: &[u8],
+    ) -> Result<BatchOutcome> {
+        let mut batch = WriteBatch::new(site);
+        batch.put(kind, id.clone(), value);
+        self.apply(&batch)
+    }
+
+    /// Deletes one record (a batch of one delete); deleting an absent record is not an error.
+    fn delete(&self, site: &str, kind: RecordKind, id: &RecordId) -> Result<BatchOutcome> {
+        let mut batch = WriteBatch::new(site);
+        batch.delete(kind, id.clone());
+        self.apply(&batch)
+    }
+
+    /// The verified value of a record, `None` if absent.
+    fn get(&self, site: &str, kind: RecordKind, id: &RecordId) -> Result<Option<Vec<u8>>>;
+
+    /// The records of (site, kind) in id order.
+    fn scan(&self, site: &str, kind: RecordKind) -> Result<RecordIter<'_>>;
+
+    /// The complete sites, sorted by id.
+    fn list_sites(&self) -> Result<Vec<String>>;
+
+    /// The site's map version: how many applied batches bumped it (0 for a new or unknown site).
+    fn map_version(&self, site: &str) -> Result<u64>;
+
+    /// The last applied sequence number of a session on a site, `None` if none was applied.
+    fn last_applied_seq(&self, site: &str, session: &str) -> Result<Option<u64>>;
+
+    /// Removes a site and all its records, durably. Not atomic for large sites, but crash-safe: the site is
+    /// marked incomplete first, so an interrupted deletion leaves an unlisted site that a retry finishes.
+    fn delete_site(&self, site: &str) -> Result<()>;
+
+    /// Writes every record of a complete site (counters included) to `out` as a site archive
+    /// (see [`crate::SITE_ARCHIVE_MAGIC`] for the format). Fails on the first corrupt record.
+    fn export_site(&self, site: &str, out: &mut dyn Write) -> Result<TransferSummary>;
+
+    /// Reads a site archive into `site`, which must hold no data (leftovers of an interrupted import or
+    /// deletion are cleared first). The archive may come from another site id. On any error (corrupt or
+    /// truncated stream, I/O) everything written so far is removed and the site does not exist afterwards.
+    /// Durable when it returns `Ok`.
+    fn import_site(&self, site: &str, input: &mut dyn Read) -> Result<TransferSummary>;
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::Arc;
+
+    use super::*;
+    use crate::MemStore;
+
+    #[test]
+    fn usable_as_a_shared_trait_object() {
+        let store: Arc<dyn MapStore> = Arc::new(MemStore::new());
+        let id = RecordId::from("meta");
+        store.put("depot", RecordKind::SiteMeta, &id, b"v").unwrap();
+        assert_eq!(
+            store
+                .get("depot", RecordKind::SiteMeta, &id)
+                .unwrap()
+                .unwrap(),
+            b"v"
+        );
+        assert_eq!(
+            store.scan("depot", RecordKind::SiteMeta).unwrap().count(),
+            1
+        );
+    }
+}

@@ -1,0 +1,425 @@
+//! The semantics of [`crate::MapStore`], written once over a minimal transactional key-value interface that
+//! each backend implements (private). Keeping the logic here guarantees `SledStore` and `MemStore` behave alike.
+
+use std::io::{Read, Write};
+
+use crate::envelope::{self, decode_u64};
+use crate::key::{self, INTERNAL_KIND_MIN, KIND_MAP_VERSION, KIND_SESSION_SEQ};
+use crate::site_archive::{ArchiveReader, ArchiveWriter, Chunk};
+use crate::{
+    BatchOp, BatchOutcome, RecordId, RecordIter, RecordKind, Result, StorageError, TransferSummary,
+    WriteBatch, validate_session_id, validate_site_id,
+};
+
+/// Raw (key, value) pairs under a prefix, in key order.
+pub(crate) type RawIter<'a> = Box<dyn Iterator<Item = Result<(Vec<u8>, Vec<u8>)>> + Send + 'a>;
+
+/// Reads and writes inside one atomic transaction.
+pub(crate) trait RawTxn {
+    fn get(&mut self, key: &[u8]) -> Result<Option<Vec<u8>>>;
+    fn insert(&mut self, key: &[u8], value: Vec<u8>) -> Result<()>;
+    fn remove(&mut self, key: &[u8]) -> Result<()>;
+}
+
+/// A transactional ordered key-value store.
+pub(crate) trait RawKv: Send + Sync {
+    fn raw_get(&self, key: &[u8]) -> Result<Option<Vec<u8>>>;
+    fn raw_scan(&self, prefix: &[u8]) -> RawIter<'_>;
+    /// Runs `body` atomically and serializably: its writes all land if it returns `Ok`, none otherwise.
+    /// `body` may be run more than once (optimistic retries), so it must have no other side effects.
+    fn transact<T>(&self, body: &dyn Fn(&mut dyn RawTxn) -> Result<T>) -> Result<T>;
+    fn raw_flush(&self) -> Result<()>;
+}
+
+/// State of a site in the registry (the payload of its registry entry).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum SiteState {
+    Complete = 1,
+    Incomplete = 2,
+}
+
+/// Records written per transaction when importing or deleting a site.
+const CHUNK_RECORDS: usize = 512;
+/// Payload bytes written per transaction when importing.
+const CHUNK_BYTES: usize = 8 << 20;
+
+fn site_state(site_key: &[u8], stored: Option<&[u8]>) -> Result<Option<SiteState>> {
+    let Some(stored) = stored else {
+        return Ok(None);
+    };
+    match envelope::open(site_key, stored)? {
+        [1] => Ok(Some(SiteState::Complete)),
+        [2] => Ok(Some(SiteState::Incomplete)),
+        other => Err(StorageError::Corrupt {
+            key: key::describe(site_key),
+            reason: format!("unknown site state {other:?}"),
+        }),
+    }
+}
+
+fn sealed_state(site_key: &[u8], state: SiteState) -> Vec<u8> {
+    envelope::seal(site_key, &[state as u8])
+}
+
+fn read_counter(kv: &impl RawKv, key: &[u8]) -> Result<Option<u64>> {
+    kv.raw_get(key)?
+        .map(|stored| decode_u64(key, envelope::open(key, &stored)?))
+        .transpose()
+}
+
+fn txn_counter(txn: &mut dyn RawTxn, key: &[u8]) -> Result<Option<u64>> {
+    txn.get(key)?
+        .map(|stored| decode_u64(key, envelope::open(key, &stored)?))
+        .transpose()
+}
+
+pub(crate) fn apply(kv: &impl RawKv, batch: &WriteBatch) -> Result<BatchOutcome> {
+    batch.validate()?;
+    let site = batch.site();
+    let site_key = key::site_key(site);
+    let version_key = key::record_key(site, KIND_MAP_VERSION, &[]);
+    let session_key = batch.session().map(|(session, seq)| {
+        (
+            key::record_key(site, KIND_SESSION_SEQ, session.as_bytes()),
+            seq,
+        )
+    });
+    // Seal outside the transaction: it may be retried, and sealing is the costly part.
+    let writes: Vec<(Vec<u8>, Option<Vec<u8>>)> = batch
+        .ops()
+        .iter()
+        .map(|op| match op {
+            BatchOp::Put { kind, id, value } => {
+                let key = key::record_key(site, kind.as_byte(), id.as_bytes());
+                let sealed = envelope::seal(&key, value);
+                (key, Some(sealed))
+            }
+            BatchOp::Delete { kind, id } => {
+                (key::record_key(site, kind.as_byte(), id.as_bytes()), None)
+            }
+        })
+        .collect();
+    kv.transact(&|txn| {
+        let state = site_state(&site_key, txn.get(&site_key)?.as_deref())?;
+        if state == Some(SiteState::Incomplete) {
+            return Err(StorageError::SiteIncomplete {
+                site: site.to_owned(),
+            });
+        }
+        if let Some((session_key, seq)) = &session_key
+            && let Some(last_applied) = txn_counter(txn, session_key)?
+            && *seq <= last_applied
+        {
+            return Ok(BatchOutcome::Duplicate { last_applied });
+        }
+        if state.is_none() {
+            txn.insert(&site_key, sealed_state(&site_key, SiteState::Complete))?;
+        }
+        for (key, value) in &writes {
+            match value {
+                Some(sealed) => txn.insert(key, sealed.clone())?,
+                None => txn.remove(key)?,
+            }
+        }
+        let mut map_version = txn_counter(txn, &version_key)?.unwrap_or(0);
+        if batch.bumps_map_version() {
+            map_version += 1;
+            txn.insert(
+                &version_key,
+                envelope::seal(&version_key, &map_version.to_le_bytes()),
+            )?;
+        }
+        if let Some((session_key, seq)) = &session_key {
+            txn.insert(session_key, envelope::seal(session_key, &seq.to_le_bytes()))?;
+        }
+        Ok(BatchOutcome::Applied { map_version })
+    })
+}
+
+pub(crate) fn get(
+    kv: &impl RawKv,
+    site: &str,
+    kind: RecordKind,
+    id: &RecordId,
+) -> Result<Option<Vec<u8>>> {
+    validate_site_id(site)?;
+    let key = key::record_key(site, kind.as_byte(), id.as_bytes());
+    kv.raw_get(&key)?
+        .map(|stored| Ok(envelope::open(&key, &stored)?.to_vec()))
+        .transpose()
+}
+
+pub(crate) fn scan<'a>(kv: &'a impl RawKv, site: &str, kind: RecordKind) -> Result<RecordIter<'a>> {
+    validate_site_id(site)?;
+    let prefix = key::kind_prefix(site, kind.as_byte());
+    let prefix_len = prefix.len();
+    Ok(Box::new(kv.raw_scan(&prefix).map(move |item| {
+        let (key, stored) = item?;
+        let payload = envelope::open(&key, &stored)?.to_vec();
+        Ok((RecordId::new(&key[prefix_len..]), payload))
+    })))
+}
+
+pub(crate) fn list_sites(kv: &impl RawKv) -> Result<Vec<String>> {
+    let mut sites = Vec::new();
+    for item in kv.raw_scan(&[key::NS_SITE]) {
+        let (site_key, stored) = item?;
+        if site_state(&site_key, Some(&stored))? == Some(SiteState::Complete) {
+            let site = std::str::from_utf8(&site_key[1..]).map_err(|_| StorageError::Corrupt {
+                key: key::describe(&site_key),
+                reason: "site id is not UTF-8".to_owned(),
+            })?;
+            sites.push(site.to_owned());
+        }
+    }
+    sites.sort();
+    Ok(sites)
+}
+
+pub(crate) fn map_version(kv: &impl RawKv, site: &str) -> Result<u64> {
+    validate_site_id(site)?;
+    Ok(read_counter(kv, &key::record_key(site, KIND_MAP_VERSION, &[]))?.unwrap_or(0))
+}
+
+pub(crate) fn last_applied_seq(kv: &impl RawKv, site: &str, session: &str) -> Result<Option<u64>> {
+    validate_site_id(site)?;
+    validate_session_id(session)?;
+    read_counter(
+        kv,
+        &key::record_key(site, KIND_SESSION_SEQ, session.as_bytes()),
+    )
+}
+
+/// Marks the site incomplete, then removes its records chunk by chunk, then its registry entry.
+pub(crate) fn delete_site(kv: &impl RawKv, site: &str) -> Result<()> {
+    validate_site_id(site)?;
+    let site_key = key::site_key(site);
+    kv.transact(&|txn| txn.insert(&site_key, sealed_state(&site_key, SiteState::Incomplete)))?;
+    purge_records(kv, site)?;
+    kv.transact(&|txn| txn.remove(&site_key))?;
+    kv.raw_flush()
+}
+
+fn purge_records(kv: &impl RawKv, site: &str) -> Result<()> {
+    let prefix = key::site_prefix(site);
+    loop {
+        let keys: Vec<Vec<u8>> = kv
+            .raw_scan(&prefix)
+            .take(CHUNK_RECORDS)
+            .map(|item| item.map(|(key, _)| key))
+            .collect::<Result<_>>()?;
+        if keys.is_empty() {
+            return Ok(());
+        }
+        kv.transact(&|txn| keys.iter().try_for_each(|key| txn.remove(key)))?;
+    }
+}
+
+pub(crate) fn export_site(
+    kv: &impl RawKv,
+    site: &str,
+    out: &mut dyn Write,
+) -> Result<TransferSummary> {
+    validate_site_id(site)?;
+    let site_key = key::site_key(site);
+    match site_state(&site_key, kv.raw_get(&site_key)?.as_deref())? {
+        None => {
+            return Err(StorageError::SiteNotFound {
+                site: site.to_owned(),
+            });
+        }
+        Some(SiteState::Incomplete) => {
+            return Err(StorageError::SiteIncomplete {
+                site: site.to_owned(),
+            });
+        }
+        Some(SiteState::Complete) => {}
+    }
+    let prefix = key::site_prefix(site);
+    let mut writer = ArchiveWriter::new(out, site)?;
+    for item in kv.raw_scan(&prefix) {
+        let (key, stored) = item?;
+        let payload = envelope::open(&key, &stored)?;
+        let Some((&kind, id)) = key[prefix.len()..].split_first() else {
+            return Err(StorageError::Corrupt {
+                key: key::describe(&key),
+                reason: "key has no kind".to_owned(),
+            });
+        };
+        writer.record(kind, id, payload)?;
+    }
+    writer.finish()
+}
+
+pub(crate) fn import_site(
+    kv: &impl RawKv,
+    site: &str,
+    input: &mut dyn Read,
+) -> Result<TransferSummary> {
+    validate_site_id(site)?;
+    let site_key = key::site_key(site);
+    let state = site_state(&site_key, kv.raw_get(&site_key)?.as_deref())?;
+    let has_records = kv
+        .raw_scan(&key::site_prefix(site))
+        .next()
+        .transpose()?
+        .is_some();
+    if state == Some(SiteState::Complete) || (state.is_none() && has_records) {
+        return Err(StorageError::SiteNotEmpty {
+            site: site.to_owned(),
+        });
+    }
+    // Claim the site atomically (a concurrent batch or import may have created it since the check).
+    kv.transact(
+        &|txn| match site_state(&site_key, txn.get(&site_key)?.as_deref())? {
+            Some(SiteState::Complete) => Err(StorageError::SiteNotEmpty {
+                site: site.to_owned(),
+            }),
+            _ => txn.insert(&site_key, sealed_state(&site_key, SiteState::Incomplete)),
+        },
+    )?;
+    purge_records(kv, site)?;
+    match import_records(kv, site, input) {
+        Ok(summary) => {
+            kv.transact(&|txn| {
+                txn.insert(&site_key, sealed_state(&site_key, SiteState::Complete))
+            })?;
+            kv.raw_flush()?;
+            Ok(summary)
+        }
+        Err(error) => {
+            // Best effort: if the cleanup fails too, the site stays incomplete (unlisted, write-protected).
+            let _ = delete_site(kv, site);
+            Err(error)
+        }
+    }
+}
+
+fn import_records(kv: &impl RawKv, site: &str, input: &mut dyn Read) -> Result<TransferSummary> {
+    let bad = |reason: String| StorageError::BadArchive { reason };
+    let mut reader = ArchiveReader::new(input)?;
+    let Chunk::Begin { .. } = reader.next_chunk()? else {
+        return Err(bad("first chunk is not the begin chunk".to_owned()));
+    };
+    let mut summary = TransferSummary::default();
+    let mut pending: Vec<(Vec<u8>, Vec<u8>)> = Vec::new();
+    let mut pending_bytes = 0;
+    let write = |pending: &mut Vec<(Vec<u8>, Vec<u8>)>| {
+        kv.transact(&|txn| {
+            pending
+                .iter()
+                .try_for_each(|(key, sealed)| txn.insert(key, sealed.clone()))
+        })?;
+        pending.clear();
+        Ok::<_, StorageError>(())
+    };
+    loop {
+        match reader.next_chunk()? {
+            Chunk::Begin { .. } => return Err(bad("second begin chunk".to_owned())),
+            Chunk::Record { kind, id, payload } => {
+                check_imported_kind(kind, &id, &payload).map_err(bad)?;
+                let key = key::record_key(site, kind, &id);
+                summary.records += 1;
+                summary.payload_bytes += payload.len() as u64;
+                pending_bytes += payload.len();
+                pending.push((key.clone(), envelope::seal(&key, &payload)));
+                if pending.len() >= CHUNK_RECORDS || pending_bytes >= CHUNK_BYTES {
+                    write(&mut pending)?;
+                    pending_bytes = 0;
+                }
+            }
+            Chunk::End { records } => {
+                if records != summary.records {
+                    return Err(bad(format!(
+                        "end chunk counts {records} records, the stream held {}",
+                        summary.records
+                    )));
+                }
+                write(&mut pending)?;
+                return Ok(summary);
+            }
+        }
+    }
+}
+
+fn check_imported_kind(kind: u8, id: &[u8], payload: &[u8]) -> Result<(), String> {
+    match kind {
+        KIND_MAP_VERSION if id.is_empty() && payload.len() == 8 => Ok(()),
+        KIND_SESSION_SEQ if payload.len() == 8 => std::str::from_utf8(id)
+            .ok()
+            .filter(|session| validate_session_id(session).is_ok())
+            .map(|_| ())
+            .ok_or_else(|| "bad session id in a session counter".to_owned()),
+        kind if kind >= INTERNAL_KIND_MIN => {
+            Err(format!("malformed internal record of kind {kind:#04x}"))
+        }
+        kind if RecordKind::from_byte(kind).is_none() => Err(format!("unknown record kind {kind}")),
+        _ if id.len() > crate::MAX_ID_BYTES => Err("record id too long".to_owned()),
+        _ => Ok(()),
+    }
+}
+
+/// Implements [`crate::MapStore`] for a type implementing [`RawKv`] by delegating to this module.
+macro_rules! impl_map_store_via_raw_kv {
+    ($store:ty) => {
+        impl $crate::MapStore for $store {
+            fn apply(&self, batch: &$crate::WriteBatch) -> $crate::Result<$crate::BatchOutcome> {
+                $crate::raw_kv::apply(self, batch)
+            }
+
+            fn flush(&self) -> $crate::Result<()> {
+                $crate::raw_kv::RawKv::raw_flush(self)
+            }
+
+            fn get(
+                &self,
+                site: &str,
+                kind: $crate::RecordKind,
+                id: &$crate::RecordId,
+            ) -> $crate::Result<Option<Vec<u8>>> {
+                $crate::raw_kv::get(self, site, kind, id)
+            }
+
+            fn scan(
+                &self,
+                site: &str,
+                kind: $crate::RecordKind,
+            ) -> $crate::Result<$crate::RecordIter<'_>> {
+                $crate::raw_kv::scan(self, site, kind)
+            }
+
+            fn list_sites(&self) -> $crate::Result<Vec<String>> {
+                $crate::raw_kv::list_sites(self)
+            }
+
+            fn map_version(&self, site: &str) -> $crate::Result<u64> {
+                $crate::raw_kv::map_version(self, site)
+            }
+
+            fn last_applied_seq(&self, site: &str, session: &str) -> $crate::Result<Option<u64>> {
+                $crate::raw_kv::last_applied_seq(self, site, session)
+            }
+
+            fn delete_site(&self, site: &str) -> $crate::Result<()> {
+                $crate::raw_kv::delete_site(self, site)
+            }
+
+            fn export_site(
+                &self,
+                site: &str,
+                out: &mut dyn std::io::Write,
+            ) -> $crate::Result<$crate::TransferSummary> {
+                $crate::raw_kv::export_site(self, site, out)
+            }
+
+            fn import_site(
+                &self,
+                site: &str,
+                input: &mut dyn std::io::Read,
+            ) -> $crate::Result<$crate::TransferSummary> {
+                $crate::raw_kv::import_site(self, site, input)
+            }
+        }
+    };
+}
+pub(crate) use impl_map_store_via_raw_kv;

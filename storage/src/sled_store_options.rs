@@ -1,0 +1,113 @@
+//! Options of [`crate::SledStore`].
+
+use std::path::PathBuf;
+
+use serde::{Deserialize, Serialize};
+
+use crate::{Result, StorageError};
+
+/// Where and how [`crate::SledStore`] opens its database (the server's `[storage]` config section).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SledStoreOptions {
+    /// Database directory, created if missing. Default `./evermap-data`.
+    pub path: PathBuf,
+    /// Opening attempts while another process holds the database lock (a killed server's lock can outlive
+    /// it briefly); count, at least 1. Default 10.
+    pub open_attempts: u32,
+    /// Pause between opening attempts, in milliseconds. Default 100.
+    pub open_retry_interval_ms: u64,
+    /// sled page cache size, in bytes; at least 1 MiB. Default 256 MiB.
+    pub cache_capacity_bytes: u64,
+    /// Period of sled's background flush, in milliseconds; 0 disables it (then only
+    /// [`crate::MapStore::flush`] and [`crate::MapStore::apply_durable`] make data durable). Default 500.
+    pub background_flush_ms: u64,
+}
+
+impl SledStoreOptions {
+    /// Default database directory.
+    pub const DEFAULT_PATH: &'static str = "./evermap-data";
+
+    /// Defaults, with the database at `path`.
+    pub fn at(path: impl Into<PathBuf>) -> Self {
+        Self {
+            path: path.into(),
+            ..Self::default()
+        }
+    }
+
+    /// Checks every field.
+    pub fn validate(&self) -> Result<()> {
+        let invalid = |field, reason: &str| {
+            Err(StorageError::InvalidOptions {
+                field,
+                reason: reason.to_owned(),
+            })
+        };
+        if self.path.as_os_str().is_empty() {
+            return invalid("path", "must not be empty");
+        }
+        if !(1..=1000).contains(&self.open_attempts) {
+            return invalid("open_attempts", "must be in 1..=1000");
+        }
+        if self.open_retry_interval_ms > 60_000 {
+            return invalid("open_retry_interval_ms", "must be at most 60000 ms");
+        }
+        if self.cache_capacity_bytes < 1 << 20 {
+            return invalid(
+                "cache_capacity_bytes",
+                "must be at least 1 MiB (1048576 bytes)",
+            );
+        }
+        Ok(())
+    }
+}
+
+impl Default for SledStoreOptions {
+    fn default() -> Self {
+        Self {
+            path: PathBuf::from(Self::DEFAULT_PATH),
+            open_attempts: 10,
+            open_retry_interval_ms: 100,
+            cache_capacity_bytes: 256 << 20,
+            background_flush_ms: 500,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_are_valid_and_bad_values_are_refused() {
+        SledStoreOptions::default().validate().unwrap();
+        assert_eq!(
+            SledStoreOptions::default().path,
+            PathBuf::from("./evermap-data")
+        );
+        for bad in [
+            SledStoreOptions {
+                open_attempts: 0,
+                ..SledStoreOptions::default()
+            },
+            SledStoreOptions {
+                path: PathBuf::new(),
+                ..SledStoreOptions::default()
+            },
+            SledStoreOptions {
+                cache_capacity_bytes: 1000,
+                ..SledStoreOptions::default()
+            },
+            SledStoreOptions {
+                open_retry_interval_ms: 120_000,
+                ..SledStoreOptions::default()
+            },
+        ] {
+            assert!(
+                matches!(bad.validate(), Err(StorageError::InvalidOptions { .. })),
+                "{bad:?}"
+            );
+        }
+    }
+}
