@@ -1,3 +1,4 @@
 //! The agent's subcommands, one file each.
 
 pub mod offline;
+pub mod relocalize;

@@ -16,11 +16,14 @@ struct Cli {
 enum Command {
     /// Maps a whole recording (LLO + GLM + PGR in one process) and writes the trajectory, the map and a report.
     Offline(commands::offline::OfflineArgs),
+    /// Builds a map from the first 60 % of a recording and relocalizes scans of the rest with no prior.
+    Relocalize(commands::relocalize::RelocalizeArgs),
 }
 
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
     match cli.command {
         Command::Offline(args) => commands::offline::run(&args),
+        Command::Relocalize(args) => commands::relocalize::run(&args),
     }
 }
