@@ -10,4 +10,6 @@
 
 pub mod geometry;
 pub mod grid;
+pub mod io;
+pub mod pose_graph;
 pub mod sensor;

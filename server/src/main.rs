@@ -1,12 +1,26 @@
 //! `evermap-server`: the fleet map server and its back-end tools.
 
-use clap::Parser;
+mod optimize_command;
+
+use clap::{Parser, Subcommand};
 
 /// evermap map server.
 #[derive(Parser)]
 #[command(version, about)]
-struct Cli {}
+struct Cli {
+    #[command(subcommand)]
+    command: Option<Command>,
+}
 
-fn main() {
-    Cli::parse();
+#[derive(Subcommand)]
+enum Command {
+    /// Optimize a g2o/TORO pose graph file and print one JSON line of results.
+    Optimize(optimize_command::OptimizeArgs),
+}
+
+fn main() -> anyhow::Result<()> {
+    match Cli::parse().command {
+        Some(Command::Optimize(args)) => optimize_command::run(&args),
+        None => Ok(()),
+    }
 }

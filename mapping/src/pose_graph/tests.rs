@@ -1,0 +1,474 @@
+//! Tests of the pose graph and optimizer together (the per-file pieces test themselves).
+
+use std::fs::File;
+use std::io::BufReader;
+use std::path::PathBuf;
+
+use approx::assert_relative_eq;
+use nalgebra::Matrix3;
+
+use super::*;
+use crate::geometry::{Rigid2, Rigid2Ext as _, rigid2};
+use crate::io::g2o::read_pose_graph;
+
+fn node(index: u32) -> VariableId {
+    VariableId::Node(NodeId {
+        trajectory: 0,
+        index,
+    })
+}
+
+fn dataset(name: &str) -> PoseGraph {
+    // `../../shared/datasets` from the main checkout; one level more from a worktree under /work/wt.
+    let manifest = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    let path = manifest
+        .ancestors()
+        .map(|dir| dir.join("shared/datasets/posegraphs").join(name))
+        .find(|p| p.exists())
+        .unwrap_or_else(|| manifest.join("../../shared/datasets/posegraphs").join(name));
+    let file = File::open(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    read_pose_graph(BufReader::new(file)).unwrap().graph
+}
+
+fn constraint(from: u32, to: u32, z: Rigid2, loss: RobustLoss) -> Constraint {
+    Constraint {
+        kind: if to == from + 1 {
+            ConstraintKind::Odometry
+        } else {
+            ConstraintKind::NodeToNode
+        },
+        from: node(from),
+        to: node(to),
+        from_from_to: z,
+        information: Matrix3::from_diagonal(&nalgebra::Vector3::new(100.0, 100.0, 400.0)),
+        loss,
+    }
+}
+
+/// A square loop of `n` nodes with exact odometry and loop closures, initial poses perturbed.
+fn square_world(n: u32, loss: RobustLoss) -> (PoseGraph, Vec<Rigid2>) {
+    let truth: Vec<Rigid2> = (0..n)
+        .map(|k| {
+            let t = f64::from(k) / f64::from(n) * std::f64::consts::TAU;
+            rigid2(
+                5.0 * t.cos(),
+                5.0 * t.sin(),
+                t + std::f64::consts::FRAC_PI_2,
+            )
+        })
+        .collect();
+    let mut graph = PoseGraph::new();
+    for (k, pose) in truth.iter().enumerate() {
+        let wobble = (k as f64 * 1.7).sin();
+        let initial = pose * rigid2(0.3 * wobble, -0.2 * wobble, 0.1 * wobble);
+        graph
+            .add_variable(node(k as u32), if k == 0 { *pose } else { initial })
+            .unwrap();
+    }
+    for k in 0..n {
+        let (i, j) = (k, (k + 1) % n);
+        let (a, b) = (i.min(j), i.max(j));
+        let z = truth[a as usize].inverse() * truth[b as usize];
+        graph.add_constraint(constraint(a, b, z, loss)).unwrap();
+    }
+    for k in 0..n / 2 {
+        let (a, b) = (k, k + n / 2);
+        graph
+            .add_constraint(constraint(
+                a,
+                b,
+                truth[a as usize].inverse() * truth[b as usize],
+                loss,
+            ))
+            .unwrap();
+    }
+    (graph, truth)
+}
+
+fn max_pose_error(graph: &PoseGraph, truth: &[Rigid2]) -> f64 {
+    truth
+        .iter()
+        .enumerate()
+        .map(|(k, t)| {
+            let p = graph.pose(node(k as u32)).unwrap();
+            (p.inverse() * t).translation.vector.norm() + (p.inverse() * t).theta().abs()
+        })
+        .fold(0.0, f64::max)
+}
+
+fn max_pose_error_except(graph: &PoseGraph, truth: &[Rigid2], skip: u32) -> f64 {
+    truth
+        .iter()
+        .enumerate()
+        .filter(|(k, _)| *k as u32 != skip)
+        .map(|(k, t)| {
+            let d = graph.pose(node(k as u32)).unwrap().inverse() * t;
+            d.translation.vector.norm() + d.theta().abs()
+        })
+        .fold(0.0, f64::max)
+}
+
+fn optimizer() -> Optimizer {
+    Optimizer::new(OptimizerOptions::default()).unwrap()
+}
+
+#[test]
+fn recovers_ground_truth_of_ring_exactly() {
+    let mut graph = dataset("ring_groundTruth.g2o");
+    let before: Vec<_> = graph.variables().collect();
+    let summary = optimizer().optimize(&mut graph);
+    assert!(summary.termination.is_converged(), "{summary:?}");
+    assert!(
+        summary.initial_chi2 < 1e-6 && summary.final_chi2 <= summary.initial_chi2,
+        "{summary:?}"
+    );
+    // The file prints 6 decimals (θ = 0.785398 for π/4): over the ring's ~100 m lever arm the optimum sits
+    // ~10 µm from the printed poses.
+    for ((_, a, _), (_, b, _)) in before.iter().zip(graph.variables()) {
+        let d = a.inverse() * b;
+        assert!(
+            d.translation.vector.norm() < 1e-4 && d.theta().abs() < 1e-6,
+            "{a:?} moved to {b:?}"
+        );
+    }
+}
+
+#[test]
+fn reaches_best_known_chi2_on_ring() {
+    let mut graph = dataset("ring.g2o");
+    let summary = optimizer().optimize(&mut graph);
+    assert!(summary.termination.is_converged(), "{summary:?}");
+    assert!(
+        summary.initial_chi2 > 1000.0,
+        "ring starts far from the optimum: {summary:?}"
+    );
+    let best = 11.1631;
+    assert!(
+        (summary.final_chi2 - best).abs() <= 1e-4 * best,
+        "{summary:?}"
+    );
+    assert_relative_eq!(graph.chi2(), summary.final_chi2, max_relative = 1e-12);
+}
+
+#[test]
+fn converges_on_a_synthetic_loop() {
+    let (mut graph, truth) = square_world(24, RobustLoss::Trivial);
+    assert!(max_pose_error(&graph, &truth) > 0.1);
+    let summary = optimizer().optimize(&mut graph);
+    assert!(summary.termination.is_converged(), "{summary:?}");
+    assert!(summary.final_chi2 < 1e-12, "{summary:?}");
+    assert!(max_pose_error(&graph, &truth) < 1e-6);
+}
+
+#[test]
+fn robust_loss_down_weights_an_injected_outlier() {
+    let run = |loss| {
+        let (mut graph, truth) = square_world(24, loss);
+        // A wrong loop closure: 3 m and 1 rad off.
+        let z = truth[2].inverse() * truth[15] * rigid2(3.0, 0.0, 1.0);
+        let outlier = graph.add_constraint(constraint(2, 15, z, loss)).unwrap();
+        let summary = optimizer().optimize(&mut graph);
+        assert!(summary.final_cost < summary.initial_cost, "{summary:?}");
+        let c = graph.constraint(outlier).unwrap();
+        let s = c.chi2(&graph.pose(c.from).unwrap(), &graph.pose(c.to).unwrap());
+        (max_pose_error(&graph, &truth), c.loss.weight(s))
+    };
+    let (plain_error, _) = run(RobustLoss::Trivial);
+    let (cauchy_error, cauchy_weight) = run(RobustLoss::Cauchy { scale: 1.0 });
+    let (huber_error, huber_weight) = run(RobustLoss::Huber { delta: 1.0 });
+    assert!(
+        plain_error > 0.2,
+        "the outlier must distort least squares: {plain_error}"
+    );
+    assert!(
+        cauchy_error < 0.01 * plain_error,
+        "{cauchy_error} vs {plain_error}"
+    );
+    assert!(
+        huber_error < 0.5 * plain_error,
+        "{huber_error} vs {plain_error}"
+    );
+    assert!(
+        cauchy_weight < 1e-3 && huber_weight < 0.1,
+        "{cauchy_weight} {huber_weight}"
+    );
+}
+
+#[test]
+fn fixed_variables_stay_put_and_smallest_id_is_the_default_gauge() {
+    let (mut graph, _) = square_world(12, RobustLoss::Trivial);
+    let pinned = graph.pose(node(5)).unwrap();
+    let first = graph.pose(node(0)).unwrap();
+    graph.set_fixed(node(5), true).unwrap();
+    optimizer().optimize(&mut graph);
+    assert_eq!(graph.pose(node(5)).unwrap(), pinned);
+    assert_ne!(
+        graph.pose(node(0)).unwrap(),
+        first,
+        "node 0 is free once another node is fixed"
+    );
+
+    let (mut graph, _) = square_world(12, RobustLoss::Trivial);
+    let first = graph.pose(node(0)).unwrap();
+    let other = graph.pose(node(3)).unwrap();
+    optimizer().optimize(&mut graph);
+    assert_eq!(graph.pose(node(0)).unwrap(), first);
+    assert_ne!(graph.pose(node(3)).unwrap(), other);
+    assert_eq!(
+        graph.is_fixed(node(0)),
+        Some(false),
+        "the implicit gauge does not edit the graph"
+    );
+}
+
+#[test]
+fn remove_variable_keeps_the_graph_consistent() {
+    let (mut graph, truth) = square_world(12, RobustLoss::Trivial);
+    let touching = graph.constraints_of(node(4)).to_vec();
+    assert_eq!(touching.len(), 3);
+    let constraints_before = graph.num_constraints();
+    let removed = graph.remove_variable(node(4)).unwrap();
+    assert_eq!(
+        removed.iter().map(|(id, _)| *id).collect::<Vec<_>>(),
+        touching
+    );
+    assert_eq!(graph.num_constraints(), constraints_before - 3);
+    assert!(!graph.contains_variable(node(4)));
+    for (id, c) in graph.constraints() {
+        assert!(c.from != node(4) && c.to != node(4));
+        assert!(
+            graph.constraints_of(c.from).contains(&id) && graph.constraints_of(c.to).contains(&id)
+        );
+    }
+    for (id, _, _) in graph.variables() {
+        for c in graph.constraints_of(id) {
+            assert!(
+                graph.constraint(*c).is_some(),
+                "dangling constraint {c:?} on {id:?}"
+            );
+        }
+    }
+    assert!(graph.constraints_of(node(4)).is_empty());
+    assert_eq!(
+        graph.remove_variable(node(4)),
+        Err(PoseGraphError::UnknownVariable(node(4)))
+    );
+    let summary = optimizer().optimize(&mut graph);
+    assert!(
+        summary.termination.is_converged() && summary.final_chi2 < 1e-10,
+        "{summary:?}"
+    );
+    assert!(max_pose_error_except(&graph, &truth, 4) < 1e-6);
+}
+
+#[test]
+fn edits_are_validated() {
+    let mut graph = PoseGraph::new();
+    graph.add_variable(node(0), Rigid2::identity()).unwrap();
+    graph.add_variable(node(1), Rigid2::identity()).unwrap();
+    assert_eq!(
+        graph.add_variable(node(1), Rigid2::identity()),
+        Err(PoseGraphError::DuplicateVariable(node(1)))
+    );
+    let good = constraint(0, 1, rigid2(1.0, 0.0, 0.0), RobustLoss::Trivial);
+    assert_eq!(
+        graph.add_constraint(Constraint {
+            to: node(0),
+            ..good.clone()
+        }),
+        Err(PoseGraphError::SelfLoop(node(0)))
+    );
+    assert_eq!(
+        graph.add_constraint(Constraint {
+            to: node(7),
+            ..good.clone()
+        }),
+        Err(PoseGraphError::UnknownVariable(node(7)))
+    );
+    let mut asymmetric = good.clone();
+    asymmetric.information[(0, 1)] = 1.0;
+    assert_eq!(
+        graph.add_constraint(asymmetric),
+        Err(PoseGraphError::InvalidInformation)
+    );
+    let bad_loss = Constraint {
+        loss: RobustLoss::Huber { delta: -1.0 },
+        ..good.clone()
+    };
+    assert_eq!(
+        graph.add_constraint(bad_loss),
+        Err(PoseGraphError::InvalidLoss)
+    );
+    let id = graph.add_constraint(good.clone()).unwrap();
+    assert_eq!(graph.remove_constraint(id), Ok(good));
+    assert_eq!(
+        graph.remove_constraint(id),
+        Err(PoseGraphError::UnknownConstraint(id))
+    );
+    assert!(graph.constraints_of(node(0)).is_empty());
+}
+
+#[test]
+fn symbolic_factorization_is_reused_while_the_structure_is_unchanged() {
+    let (mut graph, _) = square_world(12, RobustLoss::Trivial);
+    let mut optimizer = optimizer();
+    optimizer.optimize(&mut graph);
+    assert_eq!(optimizer.symbolic_factorizations(), 1);
+    graph.set_pose(node(3), rigid2(1.0, 2.0, 0.3)).unwrap();
+    let summary = optimizer.optimize(&mut graph);
+    assert!(summary.final_chi2 < 1e-10, "{summary:?}");
+    assert_eq!(optimizer.symbolic_factorizations(), 1);
+    // A second constraint between already-joined variables keeps the pattern.
+    graph
+        .add_constraint(constraint(
+            0,
+            1,
+            graph.pose(node(0)).unwrap().inverse() * graph.pose(node(1)).unwrap(),
+            RobustLoss::Trivial,
+        ))
+        .unwrap();
+    optimizer.optimize(&mut graph);
+    assert_eq!(optimizer.symbolic_factorizations(), 1);
+    graph
+        .add_constraint(constraint(
+            1,
+            4,
+            graph.pose(node(1)).unwrap().inverse() * graph.pose(node(4)).unwrap(),
+            RobustLoss::Trivial,
+        ))
+        .unwrap();
+    optimizer.optimize(&mut graph);
+    assert_eq!(optimizer.symbolic_factorizations(), 2);
+}
+
+#[test]
+fn options_are_validated() {
+    assert_eq!(OptimizerOptions::default().validate(), Ok(()));
+    let bad = OptimizerOptions {
+        function_tolerance: -1.0,
+        ..OptimizerOptions::default()
+    };
+    assert!(matches!(
+        bad.validate(),
+        Err(OptimizerOptionsError::Negative {
+            field: "function_tolerance",
+            ..
+        })
+    ));
+    let bad = OptimizerOptions {
+        initial_lambda: 0.0,
+        ..OptimizerOptions::default()
+    };
+    assert_eq!(bad.validate(), Err(OptimizerOptionsError::Lambda));
+    assert!(
+        Optimizer::new(OptimizerOptions {
+            min_diagonal: f64::NAN,
+            ..OptimizerOptions::default()
+        })
+        .is_err()
+    );
+}
+
+#[test]
+fn degenerate_graphs_do_not_panic() {
+    let mut empty = PoseGraph::new();
+    let summary = optimizer().optimize(&mut empty);
+    assert!(summary.termination.is_converged() && summary.iterations == 0);
+    let mut lonely = PoseGraph::new();
+    lonely.add_variable(node(0), rigid2(1.0, 2.0, 3.0)).unwrap();
+    lonely.add_variable(node(9), rigid2(4.0, 5.0, 6.0)).unwrap();
+    let summary = optimizer().optimize(&mut lonely);
+    assert!(summary.termination.is_converged(), "{summary:?}");
+    assert_eq!(lonely.pose(node(9)), Some(rigid2(4.0, 5.0, 6.0)));
+}
+
+#[test]
+fn rotation_first_initialization_solves_exact_graphs_from_scratch() {
+    let (mut graph, truth) = square_world(24, RobustLoss::Trivial);
+    let ids: Vec<VariableId> = graph.variables().map(|(id, _, _)| id).skip(1).collect();
+    for id in ids {
+        graph.set_pose(id, Rigid2::identity()).unwrap();
+    }
+    let options = OptimizerOptions {
+        rotation_first_initialization: true,
+        ..OptimizerOptions::default()
+    };
+    let summary = Optimizer::new(options).unwrap().optimize(&mut graph);
+    assert!(summary.termination.is_converged(), "{summary:?}");
+    // Noise-free measurements: the two linear solves land on the optimum, leaving LM nothing to do.
+    assert!(summary.iterations <= 2, "{summary:?}");
+    assert!(max_pose_error(&graph, &truth) < 1e-6);
+}
+
+#[test]
+fn rotation_first_initialization_is_ignored_when_worse_than_the_current_estimate() {
+    let (mut graph, truth) = square_world(24, RobustLoss::Trivial);
+    for (k, t) in truth.iter().enumerate() {
+        graph.set_pose(node(k as u32), *t).unwrap();
+    }
+    let options = OptimizerOptions {
+        rotation_first_initialization: true,
+        ..OptimizerOptions::default()
+    };
+    let summary = Optimizer::new(options).unwrap().optimize(&mut graph);
+    assert!(
+        summary.initial_chi2 < 1e-20 && summary.final_chi2 < 1e-20,
+        "{summary:?}"
+    );
+}
+
+#[test]
+fn reaches_best_known_chi2_on_csail_from_the_odometry_chain() {
+    let graph = dataset("CSAIL.g2o");
+    for rotation_first_initialization in [false, true] {
+        let mut graph = graph.clone();
+        let options = OptimizerOptions {
+            rotation_first_initialization,
+            ..OptimizerOptions::default()
+        };
+        let summary = Optimizer::new(options).unwrap().optimize(&mut graph);
+        let best = 40.5551;
+        assert!(summary.termination.is_converged(), "{summary:?}");
+        assert!(
+            (summary.final_chi2 - best).abs() <= 1e-4 * best,
+            "{summary:?}"
+        );
+    }
+}
+
+#[test]
+fn disconnected_components_without_an_anchor_still_converge() {
+    // Two separate squares; only the first contains the implicit gauge (node 0).
+    let (mut graph, _) = square_world(8, RobustLoss::Trivial);
+    let offset = 100;
+    let (other, _) = square_world(8, RobustLoss::Trivial);
+    for (id, pose, _) in other.variables() {
+        let VariableId::Node(n) = id else {
+            unreachable!()
+        };
+        graph
+            .add_variable(node(n.index + offset), rigid2(50.0, 0.0, 0.0) * pose)
+            .unwrap();
+    }
+    for (_, c) in other.constraints() {
+        let (VariableId::Node(a), VariableId::Node(b)) = (c.from, c.to) else {
+            unreachable!()
+        };
+        graph
+            .add_constraint(Constraint {
+                from: node(a.index + offset),
+                to: node(b.index + offset),
+                ..c.clone()
+            })
+            .unwrap();
+    }
+    let summary = optimizer().optimize(&mut graph);
+    assert!(summary.termination.is_converged(), "{summary:?}");
+    assert!(summary.final_chi2 < 1e-10, "{summary:?}");
+    for (_, pose, _) in graph.variables() {
+        assert!(
+            pose.translation.vector.norm() < 100.0,
+            "the floating component must not drift: {pose:?}"
+        );
+    }
+}
