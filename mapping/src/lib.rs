@@ -13,3 +13,4 @@ pub mod grid;
 pub mod io;
 pub mod pose_graph;
 pub mod sensor;
+pub mod sparsification;
