@@ -52,11 +52,14 @@ use thiserror::Error;
 
 pub use divergence::kl_divergence;
 pub use marginalization::{DenseMarginal, marginalize};
-pub use options::{EdgeModel, RobustWeighting, SparsificationOptions, SparsificationOptionsError};
+pub use options::{
+    EdgeModel, RobustWeighting, SparsificationOptions, SparsificationOptionsError, TreeMean,
+};
 
 use self::chow_liu::maximum_spanning_tree;
 use self::divergence::gaussian_kl_divergence;
 use self::linearization::{LinearFactor, linearize};
+use self::marginalization::pseudo_inverse;
 use crate::geometry::{Rigid2, Rigid2Ext as _};
 use crate::pose_graph::{
     Constraint, ConstraintId, ConstraintKind, PoseGraph, PoseGraphError, RobustLoss, VariableId,
@@ -149,33 +152,41 @@ pub fn sparsify(
             continue;
         };
         diagnostics.marginal_rank += fixed.rank;
-        let means = fixed.means(&marginal, members);
         let points: Vec<Rigid2> = members
             .iter()
             .map(|&b| marginal.linearization_point[b])
             .collect();
-        for (mean, point) in means.iter().zip(&points) {
+        let marginal_means = fixed.means(&points, &fixed.delta);
+        for (mean, point) in marginal_means.iter().zip(&points) {
             let shift = (mean.translation.vector - point.translation.vector).norm();
             diagnostics.max_mean_shift = diagnostics.max_mean_shift.max(shift);
         }
         let ids: Vec<VariableId> = members.iter().map(|&b| marginal.blanket[b]).collect();
-        let edges = match options.edge_model {
-            EdgeModel::RelativeMarginal => relative_marginal_tree(&fixed, &ids, &means, &points),
-            EdgeModel::Conditional => conditional_tree(&fixed, &ids, &means, &points),
+        let shape_means = match options.tree_mean {
+            TreeMean::MatchMarginalMean => &marginal_means,
+            TreeMean::MatchGradient => &points,
+        };
+        let mut edges = match options.edge_model {
+            EdgeModel::RelativeMarginal => relative_marginal_tree(&fixed, &ids, shape_means, &points),
+            EdgeModel::Conditional => conditional_tree(&fixed, &ids, shape_means, &points),
         };
         // The tree's own information, in the same root-fixed coordinates.
-        let mut tree_information = DMatrix::zeros(fixed.dimension(), fixed.dimension());
-        for edge in &edges {
-            let (e, ja, jb) = linearize(&edge.measurement, &points[edge.from], &points[edge.to]);
-            LinearFactor {
-                a: edge.from,
-                b: edge.to,
-                e,
-                ja,
-                jb,
-                omega: edge.information,
-            }
-            .accumulate(|k| k.checked_sub(1), &mut tree_information, None);
+        let tree_information = tree_information(&edges, &points, fixed.dimension());
+        let tree_delta = match options.tree_mean {
+            TreeMean::MatchMarginalMean => fixed.delta.clone(),
+            TreeMean::MatchGradient => -solve_symmetric(&tree_information, &fixed.gradient),
+        };
+        let means = fixed.means(&points, &tree_delta);
+        for edge in &mut edges {
+            // New measurement, same quadratic form at the linearization point: Ω's information on
+            // δx_to is J_toᵀ Ω J_to, and J_to (a rotation) turns with the measurement's angle.
+            let measurement = means[edge.from].inverse() * means[edge.to];
+            let (_, _, j_old) = linearize(&edge.measurement, &points[edge.from], &points[edge.to]);
+            let (_, _, j_new) = linearize(&measurement, &points[edge.from], &points[edge.to]);
+            let turn = j_new * j_old.transpose();
+            let information = turn * edge.information * turn.transpose();
+            edge.information = 0.5 * (information + information.transpose());
+            edge.measurement = measurement;
             new_constraints.push(Constraint {
                 kind: kind_between(ids[edge.from], ids[edge.to]),
                 from: ids[edge.from],
@@ -185,11 +196,12 @@ pub fn sparsify(
                 loss: RobustLoss::Trivial,
             });
         }
+        let mean_difference = &fixed.delta - &tree_delta;
         diagnostics.kl_divergence += gaussian_kl_divergence(
             &tree_information,
             &fixed.covariance,
             fixed.log_det_information,
-        );
+        ) + 0.5 * mean_difference.dot(&(&tree_information * &mean_difference));
     }
     Ok(SparsificationResult {
         eliminated: marginal.eliminated,
@@ -256,6 +268,32 @@ pub fn delete(
     Ok(removed)
 }
 
+/// `Λ_tree` over the component's poses `1..m` (root held), linearised at `points`.
+fn tree_information(edges: &[TreeEdge], points: &[Rigid2], dimension: usize) -> DMatrix<f64> {
+    let mut information = DMatrix::zeros(dimension, dimension);
+    for edge in edges {
+        let (e, ja, jb) = linearize(&edge.measurement, &points[edge.from], &points[edge.to]);
+        LinearFactor {
+            a: edge.from,
+            b: edge.to,
+            e,
+            ja,
+            jb,
+            omega: edge.information,
+        }
+        .accumulate(|k| k.checked_sub(1), &mut information, None);
+    }
+    information
+}
+
+/// `M⁻¹ v` for symmetric positive semi-definite `M` (Cholesky, else the pseudo-inverse).
+fn solve_symmetric(m: &DMatrix<f64>, v: &DVector<f64>) -> DVector<f64> {
+    match m.clone().cholesky() {
+        Some(cholesky) => cholesky.solve(v),
+        None => pseudo_inverse(m, 1e-12) * v,
+    }
+}
+
 /// The constraint kind for a tree edge between `from` and `to`.
 fn kind_between(from: VariableId, to: VariableId) -> ConstraintKind {
     match (from, to) {
@@ -312,6 +350,8 @@ struct GaugeFixed {
     rank: usize,
     /// The marginal mean's offset from the linearization point, local poses `1..m`.
     delta: DVector<f64>,
+    /// The marginal gradient `g` over local poses `1..m`.
+    gradient: DVector<f64>,
 }
 
 impl GaugeFixed {
@@ -348,12 +388,13 @@ impl GaugeFixed {
         let pseudo = eigen
             .eigenvalues
             .map(|l| if l > floor { 1.0 / l } else { 0.0 });
-        let delta = -(v * DMatrix::from_diagonal(&pseudo) * (v.transpose() * gradient));
+        let delta = -(v * DMatrix::from_diagonal(&pseudo) * (v.transpose() * &gradient));
         Some(Self {
             covariance,
             log_det_information: clamped.iter().map(|l| l.ln()).sum(),
             rank,
             delta,
+            gradient,
         })
     }
 
@@ -361,19 +402,16 @@ impl GaugeFixed {
         self.covariance.nrows()
     }
 
-    /// The marginal mean of each member (the root stays at its estimate).
-    fn means(&self, marginal: &DenseMarginal, members: &[usize]) -> Vec<Rigid2> {
-        members
+    /// `points` moved by `delta` (over local poses `1..m`; the root stays put).
+    fn means(&self, points: &[Rigid2], delta: &DVector<f64>) -> Vec<Rigid2> {
+        points
             .iter()
             .enumerate()
-            .map(|(t, &b)| {
-                let point = marginal.linearization_point[b];
+            .map(|(t, point)| {
                 if t == 0 {
-                    point
+                    *point
                 } else {
-                    Rigid2::from_xytheta(
-                        &(point.to_xytheta() + self.delta.fixed_rows::<3>(3 * (t - 1))),
-                    )
+                    Rigid2::from_xytheta(&(point.to_xytheta() + delta.fixed_rows::<3>(3 * (t - 1))))
                 }
             })
             .collect()

@@ -1,9 +1,9 @@
 //! Kullback–Leibler divergences between the exact marginal and an approximation of it.
 //!
-//! For Gaussians with the same mean, `p = N(μ, Σ_p)` and `q = N(μ, Λ_q⁻¹)` of dimension `k`,
+//! For Gaussians `p = N(μ_p, Σ_p)` and `q = N(μ_q, Λ_q⁻¹)` of dimension `k`,
 //!
 //! ```text
-//! KL(p‖q) = ½ [ tr(Λ_q Σ_p) − k + ln det Λ_p − ln det Λ_q ]      (nats)
+//! KL(p‖q) = ½ [ tr(Λ_q Σ_p) − k + ln det Λ_p − ln det Λ_q + (μ_q − μ_p)ᵀ Λ_q (μ_q − μ_p) ]   (nats)
 //! ```
 //!
 //! Both are gauge-fixed the same way (the same variables held), which makes the value independent of
@@ -12,7 +12,7 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 
-use nalgebra::DMatrix;
+use nalgebra::{DMatrix, DVector};
 
 use super::marginalization::{linear_factor, marginalize};
 use super::options::SparsificationOptions;
@@ -38,10 +38,11 @@ pub(crate) fn gaussian_kl_divergence(
     (0.5 * (trace - k as f64 + log_det_information_p - log_det_q)).max(0.0)
 }
 
-/// `KL(p‖q)` in nats, where `p` is the exact marginal of `graph` over every variable that remains after
+/// `KL(p‖q)` in nats (covariance and mean terms), where `p` is the exact marginal of `graph` over every variable that remains after
 /// eliminating `eliminate`, and `q` is the remaining graph with the constraints touching the eliminated
 /// variables replaced by `replacement` (the tree of [`super::sparsify`], or nothing for
-/// [`super::delete`]). Both are linearised at the graph's current estimate; the gauge is fixed by the
+/// [`super::delete`]). Both are linearised at the graph's current estimate, each with its mean one
+/// Gauss–Newton step away (`μ = −Λ⁻¹ g`), so the mean term `½ Δμᵀ Λ_q Δμ` counts too; the gauge is fixed by the
 /// graph's fixed variables, or else by the smallest variable of each connected component.
 ///
 /// Returns `+∞` when `q` leaves poses undetermined that `p` determines (e.g. deleting the only link
@@ -133,9 +134,12 @@ pub fn kl_divergence(
 
     let k = 3 * dimension;
     let mut rest = DMatrix::zeros(k, k);
+    let mut rest_gradient = DVector::zeros(k);
     for f in &kept {
-        f.accumulate(|v| block[v], &mut rest, None);
+        f.accumulate(|v| block[v], &mut rest, Some(&mut rest_gradient));
     }
+    let mut gradient_p = rest_gradient.clone();
+    let mut gradient_q = rest_gradient;
     let mut information_p = rest.clone();
     for (r, &br) in marginal.blanket.iter().enumerate() {
         let Some(row) = block[index[&br]] else {
@@ -148,10 +152,12 @@ pub fn kl_divergence(
             let mut view = information_p.fixed_view_mut::<3, 3>(3 * row, 3 * col);
             view += marginal.information.fixed_view::<3, 3>(3 * r, 3 * c);
         }
+        let mut view = gradient_p.fixed_rows_mut::<3>(3 * row);
+        view += marginal.gradient.fixed_rows::<3>(3 * r);
     }
     let mut information_q = rest;
     for f in &replaced {
-        f.accumulate(|v| block[v], &mut information_q, None);
+        f.accumulate(|v| block[v], &mut information_q, Some(&mut gradient_q));
     }
     let cholesky_p = information_p
         .clone()
@@ -176,5 +182,8 @@ pub fn kl_divergence(
     for (c, &r) in touched.iter().enumerate() {
         trace += difference.row(r).dot(&covariance_columns.column(c).transpose());
     }
-    Ok((0.5 * (trace + log_det_p - log_det_q)).max(0.0))
+    // The means: one Gauss–Newton step from the linearization point for each.
+    let mean_difference = cholesky_q.solve(&gradient_q) - cholesky_p.solve(&gradient_p);
+    let mean_term = mean_difference.dot(&(&information_q * &mean_difference));
+    Ok((0.5 * (trace + log_det_p - log_det_q + mean_term)).max(0.0))
 }

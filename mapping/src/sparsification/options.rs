@@ -32,12 +32,28 @@ pub enum RobustWeighting {
     Ignore,
 }
 
+/// Which mean the tree constraints' measurements encode.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize)]
+pub enum TreeMean {
+    /// Choose the measurements so that, at the linearization point, the tree pulls on the blanket with
+    /// exactly the gradient of the exact marginal (`Λ_tree δ = −g_B`). Replacing the removed
+    /// constraints then leaves an optimized graph at its optimum (to first order), so the map does not
+    /// jump when a submap is trimmed, and the whole-graph means of the exact and the sparsified
+    /// posteriors coincide.
+    MatchGradient,
+    /// Use the exact marginal's own mean (`Λ_B δ = −g_B`): KL-optimal for the blanket marginal taken
+    /// alone, but the tree's different information then pulls the rest of the graph elsewhere.
+    MatchMarginalMean,
+}
+
 /// Options of Chow–Liu sparsification (and of [`super::kl_divergence`]).
 #[derive(Clone, Debug, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct SparsificationOptions {
     /// How tree edges become constraints.
     pub edge_model: EdgeModel,
+    /// Which mean the tree's measurements encode.
+    pub tree_mean: TreeMean,
     /// How robust constraints touching the eliminated variables are linearised.
     pub robust_weighting: RobustWeighting,
     /// `Λ_EE` (the eliminated variables' information) is inverted by symmetric eigen-decomposition;
@@ -56,6 +72,7 @@ impl SparsificationOptions {
     /// The defaults.
     pub const DEFAULT: Self = Self {
         edge_model: EdgeModel::RelativeMarginal,
+        tree_mean: TreeMean::MatchGradient,
         robust_weighting: RobustWeighting::Irls,
         elimination_eigenvalue_threshold: 1e-12,
         marginal_eigenvalue_threshold: 1e-12,
