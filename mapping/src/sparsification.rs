@@ -156,7 +156,7 @@ pub fn sparsify(
             .iter()
             .map(|&b| marginal.linearization_point[b])
             .collect();
-        let marginal_means = fixed.means(&points, &fixed.delta);
+        let marginal_means = GaugeFixed::means(&points, &fixed.delta);
         for (mean, point) in marginal_means.iter().zip(&points) {
             let shift = (mean.translation.vector - point.translation.vector).norm();
             diagnostics.max_mean_shift = diagnostics.max_mean_shift.max(shift);
@@ -167,7 +167,9 @@ pub fn sparsify(
             TreeMean::MatchGradient => &points,
         };
         let mut edges = match options.edge_model {
-            EdgeModel::RelativeMarginal => relative_marginal_tree(&fixed, &ids, shape_means, &points),
+            EdgeModel::RelativeMarginal => {
+                relative_marginal_tree(&fixed, &ids, shape_means, &points)
+            }
             EdgeModel::Conditional => conditional_tree(&fixed, &ids, shape_means, &points),
         };
         // The tree's own information, in the same root-fixed coordinates.
@@ -176,7 +178,7 @@ pub fn sparsify(
             TreeMean::MatchMarginalMean => fixed.delta.clone(),
             TreeMean::MatchGradient => -solve_symmetric(&tree_information, &fixed.gradient),
         };
-        let means = fixed.means(&points, &tree_delta);
+        let means = GaugeFixed::means(&points, &tree_delta);
         for edge in &mut edges {
             // New measurement, same quadratic form at the linearization point: Ω's information on
             // δx_to is J_toᵀ Ω J_to, and J_to (a rotation) turns with the measurement's angle.
@@ -201,7 +203,8 @@ pub fn sparsify(
             &tree_information,
             &fixed.covariance,
             fixed.log_det_information,
-        ) + 0.5 * mean_difference.dot(&(&tree_information * &mean_difference));
+        ) + 0.5
+            * mean_difference.dot(&(&tree_information * &mean_difference));
     }
     Ok(SparsificationResult {
         eliminated: marginal.eliminated,
@@ -403,7 +406,7 @@ impl GaugeFixed {
     }
 
     /// `points` moved by `delta` (over local poses `1..m`; the root stays put).
-    fn means(&self, points: &[Rigid2], delta: &DVector<f64>) -> Vec<Rigid2> {
+    fn means(points: &[Rigid2], delta: &DVector<f64>) -> Vec<Rigid2> {
         points
             .iter()
             .enumerate()
@@ -522,15 +525,17 @@ fn conditional_tree(
     let m = ids.len();
     // The tree's own root c₀: the pose best determined relative to r (smallest ln det Σ_cc).
     let c0 = (1..m)
-        .min_by(|&a, &b| {
-            log_det3(&fixed.block(a, a)).total_cmp(&log_det3(&fixed.block(b, b)))
-        })
+        .min_by(|&a, &b| log_det3(&fixed.block(a, a)).total_cmp(&log_det3(&fixed.block(b, b))))
         .unwrap_or(1);
     // Chow–Liu over poses 1..m (vertex v is local pose v + 1) on mutual information.
     let mutual_information = |a: usize, b: usize| {
         let joint = fixed.joint(a, b).determinant();
         0.5 * (log_det3(&fixed.block(a, a)) + log_det3(&fixed.block(b, b))
-            - if joint > 0.0 { joint.ln() } else { f64::NEG_INFINITY })
+            - if joint > 0.0 {
+                joint.ln()
+            } else {
+                f64::NEG_INFINITY
+            })
     };
     let tree = maximum_spanning_tree(m - 1, c0 - 1, |a, b| mutual_information(a + 1, b + 1));
     let mut edges = Vec::with_capacity(m - 1);

@@ -44,7 +44,9 @@ pub fn grid_to_gray(grid: &ProbabilityGrid) -> (u32, u32, Vec<u8>) {
         for ix in 0..w {
             let cell = CellIndex::new(ix, iy);
             pixels.push(if grid.is_known(&cell) {
-                (255.0 * (1.0 - grid.probability(&cell))).round().clamp(0.0, 255.0) as u8
+                (255.0 * (1.0 - grid.probability(&cell)))
+                    .round()
+                    .clamp(0.0, 255.0) as u8
             } else {
                 UNKNOWN_GRAY
             });
@@ -54,20 +56,39 @@ pub fn grid_to_gray(grid: &ProbabilityGrid) -> (u32, u32, Vec<u8>) {
 }
 
 fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> MapImageError + '_ {
-    move |source| MapImageError::Io { path: path.display().to_string(), source }
+    move |source| MapImageError::Io {
+        path: path.display().to_string(),
+        source,
+    }
 }
 
 /// Writes 8-bit gray pixels as a PNG file.
-pub fn write_gray_png(path: &Path, width: u32, height: u32, pixels: &[u8]) -> Result<(), MapImageError> {
+pub fn write_gray_png(
+    path: &Path,
+    width: u32,
+    height: u32,
+    pixels: &[u8],
+) -> Result<(), MapImageError> {
     write_png(path, width, height, png::ColorType::Grayscale, pixels)
 }
 
 /// Writes 8-bit RGB pixels as a PNG file.
-pub fn write_rgb_png(path: &Path, width: u32, height: u32, pixels: &[u8]) -> Result<(), MapImageError> {
+pub fn write_rgb_png(
+    path: &Path,
+    width: u32,
+    height: u32,
+    pixels: &[u8],
+) -> Result<(), MapImageError> {
     write_png(path, width, height, png::ColorType::Rgb, pixels)
 }
 
-fn write_png(path: &Path, width: u32, height: u32, color: png::ColorType, pixels: &[u8]) -> Result<(), MapImageError> {
+fn write_png(
+    path: &Path,
+    width: u32,
+    height: u32,
+    color: png::ColorType,
+    pixels: &[u8],
+) -> Result<(), MapImageError> {
     if width == 0 || height == 0 {
         return Err(MapImageError::Empty);
     }
@@ -75,7 +96,10 @@ fn write_png(path: &Path, width: u32, height: u32, color: png::ColorType, pixels
     let mut encoder = png::Encoder::new(std::io::BufWriter::new(file), width, height);
     encoder.set_color(color);
     encoder.set_depth(png::BitDepth::Eight);
-    let png_err = |source| MapImageError::Png { path: path.display().to_string(), source };
+    let png_err = |source| MapImageError::Png {
+        path: path.display().to_string(),
+        source,
+    };
     let mut writer = encoder.write_header().map_err(png_err)?;
     writer.write_image_data(pixels).map_err(png_err)?;
     writer.finish().map_err(png_err)

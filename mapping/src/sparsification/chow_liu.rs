@@ -99,20 +99,12 @@ mod tests {
     }
 
     fn is_spanning_tree(n: usize, edges: &[(usize, usize)]) -> bool {
-        let mut parent: Vec<usize> = (0..n).collect();
-        fn find(parent: &mut [usize], v: usize) -> usize {
-            let mut v = v;
-            while parent[v] != v {
-                v = parent[v];
-            }
-            v
-        }
+        let mut uf = crate::sparsification::UnionFind::new(n);
         for &(a, b) in edges {
-            let (ra, rb) = (find(&mut parent, a), find(&mut parent, b));
-            if ra == rb {
+            if uf.find(a) == uf.find(b) {
                 return false;
             }
-            parent[ra] = rb;
+            uf.union(a, b);
         }
         edges.len() + 1 == n
     }
@@ -145,10 +137,10 @@ mod tests {
             let trees = all_spanning_trees(n);
             for trial in 0..40 {
                 let mut weights = vec![vec![0.0; n]; n];
-                for i in 0..n {
-                    for j in i + 1..n {
+                for (i, row) in weights.iter_mut().enumerate() {
+                    for w in row.iter_mut().skip(i + 1) {
                         // Some trials draw from few values, to exercise ties.
-                        weights[i][j] = if trial % 4 == 0 {
+                        *w = if trial % 4 == 0 {
                             f64::from(rng.random_range(0..3u8))
                         } else {
                             rng.random_range(-1.0..5.0)
@@ -190,7 +182,8 @@ mod tests {
         assert!(maximum_spanning_tree(0, 0, |_, _| 1.0).is_empty());
         assert!(maximum_spanning_tree(1, 0, |_, _| 1.0).is_empty());
         // NaN weights are never preferred over finite ones.
-        let tree = maximum_spanning_tree(3, 0, |i, j| if (i, j) == (0, 1) { f64::NAN } else { 1.0 });
+        let tree =
+            maximum_spanning_tree(3, 0, |i, j| if (i, j) == (0, 1) { f64::NAN } else { 1.0 });
         assert!(is_spanning_tree(3, &tree));
         assert!(!tree.iter().any(|&(a, b)| (a.min(b), a.max(b)) == (0, 1)));
     }

@@ -163,11 +163,23 @@ pub fn kl_divergence(
         .clone()
         .cholesky()
         .ok_or(SparsificationError::SingularMarginal)?;
-    let log_det_p: f64 = 2.0 * cholesky_p.l().diagonal().iter().map(|d| d.ln()).sum::<f64>();
+    let log_det_p: f64 = 2.0
+        * cholesky_p
+            .l()
+            .diagonal()
+            .iter()
+            .map(|d| d.ln())
+            .sum::<f64>();
     let Some(cholesky_q) = information_q.clone().cholesky() else {
         return Ok(f64::INFINITY);
     };
-    let log_det_q: f64 = 2.0 * cholesky_q.l().diagonal().iter().map(|d| d.ln()).sum::<f64>();
+    let log_det_q: f64 = 2.0
+        * cholesky_q
+            .l()
+            .diagonal()
+            .iter()
+            .map(|d| d.ln())
+            .sum::<f64>();
     // tr(Λ_q Σ_p) − k = tr((Λ_q − Λ_p) Σ_p), and Λ_q − Λ_p only has rows on the touched blocks.
     let difference = &information_q - &information_p;
     let touched: Vec<usize> = (0..k)
@@ -180,7 +192,9 @@ pub fn kl_divergence(
     let covariance_columns = cholesky_p.solve(&unit);
     let mut trace = 0.0;
     for (c, &r) in touched.iter().enumerate() {
-        trace += difference.row(r).dot(&covariance_columns.column(c).transpose());
+        trace += difference
+            .row(r)
+            .dot(&covariance_columns.column(c).transpose());
     }
     // The means: one Gauss–Newton step from the linearization point for each.
     let mean_difference = cholesky_q.solve(&gradient_q) - cholesky_p.solve(&gradient_p);

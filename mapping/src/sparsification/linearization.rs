@@ -102,14 +102,28 @@ mod tests {
 
     #[test]
     fn error_matches_constraint_and_jacobians_match_differences() {
-        let node = |index| VariableId::Node(NodeId {
-            trajectory: 0,
-            index,
-        });
+        let node = |index| {
+            VariableId::Node(NodeId {
+                trajectory: 0,
+                index,
+            })
+        };
         let cases = [
-            (rigid2(0.3, -1.2, 0.4), rigid2(2.0, 0.5, -2.9), rigid2(1.1, 0.7, 2.8)),
-            (rigid2(-5.0, 3.0, 3.1), rigid2(-4.0, 2.0, -3.1), rigid2(0.9, -0.2, 0.05)),
-            (rigid2(10.0, 0.0, -1.5), rigid2(10.5, 1.0, 1.5), rigid2(-0.4, 0.3, -3.0)),
+            (
+                rigid2(0.3, -1.2, 0.4),
+                rigid2(2.0, 0.5, -2.9),
+                rigid2(1.1, 0.7, 2.8),
+            ),
+            (
+                rigid2(-5.0, 3.0, 3.1),
+                rigid2(-4.0, 2.0, -3.1),
+                rigid2(0.9, -0.2, 0.05),
+            ),
+            (
+                rigid2(10.0, 0.0, -1.5),
+                rigid2(10.5, 1.0, 1.5),
+                rigid2(-0.4, 0.3, -3.0),
+            ),
         ];
         assert!(cases.len() >= 3);
         for (xi, xj, z) in cases {

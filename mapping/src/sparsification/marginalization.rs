@@ -64,9 +64,7 @@ pub(crate) fn linear_factor(
         .ok_or(SparsificationError::UnknownVariable(constraint.to))?;
     let (e, ja, jb) = linearize(&constraint.from_from_to, &from, &to);
     let weight = match weighting {
-        RobustWeighting::Irls => constraint
-            .loss
-            .weight(e.dot(&(constraint.information * e))),
+        RobustWeighting::Irls => constraint.loss.weight(e.dot(&(constraint.information * e))),
         RobustWeighting::Ignore => 1.0,
     };
     Ok(LinearFactor {
@@ -205,7 +203,11 @@ pub fn marginalize(
     components.sort();
     let linearization_point = blanket
         .iter()
-        .map(|&id| graph.pose(id).ok_or(SparsificationError::UnknownVariable(id)))
+        .map(|&id| {
+            graph
+                .pose(id)
+                .ok_or(SparsificationError::UnknownVariable(id))
+        })
         .collect::<Result<_, _>>()?;
     Ok(DenseMarginal {
         eliminated,

@@ -82,7 +82,9 @@ impl SparsificationOptions {
     pub fn validate(&self) -> Result<(), SparsificationOptionsError> {
         let t = self.elimination_eigenvalue_threshold;
         if !(t.is_finite() && (0.0..1.0).contains(&t)) {
-            return Err(SparsificationOptionsError::EliminationEigenvalueThreshold(t));
+            return Err(SparsificationOptionsError::EliminationEigenvalueThreshold(
+                t,
+            ));
         }
         let t = self.marginal_eigenvalue_threshold;
         if !(t.is_finite() && t > 0.0 && t < 1.0) {

@@ -91,7 +91,9 @@ fn tree_marginal_graph(labels: [u32; 5]) -> (PoseGraph, Vec<VariableId>) {
     let mut rng = Pcg64::seed_from_u64(11);
     let mut graph = PoseGraph::new();
     for id in labels.iter().chain(&[10, 11, 12, 13, 14]) {
-        graph.add_variable(node(*id), random_pose(&mut rng)).unwrap();
+        graph
+            .add_variable(node(*id), random_pose(&mut rng))
+            .unwrap();
     }
     let b = |k: usize| node(labels[k]);
     for (x, y) in [
@@ -126,8 +128,8 @@ fn tree_shaped_marginal_is_reproduced_exactly() {
             "{model:?}: {}",
             result.diagnostics.kl_divergence
         );
-        let global = kl_divergence(&graph, &eliminate, &result.new_constraints, &options(model))
-            .unwrap();
+        let global =
+            kl_divergence(&graph, &eliminate, &result.new_constraints, &options(model)).unwrap();
         assert!(global < 1e-9, "{model:?}: {global}");
         let mut edges: Vec<(VariableId, VariableId)> = result
             .new_constraints
@@ -256,9 +258,11 @@ fn one_pose_blanket_and_disconnected_components() {
     let o = SparsificationOptions::DEFAULT;
     let kld = kl_divergence(&graph, &[node(1), node(4)], &split.new_constraints, &o).unwrap();
     assert!(kld < 1e-9, "{kld}");
-    assert!(kl_divergence(&graph, &[node(1), node(4)], &[], &o)
-        .unwrap()
-        .is_infinite());
+    assert!(
+        kl_divergence(&graph, &[node(1), node(4)], &[], &o)
+            .unwrap()
+            .is_infinite()
+    );
     // Errors.
     assert_eq!(
         sparsify(&graph, &[], &o),
@@ -426,7 +430,10 @@ fn relative_marginal_tree_is_kl_minimal_over_all_trees() {
             for scale in [0.8, 1.25] {
                 let scaled =
                     kl_divergence(&graph, &eliminate, &tree_constraints(edges, scale), &o).unwrap();
-                assert!(scaled > kld, "seed {seed}: scaling by {scale} must not help");
+                assert!(
+                    scaled > kld,
+                    "seed {seed}: scaling by {scale} must not help"
+                );
             }
         }
         assert!(chosen <= best + 1e-9, "seed {seed}: {chosen} vs {best}");
@@ -446,7 +453,11 @@ fn two_lap_world() -> PoseGraph {
     let per_lap = 48;
     let truth = |k: u32| {
         let t = f64::from(k) / f64::from(per_lap) * std::f64::consts::TAU;
-        rigid2(8.0 * t.cos(), 8.0 * t.sin(), t + std::f64::consts::FRAC_PI_2)
+        rigid2(
+            8.0 * t.cos(),
+            8.0 * t.sin(),
+            t + std::f64::consts::FRAC_PI_2,
+        )
     };
     let noise = |rng: &mut Pcg64, m: f64| {
         rigid2(
@@ -465,13 +476,13 @@ fn two_lap_world() -> PoseGraph {
         graph.add_variable(submap(s), truth(8 * s) * n).unwrap();
     }
     let add = |graph: &mut PoseGraph,
-                   rng: &mut Pcg64,
-                   from: VariableId,
-                   from_truth: Rigid2,
-                   to: u32,
-                   kind: ConstraintKind,
-                   diagonal: Vector3<f64>,
-                   loss: RobustLoss| {
+               rng: &mut Pcg64,
+               from: VariableId,
+               from_truth: Rigid2,
+               to: u32,
+               kind: ConstraintKind,
+               diagonal: Vector3<f64>,
+               loss: RobustLoss| {
         let z = from_truth.inverse() * truth(to) * noise(rng, 0.05);
         graph
             .add_constraint(Constraint {
@@ -532,7 +543,9 @@ fn two_lap_world() -> PoseGraph {
 
 /// Submap 2 of the first lap and its nodes 16..24.
 fn submap_two() -> Vec<VariableId> {
-    std::iter::once(submap(2)).chain((16..24).map(node)).collect()
+    std::iter::once(submap(2))
+        .chain((16..24).map(node))
+        .collect()
 }
 
 /// Largest translation (m) and rotation (rad) between two graphs' common variables.
@@ -541,7 +554,9 @@ fn pose_shift(a: &PoseGraph, b: &PoseGraph) -> (f64, f64) {
     for (id, pose, _) in a.variables() {
         if let Some(other) = b.pose(id) {
             let d = pose.inverse() * other;
-            shift.0 = shift.0.max((other.translation.vector - pose.translation.vector).norm());
+            shift.0 = shift
+                .0
+                .max((other.translation.vector - pose.translation.vector).norm());
             shift.1 = shift.1.max(d.rotation.angle().abs());
         }
     }
@@ -567,7 +582,10 @@ fn tree_is_far_closer_to_the_marginal_than_deletion() {
     let conditional = sparsify(&graph, &eliminate, &options(EdgeModel::Conditional)).unwrap();
     let conditional_kld =
         kl_divergence(&graph, &eliminate, &conditional.new_constraints, &o).unwrap();
-    assert!(clt < conditional_kld, "{clt} vs conditional {conditional_kld}");
+    assert!(
+        clt < conditional_kld,
+        "{clt} vs conditional {conditional_kld}"
+    );
 }
 
 // Design notes §5: after sparsification and re-optimization the remaining poses barely move, and far
@@ -580,7 +598,11 @@ fn reoptimized_sparsified_graph_stays_near_the_full_optimum() {
     let result = sparsify(&graph, &eliminate, &SparsificationOptions::DEFAULT).unwrap();
     let added = apply(&mut sparsified, &result).unwrap();
     assert_eq!(added.len(), result.new_constraints.len());
-    assert!(eliminate.iter().all(|&id| !sparsified.contains_variable(id)));
+    assert!(
+        eliminate
+            .iter()
+            .all(|&id| !sparsified.contains_variable(id))
+    );
     let mut deleted = graph.clone();
     let removed = delete(&mut deleted, &eliminate).unwrap();
     assert_eq!(removed.len(), result.removed_constraints.len());
@@ -592,13 +614,20 @@ fn reoptimized_sparsified_graph_stays_near_the_full_optimum() {
     // Measured: 0.12 mm / 7 µrad (the tree keeps the optimum stationary) against 5.3 cm / 4.3 mrad
     // after deletion; encoding the marginal's own mean instead moves poses by 1.2 cm / 1.4 mrad.
     assert!(clt.0 < 1e-3 && clt.1 < 1e-4, "{clt:?}");
-    assert!(clt.0 < 0.05 * del.0 && clt.1 < 0.05 * del.1, "{clt:?} vs delete {del:?}");
+    assert!(
+        clt.0 < 0.05 * del.0 && clt.1 < 0.05 * del.1,
+        "{clt:?} vs delete {del:?}"
+    );
     let marginal_mean = SparsificationOptions {
         tree_mean: TreeMean::MatchMarginalMean,
         ..SparsificationOptions::DEFAULT
     };
     let mut other = graph.clone();
-    apply(&mut other, &sparsify(&graph, &eliminate, &marginal_mean).unwrap()).unwrap();
+    apply(
+        &mut other,
+        &sparsify(&graph, &eliminate, &marginal_mean).unwrap(),
+    )
+    .unwrap();
     optimizer.optimize(&mut other);
     let other_shift = pose_shift(&graph, &other);
     assert!(other_shift.0 > 10.0 * clt.0, "{other_shift:?} vs {clt:?}");
@@ -629,7 +658,9 @@ fn apply_checks_before_editing() {
             (VariableId::Submap(_), VariableId::Submap(_)) => {
                 assert_eq!(c.kind, ConstraintKind::SubmapToSubmap);
             }
-            (VariableId::Node(_), VariableId::Submap(_)) => panic!("mixed edge must start at the submap"),
+            (VariableId::Node(_), VariableId::Submap(_)) => {
+                panic!("mixed edge must start at the submap")
+            }
         }
     }
 }
@@ -653,7 +684,10 @@ fn optimized_prefix(graph: &PoseGraph, n: u32) -> PoseGraph {
     for (id, pose, _) in graph.variables().filter(|(id, _, _)| keep(*id)) {
         sub.add_variable(id, pose).unwrap();
     }
-    for (_, c) in graph.constraints().filter(|(_, c)| keep(c.from) && keep(c.to)) {
+    for (_, c) in graph
+        .constraints()
+        .filter(|(_, c)| keep(c.from) && keep(c.to))
+    {
         sub.add_constraint(c.clone()).unwrap();
     }
     sub.set_fixed(node(0), true).unwrap();
@@ -752,7 +786,10 @@ fn sparsification_benchmark() {
             ratios.sort_by(f64::total_cmp);
             println!(
                 "KLD(rel)/KLD(delete) over runs with finite KLD(delete): {:?}",
-                ratios.iter().map(|r| (r * 1000.0).round() / 1000.0).collect::<Vec<_>>()
+                ratios
+                    .iter()
+                    .map(|r| (r * 1000.0).round() / 1000.0)
+                    .collect::<Vec<_>>()
             );
             // All runs eliminated one after the other: the trees (some re-sparsified) against the
             // exact marginal of all of them.
@@ -769,7 +806,10 @@ fn sparsification_benchmark() {
             let mut optimizer = Optimizer::new(OptimizerOptions::default()).unwrap();
             optimizer.optimize(&mut sequential);
             optimizer.optimize(&mut deleted);
-            let (s_seq, s_del) = (pose_shift(&graph, &sequential), pose_shift(&graph, &deleted));
+            let (s_seq, s_del) = (
+                pose_shift(&graph, &sequential),
+                pose_shift(&graph, &deleted),
+            );
             println!(
                 "all {} runs in sequence: KLD(rel) {kld_seq:.4}  KLD(delete) {kld_del:.3}  shift rel ({:.1e}, {:.1e})  shift delete ({:.1e}, {:.1e})",
                 starts.len(),
