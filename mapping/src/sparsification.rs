@@ -12,8 +12,7 @@
 //!    one blanket pose `r` fixed (deleting its block) gives the marginal of the poses *relative to `r`*
 //!    (a linear re-parametrisation of GLC's root shift); it is full rank unless the removed constraints
 //!    leave some direction undetermined (see [`SparsificationOptions::marginal_eigenvalue_threshold`]).
-//!    Its mean is one Gauss–Newton step `δ = −Λ⁻¹ g` from the estimate, so constraints made from it
-//!    exert, at the linearization point, the same force on `B` as the removed ones did.
+//!    Its mean is one Gauss–Newton step `δ = −Λ⁻¹ g` from the estimate.
 //! 3. **Tree and constraints** ([`EdgeModel`]). Let `z_ij = x_i⁻¹ ⊕ x_j` be a relative pose; to first
 //!    order `δz_ij = J_i δx_i + J_j δx_j` with `J_j` a rotation (unit determinant). A tree of
 //!    relative-pose constraints is, in the root-fixed coordinates, `q(x) = Π_(p,c) q(z_pc)` (the map
@@ -26,8 +25,11 @@
 //!    with the gauge held at `p`. The design notes' recipe ([`EdgeModel::Conditional`]: mutual
 //!    information of root-relative poses, `Σ_c|p` mapped into the relative pose) conditions every edge
 //!    on the root as well and is implemented for comparison.
-//! 4. Every tree edge becomes a [`Constraint`] with measurement `μ_p⁻¹ μ_c` (the marginal mean) and a
-//!    trivial loss; its kind follows its ends ([`ConstraintKind::NodeToNode`],
+//! 4. Every tree edge becomes a [`Constraint`] with measurement `μ_p⁻¹ μ_c` and a trivial loss. By
+//!    default ([`TreeMean::MatchGradient`]) `μ = x̂ − Λ_tree⁻¹ g_B`, so that at the linearization
+//!    point the tree pulls on `B` exactly as the removed constraints did and an optimized graph stays
+//!    at its optimum; [`TreeMean::MatchMarginalMean`] uses the marginal mean `x̂ − Λ_B⁻¹ g_B` instead.
+//!    Robust losses in the clique are linearised with their IRLS weight ([`RobustWeighting`]); its kind follows its ends ([`ConstraintKind::NodeToNode`],
 //!    [`ConstraintKind::SubmapToSubmap`], or [`ConstraintKind::NodeToSubmapInter`] oriented
 //!    submap → node as loop closures are).
 //!
