@@ -29,7 +29,8 @@
 //!    default ([`TreeMean::MatchGradient`]) `μ = x̂ − Λ_tree⁻¹ g_B`, so that at the linearization
 //!    point the tree pulls on `B` exactly as the removed constraints did and an optimized graph stays
 //!    at its optimum; [`TreeMean::MatchMarginalMean`] uses the marginal mean `x̂ − Λ_B⁻¹ g_B` instead.
-//!    Robust losses in the clique are linearised with their IRLS weight ([`RobustWeighting`]); its kind follows its ends ([`ConstraintKind::NodeToNode`],
+//!    Robust losses in the clique are linearised with their IRLS weight ([`RobustWeighting`]). Each
+//!    constraint's kind follows its ends ([`ConstraintKind::NodeToNode`],
 //!    [`ConstraintKind::SubmapToSubmap`], or [`ConstraintKind::NodeToSubmapInter`] oriented
 //!    submap → node as loop closures are).
 //!
