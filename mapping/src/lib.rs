@@ -17,3 +17,4 @@ pub mod metrics;
 pub mod pose_graph;
 pub mod scan_matching;
 pub mod sensor;
+pub mod sparsification;

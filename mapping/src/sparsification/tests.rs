@@ -1,0 +1,823 @@
+//! Tests of sparsification against the dense marginal (the oracle), brute force over trees, the
+//! `delete` baseline and re-optimization; plus the `#[ignore]`d real-data benchmark.
+
+use std::collections::BTreeSet;
+use std::fs::File;
+use std::io::BufReader;
+use std::path::PathBuf;
+
+use nalgebra::{Matrix3, Vector3};
+use rand::{Rng as _, SeedableRng as _};
+use rand_pcg::Pcg64;
+
+use super::*;
+use crate::geometry::rigid2;
+use crate::io::g2o::read_pose_graph;
+use crate::pose_graph::{NodeId, Optimizer, OptimizerOptions, SubmapId};
+
+fn node(index: u32) -> VariableId {
+    VariableId::Node(NodeId {
+        trajectory: 0,
+        index,
+    })
+}
+
+fn submap(index: u32) -> VariableId {
+    VariableId::Submap(SubmapId {
+        trajectory: 0,
+        index,
+    })
+}
+
+fn random_information(rng: &mut Pcg64, scale: f64) -> Matrix3<f64> {
+    let a = Matrix3::from_fn(|_, _| rng.random_range(-1.0..1.0));
+    scale * (a * a.transpose() + Matrix3::from_diagonal(&Vector3::new(0.5, 0.5, 2.0)))
+}
+
+fn random_pose(rng: &mut Pcg64) -> Rigid2 {
+    rigid2(
+        rng.random_range(-5.0..5.0),
+        rng.random_range(-5.0..5.0),
+        rng.random_range(-3.0..3.0),
+    )
+}
+
+/// Adds a constraint whose measurement is the current relative pose (zero residual) times `noise`.
+fn link(
+    graph: &mut PoseGraph,
+    from: VariableId,
+    to: VariableId,
+    kind: ConstraintKind,
+    information: Matrix3<f64>,
+    noise: Rigid2,
+    loss: RobustLoss,
+) {
+    let z = graph.pose(from).unwrap().inverse() * graph.pose(to).unwrap() * noise;
+    graph
+        .add_constraint(Constraint {
+            kind,
+            from,
+            to,
+            from_from_to: z,
+            information,
+            loss,
+        })
+        .unwrap();
+}
+
+fn exact_link(graph: &mut PoseGraph, rng: &mut Pcg64, from: VariableId, to: VariableId) {
+    let information = random_information(rng, 10.0);
+    link(
+        graph,
+        from,
+        to,
+        ConstraintKind::NodeToNode,
+        information,
+        Rigid2::identity(),
+        RobustLoss::Trivial,
+    );
+}
+
+fn options(edge_model: EdgeModel) -> SparsificationOptions {
+    SparsificationOptions {
+        edge_model,
+        ..SparsificationOptions::DEFAULT
+    }
+}
+
+/// Blanket poses `labels[0..5]`, eliminated nodes 10..=14, removed constraints forming the tree
+/// `l0–l1, l1–l2, l1–l3, l3–l4` through eliminated poses: the blanket marginal is itself a tree.
+fn tree_marginal_graph(labels: [u32; 5]) -> (PoseGraph, Vec<VariableId>) {
+    let mut rng = Pcg64::seed_from_u64(11);
+    let mut graph = PoseGraph::new();
+    for id in labels.iter().chain(&[10, 11, 12, 13, 14]) {
+        graph
+            .add_variable(node(*id), random_pose(&mut rng))
+            .unwrap();
+    }
+    let b = |k: usize| node(labels[k]);
+    for (x, y) in [
+        (b(0), node(10)),
+        (node(10), b(1)),
+        (b(1), node(11)),
+        (node(11), b(2)),
+        (node(12), b(1)),
+        (node(12), node(13)),
+        (node(13), b(3)),
+        (b(3), node(14)),
+        (b(4), node(14)),
+    ] {
+        exact_link(&mut graph, &mut rng, x, y);
+    }
+    (graph, (10..=14).map(node).collect())
+}
+
+// Chow & Liu 1968: a distribution that already factors over a tree is its own best tree (KL = 0).
+#[test]
+fn tree_shaped_marginal_is_reproduced_exactly() {
+    for model in [EdgeModel::RelativeMarginal, EdgeModel::Conditional] {
+        // Root (smallest id) 0 is a leaf of the tree.
+        let (graph, eliminate) = tree_marginal_graph([0, 1, 2, 3, 4]);
+        let result = sparsify(&graph, &eliminate, &options(model)).unwrap();
+        assert_eq!(result.blanket, (0..5).map(node).collect::<Vec<_>>());
+        assert_eq!(result.new_constraints.len(), 4);
+        assert_eq!(result.removed_constraints.len(), 9);
+        assert_eq!(result.diagnostics.marginal_rank, 12);
+        assert!(
+            result.diagnostics.kl_divergence < 1e-9,
+            "{model:?}: {}",
+            result.diagnostics.kl_divergence
+        );
+        let global =
+            kl_divergence(&graph, &eliminate, &result.new_constraints, &options(model)).unwrap();
+        assert!(global < 1e-9, "{model:?}: {global}");
+        let mut edges: Vec<(VariableId, VariableId)> = result
+            .new_constraints
+            .iter()
+            .map(|c| (c.from.min(c.to), c.from.max(c.to)))
+            .collect();
+        edges.sort();
+        assert_eq!(
+            edges,
+            vec![
+                (node(0), node(1)),
+                (node(1), node(2)),
+                (node(1), node(3)),
+                (node(3), node(4))
+            ]
+        );
+        // The deletion baseline loses everything.
+        let delete_kld = kl_divergence(&graph, &eliminate, &[], &options(model)).unwrap();
+        assert!(delete_kld.is_infinite());
+    }
+}
+
+// The root-shifted conditional recipe conditions every edge on the root too: with the root (smallest
+// id, here the hub l1 = 0) inside the tree, it is no longer exact; the relative-marginal tree is.
+#[test]
+fn conditional_model_depends_on_the_root_relative_marginal_does_not() {
+    let (graph, eliminate) = tree_marginal_graph([1, 0, 2, 3, 4]);
+    let exact = sparsify(&graph, &eliminate, &options(EdgeModel::RelativeMarginal)).unwrap();
+    assert!(exact.diagnostics.kl_divergence < 1e-9);
+    let conditional = sparsify(&graph, &eliminate, &options(EdgeModel::Conditional)).unwrap();
+    assert!(
+        conditional.diagnostics.kl_divergence > 1e-3,
+        "{}",
+        conditional.diagnostics.kl_divergence
+    );
+}
+
+#[test]
+fn two_pose_blanket_gives_the_dense_marginal_as_one_constraint() {
+    let mut rng = Pcg64::seed_from_u64(3);
+    let mut graph = PoseGraph::new();
+    for id in [0, 1, 5, 6] {
+        graph.add_variable(node(id), random_pose(&mut rng)).unwrap();
+    }
+    // Slightly inconsistent measurements: the marginal mean differs from the estimate.
+    for (x, y, noise) in [
+        (node(0), node(5), rigid2(0.02, -0.01, 0.01)),
+        (node(5), node(1), rigid2(-0.01, 0.03, -0.02)),
+        (node(5), node(6), rigid2(0.01, 0.0, 0.005)),
+        (node(6), node(1), rigid2(0.0, -0.02, 0.01)),
+    ] {
+        let information = random_information(&mut rng, 20.0);
+        link(
+            &mut graph,
+            x,
+            y,
+            ConstraintKind::NodeToNode,
+            information,
+            noise,
+            RobustLoss::Trivial,
+        );
+    }
+    let eliminate = [node(5), node(6)];
+    for model in [EdgeModel::RelativeMarginal, EdgeModel::Conditional] {
+        let result = sparsify(&graph, &eliminate, &options(model)).unwrap();
+        assert_eq!(result.new_constraints.len(), 1);
+        let c = &result.new_constraints[0];
+        assert_eq!((c.from, c.to), (node(0), node(1)));
+        assert_eq!(c.kind, ConstraintKind::NodeToNode);
+        assert_eq!(c.loss, RobustLoss::Trivial);
+        // Its information on δx₁ (x₀ held) is the gauge-fixed dense marginal.
+        let marginal = marginalize(&graph, &eliminate, &options(model)).unwrap();
+        let x0 = graph.pose(node(0)).unwrap();
+        let x1 = graph.pose(node(1)).unwrap();
+        let (_, _, j1) = linearize(&c.from_from_to, &x0, &x1);
+        let on_x1 = j1.transpose() * c.information * j1;
+        let dense = marginal.information.fixed_view::<3, 3>(3, 3).into_owned();
+        assert!((on_x1 - dense).norm() < 1e-9 * dense.norm(), "{model:?}");
+        assert!(result.diagnostics.kl_divergence < 1e-12);
+        assert_eq!(result.diagnostics.marginal_rank, 3);
+    }
+    // Its measurement is the (nonlinear) optimum of the removed constraints, to first order.
+    let result = sparsify(&graph, &eliminate, &SparsificationOptions::DEFAULT).unwrap();
+    let mut alone = graph.clone();
+    alone.set_fixed(node(0), true).unwrap();
+    Optimizer::new(OptimizerOptions::default())
+        .unwrap()
+        .optimize(&mut alone);
+    let optimum = alone.pose(node(0)).unwrap().inverse() * alone.pose(node(1)).unwrap();
+    let z = result.new_constraints[0].from_from_to;
+    let before = graph.pose(node(0)).unwrap().inverse() * graph.pose(node(1)).unwrap();
+    let error = (z.inverse() * optimum).translation.vector.norm();
+    let prior = (before.inverse() * optimum).translation.vector.norm();
+    assert!(prior > 0.01, "the test needs a residual ({prior})");
+    assert!(error < 0.05 * prior, "{error} vs {prior}");
+}
+
+#[test]
+fn one_pose_blanket_and_disconnected_components() {
+    let mut rng = Pcg64::seed_from_u64(5);
+    let mut graph = PoseGraph::new();
+    for id in 0..7 {
+        graph.add_variable(node(id), random_pose(&mut rng)).unwrap();
+    }
+    for k in 0..6 {
+        exact_link(&mut graph, &mut rng, node(k), node(k + 1));
+    }
+    // A leaf: one blanket pose, nothing to add.
+    let leaf = sparsify(&graph, &[node(6)], &SparsificationOptions::DEFAULT).unwrap();
+    assert_eq!(leaf.blanket, vec![node(5)]);
+    assert!(leaf.new_constraints.is_empty());
+    assert_eq!(leaf.removed_constraints.len(), 1);
+    // Two separate eliminated poses: two components, one constraint each.
+    let split = sparsify(&graph, &[node(1), node(4)], &SparsificationOptions::DEFAULT).unwrap();
+    assert_eq!(split.diagnostics.components, 2);
+    assert_eq!(split.diagnostics.marginal_dimension, 6);
+    let mut pairs: Vec<_> = split
+        .new_constraints
+        .iter()
+        .map(|c| (c.from, c.to))
+        .collect();
+    pairs.sort();
+    assert_eq!(pairs, vec![(node(0), node(2)), (node(3), node(5))]);
+    assert!(split.diagnostics.kl_divergence < 1e-12);
+    // Chains are trees: exact globally too, while deleting disconnects the chain.
+    let o = SparsificationOptions::DEFAULT;
+    let kld = kl_divergence(&graph, &[node(1), node(4)], &split.new_constraints, &o).unwrap();
+    assert!(kld < 1e-9, "{kld}");
+    assert!(
+        kl_divergence(&graph, &[node(1), node(4)], &[], &o)
+            .unwrap()
+            .is_infinite()
+    );
+    // Errors.
+    assert_eq!(
+        sparsify(&graph, &[], &o),
+        Err(SparsificationError::NothingToEliminate)
+    );
+    assert_eq!(
+        sparsify(&graph, &[node(99)], &o),
+        Err(SparsificationError::UnknownVariable(node(99)))
+    );
+    let mut fixed = graph.clone();
+    fixed.set_fixed(node(3), true).unwrap();
+    assert_eq!(
+        sparsify(&fixed, &[node(3)], &o),
+        Err(SparsificationError::FixedVariable(node(3)))
+    );
+}
+
+#[test]
+fn rank_deficient_marginal_is_reported_and_stays_finite() {
+    let mut rng = Pcg64::seed_from_u64(9);
+    let mut graph = PoseGraph::new();
+    for id in [0, 1, 2, 5] {
+        graph.add_variable(node(id), random_pose(&mut rng)).unwrap();
+    }
+    exact_link(&mut graph, &mut rng, node(0), node(5));
+    exact_link(&mut graph, &mut rng, node(5), node(1));
+    // Node 2 is tied to the eliminated pose by a bearing-only-like constraint: rotation only.
+    link(
+        &mut graph,
+        node(5),
+        node(2),
+        ConstraintKind::NodeToNode,
+        Matrix3::from_diagonal(&Vector3::new(0.0, 0.0, 5.0)),
+        Rigid2::identity(),
+        RobustLoss::Trivial,
+    );
+    let result = sparsify(&graph, &[node(5)], &SparsificationOptions::DEFAULT).unwrap();
+    assert_eq!(result.diagnostics.marginal_dimension, 6);
+    assert_eq!(result.diagnostics.marginal_rank, 4);
+    assert_eq!(result.new_constraints.len(), 2);
+    for c in &result.new_constraints {
+        assert!(c.information.iter().all(|v| v.is_finite()));
+        assert!(c.information.symmetric_eigenvalues().min() > -1e-9 * c.information.norm());
+    }
+    // Node 2's relative position is unknown, so the star's marginal is a clique in θ only.
+    assert!(result.diagnostics.kl_divergence.is_finite());
+    let mut applied = graph.clone();
+    apply(&mut applied, &result).unwrap();
+    assert_eq!(applied.num_constraints(), 2);
+}
+
+#[test]
+fn robust_weights_shrink_the_marginal_of_an_outlier() {
+    let mut rng = Pcg64::seed_from_u64(13);
+    let mut graph = PoseGraph::new();
+    for id in [0, 1, 5] {
+        graph.add_variable(node(id), random_pose(&mut rng)).unwrap();
+    }
+    exact_link(&mut graph, &mut rng, node(0), node(5));
+    // An outlier loop closure, 1 m off, under a Cauchy loss.
+    link(
+        &mut graph,
+        node(5),
+        node(1),
+        ConstraintKind::NodeToNode,
+        Matrix3::identity() * 100.0,
+        rigid2(1.0, 0.0, 0.0),
+        RobustLoss::Cauchy { scale: 1.0 },
+    );
+    let trace = |weighting| {
+        let o = SparsificationOptions {
+            robust_weighting: weighting,
+            ..SparsificationOptions::DEFAULT
+        };
+        let result = sparsify(&graph, &[node(5)], &o).unwrap();
+        result.new_constraints[0].information.trace()
+    };
+    let irls = trace(RobustWeighting::Irls);
+    let ignored = trace(RobustWeighting::Ignore);
+    assert!(irls < 0.05 * ignored, "{irls} vs {ignored}");
+}
+
+/// All spanning trees of the complete graph on 4 vertices (16, by Cayley).
+fn spanning_trees_of_four() -> Vec<Vec<(usize, usize)>> {
+    let pairs: Vec<(usize, usize)> = (0..4)
+        .flat_map(|a| (a + 1..4).map(move |b| (a, b)))
+        .collect();
+    let mut trees = Vec::new();
+    for mask in 0u32..64 {
+        if mask.count_ones() != 3 {
+            continue;
+        }
+        let edges: Vec<(usize, usize)> = (0..6)
+            .filter(|k| mask & (1 << k) != 0)
+            .map(|k| pairs[k])
+            .collect();
+        let mut uf = UnionFind::new(4);
+        let acyclic = edges.iter().all(|&(a, b)| {
+            let (ra, rb) = (uf.find(a), uf.find(b));
+            uf.union(a, b);
+            ra != rb
+        });
+        if acyclic {
+            trees.push(edges);
+        }
+    }
+    trees
+}
+
+// The relative-marginal tree minimises KL over every tree of relative-pose constraints (module docs,
+// step 3): brute force over all 16 spanning trees of a 4-pose blanket, and over scaled informations.
+#[test]
+fn relative_marginal_tree_is_kl_minimal_over_all_trees() {
+    let trees = spanning_trees_of_four();
+    assert_eq!(trees.len(), 16);
+    let o = SparsificationOptions::DEFAULT;
+    for seed in 0..5 {
+        let mut rng = Pcg64::seed_from_u64(100 + seed);
+        let mut graph = PoseGraph::new();
+        for id in [0, 1, 2, 3, 10, 11] {
+            graph.add_variable(node(id), random_pose(&mut rng)).unwrap();
+        }
+        for (x, y) in [
+            (node(0), node(10)),
+            (node(10), node(1)),
+            (node(10), node(2)),
+            (node(11), node(2)),
+            (node(11), node(3)),
+            (node(10), node(11)),
+            (node(0), node(11)),
+        ] {
+            exact_link(&mut graph, &mut rng, x, y);
+        }
+        let eliminate = [node(10), node(11)];
+        let result = sparsify(&graph, &eliminate, &o).unwrap();
+        let chosen = kl_divergence(&graph, &eliminate, &result.new_constraints, &o).unwrap();
+        assert!((chosen - result.diagnostics.kl_divergence).abs() < 1e-9);
+        assert!(chosen > 1e-3, "the marginal must not be a tree already");
+
+        let marginal = marginalize(&graph, &eliminate, &o).unwrap();
+        let members: Vec<usize> = (0..4).collect();
+        let fixed = GaugeFixed::new(&marginal, &members, &o).unwrap();
+        let points = marginal.linearization_point.clone();
+        let tree_constraints = |edges: &[(usize, usize)], scale: f64| -> Vec<Constraint> {
+            edges
+                .iter()
+                .map(|&(a, b)| {
+                    let z = points[a].inverse() * points[b];
+                    let cov = relative_covariance(&fixed, &points, &z, a, b);
+                    Constraint {
+                        kind: ConstraintKind::NodeToNode,
+                        from: node(a as u32),
+                        to: node(b as u32),
+                        from_from_to: z,
+                        information: spd_inverse(&cov) * scale,
+                        loss: RobustLoss::Trivial,
+                    }
+                })
+                .collect()
+        };
+        let mut best = f64::INFINITY;
+        for edges in &trees {
+            let kld = kl_divergence(&graph, &eliminate, &tree_constraints(edges, 1.0), &o).unwrap();
+            best = best.min(kld);
+            for scale in [0.8, 1.25] {
+                let scaled =
+                    kl_divergence(&graph, &eliminate, &tree_constraints(edges, scale), &o).unwrap();
+                assert!(
+                    scaled > kld,
+                    "seed {seed}: scaling by {scale} must not help"
+                );
+            }
+        }
+        assert!(chosen <= best + 1e-9, "seed {seed}: {chosen} vs {best}");
+        let conditional = sparsify(&graph, &eliminate, &options(EdgeModel::Conditional)).unwrap();
+        let conditional_kld =
+            kl_divergence(&graph, &eliminate, &conditional.new_constraints, &o).unwrap();
+        assert!(conditional_kld >= chosen - 1e-9);
+    }
+}
+
+/// Two laps around a circle of radius 8 m, 48 nodes a lap; a submap every 8 nodes of the first lap
+/// (intra constraints to its nodes); odometry between consecutive nodes; every second node of the second
+/// lap closes a loop (Huber loss) to the first-lap submap it passes. Measurements carry uniform noise;
+/// the graph is optimized with node 0 fixed.
+fn two_lap_world() -> PoseGraph {
+    let mut rng = Pcg64::seed_from_u64(21);
+    let per_lap = 48;
+    let truth = |k: u32| {
+        let t = f64::from(k) / f64::from(per_lap) * std::f64::consts::TAU;
+        rigid2(
+            8.0 * t.cos(),
+            8.0 * t.sin(),
+            t + std::f64::consts::FRAC_PI_2,
+        )
+    };
+    let noise = |rng: &mut Pcg64, m: f64| {
+        rigid2(
+            rng.random_range(-m..m),
+            rng.random_range(-m..m),
+            rng.random_range(-m..m) / 4.0,
+        )
+    };
+    let mut graph = PoseGraph::new();
+    for k in 0..2 * per_lap {
+        let n = noise(&mut rng, 0.3);
+        graph.add_variable(node(k), truth(k) * n).unwrap();
+    }
+    for s in 0..per_lap / 8 {
+        let n = noise(&mut rng, 0.3);
+        graph.add_variable(submap(s), truth(8 * s) * n).unwrap();
+    }
+    let add = |graph: &mut PoseGraph,
+               rng: &mut Pcg64,
+               from: VariableId,
+               from_truth: Rigid2,
+               to: u32,
+               kind: ConstraintKind,
+               diagonal: Vector3<f64>,
+               loss: RobustLoss| {
+        let z = from_truth.inverse() * truth(to) * noise(rng, 0.05);
+        graph
+            .add_constraint(Constraint {
+                kind,
+                from,
+                to: node(to),
+                from_from_to: z,
+                information: Matrix3::from_diagonal(&diagonal),
+                loss,
+            })
+            .unwrap();
+    };
+    for k in 0..2 * per_lap - 1 {
+        add(
+            &mut graph,
+            &mut rng,
+            node(k),
+            truth(k),
+            k + 1,
+            ConstraintKind::Odometry,
+            Vector3::new(100.0, 100.0, 1000.0),
+            RobustLoss::Trivial,
+        );
+    }
+    for k in 0..per_lap {
+        let s = k / 8;
+        add(
+            &mut graph,
+            &mut rng,
+            submap(s),
+            truth(8 * s),
+            k,
+            ConstraintKind::NodeToSubmapIntra,
+            Vector3::new(200.0, 200.0, 800.0),
+            RobustLoss::Trivial,
+        );
+    }
+    for k in (per_lap..2 * per_lap).step_by(2) {
+        let s = (k - per_lap) / 8;
+        add(
+            &mut graph,
+            &mut rng,
+            submap(s),
+            truth(8 * s),
+            k,
+            ConstraintKind::NodeToSubmapInter,
+            Vector3::new(50.0, 50.0, 200.0),
+            RobustLoss::Huber { delta: 3.0 },
+        );
+    }
+    graph.set_fixed(node(0), true).unwrap();
+    let summary = Optimizer::new(OptimizerOptions::default())
+        .unwrap()
+        .optimize(&mut graph);
+    assert!(summary.termination.is_converged());
+    graph
+}
+
+/// Submap 2 of the first lap and its nodes 16..24.
+fn submap_two() -> Vec<VariableId> {
+    std::iter::once(submap(2))
+        .chain((16..24).map(node))
+        .collect()
+}
+
+/// Largest translation (m) and rotation (rad) between two graphs' common variables.
+fn pose_shift(a: &PoseGraph, b: &PoseGraph) -> (f64, f64) {
+    let mut shift = (0.0f64, 0.0f64);
+    for (id, pose, _) in a.variables() {
+        if let Some(other) = b.pose(id) {
+            let d = pose.inverse() * other;
+            shift.0 = shift
+                .0
+                .max((other.translation.vector - pose.translation.vector).norm());
+            shift.1 = shift.1.max(d.rotation.angle().abs());
+        }
+    }
+    shift
+}
+
+// Design notes §5: KLD(clt) ≪ KLD(delete) on a realistic small graph. Four second-lap loop closures
+// to the eliminated submap make its marginal a star around a hidden hub, which no tree represents
+// well: measured 0.41 nats (relative-marginal) vs 1.73 (delete). The root-shifted conditional recipe
+// is over-confident here and does worse than deleting (2.21 nats).
+#[test]
+fn tree_is_far_closer_to_the_marginal_than_deletion() {
+    let graph = two_lap_world();
+    let eliminate = submap_two();
+    let o = SparsificationOptions::DEFAULT;
+    let result = sparsify(&graph, &eliminate, &o).unwrap();
+    assert!(result.blanket.len() >= 5, "{:?}", result.blanket);
+    assert_eq!(result.new_constraints.len(), result.blanket.len() - 1);
+    let delete_kld = kl_divergence(&graph, &eliminate, &[], &o).unwrap();
+    assert!(delete_kld.is_finite() && delete_kld > 1.0, "{delete_kld}");
+    let clt = kl_divergence(&graph, &eliminate, &result.new_constraints, &o).unwrap();
+    assert!(clt <= 0.3 * delete_kld, "{clt} vs delete {delete_kld}");
+    let conditional = sparsify(&graph, &eliminate, &options(EdgeModel::Conditional)).unwrap();
+    let conditional_kld =
+        kl_divergence(&graph, &eliminate, &conditional.new_constraints, &o).unwrap();
+    assert!(
+        clt < conditional_kld,
+        "{clt} vs conditional {conditional_kld}"
+    );
+}
+
+// Design notes §5: after sparsification and re-optimization the remaining poses barely move, and far
+// less than after deletion.
+#[test]
+fn reoptimized_sparsified_graph_stays_near_the_full_optimum() {
+    let graph = two_lap_world();
+    let eliminate = submap_two();
+    let mut sparsified = graph.clone();
+    let result = sparsify(&graph, &eliminate, &SparsificationOptions::DEFAULT).unwrap();
+    let added = apply(&mut sparsified, &result).unwrap();
+    assert_eq!(added.len(), result.new_constraints.len());
+    assert!(
+        eliminate
+            .iter()
+            .all(|&id| !sparsified.contains_variable(id))
+    );
+    let mut deleted = graph.clone();
+    let removed = delete(&mut deleted, &eliminate).unwrap();
+    assert_eq!(removed.len(), result.removed_constraints.len());
+    let mut optimizer = Optimizer::new(OptimizerOptions::default()).unwrap();
+    optimizer.optimize(&mut sparsified);
+    optimizer.optimize(&mut deleted);
+    let clt = pose_shift(&graph, &sparsified);
+    let del = pose_shift(&graph, &deleted);
+    // Measured: 0.12 mm / 7 µrad (the tree keeps the optimum stationary) against 5.3 cm / 4.3 mrad
+    // after deletion; encoding the marginal's own mean instead moves poses by 1.2 cm / 1.4 mrad.
+    assert!(clt.0 < 1e-3 && clt.1 < 1e-4, "{clt:?}");
+    assert!(
+        clt.0 < 0.05 * del.0 && clt.1 < 0.05 * del.1,
+        "{clt:?} vs delete {del:?}"
+    );
+    let marginal_mean = SparsificationOptions {
+        tree_mean: TreeMean::MatchMarginalMean,
+        ..SparsificationOptions::DEFAULT
+    };
+    let mut other = graph.clone();
+    apply(
+        &mut other,
+        &sparsify(&graph, &eliminate, &marginal_mean).unwrap(),
+    )
+    .unwrap();
+    optimizer.optimize(&mut other);
+    let other_shift = pose_shift(&graph, &other);
+    assert!(other_shift.0 > 10.0 * clt.0, "{other_shift:?} vs {clt:?}");
+}
+
+#[test]
+fn apply_checks_before_editing() {
+    let graph = two_lap_world();
+    let result = sparsify(&graph, &submap_two(), &SparsificationOptions::DEFAULT).unwrap();
+    let mut edited = graph.clone();
+    apply(&mut edited, &result).unwrap();
+    // Applying twice fails without touching the graph.
+    let before = edited.num_constraints();
+    assert!(matches!(
+        apply(&mut edited, &result),
+        Err(SparsificationError::UnknownVariable(_))
+    ));
+    assert_eq!(edited.num_constraints(), before);
+    // Kinds follow the endpoints; mixed edges run submap → node.
+    for c in &result.new_constraints {
+        match (c.from, c.to) {
+            (VariableId::Node(_), VariableId::Node(_)) => {
+                assert_eq!(c.kind, ConstraintKind::NodeToNode);
+            }
+            (VariableId::Submap(_), VariableId::Node(_)) => {
+                assert_eq!(c.kind, ConstraintKind::NodeToSubmapInter);
+            }
+            (VariableId::Submap(_), VariableId::Submap(_)) => {
+                assert_eq!(c.kind, ConstraintKind::SubmapToSubmap);
+            }
+            (VariableId::Node(_), VariableId::Submap(_)) => {
+                panic!("mixed edge must start at the submap")
+            }
+        }
+    }
+}
+
+fn dataset(name: &str) -> PoseGraph {
+    let manifest = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    // `../../shared/datasets` from the main checkout's crate; one level more from a worktree.
+    let path = manifest
+        .ancestors()
+        .map(|dir| dir.join("shared/datasets/posegraphs").join(name))
+        .find(|p| p.exists())
+        .unwrap_or_else(|| manifest.join("../../shared/datasets/posegraphs").join(name));
+    let file = File::open(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    read_pose_graph(BufReader::new(file)).unwrap().graph
+}
+
+/// The subgraph induced by nodes `0..n`, node 0 fixed, optimized.
+fn optimized_prefix(graph: &PoseGraph, n: u32) -> PoseGraph {
+    let keep = |id: VariableId| matches!(id, VariableId::Node(NodeId { index, .. }) if index < n);
+    let mut sub = PoseGraph::new();
+    for (id, pose, _) in graph.variables().filter(|(id, _, _)| keep(*id)) {
+        sub.add_variable(id, pose).unwrap();
+    }
+    for (_, c) in graph
+        .constraints()
+        .filter(|(_, c)| keep(c.from) && keep(c.to))
+    {
+        sub.add_constraint(c.clone()).unwrap();
+    }
+    sub.set_fixed(node(0), true).unwrap();
+    let mut optimizer = Optimizer::new(OptimizerOptions {
+        rotation_first_initialization: true,
+        ..OptimizerOptions::DEFAULT
+    })
+    .unwrap();
+    let summary = optimizer.optimize(&mut sub);
+    assert!(summary.termination.is_converged(), "{summary:?}");
+    sub
+}
+
+/// Benchmark (release): on prefixes of Intel and M3500, eliminate runs of consecutive nodes (a
+/// "submap" and its nodes) one at a time from the optimized graph, and all of them in sequence.
+/// Prints, per run: blanket size, marginal rank, the blanket-local KLD of the tree (what Chow–Liu
+/// minimises) for both edge models, the whole-graph KLD for both models and for deletion, and the
+/// largest pose shift after re-optimizing against the full optimum.
+/// `cargo nextest run --workspace --release --run-ignored only --no-capture -E 'test(sparsification_benchmark)'`
+#[test]
+#[ignore = "real-data benchmark; run in release"]
+fn sparsification_benchmark() {
+    let ratio = |a: f64, b: f64| {
+        if b.is_finite() {
+            format!("{:5.3}", a / b)
+        } else {
+            "  n/a".to_owned()
+        }
+    };
+    for (name, prefix) in [("intel_sesync1728.g2o", 600u32), ("M3500.g2o", 600)] {
+        let full = dataset(name);
+        let graph = optimized_prefix(&full, prefix);
+        println!(
+            "{name}: first {prefix} nodes, {} constraints, chi2 {:.3}",
+            graph.num_constraints(),
+            graph.chi2()
+        );
+        for run_length in [10u32, 15, 20] {
+            println!(
+                "run length {run_length}\nrun        |B| rank/dim  local(rel) local(cond) | KLD(rel) KLD(cond) KLD(delete) rel/del | shift rel (m, rad)  shift cond        shift delete     | ms"
+            );
+            let starts: Vec<u32> = (1..=6).map(|k| k * prefix / 7).collect();
+            let o = SparsificationOptions::DEFAULT;
+            let mut sequential = graph.clone();
+            let mut all_eliminated = Vec::new();
+            let mut ratios = Vec::new();
+            for &start in &starts {
+                let eliminate: Vec<VariableId> = (start..start + run_length).map(node).collect();
+                let timer = std::time::Instant::now();
+                let rel = sparsify(&graph, &eliminate, &o).unwrap();
+                let ms = timer.elapsed().as_secs_f64() * 1e3;
+                let cond = sparsify(&graph, &eliminate, &options(EdgeModel::Conditional)).unwrap();
+                let kld_rel = kl_divergence(&graph, &eliminate, &rel.new_constraints, &o).unwrap();
+                let kld_cond =
+                    kl_divergence(&graph, &eliminate, &cond.new_constraints, &o).unwrap();
+                let kld_delete = kl_divergence(&graph, &eliminate, &[], &o).unwrap();
+                if kld_delete.is_finite() {
+                    ratios.push(kld_rel / kld_delete);
+                }
+                let shift = |result: Option<&SparsificationResult>| {
+                    let mut g = graph.clone();
+                    match result {
+                        Some(r) => {
+                            apply(&mut g, r).unwrap();
+                        }
+                        None => {
+                            delete(&mut g, &eliminate).unwrap();
+                        }
+                    }
+                    Optimizer::new(OptimizerOptions::default())
+                        .unwrap()
+                        .optimize(&mut g);
+                    pose_shift(&graph, &g)
+                };
+                let (s_rel, s_cond, s_del) = (shift(Some(&rel)), shift(Some(&cond)), shift(None));
+                println!(
+                    "{start:4}..{:<4} {:3} {:3}/{:<3}  {:9.4}  {:9.4}  | {kld_rel:8.4} {kld_cond:8.4} {kld_delete:11.3}   {} | ({:.1e}, {:.1e})  ({:.1e}, {:.1e})  ({:.1e}, {:.1e}) | {ms:.1}",
+                    start + run_length,
+                    rel.blanket.len(),
+                    rel.diagnostics.marginal_rank,
+                    rel.diagnostics.marginal_dimension,
+                    rel.diagnostics.kl_divergence,
+                    cond.diagnostics.kl_divergence,
+                    ratio(kld_rel, kld_delete),
+                    s_rel.0,
+                    s_rel.1,
+                    s_cond.0,
+                    s_cond.1,
+                    s_del.0,
+                    s_del.1,
+                );
+                let seq = sparsify(&sequential, &eliminate, &o).unwrap();
+                apply(&mut sequential, &seq).unwrap();
+                all_eliminated.extend(eliminate);
+            }
+            ratios.sort_by(f64::total_cmp);
+            println!(
+                "KLD(rel)/KLD(delete) over runs with finite KLD(delete): {:?}",
+                ratios
+                    .iter()
+                    .map(|r| (r * 1000.0).round() / 1000.0)
+                    .collect::<Vec<_>>()
+            );
+            // All runs eliminated one after the other: the trees (some re-sparsified) against the
+            // exact marginal of all of them.
+            let original: BTreeSet<ConstraintId> = graph.constraints().map(|(id, _)| id).collect();
+            let added: Vec<Constraint> = sequential
+                .constraints()
+                .filter(|(id, _)| !original.contains(id))
+                .map(|(_, c)| c.clone())
+                .collect();
+            let kld_seq = kl_divergence(&graph, &all_eliminated, &added, &o).unwrap();
+            let kld_del = kl_divergence(&graph, &all_eliminated, &[], &o).unwrap();
+            let mut deleted = graph.clone();
+            delete(&mut deleted, &all_eliminated).unwrap();
+            let mut optimizer = Optimizer::new(OptimizerOptions::default()).unwrap();
+            optimizer.optimize(&mut sequential);
+            optimizer.optimize(&mut deleted);
+            let (s_seq, s_del) = (
+                pose_shift(&graph, &sequential),
+                pose_shift(&graph, &deleted),
+            );
+            println!(
+                "all {} runs in sequence: KLD(rel) {kld_seq:.4}  KLD(delete) {kld_del:.3}  shift rel ({:.1e}, {:.1e})  shift delete ({:.1e}, {:.1e})",
+                starts.len(),
+                s_seq.0,
+                s_seq.1,
+                s_del.0,
+                s_del.1
+            );
+        }
+    }
+}
