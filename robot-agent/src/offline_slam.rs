@@ -7,7 +7,10 @@ use std::collections::BTreeMap;
 use std::sync::mpsc;
 
 use mapping::geometry::Rigid2;
-use mapping::global_slam::{GlobalSlam, GlobalSlamError, GlobalSlamEvent, GlobalSlamOptions};
+use mapping::global_slam::{
+    ConstraintBuilder, GlobalSlam, GlobalSlamError, GlobalSlamEvent, GlobalSlamOptions,
+    LoopClosure, SearchJob,
+};
 use mapping::grid::{MapLimits, ProbabilityGrid, RangeDataInserter, RangeDataInserterOptions};
 use mapping::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
 use mapping::pose_graph::{NodeId, OptimizationSummary};
@@ -210,6 +213,32 @@ pub fn run_offline(
     })
 }
 
+/// Loop-closure searches worth splitting across threads; below this, one thread is cheaper.
+const PARALLEL_SEARCH_MIN_JOBS: usize = 4;
+
+/// Runs search jobs on this thread and one helper thread (the machine this targets has two cores, and LLO
+/// sleeps while it waits on a full channel). Results keep the jobs' order, so runs are deterministic.
+fn run_searches(builder: &ConstraintBuilder, jobs: &[SearchJob]) -> Vec<LoopClosure> {
+    if jobs.len() < PARALLEL_SEARCH_MIN_JOBS {
+        return jobs.iter().filter_map(|j| builder.run(j)).collect();
+    }
+    let (first, second) = jobs.split_at(jobs.len() / 2);
+    std::thread::scope(|scope| {
+        let helper = std::thread::Builder::new()
+            .name("glm-search".into())
+            .spawn_scoped(scope, || {
+                second.iter().map(|j| builder.run(j)).collect::<Vec<_>>()
+            });
+        let mut results: Vec<Option<LoopClosure>> = first.iter().map(|j| builder.run(j)).collect();
+        match helper.map(std::thread::ScopedJoinHandle::join) {
+            Ok(Ok(rest)) => results.extend(rest),
+            // The helper could not start, or a search panicked (a bug): do its half here.
+            _ => results.extend(second.iter().map(|j| builder.run(j))),
+        }
+        results.into_iter().flatten().collect()
+    })
+}
+
 fn global_worker(
     mut global: GlobalSlam,
     receiver: &mpsc::Receiver<WorkerMessage>,
@@ -232,7 +261,9 @@ fn global_worker(
                     &insertion_submaps,
                     finished_submaps,
                 )?;
-                let events = global.run_pending_searches();
+                let jobs = global.take_search_jobs();
+                let results = run_searches(global.constraint_builder(), &jobs);
+                let events = global.add_search_results(results);
                 optimizations += events
                     .iter()
                     .filter(|e| matches!(e, GlobalSlamEvent::Optimized(_)))
