@@ -241,7 +241,7 @@ mod tests {
             ..chart
         };
         let (_, _, px) = empty.render(100, 80);
-        assert!(px.iter().any(|&v| v == 0));
+        assert!(px.contains(&0));
     }
 
     #[test]
