@@ -18,6 +18,8 @@ enum Command {
     Offline(commands::offline::OfflineArgs),
     /// Builds a map from the first 60 % of a recording and relocalizes scans of the rest with no prior.
     Relocalize(commands::relocalize::RelocalizeArgs),
+    /// Writes one session of the simulated changing store as a ROS1 bag plus its ground truth (TUM).
+    Simulate(commands::simulate::SimulateArgs),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -25,5 +27,6 @@ fn main() -> anyhow::Result<()> {
     match cli.command {
         Command::Offline(args) => commands::offline::run(&args),
         Command::Relocalize(args) => commands::relocalize::run(&args),
+        Command::Simulate(args) => commands::simulate::run(&args),
     }
 }

@@ -3,12 +3,15 @@
 
 mod carmen;
 mod recording;
+mod ros_definitions;
 mod ros_messages;
 mod rosbag1;
+mod rosbag1_writer;
 
 use std::path::Path;
 
 pub use recording::{ReadReport, Recording};
+pub use rosbag1_writer::{BagWriteError, write_bag};
 
 /// Why a recording could not be read.
 #[derive(Debug, thiserror::Error)]

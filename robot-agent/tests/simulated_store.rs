@@ -67,3 +67,53 @@ fn tracks_a_simulated_cleaning_run() {
     // Measured 0.019 m (seed 3, session 1, 112 m driven).
     assert!(ate < 0.05, "ATE RMS {ate} m");
 }
+
+#[test]
+fn simulated_sessions_round_trip_through_a_ros_bag() {
+    let store = Store::generate(&StoreOptions::default(), 9).expect("store");
+    let options = SessionOptions {
+        max_duration_s: 10.0,
+        ..SessionOptions::default()
+    };
+    let session = store.session(2, &options).expect("session");
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("session.bag");
+    let mut file = std::fs::File::create(&path).expect("create");
+    robot_agent::source::write_bag(&mut file, &session.events, &session.base_from_laser)
+        .expect("write");
+    drop(file);
+    let read = robot_agent::source::read_recording(&path).expect("read back");
+    assert_eq!(read.events.len(), session.events.len());
+    assert!(
+        (read.base_from_laser.translation.vector - session.base_from_laser.translation.vector)
+            .norm()
+            < 1e-12
+    );
+    for (a, b) in read.events.iter().zip(&session.events) {
+        assert_eq!(a.time(), b.time());
+        match (a, b) {
+            (mapping::sensor::SensorEvent::Scan(x), mapping::sensor::SensorEvent::Scan(y)) => {
+                assert_eq!(x.ranges.len(), y.ranges.len());
+                assert!(
+                    x.ranges
+                        .iter()
+                        .zip(&y.ranges)
+                        .all(|(p, q)| p.to_bits() == q.to_bits())
+                );
+                assert_eq!(x.angle_min.to_bits(), y.angle_min.to_bits());
+                assert_eq!(x.angle_increment.to_bits(), y.angle_increment.to_bits());
+            }
+            (
+                mapping::sensor::SensorEvent::Odometry(x),
+                mapping::sensor::SensorEvent::Odometry(y),
+            ) => {
+                assert!((x.pose.translation.vector - y.pose.translation.vector).norm() < 1e-9);
+                assert!((x.pose.rotation.angle() - y.pose.rotation.angle()).abs() < 1e-9);
+            }
+            (mapping::sensor::SensorEvent::Imu(x), mapping::sensor::SensorEvent::Imu(y)) => {
+                assert!((x.yaw_rate - y.yaw_rate).abs() < 1e-12);
+            }
+            _ => panic!("event kinds differ at {}", a.time()),
+        }
+    }
+}
