@@ -1,6 +1,6 @@
 //! The SLAM pipeline on the simulated store: LLO + GLM + PGR must track a short cleaning run.
 
-use mapping::geometry::{Rigid2, rigid2};
+use mapping::geometry::Rigid2;
 use mapping::simulation::{SessionOptions, Store, StoreOptions};
 use robot_agent::offline_slam::{SlamConfig, run_offline};
 use robot_agent::source::{ReadReport, Recording};
@@ -10,38 +10,18 @@ fn ate_rms(
     estimate: &[(mapping::sensor::Timestamp, Rigid2)],
     truth: &[(mapping::sensor::Timestamp, Rigid2)],
 ) -> (f64, usize) {
-    let truth: std::collections::BTreeMap<_, _> = truth.iter().copied().collect();
-    let pairs: Vec<(Rigid2, Rigid2)> = estimate
+    let by_time: std::collections::BTreeMap<_, _> = truth.iter().copied().collect();
+    let pairs: Vec<_> = estimate
         .iter()
-        .filter_map(|(t, e)| truth.get(t).map(|g| (*e, *g)))
-        .collect();
-    let n = pairs.len() as f64;
-    let mean_e = pairs
-        .iter()
-        .map(|p| p.0.translation.vector)
-        .sum::<nalgebra::Vector2<f64>>()
-        / n;
-    let mean_g = pairs
-        .iter()
-        .map(|p| p.1.translation.vector)
-        .sum::<nalgebra::Vector2<f64>>()
-        / n;
-    let (mut sin, mut cos) = (0.0, 0.0);
-    for (e, g) in &pairs {
-        let (a, b) = (e.translation.vector - mean_e, g.translation.vector - mean_g);
-        cos += a.dot(&b);
-        sin += a.x * b.y - a.y * b.x;
-    }
-    let theta = sin.atan2(cos);
-    let t = mean_g - nalgebra::Rotation2::new(theta) * mean_e;
-    let truth_from_estimate = rigid2(t.x, t.y, theta);
-    let sum: f64 = pairs
-        .iter()
-        .map(|(e, g)| {
-            ((truth_from_estimate * e).translation.vector - g.translation.vector).norm_squared()
+        .filter_map(|(t, e)| {
+            by_time
+                .get(t)
+                .map(|g| (e.translation.vector, g.translation.vector))
         })
-        .sum();
-    ((sum / n).sqrt(), pairs.len())
+        .collect();
+    let world_from_map = mapping::metrics::rigid_alignment(&pairs);
+    let accuracy = mapping::metrics::trajectory_accuracy(estimate, truth, &world_from_map);
+    (accuracy.ate_rms_m, accuracy.matched)
 }
 
 #[test]

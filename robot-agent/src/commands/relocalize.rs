@@ -10,7 +10,7 @@ use std::time::Instant;
 
 use anyhow::Context as _;
 use clap::Args;
-use mapping::geometry::{Rigid2, rigid2};
+use mapping::geometry::Rigid2;
 use mapping::geometry::{Rigid2Ext as _, normalize_angle};
 use mapping::local_slam::adaptive_voxel_filter;
 use mapping::scan_matching::Relocalizer;
@@ -213,30 +213,11 @@ fn align_near(common: &[(Rigid2, Rigid2)], near: &Rigid2) -> Rigid2 {
     }
 }
 
-/// The rigid transform `head_from_full` minimizing the squared distances between the positions of the
-/// pairs `(head pose, full pose)` (2D Kabsch without scale); identity for no pairs.
+/// The rigid transform `head_from_full` best aligning the positions of the pairs `(head pose, full pose)`.
 fn align(pairs: &[(Rigid2, Rigid2)]) -> Rigid2 {
-    if pairs.is_empty() {
-        return Rigid2::identity();
-    }
-    let n = pairs.len() as f64;
-    let mean_h = pairs
+    let positions: Vec<_> = pairs
         .iter()
-        .map(|p| p.0.translation.vector)
-        .sum::<nalgebra::Vector2<f64>>()
-        / n;
-    let mean_f = pairs
-        .iter()
-        .map(|p| p.1.translation.vector)
-        .sum::<nalgebra::Vector2<f64>>()
-        / n;
-    let (mut sin, mut cos) = (0.0, 0.0);
-    for (h, f) in pairs {
-        let (a, b) = (f.translation.vector - mean_f, h.translation.vector - mean_h);
-        cos += a.dot(&b);
-        sin += a.x * b.y - a.y * b.x;
-    }
-    let theta = sin.atan2(cos);
-    let t = mean_h - nalgebra::Rotation2::new(theta) * mean_f;
-    rigid2(t.x, t.y, theta)
+        .map(|(h, f)| (f.translation.vector, h.translation.vector))
+        .collect();
+    mapping::metrics::rigid_alignment(&positions)
 }

@@ -1,0 +1,136 @@
+//! Trajectory accuracy against ground truth: rigid alignment, ATE, and the paper's mileage rate of correct
+//! localization (MRCL).
+
+use std::collections::BTreeMap;
+
+use nalgebra::{Rotation2, Vector2};
+use serde::Serialize;
+
+use crate::geometry::{Rigid2, Rigid2Ext as _, normalize_angle, rigid2};
+use crate::sensor::Timestamp;
+
+/// A pose counts as correctly localized within this distance of the truth (metres) …
+pub const MRCL_TRANSLATION_M: f64 = 0.3;
+/// … and this rotation (degrees).
+pub const MRCL_ROTATION_DEG: f64 = 5.0;
+
+/// The rigid transform `b_from_a` minimizing `Σ |b_from_a · a_i − b_i|²` over the positions of the pairs
+/// `(a_i, b_i)` (2D Kabsch, no scale); identity for no pairs.
+pub fn rigid_alignment(pairs: &[(Vector2<f64>, Vector2<f64>)]) -> Rigid2 {
+    if pairs.is_empty() {
+        return Rigid2::identity();
+    }
+    let n = pairs.len() as f64;
+    let mean_a = pairs.iter().map(|p| p.0).sum::<Vector2<f64>>() / n;
+    let mean_b = pairs.iter().map(|p| p.1).sum::<Vector2<f64>>() / n;
+    let (mut sin, mut cos) = (0.0, 0.0);
+    for (a, b) in pairs {
+        let (a, b) = (a - mean_a, b - mean_b);
+        cos += a.dot(&b);
+        sin += a.x * b.y - a.y * b.x;
+    }
+    let theta = sin.atan2(cos);
+    let t = mean_b - Rotation2::new(theta) * mean_a;
+    rigid2(t.x, t.y, theta)
+}
+
+/// Accuracy of one trajectory against ground truth in a given frame alignment.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct TrajectoryAccuracy {
+    /// Poses matched to a truth pose by timestamp.
+    pub matched: usize,
+    /// RMS position error, metres.
+    pub ate_rms_m: f64,
+    /// Largest position error, metres.
+    pub max_error_m: f64,
+    /// Distance travelled (truth) while within [`MRCL_TRANSLATION_M`] and [`MRCL_ROTATION_DEG`] of the
+    /// truth, over the whole distance travelled (1 when nothing moved).
+    pub mrcl: f64,
+    /// Truth distance over the matched poses, metres.
+    pub distance_m: f64,
+}
+
+/// Compares `estimate` (map frame) with `truth` (world frame) through `world_from_map`, pose by pose at
+/// equal timestamps. A truth step counts toward MRCL when both of its ends are localized correctly.
+pub fn trajectory_accuracy(
+    estimate: &[(Timestamp, Rigid2)],
+    truth: &[(Timestamp, Rigid2)],
+    world_from_map: &Rigid2,
+) -> TrajectoryAccuracy {
+    let estimate: BTreeMap<Timestamp, Rigid2> = estimate.iter().copied().collect();
+    let mut accuracy = TrajectoryAccuracy::default();
+    let (mut sum_squared, mut good_distance) = (0.0, 0.0);
+    let mut previous: Option<(Rigid2, bool)> = None;
+    for (time, world_from_base) in truth {
+        let Some(map_from_base) = estimate.get(time) else {
+            continue;
+        };
+        let estimated = world_from_map * map_from_base;
+        let error = (estimated.translation.vector - world_from_base.translation.vector).norm();
+        let rotation = normalize_angle(estimated.theta() - world_from_base.theta())
+            .abs()
+            .to_degrees();
+        let correct = error <= MRCL_TRANSLATION_M && rotation <= MRCL_ROTATION_DEG;
+        accuracy.matched += 1;
+        sum_squared += error * error;
+        accuracy.max_error_m = accuracy.max_error_m.max(error);
+        if let Some((last, last_correct)) = previous {
+            let step = (world_from_base.translation.vector - last.translation.vector).norm();
+            accuracy.distance_m += step;
+            if correct && last_correct {
+                good_distance += step;
+            }
+        }
+        previous = Some((*world_from_base, correct));
+    }
+    if accuracy.matched > 0 {
+        accuracy.ate_rms_m = (sum_squared / accuracy.matched as f64).sqrt();
+    }
+    accuracy.mrcl = if accuracy.distance_m > 0.0 {
+        good_distance / accuracy.distance_m
+    } else if accuracy.matched > 0 {
+        1.0
+    } else {
+        0.0
+    };
+    accuracy
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn alignment_recovers_a_rigid_transform() {
+        let b_from_a = rigid2(3.0, -2.0, 0.7);
+        let pairs: Vec<_> = (0..20)
+            .map(|k| {
+                let a = Vector2::new(f64::from(k).sin() * 5.0, f64::from(k) * 0.3);
+                let b = (b_from_a * nalgebra::Point2::from(a)).coords;
+                (a, b)
+            })
+            .collect();
+        let found = rigid_alignment(&pairs);
+        assert!((found.translation.vector - b_from_a.translation.vector).norm() < 1e-9);
+        assert!((found.theta() - 0.7).abs() < 1e-9);
+    }
+
+    #[test]
+    fn mrcl_counts_distance_while_localized() {
+        let t = |k: i64| Timestamp(k * 1_000_000_000);
+        let truth: Vec<_> = (0..11)
+            .map(|k| (t(k), rigid2(k as f64, 0.0, 0.0)))
+            .collect();
+        // Correct for the first half, 1 m off afterwards.
+        let estimate: Vec<_> = (0..11)
+            .map(|k| (t(k), rigid2(k as f64, if k > 5 { 1.0 } else { 0.0 }, 0.0)))
+            .collect();
+        let a = trajectory_accuracy(&estimate, &truth, &Rigid2::identity());
+        assert_eq!(a.matched, 11);
+        assert!((a.distance_m - 10.0).abs() < 1e-12);
+        assert!((a.mrcl - 0.5).abs() < 1e-12, "{a:?}");
+        assert!((a.max_error_m - 1.0).abs() < 1e-12);
+        let perfect = trajectory_accuracy(&truth, &truth, &Rigid2::identity());
+        assert!((perfect.mrcl - 1.0).abs() < 1e-12 && perfect.ate_rms_m == 0.0);
+    }
+}
