@@ -145,16 +145,13 @@ impl GlobalSlam {
         if self.last_node.contains_key(&trajectory) {
             return Err(GlobalSlamError::TrajectoryStarted(trajectory));
         }
-        match global_from_local {
-            Some(prior) => {
-                self.global_from_local.insert(trajectory, prior);
-                self.unanchored.remove(&trajectory);
-            }
-            None => {
-                self.global_from_local.remove(&trajectory);
-                if !self.nodes.is_empty() {
-                    self.unanchored.insert(trajectory);
-                }
+        if let Some(prior) = global_from_local {
+            self.global_from_local.insert(trajectory, prior);
+            self.unanchored.remove(&trajectory);
+        } else {
+            self.global_from_local.remove(&trajectory);
+            if !self.nodes.is_empty() {
+                self.unanchored.insert(trajectory);
             }
         }
         Ok(())
@@ -339,7 +336,7 @@ impl GlobalSlam {
             let every = self.options.unanchored_search_every_n_nodes;
             if self.unanchored.contains(&sid.trajectory)
                 || every == 0
-                || node.index as usize % every != 0
+                || !(node.index as usize).is_multiple_of(every)
             {
                 return;
             }
