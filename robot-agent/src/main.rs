@@ -18,6 +18,9 @@ enum Command {
     Offline(commands::offline::OfflineArgs),
     /// Builds a map from the first 60 % of a recording and relocalizes scans of the rest with no prior.
     Relocalize(commands::relocalize::RelocalizeArgs),
+    /// Runs a recording as several time sessions through the lifelong map (relocalization, GLM across
+    /// sessions, trimming) and scores it over cross-session relations.
+    Sessions(commands::sessions::SessionsArgs),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -25,5 +28,6 @@ fn main() -> anyhow::Result<()> {
     match cli.command {
         Command::Offline(args) => commands::offline::run(&args),
         Command::Relocalize(args) => commands::relocalize::run(&args),
+        Command::Sessions(args) => commands::sessions::run(&args),
     }
 }
