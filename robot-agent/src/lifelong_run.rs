@@ -183,7 +183,8 @@ pub fn run_sessions(
                 .offset_by(data_duration_s * k as f64 / split as f64)
         })
         .collect();
-    let session_of = |t: Timestamp| boundaries.partition_point(|b| *b <= t).saturating_sub(1) as u32;
+    let session_of =
+        |t: Timestamp| boundaries.partition_point(|b| *b <= t).saturating_sub(1) as u32;
 
     let (sender, receiver) = mpsc::sync_channel::<Message>(256);
     std::thread::scope(|scope| {
@@ -443,8 +444,7 @@ fn worker(
                 let offset = priors.get(&session).and_then(|(prior, first_local)| {
                     let last = retired.get(&first_node)?;
                     Some(
-                        ((prior * first_local).translation.vector - last.translation.vector)
-                            .norm(),
+                        ((prior * first_local).translation.vector - last.translation.vector).norm(),
                     )
                 });
                 if let Some(summary) = sessions.last_mut() {

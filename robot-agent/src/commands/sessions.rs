@@ -93,7 +93,9 @@ pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
     mapping::io::tum::write_tum(std::io::BufWriter::new(tum), &run.scan_poses)
         .with_context(|| format!("cannot write {}", tum_path.display()))?;
     let map = render_range_data(
-        run.node_range_data.values().map(|(pose, data)| (*pose, data)),
+        run.node_range_data
+            .values()
+            .map(|(pose, data)| (*pose, data)),
         config.local.submaps.resolution,
     );
     let (w, h, pixels) = map_image::grid_to_gray(&map);
