@@ -99,6 +99,12 @@ pub struct SessionSummary {
     pub closures: usize,
     /// Submaps trimmed when the session ended.
     pub trimmed: usize,
+    /// Nodes removed with them.
+    pub nodes_trimmed: usize,
+    /// Chow–Liu tree constraints added in their place.
+    pub tree_edges: usize,
+    /// Mean KL divergence (nats) of the trims that measured one (`clt`: over each blanket).
+    pub trim_kld_mean: Option<f64>,
     /// Mean score of the closures accepted during the session (the paper's AMS).
     pub ams: f64,
     /// Graph size after the session ended.
@@ -449,10 +455,23 @@ fn worker(
                 });
                 if let Some(summary) = sessions.last_mut() {
                     count_closures(summary, &events, &mut scores);
-                    summary.trimmed = events_finish
-                        .iter()
-                        .filter(|e| matches!(e, LifelongEvent::SubmapTrimmed { .. }))
-                        .count();
+                    let mut klds = Vec::new();
+                    for event in &events_finish {
+                        if let LifelongEvent::SubmapTrimmed {
+                            nodes_removed,
+                            tree_edges,
+                            kld,
+                            ..
+                        } = event
+                        {
+                            summary.trimmed += 1;
+                            summary.nodes_trimmed += nodes_removed;
+                            summary.tree_edges += tree_edges;
+                            klds.extend(*kld);
+                        }
+                    }
+                    summary.trim_kld_mean =
+                        (!klds.is_empty()).then(|| klds.iter().sum::<f64>() / klds.len() as f64);
                     summary.placed = placed;
                     summary.counts = counts;
                     summary.finish_ms = finish_ms;
