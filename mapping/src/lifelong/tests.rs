@@ -325,3 +325,31 @@ fn sessions_are_checked() {
     ));
     assert_eq!(map.counts(), GraphCounts::default());
 }
+
+#[test]
+fn no_trimming_before_enough_fresh_submaps_or_without_enough_coverage() {
+    let mut few = options(TrimPolicy::Clt);
+    // Each session finishes 8 submaps.
+    few.trimmer.min_fresh_submaps_before_trimming = 9;
+    let mut site = Site::new(few);
+    for s in 0..3 {
+        site.run_session(s, 3 * s as usize, true);
+    }
+    assert_eq!(site.map.counts().trimmed_total, 0);
+    // K = 2 fresher submaps per cell: one later session covers each cell about twice (its submaps
+    // overlap by half), so trimming still happens; K = 4 is never reached after one fresher session.
+    for (k, expect_trims) in [(2, true), (4, false)] {
+        let mut options = options(TrimPolicy::Clt);
+        options.trimmer.min_fresher_submaps = k;
+        let mut site = Site::new(options);
+        for s in 0..3 {
+            site.run_session(s, 3 * s as usize, true);
+        }
+        assert_eq!(
+            site.map.counts().trimmed_total > 0,
+            expect_trims,
+            "K = {k}: {:?}",
+            site.counts
+        );
+    }
+}
