@@ -12,6 +12,7 @@ pub mod geometry;
 pub mod global_slam;
 pub mod grid;
 pub mod io;
+pub mod lifelong;
 pub mod local_slam;
 pub mod metrics;
 pub mod pose_graph;

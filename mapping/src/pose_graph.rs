@@ -34,6 +34,7 @@ mod optimizer;
 #[cfg(test)]
 mod tests;
 
+pub(crate) use constraint::PreparedMeasurement;
 pub use constraint::{Constraint, ConstraintKind, RobustLoss};
 pub use graph::{PoseGraph, PoseGraphError};
 pub use ids::{ConstraintId, NodeId, SubmapId, VariableId};

@@ -3,3 +3,4 @@
 pub mod offline;
 pub mod relocalize;
 pub mod simulate;
+pub mod sessions;

@@ -3,6 +3,7 @@
 //! Data sources (ROS1 bags, CARMEN logs) and the offline tools built on the `mapping` core.
 
 pub mod line_chart;
+pub mod lifelong_run;
 pub mod map_image;
 pub mod offline_slam;
 pub mod process_stats;

@@ -20,6 +20,9 @@ enum Command {
     Relocalize(commands::relocalize::RelocalizeArgs),
     /// Writes one session of the simulated changing store as a ROS1 bag plus its ground truth (TUM).
     Simulate(commands::simulate::SimulateArgs),
+    /// Runs a recording as several time sessions through the lifelong map (relocalization, GLM across
+    /// sessions, trimming) and scores it over cross-session relations.
+    Sessions(commands::sessions::SessionsArgs),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -28,5 +31,6 @@ fn main() -> anyhow::Result<()> {
         Command::Offline(args) => commands::offline::run(&args),
         Command::Relocalize(args) => commands::relocalize::run(&args),
         Command::Simulate(args) => commands::simulate::run(&args),
+        Command::Sessions(args) => commands::sessions::run(&args),
     }
 }

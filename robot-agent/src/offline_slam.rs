@@ -221,7 +221,7 @@ const PARALLEL_SEARCH_MIN_JOBS: usize = 4;
 
 /// Runs search jobs on this thread and one helper thread (the machine this targets has two cores, and LLO
 /// sleeps while it waits on a full channel). Results keep the jobs' order, so runs are deterministic.
-fn run_searches(builder: &ConstraintBuilder, jobs: &[SearchJob]) -> Vec<LoopClosure> {
+pub fn run_searches(builder: &ConstraintBuilder, jobs: &[SearchJob]) -> Vec<LoopClosure> {
     if jobs.len() < PARALLEL_SEARCH_MIN_JOBS {
         return jobs.iter().filter_map(|j| builder.run(j)).collect();
     }
@@ -281,6 +281,20 @@ fn global_worker(
 /// Renders the optimized map at `resolution` by re-inserting every node's range data at its optimized
 /// global pose into one fresh grid (crisper than blending submaps).
 pub fn render_map(run: &SlamRun, resolution: f64) -> ProbabilityGrid {
+    render_range_data(
+        run.node_range_data
+            .iter()
+            .filter_map(|(id, data)| Some((run.global.node_pose(*id)?, data))),
+        resolution,
+    )
+}
+
+/// Inserts range data (each in its tracking frame, with `world_from_tracking`) into one fresh grid of
+/// cell size `resolution`, cropped to the known cells.
+pub fn render_range_data<'a>(
+    scans: impl IntoIterator<Item = (Rigid2, &'a RangeData)>,
+    resolution: f64,
+) -> ProbabilityGrid {
     let inserter = RangeDataInserter::new(RangeDataInserterOptions::default());
     let mut grid = ProbabilityGrid::new(MapLimits::new(
         resolution,
@@ -289,10 +303,7 @@ pub fn render_map(run: &SlamRun, resolution: f64) -> ProbabilityGrid {
         1,
     ));
     let mut first = true;
-    for (id, range_data) in &run.node_range_data {
-        let Some(pose) = run.global.node_pose(*id) else {
-            continue;
-        };
+    for (pose, range_data) in scans {
         let data = range_data.transformed(&pose);
         if first {
             let half = 100;

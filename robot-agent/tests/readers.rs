@@ -5,9 +5,16 @@ use std::path::PathBuf;
 use mapping::sensor::SensorEvent;
 use robot_agent::source::{SourceError, read_recording};
 
+/// `../shared/datasets/<rel>` next to the repository root, found by walking up (the main checkout and
+/// worktrees sit at different depths).
 fn dataset(rel: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../../shared/datasets")
+    let manifest = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    manifest
+        .ancestors()
+        .skip(1)
+        .map(|dir| dir.join("shared/datasets"))
+        .find(|dir| dir.is_dir())
+        .unwrap_or_else(|| manifest.join("../../shared/datasets"))
         .join(rel)
 }
 

@@ -4,7 +4,15 @@
 
 use std::path::PathBuf;
 
-/// The shared data sets folder, `../shared/datasets` next to the repository root.
+/// The shared data sets folder, `../shared/datasets` next to the repository root. Found by walking up from
+/// this crate, so that it works from the main checkout (`/work/main`) and from worktrees one level deeper
+/// (`/work/wt/<name>`); falls back to the main checkout's relative path.
 pub fn datasets_dir() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/datasets")
+    let manifest = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    manifest
+        .ancestors()
+        .skip(1)
+        .map(|dir| dir.join("shared/datasets"))
+        .find(|dir| dir.is_dir())
+        .unwrap_or_else(|| manifest.join("../../shared/datasets"))
 }

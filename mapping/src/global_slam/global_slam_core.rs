@@ -1,6 +1,6 @@
 //! The global SLAM state machine.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
 
 use nalgebra::{Matrix3, Point2};
@@ -60,6 +60,9 @@ pub enum GlobalSlamError {
     /// The options are invalid.
     #[error(transparent)]
     Options(#[from] GlobalSlamOptionsError),
+    /// The trajectory already has nodes, so it cannot be started (again).
+    #[error("trajectory {0} has already started")]
+    TrajectoryStarted(u32),
     /// A node or constraint was refused by the pose graph (non-finite pose, bad information matrix).
     #[error("pose graph refused node {node:?}: {source}")]
     Graph {
@@ -85,6 +88,12 @@ pub struct GlobalSlam {
     nodes_since_optimization: usize,
     loop_closure_scores: Vec<f32>,
     searches_queued: usize,
+    /// Trajectories started without a prior while the map already had other trajectories: their
+    /// estimates are in an arbitrary frame until a full-submap match places them (see
+    /// [`GlobalSlam::start_trajectory`]).
+    unanchored: BTreeSet<u32>,
+    /// A second optimizer with a capped number of iterations (see [`GlobalSlam::optimize_capped`]).
+    capped_optimizer: Option<Optimizer>,
 }
 
 fn information(translation_sigma: f64, rotation_sigma: f64) -> Matrix3<f64> {
@@ -116,7 +125,41 @@ impl GlobalSlam {
             nodes_since_optimization: 0,
             loop_closure_scores: Vec::new(),
             searches_queued: 0,
+            unanchored: BTreeSet::new(),
+            capped_optimizer: None,
         })
+    }
+
+    /// Declares a new trajectory before its first node. With `Some(global_from_local)` (a relocalized
+    /// prior) its nodes are placed there and searched near their estimates like any other. With `None`
+    /// the trajectory is *unanchored* if the map already holds another trajectory: its nodes are matched
+    /// against the other trajectories' finished submaps with no prior (every
+    /// `unanchored_search_every_n_nodes`-th node, over whole submaps), and the first accepted match moves
+    /// the whole trajectory into place. A trajectory never declared (or the first one) starts at
+    /// identity, as before.
+    pub fn start_trajectory(
+        &mut self,
+        trajectory: u32,
+        global_from_local: Option<Rigid2>,
+    ) -> Result<(), GlobalSlamError> {
+        if self.last_node.contains_key(&trajectory) {
+            return Err(GlobalSlamError::TrajectoryStarted(trajectory));
+        }
+        if let Some(prior) = global_from_local {
+            self.global_from_local.insert(trajectory, prior);
+            self.unanchored.remove(&trajectory);
+        } else {
+            self.global_from_local.remove(&trajectory);
+            if !self.nodes.is_empty() {
+                self.unanchored.insert(trajectory);
+            }
+        }
+        Ok(())
+    }
+
+    /// Whether a trajectory still waits for its first cross-trajectory match to be placed in the map.
+    pub fn is_unanchored(&self, trajectory: u32) -> bool {
+        self.unanchored.contains(&trajectory)
     }
 
     /// Adds a node that LLO inserted into the submaps `insertion_submaps` (`(index, local_from_submap)`
@@ -224,17 +267,31 @@ impl GlobalSlam {
         );
         self.last_node.insert(trajectory, id);
 
+        events.extend(self.add_finished_submaps(trajectory, finished_submaps));
+        self.queue_searches_for_node(id);
+        self.nodes_since_optimization += 1;
+        Ok((id, events))
+    }
+
+    /// Finishes submaps of a trajectory outside [`Self::add_node`] (e.g. the submaps still active when a
+    /// session ends) and queues the searches they make possible. Unknown submaps are ignored.
+    pub fn add_finished_submaps(
+        &mut self,
+        trajectory: u32,
+        finished_submaps: Vec<(usize, ProbabilityGrid)>,
+    ) -> Vec<GlobalSlamEvent> {
+        let mut events = Vec::new();
         for (submap_index, grid) in finished_submaps {
             let sid = SubmapId {
                 trajectory,
                 index: submap_index as u32,
             };
-            self.finish_submap(sid, grid);
-            events.push(GlobalSlamEvent::SubmapFinished(sid));
+            if self.submaps.contains_key(&sid) {
+                self.finish_submap(sid, grid);
+                events.push(GlobalSlamEvent::SubmapFinished(sid));
+            }
         }
-        self.queue_searches_for_node(id);
-        self.nodes_since_optimization += 1;
-        Ok((id, events))
+        events
     }
 
     fn finish_submap(&mut self, sid: SubmapId, grid: ProbabilityGrid) {
@@ -268,6 +325,28 @@ impl GlobalSlam {
             return;
         };
         if record.submaps.contains(&sid) {
+            return;
+        }
+        if node.trajectory != sid.trajectory
+            && (self.unanchored.contains(&node.trajectory)
+                || self.unanchored.contains(&sid.trajectory))
+        {
+            // Estimates of an unanchored trajectory mean nothing in the map frame: match its nodes
+            // against whole submaps of placed trajectories, now and then, until one match places it.
+            let every = self.options.unanchored_search_every_n_nodes;
+            if self.unanchored.contains(&sid.trajectory)
+                || every == 0
+                || !(node.index as usize).is_multiple_of(every)
+            {
+                return;
+            }
+            self.searches_queued += 1;
+            self.pending_jobs.push(SearchJob {
+                submap: sid,
+                node,
+                points: Arc::clone(&record.points),
+                submap_from_node_estimate: None,
+            });
             return;
         }
         let (Some(global_node), Some(global_submap)) = (
@@ -319,24 +398,36 @@ impl GlobalSlam {
     ) -> Vec<GlobalSlamEvent> {
         let mut events = Vec::new();
         let cb = &self.options.constraint_builder;
+        let loop_closure_information = information(
+            cb.loop_closure_translation_sigma,
+            cb.loop_closure_rotation_sigma,
+        );
+        let loss = RobustLoss::Huber {
+            delta: cb.huber_scale,
+        };
         for closure in results {
             if !self.nodes.contains_key(&closure.node)
                 || !self.submaps.contains_key(&closure.submap)
             {
                 continue;
             }
+            if closure.node.trajectory != closure.submap.trajectory
+                && self.unanchored.contains(&closure.submap.trajectory)
+            {
+                continue; // never queued: an unplaced submap says nothing about placed nodes yet
+            }
+            if self.unanchored.contains(&closure.node.trajectory)
+                && closure.node.trajectory != closure.submap.trajectory
+            {
+                self.anchor(&closure);
+            }
             let added = self.graph.add_constraint(Constraint {
                 kind: ConstraintKind::NodeToSubmapInter,
                 from: VariableId::Submap(closure.submap),
                 to: VariableId::Node(closure.node),
                 from_from_to: closure.submap_from_node,
-                information: information(
-                    cb.loop_closure_translation_sigma,
-                    cb.loop_closure_rotation_sigma,
-                ),
-                loss: RobustLoss::Huber {
-                    delta: cb.huber_scale,
-                },
+                information: loop_closure_information,
+                loss,
             });
             if added.is_err() {
                 continue; // a non-finite match; nothing to learn from it
@@ -351,6 +442,51 @@ impl GlobalSlam {
         events
     }
 
+    /// Moves an unanchored trajectory so that `closure` holds exactly, and queues the searches its nodes
+    /// can now make near their estimates.
+    fn anchor(&mut self, closure: &LoopClosure) {
+        let trajectory = closure.node.trajectory;
+        let (Some(submap_pose), Some(node_pose)) = (
+            self.graph.pose(VariableId::Submap(closure.submap)),
+            self.graph.pose(VariableId::Node(closure.node)),
+        ) else {
+            return;
+        };
+        let correction = submap_pose * closure.submap_from_node * node_pose.inverse();
+        let variables: Vec<(VariableId, Rigid2)> = self
+            .graph
+            .variables()
+            .filter(|(id, _, _)| match id {
+                VariableId::Node(n) => n.trajectory == trajectory,
+                VariableId::Submap(s) => s.trajectory == trajectory,
+            })
+            .map(|(id, pose, _)| (id, pose))
+            .collect();
+        for (id, pose) in variables {
+            // Cannot fail: the variable exists and a rigid motion keeps poses finite.
+            let _ = self.graph.set_pose(id, correction * pose);
+        }
+        let global_from_local = correction * self.global_from_local(trajectory);
+        self.global_from_local.insert(trajectory, global_from_local);
+        self.unanchored.remove(&trajectory);
+        let nodes: Vec<NodeId> = self
+            .nodes
+            .range(
+                NodeId {
+                    trajectory,
+                    index: 0,
+                }..=NodeId {
+                    trajectory,
+                    index: u32::MAX,
+                },
+            )
+            .map(|(id, _)| *id)
+            .collect();
+        for node in nodes {
+            self.queue_searches_for_node(node);
+        }
+    }
+
     /// Runs every queued search on this thread and adds the results.
     pub fn run_pending_searches(&mut self) -> Vec<GlobalSlamEvent> {
         let jobs = self.take_search_jobs();
@@ -362,6 +498,12 @@ impl GlobalSlam {
     pub fn optimize(&mut self) -> OptimizationSummary {
         let summary = self.optimizer.optimize(&mut self.graph);
         self.nodes_since_optimization = 0;
+        self.update_global_from_local();
+        summary
+    }
+
+    /// Re-derives each trajectory's `global_from_local` from its last node's optimized pose.
+    fn update_global_from_local(&mut self) {
         for (&trajectory, last) in &self.last_node {
             if let (Some(global), Some(record)) = (
                 self.graph.pose(VariableId::Node(*last)),
@@ -371,7 +513,69 @@ impl GlobalSlam {
                     .insert(trajectory, global * record.local_pose.inverse());
             }
         }
+    }
+
+    /// Optimizes with at most `max_iterations` Levenberg–Marquardt steps (the same options otherwise), as
+    /// after a batch of sparsifications; does not reset the periodic-optimization counter.
+    pub fn optimize_capped(&mut self, max_iterations: usize) -> OptimizationSummary {
+        let stale = self
+            .capped_optimizer
+            .as_ref()
+            .is_none_or(|o| o.options().max_iterations != max_iterations);
+        if stale {
+            let options = crate::pose_graph::OptimizerOptions {
+                max_iterations,
+                ..self.options.optimizer.clone()
+            };
+            // The options were validated at construction and max_iterations is not checked.
+            self.capped_optimizer = Optimizer::new(options).ok();
+        }
+        let summary = match self.capped_optimizer.as_mut() {
+            Some(optimizer) => optimizer.optimize(&mut self.graph),
+            None => self.optimizer.optimize(&mut self.graph),
+        };
+        self.update_global_from_local();
         summary
+    }
+
+    /// Holds every variable of a trajectory fixed (or frees it) in later optimizations.
+    pub fn set_trajectory_fixed(&mut self, trajectory: u32, fixed: bool) {
+        let ids: Vec<VariableId> = self
+            .graph
+            .variables()
+            .filter(|(id, _, _)| match id {
+                VariableId::Node(n) => n.trajectory == trajectory,
+                VariableId::Submap(s) => s.trajectory == trajectory,
+            })
+            .map(|(id, _, _)| id)
+            .collect();
+        for id in ids {
+            // Cannot fail: the id came from the graph.
+            let _ = self.graph.set_fixed(id, fixed);
+        }
+    }
+
+    /// Forgets submaps and nodes whose variables the caller has removed from (or is about to remove
+    /// from) [`Self::graph_mut`]: their records, branch-and-bound matchers, samplers and queued searches.
+    pub fn forget(&mut self, submaps: &[SubmapId], nodes: &[NodeId]) {
+        for sid in submaps {
+            self.submaps.remove(sid);
+            self.samplers.remove(sid);
+            self.builder.remove_submap(*sid);
+        }
+        for node in nodes {
+            self.nodes.remove(node);
+        }
+        let submaps: BTreeSet<SubmapId> = submaps.iter().copied().collect();
+        let nodes: BTreeSet<NodeId> = nodes.iter().copied().collect();
+        self.pending_jobs
+            .retain(|j| !submaps.contains(&j.submap) && !nodes.contains(&j.node));
+    }
+
+    /// The pose graph, for editing by trimming and sparsification. Keep it consistent with the records:
+    /// remove variables only together with [`Self::forget`].
+    pub fn graph_mut(&mut self) -> &mut PoseGraph {
+        &mut self.graph
     }
 
     /// `global_from_local` of a trajectory: where its LLO frame sits in the map (identity before its first

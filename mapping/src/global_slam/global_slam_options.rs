@@ -47,6 +47,11 @@ pub struct GlobalSlamOptions {
     pub odometry_translation_sigma: f64,
     /// Standard deviation (rad) of the rotation between consecutive nodes. Default 0.005 rad.
     pub odometry_rotation_sigma: f64,
+    /// For a trajectory started with no prior on a map that already holds others (see
+    /// `GlobalSlam::start_trajectory`): every this many nodes (count; 0 = never), match the node
+    /// against every finished submap of the placed trajectories with no prior, until a match places the
+    /// trajectory. Default 10.
+    pub unanchored_search_every_n_nodes: usize,
     /// Loop-closure search (GLM).
     pub constraint_builder: ConstraintBuilderOptions,
     /// Sparse Levenberg-Marquardt settings.
@@ -61,6 +66,7 @@ impl Default for GlobalSlamOptions {
             intra_submap_rotation_sigma: 0.01,
             odometry_translation_sigma: 0.02,
             odometry_rotation_sigma: 0.005,
+            unanchored_search_every_n_nodes: 10,
             constraint_builder: ConstraintBuilderOptions::default(),
             optimizer: OptimizerOptions::default(),
         }

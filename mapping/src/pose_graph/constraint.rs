@@ -156,12 +156,20 @@ pub(crate) struct PreparedMeasurement {
 
 impl PreparedMeasurement {
     pub(crate) fn new(constraint: &Constraint) -> Self {
-        let z = &constraint.from_from_to;
+        Self::from_parts(
+            &constraint.from_from_to,
+            constraint.information,
+            constraint.loss,
+        )
+    }
+
+    /// From a measurement `from_from_to`, its information and loss.
+    pub(crate) fn from_parts(z: &Rigid2, information: Matrix3<f64>, loss: RobustLoss) -> Self {
         Self {
             rotated_translation: z.rotation.inverse() * z.translation.vector,
             theta: z.theta(),
-            information: constraint.information,
-            loss: constraint.loss,
+            information,
+            loss,
         }
     }
 

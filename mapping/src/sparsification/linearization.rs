@@ -1,8 +1,8 @@
 //! Linearisation of relative-pose constraints, in the optimizer's parametrisation: each pose is
 //! `(x, y, θ)` in the world frame, perturbed additively.
 //!
-//! This duplicates the Jacobians of `pose_graph::constraint` (private to that module): for a constraint
-//! `i → j` with measurement `Z`, `A = R(−(θi + θz))` and `u = A (tj − ti)`,
+//! The error and Jacobians are the optimizer's own (`pose_graph::constraint`): for a constraint `i → j`
+//! with measurement `Z`, `A = R(−(θi + θz))` and `u = A (tj − ti)`,
 //!
 //! ```text
 //! e = [ u − R(θz)ᵀ tz ,  wrap(θj − θi − θz) ]
@@ -12,9 +12,10 @@
 //!
 //! `∂e/∂xj` is a rotation (determinant 1), which the Chow–Liu derivation relies on.
 
-use nalgebra::{DMatrix, DVector, Matrix3, Vector2, Vector3};
+use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
 
-use crate::geometry::{Rigid2, Rigid2Ext as _, normalize_angle};
+use crate::geometry::{Rigid2, Rigid2Ext as _};
+use crate::pose_graph::{PreparedMeasurement, RobustLoss};
 
 /// The error `e` of measurement `from_from_to` at `(world_from_from, world_from_to)` and its Jacobians
 /// with respect to the `from` and `to` poses.
@@ -23,30 +24,8 @@ pub(crate) fn linearize(
     world_from_from: &Rigid2,
     world_from_to: &Rigid2,
 ) -> (Vector3<f64>, Matrix3<f64>, Matrix3<f64>) {
-    let theta_z = from_from_to.theta();
-    let rotated_translation = from_from_to.rotation.inverse() * from_from_to.translation.vector;
-    let (s, c) = (-(world_from_from.theta() + theta_z)).sin_cos();
-    let d = world_from_to.translation.vector - world_from_from.translation.vector;
-    let u = Vector2::new(c * d.x - s * d.y, s * d.x + c * d.y);
-    let et = u - rotated_translation;
-    let e = Vector3::new(
-        et.x,
-        et.y,
-        normalize_angle(world_from_to.theta() - world_from_from.theta() - theta_z),
-    );
-    #[rustfmt::skip]
-    let j_from = Matrix3::new(
-        -c,  s,  u.y,
-        -s, -c, -u.x,
-        0.0, 0.0, -1.0,
-    );
-    #[rustfmt::skip]
-    let j_to = Matrix3::new(
-        c,  -s, 0.0,
-        s,   c, 0.0,
-        0.0, 0.0, 1.0,
-    );
-    (e, j_from, j_to)
+    PreparedMeasurement::from_parts(from_from_to, Matrix3::identity(), RobustLoss::Trivial)
+        .linearize(&world_from_from.to_xytheta(), &world_from_to.to_xytheta())
 }
 
 /// A constraint linearised at the current estimate: `½ (e + Ja δa + Jb δb)ᵀ Ω (e + Ja δa + Jb δb)`,

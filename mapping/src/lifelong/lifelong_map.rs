@@ -1,0 +1,509 @@
+//! One site's multi-session map: sessions, trimming and sparsification around [`GlobalSlam`].
+
+use std::collections::BTreeMap;
+use std::sync::Arc;
+
+use nalgebra::Point2;
+use thiserror::Error;
+
+use super::{LifelongOptions, LifelongOptionsError, PlacedGrid, TrimPolicy, covered_fraction};
+use crate::geometry::Rigid2;
+use crate::global_slam::{
+    ConstraintBuilder, GlobalSlam, GlobalSlamError, GlobalSlamEvent, LoopClosure, SearchJob,
+};
+use crate::grid::ProbabilityGrid;
+use crate::pose_graph::{NodeId, OptimizationSummary, SubmapId, VariableId};
+use crate::sensor::Timestamp;
+use crate::sparsification::{self, SparsificationError};
+
+/// Errors of [`LifelongMap`].
+#[derive(Debug, Error)]
+pub enum LifelongError {
+    /// The options are invalid.
+    #[error(transparent)]
+    Options(#[from] LifelongOptionsError),
+    /// Global SLAM refused a node or a session.
+    #[error(transparent)]
+    Global(#[from] GlobalSlamError),
+    /// Sparsifying or deleting a trimmed submap failed (the graph is unchanged for that submap).
+    #[error("trimming submap {submap:?}: {source}")]
+    Sparsification {
+        /// The submap being trimmed.
+        submap: SubmapId,
+        /// Why.
+        source: SparsificationError,
+    },
+    /// The session was already started.
+    #[error("session {0} was already started")]
+    SessionExists(u32),
+    /// The session was never started.
+    #[error("session {0} was never started")]
+    UnknownSession(u32),
+    /// The session has ended.
+    #[error("session {0} has already finished")]
+    SessionFinished(u32),
+}
+
+/// Something the map did that the shell may forward, store or display.
+#[derive(Clone, Debug)]
+pub enum LifelongEvent {
+    /// A new submap variable joined the graph.
+    SubmapAdded(SubmapId),
+    /// A submap was finished and can now be matched against.
+    SubmapFinished(SubmapId),
+    /// A GLM constraint (loop closure, or a later session's localization) was accepted.
+    LoopClosureAdded(LoopClosure),
+    /// A submap was removed from the map with the nodes only it held.
+    SubmapTrimmed {
+        /// The submap.
+        submap: SubmapId,
+        /// How many of its nodes went with it.
+        nodes_removed: usize,
+        /// Chow–Liu tree constraints added in their place (0 for `delete` and `frozen`).
+        tree_edges: usize,
+        /// KL divergence (nats) of the replacement against the exact marginal: over the blanket for
+        /// `clt`, over the whole remaining graph with `whole_graph_kld` (then also for `delete`);
+        /// `None` when not measured.
+        kld: Option<f64>,
+    },
+    /// The graph was optimized.
+    Optimized(OptimizationSummary),
+}
+
+impl From<GlobalSlamEvent> for LifelongEvent {
+    fn from(event: GlobalSlamEvent) -> Self {
+        match event {
+            GlobalSlamEvent::SubmapAdded(id) => Self::SubmapAdded(id),
+            GlobalSlamEvent::SubmapFinished(id) => Self::SubmapFinished(id),
+            GlobalSlamEvent::LoopClosureAdded(c) => Self::LoopClosureAdded(c),
+            GlobalSlamEvent::Optimized(s) => Self::Optimized(s),
+        }
+    }
+}
+
+/// Size of the map's pose graph.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+pub struct GraphCounts {
+    /// Node variables.
+    pub nodes: usize,
+    /// Submap variables.
+    pub submaps: usize,
+    /// Constraints.
+    pub constraints: usize,
+    /// Submaps trimmed (or, with `frozen`, dropped) since the map was created.
+    pub trimmed_total: usize,
+}
+
+#[derive(Clone, Copy, Debug)]
+struct Session {
+    /// Position in start order (0 for the first session).
+    order: usize,
+    finished: bool,
+}
+
+/// One site's multi-session map (session id = trajectory id of the pose graph). See the module docs of
+/// [`crate::lifelong`].
+pub struct LifelongMap {
+    options: LifelongOptions,
+    global: GlobalSlam,
+    sessions: BTreeMap<u32, Session>,
+    /// The first session started: it maps the site and is never trimmed.
+    base: Option<u32>,
+    trimmed_total: usize,
+    sparsifications_since_optimization: usize,
+}
+
+impl LifelongMap {
+    /// An empty map.
+    pub fn new(options: LifelongOptions) -> Result<Self, LifelongError> {
+        options.validate()?;
+        Ok(Self {
+            global: GlobalSlam::new(options.global.clone())?,
+            options,
+            sessions: BTreeMap::new(),
+            base: None,
+            trimmed_total: 0,
+            sparsifications_since_optimization: 0,
+        })
+    }
+
+    /// The options.
+    pub fn options(&self) -> &LifelongOptions {
+        &self.options
+    }
+
+    /// Starts a session. `global_from_local`: the relocalized prior (None for session 0 / when
+    /// relocalization failed; then the session's first node is placed by the first accepted GLM match,
+    /// or by identity for session 0).
+    pub fn start_session(
+        &mut self,
+        session: u32,
+        global_from_local: Option<Rigid2>,
+    ) -> Result<Vec<LifelongEvent>, LifelongError> {
+        if self.sessions.contains_key(&session) {
+            return Err(LifelongError::SessionExists(session));
+        }
+        self.global.start_trajectory(session, global_from_local)?;
+        let order = self.sessions.len();
+        self.sessions.insert(
+            session,
+            Session {
+                order,
+                finished: false,
+            },
+        );
+        if self.base.is_none() {
+            self.base = Some(session);
+        }
+        Ok(Vec::new())
+    }
+
+    fn active(&self, session: u32) -> Result<Session, LifelongError> {
+        match self.sessions.get(&session) {
+            None => Err(LifelongError::UnknownSession(session)),
+            Some(s) if s.finished => Err(LifelongError::SessionFinished(session)),
+            Some(s) => Ok(*s),
+        }
+    }
+
+    /// Same meaning as [`GlobalSlam::add_node`], for a session.
+    pub fn add_node(
+        &mut self,
+        session: u32,
+        time: Timestamp,
+        local_pose: Rigid2,
+        points: Vec<Point2<f32>>,
+        insertion_submaps: &[(usize, Rigid2)],
+        finished_submaps: Vec<(usize, ProbabilityGrid)>,
+    ) -> Result<(NodeId, Vec<LifelongEvent>), LifelongError> {
+        self.active(session)?;
+        let (id, events) = self.global.add_node(
+            session,
+            time,
+            local_pose,
+            points,
+            insertion_submaps,
+            finished_submaps,
+        )?;
+        Ok((id, events.into_iter().map(Into::into).collect()))
+    }
+
+    /// Finishes submaps of an active session outside [`Self::add_node`], typically LLO's submaps still
+    /// active when the session ends, so that later sessions can match against them.
+    pub fn finish_submaps(
+        &mut self,
+        session: u32,
+        finished_submaps: Vec<(usize, ProbabilityGrid)>,
+    ) -> Result<Vec<LifelongEvent>, LifelongError> {
+        self.active(session)?;
+        Ok(self
+            .global
+            .add_finished_submaps(session, finished_submaps)
+            .into_iter()
+            .map(Into::into)
+            .collect())
+    }
+
+    /// The GLM searches queued since the last call: pure, run them anywhere with
+    /// [`Self::constraint_builder`] and hand the accepted ones to [`Self::add_search_results`].
+    pub fn take_search_jobs(&mut self) -> Vec<SearchJob> {
+        self.global.take_search_jobs()
+    }
+
+    /// The matcher that runs search jobs (`Sync`).
+    pub fn constraint_builder(&self) -> &ConstraintBuilder {
+        self.global.constraint_builder()
+    }
+
+    /// Adds accepted matches (and optimizes every `optimize_every_n_nodes` nodes).
+    pub fn add_search_results(
+        &mut self,
+        results: impl IntoIterator<Item = LoopClosure>,
+    ) -> Vec<LifelongEvent> {
+        self.global
+            .add_search_results(results)
+            .into_iter()
+            .map(Into::into)
+            .collect()
+    }
+
+    /// Optimizes the whole graph now.
+    pub fn optimize(&mut self) -> OptimizationSummary {
+        self.global.optimize()
+    }
+
+    /// Final optimization of the session, trimming of stale submaps it overlaps, sparsification per
+    /// policy.
+    pub fn finish_session(&mut self, session: u32) -> Result<Vec<LifelongEvent>, LifelongError> {
+        self.active(session)?;
+        let mut events = vec![LifelongEvent::Optimized(self.global.optimize())];
+        let is_base = self.base == Some(session);
+        match self.options.policy {
+            TrimPolicy::Keep => {}
+            TrimPolicy::Frozen => {
+                if is_base {
+                    self.global.set_trajectory_fixed(session, true);
+                } else {
+                    events.extend(self.drop_session(session)?);
+                }
+            }
+            TrimPolicy::Clt | TrimPolicy::Delete => {
+                let doomed = self.submaps_to_trim(session);
+                for &submap in &doomed {
+                    events.extend(self.trim(submap)?);
+                }
+            }
+        }
+        if let Some(s) = self.sessions.get_mut(&session) {
+            s.finished = true;
+        }
+        Ok(events)
+    }
+
+    /// `global_from_grid` of every finished submap.
+    fn placed(&self) -> Vec<(SubmapId, Rigid2, Arc<ProbabilityGrid>)> {
+        self.global
+            .submaps()
+            .iter()
+            .filter_map(|(id, record)| {
+                let grid = record.grid.as_ref()?;
+                let global = self.global.submap_pose(*id)?;
+                Some((*id, global * record.local_pose.inverse(), Arc::clone(grid)))
+            })
+            .collect()
+    }
+
+    /// Every finished submap's grid placed in the map frame (what relocalization renders).
+    pub fn placed_submaps(&self) -> impl Iterator<Item = PlacedGrid<'_>> + '_ {
+        self.global.submaps().iter().filter_map(|(id, record)| {
+            let grid = record.grid.as_deref()?;
+            let global = self.global.submap_pose(*id)?;
+            Some(PlacedGrid {
+                global_from_grid: global * record.local_pose.inverse(),
+                grid,
+            })
+        })
+    }
+
+    /// The stale submaps that `session`'s end trims (see the module docs), in id order.
+    fn submaps_to_trim(&self, session: u32) -> Vec<SubmapId> {
+        let trimmer = &self.options.trimmer;
+        let placed = self.placed();
+        let fresh = placed
+            .iter()
+            .filter(|(id, _, _)| id.trajectory == session)
+            .count();
+        if fresh < trimmer.min_fresh_submaps_before_trimming {
+            return Vec::new();
+        }
+        let Some(current) = self.sessions.get(&session).map(|s| s.order) else {
+            return Vec::new();
+        };
+        let order = |trajectory: u32| self.sessions.get(&trajectory).map(|s| s.order);
+        let mut doomed = Vec::new();
+        for (id, pose, grid) in &placed {
+            let Some(stale_order) = order(id.trajectory) else {
+                continue;
+            };
+            if Some(id.trajectory) == self.base || stale_order >= current {
+                continue;
+            }
+            let fresher: Vec<PlacedGrid<'_>> = placed
+                .iter()
+                .filter(|(other, _, _)| order(other.trajectory).is_some_and(|o| o > stale_order))
+                .map(|(_, p, g)| PlacedGrid {
+                    global_from_grid: *p,
+                    grid: g,
+                })
+                .collect();
+            let fraction = covered_fraction(
+                &PlacedGrid {
+                    global_from_grid: *pose,
+                    grid,
+                },
+                &fresher,
+                trimmer.min_fresher_submaps,
+                trimmer.cell_stride,
+                trimmer.count_occupied_only,
+            );
+            if fraction > trimmer.min_covered_fraction {
+                doomed.push(*id);
+            }
+        }
+        doomed
+    }
+
+    /// The nodes that go with `submap`: those all of whose insertion submaps are `submap` or gone.
+    fn own_nodes(&self, submap: SubmapId) -> Vec<NodeId> {
+        let Some(record) = self.global.submaps().get(&submap) else {
+            return Vec::new();
+        };
+        record
+            .nodes
+            .iter()
+            .filter(|n| {
+                self.global.nodes().get(n).is_some_and(|r| {
+                    r.submaps
+                        .iter()
+                        .all(|s| *s == submap || !self.global.submaps().contains_key(s))
+                })
+            })
+            .copied()
+            .collect()
+    }
+
+    /// Removes one submap and its own nodes per the policy (`clt` or `delete`).
+    fn trim(&mut self, submap: SubmapId) -> Result<Vec<LifelongEvent>, LifelongError> {
+        let nodes = self.own_nodes(submap);
+        let eliminate: Vec<VariableId> = std::iter::once(VariableId::Submap(submap))
+            .chain(nodes.iter().map(|n| VariableId::Node(*n)))
+            .collect();
+        let error = |source| LifelongError::Sparsification { submap, source };
+        let options = &self.options;
+        let (tree_edges, kld) = if options.policy == TrimPolicy::Clt {
+            let result =
+                sparsification::sparsify(self.global.graph(), &eliminate, &options.sparsification)
+                    .map_err(error)?;
+            let kld = if options.whole_graph_kld {
+                sparsification::kl_divergence(
+                    self.global.graph(),
+                    &eliminate,
+                    &result.new_constraints,
+                    &options.sparsification,
+                )
+                .map_err(error)?
+            } else {
+                result.diagnostics.kl_divergence
+            };
+            sparsification::apply(self.global.graph_mut(), &result).map_err(error)?;
+            (result.new_constraints.len(), Some(kld))
+        } else {
+            let kld = if options.whole_graph_kld {
+                Some(
+                    sparsification::kl_divergence(
+                        self.global.graph(),
+                        &eliminate,
+                        &[],
+                        &options.sparsification,
+                    )
+                    .map_err(error)?,
+                )
+            } else {
+                None
+            };
+            sparsification::delete(self.global.graph_mut(), &eliminate).map_err(error)?;
+            (0, kld)
+        };
+        self.global.forget(&[submap], &nodes);
+        self.trimmed_total += 1;
+        let mut events = vec![LifelongEvent::SubmapTrimmed {
+            submap,
+            nodes_removed: nodes.len(),
+            tree_edges,
+            kld,
+        }];
+        self.sparsifications_since_optimization += 1;
+        if self.sparsifications_since_optimization >= self.options.optimize_every_n_sparsifications
+        {
+            self.sparsifications_since_optimization = 0;
+            events.push(LifelongEvent::Optimized(
+                self.global
+                    .optimize_capped(self.options.sparsification_max_iterations),
+            ));
+        }
+        Ok(events)
+    }
+
+    /// `frozen`: drops a later session's submaps and nodes from the map, replacing nothing.
+    fn drop_session(&mut self, session: u32) -> Result<Vec<LifelongEvent>, LifelongError> {
+        let submaps: Vec<SubmapId> = self
+            .global
+            .submaps()
+            .keys()
+            .filter(|s| s.trajectory == session)
+            .copied()
+            .collect();
+        let mut events = Vec::new();
+        for submap in submaps {
+            let nodes = self.own_nodes(submap);
+            let eliminate: Vec<VariableId> = std::iter::once(VariableId::Submap(submap))
+                .chain(nodes.iter().map(|n| VariableId::Node(*n)))
+                .collect();
+            sparsification::delete(self.global.graph_mut(), &eliminate)
+                .map_err(|source| LifelongError::Sparsification { submap, source })?;
+            self.global.forget(&[submap], &nodes);
+            self.trimmed_total += 1;
+            events.push(LifelongEvent::SubmapTrimmed {
+                submap,
+                nodes_removed: nodes.len(),
+                tree_edges: 0,
+                kld: None,
+            });
+        }
+        // Nodes inserted into no submap (none in practice) go too.
+        let orphans: Vec<NodeId> = self
+            .global
+            .nodes()
+            .keys()
+            .filter(|n| n.trajectory == session)
+            .copied()
+            .collect();
+        if !orphans.is_empty() {
+            let eliminate: Vec<VariableId> = orphans.iter().map(|n| VariableId::Node(*n)).collect();
+            sparsification::delete(self.global.graph_mut(), &eliminate).map_err(|source| {
+                LifelongError::Sparsification {
+                    submap: SubmapId {
+                        trajectory: session,
+                        index: u32::MAX,
+                    },
+                    source,
+                }
+            })?;
+            self.global.forget(&[], &orphans);
+        }
+        Ok(events)
+    }
+
+    /// Every submap still in the map: id, global pose (`world_from_submap`) and its grid once finished
+    /// (in its session's local frame; see [`Self::placed_submaps`] for map-frame placement).
+    pub fn submaps(
+        &self,
+    ) -> impl Iterator<Item = (SubmapId, Rigid2, Option<&Arc<ProbabilityGrid>>)> + '_ {
+        self.global.submaps().iter().filter_map(|(id, record)| {
+            Some((*id, self.global.submap_pose(*id)?, record.grid.as_ref()))
+        })
+    }
+
+    /// Every node still in the map: id, scan time and global pose (`world_from_tracking`).
+    pub fn node_poses(&self) -> impl Iterator<Item = (NodeId, Timestamp, Rigid2)> + '_ {
+        self.global
+            .nodes()
+            .iter()
+            .filter_map(|(id, record)| Some((*id, record.time, self.global.node_pose(*id)?)))
+    }
+
+    /// Size of the graph.
+    pub fn counts(&self) -> GraphCounts {
+        GraphCounts {
+            nodes: self.global.nodes().len(),
+            submaps: self.global.submaps().len(),
+            constraints: self.global.graph().num_constraints(),
+            trimmed_total: self.trimmed_total,
+        }
+    }
+
+    /// `global_from_local` of a session (identity until placed).
+    pub fn global_from_local(&self, session: u32) -> Rigid2 {
+        self.global.global_from_local(session)
+    }
+
+    /// Whether a started session has been placed in the map (by a prior or a match).
+    pub fn is_placed(&self, session: u32) -> bool {
+        self.sessions.contains_key(&session) && !self.global.is_unanchored(session)
+    }
+
+    /// The underlying global SLAM state (records, graph, loop-closure scores).
+    pub fn global(&self) -> &GlobalSlam {
+        &self.global
+    }
+}

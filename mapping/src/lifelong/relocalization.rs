@@ -1,0 +1,183 @@
+//! Session-start relocalization: where a new session's LLO frame sits in the map, with no prior.
+//!
+//! The finished submaps are rendered into one grid in the map frame ([`render_submaps`], each cell the
+//! highest probability any submap gives it, so that every wall any submap saw can be matched); the first
+//! few scans of the session are merged into one cloud in the first scan's frame (LLO is accurate over a
+//! few metres, and a wider cloud is far more distinctive than one scan); branch and bound searches it over
+//! the whole grid and every rotation ([`FastCorrelativeScanMatcher::match_full`]), and the least-squares
+//! matcher refines the best match. Cost: one precomputation over the rendered map plus one full search.
+
+use nalgebra::{Point2, Vector2};
+use serde::Deserialize;
+
+use super::{LifelongMap, LifelongOptionsError, PlacedGrid};
+use crate::geometry::Rigid2;
+use crate::grid::{CellIndex, MapLimits, ProbabilityGrid, UNKNOWN_VALUE};
+use crate::local_slam::voxel_filter;
+use crate::scan_matching::{
+    FastCorrelativeScanMatcher, FastCorrelativeScanMatcherOptions, LeastSquaresScanMatcher,
+    LeastSquaresScanMatcherOptions,
+};
+
+/// Options of [`relocalize_session_start`].
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RelocalizationOptions {
+    /// Cell size of the rendered map, metres. Default 0.05 m (the submaps').
+    pub resolution: f64,
+    /// Voxel size the merged cloud is thinned to, metres (0: no thinning). Default 0.05 m.
+    pub voxel_size: f64,
+    /// Minimum branch-and-bound score (mean probability at the points) to accept. Default 0.6.
+    pub min_score: f32,
+    /// Depth of the branch-and-bound precomputation. Default 7.
+    pub branch_and_bound_depth: u32,
+    /// Refinement of the match.
+    pub least_squares: LeastSquaresScanMatcherOptions,
+}
+
+impl Default for RelocalizationOptions {
+    fn default() -> Self {
+        Self {
+            resolution: 0.05,
+            voxel_size: 0.05,
+            min_score: 0.6,
+            branch_and_bound_depth: 7,
+            least_squares: LeastSquaresScanMatcherOptions::default(),
+        }
+    }
+}
+
+impl RelocalizationOptions {
+    /// Checks every field.
+    pub fn validate(&self) -> Result<(), LifelongOptionsError> {
+        if !(self.resolution.is_finite() && self.resolution > 0.0) {
+            return Err(LifelongOptionsError::OutOfRange {
+                field: "resolution",
+                reason: "must be a positive number of metres",
+            });
+        }
+        if !(self.voxel_size.is_finite() && self.voxel_size >= 0.0) {
+            return Err(LifelongOptionsError::OutOfRange {
+                field: "voxel_size",
+                reason: "must be a non-negative number of metres",
+            });
+        }
+        if !(0.0..=1.0).contains(&self.min_score) {
+            return Err(LifelongOptionsError::OutOfRange {
+                field: "min_score",
+                reason: "must be in [0, 1]",
+            });
+        }
+        self.least_squares
+            .validate()
+            .map_err(|_| LifelongOptionsError::OutOfRange {
+                field: "least_squares",
+                reason: "is invalid",
+            })
+    }
+}
+
+/// Where a session starts.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SessionRelocalization {
+    /// `global_from_local` of the session's LLO frame.
+    pub global_from_local: Rigid2,
+    /// Branch-and-bound score of the merged cloud.
+    pub score: f32,
+}
+
+/// Renders placed grids into one map-frame grid of cell size `resolution`: each cell takes the highest
+/// probability among the grids that know its centre. `None` when no grid knows anything.
+pub fn render_submaps<'a>(
+    grids: impl IntoIterator<Item = PlacedGrid<'a>>,
+    resolution: f64,
+) -> Option<ProbabilityGrid> {
+    let grids: Vec<PlacedGrid<'a>> = grids.into_iter().collect();
+    let mut min = Vector2::repeat(f64::INFINITY);
+    let mut max = Vector2::repeat(f64::NEG_INFINITY);
+    for g in &grids {
+        let (a, b) = g.global_bounds();
+        min = min.inf(&a);
+        max = max.sup(&b);
+    }
+    if grids.is_empty() || !(min.x.is_finite() && max.x.is_finite()) {
+        return None;
+    }
+    let origin = min.map(|v| (v / resolution).floor() * resolution);
+    let width = ((max.x - origin.x) / resolution).ceil() as i32 + 1;
+    let height = ((max.y - origin.y) / resolution).ceil() as i32 + 1;
+    let limits = MapLimits::new(resolution, origin, width, height);
+    let mut out = ProbabilityGrid::new(limits.clone());
+    for g in &grids {
+        let (a, b) = g.global_bounds();
+        let lo = limits.cell_index(&Point2::from(a));
+        let hi = limits.cell_index(&Point2::from(b));
+        let inverse = g.global_from_grid.inverse();
+        let source = g.grid.limits();
+        for iy in lo.y.max(0)..=hi.y.min(height - 1) {
+            for ix in lo.x.max(0)..=hi.x.min(width - 1) {
+                let index = CellIndex::new(ix, iy);
+                let local = inverse * limits.cell_center(&index);
+                let Some(from) = source.flat_index(&source.cell_index(&local)) else {
+                    continue;
+                };
+                let value = g.grid.values()[from];
+                if value == UNKNOWN_VALUE {
+                    continue;
+                }
+                if let Some(to) = limits.flat_index(&index) {
+                    let cell = &mut out.values_mut()[to];
+                    *cell = (*cell).max(value);
+                }
+            }
+        }
+    }
+    let known = out.values().iter().any(|&v| v != UNKNOWN_VALUE);
+    known.then(|| out.cropped_to_known())
+}
+
+/// Finds `global_from_local` of a new session from its first scans, with no prior, against `map`'s
+/// finished submaps (see the module docs). `scans` are `(local_from_tracking, points in the tracking
+/// frame)` in LLO's frame, first scan first. `None` when the map is empty, there are no points, or no
+/// pose reaches `min_score`.
+pub fn relocalize_session_start(
+    map: &LifelongMap,
+    scans: &[(Rigid2, Vec<Point2<f32>>)],
+    options: &RelocalizationOptions,
+) -> Option<SessionRelocalization> {
+    let (first_pose, _) = scans.first()?;
+    let first_from_local = first_pose.inverse();
+    let mut cloud: Vec<Point2<f32>> = Vec::new();
+    for (local_pose, points) in scans {
+        let first_from_tracking = first_from_local * local_pose;
+        cloud.extend(points.iter().map(|p| {
+            (first_from_tracking * Point2::new(f64::from(p.x), f64::from(p.y))).cast::<f32>()
+        }));
+    }
+    if options.voxel_size > 0.0 {
+        cloud = voxel_filter(&cloud, options.voxel_size as f32);
+    }
+    if cloud.is_empty() {
+        return None;
+    }
+    let grid = render_submaps(map.placed_submaps(), options.resolution)?;
+    let matcher = FastCorrelativeScanMatcher::new(
+        &grid,
+        FastCorrelativeScanMatcherOptions {
+            linear_search_window: 0.0,
+            angular_search_window: std::f64::consts::PI,
+            branch_and_bound_depth: options.branch_and_bound_depth,
+        },
+    );
+    let found = matcher.match_full(&cloud, options.min_score)?;
+    let (refined, _) = LeastSquaresScanMatcher::new(options.least_squares.clone()).match_pose(
+        &found.pose.translation.vector,
+        &found.pose,
+        &cloud,
+        &grid,
+    );
+    Some(SessionRelocalization {
+        global_from_local: refined * first_from_local,
+        score: found.score,
+    })
+}

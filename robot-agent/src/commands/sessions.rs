@@ -1,0 +1,143 @@
+//! `evermap-agent sessions`: one recording run as several time sessions through the lifelong map,
+//! scored over the relations whose two stamps fall in different sessions, and over all.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::Context as _;
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+use mapping::io::relations::{Relation, read_relations};
+use mapping::lifelong::TrimPolicy;
+use mapping::metrics::relations_error;
+use mapping::sensor::Timestamp;
+use robot_agent::lifelong_run::{SessionsConfig, run_sessions};
+use robot_agent::offline_slam::render_range_data;
+use robot_agent::{map_image, process_stats, source};
+use serde_json::json;
+
+/// Arguments of `sessions`.
+#[derive(Args)]
+pub struct SessionsArgs {
+    /// The recording: a ROS1 bag or a CARMEN log.
+    #[arg(long)]
+    input: PathBuf,
+    /// Into how many equal time spans (sessions) to cut the recording.
+    #[arg(long, default_value_t = 3)]
+    split: usize,
+    /// Ground-truth relations (`t1 t2 x y z roll pitch yaw`) to score the trajectory with.
+    #[arg(long)]
+    relations: Option<PathBuf>,
+    /// Output folder (created if missing).
+    #[arg(long)]
+    out: PathBuf,
+    /// A TOML file overriding the default configuration (see `SessionsConfig`).
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Trimming policy (clt, delete, keep, frozen); overrides the configuration's.
+    #[arg(long)]
+    policy: Option<TrimPolicy>,
+}
+
+fn load_config(args: &SessionsArgs) -> anyhow::Result<SessionsConfig> {
+    let mut config = match &args.config {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("cannot read config {}", path.display()))?;
+            toml::from_str(&text).with_context(|| format!("invalid config {}", path.display()))?
+        }
+        None => SessionsConfig::default(),
+    };
+    if let Some(policy) = args.policy {
+        config.lifelong.policy = policy;
+    }
+    Ok(config)
+}
+
+/// Runs the command.
+pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
+    let config = load_config(args)?;
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("cannot create {}", args.out.display()))?;
+    let relations: Option<Vec<Relation>> = match &args.relations {
+        Some(path) => {
+            let file = std::fs::File::open(path)
+                .with_context(|| format!("cannot open {}", path.display()))?;
+            Some(
+                read_relations(std::io::BufReader::new(file))
+                    .with_context(|| format!("invalid relations file {}", path.display()))?,
+            )
+        }
+        None => None,
+    };
+
+    let start = Instant::now();
+    eprintln!("reading {}", args.input.display());
+    let recording = source::read_recording(&args.input)?;
+    let bar = ProgressBar::new(recording.report.scans as u64);
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{elapsed_precise} [{bar:40}] {pos}/{len} scans ({per_sec}, eta {eta})",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let run = run_sessions(&recording, args.split, &config, &mut |done| {
+        bar.set_position(done as u64);
+    })?;
+    bar.finish_and_clear();
+    let wall_time_s = start.elapsed().as_secs_f64();
+
+    let tum_path = args.out.join("trajectory.tum");
+    let tum = std::fs::File::create(&tum_path)
+        .with_context(|| format!("cannot create {}", tum_path.display()))?;
+    mapping::io::tum::write_tum(std::io::BufWriter::new(tum), &run.scan_poses)
+        .with_context(|| format!("cannot write {}", tum_path.display()))?;
+    let map = render_range_data(
+        run.node_range_data
+            .values()
+            .map(|(pose, data)| (*pose, data)),
+        config.local.submaps.resolution,
+    );
+    let (w, h, pixels) = map_image::grid_to_gray(&map);
+    map_image::write_gray_png(&args.out.join("map.png"), w, h, &pixels)?;
+
+    let session_of = |t: Timestamp| run.boundaries.partition_point(|b| *b <= t);
+    let (all, cross) = match &relations {
+        Some(relations) => {
+            let cross: Vec<Relation> = relations
+                .iter()
+                .filter(|r| session_of(r.t1) != session_of(r.t2))
+                .cloned()
+                .collect();
+            (
+                Some(relations_error(&run.scan_poses, relations)),
+                Some(relations_error(&run.scan_poses, &cross)),
+            )
+        }
+        None => (None, None),
+    };
+    let counts = run.map.counts();
+    let report = json!({
+        "input": args.input.display().to_string(),
+        "split": args.split,
+        "policy": config.lifelong.policy.name(),
+        "data_duration_s": run.data_duration_s,
+        "wall_time_s": wall_time_s,
+        "realtime_factor": if wall_time_s > 0.0 { run.data_duration_s / wall_time_s } else { 0.0 },
+        "relations_all": all,
+        "relations_cross_session": cross,
+        "scan_poses": run.scan_poses.len(),
+        "final": counts,
+        "sessions": run.sessions,
+        "peak_rss_mb": process_stats::peak_rss_mb(),
+    });
+    let report_path = args.out.join("report.json");
+    std::fs::write(&report_path, serde_json::to_string_pretty(&report)? + "\n")
+        .with_context(|| format!("cannot write {}", report_path.display()))?;
+    println!(
+        "{}",
+        json!({"relations_all": report["relations_all"], "relations_cross_session": report["relations_cross_session"],
+               "wall_time_s": wall_time_s, "final": counts})
+    );
+    Ok(())
+}

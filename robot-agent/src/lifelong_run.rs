@@ -1,0 +1,504 @@
+//! One recording run as several time sessions through the lifelong map (`evermap-agent sessions`).
+//!
+//! The recording is cut into `split` equal spans of time. Each span is a session: LLO starts afresh (its
+//! own local frame, no knowledge of the others), and the session starts on the map with no prior: its
+//! first few nodes are merged and relocalized against the map of the earlier sessions
+//! ([`relocalize_session_start`]); then its nodes localize by GLM against the older sessions' submaps
+//! while its own submaps join the map, and at its end stale submaps are trimmed per the policy.
+//!
+//! As in `offline_slam`, LLO runs on the calling thread and the map (relocalization, GLM searches on two
+//! threads, optimization, trimming) on a named worker thread fed through a bounded channel.
+
+use std::collections::BTreeMap;
+use std::sync::mpsc;
+use std::time::Instant;
+
+use mapping::geometry::Rigid2;
+use mapping::grid::ProbabilityGrid;
+use mapping::lifelong::{
+    GraphCounts, LifelongError, LifelongEvent, LifelongMap, LifelongOptions, RelocalizationOptions,
+    relocalize_session_start,
+};
+use mapping::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
+use mapping::pose_graph::NodeId;
+use mapping::sensor::{RangeData, SensorEvent, Timestamp};
+use nalgebra::Point2;
+use serde::{Deserialize, Serialize};
+
+use crate::offline_slam::run_searches;
+use crate::source::Recording;
+
+/// Configuration of a multi-session run; one TOML file, every field optional.
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SessionsConfig {
+    /// Local LiDAR odometry (LLO), restarted for every session.
+    pub local: LocalTrajectoryBuilderOptions,
+    /// The lifelong map (global SLAM, trimming, policy).
+    pub lifelong: LifelongOptions,
+    /// Session-start relocalization.
+    pub relocalization: RelocalizationOptions,
+    /// How many of a session's first nodes are merged into the cloud that is relocalized (count ≥ 1).
+    /// Default 10.
+    pub relocalization_nodes: usize,
+}
+
+impl Default for SessionsConfig {
+    fn default() -> Self {
+        Self {
+            local: LocalTrajectoryBuilderOptions::default(),
+            lifelong: LifelongOptions::default(),
+            relocalization: RelocalizationOptions::default(),
+            relocalization_nodes: 10,
+        }
+    }
+}
+
+/// Errors of a multi-session run.
+#[derive(Debug, thiserror::Error)]
+pub enum SessionsError {
+    /// The lifelong map refused the configuration, a session or a node.
+    #[error("lifelong map: {0}")]
+    Map(#[from] LifelongError),
+    /// The configuration is invalid.
+    #[error("invalid configuration: {0}")]
+    Config(String),
+    /// The recording has no laser scans.
+    #[error("the recording has no laser scans")]
+    NoScans,
+    /// The worker thread could not be started or died.
+    #[error("lifelong map worker failed: {0}")]
+    Worker(String),
+}
+
+/// What happened in one session.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct SessionSummary {
+    /// Session id (0, 1, …).
+    pub session: u32,
+    /// First data time of the session's span.
+    pub start_time: Timestamp,
+    /// Scans in the span.
+    pub scans: usize,
+    /// Nodes the session added.
+    pub nodes_added: usize,
+    /// Whether session-start relocalization found a pose (always false for session 0).
+    pub relocalized: bool,
+    /// Its branch-and-bound score.
+    pub relocalization_score: Option<f32>,
+    /// Wall time of the relocalization, milliseconds.
+    pub relocalization_ms: f64,
+    /// Distance (m) between the relocalized pose of the session's first node and its final estimate
+    /// (how far off relocalization was, judged by the finished map).
+    pub relocalization_offset_m: Option<f64>,
+    /// Whether the session ended placed in the map (by relocalization or a later match).
+    pub placed: bool,
+    /// GLM constraints accepted during the session between its nodes and older sessions' submaps.
+    pub cross_session_closures: usize,
+    /// GLM constraints accepted during the session in all.
+    pub closures: usize,
+    /// Submaps trimmed when the session ended.
+    pub trimmed: usize,
+    /// Nodes removed with them.
+    pub nodes_trimmed: usize,
+    /// Chow–Liu tree constraints added in their place.
+    pub tree_edges: usize,
+    /// Mean KL divergence (nats) of the trims that measured one (`clt`: over each blanket).
+    pub trim_kld_mean: Option<f64>,
+    /// Mean score of the closures accepted during the session (the paper's AMS).
+    pub ams: f64,
+    /// Graph size after the session ended.
+    pub counts: GraphCounts,
+    /// Wall time of `finish_session` (final optimization, trimming, sparsification), milliseconds.
+    pub finish_ms: f64,
+}
+
+/// What a multi-session run produced.
+pub struct SessionsRun {
+    /// The final global pose of every scan LLO matched, in time order: from the final map where its node
+    /// is still there, else from the last estimate before its node was trimmed.
+    pub scan_poses: Vec<(Timestamp, Rigid2)>,
+    /// Start time of each session's span (session `k` runs from `boundaries[k]` to `boundaries[k + 1]`).
+    pub boundaries: Vec<Timestamp>,
+    /// Per session.
+    pub sessions: Vec<SessionSummary>,
+    /// The map after the last session.
+    pub map: LifelongMap,
+    /// Each node's range data in its tracking frame, and its last known global pose (for rendering).
+    pub node_range_data: BTreeMap<NodeId, (Rigid2, RangeData)>,
+    /// Data duration from the first to the last event, seconds.
+    pub data_duration_s: f64,
+}
+
+enum Message {
+    Start {
+        session: u32,
+        first_scans: Vec<(Rigid2, Vec<Point2<f32>>)>,
+    },
+    Node {
+        session: u32,
+        time: Timestamp,
+        local_pose: Rigid2,
+        points: Vec<Point2<f32>>,
+        insertion_submaps: Vec<(usize, Rigid2)>,
+        finished_submaps: Vec<(usize, ProbabilityGrid)>,
+    },
+    Finish {
+        session: u32,
+        active_submaps: Vec<(usize, ProbabilityGrid)>,
+    },
+}
+
+#[derive(Clone, Copy)]
+struct ScanAnchor {
+    time: Timestamp,
+    local_pose: Rigid2,
+    node: Option<NodeId>,
+}
+
+/// Runs `recording` as `split` time sessions (see the module docs). `progress` gets the number of scans
+/// processed so far.
+pub fn run_sessions(
+    recording: &Recording,
+    split: usize,
+    config: &SessionsConfig,
+    progress: &mut dyn FnMut(usize),
+) -> Result<SessionsRun, SessionsError> {
+    config
+        .local
+        .validate()
+        .map_err(|e| SessionsError::Config(e.to_string()))?;
+    config
+        .relocalization
+        .validate()
+        .map_err(|e| SessionsError::Config(e.to_string()))?;
+    if split == 0 || config.relocalization_nodes == 0 {
+        return Err(SessionsError::Config(
+            "split and relocalization_nodes must be at least 1".into(),
+        ));
+    }
+    let map = LifelongMap::new(config.lifelong.clone())?;
+    let (Some(first), Some(last)) = (recording.events.first(), recording.events.last()) else {
+        return Err(SessionsError::NoScans);
+    };
+    let data_duration_s = last.time().seconds_since(first.time());
+    let boundaries: Vec<Timestamp> = (0..split)
+        .map(|k| {
+            first
+                .time()
+                .offset_by(data_duration_s * k as f64 / split as f64)
+        })
+        .collect();
+    let session_of =
+        |t: Timestamp| boundaries.partition_point(|b| *b <= t).saturating_sub(1) as u32;
+
+    let (sender, receiver) = mpsc::sync_channel::<Message>(256);
+    std::thread::scope(|scope| {
+        let relocalization = &config.relocalization;
+        let worker = std::thread::Builder::new()
+            .name("lifelong-map".into())
+            .spawn_scoped(scope, move || worker(map, relocalization, &receiver))
+            .map_err(|e| SessionsError::Worker(e.to_string()))?;
+
+        let mut anchors: Vec<ScanAnchor> = Vec::new();
+        let mut node_data: BTreeMap<NodeId, (Rigid2, RangeData)> = BTreeMap::new();
+        let mut scans_per_session = vec![0usize; split];
+        let mut scans_done = 0;
+        let mut current: Option<u32> = None;
+        let mut llo = LocalTrajectoryBuilder::new(config.local.clone());
+        let mut next_index = 0u32;
+        let mut last_node: Option<NodeId> = None;
+        // The session's first nodes, held back until they can be relocalized.
+        let mut pending: Vec<Message> = Vec::new();
+        let mut pending_scans: Vec<(Rigid2, Vec<Point2<f32>>)> = Vec::new();
+        let mut started = false;
+        let send = |m: Message| sender.send(m).is_ok();
+        let flush_start = |session: u32,
+                           pending: &mut Vec<Message>,
+                           pending_scans: &mut Vec<(Rigid2, Vec<Point2<f32>>)>|
+         -> bool {
+            let ok = send(Message::Start {
+                session,
+                first_scans: std::mem::take(pending_scans),
+            });
+            ok && pending.drain(..).all(&send)
+        };
+        for event in &recording.events {
+            let session = session_of(event.time());
+            if current != Some(session) {
+                if let Some(previous) = current {
+                    if !started && !flush_start(previous, &mut pending, &mut pending_scans) {
+                        break;
+                    }
+                    let active = active_grids(&llo);
+                    if !send(Message::Finish {
+                        session: previous,
+                        active_submaps: active,
+                    }) {
+                        break;
+                    }
+                }
+                current = Some(session);
+                llo = LocalTrajectoryBuilder::new(config.local.clone());
+                next_index = 0;
+                last_node = None;
+                started = false;
+            }
+            match event {
+                SensorEvent::Odometry(o) => llo.add_odometry(o),
+                SensorEvent::Imu(i) => llo.add_imu(i),
+                SensorEvent::Scan(scan) => {
+                    scans_done += 1;
+                    scans_per_session[session as usize] += 1;
+                    let (range_data, _) = scan.to_range_data(&config.local.range_conversion);
+                    let range_data = range_data.transformed(&recording.base_from_laser);
+                    let Some(result) = llo.add_range_data(scan.time, &range_data) else {
+                        continue;
+                    };
+                    if let Some(insertion) = result.insertion {
+                        let id = NodeId {
+                            trajectory: session,
+                            index: next_index,
+                        };
+                        next_index += 1;
+                        last_node = Some(id);
+                        node_data.insert(id, (result.local_pose, range_data));
+                        let message = Message::Node {
+                            session,
+                            time: result.time,
+                            local_pose: result.local_pose,
+                            points: insertion.node.filtered_points.clone(),
+                            insertion_submaps: insertion
+                                .insertion_submaps
+                                .iter()
+                                .map(|s| (s.index, s.local_pose))
+                                .collect(),
+                            finished_submaps: insertion
+                                .finished_submaps
+                                .into_iter()
+                                .map(|(index, submap)| (index, submap.grid))
+                                .collect(),
+                        };
+                        if started {
+                            if !send(message) {
+                                break;
+                            }
+                        } else {
+                            pending_scans.push((result.local_pose, insertion.node.filtered_points));
+                            pending.push(message);
+                            if pending.len() >= config.relocalization_nodes {
+                                if !flush_start(session, &mut pending, &mut pending_scans) {
+                                    break;
+                                }
+                                started = true;
+                            }
+                        }
+                    }
+                    anchors.push(ScanAnchor {
+                        time: result.time,
+                        local_pose: result.local_pose,
+                        node: last_node,
+                    });
+                    if scans_done % 64 == 0 {
+                        progress(scans_done);
+                    }
+                }
+            }
+        }
+        if let Some(previous) = current {
+            let ok = started || flush_start(previous, &mut pending, &mut pending_scans);
+            if ok {
+                let active = active_grids(&llo);
+                let _ = send(Message::Finish {
+                    session: previous,
+                    active_submaps: active,
+                });
+            }
+        }
+        progress(scans_done);
+        drop(sender);
+        let (map, mut sessions, retired) = worker
+            .join()
+            .map_err(|_| SessionsError::Worker("the lifelong map thread panicked".into()))??;
+
+        // Last known global pose of every node: the final map, else its pose when it was trimmed.
+        let mut node_pose: BTreeMap<NodeId, Rigid2> = retired;
+        for (id, _, pose) in map.node_poses() {
+            node_pose.insert(id, pose);
+        }
+        let scan_poses = anchors
+            .iter()
+            .filter_map(|a| {
+                let node = a.node?;
+                let global = node_pose.get(&node)?;
+                let (local, _) = node_data.get(&node)?;
+                Some((a.time, global * local.inverse() * a.local_pose))
+            })
+            .collect();
+        for (k, summary) in sessions.iter_mut().enumerate() {
+            summary.start_time = boundaries[k];
+            summary.scans = scans_per_session[k];
+        }
+        let node_range_data = node_data
+            .into_iter()
+            .filter_map(|(id, (_, data))| Some((id, (*node_pose.get(&id)?, data))))
+            .collect();
+        Ok(SessionsRun {
+            scan_poses,
+            boundaries: boundaries.clone(),
+            sessions,
+            map,
+            node_range_data,
+            data_duration_s,
+        })
+    })
+}
+
+/// The grids of LLO's submaps still active (to finish them when the session ends).
+fn active_grids(llo: &LocalTrajectoryBuilder) -> Vec<(usize, ProbabilityGrid)> {
+    llo.active_submaps()
+        .submaps()
+        .iter()
+        .map(|(index, submap)| (*index, submap.grid.cropped_to_known()))
+        .collect()
+}
+
+type WorkerOutput = (LifelongMap, Vec<SessionSummary>, BTreeMap<NodeId, Rigid2>);
+
+fn worker(
+    mut map: LifelongMap,
+    relocalization: &RelocalizationOptions,
+    receiver: &mpsc::Receiver<Message>,
+) -> Result<WorkerOutput, SessionsError> {
+    let mut sessions: Vec<SessionSummary> = Vec::new();
+    let mut retired: BTreeMap<NodeId, Rigid2> = BTreeMap::new();
+    let mut priors: BTreeMap<u32, (Rigid2, Rigid2)> = BTreeMap::new();
+    let mut scores: Vec<f32> = Vec::new();
+    for message in receiver {
+        match message {
+            Message::Start {
+                session,
+                first_scans,
+            } => {
+                let mut summary = SessionSummary {
+                    session,
+                    ..SessionSummary::default()
+                };
+                scores.clear();
+                let prior = if session == 0 {
+                    None
+                } else {
+                    let start = Instant::now();
+                    let found = relocalize_session_start(&map, &first_scans, relocalization);
+                    summary.relocalization_ms = start.elapsed().as_secs_f64() * 1e3;
+                    summary.relocalized = found.is_some();
+                    summary.relocalization_score = found.map(|f| f.score);
+                    if let (Some(f), Some((first_local, _))) = (found, first_scans.first()) {
+                        priors.insert(session, (f.global_from_local, *first_local));
+                    }
+                    found.map(|f| f.global_from_local)
+                };
+                map.start_session(session, prior)?;
+                sessions.push(summary);
+            }
+            Message::Node {
+                session,
+                time,
+                local_pose,
+                points,
+                insertion_submaps,
+                finished_submaps,
+            } => {
+                let (_, events) = map.add_node(
+                    session,
+                    time,
+                    local_pose,
+                    points,
+                    &insertion_submaps,
+                    finished_submaps,
+                )?;
+                let jobs = map.take_search_jobs();
+                let results = run_searches(map.constraint_builder(), &jobs);
+                let mut events_after = map.add_search_results(results);
+                events_after.extend(events);
+                if let Some(summary) = sessions.last_mut() {
+                    summary.nodes_added += 1;
+                    count_closures(summary, &events_after, &mut scores);
+                }
+            }
+            Message::Finish {
+                session,
+                active_submaps,
+            } => {
+                map.finish_submaps(session, active_submaps)?;
+                let jobs = map.take_search_jobs();
+                let results = run_searches(map.constraint_builder(), &jobs);
+                let events = map.add_search_results(results);
+                let start = Instant::now();
+                map.optimize();
+                for (id, _, pose) in map.node_poses() {
+                    retired.insert(id, pose);
+                }
+                let events_finish = map.finish_session(session)?;
+                let finish_ms = start.elapsed().as_secs_f64() * 1e3;
+                let placed = map.is_placed(session);
+                let counts = map.counts();
+                let first_node = NodeId {
+                    trajectory: session,
+                    index: 0,
+                };
+                let offset = priors.get(&session).and_then(|(prior, first_local)| {
+                    let last = retired.get(&first_node)?;
+                    Some(
+                        ((prior * first_local).translation.vector - last.translation.vector).norm(),
+                    )
+                });
+                if let Some(summary) = sessions.last_mut() {
+                    count_closures(summary, &events, &mut scores);
+                    let mut klds = Vec::new();
+                    for event in &events_finish {
+                        if let LifelongEvent::SubmapTrimmed {
+                            nodes_removed,
+                            tree_edges,
+                            kld,
+                            ..
+                        } = event
+                        {
+                            summary.trimmed += 1;
+                            summary.nodes_trimmed += nodes_removed;
+                            summary.tree_edges += tree_edges;
+                            klds.extend(*kld);
+                        }
+                    }
+                    summary.trim_kld_mean =
+                        (!klds.is_empty()).then(|| klds.iter().sum::<f64>() / klds.len() as f64);
+                    summary.placed = placed;
+                    summary.counts = counts;
+                    summary.finish_ms = finish_ms;
+                    summary.relocalization_offset_m = offset;
+                }
+            }
+        }
+    }
+    // Nodes still in the map report their final pose; `retired` keeps the rest.
+    Ok((map, sessions, retired))
+}
+
+fn count_closures(summary: &mut SessionSummary, events: &[LifelongEvent], scores: &mut Vec<f32>) {
+    for event in events {
+        if let LifelongEvent::LoopClosureAdded(closure) = event
+            && closure.node.trajectory == summary.session
+        {
+            summary.closures += 1;
+            scores.push(closure.score);
+            if closure.submap.trajectory != summary.session {
+                summary.cross_session_closures += 1;
+            }
+        }
+    }
+    summary.ams = if scores.is_empty() {
+        0.0
+    } else {
+        scores.iter().map(|&s| f64::from(s)).sum::<f64>() / scores.len() as f64
+    };
+}
