@@ -17,4 +17,5 @@ pub mod metrics;
 pub mod pose_graph;
 pub mod scan_matching;
 pub mod sensor;
+pub mod simulation;
 pub mod sparsification;

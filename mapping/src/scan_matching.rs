@@ -22,14 +22,15 @@ mod interpolated_grid;
 mod least_squares;
 mod precomputation_grid;
 mod real_time_correlative;
+mod relocalizer;
 #[cfg(test)]
 mod test_support;
 
 use thiserror::Error;
 
 pub use branch_and_bound::{
-    FastCorrelativeScanMatcher, FastCorrelativeScanMatcherOptions, MAX_BRANCH_AND_BOUND_DEPTH,
-    Match,
+    DISTINCT_ROTATION_RAD, DISTINCT_TRANSLATION_CELLS, FastCorrelativeScanMatcher,
+    FastCorrelativeScanMatcherOptions, MAX_BRANCH_AND_BOUND_DEPTH, Match,
 };
 pub use interpolated_grid::InterpolatedGrid;
 pub use least_squares::{
@@ -38,6 +39,7 @@ pub use least_squares::{
 pub use real_time_correlative::{
     RealTimeCorrelativeScanMatcher, RealTimeCorrelativeScanMatcherOptions,
 };
+pub use relocalizer::{Relocalization, Relocalizer, RelocalizerOptions, max_downsampled};
 
 /// Errors of the scan matching module.
 #[derive(Clone, Debug, Error, PartialEq, Eq)]

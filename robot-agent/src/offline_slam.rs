@@ -14,6 +14,7 @@ use mapping::global_slam::{
 use mapping::grid::{MapLimits, ProbabilityGrid, RangeDataInserter, RangeDataInserterOptions};
 use mapping::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
 use mapping::pose_graph::{NodeId, OptimizationSummary};
+use mapping::scan_matching::RelocalizerOptions;
 use mapping::sensor::{RangeData, RangeStats, SensorEvent, Timestamp};
 use nalgebra::Point2;
 use serde::Deserialize;
@@ -28,6 +29,8 @@ pub struct SlamConfig {
     pub local: LocalTrajectoryBuilderOptions,
     /// Global matching and pose graph (GLM + PGR).
     pub global: GlobalSlamOptions,
+    /// Whole-map relocalization with no prior (session start, `relocalize`).
+    pub relocalization: RelocalizerOptions,
 }
 
 /// Errors of the offline pipeline.

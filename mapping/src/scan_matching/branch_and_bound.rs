@@ -158,9 +158,37 @@ impl FastCorrelativeScanMatcher {
         self.search(&self.near_space(initial, points), min_score)
     }
 
+    /// The best pose within explicit windows (`linear_window` metres, `angular_window` radians) around
+    /// `initial`, if its score reaches `min_score`: [`Self::match_near`] with per-call windows.
+    pub fn match_within(
+        &self,
+        initial: &Rigid2,
+        points: &[Point2<f32>],
+        min_score: f32,
+        linear_window: f64,
+        angular_window: f64,
+    ) -> Option<Match> {
+        let mut space =
+            SearchSpace::around(initial, points, &self.limits, linear_window, angular_window);
+        space.shrink_to_fit(&self.limits);
+        self.search(&space, min_score)
+    }
+
     /// The best pose anywhere on the grid, at any rotation (no prior), if its score reaches `min_score`.
     pub fn match_full(&self, points: &[Point2<f32>], min_score: f32) -> Option<Match> {
         self.search(&self.full_space(points), min_score)
+    }
+
+    /// Up to `count` distinct poses anywhere on the grid, best first, each reaching `min_score`. Leaves
+    /// within [`DISTINCT_TRANSLATION_CELLS`] cells and [`DISTINCT_ROTATION_RAD`] of a better one belong to
+    /// the same peak and are not returned separately. The first result equals [`Self::match_full`]'s.
+    pub fn match_full_candidates(
+        &self,
+        points: &[Point2<f32>],
+        min_score: f32,
+        count: usize,
+    ) -> Vec<Match> {
+        self.search_many(&self.full_space(points), min_score, count.max(1))
     }
 
     /// The candidate set of [`Self::match_near`].
@@ -197,9 +225,13 @@ impl FastCorrelativeScanMatcher {
     }
 
     fn search(&self, space: &SearchSpace, min_score: f32) -> Option<Match> {
+        self.search_many(space, min_score, 1).into_iter().next()
+    }
+
+    fn search_many(&self, space: &SearchSpace, min_score: f32, count: usize) -> Vec<Match> {
         let n = space.num_points();
         if n == 0 {
-            return None;
+            return Vec::new();
         }
         let threshold =
             f64::from((min_score - MIN_PROBABILITY) / (MAX_PROBABILITY - MIN_PROBABILITY))
@@ -209,7 +241,8 @@ impl FastCorrelativeScanMatcher {
             matcher: self,
             space,
             min_units: threshold.ceil().max(0.0) as u64,
-            best: None,
+            best: Vec::with_capacity(count + 1),
+            count,
         };
         let depth = self.levels.len() as u32;
         let step = 1usize << depth;
@@ -234,14 +267,24 @@ impl FastCorrelativeScanMatcher {
         }
         top.sort_unstable_by_key(|c| std::cmp::Reverse(c.units));
         search.descend(&top, depth);
-        search.best.map(|best| Match {
-            pose: space.pose(best.scan, best.dx, best.dy),
-            score: (f64::from(MIN_PROBABILITY)
-                + f64::from(MAX_PROBABILITY - MIN_PROBABILITY) * best.units as f64
-                    / (UNITS_PER_PROBABILITY_RANGE * n as f64)) as f32,
-        })
+        search
+            .best
+            .iter()
+            .map(|best| Match {
+                pose: space.pose(best.scan, best.dx, best.dy),
+                score: (f64::from(MIN_PROBABILITY)
+                    + f64::from(MAX_PROBABILITY - MIN_PROBABILITY) * best.units as f64
+                        / (UNITS_PER_PROBABILITY_RANGE * n as f64)) as f32,
+            })
+            .collect()
     }
 }
+
+/// Leaves of [`FastCorrelativeScanMatcher::match_full_candidates`] closer than this many cells (in x and
+/// in y) …
+pub const DISTINCT_TRANSLATION_CELLS: i32 = 10;
+/// … and this rotation (radians, 10°) to a better leaf belong to its peak.
+pub const DISTINCT_ROTATION_RAD: f64 = 0.1745;
 
 /// Points summed between two checks of the early cut-off in [`sum_unless_below`].
 const CUTOFF_CHUNK: usize = 16;
@@ -273,14 +316,48 @@ struct Search<'a> {
     space: &'a SearchSpace,
     /// `min_score` in score units, rounded up.
     min_units: u64,
-    best: Option<Candidate>,
+    /// The best leaves of distinct peaks so far, best first (at most `count`).
+    best: Vec<Candidate>,
+    count: usize,
 }
 
 impl Search<'_> {
     /// The smallest score (units) that would improve on the best leaf so far and reach `min_score`.
     fn need(&self) -> u64 {
-        self.best
-            .map_or(self.min_units, |best| self.min_units.max(best.units + 1))
+        if self.best.len() < self.count {
+            self.min_units
+        } else {
+            self.best
+                .last()
+                .map_or(self.min_units, |worst| self.min_units.max(worst.units + 1))
+        }
+    }
+
+    /// Whether two leaves belong to the same peak.
+    fn same_peak(&self, a: &Candidate, b: &Candidate) -> bool {
+        (a.dx - b.dx).abs() <= DISTINCT_TRANSLATION_CELLS
+            && (a.dy - b.dy).abs() <= DISTINCT_TRANSLATION_CELLS
+            && crate::geometry::normalize_angle(self.space.angle(a.scan) - self.space.angle(b.scan))
+                .abs()
+                <= DISTINCT_ROTATION_RAD
+    }
+
+    /// Keeps `leaf` among the best distinct leaves (it scores at least [`Self::need`]).
+    fn offer(&mut self, leaf: Candidate) {
+        if self.count == 1 {
+            self.best.clear();
+            self.best.push(leaf);
+            return;
+        }
+        if let Some(k) = self.best.iter().position(|b| self.same_peak(b, &leaf)) {
+            if self.best[k].units >= leaf.units {
+                return;
+            }
+            self.best.remove(k);
+        }
+        let at = self.best.partition_point(|b| b.units >= leaf.units);
+        self.best.insert(at, leaf);
+        self.best.truncate(self.count);
     }
 
     /// Score units of the node at `depth` for rotated scan `k` and offset `(dx, dy)` — exact at depth 0, an
@@ -351,7 +428,7 @@ impl Search<'_> {
                 break;
             }
             if depth == 0 {
-                self.best = Some(*candidate);
+                self.offer(*candidate);
                 continue;
             }
             let child_depth = depth - 1;

@@ -10,9 +10,10 @@ use std::time::Instant;
 
 use anyhow::Context as _;
 use clap::Args;
+use mapping::geometry::{Rigid2, rigid2};
 use mapping::geometry::{Rigid2Ext as _, normalize_angle};
 use mapping::local_slam::adaptive_voxel_filter;
-use mapping::scan_matching::{FastCorrelativeScanMatcher, LeastSquaresScanMatcher};
+use mapping::scan_matching::Relocalizer;
 use mapping::sensor::{SensorEvent, Timestamp};
 use rand::SeedableRng as _;
 use rand::seq::index::sample;
@@ -84,19 +85,30 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
     let map_run = run_offline(&head, &config, &mut |_| {})?;
     let map = render_map(&map_run, config.local.submaps.resolution);
 
-    let global_options = &config.global.constraint_builder;
+    config
+        .relocalization
+        .validate()
+        .context("invalid relocalization options")?;
     let build_start = Instant::now();
-    let mut full_options = global_options.fast_correlative.clone();
-    full_options.angular_search_window = std::f64::consts::PI;
-    let matcher = FastCorrelativeScanMatcher::new(&map, full_options);
+    let relocalizer = Relocalizer::new(&map, config.relocalization.clone());
     let precompute_ms = build_start.elapsed().as_secs_f64() * 1e3;
-    let refiner = LeastSquaresScanMatcher::new(global_options.least_squares.clone());
 
-    let truth: std::collections::BTreeMap<Timestamp, mapping::geometry::Rigid2> = full
+    // The map's frame is the head run's; the two runs agree on the first node but their maps differ by
+    // decimetres in places as their loop closures differ. A scan is relocalized against the part of the
+    // map around it, so its truth is the full run's pose expressed in the head run's frame through the
+    // rigid transform that best aligns the common scans within `LOCAL_ALIGNMENT_RADIUS_M` of it.
+    let full_poses: std::collections::BTreeMap<Timestamp, Rigid2> =
+        full.scan_poses.iter().copied().collect();
+    let common: Vec<(Rigid2, Rigid2)> = map_run
         .scan_poses
         .iter()
-        .copied()
+        .filter_map(|(t, h)| full_poses.get(t).map(|f| (*h, *f)))
+        .collect();
+    let truth: std::collections::BTreeMap<Timestamp, Rigid2> = full
+        .scan_poses
+        .iter()
         .filter(|(t, _)| *t >= cut)
+        .map(|(t, p)| (*t, align_near(&common, p) * p))
         .collect();
     let candidates: Vec<_> = recording
         .events
@@ -125,15 +137,15 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
         let start = Instant::now();
         let points =
             adaptive_voxel_filter(&range_data.returns, &config.local.adaptive_voxel_filter);
-        let found = matcher.match_full(&points, global_options.global_localization_min_score);
-        let pose = found.map(|m| {
-            let (refined, _) =
-                refiner.match_pose(&m.pose.translation.vector, &m.pose, &points, &map);
-            (refined, m.score)
-        });
+        let pose = relocalizer.relocalize(&points).map(|r| (r.pose, r.score));
         let ms = start.elapsed().as_secs_f64() * 1e3;
         times_ms.push(ms);
         let truth_pose = truth[&scan.time];
+        // How far the scan is from where the map's run went: far means its area may not be mapped.
+        let nearest_mapped_m = common
+            .iter()
+            .map(|(h, _)| (h.translation.vector - truth_pose.translation.vector).norm())
+            .fold(f64::INFINITY, f64::min);
         let (ok, dt, dth, score) = match pose {
             Some((p, score)) => {
                 let dt = (p.translation.vector - truth_pose.translation.vector).norm();
@@ -152,7 +164,8 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
         successes += usize::from(ok);
         results.push(
             json!({"time": scan.time.to_string(), "success": ok, "translation_error_m": dt,
-                            "rotation_error_deg": dth, "score": score, "ms": ms}),
+                            "rotation_error_deg": dth, "score": score, "ms": ms,
+                            "nearest_mapped_m": nearest_mapped_m}),
         );
     }
     let mut sorted = times_ms.clone();
@@ -165,6 +178,7 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
         "p95_ms": percentile(&sorted, 0.95),
         "precompute_ms": precompute_ms,
         "map_cells": [map.limits().width, map.limits().height],
+        "truth_alignment_radius_m": LOCAL_ALIGNMENT_RADIUS_M,
         "success_translation_m": SUCCESS_TRANSLATION_M,
         "success_rotation_deg": SUCCESS_ROTATION_DEG,
         "results": results,
@@ -177,4 +191,52 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
         json!({"samples": n, "success_rate": report["success_rate"], "median_ms": report["median_ms"], "p95_ms": report["p95_ms"]})
     );
     Ok(())
+}
+
+/// Radius (metres) around a sampled scan within which the two runs' common scans define its truth frame.
+const LOCAL_ALIGNMENT_RADIUS_M: f64 = 8.0;
+
+/// `head_from_full` aligning the pairs `(head pose, full pose)` of common scans within
+/// [`LOCAL_ALIGNMENT_RADIUS_M`] of `near` (full-run frame), or all of them if fewer than 10 are that close.
+fn align_near(common: &[(Rigid2, Rigid2)], near: &Rigid2) -> Rigid2 {
+    let close: Vec<(Rigid2, Rigid2)> = common
+        .iter()
+        .copied()
+        .filter(|(_, f)| {
+            (f.translation.vector - near.translation.vector).norm() <= LOCAL_ALIGNMENT_RADIUS_M
+        })
+        .collect();
+    if close.len() >= 10 {
+        align(&close)
+    } else {
+        align(common)
+    }
+}
+
+/// The rigid transform `head_from_full` minimizing the squared distances between the positions of the
+/// pairs `(head pose, full pose)` (2D Kabsch without scale); identity for no pairs.
+fn align(pairs: &[(Rigid2, Rigid2)]) -> Rigid2 {
+    if pairs.is_empty() {
+        return Rigid2::identity();
+    }
+    let n = pairs.len() as f64;
+    let mean_h = pairs
+        .iter()
+        .map(|p| p.0.translation.vector)
+        .sum::<nalgebra::Vector2<f64>>()
+        / n;
+    let mean_f = pairs
+        .iter()
+        .map(|p| p.1.translation.vector)
+        .sum::<nalgebra::Vector2<f64>>()
+        / n;
+    let (mut sin, mut cos) = (0.0, 0.0);
+    for (h, f) in pairs {
+        let (a, b) = (f.translation.vector - mean_f, h.translation.vector - mean_h);
+        cos += a.dot(&b);
+        sin += a.x * b.y - a.y * b.x;
+    }
+    let theta = sin.atan2(cos);
+    let t = mean_h - nalgebra::Rotation2::new(theta) * mean_f;
+    rigid2(t.x, t.y, theta)
 }

@@ -328,3 +328,42 @@ fn branch_and_bound_benchmark() {
         );
     }
 }
+
+#[test]
+fn full_candidates_are_distinct_peaks_led_by_the_global_best() {
+    for (seed, depth) in [(30, 2), (31, 3), (32, 0)] {
+        let mut rng = Pcg64::seed_from_u64(seed);
+        let grid = random_grid(&mut rng);
+        let points = random_points(&mut rng, 10, 0.4);
+        let matcher = FastCorrelativeScanMatcher::new(
+            &grid,
+            FastCorrelativeScanMatcherOptions {
+                branch_and_bound_depth: depth,
+                ..Default::default()
+            },
+        );
+        let best = matcher.match_full(&points, 0.0).expect("matches");
+        let candidates = matcher.match_full_candidates(&points, 0.0, 4);
+        assert_eq!(candidates.len(), 4, "seed {seed}");
+        assert!((candidates[0].score - best.score).abs() < 1e-6);
+        for pair in candidates.windows(2) {
+            assert!(pair[0].score >= pair[1].score, "sorted, seed {seed}");
+        }
+        let resolution = grid.limits().resolution;
+        for (i, a) in candidates.iter().enumerate() {
+            for b in &candidates[i + 1..] {
+                let d = (a.pose.translation.vector - b.pose.translation.vector) / resolution;
+                let rotation = crate::geometry::normalize_angle(
+                    a.pose.rotation.angle() - b.pose.rotation.angle(),
+                );
+                let same = d.x.abs().round() as i32 <= DISTINCT_TRANSLATION_CELLS
+                    && d.y.abs().round() as i32 <= DISTINCT_TRANSLATION_CELLS
+                    && rotation.abs() <= DISTINCT_ROTATION_RAD + 1e-9;
+                assert!(!same, "two candidates of one peak, seed {seed}");
+            }
+        }
+        // A threshold above the fourth keeps only the better ones.
+        let fewer = matcher.match_full_candidates(&points, candidates[3].score + 1e-4, 4);
+        assert!(fewer.len() < 4 && !fewer.is_empty());
+    }
+}
