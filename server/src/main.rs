@@ -1,6 +1,7 @@
 //! `evermap-server`: the fleet map server and its back-end tools.
 
 mod optimize_command;
+mod serve_command;
 
 use clap::{Parser, Subcommand};
 
@@ -16,11 +17,14 @@ struct Cli {
 enum Command {
     /// Optimize a g2o/TORO pose graph file and print one JSON line of results.
     Optimize(optimize_command::OptimizeArgs),
+    /// Serves site maps to robots over gRPC (with health, reflection and Prometheus metrics).
+    Serve(serve_command::ServeArgs),
 }
 
 fn main() -> anyhow::Result<()> {
     match Cli::parse().command {
         Some(Command::Optimize(args)) => optimize_command::run(&args),
+        Some(Command::Serve(args)) => serve_command::run(&args),
         None => Ok(()),
     }
 }

@@ -1,0 +1,64 @@
+//! Why a wire message could not become a `mapping` value.
+
+/// A wire message that cannot be converted: every variant names the message and field at fault.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ConversionError {
+    /// A required (message-typed) field is absent.
+    #[error("{message}.{field} is missing")]
+    MissingField {
+        /// The message type.
+        message: &'static str,
+        /// The field.
+        field: &'static str,
+    },
+    /// A number is NaN or infinite.
+    #[error("{message}.{field} is not a finite number")]
+    NotFinite {
+        /// The message type.
+        message: &'static str,
+        /// The field.
+        field: &'static str,
+    },
+    /// A size does not match what the other fields imply, or exceeds a limit.
+    #[error("{message}.{field} has a bad size: expected {expected}, got {got}")]
+    BadSize {
+        /// The message type.
+        message: &'static str,
+        /// The field.
+        field: &'static str,
+        /// The size expected (or the limit).
+        expected: usize,
+        /// The size found.
+        got: usize,
+    },
+    /// A value is outside its valid range (e.g. a non-positive resolution, an unknown enum value).
+    #[error("{message}.{field} is out of range: {value}")]
+    OutOfRange {
+        /// The message type.
+        message: &'static str,
+        /// The field.
+        field: &'static str,
+        /// The offending value, printed.
+        value: String,
+    },
+    /// The record was written with a format version this build does not read.
+    #[error("{message} has format_version {got}, this build reads only {supported}")]
+    UnsupportedFormatVersion {
+        /// The message type.
+        message: &'static str,
+        /// The version found.
+        got: u32,
+        /// The version this build reads.
+        supported: u32,
+    },
+    /// Compressed grid values could not be decompressed.
+    #[error("{message}.{field} cannot be decompressed: {reason}")]
+    Decompress {
+        /// The message type.
+        message: &'static str,
+        /// The field.
+        field: &'static str,
+        /// Why.
+        reason: String,
+    },
+}

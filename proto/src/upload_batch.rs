@@ -1,0 +1,326 @@
+//! One upload from a robot: a numbered batch of LLO output for one session.
+
+use mapping::geometry::Rigid2;
+use mapping::grid::ProbabilityGrid;
+use mapping::sensor::Timestamp;
+use nalgebra::Point2;
+
+use crate::convert::{points_from_pb, points_to_pb};
+use crate::{
+    ConversionError, FORMAT_VERSION, check_format_version, grid_from_pb, grid_to_pb, pb,
+    pose_from_pb, pose_to_pb,
+};
+
+/// LLO inserted a node.
+#[derive(Clone, Debug, PartialEq)]
+pub struct NodeAdded {
+    /// When the node's scan was taken.
+    pub time: Timestamp,
+    /// `local_from_tracking`.
+    pub local_pose: Rigid2,
+    /// Voxel-filtered hits in the tracking frame (m).
+    pub points: Vec<Point2<f32>>,
+    /// `(index, local_from_submap)` of each submap the node was inserted into.
+    pub insertion_submaps: Vec<(u32, Rigid2)>,
+}
+
+/// One item of an [`UploadBatch`].
+#[derive(Clone, Debug, PartialEq)]
+pub enum UploadItem {
+    /// A new node.
+    NodeAdded(NodeAdded),
+    /// A submap finished by the node just before it in the batch.
+    SubmapFinished {
+        /// Submap index within the session's trajectory.
+        index: u32,
+        /// The grid, in the session's local frame.
+        grid: ProbabilityGrid,
+    },
+    /// Where the session's local frame is believed to sit in the site frame.
+    SessionStartPrior {
+        /// `global_from_local`.
+        global_from_local: Rigid2,
+    },
+    /// The session ended.
+    SessionEnd,
+}
+
+/// A batch of one session's LLO output, numbered by `seq` (1, 2, 3, ... per session).
+#[derive(Clone, Debug, PartialEq)]
+pub struct UploadBatch {
+    /// The site.
+    pub site: String,
+    /// The uploading robot.
+    pub robot_id: String,
+    /// The session (chosen by the robot).
+    pub session_uuid: String,
+    /// Sequence number within the session, from 1.
+    pub seq: u64,
+    /// The items, in the order LLO produced them.
+    pub items: Vec<UploadItem>,
+}
+
+impl From<&UploadItem> for pb::UploadItem {
+    fn from(item: &UploadItem) -> Self {
+        use pb::upload_item::Item;
+        let item = match item {
+            UploadItem::NodeAdded(node) => Item::NodeAdded(pb::NodeAdded {
+                time_ns: node.time.0,
+                local_pose: Some(pose_to_pb(&node.local_pose)),
+                points_xy: points_to_pb(&node.points),
+                insertion_submaps: node
+                    .insertion_submaps
+                    .iter()
+                    .map(|(index, pose)| pb::SubmapInsertion {
+                        index: *index,
+                        local_pose: Some(pose_to_pb(pose)),
+                    })
+                    .collect(),
+            }),
+            UploadItem::SubmapFinished { index, grid } => {
+                Item::SubmapFinished(pb::SubmapFinished {
+                    index: *index,
+                    grid: Some(grid_to_pb(grid)),
+                })
+            }
+            UploadItem::SessionStartPrior { global_from_local } => {
+                Item::SessionStartPrior(pb::SessionStartPrior {
+                    global_from_local: Some(pose_to_pb(global_from_local)),
+                })
+            }
+            UploadItem::SessionEnd => Item::SessionEnd(pb::SessionEnd {}),
+        };
+        Self { item: Some(item) }
+    }
+}
+
+impl TryFrom<&pb::UploadItem> for UploadItem {
+    type Error = ConversionError;
+
+    fn try_from(item: &pb::UploadItem) -> Result<Self, ConversionError> {
+        use pb::upload_item::Item;
+        match &item.item {
+            Some(Item::NodeAdded(node)) => {
+                const M: &str = "NodeAdded";
+                if node.insertion_submaps.is_empty() {
+                    return Err(ConversionError::BadSize {
+                        message: M,
+                        field: "insertion_submaps",
+                        expected: 1,
+                        got: 0,
+                    });
+                }
+                let insertion_submaps = node
+                    .insertion_submaps
+                    .iter()
+                    .map(|s| {
+                        Ok((
+                            s.index,
+                            pose_from_pb(s.local_pose.as_ref(), "SubmapInsertion", "local_pose")?,
+                        ))
+                    })
+                    .collect::<Result<_, ConversionError>>()?;
+                Ok(Self::NodeAdded(NodeAdded {
+                    time: Timestamp(node.time_ns),
+                    local_pose: pose_from_pb(node.local_pose.as_ref(), M, "local_pose")?,
+                    points: points_from_pb(&node.points_xy, M, "points_xy")?,
+                    insertion_submaps,
+                }))
+            }
+            Some(Item::SubmapFinished(submap)) => Ok(Self::SubmapFinished {
+                index: submap.index,
+                grid: grid_from_pb(submap.grid.as_ref().ok_or(ConversionError::MissingField {
+                    message: "SubmapFinished",
+                    field: "grid",
+                })?)?,
+            }),
+            Some(Item::SessionStartPrior(prior)) => Ok(Self::SessionStartPrior {
+                global_from_local: pose_from_pb(
+                    prior.global_from_local.as_ref(),
+                    "SessionStartPrior",
+                    "global_from_local",
+                )?,
+            }),
+            Some(Item::SessionEnd(_)) => Ok(Self::SessionEnd),
+            None => Err(ConversionError::MissingField {
+                message: "UploadItem",
+                field: "item",
+            }),
+        }
+    }
+}
+
+impl From<&UploadBatch> for pb::UploadBatch {
+    fn from(batch: &UploadBatch) -> Self {
+        Self {
+            format_version: FORMAT_VERSION,
+            site: batch.site.clone(),
+            robot_id: batch.robot_id.clone(),
+            session_uuid: batch.session_uuid.clone(),
+            seq: batch.seq,
+            items: batch.items.iter().map(pb::UploadItem::from).collect(),
+        }
+    }
+}
+
+fn non_empty(value: &str, field: &'static str) -> Result<String, ConversionError> {
+    if value.is_empty() {
+        Err(ConversionError::MissingField {
+            message: "UploadBatch",
+            field,
+        })
+    } else {
+        Ok(value.to_owned())
+    }
+}
+
+impl TryFrom<&pb::UploadBatch> for UploadBatch {
+    type Error = ConversionError;
+
+    /// Checks the version, the names, `seq ≥ 1`, at least one item, every item, and that each
+    /// `SubmapFinished` follows a `NodeAdded` (or another `SubmapFinished`) of the same batch.
+    fn try_from(batch: &pb::UploadBatch) -> Result<Self, ConversionError> {
+        const M: &str = "UploadBatch";
+        check_format_version(M, batch.format_version)?;
+        if batch.seq == 0 {
+            return Err(ConversionError::OutOfRange {
+                message: M,
+                field: "seq",
+                value: "0 (sequence numbers start at 1)".into(),
+            });
+        }
+        if batch.items.is_empty() {
+            return Err(ConversionError::BadSize {
+                message: M,
+                field: "items",
+                expected: 1,
+                got: 0,
+            });
+        }
+        let items = batch
+            .items
+            .iter()
+            .map(UploadItem::try_from)
+            .collect::<Result<Vec<_>, _>>()?;
+        for (i, item) in items.iter().enumerate() {
+            let follows_node = i > 0
+                && matches!(
+                    items[i - 1],
+                    UploadItem::NodeAdded(_) | UploadItem::SubmapFinished { .. }
+                );
+            if matches!(item, UploadItem::SubmapFinished { .. }) && !follows_node {
+                return Err(ConversionError::OutOfRange {
+                    message: M,
+                    field: "items",
+                    value: format!(
+                        "item {i}: SubmapFinished must follow the NodeAdded that finished it"
+                    ),
+                });
+            }
+        }
+        Ok(Self {
+            site: non_empty(&batch.site, "site")?,
+            robot_id: non_empty(&batch.robot_id, "robot_id")?,
+            session_uuid: non_empty(&batch.session_uuid, "session_uuid")?,
+            seq: batch.seq,
+            items,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use mapping::geometry::rigid2;
+    use mapping::grid::{CellIndex, MapLimits};
+    use nalgebra::Vector2;
+
+    use super::*;
+
+    pub(crate) fn sample_batch() -> UploadBatch {
+        let mut grid = ProbabilityGrid::new(MapLimits::new(0.05, Vector2::new(1.0, 2.0), 8, 6));
+        grid.set_probability(&CellIndex::new(3, 4), 0.75);
+        UploadBatch {
+            site: "store-7".into(),
+            robot_id: "r1".into(),
+            session_uuid: "c0ffee".into(),
+            seq: 4,
+            items: vec![
+                UploadItem::SessionStartPrior {
+                    global_from_local: rigid2(1.0, 2.0, 0.5),
+                },
+                UploadItem::NodeAdded(NodeAdded {
+                    time: Timestamp(42),
+                    local_pose: rigid2(0.25, 0.5, 0.125),
+                    points: vec![Point2::new(1.0, 2.0)],
+                    insertion_submaps: vec![(0, rigid2(0.0, 0.0, 0.0)), (1, rigid2(0.5, 0.0, 0.0))],
+                }),
+                UploadItem::SubmapFinished { index: 0, grid },
+                UploadItem::SessionEnd,
+            ],
+        }
+    }
+
+    /// Poses go through (x, y, θ), so compare after one trip.
+    fn normalized(batch: &UploadBatch) -> UploadBatch {
+        UploadBatch::try_from(&pb::UploadBatch::from(batch)).unwrap()
+    }
+
+    #[test]
+    fn batches_round_trip() {
+        let batch = sample_batch();
+        let once = normalized(&batch);
+        assert_eq!(once.items.len(), 4);
+        assert_eq!(normalized(&once), once);
+        let UploadItem::SubmapFinished { grid, .. } = &once.items[2] else {
+            panic!("item 2 is not a submap");
+        };
+        let UploadItem::SubmapFinished { grid: original, .. } = &batch.items[2] else {
+            unreachable!();
+        };
+        assert_eq!(grid, original);
+    }
+
+    #[test]
+    fn malformed_batches_are_refused() {
+        let good = pb::UploadBatch::from(&sample_batch());
+        let mut zero = good.clone();
+        zero.seq = 0;
+        assert!(UploadBatch::try_from(&zero).is_err());
+        let mut empty = good.clone();
+        empty.items.clear();
+        assert!(UploadBatch::try_from(&empty).is_err());
+        let mut no_site = good.clone();
+        no_site.site.clear();
+        assert_eq!(
+            UploadBatch::try_from(&no_site).unwrap_err(),
+            ConversionError::MissingField {
+                message: "UploadBatch",
+                field: "site"
+            }
+        );
+        let mut orphan = good.clone();
+        orphan.items.swap(1, 2);
+        assert!(matches!(
+            UploadBatch::try_from(&orphan),
+            Err(ConversionError::OutOfRange { field: "items", .. })
+        ));
+        let mut nan = good.clone();
+        if let Some(pb::upload_item::Item::NodeAdded(node)) = &mut nan.items[1].item {
+            node.local_pose = Some(pb::Pose2 {
+                x: f64::NAN,
+                y: 0.0,
+                theta: 0.0,
+            });
+        }
+        assert!(matches!(
+            UploadBatch::try_from(&nan),
+            Err(ConversionError::NotFinite {
+                message: "NodeAdded",
+                field: "local_pose"
+            })
+        ));
+        let mut blank = good;
+        blank.items[3].item = None;
+        assert!(UploadBatch::try_from(&blank).is_err());
+    }
+}

@@ -1,0 +1,225 @@
+//! Starting and stopping the whole server: site tasks, gRPC (with health and reflection) and metrics.
+
+use std::collections::BTreeMap;
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Duration;
+
+use proto::pb::agent_service_server::AgentServiceServer;
+use proto::pb::map_service_server::MapServiceServer;
+use storage::MapStore;
+use tokio::sync::oneshot;
+use tokio::task::JoinHandle;
+
+use crate::grpc::{AgentApi, ApiContext, Auth, MapApi};
+use crate::metrics_endpoint::serve_metrics;
+use crate::site::{SiteError, SiteHandle, SiteTask};
+use crate::{ServerConfig, ServerConfigError, ServerMetrics};
+
+/// How long [`RunningServer::shutdown`] waits for open gRPC calls before cutting them.
+const SHUTDOWN_GRACE: Duration = Duration::from_secs(5);
+
+/// Why the server could not start or stop cleanly.
+#[derive(Debug, thiserror::Error)]
+pub enum ServeError {
+    /// The configuration is invalid.
+    #[error("invalid configuration: {0}")]
+    Config(#[from] ServerConfigError),
+    /// A site could not be rebuilt from storage.
+    #[error("site {site:?}: {source}")]
+    Site {
+        /// The site.
+        site: String,
+        /// Why.
+        source: SiteError,
+    },
+    /// A listener could not be bound.
+    #[error("cannot listen on {addr}: {source}")]
+    Bind {
+        /// The address.
+        addr: SocketAddr,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// The reflection service could not be built.
+    #[error("gRPC reflection: {0}")]
+    Reflection(String),
+    /// The gRPC server failed.
+    #[error("gRPC server: {0}")]
+    Transport(String),
+}
+
+/// A started server. Stop it with [`RunningServer::shutdown`] (dropping it leaves tasks running until the
+/// runtime ends).
+pub struct RunningServer {
+    grpc_addr: SocketAddr,
+    metrics_addr: Option<SocketAddr>,
+    sites: Arc<BTreeMap<String, SiteHandle>>,
+    site_tasks: Vec<JoinHandle<()>>,
+    stop_grpc: oneshot::Sender<()>,
+    grpc: JoinHandle<Result<(), tonic::transport::Error>>,
+    metrics_task: Option<JoinHandle<()>>,
+    metrics: Arc<ServerMetrics>,
+}
+
+impl RunningServer {
+    /// Validates `config`, rebuilds every configured site from `store`, and starts serving. Sites found in
+    /// the store but not configured are left untouched (and not served).
+    pub async fn start(
+        config: &ServerConfig,
+        store: Arc<dyn MapStore>,
+    ) -> Result<Self, ServeError> {
+        config.validate()?;
+        let metrics = Arc::new(ServerMetrics::default());
+        let mut sites = BTreeMap::new();
+        let mut site_tasks = Vec::new();
+        for site in &config.sites {
+            let (handle, task) = SiteTask::spawn(
+                &site.id,
+                config.global.clone(),
+                Arc::clone(&store),
+                Arc::clone(&metrics),
+                config.site_queue_depth,
+            )
+            .await
+            .map_err(|source| ServeError::Site {
+                site: site.id.clone(),
+                source,
+            })?;
+            tracing::info!(site = %site.id, version = handle.current().version, "site loaded");
+            sites.insert(site.id.clone(), handle);
+            site_tasks.push(task);
+        }
+        let sites = Arc::new(sites);
+        let context = ApiContext {
+            sites: Arc::clone(&sites),
+            auth: Arc::new(Auth::from_sites(&config.sites)),
+            metrics: Arc::clone(&metrics),
+            delta_chunk_bytes: config.delta_chunk_bytes,
+        };
+
+        let (health, health_service) = tonic_health::server::health_reporter();
+        health.set_serving::<AgentServiceServer<AgentApi>>().await;
+        health.set_serving::<MapServiceServer<MapApi>>().await;
+        let reflection = tonic_reflection::server::Builder::configure()
+            .register_encoded_file_descriptor_set(proto::FILE_DESCRIPTOR_SET)
+            .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+            .build_v1()
+            .map_err(|e| ServeError::Reflection(e.to_string()))?;
+        let limit = config.max_message_bytes;
+        let agent = AgentServiceServer::new(AgentApi::new(context.clone()))
+            .max_decoding_message_size(limit)
+            .max_encoding_message_size(limit);
+        let map = MapServiceServer::new(MapApi::new(context))
+            .max_decoding_message_size(limit)
+            .max_encoding_message_size(limit);
+
+        let listener = tokio::net::TcpListener::bind(config.listen)
+            .await
+            .map_err(|source| ServeError::Bind {
+                addr: config.listen,
+                source,
+            })?;
+        let grpc_addr = listener.local_addr().map_err(|source| ServeError::Bind {
+            addr: config.listen,
+            source,
+        })?;
+        let (stop_grpc, stopped) = oneshot::channel::<()>();
+        let grpc = tokio::spawn(
+            tonic::transport::Server::builder()
+                .add_service(health_service)
+                .add_service(reflection)
+                .add_service(agent)
+                .add_service(map)
+                .serve_with_incoming_shutdown(
+                    tokio_stream::wrappers::TcpListenerStream::new(listener),
+                    async move {
+                        let _ = stopped.await;
+                    },
+                ),
+        );
+        tracing::info!(%grpc_addr, sites = sites.len(), "gRPC serving");
+
+        let (metrics_addr, metrics_task) = match config.metrics_listen {
+            Some(addr) => {
+                let listener = tokio::net::TcpListener::bind(addr)
+                    .await
+                    .map_err(|source| ServeError::Bind { addr, source })?;
+                let bound = listener
+                    .local_addr()
+                    .map_err(|source| ServeError::Bind { addr, source })?;
+                let handles = Arc::new(sites.values().cloned().collect::<Vec<_>>());
+                tracing::info!(metrics_addr = %bound, "metrics serving");
+                (
+                    Some(bound),
+                    Some(tokio::spawn(serve_metrics(
+                        listener,
+                        Arc::clone(&metrics),
+                        handles,
+                    ))),
+                )
+            }
+            None => (None, None),
+        };
+        Ok(Self {
+            grpc_addr,
+            metrics_addr,
+            sites,
+            site_tasks,
+            stop_grpc,
+            grpc,
+            metrics_task,
+            metrics,
+        })
+    }
+
+    /// The bound gRPC address (useful with port 0).
+    pub fn grpc_addr(&self) -> SocketAddr {
+        self.grpc_addr
+    }
+
+    /// The bound metrics address, if enabled.
+    pub fn metrics_addr(&self) -> Option<SocketAddr> {
+        self.metrics_addr
+    }
+
+    /// A site's handle (for in-process front ends and tests).
+    pub fn site(&self, id: &str) -> Option<&SiteHandle> {
+        self.sites.get(id)
+    }
+
+    /// The server's counters.
+    pub fn metrics(&self) -> &Arc<ServerMetrics> {
+        &self.metrics
+    }
+
+    /// Stops the site tasks (ending watch streams), then the gRPC server (waiting up to 5 s for open
+    /// calls), then the metrics endpoint. Everything acknowledged is already durable.
+    pub async fn shutdown(self) -> Result<(), ServeError> {
+        for site in self.sites.values() {
+            site.shutdown().await;
+        }
+        for task in self.site_tasks {
+            let _ = task.await;
+        }
+        let _ = self.stop_grpc.send(());
+        let mut grpc = self.grpc;
+        let result = match tokio::time::timeout(SHUTDOWN_GRACE, &mut grpc).await {
+            Ok(Ok(Ok(()))) => Ok(()),
+            Ok(Ok(Err(e))) => Err(ServeError::Transport(e.to_string())),
+            Ok(Err(e)) => Err(ServeError::Transport(e.to_string())),
+            Err(_) => {
+                tracing::warn!("gRPC calls still open after the grace period: cutting them");
+                grpc.abort();
+                let _ = grpc.await;
+                Ok(())
+            }
+        };
+        if let Some(task) = self.metrics_task {
+            task.abort();
+            let _ = task.await;
+        }
+        tracing::info!("server stopped");
+        result
+    }
+}

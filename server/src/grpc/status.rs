@@ -1,0 +1,87 @@
+//! The one place where errors become gRPC statuses (and refused requests are counted).
+
+use proto::ConversionError;
+use storage::StorageError;
+use tonic::{Code, Status};
+
+use crate::ServerMetrics;
+use crate::site::SiteError;
+
+/// Metadata key carrying the next sequence number a session accepts, on a sequence-gap refusal.
+pub const EXPECTED_SEQ_METADATA: &str = "evermap-expected-seq";
+
+fn code_name(code: Code) -> &'static str {
+    match code {
+        Code::InvalidArgument => "invalid_argument",
+        Code::NotFound => "not_found",
+        Code::PermissionDenied => "permission_denied",
+        Code::Unauthenticated => "unauthenticated",
+        Code::FailedPrecondition => "failed_precondition",
+        Code::ResourceExhausted => "resource_exhausted",
+        Code::Unavailable => "unavailable",
+        Code::DataLoss => "data_loss",
+        Code::Internal => "internal",
+        _ => "other",
+    }
+}
+
+/// Counts a refused request by its status code and passes the status on.
+pub fn counted(metrics: &ServerMetrics, status: Status) -> Status {
+    metrics.refused(code_name(status.code()));
+    status
+}
+
+/// The status of a malformed message.
+pub fn from_conversion(metrics: &ServerMetrics, error: &ConversionError) -> Status {
+    counted(metrics, Status::invalid_argument(error.to_string()))
+}
+
+/// The status of a site's refusal.
+pub fn from_site(metrics: &ServerMetrics, error: &SiteError) -> Status {
+    let message = error.to_string();
+    let status = match error {
+        SiteError::UnknownSession(_) | SiteError::NotFound(_) => Status::not_found(message),
+        SiteError::WrongRobot { .. } => Status::permission_denied(message),
+        SiteError::SessionClosed(_) => Status::failed_precondition(message),
+        SiteError::SequenceGap { expected, .. } => {
+            let expected = *expected;
+            let mut status = Status::failed_precondition(message);
+            if let Ok(value) = expected.to_string().parse() {
+                status.metadata_mut().insert(EXPECTED_SEQ_METADATA, value);
+            }
+            status
+        }
+        SiteError::InvalidBatch(_)
+        | SiteError::Storage(
+            StorageError::InvalidSessionId { .. }
+            | StorageError::InvalidSiteId { .. }
+            | StorageError::TooLarge { .. },
+        ) => Status::invalid_argument(message),
+        SiteError::Storage(_) | SiteError::Stopped(_) => Status::unavailable(message),
+        SiteError::CorruptLog { .. } => Status::data_loss(message),
+        SiteError::Internal(_) => Status::internal(message),
+    };
+    counted(metrics, status)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_sequence_gap_says_which_seq_is_expected() {
+        let metrics = ServerMetrics::default();
+        let status = from_site(
+            &metrics,
+            &SiteError::SequenceGap {
+                session: "s".into(),
+                expected: 7,
+                got: 9,
+            },
+        );
+        assert_eq!(status.code(), Code::FailedPrecondition);
+        assert_eq!(status.metadata().get(EXPECTED_SEQ_METADATA).unwrap(), "7");
+        assert!(status.message().contains("expected seq 7"));
+        assert_eq!(metrics.refused_count("failed_precondition"), 1);
+    }
+}

@@ -1,0 +1,56 @@
+//! `evermap-server serve`: the fleet map server on a sled store until Ctrl-C.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use anyhow::Context as _;
+use server::{RunningServer, ServerConfig};
+use storage::SledStore;
+
+/// Arguments of `serve`.
+#[derive(clap::Args)]
+pub struct ServeArgs {
+    /// TOML configuration (see `server_config.rs` for every key); defaults apply without it.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Log more (debug level).
+    #[arg(long, short)]
+    verbose: bool,
+}
+
+pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
+    tracing_subscriber::fmt()
+        .with_max_level(if args.verbose {
+            tracing::Level::DEBUG
+        } else {
+            tracing::Level::INFO
+        })
+        .init();
+    let config = match &args.config {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("cannot read {}", path.display()))?;
+            ServerConfig::from_toml(&text).with_context(|| format!("in {}", path.display()))?
+        }
+        None => ServerConfig::default(),
+    };
+    config.validate()?;
+    if config.sites.is_empty() {
+        tracing::warn!("no sites configured: nothing can be uploaded");
+    }
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .thread_name("evermap-server")
+        .build()?;
+    runtime.block_on(async {
+        let store_options = config.storage.clone();
+        let store = tokio::task::spawn_blocking(move || SledStore::open(&store_options))
+            .await?
+            .with_context(|| format!("cannot open storage at {}", config.storage.path.display()))?;
+        let server = RunningServer::start(&config, Arc::new(store)).await?;
+        tokio::signal::ctrl_c().await?;
+        tracing::info!("Ctrl-C: shutting down");
+        server.shutdown().await?;
+        anyhow::Ok(())
+    })
+}

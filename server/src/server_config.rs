@@ -1,0 +1,230 @@
+//! The server's TOML configuration (`evermap-server serve --config server.toml`).
+//!
+//! ```toml
+//! listen = "127.0.0.1:50051"          # gRPC
+//! metrics_listen = "127.0.0.1:9464"   # Prometheus text at /metrics; remove the line to disable
+//! max_message_bytes = 67108864
+//!
+//! [storage]
+//! path = "./evermap-data"
+//!
+//! [[sites]]
+//! id = "store-1"
+//! robots = [{ id = "robot-1", token = "change-me" }]
+//! ```
+
+use std::collections::BTreeSet;
+use std::net::SocketAddr;
+
+use mapping::global_slam::GlobalSlamOptions;
+use serde::Deserialize;
+use storage::SledStoreOptions;
+
+/// Invalid [`ServerConfig`].
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum ServerConfigError {
+    /// A field is out of range.
+    #[error("{field}: {reason}")]
+    Invalid {
+        /// The field (dotted path).
+        field: String,
+        /// Why.
+        reason: String,
+    },
+    /// Two sites share an id, or two robots a token.
+    #[error("duplicate {what} {value:?}")]
+    Duplicate {
+        /// "site id", "robot token" or "robot id".
+        what: &'static str,
+        /// The duplicated value (for tokens, only its length is shown).
+        value: String,
+    },
+}
+
+/// A robot allowed to upload to, and read, one site.
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RobotConfig {
+    /// The robot's id; uploads must name it.
+    pub id: String,
+    /// Its bearer token (`authorization: Bearer <token>`), valid for this site only.
+    pub token: String,
+}
+
+/// One site (store) the server hosts.
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SiteConfig {
+    /// Site id (1..=255 bytes, no control characters).
+    pub id: String,
+    /// Robots of the site.
+    #[serde(default)]
+    pub robots: Vec<RobotConfig>,
+}
+
+/// Everything `evermap-server serve` can be configured with; every field has a default.
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ServerConfig {
+    /// gRPC listen address. Default `127.0.0.1:50051`; port 0 picks a free port.
+    pub listen: SocketAddr,
+    /// Prometheus metrics listen address (`GET /metrics`); `None` disables. Default `127.0.0.1:9464`.
+    pub metrics_listen: Option<SocketAddr>,
+    /// Largest gRPC message accepted or sent, bytes (tonic's default is 4 MiB, too small for big batches).
+    /// Default 64 MiB; at least 1 MiB.
+    pub max_message_bytes: usize,
+    /// Target size of one streamed `MapDelta` message, bytes; at most `max_message_bytes`. Default 4 MiB.
+    pub delta_chunk_bytes: usize,
+    /// Commands queued per site before callers wait (backpressure), count. Default 64.
+    pub site_queue_depth: usize,
+    /// On-disk storage.
+    pub storage: SledStoreOptions,
+    /// Global SLAM (GLM + PGR) settings used for every site.
+    pub global: GlobalSlamOptions,
+    /// The sites and their robots.
+    pub sites: Vec<SiteConfig>,
+}
+
+impl Default for ServerConfig {
+    fn default() -> Self {
+        Self {
+            listen: SocketAddr::from(([127, 0, 0, 1], 50051)),
+            metrics_listen: Some(SocketAddr::from(([127, 0, 0, 1], 9464))),
+            max_message_bytes: 64 << 20,
+            delta_chunk_bytes: 4 << 20,
+            site_queue_depth: 64,
+            storage: SledStoreOptions::default(),
+            global: GlobalSlamOptions::default(),
+            sites: Vec::new(),
+        }
+    }
+}
+
+impl ServerConfig {
+    /// Parses TOML text (unknown keys are errors).
+    pub fn from_toml(text: &str) -> Result<Self, toml::de::Error> {
+        toml::from_str(text)
+    }
+
+    /// Checks every field.
+    pub fn validate(&self) -> Result<(), ServerConfigError> {
+        let invalid = |field: &str, reason: &str| {
+            Err(ServerConfigError::Invalid {
+                field: field.to_owned(),
+                reason: reason.to_owned(),
+            })
+        };
+        if self.max_message_bytes < 1 << 20 {
+            return invalid("max_message_bytes", "must be at least 1 MiB (1048576)");
+        }
+        if self.delta_chunk_bytes == 0 || self.delta_chunk_bytes > self.max_message_bytes {
+            return invalid("delta_chunk_bytes", "must be in 1..=max_message_bytes");
+        }
+        if self.site_queue_depth == 0 {
+            return invalid("site_queue_depth", "must be at least 1");
+        }
+        if let Err(e) = self.storage.validate() {
+            return invalid("storage", &e.to_string());
+        }
+        if let Err(e) = self.global.validate() {
+            return invalid("global", &e.to_string());
+        }
+        let mut sites = BTreeSet::new();
+        let mut tokens = BTreeSet::new();
+        for site in &self.sites {
+            if let Err(e) = storage::validate_site_id(&site.id) {
+                return invalid("sites.id", &e.to_string());
+            }
+            if !sites.insert(site.id.as_str()) {
+                return Err(ServerConfigError::Duplicate {
+                    what: "site id",
+                    value: site.id.clone(),
+                });
+            }
+            let mut robots = BTreeSet::new();
+            for robot in &site.robots {
+                if robot.id.is_empty() || robot.token.len() < 8 {
+                    return invalid(
+                        &format!("sites.{}.robots", site.id),
+                        "robot ids must be non-empty and tokens at least 8 characters",
+                    );
+                }
+                if !robots.insert(robot.id.as_str()) {
+                    return Err(ServerConfigError::Duplicate {
+                        what: "robot id",
+                        value: robot.id.clone(),
+                    });
+                }
+                if !tokens.insert(robot.token.as_str()) {
+                    return Err(ServerConfigError::Duplicate {
+                        what: "robot token",
+                        value: format!("<{} characters>", robot.token.len()),
+                    });
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn documented_example_parses_and_defaults_are_valid() {
+        assert_eq!(ServerConfig::default().validate(), Ok(()));
+        let text = "listen = \"127.0.0.1:50051\"\nmetrics_listen = \"127.0.0.1:9464\"\n\
+            max_message_bytes = 67108864\n[storage]\npath = \"./evermap-data\"\n[[sites]]\nid = \"store-1\"\n\
+            robots = [{ id = \"robot-1\", token = \"change-me\" }]\n";
+        let config = ServerConfig::from_toml(text).unwrap();
+        assert_eq!(config.validate(), Ok(()));
+        assert_eq!(config.sites[0].robots[0].id, "robot-1");
+        assert!(ServerConfig::from_toml("lisen = \"x\"").is_err());
+    }
+
+    #[test]
+    fn bad_configs_are_named() {
+        let robot = |id: &str, token: &str| RobotConfig {
+            id: id.into(),
+            token: token.into(),
+        };
+        let site = |id: &str, robots| SiteConfig {
+            id: id.into(),
+            robots,
+        };
+        let with = |sites| ServerConfig {
+            sites,
+            ..ServerConfig::default()
+        };
+        assert!(matches!(
+            with(vec![site("a", vec![]), site("a", vec![])]).validate(),
+            Err(ServerConfigError::Duplicate {
+                what: "site id",
+                ..
+            })
+        ));
+        assert!(matches!(
+            with(vec![
+                site("a", vec![robot("r", "tokentoken")]),
+                site("b", vec![robot("r", "tokentoken")])
+            ])
+            .validate(),
+            Err(ServerConfigError::Duplicate {
+                what: "robot token",
+                ..
+            })
+        ));
+        assert!(
+            with(vec![site("a", vec![robot("r", "short")])])
+                .validate()
+                .is_err()
+        );
+        assert!(with(vec![site("", vec![])]).validate().is_err());
+        let small = ServerConfig {
+            max_message_bytes: 1000,
+            ..ServerConfig::default()
+        };
+        assert!(small.validate().is_err());
+    }
+}

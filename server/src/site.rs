@@ -1,0 +1,18 @@
+//! Sites: one multi-session map per store, owned by one task that applies every change in order.
+//!
+//! [`SiteMap`] is the synchronous, transport-agnostic state (an adapter over the `mapping` core);
+//! [`SiteTask`] owns a `SiteMap`, persists every accepted change through a [`storage::MapStore`] before
+//! answering, and publishes each new version; [`SiteHandle`] is how any front end (gRPC today, zenoh
+//! later) talks to it.
+
+mod map_render;
+mod site_error;
+mod site_handle;
+mod site_map;
+mod site_task;
+
+pub use map_render::render_submaps;
+pub use site_error::SiteError;
+pub use site_handle::{RenderedMap, SiteHandle, UploadAck, VersionInfo};
+pub use site_map::{MapCounts, SessionOpened, SiteMap, UploadCheck};
+pub use site_task::SiteTask;

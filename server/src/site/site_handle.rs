@@ -1,0 +1,200 @@
+//! The cloneable, transport-agnostic handle on a site task.
+
+use std::collections::BTreeMap;
+use std::sync::Arc;
+
+use mapping::geometry::Rigid2;
+use mapping::grid::ProbabilityGrid;
+use mapping::pose_graph::{NodeId, SubmapId};
+use proto::{MapDelta, SubmapSnapshot, UploadBatch};
+use tokio::sync::{mpsc, oneshot, watch};
+
+use super::{MapCounts, SessionOpened, SiteError};
+
+/// A published version of a site map.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct VersionInfo {
+    /// The version (monotonic per site).
+    pub version: u64,
+    /// The map's sizes at that version.
+    pub counts: MapCounts,
+}
+
+/// The answer to an upload, sent once the batch is durably stored and applied.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct UploadAck {
+    /// The batch's sequence number.
+    pub seq: u64,
+    /// The site version after the batch (the current one for a duplicate).
+    pub map_version: u64,
+    /// The batch had already been applied and was not applied again.
+    pub duplicate: bool,
+}
+
+/// A rendered site map.
+#[derive(Clone, Debug)]
+pub struct RenderedMap {
+    /// The version rendered.
+    pub version: u64,
+    /// The grid in the site frame; `None` when the site has no finished submap yet.
+    pub grid: Option<ProbabilityGrid>,
+}
+
+/// What a site task can be asked. Every request carries the channel its answer goes to.
+pub(crate) enum Command {
+    OpenSession {
+        robot_id: String,
+        session_uuid: String,
+        reply: oneshot::Sender<Result<(SessionOpened, u64), SiteError>>,
+    },
+    Upload {
+        batch: Box<UploadBatch>,
+        reply: oneshot::Sender<Result<UploadAck, SiteError>>,
+    },
+    CloseSession {
+        robot_id: String,
+        session_uuid: String,
+        reply: oneshot::Sender<Result<u64, SiteError>>,
+    },
+    Delta {
+        since: u64,
+        reply: oneshot::Sender<Result<MapDelta, SiteError>>,
+    },
+    Submap {
+        id: SubmapId,
+        revision: u64,
+        reply: oneshot::Sender<Result<SubmapSnapshot, SiteError>>,
+    },
+    Render {
+        resolution: f64,
+        reply: oneshot::Sender<Result<RenderedMap, SiteError>>,
+    },
+    NodePoses {
+        reply: oneshot::Sender<BTreeMap<NodeId, Rigid2>>,
+    },
+    Shutdown,
+}
+
+/// Talks to one site's task: every request is queued (bounded: callers wait when the site is busy) and
+/// applied in order. Cheap to clone.
+#[derive(Clone)]
+pub struct SiteHandle {
+    site: Arc<str>,
+    commands: mpsc::Sender<Command>,
+    versions: watch::Receiver<VersionInfo>,
+}
+
+impl SiteHandle {
+    pub(crate) fn new(
+        site: &str,
+        commands: mpsc::Sender<Command>,
+        versions: watch::Receiver<VersionInfo>,
+    ) -> Self {
+        Self {
+            site: site.into(),
+            commands,
+            versions,
+        }
+    }
+
+    /// The site id.
+    pub fn site(&self) -> &str {
+        &self.site
+    }
+
+    async fn ask<T>(
+        &self,
+        make: impl FnOnce(oneshot::Sender<T>) -> Command,
+    ) -> Result<T, SiteError> {
+        let (reply, answer) = oneshot::channel();
+        let stopped = || SiteError::Stopped(self.site.to_string());
+        self.commands
+            .send(make(reply))
+            .await
+            .map_err(|_| stopped())?;
+        answer.await.map_err(|_| stopped())
+    }
+
+    /// Opens (or re-opens) a session; returns the session and the current version.
+    pub async fn open_session(
+        &self,
+        robot_id: &str,
+        session_uuid: &str,
+    ) -> Result<(SessionOpened, u64), SiteError> {
+        self.ask(|reply| Command::OpenSession {
+            robot_id: robot_id.to_owned(),
+            session_uuid: session_uuid.to_owned(),
+            reply,
+        })
+        .await?
+    }
+
+    /// Uploads a batch; answers once it is durably stored and applied.
+    pub async fn upload(&self, batch: UploadBatch) -> Result<UploadAck, SiteError> {
+        self.ask(|reply| Command::Upload {
+            batch: Box::new(batch),
+            reply,
+        })
+        .await?
+    }
+
+    /// Closes a session (idempotent); returns the version after it.
+    pub async fn close_session(
+        &self,
+        robot_id: &str,
+        session_uuid: &str,
+    ) -> Result<u64, SiteError> {
+        self.ask(|reply| Command::CloseSession {
+            robot_id: robot_id.to_owned(),
+            session_uuid: session_uuid.to_owned(),
+            reply,
+        })
+        .await?
+    }
+
+    /// What changed after version `since`.
+    pub async fn delta_since(&self, since: u64) -> Result<MapDelta, SiteError> {
+        self.ask(|reply| Command::Delta { since, reply }).await?
+    }
+
+    /// One finished submap (`revision` 0: the current one).
+    pub async fn submap(&self, id: SubmapId, revision: u64) -> Result<SubmapSnapshot, SiteError> {
+        self.ask(|reply| Command::Submap {
+            id,
+            revision,
+            reply,
+        })
+        .await?
+    }
+
+    /// The map rendered at `resolution` (m; 0: the submaps' own).
+    pub async fn render(&self, resolution: f64) -> Result<RenderedMap, SiteError> {
+        self.ask(|reply| Command::Render { resolution, reply })
+            .await?
+    }
+
+    /// Current global pose of every node (diagnostics and tests).
+    pub async fn node_poses(&self) -> Result<BTreeMap<NodeId, Rigid2>, SiteError> {
+        self.ask(|reply| Command::NodePoses { reply }).await
+    }
+
+    /// The latest published version.
+    pub fn current(&self) -> VersionInfo {
+        *self.versions.borrow()
+    }
+
+    /// A receiver that sees every newly published version (and the site stopping, as a closed channel).
+    pub fn subscribe(&self) -> watch::Receiver<VersionInfo> {
+        self.versions.clone()
+    }
+
+    /// Requests queued and not yet taken by the task.
+    pub fn queue_depth(&self) -> usize {
+        self.commands.max_capacity() - self.commands.capacity()
+    }
+
+    /// Asks the task to stop after the requests queued before this one.
+    pub async fn shutdown(&self) {
+        let _ = self.commands.send(Command::Shutdown).await;
+    }
+}

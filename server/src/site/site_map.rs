@@ -1,0 +1,502 @@
+//! The site map: a multi-session pose graph plus the bookkeeping that makes versions and deltas.
+//!
+//! An adapter over [`mapping::global_slam::GlobalSlam`] (one trajectory per session), so that replacing it
+//! with the lifelong multi-session map (trimming, sparsification) changes only this file. Everything here
+//! is synchronous and deterministic: replaying the same opens, uploads and closes in the same order gives
+//! the same map, which is how the server rebuilds a site after a restart.
+//!
+//! A session's `SessionStartPrior` (`global_from_local`) is applied by expressing the session's local
+//! poses in the prior's frame before they reach the graph (`prior · local_from_x`): relative constraints
+//! are unchanged and the new nodes start where the prior puts them.
+
+use std::collections::BTreeMap;
+use std::sync::Arc;
+
+use mapping::geometry::{Rigid2, Rigid2Ext as _, normalize_angle};
+use mapping::global_slam::{GlobalSlam, GlobalSlamError, GlobalSlamEvent, GlobalSlamOptions};
+use mapping::grid::ProbabilityGrid;
+use mapping::pose_graph::{NodeId, SubmapId};
+use proto::{MapDelta, NodeAdded, SubmapSnapshot, UploadBatch, UploadItem};
+
+use super::SiteError;
+
+/// Two poses closer than this (m, rad) are the same pose for delta purposes.
+const POSE_EPSILON: f64 = 1e-9;
+
+#[derive(Clone, Debug)]
+struct Session {
+    robot_id: String,
+    trajectory: u32,
+    last_seq: u64,
+    closed: bool,
+    prior: Rigid2,
+    nodes: u64,
+}
+
+/// What opening a session gave.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SessionOpened {
+    /// The session's trajectory in the site map.
+    pub trajectory: u32,
+    /// Last applied sequence number (0: none).
+    pub last_seq: u64,
+    /// Whether this open created the session (a re-open of a known session changes nothing).
+    pub created: bool,
+}
+
+/// Whether an upload should be applied.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum UploadCheck {
+    /// Apply it: it is the session's next batch and fits the session.
+    Apply,
+    /// Its sequence number was already applied; acknowledge without applying.
+    Duplicate {
+        /// The session's last applied sequence number.
+        last_seq: u64,
+    },
+}
+
+/// Sizes of a site map.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct MapCounts {
+    /// Sessions ever opened.
+    pub sessions: u64,
+    /// Nodes.
+    pub nodes: u64,
+    /// Submaps (finished or not).
+    pub submaps: u64,
+    /// Finished submaps (with grids).
+    pub finished_submaps: u64,
+    /// Pose-graph constraints.
+    pub constraints: u64,
+    /// Submaps trimmed from the map.
+    pub trimmed_submaps: u64,
+    /// Accepted loop closures.
+    pub loop_closures: u64,
+}
+
+#[derive(Clone, Debug)]
+struct SubmapVersions {
+    /// Version at which the grid was stored.
+    revision: u64,
+    /// Version at which the global pose last changed.
+    pose_version: u64,
+    /// The global pose at `pose_version`.
+    pose: Rigid2,
+}
+
+/// One site's map, its sessions and its version history.
+pub struct SiteMap {
+    site: String,
+    slam: GlobalSlam,
+    sessions: BTreeMap<String, Session>,
+    submap_versions: BTreeMap<SubmapId, SubmapVersions>,
+    trimmed: BTreeMap<SubmapId, u64>,
+    version: u64,
+    optimizations: u64,
+}
+
+impl SiteMap {
+    /// An empty site map at version 0.
+    pub fn new(
+        site: impl Into<String>,
+        options: GlobalSlamOptions,
+    ) -> Result<Self, GlobalSlamError> {
+        Ok(Self {
+            site: site.into(),
+            slam: GlobalSlam::new(options)?,
+            sessions: BTreeMap::new(),
+            submap_versions: BTreeMap::new(),
+            trimmed: BTreeMap::new(),
+            version: 0,
+            optimizations: 0,
+        })
+    }
+
+    /// The site id.
+    pub fn site(&self) -> &str {
+        &self.site
+    }
+
+    /// The current version: how many changes have been applied.
+    pub fn version(&self) -> u64 {
+        self.version
+    }
+
+    /// What opening `session_uuid` for `robot_id` would give, without changing anything: the existing
+    /// session, or the trajectory a new one would get.
+    pub fn check_open(
+        &self,
+        robot_id: &str,
+        session_uuid: &str,
+    ) -> Result<SessionOpened, SiteError> {
+        match self.sessions.get(session_uuid) {
+            Some(s) if s.robot_id != robot_id => Err(SiteError::WrongRobot {
+                session: session_uuid.to_owned(),
+                owner: s.robot_id.clone(),
+                robot: robot_id.to_owned(),
+            }),
+            Some(s) => Ok(SessionOpened {
+                trajectory: s.trajectory,
+                last_seq: s.last_seq,
+                created: false,
+            }),
+            None => Ok(SessionOpened {
+                trajectory: self.sessions.len() as u32,
+                last_seq: 0,
+                created: true,
+            }),
+        }
+    }
+
+    /// Opens a new session as change number `version` (a no-op for a known session).
+    pub fn open_session(
+        &mut self,
+        robot_id: &str,
+        session_uuid: &str,
+        trajectory: u32,
+        version: u64,
+    ) -> Result<(), SiteError> {
+        if self.sessions.contains_key(session_uuid) {
+            return Ok(());
+        }
+        if trajectory != self.sessions.len() as u32 {
+            return Err(SiteError::Internal(format!(
+                "session {session_uuid:?} recorded as trajectory {trajectory}, expected {}",
+                self.sessions.len()
+            )));
+        }
+        self.sessions.insert(
+            session_uuid.to_owned(),
+            Session {
+                robot_id: robot_id.to_owned(),
+                trajectory,
+                last_seq: 0,
+                closed: false,
+                prior: Rigid2::identity(),
+                nodes: 0,
+            },
+        );
+        self.version = version;
+        Ok(())
+    }
+
+    fn session(&self, robot_id: &str, session_uuid: &str) -> Result<&Session, SiteError> {
+        let session = self
+            .sessions
+            .get(session_uuid)
+            .ok_or_else(|| SiteError::UnknownSession(session_uuid.to_owned()))?;
+        if session.robot_id != robot_id {
+            return Err(SiteError::WrongRobot {
+                session: session_uuid.to_owned(),
+                owner: session.robot_id.clone(),
+                robot: robot_id.to_owned(),
+            });
+        }
+        Ok(session)
+    }
+
+    /// Decides whether `batch` is the session's next one and fits it. Changes nothing.
+    pub fn check_upload(&self, batch: &UploadBatch) -> Result<UploadCheck, SiteError> {
+        let session = self.session(&batch.robot_id, &batch.session_uuid)?;
+        if batch.seq <= session.last_seq {
+            return Ok(UploadCheck::Duplicate {
+                last_seq: session.last_seq,
+            });
+        }
+        if batch.seq != session.last_seq + 1 {
+            return Err(SiteError::SequenceGap {
+                session: batch.session_uuid.clone(),
+                expected: session.last_seq + 1,
+                got: batch.seq,
+            });
+        }
+        if session.closed {
+            return Err(SiteError::SessionClosed(batch.session_uuid.clone()));
+        }
+        let mut nodes = session.nodes;
+        let mut last_insertion: &[(u32, Rigid2)] = &[];
+        let mut ended = false;
+        for (i, item) in batch.items.iter().enumerate() {
+            if ended {
+                return Err(SiteError::InvalidBatch(format!(
+                    "item {i} follows SessionEnd"
+                )));
+            }
+            match item {
+                UploadItem::NodeAdded(node) => {
+                    nodes += 1;
+                    last_insertion = &node.insertion_submaps;
+                }
+                UploadItem::SubmapFinished { index, .. } => {
+                    if !last_insertion.iter().any(|(s, _)| s == index) {
+                        return Err(SiteError::InvalidBatch(format!(
+                            "item {i} finishes submap {index}, which the node before it was not inserted into"
+                        )));
+                    }
+                }
+                UploadItem::SessionStartPrior { .. } => {
+                    if nodes > 0 {
+                        return Err(SiteError::InvalidBatch(format!(
+                            "item {i}: SessionStartPrior after the session's first node"
+                        )));
+                    }
+                }
+                UploadItem::SessionEnd => ended = true,
+            }
+        }
+        Ok(UploadCheck::Apply)
+    }
+
+    /// Applies a batch that [`Self::check_upload`] accepted, as change number `version`: adds its nodes and
+    /// finished submaps, runs the loop-closure searches they allow, and optimizes when due (and at the end
+    /// of a session). Returns the number of optimizations run. This is the heavy part: call it off the
+    /// async runtime.
+    pub fn apply_upload(&mut self, batch: &UploadBatch, version: u64) -> Result<usize, SiteError> {
+        let session = self
+            .sessions
+            .get(&batch.session_uuid)
+            .ok_or_else(|| SiteError::UnknownSession(batch.session_uuid.clone()))?;
+        let (trajectory, mut prior) = (session.trajectory, session.prior);
+        let mut optimizations = 0;
+        let mut nodes = 0;
+        let mut ended = false;
+        let mut items = batch.items.iter().peekable();
+        while let Some(item) = items.next() {
+            match item {
+                UploadItem::SessionStartPrior { global_from_local } => prior = *global_from_local,
+                UploadItem::SessionEnd => ended = true,
+                // check_upload guarantees these follow a node; they were handed over with it.
+                UploadItem::SubmapFinished { .. } => {}
+                UploadItem::NodeAdded(node) => {
+                    let mut finished = Vec::new();
+                    while let Some(UploadItem::SubmapFinished { index, grid }) = items.peek() {
+                        finished.push((*index as usize, grid.clone()));
+                        items.next();
+                    }
+                    optimizations += self.add_node(trajectory, &prior, node, finished)?;
+                    nodes += 1;
+                }
+            }
+        }
+        if ended {
+            self.slam.optimize();
+            optimizations += 1;
+        }
+        if let Some(session) = self.sessions.get_mut(&batch.session_uuid) {
+            session.prior = prior;
+            session.last_seq = batch.seq;
+            session.nodes += nodes;
+            session.closed |= ended;
+        }
+        self.optimizations += optimizations as u64;
+        self.finish_change(version);
+        Ok(optimizations)
+    }
+
+    fn add_node(
+        &mut self,
+        trajectory: u32,
+        prior: &Rigid2,
+        node: &NodeAdded,
+        finished: Vec<(usize, ProbabilityGrid)>,
+    ) -> Result<usize, SiteError> {
+        let insertion: Vec<(usize, Rigid2)> = node
+            .insertion_submaps
+            .iter()
+            .map(|(index, pose)| (*index as usize, prior * pose))
+            .collect();
+        self.slam
+            .add_node(
+                trajectory,
+                node.time,
+                prior * node.local_pose,
+                node.points.clone(),
+                &insertion,
+                finished,
+            )
+            .map_err(|e| SiteError::InvalidBatch(e.to_string()))?;
+        let events = self.slam.run_pending_searches();
+        Ok(events
+            .iter()
+            .filter(|e| matches!(e, GlobalSlamEvent::Optimized(_)))
+            .count())
+    }
+
+    /// Closes a session as change number `version`, with a final optimization (idempotent: closing a
+    /// closed session changes nothing and returns `false`).
+    pub fn close_session(
+        &mut self,
+        robot_id: &str,
+        session_uuid: &str,
+        version: u64,
+    ) -> Result<bool, SiteError> {
+        if self.session(robot_id, session_uuid)?.closed {
+            return Ok(false);
+        }
+        self.slam.optimize();
+        self.optimizations += 1;
+        if let Some(session) = self.sessions.get_mut(session_uuid) {
+            session.closed = true;
+        }
+        self.finish_change(version);
+        Ok(true)
+    }
+
+    /// The robot of a known session.
+    pub fn session_robot(&self, session_uuid: &str) -> Option<&str> {
+        self.sessions.get(session_uuid).map(|s| s.robot_id.as_str())
+    }
+
+    /// Whether the session is known and closed.
+    pub fn is_closed(&self, session_uuid: &str) -> bool {
+        self.sessions.get(session_uuid).is_some_and(|s| s.closed)
+    }
+
+    /// Records the revisions of newly finished submaps and which submap poses moved.
+    fn finish_change(&mut self, version: u64) {
+        self.version = version;
+        for (id, record) in self.slam.submaps() {
+            if record.grid.is_none() {
+                continue;
+            }
+            let Some(pose) = self.slam.submap_pose(*id) else {
+                continue;
+            };
+            match self.submap_versions.get_mut(id) {
+                None => {
+                    self.submap_versions.insert(
+                        *id,
+                        SubmapVersions {
+                            revision: version,
+                            pose_version: version,
+                            pose,
+                        },
+                    );
+                }
+                Some(v) => {
+                    let moved = (v.pose.translation.vector - pose.translation.vector).norm()
+                        > POSE_EPSILON
+                        || normalize_angle(v.pose.theta() - pose.theta()).abs() > POSE_EPSILON;
+                    if moved {
+                        v.pose_version = version;
+                        v.pose = pose;
+                    }
+                }
+            }
+        }
+    }
+
+    /// The sizes of the map.
+    pub fn counts(&self) -> MapCounts {
+        MapCounts {
+            sessions: self.sessions.len() as u64,
+            nodes: self.slam.nodes().len() as u64,
+            submaps: self.slam.submaps().len() as u64,
+            finished_submaps: self.submap_versions.len() as u64,
+            constraints: self.slam.graph().num_constraints() as u64,
+            trimmed_submaps: self.trimmed.len() as u64,
+            loop_closures: self.slam.loop_closure_scores().len() as u64,
+        }
+    }
+
+    /// Optimizations run so far.
+    pub fn optimizations(&self) -> u64 {
+        self.optimizations
+    }
+
+    fn snapshot(&self, id: SubmapId, versions: &SubmapVersions) -> Option<SubmapSnapshot> {
+        let record = self.slam.submaps().get(&id)?;
+        Some(SubmapSnapshot {
+            id,
+            revision: versions.revision,
+            global_pose: self.slam.submap_pose(id)?,
+            local_pose: record.local_pose,
+            grid: Arc::clone(record.grid.as_ref()?),
+        })
+    }
+
+    /// What changed after version `since` (0: the whole map): finished submaps stored after it (with
+    /// grids and current poses), current poses of older finished submaps that moved after it, and the
+    /// submaps trimmed after it.
+    pub fn delta_since(&self, since: u64) -> Result<MapDelta, SiteError> {
+        if since > self.version {
+            return Err(SiteError::NotFound(format!(
+                "version {since} is ahead of site {:?} (at {})",
+                self.site, self.version
+            )));
+        }
+        let mut delta = MapDelta {
+            site: self.site.clone(),
+            from_version: since,
+            to_version: self.version,
+            submaps_added: Vec::new(),
+            pose_updates: Vec::new(),
+            trimmed: Vec::new(),
+        };
+        for (id, versions) in &self.submap_versions {
+            if versions.revision > since {
+                delta.submaps_added.extend(self.snapshot(*id, versions));
+            } else if versions.pose_version > since {
+                delta
+                    .pose_updates
+                    .extend(self.slam.submap_pose(*id).map(|p| (*id, p)));
+            }
+        }
+        delta.trimmed = self
+            .trimmed
+            .iter()
+            .filter(|(_, v)| **v > since)
+            .map(|(id, _)| *id)
+            .collect();
+        Ok(delta)
+    }
+
+    /// One finished submap; `revision` 0 means the current one.
+    pub fn submap(&self, id: SubmapId, revision: u64) -> Result<SubmapSnapshot, SiteError> {
+        let not_found = || {
+            SiteError::NotFound(format!(
+                "submap ({}, {}) revision {revision} is not in site {:?}",
+                id.trajectory, id.index, self.site
+            ))
+        };
+        let versions = self.submap_versions.get(&id).ok_or_else(not_found)?;
+        if revision != 0 && revision != versions.revision {
+            return Err(not_found());
+        }
+        self.snapshot(id, versions).ok_or_else(not_found)
+    }
+
+    /// Every finished submap as (`global_from_grid`, grid), where the grid frame is its session's local
+    /// frame: what rendering needs.
+    pub fn grids_for_render(&self) -> Vec<(Rigid2, Arc<ProbabilityGrid>)> {
+        self.submap_versions
+            .keys()
+            .filter_map(|id| {
+                let record = self.slam.submaps().get(id)?;
+                let global = self.slam.submap_pose(*id)?;
+                Some((
+                    global * record.local_pose.inverse(),
+                    Arc::clone(record.grid.as_ref()?),
+                ))
+            })
+            .collect()
+    }
+
+    /// Current global pose of every node, by id.
+    pub fn node_poses(&self) -> BTreeMap<NodeId, Rigid2> {
+        self.slam
+            .nodes()
+            .keys()
+            .filter_map(|id| Some((*id, self.slam.node_pose(*id)?)))
+            .collect()
+    }
+
+    /// The underlying global SLAM state (read-only).
+    pub fn global_slam(&self) -> &GlobalSlam {
+        &self.slam
+    }
+}
+
+#[cfg(test)]
+mod tests;

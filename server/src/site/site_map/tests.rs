@@ -1,0 +1,205 @@
+use mapping::geometry::rigid2;
+use mapping::grid::{CellIndex, MapLimits};
+use mapping::sensor::Timestamp;
+use nalgebra::{Point2, Vector2};
+
+use super::*;
+
+fn grid() -> ProbabilityGrid {
+    let mut grid = ProbabilityGrid::new(MapLimits::new(0.05, Vector2::new(-1.0, -1.0), 40, 40));
+    for i in 0..40 {
+        grid.set_probability(&CellIndex::new(i, 30), 0.9);
+    }
+    grid
+}
+
+fn node(i: u32, submaps: &[u32]) -> UploadItem {
+    UploadItem::NodeAdded(NodeAdded {
+        time: Timestamp(i64::from(i) * 100_000_000),
+        local_pose: rigid2(0.1 * f64::from(i), 0.0, 0.0),
+        points: vec![Point2::new(1.0, 0.5), Point2::new(1.0, -0.5)],
+        insertion_submaps: submaps
+            .iter()
+            .map(|s| (*s, rigid2(f64::from(*s), 0.0, 0.0)))
+            .collect(),
+    })
+}
+
+fn batch(session: &str, seq: u64, items: Vec<UploadItem>) -> UploadBatch {
+    UploadBatch {
+        site: "s".into(),
+        robot_id: "r".into(),
+        session_uuid: session.into(),
+        seq,
+        items,
+    }
+}
+
+fn open(map: &mut SiteMap, session: &str) -> SessionOpened {
+    let opened = map.check_open("r", session).unwrap();
+    map.open_session("r", session, opened.trajectory, map.version() + 1)
+        .unwrap();
+    opened
+}
+
+fn apply(map: &mut SiteMap, b: &UploadBatch) {
+    assert_eq!(map.check_upload(b).unwrap(), UploadCheck::Apply);
+    map.apply_upload(b, map.version() + 1).unwrap();
+}
+
+#[test]
+fn sessions_get_trajectories_in_order_and_reopen_idempotently() {
+    let mut map = SiteMap::new("s", GlobalSlamOptions::default()).unwrap();
+    assert_eq!(open(&mut map, "a").trajectory, 0);
+    assert_eq!(open(&mut map, "b").trajectory, 1);
+    assert_eq!(map.version(), 2);
+    let again = map.check_open("r", "a").unwrap();
+    assert_eq!((again.trajectory, again.created), (0, false));
+    assert!(matches!(
+        map.check_open("other", "a"),
+        Err(SiteError::WrongRobot { .. })
+    ));
+}
+
+#[test]
+fn uploads_must_come_in_sequence_and_fit_the_session() {
+    let mut map = SiteMap::new("s", GlobalSlamOptions::default()).unwrap();
+    assert!(matches!(
+        map.check_upload(&batch("a", 1, vec![node(0, &[0])])),
+        Err(SiteError::UnknownSession(_))
+    ));
+    open(&mut map, "a");
+    assert!(matches!(
+        map.check_upload(&batch("a", 2, vec![node(0, &[0])])),
+        Err(SiteError::SequenceGap {
+            expected: 1,
+            got: 2,
+            ..
+        })
+    ));
+    apply(&mut map, &batch("a", 1, vec![node(0, &[0])]));
+    assert_eq!(
+        map.check_upload(&batch("a", 1, vec![node(0, &[0])]))
+            .unwrap(),
+        UploadCheck::Duplicate { last_seq: 1 }
+    );
+    let orphan = batch(
+        "a",
+        2,
+        vec![
+            node(1, &[0]),
+            UploadItem::SubmapFinished {
+                index: 3,
+                grid: grid(),
+            },
+        ],
+    );
+    assert!(matches!(
+        map.check_upload(&orphan),
+        Err(SiteError::InvalidBatch(_))
+    ));
+    let late_prior = batch(
+        "a",
+        2,
+        vec![UploadItem::SessionStartPrior {
+            global_from_local: Rigid2::identity(),
+        }],
+    );
+    assert!(matches!(
+        map.check_upload(&late_prior),
+        Err(SiteError::InvalidBatch(_))
+    ));
+    apply(
+        &mut map,
+        &batch("a", 2, vec![node(1, &[0]), UploadItem::SessionEnd]),
+    );
+    assert!(map.is_closed("a"));
+    assert!(matches!(
+        map.check_upload(&batch("a", 3, vec![node(2, &[0])])),
+        Err(SiteError::SessionClosed(_))
+    ));
+}
+
+#[test]
+fn deltas_carry_new_submaps_and_moved_poses_only() {
+    let mut map = SiteMap::new("s", GlobalSlamOptions::default()).unwrap();
+    open(&mut map, "a");
+    apply(
+        &mut map,
+        &batch("a", 1, vec![node(0, &[0]), node(1, &[0, 1])]),
+    );
+    let v_before = map.version();
+    assert!(map.delta_since(0).unwrap().submaps_added.is_empty());
+    apply(
+        &mut map,
+        &batch(
+            "a",
+            2,
+            vec![
+                node(2, &[0, 1]),
+                UploadItem::SubmapFinished {
+                    index: 0,
+                    grid: grid(),
+                },
+            ],
+        ),
+    );
+    let v_finished = map.version();
+    let delta = map.delta_since(v_before).unwrap();
+    assert_eq!(delta.to_version, v_finished);
+    assert_eq!(delta.submaps_added.len(), 1);
+    assert_eq!(delta.submaps_added[0].revision, v_finished);
+    assert_eq!(*delta.submaps_added[0].grid, grid());
+    assert!(
+        map.delta_since(v_finished)
+            .unwrap()
+            .submaps_added
+            .is_empty()
+    );
+    assert!(map.delta_since(v_finished + 1).is_err());
+    let id = SubmapId {
+        trajectory: 0,
+        index: 0,
+    };
+    assert_eq!(map.submap(id, 0).unwrap().revision, v_finished);
+    assert!(map.submap(id, v_finished).is_ok());
+    assert!(matches!(
+        map.submap(id, v_before),
+        Err(SiteError::NotFound(_))
+    ));
+    assert_eq!(map.counts().finished_submaps, 1);
+    assert_eq!(map.counts().nodes, 3);
+    assert_eq!(map.grids_for_render().len(), 1);
+}
+
+#[test]
+fn a_start_prior_places_the_session() {
+    let mut map = SiteMap::new("s", GlobalSlamOptions::default()).unwrap();
+    open(&mut map, "a");
+    apply(&mut map, &batch("a", 1, vec![node(0, &[0])]));
+    open(&mut map, "b");
+    let prior = rigid2(10.0, -2.0, 0.5);
+    apply(
+        &mut map,
+        &batch(
+            "b",
+            1,
+            vec![
+                UploadItem::SessionStartPrior {
+                    global_from_local: prior,
+                },
+                node(3, &[0]),
+            ],
+        ),
+    );
+    let poses = map.node_poses();
+    let b0 = poses[&NodeId {
+        trajectory: 1,
+        index: 0,
+    }];
+    let expected = prior * rigid2(0.3, 0.0, 0.0);
+    assert!(
+        (b0.translation.vector - expected.translation.vector).norm() < 1e-9,
+        "{b0:?}"
+    );
+}
