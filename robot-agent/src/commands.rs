@@ -2,3 +2,4 @@
 
 pub mod offline;
 pub mod relocalize;
+pub mod run;

@@ -18,6 +18,9 @@ enum Command {
     Offline(commands::offline::OfflineArgs),
     /// Builds a map from the first 60 % of a recording and relocalizes scans of the rest with no prior.
     Relocalize(commands::relocalize::RelocalizeArgs),
+    /// Runs LLO on a recording and streams it to the fleet map server (durable outbox, resumes after a
+    /// reconnect).
+    Run(commands::run::RunArgs),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -25,5 +28,6 @@ fn main() -> anyhow::Result<()> {
     match cli.command {
         Command::Offline(args) => commands::offline::run(&args),
         Command::Relocalize(args) => commands::relocalize::run(&args),
+        Command::Run(args) => commands::run::run(&args),
     }
 }
