@@ -667,3 +667,46 @@ async fn get_version_agrees_with_watch() {
     assert_eq!(*seen.last().unwrap(), version(&mut map).await.version);
     server.shutdown().await.unwrap();
 }
+
+// Reference: issue 4 §2 "gRPC health and reflection so `grpcurl` works".
+#[tokio::test]
+async fn reflection_lists_the_fleet_services() {
+    use tonic_reflection::pb::v1::ServerReflectionRequest;
+    use tonic_reflection::pb::v1::server_reflection_client::ServerReflectionClient;
+    use tonic_reflection::pb::v1::server_reflection_request::MessageRequest;
+    use tonic_reflection::pb::v1::server_reflection_response::MessageResponse;
+
+    let server = RunningServer::start(&config(), Arc::new(MemStore::new()))
+        .await
+        .unwrap();
+    let channel = Channel::from_shared(url(&server))
+        .unwrap()
+        .connect()
+        .await
+        .unwrap();
+    let request = ServerReflectionRequest {
+        host: String::new(),
+        message_request: Some(MessageRequest::ListServices(String::new())),
+    };
+    let mut responses = ServerReflectionClient::new(channel)
+        .server_reflection_info(tokio_stream::iter([request]))
+        .await
+        .unwrap()
+        .into_inner();
+    let response = bounded("reflection", responses.next())
+        .await
+        .unwrap()
+        .unwrap();
+    let Some(MessageResponse::ListServicesResponse(list)) = response.message_response else {
+        panic!("unexpected reflection answer {response:?}");
+    };
+    let names: Vec<&str> = list.service.iter().map(|s| s.name.as_str()).collect();
+    for expected in [
+        "evermap.fleet.v1.AgentService",
+        "evermap.fleet.v1.MapService",
+        "grpc.health.v1.Health",
+    ] {
+        assert!(names.contains(&expected), "{names:?}");
+    }
+    server.shutdown().await.unwrap();
+}

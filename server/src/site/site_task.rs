@@ -51,12 +51,19 @@ impl SiteTask {
         metrics: Arc<ServerMetrics>,
         queue_depth: usize,
     ) -> Result<(SiteHandle, JoinHandle<()>), SiteError> {
+        let started = Instant::now();
         let map = {
             let (site, store) = (site.to_owned(), Arc::clone(&store));
             tokio::task::spawn_blocking(move || replay(&site, options, store.as_ref()))
                 .await
                 .map_err(internal)??
         };
+        tracing::info!(
+            site,
+            version = map.version(),
+            seconds = started.elapsed().as_secs_f64(),
+            "site log replayed"
+        );
         let info = VersionInfo {
             version: map.version(),
             counts: map.counts(),
