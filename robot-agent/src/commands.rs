@@ -4,3 +4,4 @@ pub mod offline;
 pub mod relocalize;
 pub mod simulate;
 pub mod sessions;
+pub mod run;

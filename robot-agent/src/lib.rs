@@ -1,10 +1,13 @@
 //! # robot-agent — the robot side of evermap
 //!
-//! Data sources (ROS1 bags, CARMEN logs) and the offline tools built on the `mapping` core.
+//! Data sources (ROS1 bags, CARMEN logs), the offline tools built on the `mapping` core, and the uplink to
+//! the fleet map server (durable outbox, gRPC, the global submap cache).
 
 pub mod line_chart;
 pub mod lifelong_run;
 pub mod map_image;
 pub mod offline_slam;
+pub mod outbox;
 pub mod process_stats;
 pub mod source;
+pub mod uplink;

@@ -23,6 +23,9 @@ enum Command {
     /// Runs a recording as several time sessions through the lifelong map (relocalization, GLM across
     /// sessions, trimming) and scores it over cross-session relations.
     Sessions(commands::sessions::SessionsArgs),
+    /// Runs LLO on a recording and streams it to the fleet map server (durable outbox, resumes after a
+    /// reconnect).
+    Run(commands::run::RunArgs),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -32,5 +35,6 @@ fn main() -> anyhow::Result<()> {
         Command::Relocalize(args) => commands::relocalize::run(&args),
         Command::Simulate(args) => commands::simulate::run(&args),
         Command::Sessions(args) => commands::sessions::run(&args),
+        Command::Run(args) => commands::run::run(&args),
     }
 }

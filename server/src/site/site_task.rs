@@ -51,12 +51,19 @@ impl SiteTask {
         metrics: Arc<ServerMetrics>,
         queue_depth: usize,
     ) -> Result<(SiteHandle, JoinHandle<()>), SiteError> {
+        let started = Instant::now();
         let map = {
             let (site, store) = (site.to_owned(), Arc::clone(&store));
             tokio::task::spawn_blocking(move || replay(&site, options, store.as_ref()))
                 .await
                 .map_err(internal)??
         };
+        tracing::info!(
+            site,
+            version = map.version(),
+            seconds = started.elapsed().as_secs_f64(),
+            "site log replayed"
+        );
         let info = VersionInfo {
             version: map.version(),
             counts: map.counts(),
@@ -346,4 +353,74 @@ fn replay(
         });
     }
     Ok(map)
+}
+
+#[cfg(test)]
+mod tests {
+    use storage::MemStore;
+
+    use super::*;
+
+    async fn spawn(store: &Arc<dyn MapStore>) -> Result<(SiteHandle, JoinHandle<()>), SiteError> {
+        SiteTask::spawn(
+            "s",
+            GlobalSlamOptions::default(),
+            Arc::clone(store),
+            Arc::new(ServerMetrics::default()),
+            4,
+        )
+        .await
+    }
+
+    #[tokio::test]
+    async fn changes_are_logged_and_replayed_with_the_same_versions() {
+        let store: Arc<dyn MapStore> = Arc::new(MemStore::new());
+        let (site, task) = spawn(&store).await.unwrap();
+        let (opened, v1) = site.open_session("r", "a").await.unwrap();
+        assert!(opened.created);
+        assert_eq!(v1, 1);
+        assert_eq!(
+            site.open_session("r", "a").await.unwrap().1,
+            1,
+            "a re-open logs nothing"
+        );
+        assert_eq!(site.close_session("r", "a").await.unwrap(), 2);
+        assert_eq!(site.close_session("r", "a").await.unwrap(), 2, "idempotent");
+        site.shutdown().await;
+        task.await.unwrap();
+        assert_eq!(store.map_version("s").unwrap(), 2);
+        assert_eq!(store.scan("s", SITE_LOG_KIND).unwrap().count(), 2);
+
+        let (site, _task) = spawn(&store).await.unwrap();
+        assert_eq!(site.current().version, 2);
+        assert_eq!(site.current().counts.sessions, 1);
+        assert!(matches!(
+            site.open_session("intruder", "a").await,
+            Err(SiteError::WrongRobot { .. })
+        ));
+    }
+
+    #[tokio::test]
+    async fn a_damaged_log_is_reported_not_used() {
+        let store: Arc<dyn MapStore> = Arc::new(MemStore::new());
+        let mut batch = WriteBatch::new("s");
+        batch
+            .put(SITE_LOG_KIND, 1_u64, b"not a log entry".to_vec())
+            .bump_map_version();
+        store.apply(&batch).unwrap();
+        assert!(matches!(
+            spawn(&store).await,
+            Err(SiteError::CorruptLog { index: 1, .. })
+        ));
+
+        // A version bumped without its log entry (a lost entry) is caught too.
+        let store: Arc<dyn MapStore> = Arc::new(MemStore::new());
+        let mut batch = WriteBatch::new("s");
+        batch.bump_map_version();
+        store.apply(&batch).unwrap();
+        assert!(matches!(
+            spawn(&store).await,
+            Err(SiteError::CorruptLog { .. })
+        ));
+    }
 }

@@ -1,0 +1,258 @@
+//! `evermap-agent run --config agent.toml`: replays a recording through LLO and streams the result to the
+//! fleet map server, following the site's versions into the global submap cache.
+//!
+//! ```toml
+//! server_url = "http://127.0.0.1:50051"
+//! site = "store-1"
+//! robot_id = "robot-1"
+//! token = "change-me"
+//! source = "../shared/datasets/rosbag1/mit-csail.orig.bag"
+//! replay_speed = 1.0        # multiple of real time; 0 = as fast as possible
+//! outbox_dir = "./evermap-outbox"
+//! ```
+
+use std::fmt::Write as _;
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use anyhow::Context as _;
+use clap::Args;
+use mapping::local_slam::LocalTrajectoryBuilderOptions;
+use rand::RngCore as _;
+use robot_agent::outbox::Outbox;
+use robot_agent::source;
+use robot_agent::uplink::{
+    GlobalSubmapCache, GrpcUplink, SessionOptions, Uploader, follow_site, stream_recording,
+};
+use serde::Deserialize;
+
+/// Arguments of `run`.
+#[derive(Args)]
+pub struct RunArgs {
+    /// The agent's TOML configuration (see [`AgentConfig`]).
+    #[arg(long)]
+    config: PathBuf,
+}
+
+/// Everything `evermap-agent run` reads from its TOML file.
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AgentConfig {
+    /// The map server's gRPC URL. Default `http://127.0.0.1:50051`.
+    pub server_url: String,
+    /// The site (store) this robot maps. Required.
+    pub site: String,
+    /// This robot's id. Required.
+    pub robot_id: String,
+    /// This robot's bearer token for the site. Required.
+    pub token: String,
+    /// The recording to replay: a ROS1 bag or a CARMEN log. Required.
+    pub source: PathBuf,
+    /// Replay pace as a multiple of real time; 0 = as fast as possible. Default 1.
+    pub replay_speed: f64,
+    /// Stop after this many scans (all by default).
+    pub max_scans: Option<usize>,
+    /// Outbox database directory. Default `./evermap-outbox`.
+    pub outbox_dir: PathBuf,
+    /// Session uuid; a random one by default (reuse one only together with its outbox).
+    pub session_uuid: Option<String>,
+    /// Nodes per upload batch. Default 10.
+    pub nodes_per_batch: usize,
+    /// Largest gRPC message, bytes (match the server's). Default 64 MiB.
+    pub max_message_bytes: usize,
+    /// Timeout of one gRPC call, seconds. Default 30.
+    pub call_timeout_s: f64,
+    /// Pause between retries while the server is unreachable, seconds. Default 1.
+    pub retry_interval_s: f64,
+    /// After the recording, how long to keep trying to deliver the outbox, seconds. Default 300.
+    pub final_flush_timeout_s: f64,
+    /// LLO settings.
+    pub local: LocalTrajectoryBuilderOptions,
+}
+
+impl Default for AgentConfig {
+    fn default() -> Self {
+        Self {
+            server_url: "http://127.0.0.1:50051".into(),
+            site: String::new(),
+            robot_id: String::new(),
+            token: String::new(),
+            source: PathBuf::new(),
+            replay_speed: 1.0,
+            max_scans: None,
+            outbox_dir: PathBuf::from("./evermap-outbox"),
+            session_uuid: None,
+            nodes_per_batch: 10,
+            max_message_bytes: 64 << 20,
+            call_timeout_s: 30.0,
+            retry_interval_s: 1.0,
+            final_flush_timeout_s: 300.0,
+            local: LocalTrajectoryBuilderOptions::default(),
+        }
+    }
+}
+
+fn seconds(name: &str, value: f64) -> anyhow::Result<Duration> {
+    Duration::try_from_secs_f64(value)
+        .ok()
+        .filter(|d| !d.is_zero())
+        .with_context(|| format!("{name} must be a positive number of seconds, got {value}"))
+}
+
+impl AgentConfig {
+    /// Checks every field.
+    pub fn validate(&self) -> anyhow::Result<()> {
+        for (name, value) in [
+            ("site", &self.site),
+            ("robot_id", &self.robot_id),
+            ("token", &self.token),
+        ] {
+            anyhow::ensure!(!value.is_empty(), "{name} is required");
+        }
+        anyhow::ensure!(!self.source.as_os_str().is_empty(), "source is required");
+        anyhow::ensure!(
+            self.replay_speed.is_finite() && self.replay_speed >= 0.0,
+            "replay_speed must be ≥ 0"
+        );
+        anyhow::ensure!(
+            self.nodes_per_batch > 0,
+            "nodes_per_batch must be at least 1"
+        );
+        anyhow::ensure!(
+            self.max_message_bytes >= 1 << 20,
+            "max_message_bytes must be at least 1 MiB"
+        );
+        seconds("call_timeout_s", self.call_timeout_s)?;
+        seconds("retry_interval_s", self.retry_interval_s)?;
+        seconds("final_flush_timeout_s", self.final_flush_timeout_s)?;
+        self.local.validate()?;
+        Ok(())
+    }
+}
+
+/// A random (version 4) UUID.
+fn random_uuid() -> String {
+    let mut bytes = [0_u8; 16];
+    rand::rng().fill_bytes(&mut bytes);
+    bytes[6] = (bytes[6] & 0x0f) | 0x40;
+    bytes[8] = (bytes[8] & 0x3f) | 0x80;
+    let hex = bytes.iter().fold(String::with_capacity(32), |mut hex, b| {
+        let _ = write!(hex, "{b:02x}");
+        hex
+    });
+    format!(
+        "{}-{}-{}-{}-{}",
+        &hex[0..8],
+        &hex[8..12],
+        &hex[12..16],
+        &hex[16..20],
+        &hex[20..32]
+    )
+}
+
+/// Runs the command.
+pub fn run(args: &RunArgs) -> anyhow::Result<()> {
+    tracing_subscriber::fmt()
+        .with_max_level(tracing::Level::INFO)
+        .init();
+    let text = std::fs::read_to_string(&args.config)
+        .with_context(|| format!("cannot read {}", args.config.display()))?;
+    let config: AgentConfig =
+        toml::from_str(&text).with_context(|| format!("in {}", args.config.display()))?;
+    config.validate()?;
+    let recording = Arc::new(
+        source::read_recording(&config.source)
+            .with_context(|| format!("cannot read {}", config.source.display()))?,
+    );
+    let outbox = Outbox::open(&config.outbox_dir, &config.site)
+        .with_context(|| format!("cannot open the outbox at {}", config.outbox_dir.display()))?;
+    let session_uuid = config.session_uuid.clone().unwrap_or_else(random_uuid);
+    let call_timeout = seconds("call_timeout_s", config.call_timeout_s)?;
+    let retry_interval = seconds("retry_interval_s", config.retry_interval_s)?;
+    let options = SessionOptions {
+        nodes_per_batch: config.nodes_per_batch,
+        replay_speed: config.replay_speed,
+        max_scans: config.max_scans,
+        retry_interval,
+        final_flush_timeout: seconds("final_flush_timeout_s", config.final_flush_timeout_s)?,
+        local: config.local.clone(),
+    };
+    tracing::info!(
+        site = %config.site, robot = %config.robot_id, session = %session_uuid,
+        pending = outbox.len()?, "starting session"
+    );
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .thread_name("evermap-agent")
+        .build()?;
+    runtime.block_on(async {
+        let uplink = GrpcUplink::new(
+            &config.server_url,
+            &config.site,
+            &config.token,
+            config.max_message_bytes,
+            call_timeout,
+        )?;
+        let cache = Arc::new(Mutex::new(GlobalSubmapCache::default()));
+        let (stop, stopped) = tokio::sync::watch::channel(false);
+        let follower = tokio::spawn(follow_site(
+            uplink.clone(),
+            Arc::clone(&cache),
+            stopped,
+            retry_interval,
+        ));
+        let mut uploader = Uploader::new(
+            uplink,
+            outbox,
+            &config.site,
+            &config.robot_id,
+            &session_uuid,
+        )?;
+        let report = stream_recording(recording, &options, &mut uploader).await?;
+        let _ = stop.send(true);
+        let _ = follower.await;
+        let (version, submaps) = cache
+            .lock()
+            .map(|c| (c.version(), c.submaps().len()))
+            .unwrap_or_default();
+        tracing::info!(
+            scans = report.llo.scans,
+            nodes = report.llo.nodes,
+            submaps_finished = report.llo.submaps_finished,
+            batches = report.batches,
+            applied = report.applied,
+            failed_flushes = report.failed_flushes,
+            map_version = report.map_version,
+            left_in_outbox = report.left_in_outbox,
+            cache_version = version,
+            cached_submaps = submaps,
+            "session done"
+        );
+        anyhow::ensure!(
+            report.left_in_outbox == 0,
+            "{} batches are still in the outbox: run again to deliver them",
+            report.left_in_outbox
+        );
+        anyhow::Ok(())
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn configs_need_their_identity_and_parse_strictly() {
+        let text = "site = \"s\"\nrobot_id = \"r\"\ntoken = \"t0k3n-t0k3n\"\nsource = \"x.bag\"\n";
+        let config: AgentConfig = toml::from_str(text).unwrap();
+        config.validate().unwrap();
+        assert!(AgentConfig::default().validate().is_err());
+        assert!(toml::from_str::<AgentConfig>("sight = \"s\"").is_err());
+        let uuid = random_uuid();
+        assert_eq!(uuid.len(), 36);
+        assert_eq!(&uuid[14..15], "4");
+        assert_ne!(uuid, random_uuid());
+    }
+}

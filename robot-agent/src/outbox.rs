@@ -1,0 +1,203 @@
+//! The agent's durable outbox: every upload batch from the moment it is made until the server
+//! acknowledges it, so a dead link or a dead server (or a restarted agent) loses nothing.
+//!
+//! Batches are stored (encoded `UploadBatch` messages) as `RecordKind::Outbox` records of the agent's
+//! site in a [`storage::MapStore`] — sled on disk, or in memory for tests — keyed by session then
+//! sequence number, and written with a durable flush before [`Outbox::push`] returns. Calls block for a
+//! disk flush (milliseconds).
+
+use std::path::Path;
+use std::sync::Arc;
+
+use prost::Message as _;
+use proto::pb;
+use storage::{MapStore, MemStore, RecordId, RecordKind, SledStore, SledStoreOptions, WriteBatch};
+
+/// Outbox failures.
+#[derive(Debug, thiserror::Error)]
+pub enum OutboxError {
+    /// The store failed.
+    #[error("outbox storage: {0}")]
+    Storage(#[from] storage::StorageError),
+    /// A stored batch cannot be decoded.
+    #[error("corrupt outbox entry {id}: {reason}")]
+    Corrupt {
+        /// The record id.
+        id: String,
+        /// Why.
+        reason: String,
+    },
+}
+
+/// Batches not yet acknowledged by the server, for one site.
+#[derive(Clone)]
+pub struct Outbox {
+    store: Arc<dyn MapStore>,
+    site: String,
+}
+
+fn record_id(session: &str, seq: u64) -> RecordId {
+    // Session ids contain no control characters, so the NUL separator keeps sessions apart and the
+    // big-endian sequence number sorts numerically.
+    let mut id = session.as_bytes().to_vec();
+    id.push(0);
+    id.extend_from_slice(&seq.to_be_bytes());
+    RecordId::new(id)
+}
+
+fn session_prefix(id: &RecordId) -> Option<(&[u8], u64)> {
+    let bytes = id.as_bytes();
+    let (session, rest) = bytes.split_at(bytes.len().checked_sub(9)?);
+    let (nul, seq) = rest.split_first()?;
+    (*nul == 0).then(|| {
+        (
+            session,
+            u64::from_be_bytes(seq.try_into().unwrap_or_default()),
+        )
+    })
+}
+
+impl Outbox {
+    /// An outbox on disk in `dir` (created if missing) for `site`.
+    pub fn open(dir: &Path, site: &str) -> Result<Self, OutboxError> {
+        let store = SledStore::open(&SledStoreOptions::at(dir))?;
+        Ok(Self {
+            store: Arc::new(store),
+            site: site.to_owned(),
+        })
+    }
+
+    /// An outbox in memory (tests).
+    pub fn in_memory(site: &str) -> Self {
+        Self {
+            store: Arc::new(MemStore::new()),
+            site: site.to_owned(),
+        }
+    }
+
+    /// Stores a batch durably (replacing one with the same session and sequence number).
+    pub fn push(&self, batch: &pb::UploadBatch) -> Result<(), OutboxError> {
+        let mut write = WriteBatch::new(&self.site);
+        write.put(
+            RecordKind::Outbox,
+            record_id(&batch.session_uuid, batch.seq),
+            batch.encode_to_vec(),
+        );
+        self.store.apply_durable(&write)?;
+        Ok(())
+    }
+
+    /// Every pending batch, ordered by session then sequence number.
+    pub fn pending(&self) -> Result<Vec<pb::UploadBatch>, OutboxError> {
+        self.store
+            .scan(&self.site, RecordKind::Outbox)?
+            .map(|record| {
+                let (id, bytes) = record?;
+                pb::UploadBatch::decode(bytes.as_slice()).map_err(|e| OutboxError::Corrupt {
+                    id: id.to_string(),
+                    reason: e.to_string(),
+                })
+            })
+            .collect()
+    }
+
+    /// Highest pending sequence number of `session`, if any.
+    pub fn last_seq(&self, session: &str) -> Result<Option<u64>, OutboxError> {
+        let mut last = None;
+        for record in self.store.scan(&self.site, RecordKind::Outbox)? {
+            let (id, _) = record?;
+            if let Some((s, seq)) = session_prefix(&id)
+                && s == session.as_bytes()
+            {
+                last = Some(seq);
+            }
+        }
+        Ok(last)
+    }
+
+    /// Removes (durably) every batch of `session` with a sequence number up to `seq`: the server has them.
+    /// Returns how many were removed.
+    pub fn remove_through(&self, session: &str, seq: u64) -> Result<usize, OutboxError> {
+        let mut write = WriteBatch::new(&self.site);
+        for record in self.store.scan(&self.site, RecordKind::Outbox)? {
+            let (id, _) = record?;
+            if let Some((s, n)) = session_prefix(&id)
+                && s == session.as_bytes()
+                && n <= seq
+            {
+                write.delete(RecordKind::Outbox, id);
+            }
+        }
+        let removed = write.len();
+        if removed > 0 {
+            self.store.apply_durable(&write)?;
+        }
+        Ok(removed)
+    }
+
+    /// Number of pending batches.
+    pub fn len(&self) -> Result<usize, OutboxError> {
+        Ok(self.store.scan(&self.site, RecordKind::Outbox)?.count())
+    }
+
+    /// Whether nothing is pending.
+    pub fn is_empty(&self) -> Result<bool, OutboxError> {
+        Ok(self.len()? == 0)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn batch(session: &str, seq: u64) -> pb::UploadBatch {
+        pb::UploadBatch {
+            format_version: proto::FORMAT_VERSION,
+            site: "s".into(),
+            robot_id: "r".into(),
+            session_uuid: session.into(),
+            seq,
+            items: vec![],
+        }
+    }
+
+    #[test]
+    fn batches_wait_until_acknowledged_in_order() {
+        let outbox = Outbox::in_memory("s");
+        for seq in [3, 1, 2, 300] {
+            outbox.push(&batch("a", seq)).unwrap();
+        }
+        outbox.push(&batch("ab", 1)).unwrap();
+        let seqs: Vec<(String, u64)> = outbox
+            .pending()
+            .unwrap()
+            .into_iter()
+            .map(|b| (b.session_uuid, b.seq))
+            .collect();
+        assert_eq!(
+            seqs,
+            [("a", 1), ("a", 2), ("a", 3), ("a", 300), ("ab", 1)].map(|(s, n)| (s.to_owned(), n))
+        );
+        assert_eq!(outbox.last_seq("a").unwrap(), Some(300));
+        assert_eq!(outbox.last_seq("zz").unwrap(), None);
+        assert_eq!(outbox.remove_through("a", 2).unwrap(), 2);
+        assert_eq!(outbox.len().unwrap(), 3);
+        assert_eq!(outbox.remove_through("a", 1000).unwrap(), 2);
+        assert_eq!(outbox.pending().unwrap()[0].session_uuid, "ab");
+    }
+
+    #[test]
+    fn a_sled_outbox_survives_reopening() {
+        let dir = tempfile::tempdir().unwrap();
+        {
+            let outbox = Outbox::open(dir.path(), "s").unwrap();
+            outbox.push(&batch("a", 1)).unwrap();
+            outbox.push(&batch("a", 2)).unwrap();
+            outbox.remove_through("a", 1).unwrap();
+        }
+        let outbox = Outbox::open(dir.path(), "s").unwrap();
+        let pending = outbox.pending().unwrap();
+        assert_eq!(pending.len(), 1);
+        assert_eq!(pending[0].seq, 2);
+    }
+}

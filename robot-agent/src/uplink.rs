@@ -1,0 +1,128 @@
+//! The robot's link to the map server: [`MapUplink`] (one trait, several transports), the durable
+//! [`Uploader`] on top of it, the LLO pipeline that feeds it, and the cache of the site's global submaps
+//! kept current from the server's versions.
+//!
+//! Exactly-once delivery: each batch gets the session's next sequence number and is written to the
+//! [`crate::outbox::Outbox`] before any send; it leaves the outbox only once acknowledged. After a
+//! reconnect, `OpenSession` (idempotent) returns the server's last applied sequence number, everything up
+//! to it is dropped from the outbox and the rest is re-sent in order; the server applies each
+//! (session, seq) once.
+
+mod agent_session;
+mod global_submap_cache;
+mod grpc_uplink;
+mod in_memory_uplink;
+mod llo_stream;
+mod uploader;
+
+use std::future::Future;
+use std::pin::Pin;
+
+pub use agent_session::{SessionOptions, SessionReport, follow_site, stream_recording};
+pub use global_submap_cache::{CacheError, GlobalSubmapCache};
+pub use grpc_uplink::GrpcUplink;
+pub use in_memory_uplink::InMemoryUplink;
+pub use llo_stream::{LloStats, run_llo};
+pub use proto::MapDelta;
+use proto::pb;
+pub use uploader::{FlushStats, Uploader};
+
+/// Why an uplink call failed.
+#[derive(Debug, thiserror::Error)]
+pub enum UplinkError {
+    /// The server cannot be reached now (connection refused or lost, timeout, server unavailable):
+    /// try again later; nothing is lost.
+    #[error("server unavailable: {0}")]
+    Unavailable(String),
+    /// The server refused a batch because it skipped sequence numbers.
+    #[error("sequence gap: the server expects seq {expected}")]
+    SequenceGap {
+        /// The next sequence number the server accepts.
+        expected: u64,
+    },
+    /// The server refused the request for good (bad token, malformed data, ...).
+    #[error("refused by the server ({code}): {message}")]
+    Rejected {
+        /// gRPC status code.
+        code: tonic::Code,
+        /// The server's message.
+        message: String,
+    },
+    /// The server sent something malformed.
+    #[error("malformed answer: {0}")]
+    Malformed(#[from] proto::ConversionError),
+    /// The outbox failed.
+    #[error(transparent)]
+    Outbox(#[from] crate::outbox::OutboxError),
+}
+
+impl UplinkError {
+    /// Whether retrying later can help.
+    pub fn is_transient(&self) -> bool {
+        matches!(self, Self::Unavailable(_) | Self::SequenceGap { .. })
+    }
+}
+
+/// What opening a session returned.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct OpenedSession {
+    /// The session's trajectory in the site map.
+    pub trajectory: u32,
+    /// Last sequence number the server applied (0: none).
+    pub last_acked_seq: u64,
+    /// Whether this call created the session.
+    pub created: bool,
+    /// The site's version.
+    pub map_version: u64,
+}
+
+/// The server's acknowledgement of one batch.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Acked {
+    /// The batch's sequence number.
+    pub seq: u64,
+    /// Site version after it.
+    pub map_version: u64,
+    /// The server already had it.
+    pub duplicate: bool,
+}
+
+/// A stream of site versions.
+pub type VersionStream = Pin<Box<dyn tokio_stream::Stream<Item = Result<u64, UplinkError>> + Send>>;
+
+/// A connection to the map server for one site. Implementations: [`GrpcUplink`] and, for tests,
+/// [`InMemoryUplink`]. Every call is bounded in time by the implementation.
+pub trait MapUplink: Send {
+    /// Opens (or re-opens) a session; idempotent on (robot, session uuid).
+    fn open_session(
+        &mut self,
+        robot_id: &str,
+        session_uuid: &str,
+    ) -> impl Future<Output = Result<OpenedSession, UplinkError>> + Send;
+
+    /// Uploads one batch.
+    fn upload(
+        &mut self,
+        batch: &pb::UploadBatch,
+    ) -> impl Future<Output = Result<Acked, UplinkError>> + Send;
+
+    /// Closes a session (idempotent); returns the site version.
+    fn close_session(
+        &mut self,
+        robot_id: &str,
+        session_uuid: &str,
+    ) -> impl Future<Output = Result<u64, UplinkError>> + Send;
+
+    /// The site's current version.
+    fn map_version(&mut self) -> impl Future<Output = Result<u64, UplinkError>> + Send;
+
+    /// What changed in the site map after version `since`.
+    fn delta_since(
+        &mut self,
+        since: u64,
+    ) -> impl Future<Output = Result<MapDelta, UplinkError>> + Send;
+
+    /// The site's current version, then each new one.
+    fn watch_versions(&mut self)
+    -> impl Future<Output = Result<VersionStream, UplinkError>> + Send;
+}

@@ -1,0 +1,231 @@
+//! [`MapUplink`] over gRPC (tonic), with the robot's bearer token on every call.
+
+use std::time::Duration;
+
+use proto::{FORMAT_VERSION, MapDelta, pb};
+use tokio_stream::StreamExt as _;
+use tonic::metadata::{Ascii, MetadataValue};
+use tonic::service::Interceptor;
+use tonic::transport::{Channel, Endpoint};
+
+use super::{Acked, MapUplink, OpenedSession, UplinkError, VersionStream};
+
+/// Metadata key carrying the next sequence number on a sequence-gap refusal (see the server).
+const EXPECTED_SEQ_METADATA: &str = "evermap-expected-seq";
+
+/// Adds `authorization: Bearer <token>` to every request.
+#[derive(Clone)]
+pub struct BearerToken(MetadataValue<Ascii>);
+
+impl Interceptor for BearerToken {
+    fn call(
+        &mut self,
+        mut request: tonic::Request<()>,
+    ) -> Result<tonic::Request<()>, tonic::Status> {
+        request
+            .metadata_mut()
+            .insert("authorization", self.0.clone());
+        Ok(request)
+    }
+}
+
+type Authed = tonic::service::interceptor::InterceptedService<Channel, BearerToken>;
+
+/// The gRPC uplink. Connects lazily and reconnects by itself; each unary call is bounded by
+/// `call_timeout`. Cheap to clone (clones share the connection).
+#[derive(Clone)]
+pub struct GrpcUplink {
+    site: String,
+    agent: pb::agent_service_client::AgentServiceClient<Authed>,
+    map: pb::map_service_client::MapServiceClient<Authed>,
+    call_timeout: Duration,
+}
+
+fn from_status(status: &tonic::Status) -> UplinkError {
+    use tonic::Code;
+    match status.code() {
+        Code::Unavailable
+        | Code::DeadlineExceeded
+        | Code::Cancelled
+        | Code::Unknown
+        | Code::Aborted => UplinkError::Unavailable(status.message().to_owned()),
+        Code::FailedPrecondition => status
+            .metadata()
+            .get(EXPECTED_SEQ_METADATA)
+            .and_then(|v| v.to_str().ok()?.parse().ok())
+            .map_or_else(
+                || UplinkError::Rejected {
+                    code: status.code(),
+                    message: status.message().to_owned(),
+                },
+                |expected| UplinkError::SequenceGap { expected },
+            ),
+        code => UplinkError::Rejected {
+            code,
+            message: status.message().to_owned(),
+        },
+    }
+}
+
+impl GrpcUplink {
+    /// An uplink to `url` (e.g. `http://127.0.0.1:50051`) for `site` with `token`. Does not connect yet.
+    /// `max_message_bytes` bounds messages both ways (must match the server's).
+    pub fn new(
+        url: &str,
+        site: &str,
+        token: &str,
+        max_message_bytes: usize,
+        call_timeout: Duration,
+    ) -> Result<Self, UplinkError> {
+        let endpoint = Endpoint::from_shared(url.to_owned())
+            .map_err(|e| UplinkError::Unavailable(format!("bad server url {url:?}: {e}")))?
+            .connect_timeout(call_timeout)
+            .tcp_nodelay(true);
+        let channel = endpoint.connect_lazy();
+        let token: MetadataValue<Ascii> =
+            format!("Bearer {token}")
+                .parse()
+                .map_err(|_| UplinkError::Rejected {
+                    code: tonic::Code::InvalidArgument,
+                    message: "the token must be printable ASCII".into(),
+                })?;
+        let auth = BearerToken(token);
+        Ok(Self {
+            site: site.to_owned(),
+            agent: pb::agent_service_client::AgentServiceClient::with_interceptor(
+                channel.clone(),
+                auth.clone(),
+            )
+            .max_decoding_message_size(max_message_bytes)
+            .max_encoding_message_size(max_message_bytes),
+            map: pb::map_service_client::MapServiceClient::with_interceptor(channel, auth)
+                .max_decoding_message_size(max_message_bytes)
+                .max_encoding_message_size(max_message_bytes),
+            call_timeout,
+        })
+    }
+
+    async fn bounded<T>(
+        &self,
+        call: impl Future<Output = Result<tonic::Response<T>, tonic::Status>>,
+    ) -> Result<T, UplinkError> {
+        match tokio::time::timeout(self.call_timeout, call).await {
+            Ok(Ok(response)) => Ok(response.into_inner()),
+            Ok(Err(status)) => Err(from_status(&status)),
+            Err(_) => Err(UplinkError::Unavailable(format!(
+                "no answer within {:?}",
+                self.call_timeout
+            ))),
+        }
+    }
+
+    /// The site's rendered map (PNG, pgm, yaml).
+    pub async fn map_image(&mut self, resolution: f64) -> Result<pb::MapImage, UplinkError> {
+        let mut client = self.map.clone();
+        let request = pb::GetMapImageRequest {
+            site: self.site.clone(),
+            resolution,
+        };
+        self.bounded(client.get_map_image(request)).await
+    }
+}
+
+impl MapUplink for GrpcUplink {
+    async fn open_session(
+        &mut self,
+        robot_id: &str,
+        session_uuid: &str,
+    ) -> Result<OpenedSession, UplinkError> {
+        let mut client = self.agent.clone();
+        let request = pb::OpenSessionRequest {
+            format_version: FORMAT_VERSION,
+            site: self.site.clone(),
+            robot_id: robot_id.to_owned(),
+            session_uuid: session_uuid.to_owned(),
+        };
+        let r = self.bounded(client.open_session(request)).await?;
+        Ok(OpenedSession {
+            trajectory: r.trajectory,
+            last_acked_seq: r.last_acked_seq,
+            created: r.created,
+            map_version: r.map_version,
+        })
+    }
+
+    async fn upload(&mut self, batch: &pb::UploadBatch) -> Result<Acked, UplinkError> {
+        let mut client = self.agent.clone();
+        let ack = self.bounded(client.upload(batch.clone())).await?;
+        Ok(Acked {
+            seq: ack.seq,
+            map_version: ack.map_version,
+            duplicate: ack.duplicate,
+        })
+    }
+
+    async fn close_session(
+        &mut self,
+        robot_id: &str,
+        session_uuid: &str,
+    ) -> Result<u64, UplinkError> {
+        let mut client = self.agent.clone();
+        let request = pb::CloseSessionRequest {
+            format_version: FORMAT_VERSION,
+            site: self.site.clone(),
+            robot_id: robot_id.to_owned(),
+            session_uuid: session_uuid.to_owned(),
+        };
+        Ok(self
+            .bounded(client.close_session(request))
+            .await?
+            .map_version)
+    }
+
+    async fn map_version(&mut self) -> Result<u64, UplinkError> {
+        let mut client = self.map.clone();
+        let request = pb::GetVersionRequest {
+            site: self.site.clone(),
+        };
+        Ok(self.bounded(client.get_version(request)).await?.version)
+    }
+
+    async fn delta_since(&mut self, since: u64) -> Result<MapDelta, UplinkError> {
+        let mut client = self.map.clone();
+        let request = pb::GetDeltaRequest {
+            site: self.site.clone(),
+            since_version: since,
+        };
+        let timeout = self.call_timeout;
+        let collect = async {
+            let mut stream = client
+                .get_delta(request)
+                .await
+                .map_err(|s| from_status(&s))?
+                .into_inner();
+            let mut chunks = Vec::new();
+            while let Some(chunk) = stream.next().await {
+                let chunk = chunk.map_err(|s| from_status(&s))?;
+                let last = chunk.last;
+                chunks.push(chunk);
+                if last {
+                    break;
+                }
+            }
+            Ok::<_, UplinkError>(chunks)
+        };
+        let chunks = tokio::time::timeout(timeout, collect).await.map_err(|_| {
+            UplinkError::Unavailable(format!("delta not received within {timeout:?}"))
+        })??;
+        Ok(MapDelta::from_pb_chunks(&chunks)?)
+    }
+
+    async fn watch_versions(&mut self) -> Result<VersionStream, UplinkError> {
+        let mut client = self.map.clone();
+        let request = pb::WatchRequest {
+            site: self.site.clone(),
+        };
+        let stream = self.bounded(client.watch(request)).await?;
+        Ok(Box::pin(stream.map(|item| {
+            item.map(|v| v.version).map_err(|s| from_status(&s))
+        })))
+    }
+}

@@ -1,0 +1,95 @@
+//! Local LiDAR odometry over a recording, emitting upload items: one group per node (the node, then the
+//! submaps its insertion finished), optionally paced at the recording's speed.
+
+use std::time::{Duration, Instant};
+
+use mapping::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
+use mapping::sensor::SensorEvent;
+use proto::{NodeAdded, UploadItem};
+
+use crate::source::Recording;
+
+/// What [`run_llo`] did.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct LloStats {
+    /// Scans read.
+    pub scans: usize,
+    /// Scans LLO could not match.
+    pub scans_dropped: usize,
+    /// Nodes emitted.
+    pub nodes: usize,
+    /// Submaps finished.
+    pub submaps_finished: usize,
+    /// Whether the sink asked to stop early.
+    pub stopped: bool,
+}
+
+/// Runs LLO over the first `max_scans` scans of `recording` (all if `None`), calling `sink` with each
+/// node's items; `sink` returns `false` to stop. With `replay_speed > 0`, events are paced at that
+/// multiple of real time (1: as recorded); 0 runs as fast as possible. Blocks: run it on its own thread.
+pub fn run_llo(
+    recording: &Recording,
+    options: &LocalTrajectoryBuilderOptions,
+    replay_speed: f64,
+    max_scans: Option<usize>,
+    sink: &mut dyn FnMut(Vec<UploadItem>) -> bool,
+) -> LloStats {
+    let mut llo = LocalTrajectoryBuilder::new(options.clone());
+    let mut stats = LloStats::default();
+    let started = Instant::now();
+    let first_time = recording.events.first().map(SensorEvent::time);
+    for event in &recording.events {
+        if replay_speed > 0.0
+            && let Some(t0) = first_time
+        {
+            let due = event.time().seconds_since(t0) / replay_speed;
+            if let Ok(due) = Duration::try_from_secs_f64(due)
+                && let Some(wait) = due.checked_sub(started.elapsed())
+            {
+                std::thread::sleep(wait);
+            }
+        }
+        match event {
+            SensorEvent::Odometry(o) => llo.add_odometry(o),
+            SensorEvent::Imu(i) => llo.add_imu(i),
+            SensorEvent::Scan(scan) => {
+                if max_scans.is_some_and(|m| stats.scans >= m) {
+                    break;
+                }
+                stats.scans += 1;
+                let (range_data, _) = scan.to_range_data(&options.range_conversion);
+                let range_data = range_data.transformed(&recording.base_from_laser);
+                let Some(result) = llo.add_range_data(scan.time, &range_data) else {
+                    stats.scans_dropped += 1;
+                    continue;
+                };
+                let Some(insertion) = result.insertion else {
+                    continue;
+                };
+                stats.nodes += 1;
+                let mut items = vec![UploadItem::NodeAdded(NodeAdded {
+                    time: result.time,
+                    local_pose: result.local_pose,
+                    points: insertion.node.filtered_points,
+                    insertion_submaps: insertion
+                        .insertion_submaps
+                        .iter()
+                        .map(|s| (s.index as u32, s.local_pose))
+                        .collect(),
+                })];
+                for (index, submap) in insertion.finished_submaps {
+                    stats.submaps_finished += 1;
+                    items.push(UploadItem::SubmapFinished {
+                        index: index as u32,
+                        grid: submap.grid,
+                    });
+                }
+                if !sink(items) {
+                    stats.stopped = true;
+                    break;
+                }
+            }
+        }
+    }
+    stats
+}
