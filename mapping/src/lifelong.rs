@@ -39,5 +39,6 @@ pub use options::{
 };
 pub use relocalization::{
     RelocalizationOptions, SessionRelocalization, relocalize_session_start, render_submaps,
+    render_submaps_newest,
 };
 pub use submap_trimmer::{PlacedGrid, covered_fraction};

@@ -1,7 +1,8 @@
 //! The agent's subcommands, one file each.
 
+pub mod lifelong;
 pub mod offline;
 pub mod relocalize;
-pub mod simulate;
-pub mod sessions;
 pub mod run;
+pub mod sessions;
+pub mod simulate;

@@ -3,8 +3,8 @@
 //! Data sources (ROS1 bags, CARMEN logs), the offline tools built on the `mapping` core, and the uplink to
 //! the fleet map server (durable outbox, gRPC, the global submap cache).
 
-pub mod line_chart;
 pub mod lifelong_run;
+pub mod line_chart;
 pub mod map_image;
 pub mod offline_slam;
 pub mod outbox;

@@ -13,7 +13,7 @@ use std::collections::BTreeMap;
 use std::sync::mpsc;
 use std::time::Instant;
 
-use mapping::geometry::Rigid2;
+use mapping::geometry::{Rigid2, Rigid2Ext as _};
 use mapping::grid::ProbabilityGrid;
 use mapping::lifelong::{
     GraphCounts, LifelongError, LifelongEvent, LifelongMap, LifelongOptions, RelocalizationOptions,
@@ -105,12 +105,29 @@ pub struct SessionSummary {
     pub tree_edges: usize,
     /// Mean KL divergence (nats) of the trims that measured one (`clt`: over each blanket).
     pub trim_kld_mean: Option<f64>,
-    /// Mean score of the closures accepted during the session (the paper's AMS).
+    /// Mean score of the closures accepted during the session, within it and against older sessions.
     pub ams: f64,
+    /// Mean score of the accepted matches of the session's nodes against older sessions' submaps (the
+    /// paper's AMS: how well the session matches the map it localizes in); `None` when there was none.
+    pub cross_session_ams: Option<f64>,
     /// Graph size after the session ended.
     pub counts: GraphCounts,
     /// Wall time of `finish_session` (final optimization, trimming, sparsification), milliseconds.
     pub finish_ms: f64,
+    /// Time of the session's first node (the one relocalization places).
+    pub first_node_time: Option<Timestamp>,
+    /// Global pose `[x, y, θ]` (m, m, rad) relocalization gave the session's first node.
+    pub relocalized_first_pose: Option<[f64; 3]>,
+    /// Peak resident memory of the process when the session ended, MB (Linux only).
+    pub peak_rss_mb: Option<f64>,
+}
+
+/// One session's sensor data.
+pub struct SessionInput {
+    /// Time-ordered scans, odometry and IMU readings.
+    pub events: Vec<SensorEvent>,
+    /// The LiDAR's extrinsic.
+    pub base_from_laser: Rigid2,
 }
 
 /// What a multi-session run produced.
@@ -126,13 +143,17 @@ pub struct SessionsRun {
     pub map: LifelongMap,
     /// Each node's range data in its tracking frame, and its last known global pose (for rendering).
     pub node_range_data: BTreeMap<NodeId, (Rigid2, RangeData)>,
-    /// Data duration from the first to the last event, seconds.
+    /// Data duration, seconds: the sum of each session's first-to-last event span.
     pub data_duration_s: f64,
+    /// Per session, the global pose of each of its matched scans as estimated when the session ended (the
+    /// localization the robot had then, before later sessions moved anything).
+    pub session_scan_poses: Vec<Vec<(Timestamp, Rigid2)>>,
 }
 
 enum Message {
     Start {
         session: u32,
+        first_time: Option<Timestamp>,
         first_scans: Vec<(Rigid2, Vec<Point2<f32>>)>,
     },
     Node {
@@ -164,20 +185,9 @@ pub fn run_sessions(
     config: &SessionsConfig,
     progress: &mut dyn FnMut(usize),
 ) -> Result<SessionsRun, SessionsError> {
-    config
-        .local
-        .validate()
-        .map_err(|e| SessionsError::Config(e.to_string()))?;
-    config
-        .relocalization
-        .validate()
-        .map_err(|e| SessionsError::Config(e.to_string()))?;
-    if split == 0 || config.relocalization_nodes == 0 {
-        return Err(SessionsError::Config(
-            "split and relocalization_nodes must be at least 1".into(),
-        ));
+    if split == 0 {
+        return Err(SessionsError::Config("split must be at least 1".into()));
     }
-    let map = LifelongMap::new(config.lifelong.clone())?;
     let (Some(first), Some(last)) = (recording.events.first(), recording.events.last()) else {
         return Err(SessionsError::NoScans);
     };
@@ -189,8 +199,45 @@ pub fn run_sessions(
                 .offset_by(data_duration_s * k as f64 / split as f64)
         })
         .collect();
-    let session_of =
-        |t: Timestamp| boundaries.partition_point(|b| *b <= t).saturating_sub(1) as u32;
+    let session_of = |t: Timestamp| boundaries.partition_point(|b| *b <= t).saturating_sub(1);
+    let mut inputs: Vec<SessionInput> = (0..split)
+        .map(|_| SessionInput {
+            events: Vec::new(),
+            base_from_laser: recording.base_from_laser,
+        })
+        .collect();
+    for event in &recording.events {
+        inputs[session_of(event.time())].events.push(event.clone());
+    }
+    let mut run = run_session_inputs(inputs.into_iter(), config, progress)?;
+    // Spans without data still count as sessions of the split.
+    run.boundaries = boundaries;
+    run.data_duration_s = data_duration_s;
+    Ok(run)
+}
+
+/// Runs each of `inputs` as one session, in order, through the lifelong map (see the module docs).
+/// Sessions are pulled from the iterator one at a time, so a simulator can generate them lazily.
+/// `progress` gets the number of scans processed so far.
+pub fn run_session_inputs(
+    inputs: impl Iterator<Item = SessionInput>,
+    config: &SessionsConfig,
+    progress: &mut dyn FnMut(usize),
+) -> Result<SessionsRun, SessionsError> {
+    config
+        .local
+        .validate()
+        .map_err(|e| SessionsError::Config(e.to_string()))?;
+    config
+        .relocalization
+        .validate()
+        .map_err(|e| SessionsError::Config(e.to_string()))?;
+    if config.relocalization_nodes == 0 {
+        return Err(SessionsError::Config(
+            "relocalization_nodes must be at least 1".into(),
+        ));
+    }
+    let map = LifelongMap::new(config.lifelong.clone())?;
 
     let (sender, receiver) = mpsc::sync_channel::<Message>(256);
     std::thread::scope(|scope| {
@@ -200,142 +247,161 @@ pub fn run_sessions(
             .spawn_scoped(scope, move || worker(map, relocalization, &receiver))
             .map_err(|e| SessionsError::Worker(e.to_string()))?;
 
-        let mut anchors: Vec<ScanAnchor> = Vec::new();
+        let mut anchors: Vec<(u32, ScanAnchor)> = Vec::new();
         let mut node_data: BTreeMap<NodeId, (Rigid2, RangeData)> = BTreeMap::new();
-        let mut scans_per_session = vec![0usize; split];
+        let mut scans_per_session: Vec<usize> = Vec::new();
+        let mut boundaries: Vec<Timestamp> = Vec::new();
+        let mut data_duration_s = 0.0;
         let mut scans_done = 0;
-        let mut current: Option<u32> = None;
-        let mut llo = LocalTrajectoryBuilder::new(config.local.clone());
-        let mut next_index = 0u32;
-        let mut last_node: Option<NodeId> = None;
-        // The session's first nodes, held back until they can be relocalized.
-        let mut pending: Vec<Message> = Vec::new();
-        let mut pending_scans: Vec<(Rigid2, Vec<Point2<f32>>)> = Vec::new();
-        let mut started = false;
         let send = |m: Message| sender.send(m).is_ok();
-        let flush_start = |session: u32,
-                           pending: &mut Vec<Message>,
-                           pending_scans: &mut Vec<(Rigid2, Vec<Point2<f32>>)>|
-         -> bool {
-            let ok = send(Message::Start {
-                session,
-                first_scans: std::mem::take(pending_scans),
-            });
-            ok && pending.drain(..).all(&send)
-        };
-        for event in &recording.events {
-            let session = session_of(event.time());
-            if current != Some(session) {
-                if let Some(previous) = current {
-                    if !started && !flush_start(previous, &mut pending, &mut pending_scans) {
-                        break;
-                    }
-                    let active = active_grids(&llo);
-                    if !send(Message::Finish {
-                        session: previous,
-                        active_submaps: active,
-                    }) {
-                        break;
-                    }
-                }
-                current = Some(session);
-                llo = LocalTrajectoryBuilder::new(config.local.clone());
-                next_index = 0;
-                last_node = None;
-                started = false;
-            }
-            match event {
-                SensorEvent::Odometry(o) => llo.add_odometry(o),
-                SensorEvent::Imu(i) => llo.add_imu(i),
-                SensorEvent::Scan(scan) => {
-                    scans_done += 1;
-                    scans_per_session[session as usize] += 1;
-                    let (range_data, _) = scan.to_range_data(&config.local.range_conversion);
-                    let range_data = range_data.transformed(&recording.base_from_laser);
-                    let Some(result) = llo.add_range_data(scan.time, &range_data) else {
-                        continue;
-                    };
-                    if let Some(insertion) = result.insertion {
-                        let id = NodeId {
-                            trajectory: session,
-                            index: next_index,
+        let mut alive = true;
+        for (session, input) in inputs.enumerate() {
+            let session = u32::try_from(session)
+                .map_err(|_| SessionsError::Config("too many sessions".into()))?;
+            let (Some(first), Some(last)) = (input.events.first(), input.events.last()) else {
+                // An empty session still exists (its id is used) but adds nothing.
+                scans_per_session.push(0);
+                boundaries.push(boundaries.last().copied().unwrap_or_default());
+                continue;
+            };
+            boundaries.push(first.time());
+            data_duration_s += last.time().seconds_since(first.time());
+            let mut scans = 0usize;
+            let mut llo = LocalTrajectoryBuilder::new(config.local.clone());
+            let mut next_index = 0u32;
+            let mut last_node: Option<NodeId> = None;
+            // The session's first nodes, held back until they can be relocalized.
+            let mut pending: Vec<Message> = Vec::new();
+            let mut pending_scans: Vec<(Rigid2, Vec<Point2<f32>>)> = Vec::new();
+            let mut first_time: Option<Timestamp> = None;
+            let mut started = false;
+            let flush_start = |pending: &mut Vec<Message>,
+                               pending_scans: &mut Vec<(Rigid2, Vec<Point2<f32>>)>,
+                               first_time: Option<Timestamp>|
+             -> bool {
+                let ok = send(Message::Start {
+                    session,
+                    first_time,
+                    first_scans: std::mem::take(pending_scans),
+                });
+                ok && pending.drain(..).all(&send)
+            };
+            for event in &input.events {
+                match event {
+                    SensorEvent::Odometry(o) => llo.add_odometry(o),
+                    SensorEvent::Imu(i) => llo.add_imu(i),
+                    SensorEvent::Scan(scan) => {
+                        scans_done += 1;
+                        scans += 1;
+                        let (range_data, _) = scan.to_range_data(&config.local.range_conversion);
+                        let range_data = range_data.transformed(&input.base_from_laser);
+                        let Some(result) = llo.add_range_data(scan.time, &range_data) else {
+                            continue;
                         };
-                        next_index += 1;
-                        last_node = Some(id);
-                        node_data.insert(id, (result.local_pose, range_data));
-                        let message = Message::Node {
-                            session,
-                            time: result.time,
-                            local_pose: result.local_pose,
-                            points: insertion.node.filtered_points.clone(),
-                            insertion_submaps: insertion
-                                .insertion_submaps
-                                .iter()
-                                .map(|s| (s.index, s.local_pose))
-                                .collect(),
-                            finished_submaps: insertion
-                                .finished_submaps
-                                .into_iter()
-                                .map(|(index, submap)| (index, submap.grid))
-                                .collect(),
-                        };
-                        if started {
-                            if !send(message) {
+                        if let Some(insertion) = result.insertion {
+                            let id = NodeId {
+                                trajectory: session,
+                                index: next_index,
+                            };
+                            next_index += 1;
+                            last_node = Some(id);
+                            node_data.insert(id, (result.local_pose, range_data));
+                            let message = Message::Node {
+                                session,
+                                time: result.time,
+                                local_pose: result.local_pose,
+                                points: insertion.node.filtered_points.clone(),
+                                insertion_submaps: insertion
+                                    .insertion_submaps
+                                    .iter()
+                                    .map(|s| (s.index, s.local_pose))
+                                    .collect(),
+                                finished_submaps: insertion
+                                    .finished_submaps
+                                    .into_iter()
+                                    .map(|(index, submap)| (index, submap.grid))
+                                    .collect(),
+                            };
+                            if started {
+                                alive = send(message);
+                            } else {
+                                first_time.get_or_insert(result.time);
+                                pending_scans
+                                    .push((result.local_pose, insertion.node.filtered_points));
+                                pending.push(message);
+                                if pending.len() >= config.relocalization_nodes {
+                                    alive =
+                                        flush_start(&mut pending, &mut pending_scans, first_time);
+                                    started = true;
+                                }
+                            }
+                            if !alive {
                                 break;
                             }
-                        } else {
-                            pending_scans.push((result.local_pose, insertion.node.filtered_points));
-                            pending.push(message);
-                            if pending.len() >= config.relocalization_nodes {
-                                if !flush_start(session, &mut pending, &mut pending_scans) {
-                                    break;
-                                }
-                                started = true;
-                            }
                         }
-                    }
-                    anchors.push(ScanAnchor {
-                        time: result.time,
-                        local_pose: result.local_pose,
-                        node: last_node,
-                    });
-                    if scans_done % 64 == 0 {
-                        progress(scans_done);
+                        anchors.push((
+                            session,
+                            ScanAnchor {
+                                time: result.time,
+                                local_pose: result.local_pose,
+                                node: last_node,
+                            },
+                        ));
+                        if scans_done % 64 == 0 {
+                            progress(scans_done);
+                        }
                     }
                 }
             }
-        }
-        if let Some(previous) = current {
-            let ok = started || flush_start(previous, &mut pending, &mut pending_scans);
-            if ok {
-                let active = active_grids(&llo);
-                let _ = send(Message::Finish {
-                    session: previous,
-                    active_submaps: active,
+            scans_per_session.push(scans);
+            if alive && !started {
+                alive = flush_start(&mut pending, &mut pending_scans, first_time);
+            }
+            alive = alive
+                && send(Message::Finish {
+                    session,
+                    active_submaps: active_grids(&llo),
                 });
+            if !alive {
+                // The worker stopped; its error is reported by `join` below.
+                break;
             }
         }
         progress(scans_done);
         drop(sender);
-        let (map, mut sessions, retired) = worker
+        let output = worker
             .join()
             .map_err(|_| SessionsError::Worker("the lifelong map thread panicked".into()))??;
+        let WorkerOutput {
+            map,
+            mut sessions,
+            retired,
+            at_session_end,
+        } = output;
 
         // Last known global pose of every node: the final map, else its pose when it was trimmed.
         let mut node_pose: BTreeMap<NodeId, Rigid2> = retired;
         for (id, _, pose) in map.node_poses() {
             node_pose.insert(id, pose);
         }
+        let scan_pose = |poses: &BTreeMap<NodeId, Rigid2>, a: &ScanAnchor| {
+            let node = a.node?;
+            let global = poses.get(&node)?;
+            let (local, _) = node_data.get(&node)?;
+            Some((a.time, global * local.inverse() * a.local_pose))
+        };
         let scan_poses = anchors
             .iter()
-            .filter_map(|a| {
-                let node = a.node?;
-                let global = node_pose.get(&node)?;
-                let (local, _) = node_data.get(&node)?;
-                Some((a.time, global * local.inverse() * a.local_pose))
-            })
+            .filter_map(|(_, a)| scan_pose(&node_pose, a))
             .collect();
-        for (k, summary) in sessions.iter_mut().enumerate() {
+        let mut session_scan_poses = vec![Vec::new(); scans_per_session.len()];
+        for (session, anchor) in &anchors {
+            if let Some(pose) = scan_pose(&at_session_end, anchor) {
+                session_scan_poses[*session as usize].push(pose);
+            }
+        }
+        for summary in &mut sessions {
+            let k = summary.session as usize;
             summary.start_time = boundaries[k];
             summary.scans = scans_per_session[k];
         }
@@ -345,11 +411,12 @@ pub fn run_sessions(
             .collect();
         Ok(SessionsRun {
             scan_poses,
-            boundaries: boundaries.clone(),
+            boundaries,
             sessions,
             map,
             node_range_data,
             data_duration_s,
+            session_scan_poses,
         })
     })
 }
@@ -363,7 +430,14 @@ fn active_grids(llo: &LocalTrajectoryBuilder) -> Vec<(usize, ProbabilityGrid)> {
         .collect()
 }
 
-type WorkerOutput = (LifelongMap, Vec<SessionSummary>, BTreeMap<NodeId, Rigid2>);
+struct WorkerOutput {
+    map: LifelongMap,
+    sessions: Vec<SessionSummary>,
+    /// Every node's pose when the last session that saw it in the map ended.
+    retired: BTreeMap<NodeId, Rigid2>,
+    /// Every node's pose when its own session ended.
+    at_session_end: BTreeMap<NodeId, Rigid2>,
+}
 
 fn worker(
     mut map: LifelongMap,
@@ -372,16 +446,19 @@ fn worker(
 ) -> Result<WorkerOutput, SessionsError> {
     let mut sessions: Vec<SessionSummary> = Vec::new();
     let mut retired: BTreeMap<NodeId, Rigid2> = BTreeMap::new();
+    let mut at_session_end: BTreeMap<NodeId, Rigid2> = BTreeMap::new();
     let mut priors: BTreeMap<u32, (Rigid2, Rigid2)> = BTreeMap::new();
     let mut scores: Vec<f32> = Vec::new();
     for message in receiver {
         match message {
             Message::Start {
                 session,
+                first_time,
                 first_scans,
             } => {
                 let mut summary = SessionSummary {
                     session,
+                    first_node_time: first_time,
                     ..SessionSummary::default()
                 };
                 scores.clear();
@@ -395,6 +472,12 @@ fn worker(
                     summary.relocalization_score = found.map(|f| f.score);
                     if let (Some(f), Some((first_local, _))) = (found, first_scans.first()) {
                         priors.insert(session, (f.global_from_local, *first_local));
+                        let pose = f.global_from_local * first_local;
+                        summary.relocalized_first_pose = Some([
+                            pose.translation.vector.x,
+                            pose.translation.vector.y,
+                            pose.theta(),
+                        ]);
                     }
                     found.map(|f| f.global_from_local)
                 };
@@ -438,6 +521,9 @@ fn worker(
                 map.optimize();
                 for (id, _, pose) in map.node_poses() {
                     retired.insert(id, pose);
+                    if id.trajectory == session {
+                        at_session_end.insert(id, pose);
+                    }
                 }
                 let events_finish = map.finish_session(session)?;
                 let finish_ms = start.elapsed().as_secs_f64() * 1e3;
@@ -476,12 +562,18 @@ fn worker(
                     summary.counts = counts;
                     summary.finish_ms = finish_ms;
                     summary.relocalization_offset_m = offset;
+                    summary.peak_rss_mb = crate::process_stats::peak_rss_mb();
                 }
             }
         }
     }
     // Nodes still in the map report their final pose; `retired` keeps the rest.
-    Ok((map, sessions, retired))
+    Ok(WorkerOutput {
+        map,
+        sessions,
+        retired,
+        at_session_end,
+    })
 }
 
 fn count_closures(summary: &mut SessionSummary, events: &[LifelongEvent], scores: &mut Vec<f32>) {
@@ -492,6 +584,9 @@ fn count_closures(summary: &mut SessionSummary, events: &[LifelongEvent], scores
             summary.closures += 1;
             scores.push(closure.score);
             if closure.submap.trajectory != summary.session {
+                let n = summary.cross_session_closures as f64;
+                let mean = summary.cross_session_ams.unwrap_or(0.0);
+                summary.cross_session_ams = Some((mean * n + f64::from(closure.score)) / (n + 1.0));
                 summary.cross_session_closures += 1;
             }
         }

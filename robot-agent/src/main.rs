@@ -23,6 +23,10 @@ enum Command {
     /// Runs a recording as several time sessions through the lifelong map (relocalization, GLM across
     /// sessions, trimming) and scores it over cross-session relations.
     Sessions(commands::sessions::SessionsArgs),
+    /// The lifelong experiment on the simulated changing store: session 0 maps it, sessions 1..N relocalize,
+    /// localize and update the map per the trimming policy; scored against ground truth (CRI, MRCL, AMS,
+    /// ATE, MCR, graph size).
+    Lifelong(commands::lifelong::LifelongArgs),
     /// Runs LLO on a recording and streams it to the fleet map server (durable outbox, resumes after a
     /// reconnect).
     Run(commands::run::RunArgs),
@@ -35,6 +39,7 @@ fn main() -> anyhow::Result<()> {
         Command::Relocalize(args) => commands::relocalize::run(&args),
         Command::Simulate(args) => commands::simulate::run(&args),
         Command::Sessions(args) => commands::sessions::run(&args),
+        Command::Lifelong(args) => commands::lifelong::run(&args),
         Command::Run(args) => commands::run::run(&args),
     }
 }

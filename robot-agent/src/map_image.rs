@@ -127,6 +127,27 @@ pub fn write_nav2_map(dir: &Path, stem: &str, grid: &ProbabilityGrid) -> Result<
     std::fs::write(&yaml_path, yaml).map_err(io_err(&yaml_path))
 }
 
+/// The map-change picture as 8-bit RGB, top row first: unchanged occupied cells blue, removed green,
+/// added red, everything else white (the paper's colours).
+pub fn map_change_to_rgb(change: &mapping::lifelong::MapChange) -> (u32, u32, Vec<u8>) {
+    use mapping::lifelong::CellChange;
+    let (w, h) = (change.limits.width.max(0), change.limits.height.max(0));
+    let mut pixels = Vec::with_capacity(3 * w as usize * h as usize);
+    for row in 0..h {
+        let iy = h - 1 - row;
+        for ix in 0..w {
+            let rgb = match change.cells[(iy * w + ix) as usize] {
+                Some(CellChange::Unchanged) => [0, 0, 255],
+                Some(CellChange::Removed) => [0, 170, 0],
+                Some(CellChange::Added) => [230, 0, 0],
+                None => [255, 255, 255],
+            };
+            pixels.extend_from_slice(&rgb);
+        }
+    }
+    (w as u32, h as u32, pixels)
+}
+
 #[cfg(test)]
 mod tests {
     use mapping::grid::MapLimits;

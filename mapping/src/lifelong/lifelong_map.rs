@@ -285,6 +285,21 @@ impl LifelongMap {
         })
     }
 
+    /// [`Self::placed_submaps`] with their ids, in id order (oldest session first).
+    pub fn placed_submaps_by_id(&self) -> impl Iterator<Item = (SubmapId, PlacedGrid<'_>)> + '_ {
+        self.global.submaps().iter().filter_map(|(id, record)| {
+            let grid = record.grid.as_deref()?;
+            let global = self.global.submap_pose(*id)?;
+            Some((
+                *id,
+                PlacedGrid {
+                    global_from_grid: global * record.local_pose.inverse(),
+                    grid,
+                },
+            ))
+        })
+    }
+
     /// The stale submaps that `session`'s end trims (see the module docs), in id order.
     fn submaps_to_trim(&self, session: u32) -> Vec<SubmapId> {
         let trimmer = &self.options.trimmer;

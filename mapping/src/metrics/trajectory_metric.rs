@@ -46,12 +46,14 @@ pub struct TrajectoryAccuracy {
     /// Distance travelled (truth) while within [`MRCL_TRANSLATION_M`] and [`MRCL_ROTATION_DEG`] of the
     /// truth, over the whole distance travelled (1 when nothing moved).
     pub mrcl: f64,
-    /// Truth distance over the matched poses, metres.
+    /// Truth distance travelled, metres.
     pub distance_m: f64,
 }
 
 /// Compares `estimate` (map frame) with `truth` (world frame) through `world_from_map`, pose by pose at
-/// equal timestamps. A truth step counts toward MRCL when both of its ends are localized correctly.
+/// equal timestamps. A truth step counts toward MRCL when both of its ends are localized correctly; a
+/// truth pose without an estimate counts as not localized (MRCL is over the whole truth distance), while
+/// the ATE is over the matched poses only.
 pub fn trajectory_accuracy(
     estimate: &[(Timestamp, Rigid2)],
     truth: &[(Timestamp, Rigid2)],
@@ -63,6 +65,11 @@ pub fn trajectory_accuracy(
     let mut previous: Option<(Rigid2, bool)> = None;
     for (time, world_from_base) in truth {
         let Some(map_from_base) = estimate.get(time) else {
+            if let Some((last, _)) = previous {
+                accuracy.distance_m +=
+                    (world_from_base.translation.vector - last.translation.vector).norm();
+            }
+            previous = Some((*world_from_base, false));
             continue;
         };
         let estimated = world_from_map * map_from_base;
@@ -132,5 +139,20 @@ mod tests {
         assert!((a.max_error_m - 1.0).abs() < 1e-12);
         let perfect = trajectory_accuracy(&truth, &truth, &Rigid2::identity());
         assert!((perfect.mrcl - 1.0).abs() < 1e-12 && perfect.ate_rms_m == 0.0);
+    }
+
+    #[test]
+    fn missing_estimates_count_as_not_localized() {
+        let t = |k: i64| Timestamp(k * 1_000_000_000);
+        let truth: Vec<_> = (0..11)
+            .map(|k| (t(k), rigid2(k as f64, 0.0, 0.0)))
+            .collect();
+        // No estimate for the last 4 poses: 4 of the 10 m are not localized.
+        let estimate: Vec<_> = truth[..7].to_vec();
+        let a = trajectory_accuracy(&estimate, &truth, &Rigid2::identity());
+        assert_eq!(a.matched, 7);
+        assert!((a.distance_m - 10.0).abs() < 1e-12);
+        assert!((a.mrcl - 0.6).abs() < 1e-12, "{a:?}");
+        assert!(a.ate_rms_m == 0.0);
     }
 }
