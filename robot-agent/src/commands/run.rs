@@ -255,4 +255,15 @@ mod tests {
         assert_eq!(&uuid[14..15], "4");
         assert_ne!(uuid, random_uuid());
     }
+
+    #[test]
+    fn deploy_agent_configs_are_valid() {
+        for n in 1..=2 {
+            let path = format!("{}/../deploy/agent-{n}.toml", env!("CARGO_MANIFEST_DIR"));
+            let text = std::fs::read_to_string(&path).unwrap();
+            let config: AgentConfig = toml::from_str(&text).unwrap();
+            config.validate().unwrap();
+            assert_eq!(config.robot_id, format!("robot-{n}"));
+        }
+    }
 }
