@@ -41,6 +41,10 @@ pub struct SessionsConfig {
     /// How many of a session's first nodes are merged into the cloud that is relocalized (count ≥ 1).
     /// Default 10.
     pub relocalization_nodes: usize,
+    /// While a session is still unplaced (its start did not relocalize and no GLM match placed it), retry
+    /// relocalization with its latest `relocalization_nodes` nodes every this many nodes (count; 0 = never).
+    /// Default 20.
+    pub relocalization_retry_every_n_nodes: usize,
 }
 
 impl Default for SessionsConfig {
@@ -50,6 +54,7 @@ impl Default for SessionsConfig {
             lifelong: LifelongOptions::default(),
             relocalization: RelocalizationOptions::default(),
             relocalization_nodes: 10,
+            relocalization_retry_every_n_nodes: 20,
         }
     }
 }
@@ -84,6 +89,10 @@ pub struct SessionSummary {
     pub nodes_added: usize,
     /// Whether session-start relocalization found a pose (always false for session 0).
     pub relocalized: bool,
+    /// Relocalization retries while the session was unplaced.
+    pub relocalization_retries: usize,
+    /// The node index at which a retry placed the session, if one did.
+    pub placed_by_retry_at_node: Option<usize>,
     /// Its branch-and-bound score.
     pub relocalization_score: Option<f32>,
     /// Wall time of the relocalization, milliseconds.
@@ -241,10 +250,9 @@ pub fn run_session_inputs(
 
     let (sender, receiver) = mpsc::sync_channel::<Message>(256);
     std::thread::scope(|scope| {
-        let relocalization = &config.relocalization;
         let worker = std::thread::Builder::new()
             .name("lifelong-map".into())
-            .spawn_scoped(scope, move || worker(map, relocalization, &receiver))
+            .spawn_scoped(scope, move || worker(map, config, &receiver))
             .map_err(|e| SessionsError::Worker(e.to_string()))?;
 
         let mut anchors: Vec<(u32, ScanAnchor)> = Vec::new();
@@ -441,9 +449,13 @@ struct WorkerOutput {
 
 fn worker(
     mut map: LifelongMap,
-    relocalization: &RelocalizationOptions,
+    config: &SessionsConfig,
     receiver: &mpsc::Receiver<Message>,
 ) -> Result<WorkerOutput, SessionsError> {
+    let relocalization = &config.relocalization;
+    // The session's latest nodes (local pose, points), for relocalization retries.
+    let mut recent: std::collections::VecDeque<(Rigid2, Vec<Point2<f32>>)> =
+        std::collections::VecDeque::new();
     let mut sessions: Vec<SessionSummary> = Vec::new();
     let mut retired: BTreeMap<NodeId, Rigid2> = BTreeMap::new();
     let mut at_session_end: BTreeMap<NodeId, Rigid2> = BTreeMap::new();
@@ -482,6 +494,7 @@ fn worker(
                     found.map(|f| f.global_from_local)
                 };
                 map.start_session(session, prior)?;
+                recent.clear();
                 sessions.push(summary);
             }
             Message::Node {
@@ -492,6 +505,13 @@ fn worker(
                 insertion_submaps,
                 finished_submaps,
             } => {
+                let retry_every = config.relocalization_retry_every_n_nodes;
+                if session > 0 && retry_every > 0 && map.is_unplaced(session) {
+                    if recent.len() >= config.relocalization_nodes {
+                        recent.pop_front();
+                    }
+                    recent.push_back((local_pose, points.clone()));
+                }
                 let (_, events) = map.add_node(
                     session,
                     time,
@@ -500,6 +520,20 @@ fn worker(
                     &insertion_submaps,
                     finished_submaps,
                 )?;
+                if let Some(summary) = sessions.last_mut()
+                    && session > 0
+                    && retry_every > 0
+                    && map.is_unplaced(session)
+                    && (summary.nodes_added + 1).is_multiple_of(retry_every)
+                {
+                    let scans: Vec<_> = recent.iter().cloned().collect();
+                    summary.relocalization_retries += 1;
+                    if let Some(found) = relocalize_session_start(&map, &scans, relocalization)
+                        && map.place_session(session, found.global_from_local)?
+                    {
+                        summary.placed_by_retry_at_node = Some(summary.nodes_added);
+                    }
+                }
                 let jobs = map.take_search_jobs();
                 let results = run_searches(map.constraint_builder(), &jobs);
                 let mut events_after = map.add_search_results(results);

@@ -453,6 +453,25 @@ impl GlobalSlam {
             return;
         };
         let correction = submap_pose * closure.submap_from_node * node_pose.inverse();
+        self.move_trajectory(trajectory, correction);
+    }
+
+    /// Places an unanchored trajectory (see [`Self::start_trajectory`]) at `global_from_local`, found by
+    /// relocalization after it started: moves its nodes and submaps there and queues the searches its nodes
+    /// can now make near their estimates. Returns false (and changes nothing) when the trajectory is not
+    /// unanchored.
+    pub fn place_trajectory(&mut self, trajectory: u32, global_from_local: Rigid2) -> bool {
+        if !self.unanchored.contains(&trajectory) {
+            return false;
+        }
+        let correction = global_from_local * self.global_from_local(trajectory).inverse();
+        self.move_trajectory(trajectory, correction);
+        true
+    }
+
+    /// Applies `correction` (new global from old global) to every variable of `trajectory`, anchors it and
+    /// queues its nodes' searches.
+    fn move_trajectory(&mut self, trajectory: u32, correction: Rigid2) {
         let variables: Vec<(VariableId, Rigid2)> = self
             .graph
             .variables()

@@ -158,6 +158,22 @@ impl LifelongMap {
         Ok(Vec::new())
     }
 
+    /// Whether `session` started without a prior and no match has placed it in the map yet.
+    pub fn is_unplaced(&self, session: u32) -> bool {
+        self.global.is_unanchored(session)
+    }
+
+    /// Places an unplaced session at `global_from_local` (a relocalization found after its start); see
+    /// [`GlobalSlam::place_trajectory`]. Returns false when the session was already placed.
+    pub fn place_session(
+        &mut self,
+        session: u32,
+        global_from_local: Rigid2,
+    ) -> Result<bool, LifelongError> {
+        self.active(session)?;
+        Ok(self.global.place_trajectory(session, global_from_local))
+    }
+
     fn active(&self, session: u32) -> Result<Session, LifelongError> {
         match self.sessions.get(&session) {
             None => Err(LifelongError::UnknownSession(session)),

@@ -145,7 +145,10 @@ impl SubmapTrimmerOptions {
 #[derive(Clone, Debug, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct LifelongOptions {
-    /// The pose graph, GLM and optimizer of the map.
+    /// The pose graph, GLM and optimizer of the map. Its default here differs from
+    /// `GlobalSlamOptions::default()` in one field: `unanchored_search_every_n_nodes` is 0, because an
+    /// unplaced session is placed by retrying relocalization over the whole map (one coarse-to-fine
+    /// search) rather than by a full search of every submap (hundreds on a store-sized map).
     pub global: GlobalSlamOptions,
     /// When stale submaps are trimmed.
     pub trimmer: SubmapTrimmerOptions,
@@ -166,7 +169,10 @@ pub struct LifelongOptions {
 impl Default for LifelongOptions {
     fn default() -> Self {
         Self {
-            global: GlobalSlamOptions::default(),
+            global: GlobalSlamOptions {
+                unanchored_search_every_n_nodes: 0,
+                ..GlobalSlamOptions::default()
+            },
             trimmer: SubmapTrimmerOptions::default(),
             policy: TrimPolicy::default(),
             optimize_every_n_sparsifications: 5,

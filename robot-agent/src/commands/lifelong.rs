@@ -140,10 +140,15 @@ pub fn run(args: &LifelongArgs) -> anyhow::Result<()> {
         match store.session(k, &options) {
             Ok(session) => {
                 bar.inc_length(session.ground_truth.len() as u64);
-                bar.set_message(format!(
+                let message = format!(
                     "session {k}/{} ({:.0} s, {:.0} m)",
                     args.sessions, session.duration_s, session.distance_m
-                ));
+                );
+                if bar.is_hidden() {
+                    // No terminal (CI, a log file): one line per session instead of a bar.
+                    eprintln!("[{:>6.0} s] {message}", start.elapsed().as_secs_f64());
+                }
+                bar.set_message(message);
                 truths.borrow_mut().push(SessionTruth {
                     poses: session.ground_truth,
                 });
