@@ -31,6 +31,10 @@ pub struct RelocalizationOptions {
     pub min_score: f32,
     /// Depth of the branch-and-bound precomputation. Default 7.
     pub branch_and_bound_depth: u32,
+    /// Distinct coarse candidates refined at full resolution (count ≥ 1; see [`RelocalizerOptions`]).
+    /// Default 8: corridors and shelf rows make coarse maxima ambiguous, and the refinements are cheap
+    /// next to the coarse search.
+    pub max_candidates: usize,
     /// Refinement of the match.
     pub least_squares: LeastSquaresScanMatcherOptions,
 }
@@ -42,6 +46,7 @@ impl Default for RelocalizationOptions {
             voxel_size: 0.15,
             min_score: 0.6,
             branch_and_bound_depth: 7,
+            max_candidates: 8,
             least_squares: LeastSquaresScanMatcherOptions::default(),
         }
     }
@@ -188,6 +193,7 @@ pub fn relocalize_session_start(
         RelocalizerOptions {
             coarse_branch_and_bound_depth: options.branch_and_bound_depth,
             min_score: options.min_score,
+            max_candidates: options.max_candidates.max(1),
             least_squares: options.least_squares.clone(),
             ..RelocalizerOptions::default()
         },
