@@ -38,7 +38,7 @@ pub use options::{
     LifelongOptions, LifelongOptionsError, ParseTrimPolicyError, SubmapTrimmerOptions, TrimPolicy,
 };
 pub use relocalization::{
-    RelocalizationOptions, SessionRelocalization, relocalize_session_start, render_submaps,
-    render_submaps_newest,
+    RelocalizationOptions, SessionRelocalization, relocalize_scans_in_grid,
+    relocalize_session_start, render_submaps, render_submaps_newest,
 };
 pub use submap_trimmer::{PlacedGrid, covered_fraction};

@@ -18,7 +18,10 @@ mod uploader;
 use std::future::Future;
 use std::pin::Pin;
 
-pub use agent_session::{SessionOptions, SessionReport, follow_site, stream_recording};
+pub use agent_session::{
+    SessionOptions, SessionReport, SessionStart, SessionTrace, follow_site, stream_recording,
+    stream_session,
+};
 pub use global_submap_cache::{CacheError, GlobalSubmapCache};
 pub use grpc_uplink::GrpcUplink;
 pub use in_memory_uplink::InMemoryUplink;

@@ -1,5 +1,6 @@
 //! `evermap-server`: the fleet map server and its back-end tools.
 
+mod demo_command;
 mod optimize_command;
 mod serve_command;
 
@@ -15,6 +16,9 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    /// The fleet in one process: a map server on embedded sled and simulated robots mapping and cleaning a
+    /// changing store over loopback gRPC; prints map versions, writes map pictures and a report.
+    Demo(demo_command::DemoArgs),
     /// Optimize a g2o/TORO pose graph file and print one JSON line of results.
     Optimize(optimize_command::OptimizeArgs),
     /// Serves site maps to robots over gRPC (with health, reflection and Prometheus metrics).
@@ -23,6 +27,7 @@ enum Command {
 
 fn main() -> anyhow::Result<()> {
     match Cli::parse().command {
+        Some(Command::Demo(args)) => demo_command::run(&args),
         Some(Command::Optimize(args)) => optimize_command::run(&args),
         Some(Command::Serve(args)) => serve_command::run(&args),
         None => Ok(()),

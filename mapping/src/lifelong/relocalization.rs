@@ -172,6 +172,19 @@ pub fn relocalize_session_start(
     scans: &[(Rigid2, Vec<Point2<f32>>)],
     options: &RelocalizationOptions,
 ) -> Option<SessionRelocalization> {
+    let grid = render_submaps(map.placed_submaps(), options.resolution)?;
+    relocalize_scans_in_grid(&grid, scans, options)
+}
+
+/// The core of [`relocalize_session_start`] against any map-frame grid (for example one rendered from an
+/// agent's cache of the site's submaps): merges `scans` (`(local_from_tracking, points in the tracking
+/// frame)`, first scan first) into one cloud in the first scan's frame and relocalizes it with no prior.
+/// Returns `global_from_local` of the scans' local frame.
+pub fn relocalize_scans_in_grid(
+    grid: &ProbabilityGrid,
+    scans: &[(Rigid2, Vec<Point2<f32>>)],
+    options: &RelocalizationOptions,
+) -> Option<SessionRelocalization> {
     let (first_pose, _) = scans.first()?;
     let first_from_local = first_pose.inverse();
     let mut cloud: Vec<Point2<f32>> = Vec::new();
@@ -187,9 +200,8 @@ pub fn relocalize_session_start(
     if cloud.is_empty() {
         return None;
     }
-    let grid = render_submaps(map.placed_submaps(), options.resolution)?;
     let relocalizer = Relocalizer::new(
-        &grid,
+        grid,
         RelocalizerOptions {
             coarse_branch_and_bound_depth: options.branch_and_bound_depth,
             min_score: options.min_score,

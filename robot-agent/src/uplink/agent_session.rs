@@ -4,7 +4,13 @@
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+use mapping::geometry::Rigid2;
+use mapping::lifelong::{
+    PlacedGrid, RelocalizationOptions, relocalize_scans_in_grid, render_submaps,
+};
 use mapping::local_slam::LocalTrajectoryBuilderOptions;
+use mapping::sensor::Timestamp;
+use nalgebra::Point2;
 use proto::UploadItem;
 use tokio::sync::{mpsc, watch};
 use tokio_stream::StreamExt as _;
@@ -70,6 +76,35 @@ pub enum SessionError {
     Llo(String),
 }
 
+/// How a session finds its place in the site map before its first upload: its first `nodes` nodes are
+/// held back, merged and relocalized with no prior against the agent's cache of the site's submaps, and
+/// the session opens with that `SessionStartPrior` (or without one when nothing matched).
+pub struct SessionStart<'a> {
+    /// The agent's cache of the site's global submaps.
+    pub cache: &'a Mutex<GlobalSubmapCache>,
+    /// Relocalization settings.
+    pub relocalization: RelocalizationOptions,
+    /// Nodes merged into the relocalized cloud (at least 1).
+    pub nodes: usize,
+}
+
+/// What a session's start relocalization found and which nodes the session made.
+#[derive(Clone, Debug, Default)]
+pub struct SessionTrace {
+    /// Whether relocalization ran (a [`SessionStart`] was given and the cache held finished submaps).
+    pub relocalization_attempted: bool,
+    /// `global_from_local` sent as the session's prior.
+    pub prior: Option<Rigid2>,
+    /// Its branch-and-bound score.
+    pub score: Option<f32>,
+    /// Wall time of the relocalization, milliseconds.
+    pub relocalization_ms: f64,
+    /// Scan time of every node, in node order (node `i` of the session has `node_times[i]`).
+    pub node_times: Vec<Timestamp>,
+    /// The first node's local pose (`local_from_tracking`).
+    pub first_local_pose: Option<Rigid2>,
+}
+
 /// Runs LLO over `recording` on a named thread and streams its output through `uploader` in batches of
 /// `nodes_per_batch` nodes, ending with `SessionEnd`. Transient failures are retried while LLO goes on
 /// (the outbox keeps everything); after the recording, flushing is retried for up to
@@ -79,6 +114,68 @@ pub async fn stream_recording<U: MapUplink>(
     options: &SessionOptions,
     uploader: &mut Uploader<U>,
 ) -> Result<SessionReport, SessionError> {
+    stream_session(recording, options, uploader, None)
+        .await
+        .map(|(report, _)| report)
+}
+
+/// Relocalizes held-back nodes against the cache (on a blocking thread).
+async fn relocalize_start(
+    start: &SessionStart<'_>,
+    held: &[Vec<UploadItem>],
+    trace: &mut SessionTrace,
+) {
+    let scans: Vec<(Rigid2, Vec<Point2<f32>>)> = held
+        .iter()
+        .flatten()
+        .filter_map(|item| match item {
+            UploadItem::NodeAdded(node) => Some((node.local_pose, node.points.clone())),
+            _ => None,
+        })
+        .collect();
+    let submaps: Vec<(Rigid2, Arc<mapping::grid::ProbabilityGrid>)> = start
+        .cache
+        .lock()
+        .map(|cache| {
+            cache
+                .submaps()
+                .values()
+                .map(|s| (s.global_pose * s.local_pose.inverse(), Arc::clone(&s.grid)))
+                .collect()
+        })
+        .unwrap_or_default();
+    if submaps.is_empty() || scans.is_empty() {
+        return;
+    }
+    trace.relocalization_attempted = true;
+    let options = start.relocalization.clone();
+    let started = Instant::now();
+    let found = tokio::task::spawn_blocking(move || {
+        let grid = render_submaps(
+            submaps.iter().map(|(global_from_grid, grid)| PlacedGrid {
+                global_from_grid: *global_from_grid,
+                grid,
+            }),
+            options.resolution,
+        )?;
+        relocalize_scans_in_grid(&grid, &scans, &options)
+    })
+    .await
+    .ok()
+    .flatten();
+    trace.relocalization_ms = started.elapsed().as_secs_f64() * 1e3;
+    trace.prior = found.map(|f| f.global_from_local);
+    trace.score = found.map(|f| f.score);
+}
+
+/// [`stream_recording`] with an optional session-start relocalization (see [`SessionStart`]); also
+/// returns the session's [`SessionTrace`].
+pub async fn stream_session<U: MapUplink>(
+    recording: Arc<Recording>,
+    options: &SessionOptions,
+    uploader: &mut Uploader<U>,
+    start: Option<SessionStart<'_>>,
+) -> Result<(SessionReport, SessionTrace), SessionError> {
     let (sender, mut receiver) = mpsc::channel::<Vec<UploadItem>>(64);
     let llo_options = options.local.clone();
     let (speed, max_scans) = (options.replay_speed, options.max_scans);
@@ -92,11 +189,15 @@ pub async fn stream_recording<U: MapUplink>(
         .map_err(|e| SessionError::Llo(e.to_string()))?;
 
     let mut report = SessionReport::default();
+    let mut trace = SessionTrace::default();
     let mut batch: Vec<UploadItem> = Vec::new();
     let mut nodes_in_batch = 0;
     let mut retry = tokio::time::interval(options.retry_interval);
     retry.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     let mut backlog = false;
+    // Nodes held back until the start is relocalized (only with a `SessionStart`).
+    let mut held: Vec<Vec<UploadItem>> = Vec::new();
+    let mut started = start.is_none();
     let flush = async |uploader: &mut Uploader<U>,
                        report: &mut SessionReport|
            -> Result<bool, UplinkError> {
@@ -117,8 +218,31 @@ pub async fn stream_recording<U: MapUplink>(
         tokio::select! {
             items = receiver.recv() => {
                 let Some(items) = items else { break };
-                nodes_in_batch += 1;
-                batch.extend(items);
+                for item in &items {
+                    if let UploadItem::NodeAdded(node) = item {
+                        trace.first_local_pose.get_or_insert(node.local_pose);
+                        trace.node_times.push(node.time);
+                    }
+                }
+                if started {
+                    nodes_in_batch += 1;
+                    batch.extend(items);
+                } else {
+                    held.push(items);
+                    let wanted = start.as_ref().map_or(1, |s| s.nodes.max(1));
+                    if held.len() < wanted {
+                        continue;
+                    }
+                    if let Some(start) = &start {
+                        relocalize_start(start, &held, &mut trace).await;
+                    }
+                    started = true;
+                    if let Some(prior) = trace.prior {
+                        batch.push(UploadItem::SessionStartPrior { global_from_local: prior });
+                    }
+                    nodes_in_batch += held.len();
+                    batch.extend(held.drain(..).flatten());
+                }
                 if nodes_in_batch >= options.nodes_per_batch.max(1) {
                     uploader.enqueue(&batch)?;
                     report.batches += 1;
@@ -135,6 +259,18 @@ pub async fn stream_recording<U: MapUplink>(
     report.llo = llo
         .join()
         .map_err(|_| SessionError::Llo("the LLO thread panicked".into()))?;
+    if !started {
+        // Shorter than the relocalization window: relocalize what there is.
+        if let Some(start) = &start {
+            relocalize_start(start, &held, &mut trace).await;
+        }
+        if let Some(prior) = trace.prior {
+            batch.push(UploadItem::SessionStartPrior {
+                global_from_local: prior,
+            });
+        }
+        batch.extend(held.drain(..).flatten());
+    }
     batch.push(UploadItem::SessionEnd);
     uploader.enqueue(&batch)?;
     report.batches += 1;
@@ -146,7 +282,7 @@ pub async fn stream_recording<U: MapUplink>(
         tokio::time::sleep(options.retry_interval).await;
     }
     report.left_in_outbox = uploader.outbox().len().map_err(UplinkError::from)?;
-    Ok(report)
+    Ok((report, trace))
 }
 
 /// Keeps `cache` at the site's latest version until `stop` turns true: watches versions and, for each

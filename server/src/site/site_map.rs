@@ -405,13 +405,24 @@ impl SiteMap {
         self.optimizations
     }
 
+    /// `local_from_submap` in the frame the submap's grid is drawn in (its session's own LLO frame): the
+    /// graph holds `prior · local_from_submap` (see the module docs), so the session's prior comes off.
+    fn grid_frame_pose(&self, id: SubmapId, graph_local_pose: &Rigid2) -> Rigid2 {
+        let prior = self
+            .sessions
+            .values()
+            .find(|s| s.trajectory == id.trajectory)
+            .map_or_else(Rigid2::identity, |s| s.prior);
+        prior.inverse() * graph_local_pose
+    }
+
     fn snapshot(&self, id: SubmapId, versions: &SubmapVersions) -> Option<SubmapSnapshot> {
         let record = self.slam.submaps().get(&id)?;
         Some(SubmapSnapshot {
             id,
             revision: versions.revision,
             global_pose: self.slam.submap_pose(id)?,
-            local_pose: record.local_pose,
+            local_pose: self.grid_frame_pose(id, &record.local_pose),
             grid: Arc::clone(record.grid.as_ref()?),
         })
     }
@@ -476,7 +487,7 @@ impl SiteMap {
                 let record = self.slam.submaps().get(id)?;
                 let global = self.slam.submap_pose(*id)?;
                 Some((
-                    global * record.local_pose.inverse(),
+                    global * self.grid_frame_pose(*id, &record.local_pose).inverse(),
                     Arc::clone(record.grid.as_ref()?),
                 ))
             })

@@ -203,3 +203,57 @@ fn a_start_prior_places_the_session() {
         "{b0:?}"
     );
 }
+
+#[test]
+fn a_prior_placed_sessions_grids_are_drawn_at_the_prior() {
+    // A session whose local frame sits at `prior` in the site frame: its submap grid (drawn in the
+    // session's own LLO frame) must be placed by `prior`, in renders and in the deltas agents cache.
+    let mut map = SiteMap::new("s", GlobalSlamOptions::default()).unwrap();
+    open(&mut map, "a");
+    apply(&mut map, &batch("a", 1, vec![node(0, &[0])]));
+    open(&mut map, "b");
+    let prior = rigid2(10.0, -2.0, 0.5);
+    apply(
+        &mut map,
+        &batch(
+            "b",
+            1,
+            vec![
+                UploadItem::SessionStartPrior {
+                    global_from_local: prior,
+                },
+                node(3, &[0]),
+                UploadItem::SubmapFinished {
+                    index: 0,
+                    grid: grid(),
+                },
+            ],
+        ),
+    );
+    let b_submap = SubmapId {
+        trajectory: 1,
+        index: 0,
+    };
+    let renders: Vec<_> = map.grids_for_render();
+    assert_eq!(renders.len(), 1, "only b's submap is finished");
+    let (global_from_grid, _) = &renders[0];
+    let expected = prior;
+    assert!(
+        (global_from_grid.translation.vector - expected.translation.vector).norm() < 1e-6
+            && (global_from_grid.rotation.angle() - expected.rotation.angle()).abs() < 1e-9,
+        "{global_from_grid:?}"
+    );
+    let snapshot = map.submap(b_submap, 0).unwrap_or_else(|_| {
+        map.delta_since(0)
+            .unwrap()
+            .submaps_added
+            .into_iter()
+            .find(|s| s.id == b_submap)
+            .unwrap()
+    });
+    let cached_global_from_grid = snapshot.global_pose * snapshot.local_pose.inverse();
+    assert!(
+        (cached_global_from_grid.translation.vector - expected.translation.vector).norm() < 1e-6,
+        "{cached_global_from_grid:?}"
+    );
+}

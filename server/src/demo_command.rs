@@ -1,0 +1,601 @@
+//! `evermap-server demo`: the fleet in one process, on one machine, with no set-up.
+//!
+//! A map server on embedded sled (in `<out>/data`) serves one site, `store-1`, over gRPC on 127.0.0.1; N
+//! robot agents (the real agent code: LLO, sled outbox, exactly-once uploader, site follower with its
+//! submap cache) drive sessions of the simulated changing store. Robot 1 maps the store first (session 0);
+//! then the robots clean it concurrently on later simulated days (goods, pallets, displays and doors
+//! changed; people and carts about), each session starting with no prior: the agent holds back its first
+//! nodes, relocalizes them against its cache of the site's submaps and opens the session with that prior.
+//!
+//! The store is smaller than the `lifelong` experiment's 10,800 m² (48 × 30 m, two shelf blocks) so the
+//! whole demo fits in a few minutes on two cores. Versions are printed at most every 2 s and a map picture
+//! is written at most every 5 s (`maps/version-NNNNN.png`, named by the version it shows), plus the final
+//! one. The transport is gRPC: the zenoh front end is not written yet.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use anyhow::Context as _;
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+use mapping::geometry::{Rigid2, Rigid2Ext as _, normalize_angle};
+use mapping::lifelong::{
+    PlacedGrid, RelocalizationOptions, map_change_rate, render_submaps, render_submaps_newest,
+};
+use mapping::metrics::{MRCL_ROTATION_DEG, MRCL_TRANSLATION_M, rigid_alignment};
+use mapping::pose_graph::NodeId;
+use mapping::sensor::Timestamp;
+use mapping::simulation::{SessionOptions as SimSessionOptions, Store, StoreOptions};
+use robot_agent::map_image;
+use robot_agent::outbox::Outbox;
+use robot_agent::source::{ReadReport, Recording};
+use robot_agent::uplink::{
+    GlobalSubmapCache, GrpcUplink, MapUplink as _, SessionOptions, SessionStart, Uploader,
+    follow_site, stream_session,
+};
+use serde_json::json;
+use server::site::SiteHandle;
+use server::{RobotConfig, RunningServer, ServerConfig, SiteConfig};
+use storage::{SledStore, SledStoreOptions};
+use tokio::sync::watch;
+
+const SITE: &str = "store-1";
+const MAX_MESSAGE_BYTES: usize = 64 << 20;
+
+/// Arguments of `demo`.
+#[derive(Args)]
+pub struct DemoArgs {
+    /// Output folder (deleted and recreated): `data/` (sled), `agent-N/` (outboxes), `maps/`,
+    /// `map_change.png`, `report.json`.
+    #[arg(long, default_value = "out/demo")]
+    out: PathBuf,
+    /// Robots (agents) of the site (1..=8).
+    #[arg(long, default_value_t = 3)]
+    agents: usize,
+    /// Cleaning sessions per robot after the mapping session (0..=10).
+    #[arg(long, default_value_t = 2)]
+    sessions_per_agent: usize,
+    /// Seed of the store layout, its change schedule and the routes.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Length of each cleaning session, seconds of simulated time.
+    #[arg(long, default_value_t = 90.0)]
+    session_duration_s: f64,
+    /// Cap on the mapping session 0, seconds of simulated time (default: the whole sweep of the store).
+    #[arg(long)]
+    mapping_duration_s: Option<f64>,
+}
+
+/// The demo's store: the simulator's supermarket at a quarter of the default floor area.
+fn demo_store() -> StoreOptions {
+    StoreOptions {
+        width: 48.0,
+        depth: 30.0,
+        blocks: 2,
+        pallet_slots: 14,
+        display_slots: 10,
+        doors: 3,
+        pedestrians: 4,
+        carts: 2,
+        ..StoreOptions::default()
+    }
+}
+
+/// One session as run by one agent.
+struct SessionRun {
+    session: u32,
+    robot: usize,
+    trajectory: u32,
+    truth: Vec<(Timestamp, Rigid2)>,
+    node_times: Vec<Timestamp>,
+    prior: Option<Rigid2>,
+    first_local_pose: Option<Rigid2>,
+    score: Option<f32>,
+    relocalization_ms: f64,
+    distance_m: f64,
+    batches: u64,
+    failed_flushes: u64,
+    left_in_outbox: usize,
+    wall_s: f64,
+}
+
+struct Agent {
+    robot: usize,
+    uplink: GrpcUplink,
+    cache: Arc<Mutex<GlobalSubmapCache>>,
+    out: PathBuf,
+}
+
+/// Runs the command.
+pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
+    anyhow::ensure!((1..=8).contains(&args.agents), "--agents must be in 1..=8");
+    anyhow::ensure!(
+        args.sessions_per_agent <= 10,
+        "--sessions-per-agent must be at most 10"
+    );
+    anyhow::ensure!(
+        args.session_duration_s.is_finite() && args.session_duration_s >= 10.0,
+        "--session-duration-s must be at least 10"
+    );
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")?;
+    runtime.block_on(demo(args))
+}
+
+async fn demo(args: &DemoArgs) -> anyhow::Result<()> {
+    let started = Instant::now();
+    if args.out.exists() {
+        eprintln!(
+            "removing the previous demo output in {}",
+            args.out.display()
+        );
+        std::fs::remove_dir_all(&args.out)
+            .with_context(|| format!("cannot remove {}", args.out.display()))?;
+    }
+    std::fs::create_dir_all(args.out.join("maps"))
+        .with_context(|| format!("cannot create {}", args.out.display()))?;
+
+    let store_options = SledStoreOptions {
+        path: args.out.join("data"),
+        ..SledStoreOptions::default()
+    };
+    let store = tokio::task::spawn_blocking(move || SledStore::open(&store_options))
+        .await
+        .context("storage thread")??;
+    let robots: Vec<RobotConfig> = (1..=args.agents)
+        .map(|k| RobotConfig {
+            id: robot_id(k),
+            token: format!("demo-token-robot-{k}"),
+        })
+        .collect();
+    let config = ServerConfig {
+        listen: "127.0.0.1:0".parse()?,
+        metrics_listen: None,
+        max_message_bytes: MAX_MESSAGE_BYTES,
+        sites: vec![SiteConfig {
+            id: SITE.into(),
+            robots: robots.clone(),
+        }],
+        ..ServerConfig::default()
+    };
+    let server = RunningServer::start(&config, Arc::new(store)).await?;
+    let url = format!("http://{}", server.grpc_addr());
+    let site = server
+        .site(SITE)
+        .context("the demo site is not served")?
+        .clone();
+    eprintln!(
+        "evermap demo: map server on {url} (gRPC; sled in {}), site {SITE}, {} robots, {} cleaning sessions each",
+        args.out.join("data").display(),
+        args.agents,
+        args.sessions_per_agent
+    );
+
+    let world = Store::generate(&demo_store(), args.seed)?;
+    let sim = SimSessionOptions {
+        max_duration_s: args.session_duration_s,
+        mapping_max_duration_s: args.mapping_duration_s.unwrap_or(0.0),
+        ..SimSessionOptions::default()
+    };
+    sim.validate()?;
+
+    let (stop, stopped) = watch::channel(false);
+    let mut agents = Vec::new();
+    let mut followers = Vec::new();
+    for (k, robot) in robots.iter().enumerate() {
+        let uplink = GrpcUplink::new(
+            &url,
+            SITE,
+            &robot.token,
+            MAX_MESSAGE_BYTES,
+            Duration::from_secs(30),
+        )?;
+        let cache = Arc::new(Mutex::new(GlobalSubmapCache::default()));
+        followers.push(tokio::spawn(follow_site(
+            uplink.clone(),
+            Arc::clone(&cache),
+            stopped.clone(),
+            Duration::from_millis(200),
+        )));
+        agents.push(Agent {
+            robot: k + 1,
+            uplink,
+            cache,
+            out: args.out.join(format!("agent-{}", k + 1)),
+        });
+    }
+    let caches: Vec<_> = agents.iter().map(|a| Arc::clone(&a.cache)).collect();
+
+    let total_sessions = 1 + args.agents * args.sessions_per_agent;
+    let bar = ProgressBar::new(total_sessions as u64);
+    bar.set_style(
+        ProgressStyle::with_template("{elapsed_precise} [{bar:30}] {pos}/{len} sessions {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let printer = tokio::spawn(print_versions(
+        site.clone(),
+        caches.clone(),
+        args.out.join("maps"),
+        bar.clone(),
+        stopped.clone(),
+    ));
+
+    // Day 0: robot 1 maps the store.
+    let mut runs = Vec::new();
+    say(
+        &bar,
+        "session 0: robot-1 maps the store (the whole sweep)".into(),
+    );
+    runs.push(run_session(&agents[0], &world, &sim, 0, false).await?);
+    bar.inc(1);
+    wait_caught_up(&site, &caches).await;
+
+    // Later days: every robot cleans, concurrently.
+    let per_agent = args.sessions_per_agent;
+    let count = agents.len();
+    let mut tasks = Vec::new();
+    for agent in agents {
+        let world = world.clone();
+        let sim = sim.clone();
+        let bar = bar.clone();
+        tasks.push(tokio::spawn(async move {
+            let mut done = Vec::new();
+            for j in 0..per_agent {
+                let session = u32::try_from(1 + j * count + (agent.robot - 1))?;
+                say(
+                    &bar,
+                    format!("session {session}: robot-{} starts cleaning", agent.robot),
+                );
+                let run = run_session(&agent, &world, &sim, session, true).await?;
+                say(
+                    &bar,
+                    format!(
+                        "session {session}: robot-{} done ({} nodes, relocalized: {})",
+                        agent.robot,
+                        run.node_times.len(),
+                        run.prior.is_some()
+                    ),
+                );
+                bar.inc(1);
+                done.push(run);
+            }
+            anyhow::Ok(done)
+        }));
+    }
+    for task in tasks {
+        runs.extend(task.await.context("agent task")??);
+    }
+    wait_caught_up(&site, &caches).await;
+    let _ = stop.send(true);
+    let _ = printer.await;
+    for follower in followers {
+        let _ = follower.await;
+    }
+    bar.finish_and_clear();
+
+    // The final map picture, then the scores.
+    let final_version = site.current();
+    let rendered = site.render(0.05).await?;
+    if let Some(grid) = &rendered.grid {
+        let (w, h, pixels) = map_image::grid_to_gray(grid);
+        map_image::write_gray_png(
+            &args
+                .out
+                .join("maps")
+                .join(format!("version-{:05}.png", rendered.version)),
+            w,
+            h,
+            &pixels,
+        )?;
+        map_image::write_gray_png(&args.out.join("map.png"), w, h, &pixels)?;
+    }
+    let mcr = write_map_change(&caches[0], &args.out)?;
+    let poses = site.node_poses().await?;
+    let report = score(&runs, &poses);
+    let agents_at: Vec<u64> = caches
+        .iter()
+        .map(|c| c.lock().map_or(0, |c| c.version()))
+        .collect();
+    let wall_time_s = started.elapsed().as_secs_f64();
+    let summary = json!({
+        "site": SITE,
+        "final_version": final_version.version,
+        "counts": {
+            "sessions": final_version.counts.sessions,
+            "nodes": final_version.counts.nodes,
+            "submaps": final_version.counts.submaps,
+            "constraints": final_version.counts.constraints,
+            "loop_closures": final_version.counts.loop_closures,
+            "trimmed_submaps": final_version.counts.trimmed_submaps,
+        },
+        "agents_at_version": agents_at,
+        "cri": report.cri,
+        "localized_fraction": report.localized,
+        "relocalization_score_mean": report.score_mean,
+        "mcr": mcr,
+        "wall_time_s": wall_time_s,
+        "sessions": report.sessions,
+    });
+    let report_path = args.out.join("report.json");
+    std::fs::write(&report_path, serde_json::to_string_pretty(&summary)? + "\n")
+        .with_context(|| format!("cannot write {}", report_path.display()))?;
+    server.shutdown().await?;
+    println!(
+        "demo done in {wall_time_s:.0} s: version {} ({} sessions, {} nodes, {} submaps, {} trimmed); every robot at version {:?}; CRI {:.2}, nodes within {MRCL_TRANSLATION_M} m / {MRCL_ROTATION_DEG}° of truth {:.3}, MCR {}; maps in {}",
+        final_version.version,
+        final_version.counts.sessions,
+        final_version.counts.nodes,
+        final_version.counts.submaps,
+        final_version.counts.trimmed_submaps,
+        agents_at,
+        report.cri,
+        report.localized,
+        mcr.map_or("-".into(), |m| format!("{m:.3}")),
+        args.out.display()
+    );
+    Ok(())
+}
+
+fn robot_id(k: usize) -> String {
+    format!("robot-{k}")
+}
+
+fn say(bar: &ProgressBar, line: String) {
+    if bar.is_hidden() {
+        eprintln!("{line}");
+    } else {
+        bar.println(line);
+    }
+}
+
+/// One simulated session streamed by `agent` (relocalizing its start against its cache when `relocalize`).
+async fn run_session(
+    agent: &Agent,
+    world: &Store,
+    sim: &SimSessionOptions,
+    session: u32,
+    relocalize: bool,
+) -> anyhow::Result<SessionRun> {
+    let started = Instant::now();
+    let simulated = world.session(session, sim)?;
+    let recording = Arc::new(Recording::from_unsorted(
+        simulated.events,
+        simulated.base_from_laser,
+        ReadReport::default(),
+    ));
+    let outbox_dir = agent.out.clone();
+    let outbox = tokio::task::spawn_blocking(move || Outbox::open(&outbox_dir, SITE))
+        .await
+        .context("outbox thread")??;
+    let uuid = format!("demo-robot-{}-session-{session}", agent.robot);
+    let robot = robot_id(agent.robot);
+    let mut uploader = Uploader::new(agent.uplink.clone(), outbox, SITE, &robot, &uuid)?;
+    let options = SessionOptions {
+        replay_speed: 0.0,
+        final_flush_timeout: Duration::from_secs(120),
+        ..SessionOptions::default()
+    };
+    let start = relocalize.then(|| SessionStart {
+        cache: &agent.cache,
+        relocalization: RelocalizationOptions::default(),
+        nodes: 10,
+    });
+    let (report, trace) = stream_session(recording, &options, &mut uploader, start).await?;
+    // Opening is idempotent: this returns the trajectory the server gave the session.
+    let opened = uploader.uplink_mut().open_session(&robot, &uuid).await?;
+    Ok(SessionRun {
+        session,
+        robot: agent.robot,
+        trajectory: opened.trajectory,
+        truth: simulated.ground_truth,
+        node_times: trace.node_times,
+        prior: trace.prior,
+        first_local_pose: trace.first_local_pose,
+        score: trace.score,
+        relocalization_ms: trace.relocalization_ms,
+        distance_m: simulated.distance_m,
+        batches: report.batches,
+        failed_flushes: report.failed_flushes,
+        left_in_outbox: report.left_in_outbox,
+        wall_s: started.elapsed().as_secs_f64(),
+    })
+}
+
+/// Waits (at most 30 s) until every agent's cache holds the site's current version.
+async fn wait_caught_up(site: &SiteHandle, caches: &[Arc<Mutex<GlobalSubmapCache>>]) {
+    let deadline = Instant::now() + Duration::from_secs(30);
+    let target = site.current().version;
+    while Instant::now() < deadline {
+        if caches
+            .iter()
+            .all(|c| c.lock().is_ok_and(|c| c.version() >= target))
+        {
+            return;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+/// Prints the site's versions (at most every 2 s) and writes a map picture at most every 5 s.
+async fn print_versions(
+    site: SiteHandle,
+    caches: Vec<Arc<Mutex<GlobalSubmapCache>>>,
+    maps: PathBuf,
+    bar: ProgressBar,
+    mut stop: watch::Receiver<bool>,
+) {
+    let mut versions = site.subscribe();
+    let (mut last_line, mut last_png) = (Instant::now(), Instant::now());
+    loop {
+        tokio::select! {
+            changed = versions.changed() => if changed.is_err() { return },
+            _ = stop.changed() => return,
+        }
+        let info = *versions.borrow_and_update();
+        if last_line.elapsed() >= Duration::from_secs(2) {
+            last_line = Instant::now();
+            let at: Vec<u64> = caches
+                .iter()
+                .map(|c| c.lock().map_or(0, |c| c.version()))
+                .collect();
+            let c = info.counts;
+            say(
+                &bar,
+                format!(
+                    "version {:>5}: {} sessions, {} nodes, {} submaps ({} finished), {} constraints, {} loop closures, {} trimmed; robots at versions {at:?}",
+                    info.version,
+                    c.sessions,
+                    c.nodes,
+                    c.submaps,
+                    c.finished_submaps,
+                    c.constraints,
+                    c.loop_closures,
+                    c.trimmed_submaps
+                ),
+            );
+        }
+        if last_png.elapsed() >= Duration::from_secs(5) {
+            last_png = Instant::now();
+            if let Ok(rendered) = site.render(0.1).await
+                && let Some(grid) = rendered.grid
+            {
+                let (w, h, pixels) = map_image::grid_to_gray(&grid);
+                let path = maps.join(format!("version-{:05}.png", rendered.version));
+                if let Err(e) = map_image::write_gray_png(&path, w, h, &pixels) {
+                    say(&bar, format!("cannot write {}: {e}", path.display()));
+                }
+            }
+        }
+    }
+}
+
+/// MCR between session 0's submaps and the map as its newest submaps describe it, from a robot's cache
+/// (what the fleet sees); writes the picture.
+fn write_map_change(cache: &Mutex<GlobalSubmapCache>, out: &Path) -> anyhow::Result<Option<f64>> {
+    let placed: Vec<_> = cache
+        .lock()
+        .map_err(|_| anyhow::anyhow!("the submap cache lock is poisoned"))?
+        .submaps()
+        .values()
+        .map(|s| {
+            (
+                s.id,
+                s.global_pose * s.local_pose.inverse(),
+                Arc::clone(&s.grid),
+            )
+        })
+        .collect();
+    let grids = |first_only: bool| {
+        placed
+            .iter()
+            .filter(move |(id, _, _)| !first_only || id.trajectory == 0)
+            .map(|(_, global_from_grid, grid)| PlacedGrid {
+                global_from_grid: *global_from_grid,
+                grid,
+            })
+    };
+    let (Some(before), Some(after)) = (
+        render_submaps(grids(true), 0.05),
+        render_submaps_newest(grids(false), 0.05),
+    ) else {
+        return Ok(None);
+    };
+    let change = map_change_rate(&before, &after);
+    let (w, h, pixels) = map_image::map_change_to_rgb(&change);
+    map_image::write_rgb_png(&out.join("map_change.png"), w, h, &pixels)?;
+    Ok(Some(change.rate))
+}
+
+struct Scores {
+    cri: f64,
+    localized: f64,
+    score_mean: Option<f64>,
+    sessions: Vec<serde_json::Value>,
+}
+
+/// Node poses of the final map against the simulator's truth, in session 0's frame.
+fn score(runs: &[SessionRun], poses: &BTreeMap<NodeId, Rigid2>) -> Scores {
+    let node_pairs = |run: &SessionRun| -> Vec<(Rigid2, Rigid2)> {
+        let truth: BTreeMap<Timestamp, Rigid2> = run.truth.iter().copied().collect();
+        run.node_times
+            .iter()
+            .enumerate()
+            .filter_map(|(i, t)| {
+                let id = NodeId {
+                    trajectory: run.trajectory,
+                    index: u32::try_from(i).ok()?,
+                };
+                Some((*poses.get(&id)?, *truth.get(t)?))
+            })
+            .collect()
+    };
+    let world_from_map = runs
+        .iter()
+        .find(|r| r.session == 0)
+        .map_or_else(Rigid2::identity, |r| {
+            let pairs: Vec<_> = node_pairs(r)
+                .iter()
+                .map(|(m, w)| (m.translation.vector, w.translation.vector))
+                .collect();
+            rigid_alignment(&pairs)
+        });
+    let correct = |map: &Rigid2, world: &Rigid2| {
+        let p = world_from_map * map;
+        (p.translation.vector - world.translation.vector).norm() <= MRCL_TRANSLATION_M
+            && normalize_angle(p.theta() - world.theta())
+                .abs()
+                .to_degrees()
+                <= MRCL_ROTATION_DEG
+    };
+    let (mut initialized, mut later, mut good_nodes, mut nodes) = (0usize, 0usize, 0usize, 0usize);
+    let mut scores = Vec::new();
+    let mut sessions = Vec::new();
+    for run in runs {
+        let pairs = node_pairs(run);
+        let good = pairs.iter().filter(|(m, w)| correct(m, w)).count();
+        // Correct initialization: the prior sent at the start put the first node within tolerance.
+        let first_truth = run
+            .node_times
+            .first()
+            .and_then(|t| run.truth.iter().find(|(tt, _)| tt == t))
+            .map(|(_, p)| *p);
+        let init_ok = match (run.prior, run.first_local_pose, first_truth) {
+            (Some(prior), Some(local), Some(truth)) => correct(&(prior * local), &truth),
+            _ => false,
+        };
+        if run.session > 0 {
+            later += 1;
+            initialized += usize::from(init_ok);
+            good_nodes += good;
+            nodes += run.node_times.len();
+            scores.extend(run.score.map(f64::from));
+        }
+        sessions.push(json!({
+            "session": run.session, "robot": run.robot, "trajectory": run.trajectory,
+            "nodes": run.node_times.len(), "nodes_in_map": pairs.len(),
+            "nodes_localized": good, "initialized": run.session == 0 || init_ok,
+            "relocalization_score": run.score, "relocalization_ms": run.relocalization_ms,
+            "distance_m": run.distance_m, "batches": run.batches,
+            "failed_flushes": run.failed_flushes, "left_in_outbox": run.left_in_outbox,
+            "wall_s": run.wall_s,
+        }));
+    }
+    Scores {
+        cri: if later > 0 {
+            initialized as f64 / later as f64
+        } else {
+            1.0
+        },
+        localized: if nodes > 0 {
+            good_nodes as f64 / nodes as f64
+        } else {
+            1.0
+        },
+        score_mean: (!scores.is_empty()).then(|| scores.iter().sum::<f64>() / scores.len() as f64),
+        sessions,
+    }
+}

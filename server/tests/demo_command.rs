@@ -1,0 +1,41 @@
+//! `evermap-server demo` end to end on a small budget: the server on sled, two robots over loopback gRPC,
+//! a short mapping session and one cleaning session each. Bounded by the demo's own timeouts (every wait
+//! in it is capped) and by nextest's slow-test timeout.
+
+use std::process::Command;
+
+#[test]
+fn the_demo_maps_relocalizes_and_reaches_every_robot() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = dir.path().join("demo");
+    let status = Command::new(env!("CARGO_BIN_EXE_evermap-server"))
+        .args(["demo", "--agents", "2", "--sessions-per-agent", "1"])
+        .args(["--session-duration-s", "20", "--mapping-duration-s", "120"])
+        .arg("--out")
+        .arg(&out)
+        .status()
+        .expect("run the demo");
+    assert!(status.success(), "{status:?}");
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).expect("report"))
+            .expect("json");
+    eprintln!("{report:#}");
+    let version = report["final_version"].as_u64().expect("version");
+    assert!(version > 10, "{version}");
+    // Every robot's cache caught up with the final version through Watch + deltas.
+    for at in report["agents_at_version"].as_array().expect("agents") {
+        assert_eq!(at.as_u64(), Some(version));
+    }
+    assert_eq!(report["counts"]["sessions"].as_u64(), Some(3));
+    // Nothing left undelivered, and the later sessions found their place.
+    for session in report["sessions"].as_array().expect("sessions") {
+        assert_eq!(session["left_in_outbox"].as_u64(), Some(0), "{session}");
+        assert!(session["initialized"].as_bool().expect("bool"), "{session}");
+    }
+    assert!(report["localized_fraction"].as_f64().expect("f64") > 0.95);
+    assert!(out.join("map.png").exists() && out.join("map_change.png").exists());
+    assert!(
+        std::fs::read_dir(out.join("maps")).expect("maps").count() >= 1,
+        "a map picture per (throttled) version"
+    );
+}
