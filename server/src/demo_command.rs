@@ -95,6 +95,7 @@ struct SessionRun {
     score: Option<f32>,
     relocalization_ms: f64,
     distance_m: f64,
+    duration_s: f64,
     batches: u64,
     failed_flushes: u64,
     left_in_outbox: usize,
@@ -301,6 +302,9 @@ async fn demo(args: &DemoArgs) -> anyhow::Result<()> {
         .map(|c| c.lock().map_or(0, |c| c.version()))
         .collect();
     let wall_time_s = started.elapsed().as_secs_f64();
+    let robot_seconds: f64 = runs.iter().map(|r| r.duration_s).sum();
+    let metrics = server.metrics();
+    let (pgr_runs, pgr_mean_ms) = metrics.pgr_mean_ms();
     let summary = json!({
         "site": SITE,
         "final_version": final_version.version,
@@ -318,6 +322,12 @@ async fn demo(args: &DemoArgs) -> anyhow::Result<()> {
         "relocalization_score_mean": report.score_mean,
         "mcr": mcr,
         "wall_time_s": wall_time_s,
+        "robot_data_s": robot_seconds,
+        "uplink_bytes": metrics.bytes_in(),
+        "uplink_bytes_per_robot_second": metrics.bytes_in() as f64 / robot_seconds.max(1e-9),
+        "downlink_bytes": metrics.bytes_out(),
+        "backend_runs": pgr_runs,
+        "backend_mean_ms": pgr_mean_ms,
         "sessions": report.sessions,
     });
     let report_path = args.out.join("report.json");
@@ -398,6 +408,7 @@ async fn run_session(
         score: trace.score,
         relocalization_ms: trace.relocalization_ms,
         distance_m: simulated.distance_m,
+        duration_s: simulated.duration_s,
         batches: report.batches,
         failed_flushes: report.failed_flushes,
         left_in_outbox: report.left_in_outbox,

@@ -25,6 +25,30 @@ pub struct ServerMetrics {
 }
 
 impl ServerMetrics {
+    /// Received payload bytes so far.
+    pub fn bytes_in(&self) -> u64 {
+        self.bytes_in.load(Ordering::Relaxed)
+    }
+
+    /// Sent payload bytes so far.
+    pub fn bytes_out(&self) -> u64 {
+        self.bytes_out.load(Ordering::Relaxed)
+    }
+
+    /// Back-end runs so far and their mean wall time, milliseconds.
+    pub fn pgr_mean_ms(&self) -> (u64, f64) {
+        let runs = self.pgr_runs.load(Ordering::Relaxed);
+        let micros = self.pgr_micros.load(Ordering::Relaxed);
+        (
+            runs,
+            if runs > 0 {
+                micros as f64 / runs as f64 / 1e3
+            } else {
+                0.0
+            },
+        )
+    }
+
     /// Counts received payload bytes.
     pub fn add_bytes_in(&self, bytes: usize) {
         self.bytes_in.fetch_add(bytes as u64, Ordering::Relaxed);
