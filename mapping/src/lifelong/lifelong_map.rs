@@ -254,6 +254,15 @@ impl LifelongMap {
         self.active(session)?;
         let mut events = vec![LifelongEvent::Optimized(self.global.optimize())];
         let is_base = self.base == Some(session);
+        if !is_base && self.global.is_unanchored(session) {
+            // Never placed in the map: its submaps are in a frame nothing ties to the site, so they can
+            // neither update the map nor justify trimming anything. Dropped whatever the policy.
+            events.extend(self.drop_session(session)?);
+            if let Some(s) = self.sessions.get_mut(&session) {
+                s.finished = true;
+            }
+            return Ok(events);
+        }
         match self.options.policy {
             TrimPolicy::Keep => {}
             TrimPolicy::Frozen => {
@@ -281,6 +290,7 @@ impl LifelongMap {
         self.global
             .submaps()
             .iter()
+            .filter(|(id, _)| !self.global.is_unanchored(id.trajectory))
             .filter_map(|(id, record)| {
                 let grid = record.grid.as_ref()?;
                 let global = self.global.submap_pose(*id)?;
@@ -289,9 +299,13 @@ impl LifelongMap {
             .collect()
     }
 
-    /// Every finished submap's grid placed in the map frame (what relocalization renders).
+    /// Every finished submap of a placed session, its grid placed in the map frame (what relocalization
+    /// renders; an unplaced session's submaps float in a frame nothing ties to the site).
     pub fn placed_submaps(&self) -> impl Iterator<Item = PlacedGrid<'_>> + '_ {
         self.global.submaps().iter().filter_map(|(id, record)| {
+            if self.global.is_unanchored(id.trajectory) {
+                return None;
+            }
             let grid = record.grid.as_deref()?;
             let global = self.global.submap_pose(*id)?;
             Some(PlacedGrid {
@@ -304,6 +318,9 @@ impl LifelongMap {
     /// [`Self::placed_submaps`] with their ids, in id order (oldest session first).
     pub fn placed_submaps_by_id(&self) -> impl Iterator<Item = (SubmapId, PlacedGrid<'_>)> + '_ {
         self.global.submaps().iter().filter_map(|(id, record)| {
+            if self.global.is_unanchored(id.trajectory) {
+                return None;
+            }
             let grid = record.grid.as_deref()?;
             let global = self.global.submap_pose(*id)?;
             Some((

@@ -31,6 +31,12 @@ pub struct RelocalizationOptions {
     pub min_score: f32,
     /// Depth of the branch-and-bound precomputation. Default 7.
     pub branch_and_bound_depth: u32,
+    /// Refuse a match whose runner-up (a clearly different pose, see
+    /// [`crate::scan_matching::Relocalization::runner_up_score`]) scores within this much of it: in a
+    /// store of look-alike aisles a near-tie is a guess, and a session placed in the wrong aisle corrupts
+    /// the map; an unplaced session retries later from elsewhere. Score units; 0 = accept ties. Default
+    /// 0.03.
+    pub min_score_margin: f32,
     /// Distinct coarse candidates refined at full resolution (count ≥ 1; see [`RelocalizerOptions`]).
     /// Default 8: corridors and shelf rows make coarse maxima ambiguous, and the refinements are cheap
     /// next to the coarse search.
@@ -47,6 +53,7 @@ impl Default for RelocalizationOptions {
             min_score: 0.6,
             branch_and_bound_depth: 7,
             max_candidates: 8,
+            min_score_margin: 0.03,
             least_squares: LeastSquaresScanMatcherOptions::default(),
         }
     }
@@ -65,6 +72,12 @@ impl RelocalizationOptions {
             return Err(LifelongOptionsError::OutOfRange {
                 field: "voxel_size",
                 reason: "must be a non-negative number of metres",
+            });
+        }
+        if !(0.0..=1.0).contains(&self.min_score_margin) {
+            return Err(LifelongOptionsError::OutOfRange {
+                field: "min_score_margin",
+                reason: "must be in [0, 1]",
             });
         }
         if !(0.0..=1.0).contains(&self.min_score) {
@@ -211,6 +224,12 @@ pub fn relocalize_scans_in_grid(
         },
     );
     let found = relocalizer.relocalize(&cloud)?;
+    if found
+        .runner_up_score
+        .is_some_and(|r| r >= found.score - options.min_score_margin)
+    {
+        return None;
+    }
     Some(SessionRelocalization {
         global_from_local: found.pose * first_from_local,
         score: found.score,

@@ -108,6 +108,9 @@ pub struct Relocalization {
     pub score: f32,
     /// Coarse candidates that were refined.
     pub candidates_refined: usize,
+    /// Fine score of the best refined candidate at a clearly different pose (more than 1 m or 10° from
+    /// the winner), if any: how ambiguous the match is (shelf rows and corridors repeat).
+    pub runner_up_score: Option<f32>,
 }
 
 /// A map prepared for relocalization: coarse and fine branch-and-bound matchers over it. Immutable and
@@ -203,7 +206,7 @@ impl Relocalizer {
             .fold(self.coarse_resolution, f64::max);
         let coarse_step = 2.0 * (0.5 * self.coarse_resolution / max_range).asin();
         let refiner = LeastSquaresScanMatcher::new(o.least_squares.clone());
-        let mut best: Option<Relocalization> = None;
+        let mut found_all: Vec<(Rigid2, f32)> = Vec::new();
         for candidate in &candidates {
             let Some(found) = self.fine.match_within(
                 &candidate.pose,
@@ -216,18 +219,29 @@ impl Relocalizer {
             ) else {
                 continue;
             };
-            if best.is_some_and(|b| b.score >= found.score) {
-                continue;
-            }
-            let target: Vector2<f64> = found.pose.translation.vector;
-            let (refined, _) = refiner.match_pose(&target, &found.pose, points, &self.fine_grid);
-            best = Some(Relocalization {
-                pose: refined,
-                score: found.score,
-                candidates_refined: candidates.len(),
-            });
+            found_all.push((found.pose, found.score));
         }
-        best
+        let &(best_pose, best_score) = found_all.iter().max_by(|a, b| a.1.total_cmp(&b.1))?;
+        let runner_up_score = found_all
+            .iter()
+            .filter(|(pose, _)| {
+                (pose.translation.vector - best_pose.translation.vector).norm() > 1.0
+                    || crate::geometry::normalize_angle(
+                        pose.rotation.angle() - best_pose.rotation.angle(),
+                    )
+                    .abs()
+                        > 10f64.to_radians()
+            })
+            .map(|(_, score)| *score)
+            .max_by(f32::total_cmp);
+        let target: Vector2<f64> = best_pose.translation.vector;
+        let (refined, _) = refiner.match_pose(&target, &best_pose, points, &self.fine_grid);
+        Some(Relocalization {
+            pose: refined,
+            score: best_score,
+            candidates_refined: candidates.len(),
+            runner_up_score,
+        })
     }
 }
 
@@ -276,6 +290,54 @@ mod tests {
         );
         assert!(
             crate::geometry::normalize_angle(found.pose.theta() - truth.theta()).abs() < 0.02,
+            "{found:?}"
+        );
+    }
+
+    #[test]
+    fn a_symmetric_room_reports_its_ambiguity() {
+        // A bare 6 m × 4 m rectangle looks the same turned by 180°: the runner-up ties with the winner.
+        let limits = MapLimits::new(0.05, Vector2::new(-1.0, -1.0), 160, 120);
+        let mut grid = ProbabilityGrid::new(limits.clone());
+        let on_wall = |x: f64, y: f64| {
+            let near = |v: f64, w: f64| (v - w).abs() < 0.05;
+            ((near(x, 0.0) || near(x, 6.0)) && (-0.05..=4.05).contains(&y))
+                || ((near(y, 0.0) || near(y, 4.0)) && (-0.05..=6.05).contains(&x))
+        };
+        for iy in 0..limits.height {
+            for ix in 0..limits.width {
+                let index = crate::grid::CellIndex::new(ix, iy);
+                let c = limits.cell_center(&index);
+                grid.set_probability(&index, if on_wall(c.x, c.y) { 0.9 } else { 0.1 });
+            }
+        }
+        let robot = rigid2(2.0, 1.5, 0.3);
+        let inverse = robot.inverse();
+        let mut points = Vec::new();
+        for k in 0..=60 {
+            let t = f64::from(k) * 0.1;
+            for w in [
+                Point2::new(t, 0.0),
+                Point2::new(t, 4.0),
+                Point2::new(0.0, t * 4.0 / 6.0),
+                Point2::new(6.0, t * 4.0 / 6.0),
+            ] {
+                points.push((inverse * w).cast::<f32>());
+            }
+        }
+        let found = Relocalizer::new(&grid, RelocalizerOptions::default())
+            .relocalize(&points)
+            .expect("fits");
+        let runner_up = found.runner_up_score.expect("the turned pose fits too");
+        assert!(runner_up > found.score - 0.02, "{found:?}");
+
+        // The lab-like room of the other tests is not symmetric: a clear margin.
+        let truth = rigid2(0.7, -0.4, 2.5);
+        let found = Relocalizer::new(&room_grid(), RelocalizerOptions::default())
+            .relocalize(&room_scan(&truth))
+            .expect("relocalized");
+        assert!(
+            found.runner_up_score.is_none_or(|r| r < found.score - 0.05),
             "{found:?}"
         );
     }
