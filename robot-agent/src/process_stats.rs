@@ -9,12 +9,40 @@ pub fn peak_rss_mb() -> Option<f64> {
     Some(kib / 1024.0)
 }
 
+/// CPU time (user + system) this process has used so far, seconds (`/proc/self/stat`, in clock ticks of
+/// 1/100 s, the value of `CLK_TCK` on Linux), if the platform reports it.
+pub fn cpu_seconds() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // The command name (field 2) may hold spaces; the fields after its closing parenthesis are fixed.
+    let rest = stat.get(stat.rfind(')')? + 1..)?;
+    let fields: Vec<&str> = rest.split_whitespace().collect();
+    // utime and stime are fields 14 and 15 of the whole line, 12 and 13 after the parenthesis.
+    let user: f64 = fields.get(11)?.parse().ok()?;
+    let system: f64 = fields.get(12)?.parse().ok()?;
+    Some((user + system) / 100.0)
+}
+
 #[cfg(test)]
 mod tests {
     #[test]
     fn peak_rss_is_positive_on_linux() {
         if cfg!(target_os = "linux") {
             assert!(super::peak_rss_mb().is_some_and(|mb| mb > 0.0));
+        }
+    }
+
+    #[test]
+    fn cpu_time_grows_with_work() {
+        if cfg!(target_os = "linux") {
+            let before = super::cpu_seconds().expect("cpu time");
+            let started = std::time::Instant::now();
+            let mut x = 0u64;
+            while started.elapsed() < std::time::Duration::from_millis(300) {
+                x = x.wrapping_mul(6364136223846793005).wrapping_add(1);
+            }
+            std::hint::black_box(x);
+            let after = super::cpu_seconds().expect("cpu time");
+            assert!(after - before > 0.1, "{before} -> {after}");
         }
     }
 }

@@ -19,8 +19,8 @@ use std::future::Future;
 use std::pin::Pin;
 
 pub use agent_session::{
-    SessionOptions, SessionReport, SessionStart, SessionTrace, follow_site, stream_recording,
-    stream_session,
+    SessionOptions, SessionReport, SessionStart, SessionTrace, follow_site, follow_site_with,
+    relocalize_nodes, stream_recording, stream_session,
 };
 pub use global_submap_cache::{CacheError, GlobalSubmapCache};
 pub use grpc_uplink::GrpcUplink;

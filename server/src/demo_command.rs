@@ -42,7 +42,8 @@ use storage::{SledStore, SledStoreOptions};
 use tokio::sync::watch;
 
 const SITE: &str = "store-1";
-const MAX_MESSAGE_BYTES: usize = 64 << 20;
+/// gRPC message cap of the demo's server and agents.
+pub(crate) const MAX_MESSAGE_BYTES: usize = 64 << 20;
 
 /// Arguments of `demo`.
 #[derive(Args)]
@@ -69,7 +70,7 @@ pub struct DemoArgs {
 }
 
 /// The demo's store: the simulator's supermarket at a quarter of the default floor area.
-fn demo_store() -> StoreOptions {
+pub(crate) fn demo_store() -> StoreOptions {
     StoreOptions {
         width: 48.0,
         depth: 30.0,

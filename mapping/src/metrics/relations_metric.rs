@@ -26,12 +26,17 @@ pub struct RelationsErrorStats {
     pub trans_abs_std_m: f64,
     /// Mean squared translational error, m².
     pub trans_sq_mean_m2: f64,
+    /// Median absolute translational error, metres (robust to the few long-span outliers that dominate
+    /// the mean when one loop is missed).
+    pub trans_abs_median_m: f64,
     /// Mean absolute rotational error, degrees.
     pub rot_abs_mean_deg: f64,
     /// Standard deviation of the absolute rotational error, degrees.
     pub rot_abs_std_deg: f64,
     /// Mean squared rotational error, deg².
     pub rot_sq_mean_deg2: f64,
+    /// Median absolute rotational error, degrees.
+    pub rot_abs_median_deg: f64,
 }
 
 fn nearest(poses: &[(Timestamp, Rigid2)], t: Timestamp) -> Option<&Rigid2> {
@@ -54,6 +59,20 @@ fn mean_std(values: &[f64]) -> (f64, f64) {
     let mean = values.iter().sum::<f64>() / n;
     let var = values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n;
     (mean, var.sqrt())
+}
+
+fn median(values: &[f64]) -> f64 {
+    if values.is_empty() {
+        return 0.0;
+    }
+    let mut sorted = values.to_vec();
+    sorted.sort_by(f64::total_cmp);
+    let n = sorted.len();
+    if n % 2 == 1 {
+        sorted[n / 2]
+    } else {
+        0.5 * (sorted[n / 2 - 1] + sorted[n / 2])
+    }
 }
 
 /// Scores a trajectory (sorted by time) against reference relations.
@@ -91,9 +110,11 @@ pub fn relations_error(
         trans_abs_mean_m,
         trans_abs_std_m,
         trans_sq_mean_m2: sq(&trans),
+        trans_abs_median_m: median(&trans),
         rot_abs_mean_deg,
         rot_abs_std_deg,
         rot_sq_mean_deg2: sq(&rot),
+        rot_abs_median_deg: median(&rot),
     }
 }
 
@@ -140,6 +161,15 @@ mod tests {
         assert!(shifted.trans_abs_std_m < 1e-9);
         assert!((shifted.trans_sq_mean_m2 - 0.0009).abs() < 1e-9);
         assert!((shifted.rot_abs_mean_deg - 1.0).abs() < 1e-9);
+        assert!((shifted.trans_abs_median_m - 0.03).abs() < 1e-9);
+        assert!((shifted.rot_abs_median_deg - 1.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn the_median_ignores_one_large_outlier() {
+        assert!((median(&[0.01, 5.0, 0.02]) - 0.02).abs() < 1e-12);
+        assert!((median(&[0.04, 0.01, 9.0, 0.02]) - 0.03).abs() < 1e-12);
+        assert!(median(&[]).abs() < 1e-12);
     }
 
     #[test]

@@ -125,16 +125,33 @@ async fn relocalize_start(
     held: &[Vec<UploadItem>],
     trace: &mut SessionTrace,
 ) {
-    let scans: Vec<(Rigid2, Vec<Point2<f32>>)> = held
+    let items: Vec<UploadItem> = held.iter().flatten().cloned().collect();
+    let started = Instant::now();
+    let Some(found) = relocalize_nodes(start.cache, &start.relocalization, &items).await else {
+        return;
+    };
+    trace.relocalization_attempted = true;
+    trace.relocalization_ms = started.elapsed().as_secs_f64() * 1e3;
+    trace.prior = found.map(|(prior, _)| prior);
+    trace.score = found.map(|(_, score)| score);
+}
+
+/// Relocalizes the nodes among `items` (merged in their local frame) with no prior against the cached
+/// site submaps, on a blocking thread. `None` when there is nothing to relocalize against (no submaps or
+/// no nodes); `Some(None)` when nothing matched; `Some(Some((global_from_local, score)))` otherwise.
+pub async fn relocalize_nodes(
+    cache: &Mutex<GlobalSubmapCache>,
+    options: &RelocalizationOptions,
+    items: &[UploadItem],
+) -> Option<Option<(Rigid2, f32)>> {
+    let scans: Vec<(Rigid2, Vec<Point2<f32>>)> = items
         .iter()
-        .flatten()
         .filter_map(|item| match item {
             UploadItem::NodeAdded(node) => Some((node.local_pose, node.points.clone())),
             _ => None,
         })
         .collect();
-    let submaps: Vec<(Rigid2, Arc<mapping::grid::ProbabilityGrid>)> = start
-        .cache
+    let submaps: Vec<(Rigid2, Arc<mapping::grid::ProbabilityGrid>)> = cache
         .lock()
         .map(|cache| {
             cache
@@ -145,11 +162,9 @@ async fn relocalize_start(
         })
         .unwrap_or_default();
     if submaps.is_empty() || scans.is_empty() {
-        return;
+        return None;
     }
-    trace.relocalization_attempted = true;
-    let options = start.relocalization.clone();
-    let started = Instant::now();
+    let options = options.clone();
     let found = tokio::task::spawn_blocking(move || {
         let grid = render_submaps(
             submaps.iter().map(|(global_from_grid, grid)| PlacedGrid {
@@ -163,9 +178,7 @@ async fn relocalize_start(
     .await
     .ok()
     .flatten();
-    trace.relocalization_ms = started.elapsed().as_secs_f64() * 1e3;
-    trace.prior = found.map(|f| f.global_from_local);
-    trace.score = found.map(|f| f.score);
+    Some(found.map(|f| (f.global_from_local, f.score)))
 }
 
 /// [`stream_recording`] with an optional session-start relocalization (see [`SessionStart`]); also
@@ -289,10 +302,22 @@ pub async fn stream_session<U: MapUplink>(
 /// one newer than the cache, fetches the delta since the cache's version. After a broken link it
 /// reconnects every `retry_interval` and catches up by delta (not by re-reading the whole map).
 pub async fn follow_site<U: MapUplink>(
+    uplink: U,
+    cache: Arc<Mutex<GlobalSubmapCache>>,
+    stop: watch::Receiver<bool>,
+    retry_interval: Duration,
+) {
+    follow_site_with(uplink, cache, stop, retry_interval, |_| {}).await;
+}
+
+/// [`follow_site`] that also calls `on_applied` with the cache's version after each applied delta (the
+/// load benchmark times version arrival with it).
+pub async fn follow_site_with<U: MapUplink>(
     mut uplink: U,
     cache: Arc<Mutex<GlobalSubmapCache>>,
     mut stop: watch::Receiver<bool>,
     retry_interval: Duration,
+    mut on_applied: impl FnMut(u64) + Send,
 ) {
     let cached = |cache: &Arc<Mutex<GlobalSubmapCache>>| cache.lock().map_or(0, |c| c.version());
     while !*stop.borrow() {
@@ -313,9 +338,13 @@ pub async fn follow_site<U: MapUplink>(
             }
             match uplink.delta_since(cached(&cache)).await {
                 Ok(delta) => {
-                    if let Ok(mut cache) = cache.lock() {
+                    let applied = cache.lock().ok().map(|mut cache| {
                         // A delta from an older base is harmless; one from a newer base cannot happen.
                         let _ = cache.apply(delta);
+                        cache.version()
+                    });
+                    if let Some(version) = applied {
+                        on_applied(version);
                     }
                 }
                 Err(_) => break,

@@ -1,0 +1,697 @@
+//! `evermap-server load`: the fleet load benchmark. N simulated robots stream cleaning sessions at real
+//! time into one map server (sled, loopback gRPC) spread over several sites, while every robot follows
+//! its site's versions; measures what the fleet issue asks for: server CPU and memory, uplink bytes per
+//! robot-second, the latency from a submap being finished on a robot to its version reaching every robot
+//! of the site, and the catch-up (time and bytes) of a robot that was offline for the whole run.
+//!
+//! Phases:
+//! 1. *Mapping* (not measured): robot 0 of every site maps its store (session 0: the whole sweep of the
+//!    demo's 48 × 30 m store unless capped by `--mapping-duration-s`), streamed as fast as the server
+//!    takes it.
+//! 2. *Preparation* (not measured): every robot's cleaning session is simulated and run through LLO
+//!    ahead of time, and its first nodes are relocalized against the robot's cache of the site map (the
+//!    prior it opens with, as in `demo`). Robots run LLO on their own CPUs; doing it ahead keeps the 50
+//!    robots' LLO off the server's two cores, so the figures are the server's.
+//! 3. *Streaming* (measured): every robot replays its LLO output on the recording's clock (10 nodes per
+//!    batch, and a batch is sent at once when it holds a finished submap), starts staggered over 2 s.
+//!    If the server falls behind, uploads wait and the delay shows up in the latency.
+//!
+//! The robots' outboxes are in memory here (one sled per robot would put 50 databases' I/O on the
+//! server's disk, which a real robot keeps on its own); the server's store is sled, as deployed.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use anyhow::Context as _;
+use clap::Args;
+use mapping::geometry::Rigid2;
+use mapping::lifelong::RelocalizationOptions;
+use mapping::local_slam::LocalTrajectoryBuilderOptions;
+use mapping::simulation::{SessionOptions as SimSessionOptions, Store};
+use proto::UploadItem;
+use robot_agent::outbox::Outbox;
+use robot_agent::process_stats::{cpu_seconds, peak_rss_mb};
+use robot_agent::source::{ReadReport, Recording};
+use robot_agent::uplink::{
+    GlobalSubmapCache, GrpcUplink, MapUplink as _, SessionOptions, Uploader, follow_site_with,
+    relocalize_nodes, run_llo, stream_recording,
+};
+use serde_json::json;
+use server::{RobotConfig, RunningServer, ServerConfig, SiteConfig};
+use storage::{SledStore, SledStoreOptions};
+use tokio::sync::watch;
+
+use crate::demo_command::{MAX_MESSAGE_BYTES, demo_store};
+
+/// Nodes per upload batch (a batch holding a finished submap goes at once).
+const NODES_PER_BATCH: usize = 10;
+/// Nodes merged for the session-start relocalization.
+const RELOCALIZATION_NODES: usize = 10;
+
+/// Arguments of `load`.
+#[derive(Args)]
+pub struct LoadArgs {
+    /// Output folder (deleted and recreated): `data/` (the server's sled) and `report.json`.
+    #[arg(long, default_value = "out/load")]
+    out: PathBuf,
+    /// Robots streaming at once, spread evenly over the sites.
+    #[arg(long, default_value_t = 50)]
+    agents: usize,
+    /// Sites (stores), each with its own simulated store and map.
+    #[arg(long, default_value_t = 10)]
+    sites: usize,
+    /// Seconds of cleaning session each robot streams at real time (the measured window).
+    #[arg(long, default_value_t = 120.0)]
+    duration_s: f64,
+    /// Cap on each site's mapping session 0, seconds of simulated time (default: the whole sweep of the
+    /// store, as in `demo`).
+    #[arg(long)]
+    mapping_duration_s: Option<f64>,
+    /// Seed of the stores and routes (site `s` uses `seed + s`).
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+}
+
+/// One robot of the benchmark.
+struct Robot {
+    site: usize,
+    id: String,
+    uplink: GrpcUplink,
+    cache: Arc<Mutex<GlobalSubmapCache>>,
+    /// When each site version reached this robot's cache.
+    arrivals: Arc<Mutex<Vec<(u64, Instant)>>>,
+}
+
+/// A robot's cleaning session, run through LLO ahead of time.
+struct PreparedSession {
+    /// One entry per node: its items (the node, then the submaps it finished).
+    steps: Vec<Vec<UploadItem>>,
+    prior: Option<(Rigid2, f32)>,
+    duration_s: f64,
+}
+
+/// A finished submap on its way to the fleet.
+struct SubmapTiming {
+    site: usize,
+    /// When the robot finished it (on the session's real-time schedule).
+    finished: Instant,
+    /// When the server acknowledged the batch holding it.
+    acked: Instant,
+    /// The site version that batch made.
+    version: u64,
+}
+
+/// What one robot's streaming did.
+#[derive(Default)]
+struct StreamOutcome {
+    submaps: Vec<SubmapTiming>,
+    batches: u64,
+    failed_flushes: u64,
+    left_in_outbox: usize,
+    /// Largest lag behind the recording's clock when a batch was sent, seconds.
+    max_lag_s: f64,
+}
+
+fn site_id(s: usize) -> String {
+    format!("store-{}", s + 1)
+}
+
+/// Runs the command.
+pub fn run(args: &LoadArgs) -> anyhow::Result<()> {
+    anyhow::ensure!(args.sites >= 1, "--sites must be at least 1");
+    anyhow::ensure!(
+        args.agents >= args.sites && args.agents <= 500,
+        "--agents must be between --sites and 500"
+    );
+    anyhow::ensure!(
+        args.duration_s.is_finite() && (10.0..=3600.0).contains(&args.duration_s),
+        "--duration-s must be in 10..=3600"
+    );
+    anyhow::ensure!(
+        args.mapping_duration_s
+            .is_none_or(|d| d.is_finite() && d >= 30.0),
+        "--mapping-duration-s must be at least 30"
+    );
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")?;
+    runtime.block_on(load(args))
+}
+
+async fn load(args: &LoadArgs) -> anyhow::Result<()> {
+    let started = Instant::now();
+    if args.out.exists() {
+        std::fs::remove_dir_all(&args.out)
+            .with_context(|| format!("cannot remove {}", args.out.display()))?;
+    }
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("cannot create {}", args.out.display()))?;
+    let store_options = SledStoreOptions {
+        path: args.out.join("data"),
+        ..SledStoreOptions::default()
+    };
+    let store = tokio::task::spawn_blocking(move || SledStore::open(&store_options))
+        .await
+        .context("storage thread")??;
+
+    // Robot r belongs to site r % sites; robot k of a site is named robot-<site>-<k>.
+    let mut site_robots: Vec<Vec<RobotConfig>> = vec![Vec::new(); args.sites];
+    for r in 0..args.agents {
+        let s = r % args.sites;
+        let k = site_robots[s].len();
+        site_robots[s].push(RobotConfig {
+            id: format!("robot-{}-{k}", s + 1),
+            token: format!("load-token-{}-{k}", s + 1),
+        });
+    }
+    let config = ServerConfig {
+        listen: "127.0.0.1:0".parse()?,
+        metrics_listen: None,
+        max_message_bytes: MAX_MESSAGE_BYTES,
+        sites: site_robots
+            .iter()
+            .enumerate()
+            .map(|(s, robots)| SiteConfig {
+                id: site_id(s),
+                robots: robots.clone(),
+            })
+            .collect(),
+        ..ServerConfig::default()
+    };
+    let server = RunningServer::start(&config, Arc::new(store)).await?;
+    let url = format!("http://{}", server.grpc_addr());
+    eprintln!(
+        "evermap load: server on {url} (sled in {}), {} robots on {} sites, {} s each at real time",
+        args.out.join("data").display(),
+        args.agents,
+        args.sites,
+        args.duration_s
+    );
+
+    let (stop, stopped) = watch::channel(false);
+    let mut robots = Vec::new();
+    let mut followers = Vec::new();
+    for (s, configs) in site_robots.iter().enumerate() {
+        for config in configs {
+            let uplink = GrpcUplink::new(
+                &url,
+                &site_id(s),
+                &config.token,
+                MAX_MESSAGE_BYTES,
+                Duration::from_secs(60),
+            )?;
+            let cache = Arc::new(Mutex::new(GlobalSubmapCache::default()));
+            let arrivals = Arc::new(Mutex::new(Vec::new()));
+            let record = Arc::clone(&arrivals);
+            followers.push(tokio::spawn(follow_site_with(
+                uplink.clone(),
+                Arc::clone(&cache),
+                stopped.clone(),
+                Duration::from_millis(200),
+                move |version| {
+                    if let Ok(mut a) = record.lock() {
+                        a.push((version, Instant::now()));
+                    }
+                },
+            )));
+            robots.push(Robot {
+                site: s,
+                id: config.id.clone(),
+                uplink,
+                cache,
+                arrivals,
+            });
+        }
+    }
+    let worlds: Vec<Store> = (0..args.sites)
+        .map(|s| Store::generate(&demo_store(), args.seed + s as u64))
+        .collect::<Result<_, _>>()?;
+
+    // 1. Every site's robot 0 maps its store.
+    eprintln!("phase 1/3: mapping {} stores", args.sites);
+    let mapping_sim = SimSessionOptions {
+        mapping_max_duration_s: args.mapping_duration_s.unwrap_or(0.0),
+        ..SimSessionOptions::default()
+    };
+    let mut mappers = Vec::new();
+    for (s, world) in worlds.iter().enumerate() {
+        let robot = robots
+            .iter()
+            .find(|r| r.site == s)
+            .context("every site has a robot")?;
+        let simulated = world.session(0, &mapping_sim)?;
+        let recording = Arc::new(Recording::from_unsorted(
+            simulated.events,
+            simulated.base_from_laser,
+            ReadReport::default(),
+        ));
+        let mut uploader = Uploader::new(
+            robot.uplink.clone(),
+            Outbox::in_memory(&site_id(s)),
+            &site_id(s),
+            &robot.id,
+            &format!("load-{}-mapping", robot.id),
+        )?;
+        let options = SessionOptions {
+            replay_speed: 0.0,
+            final_flush_timeout: Duration::from_secs(300),
+            ..SessionOptions::default()
+        };
+        mappers.push(tokio::spawn(async move {
+            stream_recording(recording, &options, &mut uploader).await
+        }));
+    }
+    for mapper in mappers {
+        let report = mapper.await.context("mapping task")??;
+        anyhow::ensure!(
+            report.left_in_outbox == 0,
+            "a mapping session could not deliver everything ({} batches left)",
+            report.left_in_outbox
+        );
+    }
+    wait_caught_up(&server, &robots, args.sites).await;
+    eprintln!(
+        "  mapped in {:.0} s; site versions {:?}",
+        started.elapsed().as_secs_f64(),
+        (0..args.sites)
+            .map(|s| server.site(&site_id(s)).map_or(0, |h| h.current().version))
+            .collect::<Vec<_>>()
+    );
+
+    // 2. LLO and start relocalization of every cleaning session, ahead of time.
+    eprintln!(
+        "phase 2/3: LLO of {} cleaning sessions ahead of time",
+        robots.len()
+    );
+    let prepare_started = Instant::now();
+    let clean_sim = SimSessionOptions {
+        max_duration_s: args.duration_s,
+        ..SimSessionOptions::default()
+    };
+    let mut preparing = Vec::new();
+    for (r, robot) in robots.iter().enumerate() {
+        let world = worlds[robot.site].clone();
+        let sim = clean_sim.clone();
+        let session = u32::try_from(1 + r / args.sites)?;
+        preparing.push(tokio::task::spawn_blocking(
+            move || -> anyhow::Result<(Vec<Vec<UploadItem>>, f64)> {
+                let simulated = world.session(session, &sim)?;
+                let recording = Recording::from_unsorted(
+                    simulated.events,
+                    simulated.base_from_laser,
+                    ReadReport::default(),
+                );
+                let mut steps = Vec::new();
+                run_llo(
+                    &recording,
+                    &LocalTrajectoryBuilderOptions::default(),
+                    0.0,
+                    None,
+                    &mut |items| {
+                        steps.push(items);
+                        true
+                    },
+                );
+                Ok((steps, simulated.duration_s))
+            },
+        ));
+    }
+    let mut prepared = Vec::new();
+    for (robot, task) in robots.iter().zip(preparing) {
+        let (steps, duration_s) = task.await.context("LLO thread")??;
+        let held: Vec<UploadItem> = steps
+            .iter()
+            .take(RELOCALIZATION_NODES)
+            .flatten()
+            .cloned()
+            .collect();
+        let prior = relocalize_nodes(&robot.cache, &RelocalizationOptions::default(), &held)
+            .await
+            .flatten();
+        prepared.push(PreparedSession {
+            steps,
+            prior,
+            duration_s,
+        });
+    }
+    let relocalized = prepared.iter().filter(|p| p.prior.is_some()).count();
+    let data_seconds: f64 = prepared.iter().map(|p| p.duration_s).sum();
+    eprintln!(
+        "  prepared in {:.0} s: {} nodes, {relocalized}/{} sessions relocalized at their start",
+        prepare_started.elapsed().as_secs_f64(),
+        prepared.iter().map(|p| p.steps.len()).sum::<usize>(),
+        prepared.len()
+    );
+
+    // 3. Measured: everyone streams at real time.
+    eprintln!(
+        "phase 3/3: {} robots stream for {} s at real time",
+        robots.len(),
+        args.duration_s
+    );
+    let metrics = Arc::clone(server.metrics());
+    let (bytes_in_0, bytes_out_0) = (metrics.bytes_in(), metrics.bytes_out());
+    let (pgr_runs_0, pgr_mean_0) = metrics.pgr_mean_ms();
+    let cpu_0 = cpu_seconds();
+    // A robot that goes offline now and comes back at the end: the version it last saw.
+    let offline_version = server.site(&site_id(0)).map_or(0, |h| h.current().version);
+    let stream_started = Instant::now();
+    let max_queue = Arc::new(Mutex::new(0usize));
+    let sampler = {
+        let handles: Vec<_> = (0..args.sites)
+            .filter_map(|s| server.site(&site_id(s)).cloned())
+            .collect();
+        let max_queue = Arc::clone(&max_queue);
+        let mut stop = stopped.clone();
+        tokio::spawn(async move {
+            let mut tick = tokio::time::interval(Duration::from_millis(100));
+            let mut last_line = Instant::now();
+            loop {
+                tokio::select! {
+                    _ = tick.tick() => {}
+                    _ = stop.changed() => return,
+                }
+                let depth = handles
+                    .iter()
+                    .map(server::site::SiteHandle::queue_depth)
+                    .max()
+                    .unwrap_or(0);
+                if let Ok(mut m) = max_queue.lock() {
+                    *m = (*m).max(depth);
+                }
+                if last_line.elapsed() >= Duration::from_secs(10) {
+                    last_line = Instant::now();
+                    let versions: Vec<u64> = handles.iter().map(|h| h.current().version).collect();
+                    eprintln!(
+                        "  {:>4.0} s: site versions {versions:?}, deepest site queue {depth}",
+                        stream_started.elapsed().as_secs_f64()
+                    );
+                }
+            }
+        })
+    };
+    let mut streams = Vec::new();
+    for (r, (robot, session)) in robots.iter().zip(prepared).enumerate() {
+        let stagger = seconds(2.0 * r as f64 / args.agents as f64);
+        let uploader = Uploader::new(
+            robot.uplink.clone(),
+            Outbox::in_memory(&site_id(robot.site)),
+            &site_id(robot.site),
+            &robot.id,
+            &format!("load-{}-cleaning", robot.id),
+        )?;
+        let site = robot.site;
+        streams.push(tokio::spawn(async move {
+            tokio::time::sleep(stagger).await;
+            stream_prepared(uploader, session, site).await
+        }));
+    }
+    let mut outcomes = Vec::new();
+    for stream in streams {
+        outcomes.push(stream.await.context("robot task")??);
+    }
+    let streaming_s = stream_started.elapsed().as_secs_f64();
+    wait_caught_up(&server, &robots, args.sites).await;
+    let measured_s = stream_started.elapsed().as_secs_f64();
+    let cpu_s = match (cpu_0, cpu_seconds()) {
+        (Some(a), Some(b)) => Some(b - a),
+        _ => None,
+    };
+    let bytes_in = metrics.bytes_in() - bytes_in_0;
+    let bytes_out = metrics.bytes_out() - bytes_out_0;
+    let (pgr_runs_1, pgr_mean_1) = metrics.pgr_mean_ms();
+    let pgr_runs = pgr_runs_1 - pgr_runs_0;
+    let pgr_mean_ms = if pgr_runs > 0 {
+        (pgr_mean_1 * pgr_runs_1 as f64 - pgr_mean_0 * pgr_runs_0 as f64) / pgr_runs as f64
+    } else {
+        0.0
+    };
+    let _ = stop.send(true);
+    let _ = sampler.await;
+    for follower in followers {
+        let _ = follower.await;
+    }
+
+    // The offline robot catches up by delta.
+    let resync = {
+        let mut uplink = robots[0].uplink.clone();
+        let before = metrics.bytes_out();
+        let t = Instant::now();
+        let delta = uplink.delta_since(offline_version).await?;
+        let ms = t.elapsed().as_secs_f64() * 1e3;
+        let bytes = metrics.bytes_out() - before;
+        let before_full = metrics.bytes_out();
+        let t = Instant::now();
+        let _ = uplink.delta_since(0).await?;
+        let full_ms = t.elapsed().as_secs_f64() * 1e3;
+        json!({
+            "site": site_id(0),
+            "offline_s": measured_s,
+            "from_version": offline_version,
+            "to_version": delta.to_version,
+            "submaps_added": delta.submaps_added.len(),
+            "ms": ms,
+            "bytes": bytes,
+            "whole_map_ms": full_ms,
+            "whole_map_bytes": metrics.bytes_out() - before_full,
+        })
+    };
+
+    // Latency from a finished submap to its version in every cache of the site.
+    let arrivals: Vec<Vec<(u64, Instant)>> = robots
+        .iter()
+        .map(|r| r.arrivals.lock().map(|a| a.clone()).unwrap_or_default())
+        .collect();
+    let mut to_all = Vec::new();
+    let mut to_ack = Vec::new();
+    let mut undelivered = 0usize;
+    for timing in outcomes.iter().flat_map(|o| &o.submaps) {
+        to_ack.push(timing.acked.duration_since(timing.finished).as_secs_f64());
+        let reached: Option<Vec<Instant>> = robots
+            .iter()
+            .zip(&arrivals)
+            .filter(|(r, _)| r.site == timing.site)
+            .map(|(_, a)| {
+                a.iter()
+                    .find(|(v, _)| *v >= timing.version)
+                    .map(|(_, at)| *at)
+            })
+            .collect();
+        match reached.and_then(|r| r.into_iter().max()) {
+            Some(last) => to_all.push(
+                last.saturating_duration_since(timing.finished)
+                    .as_secs_f64(),
+            ),
+            None => undelivered += 1,
+        }
+    }
+    let sites: BTreeMap<String, serde_json::Value> = (0..args.sites)
+        .filter_map(|s| {
+            let info = server.site(&site_id(s))?.current();
+            Some((
+                site_id(s),
+                json!({
+                    "version": info.version,
+                    "sessions": info.counts.sessions,
+                    "nodes": info.counts.nodes,
+                    "submaps": info.counts.submaps,
+                    "constraints": info.counts.constraints,
+                    "loop_closures": info.counts.loop_closures,
+                }),
+            ))
+        })
+        .collect();
+    let report = json!({
+        "agents": args.agents,
+        "sites": args.sites,
+        "duration_s": args.duration_s,
+        "streaming_wall_s": streaming_s,
+        "measured_wall_s": measured_s,
+        "sessions_relocalized": relocalized,
+        "server_process": {
+            "cpu_s": cpu_s,
+            "cores_busy": cpu_s.map(|c| c / measured_s),
+            "peak_rss_mb": peak_rss_mb(),
+            "note": "one process: server, the robots' replay and gRPC clients, and the followers",
+        },
+        "uplink_bytes": bytes_in,
+        "uplink_bytes_per_robot_second": bytes_in as f64 / data_seconds.max(1e-9),
+        "downlink_bytes": bytes_out,
+        "downlink_bytes_per_robot_second": bytes_out as f64 / data_seconds.max(1e-9),
+        "backend_runs": pgr_runs,
+        "backend_mean_ms": pgr_mean_ms,
+        "deepest_site_queue": max_queue.lock().map_or(0, |m| *m),
+        "batches": outcomes.iter().map(|o| o.batches).sum::<u64>(),
+        "failed_flushes": outcomes.iter().map(|o| o.failed_flushes).sum::<u64>(),
+        "left_in_outboxes": outcomes.iter().map(|o| o.left_in_outbox).sum::<usize>(),
+        "max_lag_behind_real_time_s": outcomes.iter().map(|o| o.max_lag_s).fold(0.0, f64::max),
+        "submap_latency_s": {
+            "submaps": to_all.len() + undelivered,
+            "undelivered": undelivered,
+            "to_ack": quantiles(&mut to_ack),
+            "to_every_robot_of_the_site": quantiles(&mut to_all),
+        },
+        "resync_after_offline": resync,
+        "sites_final": sites,
+        "robot_data_s": data_seconds,
+        "wall_time_s": started.elapsed().as_secs_f64(),
+    });
+    let path = args.out.join("report.json");
+    std::fs::write(&path, serde_json::to_string_pretty(&report)? + "\n")
+        .with_context(|| format!("cannot write {}", path.display()))?;
+    server.shutdown().await?;
+    let latency = &report["submap_latency_s"]["to_every_robot_of_the_site"];
+    println!(
+        "load done: {} robots on {} sites for {} s; submap to every robot of the site p50 {:.2} s, p95 {:.2} s ({} submaps, {undelivered} undelivered); uplink {:.0} B per robot-second; server process {} cores busy, peak RSS {} MB; report in {}",
+        args.agents,
+        args.sites,
+        args.duration_s,
+        latency["p50"].as_f64().unwrap_or(f64::NAN),
+        latency["p95"].as_f64().unwrap_or(f64::NAN),
+        to_all.len() + undelivered,
+        bytes_in as f64 / data_seconds.max(1e-9),
+        cpu_s.map_or("?".into(), |c| format!("{:.2}", c / measured_s)),
+        peak_rss_mb().map_or("?".into(), |m| format!("{m:.0}")),
+        path.display()
+    );
+    Ok(())
+}
+
+/// A non-negative, finite number of seconds as a duration (anything else: zero).
+fn seconds(s: f64) -> Duration {
+    Duration::try_from_secs_f64(s).unwrap_or(Duration::ZERO)
+}
+
+/// p50, p95 and max of `values` (sorted in place), `null` when empty.
+fn quantiles(values: &mut [f64]) -> serde_json::Value {
+    if values.is_empty() {
+        return serde_json::Value::Null;
+    }
+    values.sort_by(f64::total_cmp);
+    let at = |q: f64| values[((values.len() - 1) as f64 * q).round() as usize];
+    json!({ "p50": at(0.5), "p95": at(0.95), "max": values[values.len() - 1], "count": values.len() })
+}
+
+/// Streams a prepared session on its recording's clock.
+async fn stream_prepared(
+    mut uploader: Uploader<GrpcUplink>,
+    session: PreparedSession,
+    site: usize,
+) -> anyhow::Result<StreamOutcome> {
+    let mut outcome = StreamOutcome::default();
+    let start = Instant::now();
+    let first_time = session.steps.iter().flatten().find_map(|item| match item {
+        UploadItem::NodeAdded(node) => Some(node.time),
+        _ => None,
+    });
+    let mut batch: Vec<UploadItem> = Vec::new();
+    if let Some((prior, _)) = session.prior {
+        batch.push(UploadItem::SessionStartPrior {
+            global_from_local: prior,
+        });
+    }
+    let mut nodes_in_batch = 0;
+    // Finish times of the submaps in the batch being filled.
+    let mut finished_in_batch: Vec<Instant> = Vec::new();
+    let send = async |uploader: &mut Uploader<GrpcUplink>,
+                      batch: &mut Vec<UploadItem>,
+                      finished: &mut Vec<Instant>,
+                      outcome: &mut StreamOutcome|
+           -> anyhow::Result<()> {
+        uploader.enqueue(batch)?;
+        outcome.batches += 1;
+        batch.clear();
+        match uploader.flush().await {
+            Ok(stats) => {
+                let acked = Instant::now();
+                for at in finished.drain(..) {
+                    outcome.submaps.push(SubmapTiming {
+                        site,
+                        finished: at,
+                        acked,
+                        version: stats.map_version,
+                    });
+                }
+            }
+            // Left in the outbox; the next flush sends it (its submaps then go untimed).
+            Err(e) if e.is_transient() => {
+                outcome.failed_flushes += 1;
+                finished.clear();
+            }
+            Err(e) => return Err(e.into()),
+        }
+        Ok(())
+    };
+    for step in &session.steps {
+        let time = step.iter().find_map(|item| match item {
+            UploadItem::NodeAdded(node) => Some(node.time),
+            _ => None,
+        });
+        let due = match (time, first_time) {
+            (Some(t), Some(t0)) => start + seconds(t.seconds_since(t0)),
+            _ => Instant::now(),
+        };
+        tokio::time::sleep_until(due.into()).await;
+        outcome.max_lag_s = outcome
+            .max_lag_s
+            .max(Instant::now().saturating_duration_since(due).as_secs_f64());
+        let finishes = step
+            .iter()
+            .filter(|item| matches!(item, UploadItem::SubmapFinished { .. }))
+            .count();
+        finished_in_batch.extend(std::iter::repeat_n(due, finishes));
+        batch.extend(step.iter().cloned());
+        nodes_in_batch += 1;
+        if nodes_in_batch >= NODES_PER_BATCH || finishes > 0 {
+            send(
+                &mut uploader,
+                &mut batch,
+                &mut finished_in_batch,
+                &mut outcome,
+            )
+            .await?;
+            nodes_in_batch = 0;
+        }
+    }
+    // Until the recording's end, then the session ends.
+    tokio::time::sleep_until((start + seconds(session.duration_s)).into()).await;
+    batch.push(UploadItem::SessionEnd);
+    send(
+        &mut uploader,
+        &mut batch,
+        &mut finished_in_batch,
+        &mut outcome,
+    )
+    .await?;
+    let deadline = Instant::now() + Duration::from_secs(120);
+    while !uploader.outbox().is_empty()? && Instant::now() < deadline {
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        if let Err(e) = uploader.flush().await
+            && !e.is_transient()
+        {
+            return Err(e.into());
+        }
+    }
+    outcome.left_in_outbox = uploader.outbox().len()?;
+    Ok(outcome)
+}
+
+/// Waits (at most 60 s) until every robot's cache holds its site's current version.
+async fn wait_caught_up(server: &RunningServer, robots: &[Robot], sites: usize) {
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while Instant::now() < deadline {
+        let targets: Vec<u64> = (0..sites)
+            .map(|s| server.site(&site_id(s)).map_or(0, |h| h.current().version))
+            .collect();
+        if robots
+            .iter()
+            .all(|r| r.cache.lock().is_ok_and(|c| c.version() >= targets[r.site]))
+        {
+            return;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
