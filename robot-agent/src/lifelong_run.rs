@@ -42,8 +42,10 @@ pub struct SessionsConfig {
     /// Default 10.
     pub relocalization_nodes: usize,
     /// While a session is still unplaced (its start did not relocalize and no GLM match placed it), retry
-    /// relocalization with its latest `relocalization_nodes` nodes every this many nodes (count; 0 = never).
-    /// Default 20.
+    /// relocalization with its latest `relocalization_nodes` nodes after this many nodes, then after twice,
+    /// four times, ... as many (count; 0 = never). Each retry searches the whole map, so the doubling keeps
+    /// a session that cannot be placed (a store that looks the same everywhere it has driven) from spending
+    /// its time relocalizing. Default 20.
     pub relocalization_retry_every_n_nodes: usize,
 }
 
@@ -525,6 +527,7 @@ fn worker(
                     && retry_every > 0
                     && map.is_unplaced(session)
                     && (summary.nodes_added + 1).is_multiple_of(retry_every)
+                    && ((summary.nodes_added + 1) / retry_every).is_power_of_two()
                 {
                     let scans: Vec<_> = recent.iter().cloned().collect();
                     summary.relocalization_retries += 1;
