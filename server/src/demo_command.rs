@@ -41,6 +41,8 @@ use server::{RobotConfig, RunningServer, ServerConfig, SiteConfig};
 use storage::{SledStore, SledStoreOptions};
 use tokio::sync::watch;
 
+use crate::command_runtime::{block_on, recreate_dir};
+
 const SITE: &str = "store-1";
 /// gRPC message cap of the demo's server and agents.
 pub(crate) const MAX_MESSAGE_BYTES: usize = 64 << 20;
@@ -121,23 +123,12 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         args.session_duration_s.is_finite() && args.session_duration_s >= 10.0,
         "--session-duration-s must be at least 10"
     );
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .build()
-        .context("cannot start the async runtime")?;
-    runtime.block_on(demo(args))
+    block_on(demo(args))
 }
 
 async fn demo(args: &DemoArgs) -> anyhow::Result<()> {
     let started = Instant::now();
-    if args.out.exists() {
-        eprintln!(
-            "removing the previous demo output in {}",
-            args.out.display()
-        );
-        std::fs::remove_dir_all(&args.out)
-            .with_context(|| format!("cannot remove {}", args.out.display()))?;
-    }
+    recreate_dir(&args.out)?;
     std::fs::create_dir_all(args.out.join("maps"))
         .with_context(|| format!("cannot create {}", args.out.display()))?;
 

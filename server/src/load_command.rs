@@ -43,6 +43,7 @@ use server::{RobotConfig, RunningServer, ServerConfig, SiteConfig};
 use storage::{SledStore, SledStoreOptions};
 use tokio::sync::watch;
 
+use crate::command_runtime::{block_on, recreate_dir};
 use crate::demo_command::{MAX_MESSAGE_BYTES, demo_store};
 
 /// Nodes per upload batch (a batch holding a finished submap goes at once).
@@ -134,21 +135,12 @@ pub fn run(args: &LoadArgs) -> anyhow::Result<()> {
             .is_none_or(|d| d.is_finite() && d >= 30.0),
         "--mapping-duration-s must be at least 30"
     );
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .build()
-        .context("cannot start the async runtime")?;
-    runtime.block_on(load(args))
+    block_on(load(args))
 }
 
 async fn load(args: &LoadArgs) -> anyhow::Result<()> {
     let started = Instant::now();
-    if args.out.exists() {
-        std::fs::remove_dir_all(&args.out)
-            .with_context(|| format!("cannot remove {}", args.out.display()))?;
-    }
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("cannot create {}", args.out.display()))?;
+    recreate_dir(&args.out)?;
     let store_options = SledStoreOptions {
         path: args.out.join("data"),
         ..SledStoreOptions::default()
@@ -242,12 +234,17 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
             .iter()
             .find(|r| r.site == s)
             .context("every site has a robot")?;
-        let simulated = world.session(0, &mapping_sim)?;
-        let recording = Arc::new(Recording::from_unsorted(
-            simulated.events,
-            simulated.base_from_laser,
-            ReadReport::default(),
-        ));
+        let (world, sim) = (world.clone(), mapping_sim.clone());
+        let recording = tokio::task::spawn_blocking(move || {
+            let simulated = world.session(0, &sim)?;
+            anyhow::Ok(Arc::new(Recording::from_unsorted(
+                simulated.events,
+                simulated.base_from_laser,
+                ReadReport::default(),
+            )))
+        })
+        .await
+        .context("simulator thread")??;
         let mut uploader = Uploader::new(
             robot.uplink.clone(),
             Outbox::in_memory(&site_id(s)),
@@ -322,13 +319,8 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
     let mut prepared = Vec::new();
     for (robot, task) in robots.iter().zip(preparing) {
         let (steps, duration_s) = task.await.context("LLO thread")??;
-        let held: Vec<UploadItem> = steps
-            .iter()
-            .take(RELOCALIZATION_NODES)
-            .flatten()
-            .cloned()
-            .collect();
-        let prior = relocalize_nodes(&robot.cache, &RelocalizationOptions::default(), &held)
+        let held = steps.iter().take(RELOCALIZATION_NODES).flatten();
+        let prior = relocalize_nodes(&robot.cache, &RelocalizationOptions::default(), held)
             .await
             .flatten();
         prepared.push(PreparedSession {

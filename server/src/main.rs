@@ -1,5 +1,6 @@
 //! `evermap-server`: the fleet map server and its back-end tools.
 
+mod command_runtime;
 mod demo_command;
 mod load_command;
 mod optimize_command;

@@ -125,9 +125,10 @@ async fn relocalize_start(
     held: &[Vec<UploadItem>],
     trace: &mut SessionTrace,
 ) {
-    let items: Vec<UploadItem> = held.iter().flatten().cloned().collect();
     let started = Instant::now();
-    let Some(found) = relocalize_nodes(start.cache, &start.relocalization, &items).await else {
+    let Some(found) =
+        relocalize_nodes(start.cache, &start.relocalization, held.iter().flatten()).await
+    else {
         return;
     };
     trace.relocalization_attempted = true;
@@ -139,13 +140,13 @@ async fn relocalize_start(
 /// Relocalizes the nodes among `items` (merged in their local frame) with no prior against the cached
 /// site submaps, on a blocking thread. `None` when there is nothing to relocalize against (no submaps or
 /// no nodes); `Some(None)` when nothing matched; `Some(Some((global_from_local, score)))` otherwise.
-pub async fn relocalize_nodes(
+pub async fn relocalize_nodes<'a>(
     cache: &Mutex<GlobalSubmapCache>,
     options: &RelocalizationOptions,
-    items: &[UploadItem],
+    items: impl IntoIterator<Item = &'a UploadItem>,
 ) -> Option<Option<(Rigid2, f32)>> {
     let scans: Vec<(Rigid2, Vec<Point2<f32>>)> = items
-        .iter()
+        .into_iter()
         .filter_map(|item| match item {
             UploadItem::NodeAdded(node) => Some((node.local_pose, node.points.clone())),
             _ => None,
