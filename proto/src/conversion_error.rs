@@ -51,6 +51,14 @@ pub enum ConversionError {
         /// The version this build reads.
         supported: u32,
     },
+    /// The bytes are not a protobuf encoding of the message (a transport that carries raw bytes).
+    #[error("{message} cannot be decoded: {reason}")]
+    Decode {
+        /// The message type.
+        message: &'static str,
+        /// Why.
+        reason: String,
+    },
     /// Compressed grid values could not be decompressed.
     #[error("{message}.{field} cannot be decompressed: {reason}")]
     Decompress {

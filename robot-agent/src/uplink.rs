@@ -14,6 +14,8 @@ mod grpc_uplink;
 mod in_memory_uplink;
 mod llo_stream;
 mod uploader;
+mod zenoh_link_options;
+mod zenoh_uplink;
 
 use std::future::Future;
 use std::pin::Pin;
@@ -29,6 +31,11 @@ pub use llo_stream::{LloStats, run_llo};
 pub use proto::MapDelta;
 use proto::pb;
 pub use uploader::{FlushStats, Uploader};
+pub use zenoh_link_options::{
+    ZenohLinkOptions, ZenohLinkOptionsError, api_key as zenoh_api_key,
+    version_key as zenoh_version_key,
+};
+pub use zenoh_uplink::ZenohUplink;
 
 /// Why an uplink call failed.
 #[derive(Debug, thiserror::Error)]

@@ -1,4 +1,5 @@
-//! Starting and stopping the whole server: site tasks, gRPC (with health and reflection) and metrics.
+//! Starting and stopping the whole server: site tasks, gRPC (with health and reflection), the optional
+//! zenoh front end, and metrics.
 
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
@@ -14,6 +15,7 @@ use tokio::task::JoinHandle;
 use crate::grpc::{AgentApi, ApiContext, Auth, MapApi};
 use crate::metrics_endpoint::serve_metrics;
 use crate::site::{SiteError, SiteHandle, SiteTask};
+use crate::zenoh_front::ZenohFront;
 use crate::{ServerConfig, ServerConfigError, ServerMetrics};
 
 /// How long [`RunningServer::shutdown`] waits for open gRPC calls before cutting them.
@@ -47,6 +49,9 @@ pub enum ServeError {
     /// The gRPC server failed.
     #[error("gRPC server: {0}")]
     Transport(String),
+    /// The zenoh front end could not start.
+    #[error(transparent)]
+    Zenoh(#[from] crate::zenoh_front::ZenohFrontError),
 }
 
 /// A started server. Stop it with [`RunningServer::shutdown`] (dropping it leaves tasks running until the
@@ -60,6 +65,7 @@ pub struct RunningServer {
     grpc: JoinHandle<Result<(), tonic::transport::Error>>,
     metrics_task: Option<JoinHandle<()>>,
     metrics: Arc<ServerMetrics>,
+    zenoh: Option<ZenohFront>,
 }
 
 impl RunningServer {
@@ -76,7 +82,7 @@ impl RunningServer {
         for site in &config.sites {
             let (handle, task) = SiteTask::spawn(
                 &site.id,
-                config.global.clone(),
+                config.map.clone(),
                 Arc::clone(&store),
                 Arc::clone(&metrics),
                 config.site_queue_depth,
@@ -107,6 +113,10 @@ impl RunningServer {
             .build_v1()
             .map_err(|e| ServeError::Reflection(e.to_string()))?;
         let limit = config.max_message_bytes;
+        let zenoh = match &config.zenoh {
+            Some(options) => Some(ZenohFront::start(options, context.clone()).await?),
+            None => None,
+        };
         let agent = AgentServiceServer::new(AgentApi::new(context.clone()))
             .max_decoding_message_size(limit)
             .max_encoding_message_size(limit);
@@ -170,6 +180,7 @@ impl RunningServer {
             grpc,
             metrics_task,
             metrics,
+            zenoh,
         })
     }
 
@@ -193,7 +204,7 @@ impl RunningServer {
         &self.metrics
     }
 
-    /// Stops the site tasks (ending watch streams), then the gRPC server (waiting up to 5 s for open
+    /// Stops the site tasks (ending watch streams), then the zenoh front end, then the gRPC server (waiting up to 5 s for open
     /// calls), then the metrics endpoint. Everything acknowledged is already durable.
     pub async fn shutdown(self) -> Result<(), ServeError> {
         for site in self.sites.values() {
@@ -201,6 +212,9 @@ impl RunningServer {
         }
         for task in self.site_tasks {
             let _ = task.await;
+        }
+        if let Some(zenoh) = self.zenoh {
+            zenoh.shutdown().await;
         }
         let _ = self.stop_grpc.send(());
         let mut grpc = self.grpc;

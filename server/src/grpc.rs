@@ -8,7 +8,7 @@ pub mod status;
 
 pub use agent_api::AgentApi;
 pub use auth::{Auth, Grant};
-pub use map_api::MapApi;
+pub use map_api::{MapApi, version_to_pb};
 
 use std::collections::BTreeMap;
 use std::sync::Arc;

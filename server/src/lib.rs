@@ -16,6 +16,7 @@ pub mod metrics_endpoint;
 pub mod server_config;
 pub mod server_metrics;
 pub mod site;
+pub mod zenoh_front;
 
 pub use fleet_server::{RunningServer, ServeError};
 pub use server_config::{RobotConfig, ServerConfig, ServerConfigError, SiteConfig};

@@ -17,6 +17,8 @@ use std::collections::BTreeSet;
 use std::net::SocketAddr;
 
 use mapping::global_slam::GlobalSlamOptions;
+use mapping::lifelong::LifelongOptions;
+use robot_agent::uplink::ZenohLinkOptions;
 use serde::Deserialize;
 use storage::SledStoreOptions;
 
@@ -79,8 +81,15 @@ pub struct ServerConfig {
     pub site_queue_depth: usize,
     /// On-disk storage.
     pub storage: SledStoreOptions,
-    /// Global SLAM (GLM + PGR) settings used for every site.
-    pub global: GlobalSlamOptions,
+    /// The multi-session map of every site: GLM, PGR, trimming policy and sparsification (the `mapping`
+    /// crate's `LifelongOptions`, TOML section `[map]`). Default: `LifelongOptions::default()` except
+    /// `map.global.unanchored_search_every_n_nodes` = 10 (`GlobalSlamOptions`' own default), because the
+    /// server has no relocalization retries of its own: a session whose robot could not relocalize at
+    /// its start is placed by a whole-submap match of every 10th node.
+    pub map: LifelongOptions,
+    /// The zenoh front end (TOML section `[zenoh]`: `mode`, `listen`, `connect`, `multicast_scouting`; see
+    /// `robot_agent::uplink::ZenohLinkOptions`). Default none: gRPC only.
+    pub zenoh: Option<ZenohLinkOptions>,
     /// The sites and their robots.
     pub sites: Vec<SiteConfig>,
 }
@@ -94,7 +103,11 @@ impl Default for ServerConfig {
             delta_chunk_bytes: 4 << 20,
             site_queue_depth: 64,
             storage: SledStoreOptions::default(),
-            global: GlobalSlamOptions::default(),
+            map: LifelongOptions {
+                global: GlobalSlamOptions::default(),
+                ..LifelongOptions::default()
+            },
+            zenoh: None,
             sites: Vec::new(),
         }
     }
@@ -126,8 +139,11 @@ impl ServerConfig {
         if let Err(e) = self.storage.validate() {
             return invalid("storage", &e.to_string());
         }
-        if let Err(e) = self.global.validate() {
-            return invalid("global", &e.to_string());
+        if let Some(Err(e)) = self.zenoh.as_ref().map(ZenohLinkOptions::validate) {
+            return invalid("zenoh", &e.to_string());
+        }
+        if let Err(e) = self.map.validate() {
+            return invalid("map", &e.to_string());
         }
         let mut sites = BTreeSet::new();
         let mut tokens = BTreeSet::new();

@@ -158,6 +158,16 @@ impl LifelongMap {
         Ok(Vec::new())
     }
 
+    /// Whether `session` has been started (finished or not).
+    pub fn is_started(&self, session: u32) -> bool {
+        self.sessions.contains_key(&session)
+    }
+
+    /// Whether `session` has been finished.
+    pub fn is_finished(&self, session: u32) -> bool {
+        self.sessions.get(&session).is_some_and(|s| s.finished)
+    }
+
     /// Whether `session` started without a prior and no match has placed it in the map yet.
     pub fn is_unplaced(&self, session: u32) -> bool {
         self.global.is_unanchored(session)
@@ -238,6 +248,16 @@ impl LifelongMap {
     ) -> Vec<LifelongEvent> {
         self.global
             .add_search_results(results)
+            .into_iter()
+            .map(Into::into)
+            .collect()
+    }
+
+    /// Runs the queued GLM searches on the calling thread and adds the accepted ones: the sequential,
+    /// deterministic form of [`Self::take_search_jobs`] + [`Self::add_search_results`].
+    pub fn run_pending_searches(&mut self) -> Vec<LifelongEvent> {
+        self.global
+            .run_pending_searches()
             .into_iter()
             .map(Into::into)
             .collect()
@@ -353,7 +373,12 @@ impl LifelongMap {
             let Some(stale_order) = order(id.trajectory) else {
                 continue;
             };
-            if Some(id.trajectory) == self.base || stale_order >= current {
+            // Session 0 is never trimmed, and neither is a session still running (several robots map a
+            // site at once): its robot may still insert into those submaps.
+            if Some(id.trajectory) == self.base
+                || stale_order >= current
+                || !self.is_finished(id.trajectory)
+            {
                 continue;
             }
             let fresher: Vec<PlacedGrid<'_>> = placed

@@ -11,7 +11,7 @@ use tonic::transport::{Channel, Endpoint};
 use super::{Acked, MapUplink, OpenedSession, UplinkError, VersionStream};
 
 /// Metadata key carrying the next sequence number on a sequence-gap refusal (see the server).
-const EXPECTED_SEQ_METADATA: &str = "evermap-expected-seq";
+pub(super) const EXPECTED_SEQ_METADATA: &str = "evermap-expected-seq";
 
 /// Adds `authorization: Bearer <token>` to every request.
 #[derive(Clone)]
@@ -41,7 +41,7 @@ pub struct GrpcUplink {
     call_timeout: Duration,
 }
 
-fn from_status(status: &tonic::Status) -> UplinkError {
+pub(super) fn from_status(status: &tonic::Status) -> UplinkError {
     use tonic::Code;
     match status.code() {
         Code::Unavailable

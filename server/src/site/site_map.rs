@@ -1,20 +1,24 @@
 //! The site map: a multi-session pose graph plus the bookkeeping that makes versions and deltas.
 //!
-//! An adapter over [`mapping::global_slam::GlobalSlam`] (one trajectory per session), so that replacing it
-//! with the lifelong multi-session map (trimming, sparsification) changes only this file. Everything here
-//! is synchronous and deterministic: replaying the same opens, uploads and closes in the same order gives
-//! the same map, which is how the server rebuilds a site after a restart.
+//! An adapter over [`mapping::lifelong::LifelongMap`] (one trajectory per session): the same multi-session
+//! map, trimming and Chow–Liu sparsification as the offline `lifelong` and `sessions` commands. Everything
+//! here is synchronous and deterministic: replaying the same opens, uploads and closes in the same order
+//! gives the same map, which is how the server rebuilds a site after a restart.
 //!
-//! A session's `SessionStartPrior` (`global_from_local`) is applied by expressing the session's local
-//! poses in the prior's frame before they reach the graph (`prior · local_from_x`): relative constraints
-//! are unchanged and the new nodes start where the prior puts them.
+//! A session joins the lifelong map at its first node, with the agent's `SessionStartPrior`
+//! (`global_from_local`, found by relocalizing with no prior on the robot) when it sent one. Without a
+//! prior the session is unplaced until a whole-submap GLM match places it; an unplaced session's submaps
+//! are not published (they float in a frame nothing ties to the site), and a session that ends unplaced is
+//! dropped. Closing a session trims the stale submaps it overlaps (per the configured policy); trimmed
+//! submaps leave the map at that version and deltas list them.
 
 use std::collections::BTreeMap;
 use std::sync::Arc;
 
 use mapping::geometry::{Rigid2, Rigid2Ext as _, normalize_angle};
-use mapping::global_slam::{GlobalSlam, GlobalSlamError, GlobalSlamEvent, GlobalSlamOptions};
+use mapping::global_slam::GlobalSlam;
 use mapping::grid::ProbabilityGrid;
+use mapping::lifelong::{LifelongError, LifelongEvent, LifelongMap, LifelongOptions};
 use mapping::pose_graph::{NodeId, SubmapId};
 use proto::{MapDelta, NodeAdded, SubmapSnapshot, UploadBatch, UploadItem};
 
@@ -29,7 +33,8 @@ struct Session {
     trajectory: u32,
     last_seq: u64,
     closed: bool,
-    prior: Rigid2,
+    /// The agent's relocalized `global_from_local`, if it sent one.
+    prior: Option<Rigid2>,
     nodes: u64,
 }
 
@@ -69,8 +74,10 @@ pub struct MapCounts {
     pub finished_submaps: u64,
     /// Pose-graph constraints.
     pub constraints: u64,
-    /// Submaps trimmed from the map.
+    /// Published submaps trimmed from the map since the site began.
     pub trimmed_submaps: u64,
+    /// Sessions dropped because they ended without ever being placed in the map.
+    pub dropped_sessions: u64,
     /// Accepted loop closures.
     pub loop_closures: u64,
 }
@@ -88,28 +95,27 @@ struct SubmapVersions {
 /// One site's map, its sessions and its version history.
 pub struct SiteMap {
     site: String,
-    slam: GlobalSlam,
+    map: LifelongMap,
     sessions: BTreeMap<String, Session>,
     submap_versions: BTreeMap<SubmapId, SubmapVersions>,
     trimmed: BTreeMap<SubmapId, u64>,
     version: u64,
     optimizations: u64,
+    dropped_sessions: u64,
 }
 
 impl SiteMap {
     /// An empty site map at version 0.
-    pub fn new(
-        site: impl Into<String>,
-        options: GlobalSlamOptions,
-    ) -> Result<Self, GlobalSlamError> {
+    pub fn new(site: impl Into<String>, options: LifelongOptions) -> Result<Self, LifelongError> {
         Ok(Self {
             site: site.into(),
-            slam: GlobalSlam::new(options)?,
+            map: LifelongMap::new(options)?,
             sessions: BTreeMap::new(),
             submap_versions: BTreeMap::new(),
             trimmed: BTreeMap::new(),
             version: 0,
             optimizations: 0,
+            dropped_sessions: 0,
         })
     }
 
@@ -173,7 +179,7 @@ impl SiteMap {
                 trajectory,
                 last_seq: 0,
                 closed: false,
-                prior: Rigid2::identity(),
+                prior: None,
                 nodes: 0,
             },
         );
@@ -264,7 +270,9 @@ impl SiteMap {
         let mut items = batch.items.iter().peekable();
         while let Some(item) = items.next() {
             match item {
-                UploadItem::SessionStartPrior { global_from_local } => prior = *global_from_local,
+                UploadItem::SessionStartPrior { global_from_local } => {
+                    prior = Some(*global_from_local);
+                }
                 UploadItem::SessionEnd => ended = true,
                 // check_upload guarantees these follow a node; they were handed over with it.
                 UploadItem::SubmapFinished { .. } => {}
@@ -274,53 +282,76 @@ impl SiteMap {
                         finished.push((*index as usize, grid.clone()));
                         items.next();
                     }
-                    optimizations += self.add_node(trajectory, &prior, node, finished)?;
+                    if !self.map.is_started(trajectory) {
+                        self.map
+                            .start_session(trajectory, prior)
+                            .map_err(|e| SiteError::InvalidBatch(e.to_string()))?;
+                    }
+                    optimizations += self.add_node(trajectory, node, finished)?;
                     nodes += 1;
                 }
             }
-        }
-        if ended {
-            self.slam.optimize();
-            optimizations += 1;
         }
         if let Some(session) = self.sessions.get_mut(&batch.session_uuid) {
             session.prior = prior;
             session.last_seq = batch.seq;
             session.nodes += nodes;
-            session.closed |= ended;
+        }
+        let mut events = Vec::new();
+        if ended {
+            events = self.end_session(&batch.session_uuid)?;
         }
         self.optimizations += optimizations as u64;
-        self.finish_change(version);
-        Ok(optimizations)
+        self.finish_change(version, &events);
+        Ok(optimizations + count_optimizations(&events))
+    }
+
+    /// Ends a session in the lifelong map (final optimization, trimming) and marks it closed.
+    fn end_session(&mut self, session_uuid: &str) -> Result<Vec<LifelongEvent>, SiteError> {
+        let Some(session) = self.sessions.get(session_uuid) else {
+            return Err(SiteError::UnknownSession(session_uuid.to_owned()));
+        };
+        let trajectory = session.trajectory;
+        let mut events = Vec::new();
+        if self.map.is_started(trajectory) && !self.map.is_finished(trajectory) {
+            let unplaced = self.map.is_unplaced(trajectory);
+            events = self.map.finish_session(trajectory).map_err(|e| {
+                SiteError::Internal(format!("ending session {session_uuid:?}: {e}"))
+            })?;
+            if unplaced {
+                self.dropped_sessions += 1;
+            }
+        }
+        if let Some(session) = self.sessions.get_mut(session_uuid) {
+            session.closed = true;
+        }
+        self.optimizations += count_optimizations(&events) as u64;
+        Ok(events)
     }
 
     fn add_node(
         &mut self,
         trajectory: u32,
-        prior: &Rigid2,
         node: &NodeAdded,
         finished: Vec<(usize, ProbabilityGrid)>,
     ) -> Result<usize, SiteError> {
         let insertion: Vec<(usize, Rigid2)> = node
             .insertion_submaps
             .iter()
-            .map(|(index, pose)| (*index as usize, prior * pose))
+            .map(|(index, pose)| (*index as usize, *pose))
             .collect();
-        self.slam
+        self.map
             .add_node(
                 trajectory,
                 node.time,
-                prior * node.local_pose,
+                node.local_pose,
                 node.points.clone(),
                 &insertion,
                 finished,
             )
             .map_err(|e| SiteError::InvalidBatch(e.to_string()))?;
-        let events = self.slam.run_pending_searches();
-        Ok(events
-            .iter()
-            .filter(|e| matches!(e, GlobalSlamEvent::Optimized(_)))
-            .count())
+        let events = self.map.run_pending_searches();
+        Ok(count_optimizations(&events))
     }
 
     /// Closes a session as change number `version`, with a final optimization (idempotent: closing a
@@ -334,12 +365,8 @@ impl SiteMap {
         if self.session(robot_id, session_uuid)?.closed {
             return Ok(false);
         }
-        self.slam.optimize();
-        self.optimizations += 1;
-        if let Some(session) = self.sessions.get_mut(session_uuid) {
-            session.closed = true;
-        }
-        self.finish_change(version);
+        let events = self.end_session(session_uuid)?;
+        self.finish_change(version, &events);
         Ok(true)
     }
 
@@ -353,20 +380,26 @@ impl SiteMap {
         self.sessions.get(session_uuid).is_some_and(|s| s.closed)
     }
 
-    /// Records the revisions of newly finished submaps and which submap poses moved.
-    fn finish_change(&mut self, version: u64) {
+    /// Records the submaps trimmed by `events`, the revisions of newly finished (and placed) submaps and
+    /// which submap poses moved.
+    fn finish_change(&mut self, version: u64, events: &[LifelongEvent]) {
         self.version = version;
-        for (id, record) in self.slam.submaps() {
-            if record.grid.is_none() {
+        for event in events {
+            if let LifelongEvent::SubmapTrimmed { submap, .. } = event {
+                // Only published submaps are news to a client; a dropped unplaced session's never were.
+                if self.submap_versions.remove(submap).is_some() {
+                    self.trimmed.insert(*submap, version);
+                }
+            }
+        }
+        for (id, pose, grid) in self.map.submaps() {
+            if grid.is_none() || !self.map.is_placed(id.trajectory) {
                 continue;
             }
-            let Some(pose) = self.slam.submap_pose(*id) else {
-                continue;
-            };
-            match self.submap_versions.get_mut(id) {
+            match self.submap_versions.get_mut(&id) {
                 None => {
                     self.submap_versions.insert(
-                        *id,
+                        id,
                         SubmapVersions {
                             revision: version,
                             pose_version: version,
@@ -389,14 +422,16 @@ impl SiteMap {
 
     /// The sizes of the map.
     pub fn counts(&self) -> MapCounts {
+        let graph = self.map.counts();
         MapCounts {
             sessions: self.sessions.len() as u64,
-            nodes: self.slam.nodes().len() as u64,
-            submaps: self.slam.submaps().len() as u64,
+            nodes: graph.nodes as u64,
+            submaps: graph.submaps as u64,
             finished_submaps: self.submap_versions.len() as u64,
-            constraints: self.slam.graph().num_constraints() as u64,
+            constraints: graph.constraints as u64,
             trimmed_submaps: self.trimmed.len() as u64,
-            loop_closures: self.slam.loop_closure_scores().len() as u64,
+            dropped_sessions: self.dropped_sessions,
+            loop_closures: self.map.global().loop_closure_scores().len() as u64,
         }
     }
 
@@ -405,24 +440,14 @@ impl SiteMap {
         self.optimizations
     }
 
-    /// `local_from_submap` in the frame the submap's grid is drawn in (its session's own LLO frame): the
-    /// graph holds `prior · local_from_submap` (see the module docs), so the session's prior comes off.
-    fn grid_frame_pose(&self, id: SubmapId, graph_local_pose: &Rigid2) -> Rigid2 {
-        let prior = self
-            .sessions
-            .values()
-            .find(|s| s.trajectory == id.trajectory)
-            .map_or_else(Rigid2::identity, |s| s.prior);
-        prior.inverse() * graph_local_pose
-    }
-
     fn snapshot(&self, id: SubmapId, versions: &SubmapVersions) -> Option<SubmapSnapshot> {
-        let record = self.slam.submaps().get(&id)?;
+        let global = self.map.global();
+        let record = global.submaps().get(&id)?;
         Some(SubmapSnapshot {
             id,
             revision: versions.revision,
-            global_pose: self.slam.submap_pose(id)?,
-            local_pose: self.grid_frame_pose(id, &record.local_pose),
+            global_pose: global.submap_pose(id)?,
+            local_pose: record.local_pose,
             grid: Arc::clone(record.grid.as_ref()?),
         })
     }
@@ -451,7 +476,7 @@ impl SiteMap {
             } else if versions.pose_version > since {
                 delta
                     .pose_updates
-                    .extend(self.slam.submap_pose(*id).map(|p| (*id, p)));
+                    .extend(self.map.global().submap_pose(*id).map(|p| (*id, p)));
             }
         }
         delta.trimmed = self
@@ -484,10 +509,10 @@ impl SiteMap {
         self.submap_versions
             .keys()
             .filter_map(|id| {
-                let record = self.slam.submaps().get(id)?;
-                let global = self.slam.submap_pose(*id)?;
+                let record = self.map.global().submaps().get(id)?;
+                let global = self.map.global().submap_pose(*id)?;
                 Some((
-                    global * self.grid_frame_pose(*id, &record.local_pose).inverse(),
+                    global * record.local_pose.inverse(),
                     Arc::clone(record.grid.as_ref()?),
                 ))
             })
@@ -496,17 +521,28 @@ impl SiteMap {
 
     /// Current global pose of every node, by id.
     pub fn node_poses(&self) -> BTreeMap<NodeId, Rigid2> {
-        self.slam
-            .nodes()
-            .keys()
-            .filter_map(|id| Some((*id, self.slam.node_pose(*id)?)))
+        self.map
+            .node_poses()
+            .map(|(id, _, pose)| (id, pose))
             .collect()
     }
 
     /// The underlying global SLAM state (read-only).
     pub fn global_slam(&self) -> &GlobalSlam {
-        &self.slam
+        self.map.global()
     }
+
+    /// The underlying lifelong map (read-only).
+    pub fn lifelong_map(&self) -> &LifelongMap {
+        &self.map
+    }
+}
+
+fn count_optimizations(events: &[LifelongEvent]) -> usize {
+    events
+        .iter()
+        .filter(|e| matches!(e, LifelongEvent::Optimized(_)))
+        .count()
 }
 
 #[cfg(test)]

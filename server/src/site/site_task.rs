@@ -11,7 +11,7 @@
 use std::sync::Arc;
 use std::time::Instant;
 
-use mapping::global_slam::GlobalSlamOptions;
+use mapping::lifelong::LifelongOptions;
 use prost::Message as _;
 use proto::{FORMAT_VERSION, UploadBatch, pb};
 use storage::{BatchOutcome, MapStore, RecordKind, WriteBatch};
@@ -46,7 +46,7 @@ impl SiteTask {
     /// task's join handle (the task ends on [`SiteHandle::shutdown`] or when every handle is dropped).
     pub async fn spawn(
         site: &str,
-        options: GlobalSlamOptions,
+        options: LifelongOptions,
         store: Arc<dyn MapStore>,
         metrics: Arc<ServerMetrics>,
         queue_depth: usize,
@@ -306,7 +306,7 @@ impl SiteTask {
 /// Rebuilds a site map from its stored log.
 fn replay(
     site: &str,
-    options: GlobalSlamOptions,
+    options: LifelongOptions,
     store: &dyn MapStore,
 ) -> Result<SiteMap, SiteError> {
     let mut map = SiteMap::new(site, options).map_err(internal)?;
@@ -364,7 +364,7 @@ mod tests {
     async fn spawn(store: &Arc<dyn MapStore>) -> Result<(SiteHandle, JoinHandle<()>), SiteError> {
         SiteTask::spawn(
             "s",
-            GlobalSlamOptions::default(),
+            LifelongOptions::default(),
             Arc::clone(store),
             Arc::new(ServerMetrics::default()),
             4,

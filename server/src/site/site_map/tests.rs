@@ -49,7 +49,7 @@ fn apply(map: &mut SiteMap, b: &UploadBatch) {
 
 #[test]
 fn sessions_get_trajectories_in_order_and_reopen_idempotently() {
-    let mut map = SiteMap::new("s", GlobalSlamOptions::default()).unwrap();
+    let mut map = SiteMap::new("s", LifelongOptions::default()).unwrap();
     assert_eq!(open(&mut map, "a").trajectory, 0);
     assert_eq!(open(&mut map, "b").trajectory, 1);
     assert_eq!(map.version(), 2);
@@ -63,7 +63,7 @@ fn sessions_get_trajectories_in_order_and_reopen_idempotently() {
 
 #[test]
 fn uploads_must_come_in_sequence_and_fit_the_session() {
-    let mut map = SiteMap::new("s", GlobalSlamOptions::default()).unwrap();
+    let mut map = SiteMap::new("s", LifelongOptions::default()).unwrap();
     assert!(matches!(
         map.check_upload(&batch("a", 1, vec![node(0, &[0])])),
         Err(SiteError::UnknownSession(_))
@@ -122,7 +122,7 @@ fn uploads_must_come_in_sequence_and_fit_the_session() {
 
 #[test]
 fn deltas_carry_new_submaps_and_moved_poses_only() {
-    let mut map = SiteMap::new("s", GlobalSlamOptions::default()).unwrap();
+    let mut map = SiteMap::new("s", LifelongOptions::default()).unwrap();
     open(&mut map, "a");
     apply(
         &mut map,
@@ -174,7 +174,7 @@ fn deltas_carry_new_submaps_and_moved_poses_only() {
 
 #[test]
 fn a_start_prior_places_the_session() {
-    let mut map = SiteMap::new("s", GlobalSlamOptions::default()).unwrap();
+    let mut map = SiteMap::new("s", LifelongOptions::default()).unwrap();
     open(&mut map, "a");
     apply(&mut map, &batch("a", 1, vec![node(0, &[0])]));
     open(&mut map, "b");
@@ -208,7 +208,7 @@ fn a_start_prior_places_the_session() {
 fn a_prior_placed_sessions_grids_are_drawn_at_the_prior() {
     // A session whose local frame sits at `prior` in the site frame: its submap grid (drawn in the
     // session's own LLO frame) must be placed by `prior`, in renders and in the deltas agents cache.
-    let mut map = SiteMap::new("s", GlobalSlamOptions::default()).unwrap();
+    let mut map = SiteMap::new("s", LifelongOptions::default()).unwrap();
     open(&mut map, "a");
     apply(&mut map, &batch("a", 1, vec![node(0, &[0])]));
     open(&mut map, "b");
@@ -256,4 +256,119 @@ fn a_prior_placed_sessions_grids_are_drawn_at_the_prior() {
         (cached_global_from_grid.translation.vector - expected.translation.vector).norm() < 1e-6,
         "{cached_global_from_grid:?}"
     );
+}
+
+/// A session's items: one node per submap, each submap finished right after its node, all at the same
+/// places in every session (so a later session covers an earlier one cell for cell).
+fn covering_session(submaps: u32, prior: Option<Rigid2>, end: bool) -> Vec<UploadItem> {
+    let mut items: Vec<UploadItem> = prior
+        .map(|global_from_local| UploadItem::SessionStartPrior { global_from_local })
+        .into_iter()
+        .collect();
+    for s in 0..submaps {
+        items.push(node(s, &[s]));
+        items.push(UploadItem::SubmapFinished {
+            index: s,
+            grid: grid(),
+        });
+    }
+    if end {
+        items.push(UploadItem::SessionEnd);
+    }
+    items
+}
+
+fn ids(trajectory: u32, submaps: u32) -> Vec<SubmapId> {
+    (0..submaps)
+        .map(|index| SubmapId { trajectory, index })
+        .collect()
+}
+
+#[test]
+fn a_covering_session_trims_stale_submaps_but_never_session_zero_and_deltas_say_so() {
+    let mut map = SiteMap::new("s", LifelongOptions::default()).unwrap();
+    for session in ["a", "b"] {
+        open(&mut map, session);
+        let prior = (session != "a").then(Rigid2::identity);
+        apply(
+            &mut map,
+            &batch(session, 1, covering_session(6, prior, true)),
+        );
+    }
+    // b covers a, but a is session 0.
+    assert_eq!(map.counts().trimmed_submaps, 0);
+    assert_eq!(map.counts().finished_submaps, 12);
+    let before_c = map.version();
+    open(&mut map, "c");
+    apply(
+        &mut map,
+        &batch("c", 1, covering_session(6, Some(Rigid2::identity()), true)),
+    );
+    let counts = map.counts();
+    assert_eq!(counts.trimmed_submaps, 6, "{counts:?}");
+    assert_eq!(counts.finished_submaps, 12);
+    let delta = map.delta_since(before_c).unwrap();
+    assert_eq!(delta.trimmed, ids(1, 6), "b's submaps go");
+    let whole: Vec<SubmapId> = map
+        .delta_since(0)
+        .unwrap()
+        .submaps_added
+        .iter()
+        .map(|s| s.id)
+        .collect();
+    assert_eq!(whole, [ids(0, 6), ids(2, 6)].concat());
+    assert!(map.submap(ids(1, 1)[0], 0).is_err());
+    assert_eq!(map.grids_for_render().len(), 12);
+    // Chow–Liu replaced b's nodes: none of them is left in the graph.
+    assert!(map.node_poses().keys().all(|n| n.trajectory != 1));
+}
+
+#[test]
+fn a_running_session_is_never_trimmed() {
+    let mut map = SiteMap::new("s", LifelongOptions::default()).unwrap();
+    open(&mut map, "a");
+    apply(&mut map, &batch("a", 1, covering_session(6, None, true)));
+    open(&mut map, "b");
+    apply(
+        &mut map,
+        &batch("b", 1, covering_session(6, Some(Rigid2::identity()), false)),
+    );
+    open(&mut map, "c");
+    apply(
+        &mut map,
+        &batch("c", 1, covering_session(6, Some(Rigid2::identity()), true)),
+    );
+    assert_eq!(map.counts().trimmed_submaps, 0, "b is still mapping");
+    apply(&mut map, &batch("b", 2, vec![UploadItem::SessionEnd]));
+    open(&mut map, "d");
+    apply(
+        &mut map,
+        &batch("d", 1, covering_session(6, Some(Rigid2::identity()), true)),
+    );
+    assert_eq!(map.counts().trimmed_submaps, 12, "b and c, once finished");
+}
+
+#[test]
+fn an_unplaced_session_is_not_published_and_is_dropped_when_it_ends() {
+    let mut map = SiteMap::new("s", LifelongOptions::default()).unwrap();
+    open(&mut map, "a");
+    apply(&mut map, &batch("a", 1, covering_session(6, None, true)));
+    open(&mut map, "b");
+    // No prior: the robot could not relocalize, and the default lifelong options run no whole-submap
+    // search, so nothing places b.
+    apply(&mut map, &batch("b", 1, covering_session(6, None, false)));
+    assert_eq!(map.counts().finished_submaps, 6, "b's submaps float");
+    assert!(
+        map.delta_since(0)
+            .unwrap()
+            .submaps_added
+            .iter()
+            .all(|s| s.id.trajectory == 0)
+    );
+    let before_end = map.version();
+    apply(&mut map, &batch("b", 2, vec![UploadItem::SessionEnd]));
+    let counts = map.counts();
+    assert_eq!((counts.dropped_sessions, counts.trimmed_submaps), (1, 0));
+    assert!(map.delta_since(before_end).unwrap().trimmed.is_empty());
+    assert!(map.node_poses().keys().all(|n| n.trajectory == 0));
 }

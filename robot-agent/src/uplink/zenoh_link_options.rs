@@ -1,0 +1,139 @@
+//! How a process joins the zenoh network: the few settings evermap exposes, turned into a `zenoh::Config`.
+//! Shared by the agent's [`super::ZenohUplink`] and the server's zenoh front end.
+
+use serde::Deserialize;
+
+/// Key expression of a site's request/reply queryable (the uplink and map reads).
+pub fn api_key(site: &str) -> String {
+    format!("evermap/{site}/api")
+}
+
+/// Key expression on which the server publishes a site's new versions.
+pub fn version_key(site: &str) -> String {
+    format!("evermap/{site}/version")
+}
+
+/// A zenoh session's settings. Everything else keeps zenoh's defaults.
+#[derive(Clone, Debug, PartialEq, Eq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ZenohLinkOptions {
+    /// `peer` (talks to routers and other peers) or `client` (talks to one router). Default `peer`.
+    pub mode: String,
+    /// Endpoints to listen on, e.g. `tcp/0.0.0.0:7447`. Default none.
+    pub listen: Vec<String>,
+    /// Endpoints to connect to (a `zenohd` router, or the server's listen endpoint), e.g.
+    /// `tcp/zenohd:7447`. Default none.
+    pub connect: Vec<String>,
+    /// Discover peers and routers by UDP multicast on the LAN. Default false: endpoints are explicit, which
+    /// is what a store network with several fleets (and a CI machine) needs.
+    pub multicast_scouting: bool,
+}
+
+impl Default for ZenohLinkOptions {
+    fn default() -> Self {
+        Self {
+            mode: "peer".into(),
+            listen: Vec::new(),
+            connect: Vec::new(),
+            multicast_scouting: false,
+        }
+    }
+}
+
+/// Invalid [`ZenohLinkOptions`].
+#[derive(Debug, thiserror::Error)]
+#[error("zenoh option {field}: {reason}")]
+pub struct ZenohLinkOptionsError {
+    /// The offending option.
+    pub field: &'static str,
+    /// Why.
+    pub reason: String,
+}
+
+impl ZenohLinkOptions {
+    /// Checks the fields (endpoint syntax is checked by zenoh when the session opens).
+    pub fn validate(&self) -> Result<(), ZenohLinkOptionsError> {
+        if !matches!(self.mode.as_str(), "peer" | "client") {
+            return Err(ZenohLinkOptionsError {
+                field: "mode",
+                reason: format!("{:?} is neither \"peer\" nor \"client\"", self.mode),
+            });
+        }
+        if self.mode == "client" && self.connect.is_empty() {
+            return Err(ZenohLinkOptionsError {
+                field: "connect",
+                reason: "a client needs at least one endpoint to connect to".into(),
+            });
+        }
+        if self.listen.is_empty() && self.connect.is_empty() && !self.multicast_scouting {
+            return Err(ZenohLinkOptionsError {
+                field: "listen/connect",
+                reason: "with multicast scouting off, give at least one endpoint to listen on or connect to"
+                    .into(),
+            });
+        }
+        Ok(())
+    }
+
+    /// The zenoh configuration: mode, endpoints, scouting (multicast and gossip follow
+    /// `multicast_scouting`).
+    pub fn to_zenoh_config(&self) -> Result<zenoh::Config, ZenohLinkOptionsError> {
+        self.validate()?;
+        let mut config = zenoh::Config::default();
+        let json = |v: serde_json::Result<String>| v.unwrap_or_default();
+        let entries: [(&'static str, String); 5] = [
+            ("mode", json(serde_json::to_string(&self.mode))),
+            (
+                "listen/endpoints",
+                json(serde_json::to_string(&self.listen)),
+            ),
+            (
+                "connect/endpoints",
+                json(serde_json::to_string(&self.connect)),
+            ),
+            (
+                "scouting/multicast/enabled",
+                self.multicast_scouting.to_string(),
+            ),
+            (
+                "scouting/gossip/enabled",
+                self.multicast_scouting.to_string(),
+            ),
+        ];
+        for (key, value) in entries {
+            config
+                .insert_json5(key, &value)
+                .map_err(|e| ZenohLinkOptionsError {
+                    field: key,
+                    reason: e.to_string(),
+                })?;
+        }
+        Ok(config)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn explicit_endpoints_make_a_config_and_bad_options_are_named() {
+        let options = ZenohLinkOptions {
+            listen: vec!["tcp/127.0.0.1:0".into()],
+            ..ZenohLinkOptions::default()
+        };
+        assert!(options.to_zenoh_config().is_ok());
+        let nothing = ZenohLinkOptions::default();
+        assert_eq!(nothing.validate().unwrap_err().field, "listen/connect");
+        let bad_mode = ZenohLinkOptions {
+            mode: "router".into(),
+            ..options.clone()
+        };
+        assert_eq!(bad_mode.validate().unwrap_err().field, "mode");
+        let bad_endpoint = ZenohLinkOptions {
+            connect: vec!["not an endpoint".into()],
+            ..options
+        };
+        assert!(bad_endpoint.to_zenoh_config().is_err());
+    }
+}
