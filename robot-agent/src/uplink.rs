@@ -9,6 +9,7 @@
 //! (session, seq) once.
 
 mod agent_session;
+mod fleet_uplink;
 mod global_submap_cache;
 mod grpc_uplink;
 mod in_memory_uplink;
@@ -24,6 +25,7 @@ pub use agent_session::{
     SessionOptions, SessionReport, SessionStart, SessionTrace, follow_site, follow_site_with,
     relocalize_nodes, stream_recording, stream_session,
 };
+pub use fleet_uplink::FleetUplink;
 pub use global_submap_cache::{CacheError, GlobalSubmapCache};
 pub use grpc_uplink::GrpcUplink;
 pub use in_memory_uplink::InMemoryUplink;
@@ -100,8 +102,8 @@ pub struct Acked {
 /// A stream of site versions.
 pub type VersionStream = Pin<Box<dyn tokio_stream::Stream<Item = Result<u64, UplinkError>> + Send>>;
 
-/// A connection to the map server for one site. Implementations: [`GrpcUplink`] and, for tests,
-/// [`InMemoryUplink`]. Every call is bounded in time by the implementation.
+/// A connection to the map server for one site. Implementations: [`GrpcUplink`], [`ZenohUplink`],
+/// [`FleetUplink`] (either, chosen at run time) and, for tests, [`InMemoryUplink`]. Every call is bounded in time by the implementation.
 pub trait MapUplink: Send {
     /// Opens (or re-opens) a session; idempotent on (robot, session uuid).
     fn open_session(

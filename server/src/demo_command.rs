@@ -10,7 +10,8 @@
 //! The store is smaller than the `lifelong` experiment's 10,800 m² (48 × 30 m, two shelf blocks) so the
 //! whole demo fits in a few minutes on two cores. Versions are printed at most every 2 s and a map picture
 //! is written at most every 5 s (`maps/version-NNNNN.png`, named by the version it shows), plus the final
-//! one. The transport is gRPC: the zenoh front end is not written yet.
+//! one. The agents reach the server over loopback zenoh by default (the server's zenoh front end listens
+//! on 127.0.0.1, peer mode, no multicast scouting); `--transport grpc` uses gRPC instead.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -32,8 +33,8 @@ use robot_agent::map_image;
 use robot_agent::outbox::Outbox;
 use robot_agent::source::{ReadReport, Recording};
 use robot_agent::uplink::{
-    GlobalSubmapCache, GrpcUplink, MapUplink as _, SessionOptions, SessionStart, Uploader,
-    follow_site, stream_session,
+    FleetUplink, GlobalSubmapCache, GrpcUplink, MapUplink as _, SessionOptions, SessionStart,
+    Uploader, ZenohLinkOptions, ZenohUplink, follow_site, stream_session,
 };
 use serde_json::json;
 use server::site::SiteHandle;
@@ -69,6 +70,9 @@ pub struct DemoArgs {
     /// Cap on the mapping session 0, seconds of simulated time (default: the whole sweep of the store).
     #[arg(long)]
     mapping_duration_s: Option<f64>,
+    /// How the agents reach the server: `zenoh` (loopback TCP, peer mode) or `grpc`.
+    #[arg(long, default_value = "zenoh", value_parser = ["zenoh", "grpc"])]
+    transport: String,
 }
 
 /// The demo's store: the simulator's supermarket at a quarter of the default floor area.
@@ -107,7 +111,7 @@ struct SessionRun {
 
 struct Agent {
     robot: usize,
-    uplink: GrpcUplink,
+    uplink: FleetUplink,
     cache: Arc<Mutex<GlobalSubmapCache>>,
     out: PathBuf,
 }
@@ -145,10 +149,18 @@ async fn demo(args: &DemoArgs) -> anyhow::Result<()> {
             token: format!("demo-token-robot-{k}"),
         })
         .collect();
+    let zenoh_endpoint = match args.transport.as_str() {
+        "zenoh" => Some(format!("tcp/127.0.0.1:{}", free_loopback_port()?)),
+        _ => None,
+    };
     let config = ServerConfig {
         listen: "127.0.0.1:0".parse()?,
         metrics_listen: None,
         max_message_bytes: MAX_MESSAGE_BYTES,
+        zenoh: zenoh_endpoint.as_ref().map(|endpoint| ZenohLinkOptions {
+            listen: vec![endpoint.clone()],
+            ..ZenohLinkOptions::default()
+        }),
         sites: vec![SiteConfig {
             id: SITE.into(),
             robots: robots.clone(),
@@ -162,7 +174,9 @@ async fn demo(args: &DemoArgs) -> anyhow::Result<()> {
         .context("the demo site is not served")?
         .clone();
     eprintln!(
-        "evermap demo: map server on {url} (gRPC; sled in {}), site {SITE}, {} robots, {} cleaning sessions each",
+        "evermap demo: map server on {} ({}; sled in {}), site {SITE}, {} robots, {} cleaning sessions each",
+        zenoh_endpoint.as_deref().unwrap_or(&url),
+        args.transport,
         args.out.join("data").display(),
         args.agents,
         args.sessions_per_agent
@@ -180,13 +194,25 @@ async fn demo(args: &DemoArgs) -> anyhow::Result<()> {
     let mut agents = Vec::new();
     let mut followers = Vec::new();
     for (k, robot) in robots.iter().enumerate() {
-        let uplink = GrpcUplink::new(
-            &url,
-            SITE,
-            &robot.token,
-            MAX_MESSAGE_BYTES,
-            Duration::from_secs(30),
-        )?;
+        let call_timeout = Duration::from_secs(30);
+        let uplink = match &zenoh_endpoint {
+            Some(endpoint) => {
+                let options = ZenohLinkOptions {
+                    connect: vec![endpoint.clone()],
+                    ..ZenohLinkOptions::default()
+                };
+                FleetUplink::Zenoh(
+                    ZenohUplink::connect(&options, SITE, &robot.token, call_timeout).await?,
+                )
+            }
+            None => FleetUplink::Grpc(GrpcUplink::new(
+                &url,
+                SITE,
+                &robot.token,
+                MAX_MESSAGE_BYTES,
+                call_timeout,
+            )?),
+        };
         let cache = Arc::new(Mutex::new(GlobalSubmapCache::default()));
         followers.push(tokio::spawn(follow_site(
             uplink.clone(),
@@ -299,6 +325,7 @@ async fn demo(args: &DemoArgs) -> anyhow::Result<()> {
     let (pgr_runs, pgr_mean_ms) = metrics.pgr_mean_ms();
     let summary = json!({
         "site": SITE,
+        "transport": args.transport,
         "final_version": final_version.version,
         "counts": {
             "sessions": final_version.counts.sessions,
@@ -307,6 +334,7 @@ async fn demo(args: &DemoArgs) -> anyhow::Result<()> {
             "constraints": final_version.counts.constraints,
             "loop_closures": final_version.counts.loop_closures,
             "trimmed_submaps": final_version.counts.trimmed_submaps,
+            "dropped_sessions": final_version.counts.dropped_sessions,
         },
         "agents_at_version": agents_at,
         "cri": report.cri,
@@ -352,6 +380,13 @@ fn say(bar: &ProgressBar, line: String) {
     } else {
         bar.println(line);
     }
+}
+
+/// A TCP port on 127.0.0.1 free right now (zenoh cannot report the port it bound, so the demo picks one).
+fn free_loopback_port() -> anyhow::Result<u16> {
+    let probe =
+        std::net::TcpListener::bind("127.0.0.1:0").context("finding a free loopback port")?;
+    Ok(probe.local_addr()?.port())
 }
 
 /// One simulated session streamed by `agent` (relocalizing its start against its cache when `relocalize`).

@@ -1,15 +1,25 @@
-//! `evermap-server demo` end to end on a small budget: the server on sled, two robots over loopback gRPC,
-//! a short mapping session and one cleaning session each. Bounded by the demo's own timeouts (every wait
+//! `evermap-server demo` end to end on a small budget: the server on sled, two robots over loopback zenoh
+//! (the default) or gRPC, a short mapping session and one cleaning session each. Bounded by the demo's own timeouts (every wait
 //! in it is capped) and by nextest's slow-test timeout.
 
 use std::process::Command;
 
 #[test]
-fn the_demo_maps_relocalizes_and_reaches_every_robot() {
+fn the_demo_maps_relocalizes_and_reaches_every_robot_over_zenoh() {
+    demo_reaches_every_robot("zenoh");
+}
+
+#[test]
+fn the_demo_maps_relocalizes_and_reaches_every_robot_over_grpc() {
+    demo_reaches_every_robot("grpc");
+}
+
+fn demo_reaches_every_robot(transport: &str) {
     let dir = tempfile::tempdir().expect("tempdir");
     let out = dir.path().join("demo");
     let status = Command::new(env!("CARGO_BIN_EXE_evermap-server"))
         .args(["demo", "--agents", "2", "--sessions-per-agent", "1"])
+        .args(["--transport", transport])
         .args(["--session-duration-s", "20", "--mapping-duration-s", "120"])
         .arg("--out")
         .arg(&out)
@@ -20,6 +30,7 @@ fn the_demo_maps_relocalizes_and_reaches_every_robot() {
         serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).expect("report"))
             .expect("json");
     eprintln!("{report:#}");
+    assert_eq!(report["transport"].as_str(), Some(transport));
     let version = report["final_version"].as_u64().expect("version");
     assert!(version > 10, "{version}");
     // Every robot's cache caught up with the final version through Watch + deltas.

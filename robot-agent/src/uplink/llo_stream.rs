@@ -36,6 +36,7 @@ pub fn run_llo(
 ) -> LloStats {
     let mut llo = LocalTrajectoryBuilder::new(options.clone());
     let mut stats = LloStats::default();
+    let mut held: Option<Vec<UploadItem>> = None;
     let started = Instant::now();
     let first_time = recording.events.first().map(SensorEvent::time);
     for event in &recording.events {
@@ -84,12 +85,53 @@ pub fn run_llo(
                         grid: submap.grid,
                     });
                 }
-                if !sink(items) {
+                // Each node is handed over one node late, so that the session's last node can carry the
+                // submaps still active when the recording ends.
+                if let Some(previous) = held.replace(items)
+                    && !sink(previous)
+                {
                     stats.stopped = true;
-                    break;
+                    return stats;
                 }
             }
         }
     }
+    if let Some(mut last) = held {
+        finish_active_submaps(&llo, &mut last, &mut stats);
+        if !sink(last) {
+            stats.stopped = true;
+        }
+    }
     stats
+}
+
+/// Appends to the session's last node (`items`) a `SubmapFinished` for every submap still active that the
+/// node was inserted into and that is not finished yet: the end of the session finishes them, so later
+/// sessions and other robots can match against the whole trip.
+fn finish_active_submaps(
+    llo: &LocalTrajectoryBuilder,
+    items: &mut Vec<UploadItem>,
+    stats: &mut LloStats,
+) {
+    let Some(UploadItem::NodeAdded(node)) = items.first() else {
+        return;
+    };
+    let inserted: Vec<u32> = node.insertion_submaps.iter().map(|(i, _)| *i).collect();
+    let already: Vec<u32> = items
+        .iter()
+        .filter_map(|item| match item {
+            UploadItem::SubmapFinished { index, .. } => Some(*index),
+            _ => None,
+        })
+        .collect();
+    for (index, submap) in llo.active_submaps().submaps() {
+        let index = *index as u32;
+        if inserted.contains(&index) && !already.contains(&index) {
+            stats.submaps_finished += 1;
+            items.push(UploadItem::SubmapFinished {
+                index,
+                grid: submap.grid.cropped_to_known(),
+            });
+        }
+    }
 }
