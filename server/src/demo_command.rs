@@ -205,13 +205,13 @@ async fn demo(args: &DemoArgs) -> anyhow::Result<()> {
                     ZenohUplink::connect(&options, SITE, &robot.token, call_timeout).await?,
                 )
             }
-            None => FleetUplink::Grpc(GrpcUplink::new(
+            None => FleetUplink::Grpc(Box::new(GrpcUplink::new(
                 &url,
                 SITE,
                 &robot.token,
                 MAX_MESSAGE_BYTES,
                 call_timeout,
-            )?),
+            )?)),
         };
         let cache = Arc::new(Mutex::new(GlobalSubmapCache::default()));
         followers.push(tokio::spawn(follow_site(

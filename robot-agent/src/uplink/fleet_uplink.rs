@@ -9,7 +9,7 @@ use super::{Acked, GrpcUplink, MapUplink, OpenedSession, UplinkError, VersionStr
 #[derive(Clone)]
 pub enum FleetUplink {
     /// Straight to the server over gRPC.
-    Grpc(GrpcUplink),
+    Grpc(Box<GrpcUplink>),
     /// Through the zenoh network (routers or a direct peer link).
     Zenoh(ZenohUplink),
 }
