@@ -8,6 +8,12 @@
 //! [storage]
 //! path = "./evermap-data"
 //!
+//! [zenoh]                            # optional: the zenoh front end (agents' uplink, version pushes)
+//! listen = ["tcp/127.0.0.1:7447"]
+//!
+//! [map]                              # optional: every site's lifelong map (mapping::lifelong::LifelongOptions)
+//! policy = "clt"                     # clt | delete | keep | frozen
+//!
 //! [[sites]]
 //! id = "store-1"
 //! robots = [{ id = "robot-1", token = "change-me" }]
@@ -85,7 +91,9 @@ pub struct ServerConfig {
     /// crate's `LifelongOptions`, TOML section `[map]`). Default: `LifelongOptions::default()` except
     /// `map.global.unanchored_search_every_n_nodes` = 10 (`GlobalSlamOptions`' own default), because the
     /// server has no relocalization retries of its own: a session whose robot could not relocalize at
-    /// its start is placed by a whole-submap match of every 10th node.
+    /// its start is placed by a whole-submap match of every 10th node. A `[map]` section starts from
+    /// `LifelongOptions::default()` instead (serde fills the fields it omits), where that search is off:
+    /// add `[map.global] unanchored_search_every_n_nodes = 10` to keep it.
     pub map: LifelongOptions,
     /// The zenoh front end (TOML section `[zenoh]`: `mode`, `listen`, `connect`, `multicast_scouting`; see
     /// `robot_agent::uplink::ZenohLinkOptions`). Default none: gRPC only.
@@ -191,11 +199,24 @@ mod tests {
     fn documented_example_parses_and_defaults_are_valid() {
         assert_eq!(ServerConfig::default().validate(), Ok(()));
         let text = "listen = \"127.0.0.1:50051\"\nmetrics_listen = \"127.0.0.1:9464\"\n\
-            max_message_bytes = 67108864\n[storage]\npath = \"./evermap-data\"\n[[sites]]\nid = \"store-1\"\n\
+            max_message_bytes = 67108864\n[storage]\npath = \"./evermap-data\"\n\
+            [zenoh]\nlisten = [\"tcp/127.0.0.1:7447\"]\n[map]\npolicy = \"clt\"\n[[sites]]\nid = \"store-1\"\n\
             robots = [{ id = \"robot-1\", token = \"change-me\" }]\n";
         let config = ServerConfig::from_toml(text).unwrap();
         assert_eq!(config.validate(), Ok(()));
         assert_eq!(config.sites[0].robots[0].id, "robot-1");
+        assert_eq!(config.map.policy, mapping::lifelong::TrimPolicy::Clt);
+        assert_eq!(
+            config.map.global.unanchored_search_every_n_nodes, 0,
+            "as documented: a [map] section starts from LifelongOptions::default()"
+        );
+        assert_eq!(
+            ServerConfig::default()
+                .map
+                .global
+                .unanchored_search_every_n_nodes,
+            10
+        );
         assert!(ServerConfig::from_toml("lisen = \"x\"").is_err());
     }
 

@@ -9,6 +9,10 @@
 //! source = "../shared/datasets/rosbag1/mit-csail.orig.bag"
 //! replay_speed = 1.0        # multiple of real time; 0 = as fast as possible
 //! outbox_dir = "./evermap-outbox"
+//!
+//! # Optional: reach the server through zenoh (routers or its zenoh endpoint) instead of gRPC.
+//! [zenoh]
+//! connect = ["tcp/127.0.0.1:7447"]
 //! ```
 
 use std::fmt::Write as _;
@@ -23,7 +27,8 @@ use rand::RngCore as _;
 use robot_agent::outbox::Outbox;
 use robot_agent::source;
 use robot_agent::uplink::{
-    GlobalSubmapCache, GrpcUplink, SessionOptions, Uploader, follow_site, stream_recording,
+    FleetUplink, GlobalSubmapCache, GrpcUplink, SessionOptions, Uploader, ZenohLinkOptions,
+    ZenohUplink, follow_site, stream_recording,
 };
 use serde::Deserialize;
 
@@ -69,6 +74,9 @@ pub struct AgentConfig {
     pub final_flush_timeout_s: f64,
     /// LLO settings.
     pub local: LocalTrajectoryBuilderOptions,
+    /// Reach the server through zenoh with these settings (`[zenoh]`: `mode`, `listen`, `connect`,
+    /// `multicast_scouting`) instead of gRPC at `server_url`. Default none: gRPC.
+    pub zenoh: Option<ZenohLinkOptions>,
 }
 
 impl Default for AgentConfig {
@@ -89,6 +97,7 @@ impl Default for AgentConfig {
             retry_interval_s: 1.0,
             final_flush_timeout_s: 300.0,
             local: LocalTrajectoryBuilderOptions::default(),
+            zenoh: None,
         }
     }
 }
@@ -127,6 +136,9 @@ impl AgentConfig {
         seconds("retry_interval_s", self.retry_interval_s)?;
         seconds("final_flush_timeout_s", self.final_flush_timeout_s)?;
         self.local.validate()?;
+        if let Some(zenoh) = &self.zenoh {
+            zenoh.validate()?;
+        }
         Ok(())
     }
 }
@@ -188,13 +200,19 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         .thread_name("evermap-agent")
         .build()?;
     runtime.block_on(async {
-        let uplink = GrpcUplink::new(
-            &config.server_url,
-            &config.site,
-            &config.token,
-            config.max_message_bytes,
-            call_timeout,
-        )?;
+        let uplink = match &config.zenoh {
+            Some(zenoh) => FleetUplink::Zenoh(
+                ZenohUplink::connect(zenoh, &config.site, &config.token, call_timeout).await?,
+            ),
+            None => FleetUplink::Grpc(Box::new(GrpcUplink::new(
+                &config.server_url,
+                &config.site,
+                &config.token,
+                config.max_message_bytes,
+                call_timeout,
+            )?)),
+        };
+        tracing::info!(transport = uplink.transport(), "uplink ready");
         let cache = Arc::new(Mutex::new(GlobalSubmapCache::default()));
         let (stop, stopped) = tokio::sync::watch::channel(false);
         let follower = tokio::spawn(follow_site(
@@ -264,6 +282,10 @@ mod tests {
             let config: AgentConfig = toml::from_str(&text).unwrap();
             config.validate().unwrap();
             assert_eq!(config.robot_id, format!("robot-{n}"));
+            assert!(
+                config.zenoh.is_some(),
+                "the deployed agents go through zenohd"
+            );
         }
     }
 }
