@@ -710,3 +710,136 @@ async fn reflection_lists_the_fleet_services() {
     }
     server.shutdown().await.unwrap();
 }
+
+/// A loopback TCP forwarder in front of the server whose link can be cut (open connections dropped, new
+/// ones refused) and restored: a robot losing Wi-Fi between aisles.
+struct CuttableLink {
+    addr: std::net::SocketAddr,
+    up: tokio::sync::watch::Sender<bool>,
+    task: tokio::task::JoinHandle<()>,
+}
+
+impl CuttableLink {
+    async fn start(upstream: std::net::SocketAddr) -> Self {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let addr = listener.local_addr().unwrap();
+        let (up, state) = tokio::sync::watch::channel(true);
+        let task = tokio::spawn(async move {
+            while let Ok((mut inbound, _)) = listener.accept().await {
+                if !*state.borrow() {
+                    continue; // dropped: the connection is refused
+                }
+                let mut state = state.clone();
+                tokio::spawn(async move {
+                    let Ok(mut outbound) = tokio::net::TcpStream::connect(upstream).await else {
+                        return;
+                    };
+                    tokio::select! {
+                        _ = tokio::io::copy_bidirectional(&mut inbound, &mut outbound) => {}
+                        _ = state.wait_for(|up| !*up) => {} // the cut drops open connections
+                    }
+                });
+            }
+        });
+        Self { addr, up, task }
+    }
+
+    fn set_up(&self, up: bool) {
+        self.up.send_replace(up);
+    }
+}
+
+// Reference: issue 4 §7 "an agent loses the link for a while and keeps mapping, then reconnects: every
+// submap and constraint arrives exactly once; it catches up by delta".
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_agent_that_loses_the_link_keeps_mapping_and_everything_arrives_once() {
+    let recording = Arc::new(csail());
+    let scans = 500;
+    let server = RunningServer::start(&config(), Arc::new(MemStore::new()))
+        .await
+        .unwrap();
+    let link = CuttableLink::start(server.grpc_addr()).await;
+    let uplink = GrpcUplink::new(
+        &format!("http://{}", link.addr),
+        SITE,
+        TOKEN,
+        16 << 20,
+        Duration::from_secs(2),
+    )
+    .unwrap();
+    let cache = Arc::new(Mutex::new(GlobalSubmapCache::default()));
+    let (stop, stopped) = tokio::sync::watch::channel(false);
+    let follower = tokio::spawn(follow_site(
+        uplink.clone(),
+        Arc::clone(&cache),
+        stopped,
+        Duration::from_millis(100),
+    ));
+    let options = SessionOptions {
+        nodes_per_batch: 5,
+        // Paced, so that mapping goes on while the link is down.
+        replay_speed: 8.0,
+        max_scans: Some(scans),
+        retry_interval: Duration::from_millis(100),
+        final_flush_timeout: Duration::from_secs(60),
+        ..SessionOptions::default()
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let outbox = Outbox::open(dir.path(), SITE).unwrap();
+    let mut uploader = Uploader::new(uplink.clone(), outbox, SITE, "r1", "cut-1").unwrap();
+    let site = server.site(SITE).unwrap().clone();
+    let streaming = tokio::spawn(async move {
+        let report = stream_recording(recording, &options, &mut uploader).await;
+        (report, uploader)
+    });
+    // Cut once a first part of the session has arrived, for long enough that batches pile up.
+    bounded("the first nodes", async {
+        while site.current().counts.nodes < 60 {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    link.set_up(false);
+    let cut_at = site.current();
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    let during = site.current();
+    assert_eq!(during.version, cut_at.version, "nothing arrives while cut");
+    let cached_during = cache.lock().unwrap().version();
+    link.set_up(true);
+
+    let (report, _uploader) = bounded("streaming", streaming).await.unwrap();
+    let report = report.unwrap();
+    assert_eq!(report.left_in_outbox, 0, "{report:?}");
+    assert!(report.failed_flushes > 0, "the cut was felt: {report:?}");
+
+    // Exactly once: the server holds each LLO node once, and the map equals the uninterrupted one.
+    let served = site.node_poses().await.unwrap();
+    assert_eq!(served.len(), report.llo.nodes);
+    let expected = reference_map(&llo_groups(&csail(), scans));
+    assert_eq!(served.len(), expected.nodes().len());
+    for (id, pose) in &served {
+        let reference = expected.node_pose(*id).unwrap();
+        assert!(
+            (pose.translation.vector - reference.translation.vector).norm() < 1e-9,
+            "node {id:?}: served {pose:?}, uninterrupted {reference:?}"
+        );
+    }
+    // The follower catches up by delta from where it was, to the final version.
+    let final_version = site.current().version;
+    assert!(cached_during <= cut_at.version);
+    bounded("the follower catching up", async {
+        while cache.lock().unwrap().version() < final_version {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    let _ = stop.send(true);
+    bounded("the follower stopping", follower).await.unwrap();
+    let cached = cache.lock().unwrap().submaps().len();
+    assert_eq!(
+        cached,
+        site.delta_since(0).await.unwrap().submaps_added.len()
+    );
+    link.task.abort();
+    server.shutdown().await.unwrap();
+}
