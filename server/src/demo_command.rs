@@ -107,6 +107,8 @@ struct SessionRun {
     failed_flushes: u64,
     left_in_outbox: usize,
     wall_s: f64,
+    /// The session's node poses in the site map right after it ended (later sessions may trim them).
+    end_poses: BTreeMap<NodeId, Rigid2>,
 }
 
 struct Agent {
@@ -114,6 +116,8 @@ struct Agent {
     uplink: FleetUplink,
     cache: Arc<Mutex<GlobalSubmapCache>>,
     out: PathBuf,
+    /// The server's site, read (not written) to score each session when it ends.
+    site: SiteHandle,
 }
 
 /// Runs the command.
@@ -225,6 +229,7 @@ async fn demo(args: &DemoArgs) -> anyhow::Result<()> {
             uplink,
             cache,
             out: args.out.join(format!("agent-{}", k + 1)),
+            site: site.clone(),
         });
     }
     let caches: Vec<_> = agents.iter().map(|a| Arc::clone(&a.cache)).collect();
@@ -313,7 +318,10 @@ async fn demo(args: &DemoArgs) -> anyhow::Result<()> {
         map_image::write_gray_png(&args.out.join("map.png"), w, h, &pixels)?;
     }
     let mcr = write_map_change(&caches[0], &args.out)?;
-    let poses = site.node_poses().await?;
+    let poses: BTreeMap<NodeId, Rigid2> = runs
+        .iter()
+        .flat_map(|r| r.end_poses.iter().map(|(id, pose)| (*id, *pose)))
+        .collect();
     let report = score(&runs, &poses);
     let agents_at: Vec<u64> = caches
         .iter()
@@ -424,6 +432,13 @@ async fn run_session(
     let (report, trace) = stream_session(recording, &options, &mut uploader, start).await?;
     // Opening is idempotent: this returns the trajectory the server gave the session.
     let opened = uploader.uplink_mut().open_session(&robot, &uuid).await?;
+    let end_poses = agent
+        .site
+        .node_poses()
+        .await?
+        .into_iter()
+        .filter(|(id, _)| id.trajectory == opened.trajectory)
+        .collect();
     Ok(SessionRun {
         session,
         robot: agent.robot,
@@ -440,6 +455,7 @@ async fn run_session(
         failed_flushes: report.failed_flushes,
         left_in_outbox: report.left_in_outbox,
         wall_s: started.elapsed().as_secs_f64(),
+        end_poses,
     })
 }
 
@@ -555,7 +571,8 @@ struct Scores {
     sessions: Vec<serde_json::Value>,
 }
 
-/// Node poses of the final map against the simulator's truth, in session 0's frame.
+/// Each session's node poses when it ended (`poses`) against the simulator's truth, in session 0's frame
+/// (the measure of the `lifelong` command: a session later trimmed still counts as it was localized).
 fn score(runs: &[SessionRun], poses: &BTreeMap<NodeId, Rigid2>) -> Scores {
     let node_pairs = |run: &SessionRun| -> Vec<(Rigid2, Rigid2)> {
         let truth: BTreeMap<Timestamp, Rigid2> = run.truth.iter().copied().collect();
