@@ -843,3 +843,240 @@ async fn an_agent_that_loses_the_link_keeps_mapping_and_everything_arrives_once(
     link.task.abort();
     server.shutdown().await.unwrap();
 }
+
+/// Scans `from..to` of `recording` with the odometry and IMU between them: one robot's session.
+fn scan_range(recording: &Recording, from: usize, to: usize) -> Recording {
+    use mapping::sensor::SensorEvent;
+    let scan_times: Vec<_> = recording
+        .events
+        .iter()
+        .filter(|e| matches!(e, SensorEvent::Scan(_)))
+        .map(SensorEvent::time)
+        .collect();
+    let (start, end) = (scan_times[from], scan_times[to.min(scan_times.len()) - 1]);
+    Recording::from_unsorted(
+        recording
+            .events
+            .iter()
+            .filter(|e| e.time() >= start && e.time() <= end)
+            .cloned()
+            .collect(),
+        recording.base_from_laser,
+        robot_agent::source::ReadReport::default(),
+    )
+}
+
+/// One robot of the multi-site test: its uplink, cache and follower.
+struct Robot {
+    id: &'static str,
+    site: &'static str,
+    uplink: GrpcUplink,
+    cache: Arc<Mutex<GlobalSubmapCache>>,
+    follower: tokio::task::JoinHandle<()>,
+}
+
+impl Robot {
+    fn start(
+        server: &RunningServer,
+        id: &'static str,
+        site: &'static str,
+        token: &str,
+        stopped: &tokio::sync::watch::Receiver<bool>,
+    ) -> Self {
+        let uplink = GrpcUplink::new(&url(server), site, token, 16 << 20, WAIT).unwrap();
+        let cache = Arc::new(Mutex::new(GlobalSubmapCache::default()));
+        let follower = tokio::spawn(follow_site(
+            uplink.clone(),
+            Arc::clone(&cache),
+            stopped.clone(),
+            Duration::from_millis(50),
+        ));
+        Self {
+            id,
+            site,
+            uplink,
+            cache,
+            follower,
+        }
+    }
+
+    /// Streams `recording` as session `uuid`, relocalizing its start against the cache when `relocalize`.
+    async fn session(
+        &self,
+        recording: Recording,
+        uuid: &str,
+        relocalize: bool,
+    ) -> robot_agent::uplink::SessionTrace {
+        let options = SessionOptions {
+            nodes_per_batch: 6,
+            replay_speed: 0.0,
+            final_flush_timeout: WAIT,
+            ..SessionOptions::default()
+        };
+        let mut uploader = Uploader::new(
+            self.uplink.clone(),
+            Outbox::in_memory(self.site),
+            self.site,
+            self.id,
+            uuid,
+        )
+        .unwrap();
+        let start = relocalize.then(|| robot_agent::uplink::SessionStart {
+            cache: &self.cache,
+            relocalization: mapping::lifelong::RelocalizationOptions::default(),
+            nodes: 10,
+        });
+        let (report, trace) = bounded(
+            "a session",
+            robot_agent::uplink::stream_session(
+                Arc::new(recording),
+                &options,
+                &mut uploader,
+                start,
+            ),
+        )
+        .await
+        .unwrap();
+        assert_eq!(report.left_in_outbox, 0, "{report:?}");
+        trace
+    }
+}
+
+/// The same sessions fed in-process, node by node, to a `LifelongMap` with the server's options: each
+/// session started with the prior its robot sent, ended like the server ends it.
+fn reference_lifelong(
+    options: &mapping::lifelong::LifelongOptions,
+    sessions: &[(Vec<Vec<UploadItem>>, Option<mapping::geometry::Rigid2>)],
+) -> mapping::lifelong::LifelongMap {
+    let mut map = mapping::lifelong::LifelongMap::new(options.clone()).unwrap();
+    for (session, (groups, prior)) in sessions.iter().enumerate() {
+        let session = u32::try_from(session).unwrap();
+        map.start_session(session, *prior).unwrap();
+        for group in groups {
+            let Some(UploadItem::NodeAdded(node)) = group.first() else {
+                panic!("a group starts with its node");
+            };
+            let finished = group[1..]
+                .iter()
+                .map(|item| match item {
+                    UploadItem::SubmapFinished { index, grid } => (*index as usize, grid.clone()),
+                    other => panic!("unexpected {other:?}"),
+                })
+                .collect();
+            let insertion: Vec<_> = node
+                .insertion_submaps
+                .iter()
+                .map(|(i, p)| (*i as usize, *p))
+                .collect();
+            map.add_node(
+                session,
+                node.time,
+                node.local_pose,
+                node.points.clone(),
+                &insertion,
+                finished,
+            )
+            .unwrap();
+            map.run_pending_searches();
+        }
+        map.finish_session(session).unwrap();
+    }
+    map
+}
+
+// Reference: issue 4 §7 "3 agents on 2 sites through a full multi-session run: the server's final map
+// equals the one the same data gives offline in-process".
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn three_robots_on_two_sites_build_the_maps_the_same_data_gives_in_process() {
+    let csail = csail();
+    let mut config = config();
+    config.sites[0].robots.push(RobotConfig {
+        id: "r2".into(),
+        token: "token-store-a-r2".into(),
+    });
+    let server = RunningServer::start(&config, Arc::new(MemStore::new()))
+        .await
+        .unwrap();
+    let (stop, stopped) = tokio::sync::watch::channel(false);
+    let r1 = Robot::start(&server, "r1", SITE, TOKEN, &stopped);
+    let r2 = Robot::start(&server, "r2", SITE, "token-store-a-r2", &stopped);
+    let r9 = Robot::start(&server, "r9", OTHER_SITE, OTHER_TOKEN, &stopped);
+
+    // Site A: r1 maps (session 0), then r2 comes back over the same corridors (session 1) and
+    // relocalizes against its cache. Site B, at the same time: r9 maps another stretch.
+    let site_a = async {
+        let first = r1.session(scan_range(&csail, 0, 300), "a-0", false).await;
+        assert!(first.prior.is_none());
+        let a_version = server.site(SITE).unwrap().current().version;
+        bounded("r2's cache", async {
+            while r2.cache.lock().unwrap().version() < a_version {
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+        })
+        .await;
+        let second = r2.session(scan_range(&csail, 150, 450), "a-1", true).await;
+        (first, second)
+    };
+    let site_b = r9.session(scan_range(&csail, 300, 600), "b-0", false);
+    let ((_, second), _) = tokio::join!(site_a, site_b);
+    assert!(
+        second.prior.is_some(),
+        "r2 relocalized against r1's submaps"
+    );
+
+    // Each site's served map equals the in-process one for the same LLO output and priors.
+    let groups = |from, to| llo_groups(&scan_range(&csail, from, to), usize::MAX);
+    let expected_a = reference_lifelong(
+        &config.map,
+        &[(groups(0, 300), None), (groups(150, 450), second.prior)],
+    );
+    let expected_b = reference_lifelong(&config.map, &[(groups(300, 600), None)]);
+    for (site, expected) in [(SITE, &expected_a), (OTHER_SITE, &expected_b)] {
+        let served = server.site(site).unwrap().node_poses().await.unwrap();
+        let reference: std::collections::BTreeMap<_, _> = expected
+            .node_poses()
+            .map(|(id, _, pose)| (id, pose))
+            .collect();
+        assert_eq!(served.len(), reference.len(), "site {site}");
+        for (id, pose) in &served {
+            let other = reference[id];
+            assert!(
+                (pose.translation.vector - other.translation.vector).norm() < 1e-9
+                    && (pose.rotation.angle() - other.rotation.angle()).abs() < 1e-9,
+                "site {site}, node {id:?}: served {pose:?}, in-process {other:?}"
+            );
+        }
+        let counts = server.site(site).unwrap().current().counts;
+        assert_eq!(counts.submaps as usize, expected.counts().submaps, "{site}");
+        assert_eq!(
+            counts.constraints as usize,
+            expected.counts().constraints,
+            "{site}"
+        );
+    }
+    let served_a = server.site(SITE).unwrap().current();
+    assert_eq!(served_a.counts.sessions, 2);
+    assert!(served_a.counts.loop_closures > 0);
+
+    // Every robot follows its own site, to its final version and submaps.
+    for robot in [&r1, &r2, &r9] {
+        let site = server.site(robot.site).unwrap();
+        let version = site.current().version;
+        bounded("a follower catching up", async {
+            while robot.cache.lock().unwrap().version() < version {
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+        })
+        .await;
+        let cached = robot.cache.lock().unwrap().submaps().len();
+        let finished = site.delta_since(0).await.unwrap().submaps_added.len();
+        assert_eq!(cached, finished, "{}", robot.id);
+    }
+    let _ = stop.send(true);
+    for robot in [r1, r2, r9] {
+        bounded("a follower stopping", robot.follower)
+            .await
+            .unwrap();
+    }
+    server.shutdown().await.unwrap();
+}
