@@ -26,6 +26,7 @@
 
 mod lifelong_map;
 mod map_change;
+mod map_matcher;
 mod options;
 mod relocalization;
 mod submap_trimmer;
@@ -34,6 +35,7 @@ mod tests;
 
 pub use lifelong_map::{GraphCounts, LifelongError, LifelongEvent, LifelongMap};
 pub use map_change::{CellChange, MapChange, OCCUPIED_PROBABILITY, map_change_rate};
+pub use map_matcher::{GlobalSubmap, MapMatch, MapMatcher};
 pub use options::{
     LifelongOptions, LifelongOptionsError, ParseTrimPolicyError, SubmapTrimmerOptions, TrimPolicy,
 };

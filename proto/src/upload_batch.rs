@@ -2,6 +2,7 @@
 
 use mapping::geometry::Rigid2;
 use mapping::grid::ProbabilityGrid;
+use mapping::pose_graph::SubmapId;
 use mapping::sensor::Timestamp;
 use nalgebra::Point2;
 
@@ -40,6 +41,19 @@ pub enum UploadItem {
     SessionStartPrior {
         /// `global_from_local`.
         global_from_local: Rigid2,
+        /// The robot runs GLM and sends [`UploadItem::GlobalMatch`] items: the server searches only
+        /// within the session.
+        glm_on_robot: bool,
+    },
+    /// GLM on the robot: the node before it (after that node's `SubmapFinished` items) matched a global
+    /// submap of the site.
+    GlobalMatch {
+        /// The global submap.
+        submap: SubmapId,
+        /// The node's measured pose in the submap's frame.
+        submap_from_node: Rigid2,
+        /// Branch-and-bound score in `[0, 1]`.
+        score: f32,
     },
     /// The session ended.
     SessionEnd,
@@ -83,11 +97,22 @@ impl From<&UploadItem> for pb::UploadItem {
                     grid: Some(grid_to_pb(grid)),
                 })
             }
-            UploadItem::SessionStartPrior { global_from_local } => {
-                Item::SessionStartPrior(pb::SessionStartPrior {
-                    global_from_local: Some(pose_to_pb(global_from_local)),
-                })
-            }
+            UploadItem::SessionStartPrior {
+                global_from_local,
+                glm_on_robot,
+            } => Item::SessionStartPrior(pb::SessionStartPrior {
+                global_from_local: Some(pose_to_pb(global_from_local)),
+                glm_on_robot: *glm_on_robot,
+            }),
+            UploadItem::GlobalMatch {
+                submap,
+                submap_from_node,
+                score,
+            } => Item::GlobalMatch(pb::GlobalMatch {
+                submap: Some((*submap).into()),
+                submap_from_node: Some(pose_to_pb(submap_from_node)),
+                score: *score,
+            }),
             UploadItem::SessionEnd => Item::SessionEnd(pb::SessionEnd {}),
         };
         Self { item: Some(item) }
@@ -140,7 +165,31 @@ impl TryFrom<&pb::UploadItem> for UploadItem {
                     "SessionStartPrior",
                     "global_from_local",
                 )?,
+                glm_on_robot: prior.glm_on_robot,
             }),
+            Some(Item::GlobalMatch(m)) => {
+                const M: &str = "GlobalMatch";
+                let submap = m.submap.ok_or(ConversionError::MissingField {
+                    message: M,
+                    field: "submap",
+                })?;
+                if !(m.score.is_finite() && (0.0..=1.0).contains(&m.score)) {
+                    return Err(ConversionError::OutOfRange {
+                        message: M,
+                        field: "score",
+                        value: m.score.to_string(),
+                    });
+                }
+                Ok(Self::GlobalMatch {
+                    submap: submap.into(),
+                    submap_from_node: pose_from_pb(
+                        m.submap_from_node.as_ref(),
+                        M,
+                        "submap_from_node",
+                    )?,
+                    score: m.score,
+                })
+            }
             Some(Item::SessionEnd(_)) => Ok(Self::SessionEnd),
             None => Err(ConversionError::MissingField {
                 message: "UploadItem",
@@ -177,8 +226,9 @@ fn non_empty(value: &str, field: &'static str) -> Result<String, ConversionError
 impl TryFrom<&pb::UploadBatch> for UploadBatch {
     type Error = ConversionError;
 
-    /// Checks the version, the names, `seq ≥ 1`, at least one item, every item, and that each
-    /// `SubmapFinished` follows a `NodeAdded` (or another `SubmapFinished`) of the same batch.
+    /// Checks the version, the names, `seq ≥ 1`, at least one item, every item, that each
+    /// `SubmapFinished` follows a `NodeAdded` (or another `SubmapFinished`) of the same batch, and that each
+    /// `GlobalMatch` follows a `NodeAdded`, `SubmapFinished` or `GlobalMatch`.
     fn try_from(batch: &pb::UploadBatch) -> Result<Self, ConversionError> {
         const M: &str = "UploadBatch";
         check_format_version(M, batch.format_version)?;
@@ -217,6 +267,20 @@ impl TryFrom<&pb::UploadBatch> for UploadBatch {
                     ),
                 });
             }
+            let follows_node_items = i > 0
+                && matches!(
+                    items[i - 1],
+                    UploadItem::NodeAdded(_)
+                        | UploadItem::SubmapFinished { .. }
+                        | UploadItem::GlobalMatch { .. }
+                );
+            if matches!(item, UploadItem::GlobalMatch { .. }) && !follows_node_items {
+                return Err(ConversionError::OutOfRange {
+                    message: M,
+                    field: "items",
+                    value: format!("item {i}: GlobalMatch must follow the NodeAdded it matched"),
+                });
+            }
         }
         Ok(Self {
             site: non_empty(&batch.site, "site")?,
@@ -247,6 +311,7 @@ mod tests {
             items: vec![
                 UploadItem::SessionStartPrior {
                     global_from_local: rigid2(1.0, 2.0, 0.5),
+                    glm_on_robot: true,
                 },
                 UploadItem::NodeAdded(NodeAdded {
                     time: Timestamp(42),
@@ -255,6 +320,14 @@ mod tests {
                     insertion_submaps: vec![(0, rigid2(0.0, 0.0, 0.0)), (1, rigid2(0.5, 0.0, 0.0))],
                 }),
                 UploadItem::SubmapFinished { index: 0, grid },
+                UploadItem::GlobalMatch {
+                    submap: SubmapId {
+                        trajectory: 3,
+                        index: 9,
+                    },
+                    submap_from_node: rigid2(0.5, -0.25, 0.0625),
+                    score: 0.75,
+                },
                 UploadItem::SessionEnd,
             ],
         }
@@ -269,7 +342,11 @@ mod tests {
     fn batches_round_trip() {
         let batch = sample_batch();
         let once = normalized(&batch);
-        assert_eq!(once.items.len(), 4);
+        assert_eq!(once.items.len(), 5);
+        assert!(matches!(
+            once.items[3],
+            UploadItem::GlobalMatch { score: 0.75, .. }
+        ));
         assert_eq!(normalized(&once), once);
         let UploadItem::SubmapFinished { grid, .. } = &once.items[2] else {
             panic!("item 2 is not a submap");
@@ -303,6 +380,21 @@ mod tests {
         assert!(matches!(
             UploadBatch::try_from(&orphan),
             Err(ConversionError::OutOfRange { field: "items", .. })
+        ));
+        // A match with no node before it, and a match scored outside [0, 1].
+        let mut stray = good.clone();
+        stray.items.swap(0, 3);
+        assert!(matches!(
+            UploadBatch::try_from(&stray),
+            Err(ConversionError::OutOfRange { field: "items", .. })
+        ));
+        let mut overscored = good.clone();
+        if let Some(pb::upload_item::Item::GlobalMatch(m)) = &mut overscored.items[3].item {
+            m.score = 1.5;
+        }
+        assert!(matches!(
+            UploadBatch::try_from(&overscored),
+            Err(ConversionError::OutOfRange { field: "score", .. })
         ));
         let mut nan = good.clone();
         if let Some(pb::upload_item::Item::NodeAdded(node)) = &mut nan.items[1].item {

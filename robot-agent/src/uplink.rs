@@ -14,6 +14,7 @@ mod global_submap_cache;
 mod grpc_uplink;
 mod in_memory_uplink;
 mod llo_stream;
+mod robot_glm;
 mod uploader;
 mod zenoh_link_options;
 mod zenoh_uplink;

@@ -27,8 +27,11 @@ use std::time::{Duration, Instant};
 use anyhow::Context as _;
 use clap::Args;
 use mapping::geometry::Rigid2;
-use mapping::lifelong::RelocalizationOptions;
+use mapping::global_slam::GlobalSlamOptions;
+use mapping::grid::ProbabilityGrid;
+use mapping::lifelong::{GlobalSubmap, MapMatcher, RelocalizationOptions};
 use mapping::local_slam::LocalTrajectoryBuilderOptions;
+use mapping::pose_graph::SubmapId;
 use mapping::simulation::{SessionOptions as SimSessionOptions, Store};
 use proto::UploadItem;
 use robot_agent::outbox::Outbox;
@@ -73,6 +76,10 @@ pub struct LoadArgs {
     /// Seed of the stores and routes (site `s` uses `seed + s`).
     #[arg(long, default_value_t = 1)]
     seed: u64,
+    /// Let the server run GLM for every node (the design before GLM moved onto the robots) instead of
+    /// the robots sending their own matches.
+    #[arg(long)]
+    glm_on_server: bool,
 }
 
 /// One robot of the benchmark.
@@ -317,12 +324,32 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
         ));
     }
     let mut prepared = Vec::new();
+    let mut glm_matches = 0;
     for (robot, task) in robots.iter().zip(preparing) {
-        let (steps, duration_s) = task.await.context("LLO thread")??;
+        let (mut steps, duration_s) = task.await.context("LLO thread")??;
         let held = steps.iter().take(RELOCALIZATION_NODES).flatten();
         let prior = relocalize_nodes(&robot.cache, &RelocalizationOptions::default(), held)
             .await
             .flatten();
+        // GLM on the robot, also ahead of time (robots match on their own CPUs), against the robot's
+        // cache of the site as it was when the session started (session 0's map).
+        if let (false, Some((global_from_local, _))) = (args.glm_on_server, prior) {
+            let submaps: Vec<_> = robot
+                .cache
+                .lock()
+                .map_err(|_| anyhow::anyhow!("a robot's cache lock is poisoned"))?
+                .submaps()
+                .values()
+                .map(|s| (s.id, s.global_pose, s.local_pose, Arc::clone(&s.grid)))
+                .collect();
+            let (matched, count) = tokio::task::spawn_blocking(move || {
+                robot_glm_ahead(steps, &submaps, global_from_local)
+            })
+            .await
+            .context("GLM thread")??;
+            steps = matched;
+            glm_matches += count;
+        }
         prepared.push(PreparedSession {
             steps,
             prior,
@@ -332,10 +359,15 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
     let relocalized = prepared.iter().filter(|p| p.prior.is_some()).count();
     let data_seconds: f64 = prepared.iter().map(|p| p.duration_s).sum();
     eprintln!(
-        "  prepared in {:.0} s: {} nodes, {relocalized}/{} sessions relocalized at their start",
+        "  prepared in {:.0} s: {} nodes, {relocalized}/{} sessions relocalized at their start, {}",
         prepare_started.elapsed().as_secs_f64(),
         prepared.iter().map(|p| p.steps.len()).sum::<usize>(),
-        prepared.len()
+        prepared.len(),
+        if args.glm_on_server {
+            "GLM on the server".to_owned()
+        } else {
+            format!("{glm_matches} GLM matches found on the robots")
+        }
     );
 
     // 3. Measured: everyone streams at real time.
@@ -396,9 +428,10 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
             &format!("load-{}-cleaning", robot.id),
         )?;
         let site = robot.site;
+        let glm_on_server = args.glm_on_server;
         streams.push(tokio::spawn(async move {
             tokio::time::sleep(stagger).await;
-            stream_prepared(uploader, session, site).await
+            stream_prepared(uploader, session, site, glm_on_server).await
         }));
     }
     let mut outcomes = Vec::new();
@@ -498,6 +531,8 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
         .collect();
     let report = json!({
         "agents": args.agents,
+        "glm": if args.glm_on_server { "server" } else { "robot" },
+        "robot_glm_matches": glm_matches,
         "sites": args.sites,
         "duration_s": args.duration_s,
         "streaming_wall_s": streaming_s,
@@ -572,6 +607,7 @@ async fn stream_prepared(
     mut uploader: Uploader<GrpcUplink>,
     session: PreparedSession,
     site: usize,
+    glm_on_server: bool,
 ) -> anyhow::Result<StreamOutcome> {
     let mut outcome = StreamOutcome::default();
     let start = Instant::now();
@@ -583,6 +619,7 @@ async fn stream_prepared(
     if let Some((prior, _)) = session.prior {
         batch.push(UploadItem::SessionStartPrior {
             global_from_local: prior,
+            glm_on_robot: !glm_on_server,
         });
     }
     let mut nodes_in_batch = 0;
@@ -669,6 +706,44 @@ async fn stream_prepared(
     }
     outcome.left_in_outbox = uploader.outbox().len()?;
     Ok(outcome)
+}
+
+/// Matches every node of a prepared session against the given site submaps, as the robot's GLM would,
+/// and appends the accepted matches to its items. Returns the steps and the number of matches.
+fn robot_glm_ahead(
+    mut steps: Vec<Vec<UploadItem>>,
+    submaps: &[(SubmapId, Rigid2, Rigid2, Arc<ProbabilityGrid>)],
+    global_from_local: Rigid2,
+) -> anyhow::Result<(Vec<Vec<UploadItem>>, u64)> {
+    let mut matcher = MapMatcher::new(
+        GlobalSlamOptions::default().constraint_builder,
+        global_from_local,
+    )?;
+    matcher.sync_submaps(
+        submaps
+            .iter()
+            .map(|(id, global, local, grid)| GlobalSubmap {
+                id: *id,
+                global_pose: *global,
+                local_pose: *local,
+                grid,
+            }),
+    );
+    let mut count = 0;
+    for items in &mut steps {
+        let Some(UploadItem::NodeAdded(node)) = items.first() else {
+            continue;
+        };
+        let points = Arc::new(node.points.clone());
+        let found = matcher.match_node(&node.local_pose, &points);
+        count += found.len() as u64;
+        items.extend(found.into_iter().map(|m| UploadItem::GlobalMatch {
+            submap: m.submap,
+            submap_from_node: m.submap_from_node,
+            score: m.score,
+        }));
+    }
+    Ok((steps, count))
 }
 
 /// Waits (at most 60 s) until every robot's cache holds its site's current version.

@@ -900,17 +900,20 @@ impl Robot {
         }
     }
 
-    /// Streams `recording` as session `uuid`, relocalizing its start against the cache when `relocalize`.
+    /// Streams `recording` as session `uuid`, relocalizing its start against the cache when `relocalize`
+    /// (and then running GLM on the robot when `glm_on_robot`).
     async fn session(
         &self,
         recording: Recording,
         uuid: &str,
         relocalize: bool,
+        glm_on_robot: bool,
     ) -> robot_agent::uplink::SessionTrace {
         let options = SessionOptions {
             nodes_per_batch: 6,
             replay_speed: 0.0,
             final_flush_timeout: WAIT,
+            glm_on_robot,
             ..SessionOptions::default()
         };
         let mut uploader = Uploader::new(
@@ -1005,7 +1008,9 @@ async fn three_robots_on_two_sites_build_the_maps_the_same_data_gives_in_process
     // Site A: r1 maps (session 0), then r2 comes back over the same corridors (session 1) and
     // relocalizes against its cache. Site B, at the same time: r9 maps another stretch.
     let site_a = async {
-        let first = r1.session(scan_range(&csail, 0, 300), "a-0", false).await;
+        let first = r1
+            .session(scan_range(&csail, 0, 300), "a-0", false, false)
+            .await;
         assert!(first.prior.is_none());
         let a_version = server.site(SITE).unwrap().current().version;
         bounded("r2's cache", async {
@@ -1014,10 +1019,13 @@ async fn three_robots_on_two_sites_build_the_maps_the_same_data_gives_in_process
             }
         })
         .await;
-        let second = r2.session(scan_range(&csail, 150, 450), "a-1", true).await;
+        // GLM on the server here, so that the in-process reference can reproduce every search.
+        let second = r2
+            .session(scan_range(&csail, 150, 450), "a-1", true, false)
+            .await;
         (first, second)
     };
-    let site_b = r9.session(scan_range(&csail, 300, 600), "b-0", false);
+    let site_b = r9.session(scan_range(&csail, 300, 600), "b-0", false, false);
     let ((_, second), _) = tokio::join!(site_a, site_b);
     assert!(
         second.prior.is_some(),
@@ -1074,6 +1082,62 @@ async fn three_robots_on_two_sites_build_the_maps_the_same_data_gives_in_process
     }
     let _ = stop.send(true);
     for robot in [r1, r2, r9] {
+        bounded("a follower stopping", robot.follower)
+            .await
+            .unwrap();
+    }
+    server.shutdown().await.unwrap();
+}
+
+// Reference: the design card's "agents run LLO and GLM locally and stream submaps and constraints".
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn glm_on_the_robot_places_a_session_where_glm_on_the_server_does() {
+    let csail = csail();
+    let mut config = config();
+    config.sites[0].robots.push(RobotConfig {
+        id: "r2".into(),
+        token: "token-store-a-r2".into(),
+    });
+    let server = RunningServer::start(&config, Arc::new(MemStore::new()))
+        .await
+        .unwrap();
+    let (stop, stopped) = tokio::sync::watch::channel(false);
+    let r1 = Robot::start(&server, "r1", SITE, TOKEN, &stopped);
+    let r2 = Robot::start(&server, "r2", SITE, "token-store-a-r2", &stopped);
+    r1.session(scan_range(&csail, 0, 300), "g-0", false, false)
+        .await;
+    let site = server.site(SITE).unwrap();
+    let after_first = site.current();
+    bounded("r2's cache", async {
+        while r2.cache.lock().unwrap().version() < after_first.version {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    let second = r2
+        .session(scan_range(&csail, 150, 450), "g-1", true, true)
+        .await;
+    assert!(second.glm_on_robot, "{second:?}");
+    assert!(second.glm_matches > 10, "{second:?}");
+
+    // The same two sessions with GLM on the server, in-process: session 1 lands in the same place.
+    let groups = |from, to| llo_groups(&scan_range(&csail, from, to), usize::MAX);
+    let expected = reference_lifelong(
+        &config.map,
+        &[(groups(0, 300), None), (groups(150, 450), second.prior)],
+    );
+    let served = site.node_poses().await.unwrap();
+    let mut worst: f64 = 0.0;
+    for (id, pose) in expected.node_poses().map(|(id, _, pose)| (id, pose)) {
+        let robot = served[&id];
+        worst = worst.max((robot.translation.vector - pose.translation.vector).norm());
+    }
+    assert!(worst < 0.1, "largest node disagreement {worst} m");
+    // The robot's matches are the only cross-session constraints the server added for session 1.
+    let counts = site.current().counts;
+    assert!(counts.loop_closures > after_first.counts.loop_closures);
+    let _ = stop.send(true);
+    for robot in [r1, r2] {
         bounded("a follower stopping", robot.follower)
             .await
             .unwrap();

@@ -94,6 +94,9 @@ pub struct GlobalSlam {
     unanchored: BTreeSet<u32>,
     /// A second optimizer with a capped number of iterations (see [`GlobalSlam::optimize_capped`]).
     capped_optimizer: Option<Optimizer>,
+    /// Trajectories whose cross-trajectory matches are found elsewhere (GLM on the robot; see
+    /// [`GlobalSlam::set_matched_elsewhere`]).
+    matched_elsewhere: BTreeSet<u32>,
 }
 
 fn information(translation_sigma: f64, rotation_sigma: f64) -> Matrix3<f64> {
@@ -127,6 +130,7 @@ impl GlobalSlam {
             searches_queued: 0,
             unanchored: BTreeSet::new(),
             capped_optimizer: None,
+            matched_elsewhere: BTreeSet::new(),
         })
     }
 
@@ -155,6 +159,14 @@ impl GlobalSlam {
             }
         }
         Ok(())
+    }
+
+    /// Declares that `trajectory`'s matches against other trajectories are computed elsewhere (by GLM on
+    /// its robot, handed in with [`Self::add_search_results`]): no search pairs one of its nodes with
+    /// another trajectory's submap, or one of its submaps with another trajectory's node. Searches within
+    /// the trajectory (its own loop closures) still run here.
+    pub fn set_matched_elsewhere(&mut self, trajectory: u32) {
+        self.matched_elsewhere.insert(trajectory);
     }
 
     /// Whether a trajectory still waits for its first cross-trajectory match to be placed in the map.
@@ -325,6 +337,12 @@ impl GlobalSlam {
             return;
         };
         if record.submaps.contains(&sid) {
+            return;
+        }
+        if node.trajectory != sid.trajectory
+            && (self.matched_elsewhere.contains(&node.trajectory)
+                || self.matched_elsewhere.contains(&sid.trajectory))
+        {
             return;
         }
         if node.trajectory != sid.trajectory

@@ -158,6 +158,12 @@ impl LifelongMap {
         Ok(Vec::new())
     }
 
+    /// Declares that `session`'s matches against the rest of the map come from GLM on its robot (see
+    /// [`GlobalSlam::set_matched_elsewhere`]); hand them in with [`Self::add_search_results`].
+    pub fn set_matched_on_robot(&mut self, session: u32) {
+        self.global.set_matched_elsewhere(session);
+    }
+
     /// Whether `session` has been started (finished or not).
     pub fn is_started(&self, session: u32) -> bool {
         self.sessions.contains_key(&session)

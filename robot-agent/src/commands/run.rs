@@ -1,5 +1,6 @@
 //! `evermap-agent run --config agent.toml`: replays a recording through LLO and streams the result to the
-//! fleet map server, following the site's versions into the global submap cache.
+//! fleet map server, following the site's versions into the global submap cache. The session's start is
+//! relocalized against that cache and, once placed, the robot runs GLM against it and sends its matches.
 //!
 //! ```toml
 //! server_url = "http://127.0.0.1:50051"
@@ -22,13 +23,14 @@ use std::time::Duration;
 
 use anyhow::Context as _;
 use clap::Args;
+use mapping::lifelong::RelocalizationOptions;
 use mapping::local_slam::LocalTrajectoryBuilderOptions;
 use rand::RngCore as _;
 use robot_agent::outbox::Outbox;
 use robot_agent::source;
 use robot_agent::uplink::{
-    FleetUplink, GlobalSubmapCache, GrpcUplink, SessionOptions, Uploader, ZenohLinkOptions,
-    ZenohUplink, follow_site, stream_recording,
+    FleetUplink, GlobalSubmapCache, GrpcUplink, MapUplink as _, SessionOptions, SessionStart,
+    Uploader, ZenohLinkOptions, ZenohUplink, follow_site, stream_session,
 };
 use serde::Deserialize;
 
@@ -189,6 +191,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         retry_interval,
         final_flush_timeout: seconds("final_flush_timeout_s", config.final_flush_timeout_s)?,
         local: config.local.clone(),
+        ..SessionOptions::default()
     };
     tracing::info!(
         site = %config.site, robot = %config.robot_id, session = %session_uuid,
@@ -228,7 +231,31 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
             &config.robot_id,
             &session_uuid,
         )?;
-        let report = stream_recording(recording, &options, &mut uploader).await?;
+        // Relocalize the session's start against the site map (and run GLM on the robot from there), once
+        // the cache has caught up with the server; with no server or an empty site, map without a prior.
+        let mut probe = uploader.uplink_mut().clone();
+        if let Ok(Ok(version)) = tokio::time::timeout(call_timeout, probe.map_version()).await {
+            let deadline = tokio::time::Instant::now() + call_timeout;
+            while cache.lock().map_or(0, |c| c.version()) < version
+                && tokio::time::Instant::now() < deadline
+            {
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            }
+        }
+        let start = SessionStart {
+            cache: &cache,
+            relocalization: RelocalizationOptions::default(),
+            nodes: 10,
+        };
+        let (report, trace) =
+            stream_session(recording, &options, &mut uploader, Some(start)).await?;
+        tracing::info!(
+            relocalized = trace.prior.is_some(),
+            score = trace.score,
+            glm_on_robot = trace.glm_on_robot,
+            glm_matches = trace.glm_matches,
+            "session start"
+        );
         let _ = stop.send(true);
         let _ = follower.await;
         let (version, submaps) = cache

@@ -5,6 +5,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use mapping::geometry::Rigid2;
+use mapping::global_slam::{ConstraintBuilderOptions, GlobalSlamOptions};
 use mapping::lifelong::{
     PlacedGrid, RelocalizationOptions, relocalize_scans_in_grid, render_submaps,
 };
@@ -15,6 +16,7 @@ use proto::UploadItem;
 use tokio::sync::{mpsc, watch};
 use tokio_stream::StreamExt as _;
 
+use super::robot_glm::RobotGlm;
 use super::{GlobalSubmapCache, LloStats, MapUplink, UplinkError, Uploader, run_llo};
 use crate::source::Recording;
 
@@ -33,6 +35,12 @@ pub struct SessionOptions {
     pub final_flush_timeout: Duration,
     /// LLO settings.
     pub local: LocalTrajectoryBuilderOptions,
+    /// Run GLM on the robot once the session's start is relocalized: match each node against the cached
+    /// site submaps and send the accepted matches with it, so the server searches only within the
+    /// session. Default true.
+    pub glm_on_robot: bool,
+    /// The robot's GLM settings. Default: the server's (`GlobalSlamOptions::default().constraint_builder`).
+    pub glm: ConstraintBuilderOptions,
 }
 
 impl Default for SessionOptions {
@@ -44,6 +52,8 @@ impl Default for SessionOptions {
             retry_interval: Duration::from_millis(500),
             final_flush_timeout: Duration::from_secs(60),
             local: LocalTrajectoryBuilderOptions::default(),
+            glm_on_robot: true,
+            glm: GlobalSlamOptions::default().constraint_builder,
         }
     }
 }
@@ -103,6 +113,10 @@ pub struct SessionTrace {
     pub node_times: Vec<Timestamp>,
     /// The first node's local pose (`local_from_tracking`).
     pub first_local_pose: Option<Rigid2>,
+    /// Whether GLM ran on the robot for this session.
+    pub glm_on_robot: bool,
+    /// GLM matches the robot sent.
+    pub glm_matches: u64,
 }
 
 /// Runs LLO over `recording` on a named thread and streams its output through `uploader` in batches of
@@ -117,6 +131,22 @@ pub async fn stream_recording<U: MapUplink>(
     stream_session(recording, options, uploader, None)
         .await
         .map(|(report, _)| report)
+}
+
+/// Starts GLM on the robot when the session was relocalized (and GLM is on), matching the held-back
+/// nodes right away.
+async fn begin_glm(
+    start: &SessionStart<'_>,
+    options: &SessionOptions,
+    held: &mut [Vec<UploadItem>],
+    trace: &SessionTrace,
+) -> Option<RobotGlm> {
+    let prior = trace.prior.filter(|_| options.glm_on_robot)?;
+    let mut glm = RobotGlm::new(&options.glm, prior)?;
+    for items in held.iter_mut() {
+        glm.match_items(start.cache, None, items).await;
+    }
+    Some(glm)
 }
 
 /// Relocalizes held-back nodes against the cache (on a blocking thread).
@@ -212,6 +242,8 @@ pub async fn stream_session<U: MapUplink>(
     // Nodes held back until the start is relocalized (only with a `SessionStart`).
     let mut held: Vec<Vec<UploadItem>> = Vec::new();
     let mut started = start.is_none();
+    // GLM on the robot, once the start is relocalized.
+    let mut glm: Option<RobotGlm> = None;
     let flush = async |uploader: &mut Uploader<U>,
                        report: &mut SessionReport|
            -> Result<bool, UplinkError> {
@@ -239,6 +271,10 @@ pub async fn stream_session<U: MapUplink>(
                     }
                 }
                 if started {
+                    let mut items = items;
+                    if let (Some(glm), Some(start)) = (glm.as_mut(), start.as_ref()) {
+                        glm.match_items(start.cache, uploader.trajectory(), &mut items).await;
+                    }
                     nodes_in_batch += 1;
                     batch.extend(items);
                 } else {
@@ -249,10 +285,14 @@ pub async fn stream_session<U: MapUplink>(
                     }
                     if let Some(start) = &start {
                         relocalize_start(start, &held, &mut trace).await;
+                        glm = begin_glm(start, options, &mut held, &trace).await;
                     }
                     started = true;
                     if let Some(prior) = trace.prior {
-                        batch.push(UploadItem::SessionStartPrior { global_from_local: prior });
+                        batch.push(UploadItem::SessionStartPrior {
+                            global_from_local: prior,
+                            glm_on_robot: glm.is_some(),
+                        });
                     }
                     nodes_in_batch += held.len();
                     batch.extend(held.drain(..).flatten());
@@ -270,6 +310,8 @@ pub async fn stream_session<U: MapUplink>(
             }
         }
     }
+    trace.glm_on_robot = glm.is_some();
+    trace.glm_matches = glm.as_ref().map_or(0, |g| g.matches);
     report.llo = llo
         .join()
         .map_err(|_| SessionError::Llo("the LLO thread panicked".into()))?;
@@ -277,10 +319,12 @@ pub async fn stream_session<U: MapUplink>(
         // Shorter than the relocalization window: relocalize what there is.
         if let Some(start) = &start {
             relocalize_start(start, &held, &mut trace).await;
+            glm = begin_glm(start, options, &mut held, &trace).await;
         }
         if let Some(prior) = trace.prior {
             batch.push(UploadItem::SessionStartPrior {
                 global_from_local: prior,
+                glm_on_robot: glm.is_some(),
             });
         }
         batch.extend(held.drain(..).flatten());

@@ -31,6 +31,7 @@ pub struct Uploader<U> {
     /// Sessions opened on the current connection (cleared when the link fails).
     opened: BTreeSet<String>,
     last_version: u64,
+    trajectory: Option<u32>,
 }
 
 impl<U: MapUplink> Uploader<U> {
@@ -53,7 +54,13 @@ impl<U: MapUplink> Uploader<U> {
             next_seq,
             opened: BTreeSet::new(),
             last_version: 0,
+            trajectory: None,
         })
+    }
+
+    /// The trajectory the server gave this uploader's session, once it has been opened.
+    pub fn trajectory(&self) -> Option<u32> {
+        self.trajectory
     }
 
     /// The uplink (e.g. for map queries).
@@ -120,6 +127,9 @@ impl<U: MapUplink> Uploader<U> {
                     .outbox
                     .remove_through(&batch.session_uuid, opened.last_acked_seq)?;
                 skip_through = Some((batch.session_uuid.clone(), opened.last_acked_seq));
+                if batch.session_uuid == self.session_uuid {
+                    self.trajectory = Some(opened.trajectory);
+                }
                 self.opened.insert(batch.session_uuid.clone());
             }
             if skip_through

@@ -16,7 +16,7 @@ use std::collections::BTreeMap;
 use std::sync::Arc;
 
 use mapping::geometry::{Rigid2, Rigid2Ext as _, normalize_angle};
-use mapping::global_slam::GlobalSlam;
+use mapping::global_slam::{GlobalSlam, LoopClosure};
 use mapping::grid::ProbabilityGrid;
 use mapping::lifelong::{LifelongError, LifelongEvent, LifelongMap, LifelongOptions};
 use mapping::pose_graph::{NodeId, SubmapId};
@@ -35,6 +35,8 @@ struct Session {
     closed: bool,
     /// The agent's relocalized `global_from_local`, if it sent one.
     prior: Option<Rigid2>,
+    /// The agent matches the session's nodes against the map itself (GLM on the robot).
+    glm_on_robot: bool,
     nodes: u64,
 }
 
@@ -180,6 +182,7 @@ impl SiteMap {
                 last_seq: 0,
                 closed: false,
                 prior: None,
+                glm_on_robot: false,
                 nodes: 0,
             },
         );
@@ -249,6 +252,8 @@ impl SiteMap {
                     }
                 }
                 UploadItem::SessionEnd => ended = true,
+                // The conversion checked that it follows a node's items.
+                UploadItem::GlobalMatch { .. } => {}
             }
         }
         Ok(UploadCheck::Apply)
@@ -263,37 +268,57 @@ impl SiteMap {
             .sessions
             .get(&batch.session_uuid)
             .ok_or_else(|| SiteError::UnknownSession(batch.session_uuid.clone()))?;
-        let (trajectory, mut prior) = (session.trajectory, session.prior);
+        let (trajectory, mut prior, mut glm_on_robot) =
+            (session.trajectory, session.prior, session.glm_on_robot);
         let mut optimizations = 0;
         let mut nodes = 0;
         let mut ended = false;
         let mut items = batch.items.iter().peekable();
         while let Some(item) = items.next() {
             match item {
-                UploadItem::SessionStartPrior { global_from_local } => {
+                UploadItem::SessionStartPrior {
+                    global_from_local,
+                    glm_on_robot: on_robot,
+                } => {
                     prior = Some(*global_from_local);
+                    glm_on_robot = *on_robot;
                 }
                 UploadItem::SessionEnd => ended = true,
                 // check_upload guarantees these follow a node; they were handed over with it.
-                UploadItem::SubmapFinished { .. } => {}
+                UploadItem::SubmapFinished { .. } | UploadItem::GlobalMatch { .. } => {}
                 UploadItem::NodeAdded(node) => {
                     let mut finished = Vec::new();
                     while let Some(UploadItem::SubmapFinished { index, grid }) = items.peek() {
                         finished.push((*index as usize, grid.clone()));
                         items.next();
                     }
+                    let mut matches = Vec::new();
+                    while let Some(UploadItem::GlobalMatch {
+                        submap,
+                        submap_from_node,
+                        score,
+                    }) = items.peek()
+                    {
+                        matches.push((*submap, *submap_from_node, *score));
+                        items.next();
+                    }
                     if !self.map.is_started(trajectory) {
                         self.map
                             .start_session(trajectory, prior)
                             .map_err(|e| SiteError::InvalidBatch(e.to_string()))?;
+                        // Only a placed session can be matched on the robot: it needs the prior.
+                        if glm_on_robot && prior.is_some() {
+                            self.map.set_matched_on_robot(trajectory);
+                        }
                     }
-                    optimizations += self.add_node(trajectory, node, finished)?;
+                    optimizations += self.add_node(trajectory, node, finished, &matches)?;
                     nodes += 1;
                 }
             }
         }
         if let Some(session) = self.sessions.get_mut(&batch.session_uuid) {
             session.prior = prior;
+            session.glm_on_robot = glm_on_robot;
             session.last_seq = batch.seq;
             session.nodes += nodes;
         }
@@ -334,13 +359,15 @@ impl SiteMap {
         trajectory: u32,
         node: &NodeAdded,
         finished: Vec<(usize, ProbabilityGrid)>,
+        matches: &[(SubmapId, Rigid2, f32)],
     ) -> Result<usize, SiteError> {
         let insertion: Vec<(usize, Rigid2)> = node
             .insertion_submaps
             .iter()
             .map(|(index, pose)| (*index as usize, *pose))
             .collect();
-        self.map
+        let (id, _) = self
+            .map
             .add_node(
                 trajectory,
                 node.time,
@@ -350,7 +377,22 @@ impl SiteMap {
                 finished,
             )
             .map_err(|e| SiteError::InvalidBatch(e.to_string()))?;
-        let events = self.map.run_pending_searches();
+        // The robot's GLM matches (a submap trimmed since the robot matched it is skipped by the map),
+        // then what the server's own searches found, added together as one node's results.
+        let robot = matches
+            .iter()
+            .map(|(submap, submap_from_node, score)| LoopClosure {
+                submap: *submap,
+                node: id,
+                submap_from_node: *submap_from_node,
+                score: *score,
+            });
+        let jobs = self.map.take_search_jobs();
+        let builder = self.map.constraint_builder();
+        let found: Vec<LoopClosure> = jobs.iter().filter_map(|job| builder.run(job)).collect();
+        let events = self
+            .map
+            .add_search_results(robot.chain(found).collect::<Vec<_>>());
         Ok(count_optimizations(&events))
     }
 

@@ -103,6 +103,7 @@ fn uploads_must_come_in_sequence_and_fit_the_session() {
         2,
         vec![UploadItem::SessionStartPrior {
             global_from_local: Rigid2::identity(),
+            glm_on_robot: false,
         }],
     );
     assert!(matches!(
@@ -187,6 +188,7 @@ fn a_start_prior_places_the_session() {
             vec![
                 UploadItem::SessionStartPrior {
                     global_from_local: prior,
+                    glm_on_robot: false,
                 },
                 node(3, &[0]),
             ],
@@ -221,6 +223,7 @@ fn a_prior_placed_sessions_grids_are_drawn_at_the_prior() {
             vec![
                 UploadItem::SessionStartPrior {
                     global_from_local: prior,
+                    glm_on_robot: false,
                 },
                 node(3, &[0]),
                 UploadItem::SubmapFinished {
@@ -262,7 +265,10 @@ fn a_prior_placed_sessions_grids_are_drawn_at_the_prior() {
 /// places in every session (so a later session covers an earlier one cell for cell).
 fn covering_session(submaps: u32, prior: Option<Rigid2>, end: bool) -> Vec<UploadItem> {
     let mut items: Vec<UploadItem> = prior
-        .map(|global_from_local| UploadItem::SessionStartPrior { global_from_local })
+        .map(|global_from_local| UploadItem::SessionStartPrior {
+            global_from_local,
+            glm_on_robot: false,
+        })
         .into_iter()
         .collect();
     for s in 0..submaps {
