@@ -254,7 +254,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
             score = trace.score,
             glm_on_robot = trace.glm_on_robot,
             glm_matches = trace.glm_matches,
-            "session start"
+            "session start relocalization and GLM on the robot"
         );
         let _ = stop.send(true);
         let _ = follower.await;
