@@ -162,7 +162,7 @@ impl ServerMetrics {
             "# HELP evermap_sites Sites served.\n# TYPE evermap_sites gauge\nevermap_sites {}\n",
             sites.len()
         );
-        let gauges: [(&str, &str, Gauge); 5] = [
+        let gauges: [(&str, &str, Gauge); 8] = [
             ("evermap_site_version", "Current map version.", |s| {
                 s.current().version
             }),
@@ -176,6 +176,21 @@ impl ServerMetrics {
                 "evermap_site_submaps",
                 "Finished submaps of the site map.",
                 |s| s.current().counts.finished_submaps,
+            ),
+            (
+                "evermap_site_constraints",
+                "Pose-graph constraints of the site map.",
+                |s| s.current().counts.constraints,
+            ),
+            (
+                "evermap_site_trimmed_submaps",
+                "Submaps trimmed from the site map since it began.",
+                |s| s.current().counts.trimmed_submaps,
+            ),
+            (
+                "evermap_site_dropped_sessions",
+                "Sessions dropped because they ended without being placed in the map.",
+                |s| s.current().counts.dropped_sessions,
             ),
             (
                 "evermap_site_queue_depth",

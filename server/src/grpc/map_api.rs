@@ -38,6 +38,7 @@ pub fn version_to_pb(site: &str, info: &VersionInfo) -> pb::MapVersion {
             finished_submaps: c.finished_submaps,
             constraints: c.constraints,
             trimmed_submaps: c.trimmed_submaps,
+            dropped_sessions: c.dropped_sessions,
             loop_closures: c.loop_closures,
         }),
     }
