@@ -28,7 +28,7 @@ pub use agent_session::{
 };
 pub use fleet_uplink::FleetUplink;
 pub use global_submap_cache::{CacheError, GlobalSubmapCache};
-pub use grpc_uplink::GrpcUplink;
+pub use grpc_uplink::{ClientTls, GrpcUplink};
 pub use in_memory_uplink::InMemoryUplink;
 pub use llo_stream::{LloStats, run_llo};
 pub use proto::MapDelta;

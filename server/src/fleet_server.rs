@@ -49,6 +49,9 @@ pub enum ServeError {
     /// The gRPC server failed.
     #[error("gRPC server: {0}")]
     Transport(String),
+    /// The TLS certificate or key could not be read or used.
+    #[error("TLS: {0}")]
+    Tls(String),
     /// The zenoh front end could not start.
     #[error(transparent)]
     Zenoh(#[from] crate::zenoh_front::ZenohFrontError),
@@ -135,8 +138,20 @@ impl RunningServer {
             source,
         })?;
         let (stop_grpc, stopped) = oneshot::channel::<()>();
+        let mut builder = tonic::transport::Server::builder();
+        if let Some(tls) = &config.tls {
+            let read = |path: &std::path::Path| {
+                std::fs::read(path)
+                    .map_err(|e| ServeError::Tls(format!("cannot read {}: {e}", path.display())))
+            };
+            let identity =
+                tonic::transport::Identity::from_pem(read(&tls.cert_pem)?, read(&tls.key_pem)?);
+            builder = builder
+                .tls_config(tonic::transport::ServerTlsConfig::new().identity(identity))
+                .map_err(|e| ServeError::Tls(e.to_string()))?;
+        }
         let grpc = tokio::spawn(
-            tonic::transport::Server::builder()
+            builder
                 .add_service(health_service)
                 .add_service(reflection)
                 .add_service(agent)
@@ -148,7 +163,7 @@ impl RunningServer {
                     },
                 ),
         );
-        tracing::info!(%grpc_addr, sites = sites.len(), "gRPC serving");
+        tracing::info!(%grpc_addr, sites = sites.len(), tls = config.tls.is_some(), "gRPC serving");
 
         let (metrics_addr, metrics_task) = match config.metrics_listen {
             Some(addr) => {

@@ -19,5 +19,5 @@ pub mod site;
 pub mod zenoh_front;
 
 pub use fleet_server::{RunningServer, ServeError};
-pub use server_config::{RobotConfig, ServerConfig, ServerConfigError, SiteConfig};
+pub use server_config::{RobotConfig, ServerConfig, ServerConfigError, SiteConfig, TlsConfig};
 pub use server_metrics::ServerMetrics;

@@ -8,6 +8,10 @@
 //! [storage]
 //! path = "./evermap-data"
 //!
+//! [tls]                              # optional: gRPC over TLS (rustls)
+//! cert_pem = "/etc/evermap/server.pem"
+//! key_pem = "/etc/evermap/server.key"
+//!
 //! [zenoh]                            # optional: the zenoh front end (agents' uplink, version pushes)
 //! listen = ["tcp/127.0.0.1:7447"]
 //!
@@ -21,6 +25,7 @@
 
 use std::collections::BTreeSet;
 use std::net::SocketAddr;
+use std::path::PathBuf;
 
 use mapping::global_slam::GlobalSlamOptions;
 use mapping::lifelong::LifelongOptions;
@@ -59,6 +64,16 @@ pub struct RobotConfig {
     pub token: String,
 }
 
+/// gRPC over TLS: the server's certificate chain and private key, PEM files.
+#[derive(Clone, Debug, PartialEq, Eq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TlsConfig {
+    /// The certificate chain (PEM), leaf first.
+    pub cert_pem: PathBuf,
+    /// The private key of the leaf certificate (PEM: PKCS#8, PKCS#1 or SEC1).
+    pub key_pem: PathBuf,
+}
+
 /// One site (store) the server hosts.
 #[derive(Clone, Debug, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -95,6 +110,10 @@ pub struct ServerConfig {
     /// `LifelongOptions::default()` instead (serde fills the fields it omits), where that search is off:
     /// add `[map.global] unanchored_search_every_n_nodes = 10` to keep it.
     pub map: LifelongOptions,
+    /// gRPC over TLS (rustls) with these certificates (TOML section `[tls]`: `cert_pem`, `key_pem`).
+    /// Default none: plaintext gRPC, for loopback and private networks only. (The zenoh front end's links
+    /// are plain TCP; secure them with zenoh's own TLS in the routers.)
+    pub tls: Option<TlsConfig>,
     /// The zenoh front end (TOML section `[zenoh]`: `mode`, `listen`, `connect`, `multicast_scouting`; see
     /// `robot_agent::uplink::ZenohLinkOptions`). Default none: gRPC only.
     pub zenoh: Option<ZenohLinkOptions>,
@@ -115,6 +134,7 @@ impl Default for ServerConfig {
                 global: GlobalSlamOptions::default(),
                 ..LifelongOptions::default()
             },
+            tls: None,
             zenoh: None,
             sites: Vec::new(),
         }

@@ -1144,3 +1144,71 @@ async fn glm_on_the_robot_places_a_session_where_glm_on_the_server_does() {
     }
     server.shutdown().await.unwrap();
 }
+
+// Reference: issue 4 §2 "gRPC over TLS (rustls) when certificates are configured".
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn with_certificates_configured_grpc_runs_over_tls_only() {
+    let dir = tempfile::tempdir().unwrap();
+    let certified = rcgen::generate_simple_self_signed(vec!["localhost".to_owned()]).unwrap();
+    let (cert_pem, key_pem) = (dir.path().join("cert.pem"), dir.path().join("key.pem"));
+    std::fs::write(&cert_pem, certified.cert.pem()).unwrap();
+    std::fs::write(&key_pem, certified.signing_key.serialize_pem()).unwrap();
+    let mut config = config();
+    config.tls = Some(server::TlsConfig { cert_pem, key_pem });
+    let server = RunningServer::start(&config, Arc::new(MemStore::new()))
+        .await
+        .unwrap();
+    let port = server.grpc_addr().port();
+    let tls = robot_agent::uplink::ClientTls {
+        ca_pem: certified.cert.pem().into_bytes(),
+        domain: Some("localhost".into()),
+    };
+    let mut secure = GrpcUplink::with_tls(
+        &format!("https://127.0.0.1:{port}"),
+        SITE,
+        TOKEN,
+        16 << 20,
+        WAIT,
+        Some(&tls),
+    )
+    .unwrap();
+    let opened = secure.open_session("r1", "tls-1").await.unwrap();
+    assert!(opened.created);
+    let ack = secure
+        .upload(&synthetic_batch("tls-1", 1, 3))
+        .await
+        .unwrap();
+    assert_eq!(ack.seq, 1);
+    assert_eq!(secure.map_version().await.unwrap(), ack.map_version);
+
+    // Plaintext to the TLS port fails; so does TLS trusting another authority.
+    let mut plain = GrpcUplink::new(
+        &format!("http://127.0.0.1:{port}"),
+        SITE,
+        TOKEN,
+        16 << 20,
+        Duration::from_secs(2),
+    )
+    .unwrap();
+    assert!(plain.map_version().await.is_err());
+    let stranger = rcgen::generate_simple_self_signed(vec!["localhost".to_owned()]).unwrap();
+    let mut untrusting = GrpcUplink::with_tls(
+        &format!("https://127.0.0.1:{port}"),
+        SITE,
+        TOKEN,
+        16 << 20,
+        Duration::from_secs(2),
+        Some(&robot_agent::uplink::ClientTls {
+            ca_pem: stranger.cert.pem().into_bytes(),
+            domain: Some("localhost".into()),
+        }),
+    )
+    .unwrap();
+    assert!(untrusting.map_version().await.is_err());
+    assert_eq!(
+        server.site(SITE).unwrap().current().counts.nodes,
+        3,
+        "only the TLS upload landed"
+    );
+    server.shutdown().await.unwrap();
+}

@@ -11,6 +11,9 @@
 //! replay_speed = 1.0        # multiple of real time; 0 = as fast as possible
 //! outbox_dir = "./evermap-outbox"
 //!
+//! # Optional, gRPC over TLS: server_url = "https://..." and the CA that signed the server's certificate.
+//! # tls_ca_pem = "/etc/evermap/ca.pem"
+//!
 //! # Optional: reach the server through zenoh (routers or its zenoh endpoint) instead of gRPC.
 //! [zenoh]
 //! connect = ["tcp/127.0.0.1:7447"]
@@ -29,8 +32,8 @@ use rand::RngCore as _;
 use robot_agent::outbox::Outbox;
 use robot_agent::source;
 use robot_agent::uplink::{
-    FleetUplink, GlobalSubmapCache, GrpcUplink, MapUplink as _, SessionOptions, SessionStart,
-    Uploader, ZenohLinkOptions, ZenohUplink, follow_site, stream_session,
+    ClientTls, FleetUplink, GlobalSubmapCache, GrpcUplink, MapUplink as _, SessionOptions,
+    SessionStart, Uploader, ZenohLinkOptions, ZenohUplink, follow_site, stream_session,
 };
 use serde::Deserialize;
 
@@ -76,6 +79,11 @@ pub struct AgentConfig {
     pub final_flush_timeout_s: f64,
     /// LLO settings.
     pub local: LocalTrajectoryBuilderOptions,
+    /// The CA certificate (PEM file) that signed the server's TLS certificate: gRPC over TLS (use an
+    /// `https://` `server_url`). Default none: plaintext.
+    pub tls_ca_pem: Option<PathBuf>,
+    /// The server name in its certificate, when it differs from `server_url`'s host. Default none.
+    pub tls_domain: Option<String>,
     /// Reach the server through zenoh with these settings (`[zenoh]`: `mode`, `listen`, `connect`,
     /// `multicast_scouting`) instead of gRPC at `server_url`. Default none: gRPC.
     pub zenoh: Option<ZenohLinkOptions>,
@@ -99,6 +107,8 @@ impl Default for AgentConfig {
             retry_interval_s: 1.0,
             final_flush_timeout_s: 300.0,
             local: LocalTrajectoryBuilderOptions::default(),
+            tls_ca_pem: None,
+            tls_domain: None,
             zenoh: None,
         }
     }
@@ -203,17 +213,27 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         .thread_name("evermap-agent")
         .build()?;
     runtime.block_on(async {
-        let uplink = match &config.zenoh {
-            Some(zenoh) => FleetUplink::Zenoh(
+        let uplink = if let Some(zenoh) = &config.zenoh {
+            FleetUplink::Zenoh(
                 ZenohUplink::connect(zenoh, &config.site, &config.token, call_timeout).await?,
-            ),
-            None => FleetUplink::Grpc(Box::new(GrpcUplink::new(
+            )
+        } else {
+            let tls = match &config.tls_ca_pem {
+                Some(path) => Some(ClientTls {
+                    ca_pem: std::fs::read(path)
+                        .with_context(|| format!("cannot read {}", path.display()))?,
+                    domain: config.tls_domain.clone(),
+                }),
+                None => None,
+            };
+            FleetUplink::Grpc(Box::new(GrpcUplink::with_tls(
                 &config.server_url,
                 &config.site,
                 &config.token,
                 config.max_message_bytes,
                 call_timeout,
-            )?)),
+                tls.as_ref(),
+            )?))
         };
         tracing::info!(transport = uplink.transport(), "uplink ready");
         let cache = Arc::new(Mutex::new(GlobalSubmapCache::default()));

@@ -67,6 +67,16 @@ pub(super) fn from_status(status: &tonic::Status) -> UplinkError {
     }
 }
 
+/// How the agent checks a TLS server: the CA that signed its certificate and, when the URL's host is not
+/// the name in the certificate, that name.
+#[derive(Clone, Debug)]
+pub struct ClientTls {
+    /// The certificate authority (PEM).
+    pub ca_pem: Vec<u8>,
+    /// The server name to verify instead of the URL's host.
+    pub domain: Option<String>,
+}
+
 impl GrpcUplink {
     /// An uplink to `url` (e.g. `http://127.0.0.1:50051`) for `site` with `token`. Does not connect yet.
     /// `max_message_bytes` bounds messages both ways (must match the server's).
@@ -77,10 +87,35 @@ impl GrpcUplink {
         max_message_bytes: usize,
         call_timeout: Duration,
     ) -> Result<Self, UplinkError> {
-        let endpoint = Endpoint::from_shared(url.to_owned())
+        Self::with_tls(url, site, token, max_message_bytes, call_timeout, None)
+    }
+
+    /// [`Self::new`] over TLS when `tls` is given (use an `https://` URL).
+    pub fn with_tls(
+        url: &str,
+        site: &str,
+        token: &str,
+        max_message_bytes: usize,
+        call_timeout: Duration,
+        tls: Option<&ClientTls>,
+    ) -> Result<Self, UplinkError> {
+        let mut endpoint = Endpoint::from_shared(url.to_owned())
             .map_err(|e| UplinkError::Unavailable(format!("bad server url {url:?}: {e}")))?
             .connect_timeout(call_timeout)
             .tcp_nodelay(true);
+        if let Some(tls) = tls {
+            let mut config = tonic::transport::ClientTlsConfig::new()
+                .ca_certificate(tonic::transport::Certificate::from_pem(&tls.ca_pem));
+            if let Some(domain) = &tls.domain {
+                config = config.domain_name(domain.clone());
+            }
+            endpoint = endpoint
+                .tls_config(config)
+                .map_err(|e| UplinkError::Rejected {
+                    code: tonic::Code::InvalidArgument,
+                    message: format!("TLS settings: {e}"),
+                })?;
+        }
         let channel = endpoint.connect_lazy();
         let token: MetadataValue<Ascii> =
             format!("Bearer {token}")
