@@ -7,7 +7,6 @@
     reason = "integration test helpers: a failed unwrap is a failed test"
 )]
 use std::future::Future;
-use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -34,20 +33,8 @@ const OTHER_SITE: &str = "store-b";
 const OTHER_TOKEN: &str = "token-store-b-r9";
 const WAIT: Duration = Duration::from_secs(10);
 
-/// The shared data sets: `../../shared/datasets` from the crate in the main checkout; worktrees sit one
-/// level deeper (`/work/wt/<name>`), so look there too.
-fn datasets() -> PathBuf {
-    let manifest = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
-    let near = manifest.join("../../shared/datasets");
-    if near.exists() {
-        near
-    } else {
-        manifest.join("../../../shared/datasets")
-    }
-}
-
 fn csail() -> Recording {
-    read_recording(&datasets().join("rosbag1/mit-csail.orig.bag")).unwrap()
+    read_recording(&tests::datasets_dir().join("rosbag1/mit-csail.orig.bag")).unwrap()
 }
 
 fn config() -> ServerConfig {
@@ -179,26 +166,39 @@ fn llo_groups(recording: &Recording, scans: usize) -> Vec<Vec<UploadItem>> {
     groups
 }
 
+type NodeGroup<'a> = (
+    &'a proto::NodeAdded,
+    Vec<(usize, mapping::geometry::Rigid2)>,
+    Vec<(usize, mapping::grid::ProbabilityGrid)>,
+);
+
+/// One node's LLO output as the map takes it: the node, its insertions `(index, local_from_submap)` and
+/// the submaps it finished.
+fn node_group(group: &[UploadItem]) -> NodeGroup<'_> {
+    let Some(UploadItem::NodeAdded(node)) = group.first() else {
+        panic!("a group starts with its node");
+    };
+    let finished = group[1..]
+        .iter()
+        .map(|item| match item {
+            UploadItem::SubmapFinished { index, grid } => (*index as usize, grid.clone()),
+            other => panic!("unexpected {other:?}"),
+        })
+        .collect();
+    let insertion = node
+        .insertion_submaps
+        .iter()
+        .map(|(i, p)| (*i as usize, *p))
+        .collect();
+    (node, insertion, finished)
+}
+
 /// The same nodes added in-process, node by node, as trajectory 0 of a fresh map, then optimized (the
 /// session end).
 fn reference_map(groups: &[Vec<UploadItem>]) -> GlobalSlam {
     let mut slam = GlobalSlam::new(GlobalSlamOptions::default()).unwrap();
     for group in groups {
-        let Some(UploadItem::NodeAdded(node)) = group.first() else {
-            panic!("a group starts with its node");
-        };
-        let finished = group[1..]
-            .iter()
-            .map(|item| match item {
-                UploadItem::SubmapFinished { index, grid } => (*index as usize, grid.clone()),
-                other => panic!("unexpected {other:?}"),
-            })
-            .collect();
-        let insertion: Vec<_> = node
-            .insertion_submaps
-            .iter()
-            .map(|(i, p)| (*i as usize, *p))
-            .collect();
+        let (node, insertion, finished) = node_group(group);
         slam.add_node(
             0,
             node.time,
@@ -956,21 +956,7 @@ fn reference_lifelong(
         let session = u32::try_from(session).unwrap();
         map.start_session(session, *prior).unwrap();
         for group in groups {
-            let Some(UploadItem::NodeAdded(node)) = group.first() else {
-                panic!("a group starts with its node");
-            };
-            let finished = group[1..]
-                .iter()
-                .map(|item| match item {
-                    UploadItem::SubmapFinished { index, grid } => (*index as usize, grid.clone()),
-                    other => panic!("unexpected {other:?}"),
-                })
-                .collect();
-            let insertion: Vec<_> = node
-                .insertion_submaps
-                .iter()
-                .map(|(i, p)| (*i as usize, *p))
-                .collect();
+            let (node, insertion, finished) = node_group(group);
             map.add_node(
                 session,
                 node.time,

@@ -9,7 +9,6 @@
     reason = "integration test helpers: a failed unwrap is a failed test"
 )]
 use std::future::Future;
-use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -27,16 +26,6 @@ use storage::MemStore;
 const SITE: &str = "store-z";
 const TOKEN: &str = "token-store-z-r1";
 const WAIT: Duration = Duration::from_secs(10);
-
-fn datasets() -> PathBuf {
-    let manifest = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
-    let near = manifest.join("../../shared/datasets");
-    if near.exists() {
-        near
-    } else {
-        manifest.join("../../../shared/datasets")
-    }
-}
 
 fn endpoint(port: u16) -> String {
     format!("tcp/127.0.0.1:{port}")
@@ -104,8 +93,9 @@ async fn an_agent_streams_over_zenoh_and_follows_published_versions() {
         stopped,
         Duration::from_millis(100),
     ));
-    let recording: Arc<Recording> =
-        Arc::new(read_recording(&datasets().join("rosbag1/mit-csail.orig.bag")).unwrap());
+    let recording: Arc<Recording> = Arc::new(
+        read_recording(&tests::datasets_dir().join("rosbag1/mit-csail.orig.bag")).unwrap(),
+    );
     let options = SessionOptions {
         nodes_per_batch: 7,
         replay_speed: 0.0,
