@@ -87,6 +87,14 @@ struct SessionScore {
     trimmed: usize,
     tree_edges: usize,
     trim_kld_mean: Option<f64>,
+    /// Branch-and-bound score of the session-start relocalization, when it found a pose.
+    relocalization_score: Option<f32>,
+    /// Relocalization retries while the session was unplaced.
+    relocalization_retries: usize,
+    /// The node count at which a retry placed the session (`null`: placed at its start, or never).
+    placed_by_retry_at_node: Option<usize>,
+    /// Whether the session was placed in the map at all (by its start or a retry).
+    placed: bool,
 }
 
 fn load_config(args: &LifelongArgs) -> anyhow::Result<SessionsConfig> {
@@ -233,6 +241,10 @@ pub fn run(args: &LifelongArgs) -> anyhow::Result<()> {
             trimmed: summary.map_or(0, |s| s.trimmed),
             tree_edges: summary.map_or(0, |s| s.tree_edges),
             trim_kld_mean: summary.and_then(|s| s.trim_kld_mean),
+            relocalization_score: summary.and_then(|s| s.relocalization_score),
+            relocalization_retries: summary.map_or(0, |s| s.relocalization_retries),
+            placed_by_retry_at_node: summary.and_then(|s| s.placed_by_retry_at_node),
+            placed: session == 0 || summary.is_some_and(|s| s.placed),
         });
     }
 
