@@ -33,6 +33,7 @@ pub use in_memory_uplink::InMemoryUplink;
 pub use llo_stream::{LloStats, run_llo};
 pub use proto::MapDelta;
 use proto::pb;
+pub use robot_glm::{cached_submaps, match_node, sync_matcher};
 pub use uploader::{FlushStats, Uploader};
 pub use zenoh_link_options::{
     ZenohLinkOptions, ZenohLinkOptionsError, api_key as zenoh_api_key,

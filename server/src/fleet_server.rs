@@ -117,7 +117,9 @@ impl RunningServer {
             .map_err(|e| ServeError::Reflection(e.to_string()))?;
         let limit = config.max_message_bytes;
         let zenoh = match &config.zenoh {
-            Some(options) => Some(ZenohFront::start(options, context.clone()).await?),
+            Some(options) => {
+                Some(ZenohFront::start(options, context.clone(), config.site_queue_depth).await?)
+            }
             None => None,
         };
         let agent = AgentServiceServer::new(AgentApi::new(context.clone()))

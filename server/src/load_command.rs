@@ -28,18 +28,16 @@ use anyhow::Context as _;
 use clap::Args;
 use mapping::geometry::Rigid2;
 use mapping::global_slam::GlobalSlamOptions;
-use mapping::grid::ProbabilityGrid;
-use mapping::lifelong::{GlobalSubmap, MapMatcher, RelocalizationOptions};
+use mapping::lifelong::{MapMatcher, RelocalizationOptions};
 use mapping::local_slam::LocalTrajectoryBuilderOptions;
-use mapping::pose_graph::SubmapId;
 use mapping::simulation::{SessionOptions as SimSessionOptions, Store};
-use proto::UploadItem;
+use proto::{SubmapSnapshot, UploadItem};
 use robot_agent::outbox::Outbox;
 use robot_agent::process_stats::{cpu_seconds, peak_rss_mb};
 use robot_agent::source::{ReadReport, Recording};
 use robot_agent::uplink::{
-    GlobalSubmapCache, GrpcUplink, MapUplink as _, SessionOptions, Uploader, follow_site_with,
-    relocalize_nodes, run_llo, stream_recording,
+    GlobalSubmapCache, GrpcUplink, MapUplink as _, SessionOptions, Uploader, cached_submaps,
+    follow_site_with, match_node, relocalize_nodes, run_llo, stream_recording, sync_matcher,
 };
 use serde_json::json;
 use server::{RobotConfig, RunningServer, ServerConfig, SiteConfig};
@@ -334,14 +332,13 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
         // GLM on the robot, also ahead of time (robots match on their own CPUs), against the robot's
         // cache of the site as it was when the session started (session 0's map).
         if let (false, Some((global_from_local, _))) = (args.glm_on_server, prior) {
-            let submaps: Vec<_> = robot
-                .cache
-                .lock()
-                .map_err(|_| anyhow::anyhow!("a robot's cache lock is poisoned"))?
-                .submaps()
-                .values()
-                .map(|s| (s.id, s.global_pose, s.local_pose, Arc::clone(&s.grid)))
-                .collect();
+            let submaps = cached_submaps(
+                &*robot
+                    .cache
+                    .lock()
+                    .map_err(|_| anyhow::anyhow!("a robot's cache lock is poisoned"))?,
+                None,
+            );
             let (matched, count) = tokio::task::spawn_blocking(move || {
                 robot_glm_ahead(steps, &submaps, global_from_local)
             })
@@ -712,36 +709,22 @@ async fn stream_prepared(
 /// and appends the accepted matches to its items. Returns the steps and the number of matches.
 fn robot_glm_ahead(
     mut steps: Vec<Vec<UploadItem>>,
-    submaps: &[(SubmapId, Rigid2, Rigid2, Arc<ProbabilityGrid>)],
+    submaps: &[SubmapSnapshot],
     global_from_local: Rigid2,
 ) -> anyhow::Result<(Vec<Vec<UploadItem>>, u64)> {
     let mut matcher = MapMatcher::new(
         GlobalSlamOptions::default().constraint_builder,
         global_from_local,
     )?;
-    matcher.sync_submaps(
-        submaps
-            .iter()
-            .map(|(id, global, local, grid)| GlobalSubmap {
-                id: *id,
-                global_pose: *global,
-                local_pose: *local,
-                grid,
-            }),
-    );
+    sync_matcher(&mut matcher, submaps);
     let mut count = 0;
     for items in &mut steps {
         let Some(UploadItem::NodeAdded(node)) = items.first() else {
             continue;
         };
-        let points = Arc::new(node.points.clone());
-        let found = matcher.match_node(&node.local_pose, &points);
+        let found = match_node(&mut matcher, node);
         count += found.len() as u64;
-        items.extend(found.into_iter().map(|m| UploadItem::GlobalMatch {
-            submap: m.submap,
-            submap_from_node: m.submap_from_node,
-            score: m.score,
-        }));
+        items.extend(found);
     }
     Ok((steps, count))
 }

@@ -5,6 +5,8 @@
 //! [`MapApi`]), token included, so both transports end in the same site task with the same checks,
 //! errors and metrics.
 
+use std::sync::Arc;
+
 use prost::Message as _;
 use proto::pb::agent_service_server::AgentService as _;
 use proto::pb::map_service_server::MapService as _;
@@ -12,6 +14,7 @@ use proto::pb::zenoh_reply::Reply;
 use proto::pb::zenoh_request::Request;
 use proto::{FORMAT_VERSION, pb};
 use robot_agent::uplink::{ZenohLinkOptions, zenoh_api_key, zenoh_version_key};
+use tokio::sync::Semaphore;
 use tokio::task::JoinHandle;
 use tokio_stream::StreamExt as _;
 use tonic::metadata::MetadataValue;
@@ -37,10 +40,12 @@ pub struct ZenohFront {
 }
 
 impl ZenohFront {
-    /// Opens a zenoh session with `options` and serves every site of `context`.
+    /// Opens a zenoh session with `options` and serves every site of `context`, answering at most
+    /// `max_in_flight` queries of one site at a time (more wait in zenoh's bounded queryable queue).
     pub async fn start(
         options: &ZenohLinkOptions,
         context: ApiContext,
+        max_in_flight: usize,
     ) -> Result<Self, ZenohFrontError> {
         let zenoh_error = |e: zenoh::Error| ZenohFrontError::Zenoh(e.to_string());
         let session = zenoh::open(options.to_zenoh_config()?)
@@ -55,12 +60,17 @@ impl ZenohFront {
                 .await
                 .map_err(zenoh_error)?;
             let (agent, map) = (agent.clone(), map.clone());
+            let in_flight = Arc::new(Semaphore::new(max_in_flight.max(1)));
             tasks.push(tokio::spawn(async move {
                 while let Ok(query) = queryable.recv_async().await {
                     // One task per query: a slow upload must not hold up a version read. The site task
                     // still applies one site's changes in order.
+                    let Ok(permit) = Arc::clone(&in_flight).acquire_owned().await else {
+                        break;
+                    };
                     let (agent, map) = (agent.clone(), map.clone());
                     tokio::spawn(async move {
+                        let _permit = permit;
                         let payload = query.payload().map(|p| p.to_bytes().into_owned());
                         for reply in answer(&agent, &map, payload.as_deref()).await {
                             let bytes = reply.encode_to_vec();

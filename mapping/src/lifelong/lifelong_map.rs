@@ -259,14 +259,20 @@ impl LifelongMap {
             .collect()
     }
 
-    /// Runs the queued GLM searches on the calling thread and adds the accepted ones: the sequential,
-    /// deterministic form of [`Self::take_search_jobs`] + [`Self::add_search_results`].
-    pub fn run_pending_searches(&mut self) -> Vec<LifelongEvent> {
-        self.global
-            .run_pending_searches()
+    /// Runs the queued GLM searches on the calling thread and adds the accepted ones, after the matches
+    /// `found_elsewhere` (GLM on a robot; see [`Self::set_matched_on_robot`]), as one node's results: the
+    /// sequential, deterministic form of [`Self::take_search_jobs`] + [`Self::add_search_results`].
+    pub fn run_pending_searches(
+        &mut self,
+        found_elsewhere: impl IntoIterator<Item = LoopClosure>,
+    ) -> Vec<LifelongEvent> {
+        let jobs = self.global.take_search_jobs();
+        let builder = self.global.constraint_builder();
+        let found: Vec<LoopClosure> = found_elsewhere
             .into_iter()
-            .map(Into::into)
-            .collect()
+            .chain(jobs.iter().filter_map(|job| builder.run(job)))
+            .collect();
+        self.add_search_results(found)
     }
 
     /// Optimizes the whole graph now.

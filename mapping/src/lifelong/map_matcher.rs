@@ -7,7 +7,7 @@
 //! accepted match re-anchors the session's `global_from_local`, so the estimate follows the map rather than
 //! LLO's drift since the session-start relocalization.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
 
 use nalgebra::Point2;
@@ -79,9 +79,9 @@ impl MapMatcher {
     /// those gone (trimmed), and takes the current global poses of the rest. A submap whose grid changed
     /// (a new revision) is precomputed again.
     pub fn sync_submaps<'a>(&mut self, submaps: impl IntoIterator<Item = GlobalSubmap<'a>>) {
-        let mut seen = Vec::new();
+        let mut seen = BTreeSet::new();
         for submap in submaps {
-            seen.push(submap.id);
+            seen.insert(submap.id);
             match self.submaps.get_mut(&submap.id) {
                 Some(known) if Arc::ptr_eq(&known.grid, submap.grid) => {
                     known.global_pose = submap.global_pose;

@@ -310,8 +310,6 @@ pub async fn stream_session<U: MapUplink>(
             }
         }
     }
-    trace.glm_on_robot = glm.is_some();
-    trace.glm_matches = glm.as_ref().map_or(0, |g| g.matches);
     report.llo = llo
         .join()
         .map_err(|_| SessionError::Llo("the LLO thread panicked".into()))?;
@@ -329,6 +327,9 @@ pub async fn stream_session<U: MapUplink>(
         }
         batch.extend(held.drain(..).flatten());
     }
+    // After the short-session path above, which may start GLM too.
+    trace.glm_on_robot = glm.is_some();
+    trace.glm_matches = glm.as_ref().map_or(0, |g| g.matches);
     batch.push(UploadItem::SessionEnd);
     uploader.enqueue(&batch)?;
     report.batches += 1;

@@ -3,20 +3,57 @@
 //! The matcher is re-synced with the cache whenever a new site version has arrived (fresh submaps in,
 //! trimmed ones out, moved poses updated); the session's own submaps are left out (the server finds the
 //! session's own loop closures).
+//!
+//! [`cached_submaps`], [`sync_matcher`] and [`match_node`] are the synchronous steps; the load
+//! benchmark uses them to run the robots' GLM ahead of time.
 
 use std::sync::{Arc, Mutex};
 
 use mapping::geometry::Rigid2;
 use mapping::global_slam::ConstraintBuilderOptions;
-use mapping::grid::ProbabilityGrid;
 use mapping::lifelong::{GlobalSubmap, MapMatcher};
-use mapping::pose_graph::SubmapId;
-use proto::UploadItem;
+use proto::{NodeAdded, SubmapSnapshot, UploadItem};
 
 use super::GlobalSubmapCache;
 
-/// A cached submap as the matcher needs it: id, `global_from_submap`, `local_from_submap`, grid.
-type Snapshot = (SubmapId, Rigid2, Rigid2, Arc<ProbabilityGrid>);
+/// The cached submaps the matcher works with: all but those of `own_trajectory` (cheap clones: the grids
+/// are shared).
+pub fn cached_submaps(
+    cache: &GlobalSubmapCache,
+    own_trajectory: Option<u32>,
+) -> Vec<SubmapSnapshot> {
+    cache
+        .submaps()
+        .values()
+        .filter(|s| Some(s.id.trajectory) != own_trajectory)
+        .cloned()
+        .collect()
+}
+
+/// Makes `matcher`'s submaps exactly `submaps` (see [`MapMatcher::sync_submaps`]).
+pub fn sync_matcher(matcher: &mut MapMatcher, submaps: &[SubmapSnapshot]) {
+    matcher.sync_submaps(submaps.iter().map(|s| GlobalSubmap {
+        id: s.id,
+        global_pose: s.global_pose,
+        local_pose: s.local_pose,
+        grid: &s.grid,
+    }));
+}
+
+/// Matches `node` against the matcher's submaps and returns the accepted matches as `GlobalMatch`
+/// items, to follow the node's own items.
+pub fn match_node(matcher: &mut MapMatcher, node: &NodeAdded) -> Vec<UploadItem> {
+    let points = Arc::new(node.points.clone());
+    matcher
+        .match_node(&node.local_pose, &points)
+        .into_iter()
+        .map(|m| UploadItem::GlobalMatch {
+            submap: m.submap,
+            submap_from_node: m.submap_from_node,
+            score: m.score,
+        })
+        .collect()
+}
 
 /// The session's matcher and where it stands against the cache.
 pub(super) struct RobotGlm {
@@ -42,8 +79,9 @@ impl RobotGlm {
         }
     }
 
-    /// Matches the node of `items` (a node's items: `NodeAdded` then its `SubmapFinished`s) and appends
-    /// the accepted matches. `own_trajectory`: the session's trajectory in the site map, once known.
+    /// Matches the node of `items` (a node's items: `NodeAdded` then its `SubmapFinished`s) on a
+    /// blocking thread, first re-syncing the matcher when the cache has a new version, and appends the
+    /// accepted matches. `own_trajectory`: the session's trajectory in the site map, once known.
     pub async fn match_items(
         &mut self,
         cache: &Mutex<GlobalSubmapCache>,
@@ -53,16 +91,11 @@ impl RobotGlm {
         let Some(UploadItem::NodeAdded(node)) = items.first() else {
             return;
         };
-        let (local_pose, points) = (node.local_pose, Arc::new(node.points.clone()));
-        let snapshot: Option<Vec<Snapshot>> = cache.lock().ok().and_then(|cache| {
+        let node = node.clone();
+        let snapshot: Option<Vec<SubmapSnapshot>> = cache.lock().ok().and_then(|cache| {
             (self.synced_version != Some(cache.version())).then(|| {
                 self.synced_version = Some(cache.version());
-                cache
-                    .submaps()
-                    .values()
-                    .filter(|s| Some(s.id.trajectory) != own_trajectory)
-                    .map(|s| (s.id, s.global_pose, s.local_pose, Arc::clone(&s.grid)))
-                    .collect()
+                cached_submaps(&cache, own_trajectory)
             })
         });
         let Some(mut matcher) = self.matcher.take() else {
@@ -70,16 +103,9 @@ impl RobotGlm {
         };
         let work = tokio::task::spawn_blocking(move || {
             if let Some(snapshot) = snapshot {
-                matcher.sync_submaps(snapshot.iter().map(|(id, global, local, grid)| {
-                    GlobalSubmap {
-                        id: *id,
-                        global_pose: *global,
-                        local_pose: *local,
-                        grid,
-                    }
-                }));
+                sync_matcher(&mut matcher, &snapshot);
             }
-            let found = matcher.match_node(&local_pose, &points);
+            let found = match_node(&mut matcher, &node);
             (matcher, found)
         })
         .await;
@@ -91,10 +117,6 @@ impl RobotGlm {
         };
         self.matcher = Some(matcher);
         self.matches += found.len() as u64;
-        items.extend(found.into_iter().map(|m| UploadItem::GlobalMatch {
-            submap: m.submap,
-            submap_from_node: m.submap_from_node,
-            score: m.score,
-        }));
+        items.extend(found);
     }
 }

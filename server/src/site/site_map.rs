@@ -16,7 +16,7 @@ use std::collections::BTreeMap;
 use std::sync::Arc;
 
 use mapping::geometry::{Rigid2, Rigid2Ext as _, normalize_angle};
-use mapping::global_slam::{GlobalSlam, LoopClosure};
+use mapping::global_slam::LoopClosure;
 use mapping::grid::ProbabilityGrid;
 use mapping::lifelong::{LifelongError, LifelongEvent, LifelongMap, LifelongOptions};
 use mapping::pose_graph::{NodeId, SubmapId};
@@ -378,21 +378,15 @@ impl SiteMap {
             )
             .map_err(|e| SiteError::InvalidBatch(e.to_string()))?;
         // The robot's GLM matches (a submap trimmed since the robot matched it is skipped by the map),
-        // then what the server's own searches found, added together as one node's results.
-        let robot = matches
-            .iter()
-            .map(|(submap, submap_from_node, score)| LoopClosure {
+        // then what the server's own searches found.
+        let events = self.map.run_pending_searches(matches.iter().map(
+            |(submap, submap_from_node, score)| LoopClosure {
                 submap: *submap,
                 node: id,
                 submap_from_node: *submap_from_node,
                 score: *score,
-            });
-        let jobs = self.map.take_search_jobs();
-        let builder = self.map.constraint_builder();
-        let found: Vec<LoopClosure> = jobs.iter().filter_map(|job| builder.run(job)).collect();
-        let events = self
-            .map
-            .add_search_results(robot.chain(found).collect::<Vec<_>>());
+            },
+        ));
         Ok(count_optimizations(&events))
     }
 
@@ -568,15 +562,13 @@ impl SiteMap {
             .map(|(id, _, pose)| (id, pose))
             .collect()
     }
+}
 
-    /// The underlying global SLAM state (read-only).
-    pub fn global_slam(&self) -> &GlobalSlam {
-        self.map.global()
-    }
-
-    /// The underlying lifelong map (read-only).
-    pub fn lifelong_map(&self) -> &LifelongMap {
-        &self.map
+#[cfg(test)]
+impl SiteMap {
+    /// GLM searches the server has queued so far.
+    fn searches_queued(&self) -> usize {
+        self.map.global().searches_queued()
     }
 }
 

@@ -378,3 +378,44 @@ fn an_unplaced_session_is_not_published_and_is_dropped_when_it_ends() {
     assert!(map.delta_since(before_end).unwrap().trimmed.is_empty());
     assert!(map.node_poses().keys().all(|n| n.trajectory == 0));
 }
+
+#[test]
+fn a_robot_matched_session_gets_the_robots_matches_and_no_cross_session_search() {
+    // Returns (loop closures added for b, searches the server queued for b).
+    let run = |glm_on_robot: bool, with_match: bool| {
+        let mut options = LifelongOptions::default();
+        // Every candidate pair searched: the server's own GLM would search b's node for sure.
+        options.global.constraint_builder.sampling_ratio = 1.0;
+        let mut map = SiteMap::new("s", options).unwrap();
+        open(&mut map, "a");
+        apply(&mut map, &batch("a", 1, covering_session(3, None, true)));
+        let (closures, searches) = (map.counts().loop_closures, map.searches_queued());
+        open(&mut map, "b");
+        let mut items = vec![
+            UploadItem::SessionStartPrior {
+                global_from_local: Rigid2::identity(),
+                glm_on_robot,
+            },
+            node(0, &[0]),
+        ];
+        if with_match {
+            items.push(UploadItem::GlobalMatch {
+                submap: SubmapId {
+                    trajectory: 0,
+                    index: 0,
+                },
+                submap_from_node: rigid2(0.0, 0.0, 0.0),
+                score: 0.8,
+            });
+        }
+        apply(&mut map, &batch("b", 1, items));
+        (
+            map.counts().loop_closures - closures,
+            map.searches_queued() - searches,
+        )
+    };
+    assert_eq!(run(true, true), (1, 0), "the robot's match, no search");
+    assert_eq!(run(true, false), (0, 0));
+    let (_, searched) = run(false, false);
+    assert!(searched > 0, "without GLM on the robot the server searches");
+}
