@@ -34,13 +34,15 @@ mod submap_trimmer;
 mod tests;
 
 pub use lifelong_map::{GraphCounts, LifelongError, LifelongEvent, LifelongMap};
-pub use map_change::{CellChange, MapChange, OCCUPIED_PROBABILITY, map_change_rate};
+pub use map_change::{
+    CellChange, MAP_CHANGE_TOLERANCE_M, MapChange, OCCUPIED_PROBABILITY, map_change_rate,
+};
 pub use map_matcher::{GlobalSubmap, MapMatch, MapMatcher};
 pub use options::{
     LifelongOptions, LifelongOptionsError, ParseTrimPolicyError, SubmapTrimmerOptions, TrimPolicy,
 };
 pub use relocalization::{
-    RelocalizationOptions, SessionRelocalization, relocalize_scans_in_grid,
+    RelocalizationOptions, RelocalizationOutcome, SessionRelocalization, relocalize_scans_in_grid,
     relocalize_session_start, render_submaps, render_submaps_newest,
 };
 pub use submap_trimmer::{PlacedGrid, covered_fraction};

@@ -39,7 +39,9 @@ pub use least_squares::{
 pub use real_time_correlative::{
     RealTimeCorrelativeScanMatcher, RealTimeCorrelativeScanMatcherOptions,
 };
-pub use relocalizer::{Relocalization, Relocalizer, RelocalizerOptions, max_downsampled};
+pub use relocalizer::{
+    Relocalization, Relocalizer, RelocalizerOptions, max_downsampled, max_filtered,
+};
 
 /// Errors of the scan matching module.
 #[derive(Clone, Debug, Error, PartialEq, Eq)]

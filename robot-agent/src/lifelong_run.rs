@@ -17,7 +17,7 @@ use mapping::geometry::{Rigid2, Rigid2Ext as _};
 use mapping::grid::ProbabilityGrid;
 use mapping::lifelong::{
     GraphCounts, LifelongError, LifelongEvent, LifelongMap, LifelongOptions, RelocalizationOptions,
-    relocalize_session_start,
+    RelocalizationOutcome, relocalize_session_start,
 };
 use mapping::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
 use mapping::pose_graph::NodeId;
@@ -97,6 +97,11 @@ pub struct SessionSummary {
     pub placed_by_retry_at_node: Option<usize>,
     /// Its branch-and-bound score.
     pub relocalization_score: Option<f32>,
+    /// Why session-start relocalization was refused: `ambiguous` (a clearly different pose scored within
+    /// the margin), `not_found` (nothing reached the minimum score); `None` when it placed the session.
+    pub relocalization_refused: Option<String>,
+    /// When refused as ambiguous, the best and the runner-up scores.
+    pub relocalization_ambiguity: Option<[f32; 2]>,
     /// Wall time of the relocalization, milliseconds.
     pub relocalization_ms: f64,
     /// Distance (m) between the relocalized pose of the session's first node and its final estimate
@@ -480,8 +485,22 @@ fn worker(
                     None
                 } else {
                     let start = Instant::now();
-                    let found = relocalize_session_start(&map, &first_scans, relocalization);
+                    let outcome = relocalize_session_start(&map, &first_scans, relocalization);
                     summary.relocalization_ms = start.elapsed().as_secs_f64() * 1e3;
+                    match outcome {
+                        RelocalizationOutcome::Found(_) => {}
+                        RelocalizationOutcome::Ambiguous {
+                            score,
+                            runner_up_score,
+                        } => {
+                            summary.relocalization_refused = Some("ambiguous".into());
+                            summary.relocalization_ambiguity = Some([score, runner_up_score]);
+                        }
+                        RelocalizationOutcome::NotFound => {
+                            summary.relocalization_refused = Some("not_found".into());
+                        }
+                    }
+                    let found = outcome.found();
                     summary.relocalized = found.is_some();
                     summary.relocalization_score = found.map(|f| f.score);
                     if let (Some(f), Some((first_local, _))) = (found, first_scans.first()) {
@@ -531,7 +550,8 @@ fn worker(
                 {
                     let scans: Vec<_> = recent.iter().cloned().collect();
                     summary.relocalization_retries += 1;
-                    if let Some(found) = relocalize_session_start(&map, &scans, relocalization)
+                    if let Some(found) =
+                        relocalize_session_start(&map, &scans, relocalization).found()
                         && map.place_session(session, found.global_from_local)?
                     {
                         summary.placed_by_retry_at_node = Some(summary.nodes_added);

@@ -23,7 +23,8 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use mapping::geometry::{Rigid2, Rigid2Ext as _, normalize_angle};
 use mapping::lifelong::{
-    PlacedGrid, RelocalizationOptions, map_change_rate, render_submaps, render_submaps_newest,
+    MAP_CHANGE_TOLERANCE_M, PlacedGrid, RelocalizationOptions, map_change_rate,
+    render_submaps_newest,
 };
 use mapping::metrics::{MRCL_ROTATION_DEG, MRCL_TRANSLATION_M, rigid_alignment};
 use mapping::pose_graph::NodeId;
@@ -553,12 +554,12 @@ fn write_map_change(cache: &Mutex<GlobalSubmapCache>, out: &Path) -> anyhow::Res
             })
     };
     let (Some(before), Some(after)) = (
-        render_submaps(grids(true), 0.05),
+        render_submaps_newest(grids(true), 0.05),
         render_submaps_newest(grids(false), 0.05),
     ) else {
         return Ok(None);
     };
-    let change = map_change_rate(&before, &after);
+    let change = map_change_rate(&before, &after, MAP_CHANGE_TOLERANCE_M);
     let (w, h, pixels) = map_image::map_change_to_rgb(&change);
     map_image::write_rgb_png(&out.join("map_change.png"), w, h, &pixels)?;
     Ok(Some(change.rate))

@@ -15,7 +15,10 @@ use super::{LifelongMap, LifelongOptionsError, PlacedGrid};
 use crate::geometry::Rigid2;
 use crate::grid::{CellIndex, MapLimits, ProbabilityGrid, UNKNOWN_VALUE};
 use crate::local_slam::voxel_filter;
-use crate::scan_matching::{LeastSquaresScanMatcherOptions, Relocalizer, RelocalizerOptions};
+use crate::scan_matching::{
+    LeastSquaresScanMatcher, LeastSquaresScanMatcherOptions, RealTimeCorrelativeScanMatcher,
+    RealTimeCorrelativeScanMatcherOptions, Relocalizer, RelocalizerOptions, max_filtered,
+};
 
 /// Options of [`relocalize_session_start`].
 #[derive(Clone, Debug, PartialEq, Deserialize)]
@@ -37,6 +40,13 @@ pub struct RelocalizationOptions {
     /// the map; an unplaced session retries later from elsewhere. Score units; 0 = accept ties. Default
     /// 0.03.
     pub min_score_margin: f32,
+    /// How far (metres) a point may fall from a surface the map saw and still count as a hit while
+    /// searching: the rendered map is max-filtered by this much before the branch-and-bound search (the
+    /// winner is then refined on the unfiltered map). A store changes between sessions — goods protrude
+    /// more or less, go missing and show the shelf frame behind — and a match scored cell-exactly on a
+    /// weeks-old map falls below `min_score` even where the walls, frames and pillars all agree. 0 scores
+    /// cell-exactly. Default 0.15 m (half the simulated store's goods depth; three cells).
+    pub match_tolerance: f64,
     /// Distinct coarse candidates refined at full resolution (count ≥ 1; see [`RelocalizerOptions`]).
     /// Default 8: corridors and shelf rows make coarse maxima ambiguous, and the refinements are cheap
     /// next to the coarse search.
@@ -54,6 +64,7 @@ impl Default for RelocalizationOptions {
             branch_and_bound_depth: 7,
             max_candidates: 8,
             min_score_margin: 0.03,
+            match_tolerance: 0.15,
             least_squares: LeastSquaresScanMatcherOptions::default(),
         }
     }
@@ -72,6 +83,12 @@ impl RelocalizationOptions {
             return Err(LifelongOptionsError::OutOfRange {
                 field: "voxel_size",
                 reason: "must be a non-negative number of metres",
+            });
+        }
+        if !(self.match_tolerance.is_finite() && (0.0..=1.0).contains(&self.match_tolerance)) {
+            return Err(LifelongOptionsError::OutOfRange {
+                field: "match_tolerance",
+                reason: "must be in [0, 1] metres",
             });
         }
         if !(0.0..=1.0).contains(&self.min_score_margin) {
@@ -100,8 +117,35 @@ impl RelocalizationOptions {
 pub struct SessionRelocalization {
     /// `global_from_local` of the session's LLO frame.
     pub global_from_local: Rigid2,
-    /// Branch-and-bound score of the merged cloud.
+    /// Branch-and-bound score of the merged cloud (against the map max-filtered by
+    /// [`RelocalizationOptions::match_tolerance`]).
     pub score: f32,
+}
+
+/// What a relocalization attempt found, refusals included (for reports).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum RelocalizationOutcome {
+    /// Placed.
+    Found(SessionRelocalization),
+    /// The best pose reached `min_score` but a clearly different pose scored within `min_score_margin`.
+    Ambiguous {
+        /// Score of the best pose.
+        score: f32,
+        /// Score of the best clearly different pose.
+        runner_up_score: f32,
+    },
+    /// No pose reached `min_score`, or there was nothing to match (no map, no points).
+    NotFound,
+}
+
+impl RelocalizationOutcome {
+    /// The placement, if found.
+    pub fn found(self) -> Option<SessionRelocalization> {
+        match self {
+            Self::Found(f) => Some(f),
+            _ => None,
+        }
+    }
 }
 
 /// Renders placed grids into one map-frame grid of cell size `resolution`: each cell takes the highest
@@ -184,9 +228,11 @@ pub fn relocalize_session_start(
     map: &LifelongMap,
     scans: &[(Rigid2, Vec<Point2<f32>>)],
     options: &RelocalizationOptions,
-) -> Option<SessionRelocalization> {
-    let grid = render_submaps(map.placed_submaps(), options.resolution)?;
-    relocalize_scans_in_grid(&grid, scans, options)
+) -> RelocalizationOutcome {
+    match render_submaps(map.placed_submaps(), options.resolution) {
+        Some(grid) => relocalize_scans_in_grid(&grid, scans, options),
+        None => RelocalizationOutcome::NotFound,
+    }
 }
 
 /// The core of [`relocalize_session_start`] against any map-frame grid (for example one rendered from an
@@ -197,8 +243,10 @@ pub fn relocalize_scans_in_grid(
     grid: &ProbabilityGrid,
     scans: &[(Rigid2, Vec<Point2<f32>>)],
     options: &RelocalizationOptions,
-) -> Option<SessionRelocalization> {
-    let (first_pose, _) = scans.first()?;
+) -> RelocalizationOutcome {
+    let Some((first_pose, _)) = scans.first() else {
+        return RelocalizationOutcome::NotFound;
+    };
     let first_from_local = first_pose.inverse();
     let mut cloud: Vec<Point2<f32>> = Vec::new();
     for (local_pose, points) in scans {
@@ -211,10 +259,12 @@ pub fn relocalize_scans_in_grid(
         cloud = voxel_filter(&cloud, options.voxel_size as f32);
     }
     if cloud.is_empty() {
-        return None;
+        return RelocalizationOutcome::NotFound;
     }
+    let tolerance_cells = (options.match_tolerance / grid.limits().resolution).round() as u32;
+    let tolerant = (tolerance_cells > 0).then(|| max_filtered(grid, tolerance_cells));
     let relocalizer = Relocalizer::new(
-        grid,
+        tolerant.as_ref().unwrap_or(grid),
         RelocalizerOptions {
             coarse_branch_and_bound_depth: options.branch_and_bound_depth,
             min_score: options.min_score,
@@ -223,15 +273,48 @@ pub fn relocalize_scans_in_grid(
             ..RelocalizerOptions::default()
         },
     );
-    let found = relocalizer.relocalize(&cloud)?;
-    if found
+    let Some(found) = relocalizer.relocalize(&cloud) else {
+        return RelocalizationOutcome::NotFound;
+    };
+    if let Some(runner_up_score) = found
         .runner_up_score
-        .is_some_and(|r| r >= found.score - options.min_score_margin)
+        .filter(|&r| r >= found.score - options.min_score_margin)
     {
-        return None;
+        return RelocalizationOutcome::Ambiguous {
+            score: found.score,
+            runner_up_score,
+        };
     }
-    Some(SessionRelocalization {
-        global_from_local: found.pose * first_from_local,
+    let pose = match &tolerant {
+        Some(_) => refine_on_sharp_map(grid, &cloud, &found.pose, options),
+        None => found.pose,
+    };
+    RelocalizationOutcome::Found(SessionRelocalization {
+        global_from_local: pose * first_from_local,
         score: found.score,
     })
+}
+
+/// A pose found on the max-filtered map is only known to within the tolerance: search a window of that
+/// size (and ±2°) on the unfiltered map, then refine by least squares.
+fn refine_on_sharp_map(
+    grid: &ProbabilityGrid,
+    cloud: &[Point2<f32>],
+    pose: &Rigid2,
+    options: &RelocalizationOptions,
+) -> Rigid2 {
+    let window = RealTimeCorrelativeScanMatcher::new(RealTimeCorrelativeScanMatcherOptions {
+        linear_search_window: options.match_tolerance + grid.limits().resolution,
+        angular_search_window: 2f64.to_radians(),
+        translation_delta_cost_weight: 0.0,
+        rotation_delta_cost_weight: 0.0,
+    });
+    let (searched, _) = window.match_pose(pose, cloud, grid);
+    let (refined, _) = LeastSquaresScanMatcher::new(options.least_squares.clone()).match_pose(
+        &searched.translation.vector,
+        &searched,
+        cloud,
+        grid,
+    );
+    refined
 }

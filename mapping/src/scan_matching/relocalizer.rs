@@ -156,6 +156,41 @@ pub fn max_downsampled(grid: &ProbabilityGrid, factor: u32) -> ProbabilityGrid {
     coarse
 }
 
+/// `grid` with each cell raised to the largest value of the known cells within `radius` cells of it
+/// along each axis (a square max filter; unknown stays unknown only where the whole square is unknown).
+/// Scoring against it forgives a point up to `radius` cells from where the map saw a surface: goods that
+/// protrude a little more or less than when the map was made still count as hits.
+pub fn max_filtered(grid: &ProbabilityGrid, radius: u32) -> ProbabilityGrid {
+    if radius == 0 {
+        return grid.clone();
+    }
+    let limits = grid.limits();
+    let (width, height) = (limits.width as usize, limits.height as usize);
+    let r = radius as usize;
+    // Stored values grow with probability and UNKNOWN_VALUE is the smallest, so a plain max works.
+    let source = grid.values();
+    let mut rows = vec![UNKNOWN_VALUE; source.len()];
+    for y in 0..height {
+        let row = &source[y * width..(y + 1) * width];
+        for x in 0..width {
+            let window = &row[x.saturating_sub(r)..(x + r + 1).min(width)];
+            rows[y * width + x] = window.iter().copied().max().unwrap_or(UNKNOWN_VALUE);
+        }
+    }
+    let mut out = ProbabilityGrid::new(limits.clone());
+    let values = out.values_mut();
+    for x in 0..width {
+        for y in 0..height {
+            let (lo, hi) = (y.saturating_sub(r), (y + r + 1).min(height));
+            values[y * width + x] = (lo..hi)
+                .map(|yy| rows[yy * width + x])
+                .max()
+                .unwrap_or(UNKNOWN_VALUE);
+        }
+    }
+    out
+}
+
 impl Relocalizer {
     /// Prepares `map` (validate `options` first).
     pub fn new(map: &ProbabilityGrid, options: RelocalizerOptions) -> Self {
@@ -266,7 +301,38 @@ fn coarse_reads_at_least_fine(
 mod tests {
     use super::*;
     use crate::geometry::{Rigid2Ext as _, rigid2};
+    use crate::grid::CellIndex;
     use crate::scan_matching::test_support::{room_grid, room_scan};
+
+    #[test]
+    fn max_filter_equals_brute_force() {
+        let mut grid = ProbabilityGrid::new(MapLimits::new(0.1, Vector2::zeros(), 13, 9));
+        for (k, (x, y)) in [(0, 0), (5, 4), (12, 8), (7, 1), (3, 7)]
+            .into_iter()
+            .enumerate()
+        {
+            grid.set_probability(&CellIndex::new(x, y), 0.3 + 0.1 * k as f32);
+        }
+        for radius in 0..4 {
+            let filtered = max_filtered(&grid, radius);
+            let r = radius as i32;
+            for y in 0..9 {
+                for x in 0..13 {
+                    let expected = (-r..=r)
+                        .flat_map(|dy| (-r..=r).map(move |dx| (x + dx, y + dy)))
+                        .filter(|&(xx, yy)| (0..13).contains(&xx) && (0..9).contains(&yy))
+                        .map(|(xx, yy)| grid.values()[(yy * 13 + xx) as usize])
+                        .max()
+                        .unwrap();
+                    assert_eq!(
+                        filtered.values()[(y * 13 + x) as usize],
+                        expected,
+                        "{x} {y} r {radius}"
+                    );
+                }
+            }
+        }
+    }
 
     #[test]
     fn downsampling_keeps_maxima() {

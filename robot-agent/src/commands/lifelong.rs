@@ -16,7 +16,9 @@ use anyhow::Context as _;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use mapping::geometry::{Rigid2, Rigid2Ext as _, normalize_angle};
-use mapping::lifelong::{TrimPolicy, map_change_rate, render_submaps, render_submaps_newest};
+use mapping::lifelong::{
+    MAP_CHANGE_TOLERANCE_M, TrimPolicy, map_change_rate, render_submaps_newest,
+};
 use mapping::metrics::{
     MRCL_ROTATION_DEG, MRCL_TRANSLATION_M, TrajectoryAccuracy, rigid_alignment, trajectory_accuracy,
 };
@@ -248,9 +250,10 @@ pub fn run(args: &LifelongArgs) -> anyhow::Result<()> {
         });
     }
 
-    // MCR: session 0's map against the map as its newest submaps describe the site now.
+    // MCR: session 0's map against the map as its newest submaps describe the site now (both rendered
+    // newest-wins, so that an unchanged site compares equal).
     let resolution = config.local.submaps.resolution;
-    let before = render_submaps(
+    let before = render_submaps_newest(
         run.map
             .placed_submaps_by_id()
             .filter(|(id, _)| id.trajectory == 0)
@@ -260,7 +263,7 @@ pub fn run(args: &LifelongArgs) -> anyhow::Result<()> {
     let after = render_submaps_newest(run.map.placed_submaps_by_id().map(|(_, g)| g), resolution);
     let mut mcr = None;
     if let (Some(before), Some(after)) = (&before, &after) {
-        let change = map_change_rate(before, after);
+        let change = map_change_rate(before, after, MAP_CHANGE_TOLERANCE_M);
         let (w, h, pixels) = map_image::map_change_to_rgb(&change);
         map_image::write_rgb_png(&args.out.join("map_change.png"), w, h, &pixels)?;
         let (w, h, pixels) = map_image::grid_to_gray(after);
@@ -300,6 +303,12 @@ pub fn run(args: &LifelongArgs) -> anyhow::Result<()> {
         "peak_rss_mb": process_stats::peak_rss_mb(),
     });
     write_charts(&args.out, &scores)?;
+    write_trajectories(
+        &args.out.join("trajectories.csv"),
+        &run.session_scan_poses,
+        &truths,
+        &world_from_map,
+    )?;
     let report = json!({
         "world": "store",
         "seed": args.seed,
@@ -345,6 +354,41 @@ fn align(estimate: &[(Timestamp, Rigid2)], truth: &[(Timestamp, Rigid2)]) -> Rig
         })
         .collect();
     rigid_alignment(&pairs)
+}
+
+/// Writes every scan's estimated pose (in the truth's frame, through `world_from_map`) beside its truth:
+/// `session,time_s,x,y,theta,true_x,true_y,true_theta,error_m` (m, rad), for plotting where a session lost
+/// its way.
+fn write_trajectories(
+    path: &Path,
+    estimates: &[Vec<(Timestamp, Rigid2)>],
+    truths: &[SessionTruth],
+    world_from_map: &Rigid2,
+) -> anyhow::Result<()> {
+    use std::fmt::Write as _;
+    let mut csv = String::from("session,time_s,x,y,theta,true_x,true_y,true_theta,error_m\n");
+    for (session, (estimate, truth)) in estimates.iter().zip(truths).enumerate() {
+        let truth: BTreeMap<Timestamp, Rigid2> = truth.poses.iter().copied().collect();
+        for (time, map_from_base) in estimate {
+            let Some(world) = truth.get(time) else {
+                continue;
+            };
+            let e = world_from_map * map_from_base;
+            let error = (e.translation.vector - world.translation.vector).norm();
+            let _ = writeln!(
+                csv,
+                "{session},{:.3},{:.4},{:.4},{:.5},{:.4},{:.4},{:.5},{error:.4}",
+                time.as_secs_f64(),
+                e.translation.x,
+                e.translation.y,
+                e.theta(),
+                world.translation.x,
+                world.translation.y,
+                world.theta(),
+            );
+        }
+    }
+    std::fs::write(path, csv).with_context(|| format!("cannot write {}", path.display()))
 }
 
 fn write_charts(out: &Path, scores: &[SessionScore]) -> anyhow::Result<()> {

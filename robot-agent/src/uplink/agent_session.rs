@@ -204,7 +204,7 @@ pub async fn relocalize_nodes<'a>(
             }),
             options.resolution,
         )?;
-        relocalize_scans_in_grid(&grid, &scans, &options)
+        relocalize_scans_in_grid(&grid, &scans, &options).found()
     })
     .await
     .ok()
