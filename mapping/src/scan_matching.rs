@@ -24,7 +24,7 @@ mod precomputation_grid;
 mod real_time_correlative;
 mod relocalizer;
 #[cfg(test)]
-mod test_support;
+pub(crate) mod test_support;
 
 use thiserror::Error;
 

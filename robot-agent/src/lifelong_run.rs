@@ -17,7 +17,7 @@ use mapping::geometry::{Rigid2, Rigid2Ext as _};
 use mapping::grid::ProbabilityGrid;
 use mapping::lifelong::{
     GraphCounts, LifelongError, LifelongEvent, LifelongMap, LifelongOptions, RelocalizationOptions,
-    RelocalizationOutcome, relocalize_session_start,
+    RelocalizationOutcome, StartSearch, relocalize_session_start, render_submaps,
 };
 use mapping::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
 use mapping::pose_graph::NodeId;
@@ -27,6 +27,10 @@ use serde::{Deserialize, Serialize};
 
 use crate::offline_slam::run_searches;
 use crate::source::Recording;
+
+/// An ambiguous start is given up after this many nodes since the session's start (about 80 m): LLO's
+/// drift over the merged cloud would outgrow the window its hypotheses are searched in.
+const MAX_DISAMBIGUATION_NODES: usize = 400;
 
 /// Configuration of a multi-session run; one TOML file, every field optional.
 #[derive(Clone, Debug, PartialEq, Deserialize)]
@@ -41,11 +45,12 @@ pub struct SessionsConfig {
     /// How many of a session's first nodes are merged into the cloud that is relocalized (count ≥ 1).
     /// Default 10.
     pub relocalization_nodes: usize,
-    /// While a session is still unplaced (its start did not relocalize and no GLM match placed it), retry
+    /// While a session is still unplaced (its start did not relocalize and no GLM match placed it): when
+    /// the start was ambiguous, score its hypotheses again with every node since the start each this many
+    /// nodes ([`StartSearch::disambiguate`], cheap: a small window per hypothesis); otherwise retry
     /// relocalization with its latest `relocalization_nodes` nodes after this many nodes, then after twice,
-    /// four times, ... as many (count; 0 = never). Each retry searches the whole map, so the doubling keeps
-    /// a session that cannot be placed (a store that looks the same everywhere it has driven) from spending
-    /// its time relocalizing. Default 20.
+    /// four times, ... as many (each retry searches the whole map, so the doubling keeps a session that
+    /// cannot be placed from spending its time relocalizing). Count; 0 = never. Default 20.
     pub relocalization_retry_every_n_nodes: usize,
 }
 
@@ -93,8 +98,13 @@ pub struct SessionSummary {
     pub relocalized: bool,
     /// Relocalization retries while the session was unplaced.
     pub relocalization_retries: usize,
-    /// The node index at which a retry placed the session, if one did.
+    /// The node index at which a retry or the disambiguation of an ambiguous start placed the session,
+    /// if one did.
     pub placed_by_retry_at_node: Option<usize>,
+    /// The time of that node: the session was not localized before it.
+    pub placed_at_time: Option<Timestamp>,
+    /// How many times an ambiguous start's hypotheses were scored again.
+    pub disambiguation_steps: usize,
     /// Its branch-and-bound score.
     pub relocalization_score: Option<f32>,
     /// Why session-start relocalization was refused: `ambiguous` (a clearly different pose scored within
@@ -102,6 +112,8 @@ pub struct SessionSummary {
     pub relocalization_refused: Option<String>,
     /// When refused as ambiguous, the best and the runner-up scores.
     pub relocalization_ambiguity: Option<[f32; 2]>,
+    /// When refused as ambiguous, the runner-up pose in the best pose's frame `[x, y, θ]` (m, m, rad).
+    pub relocalization_runner_up_from_best: Option<[f64; 3]>,
     /// Wall time of the relocalization, milliseconds.
     pub relocalization_ms: f64,
     /// Distance (m) between the relocalized pose of the session's first node and its final estimate
@@ -468,6 +480,9 @@ fn worker(
     let mut at_session_end: BTreeMap<NodeId, Rigid2> = BTreeMap::new();
     let mut priors: BTreeMap<u32, (Rigid2, Rigid2)> = BTreeMap::new();
     let mut scores: Vec<f32> = Vec::new();
+    // The current session's ambiguous start (hypotheses) and its scans since the start.
+    let mut start_search: Option<StartSearch> = None;
+    let mut since_start: Vec<(Rigid2, Vec<Point2<f32>>)> = Vec::new();
     for message in receiver {
         match message {
             Message::Start {
@@ -485,16 +500,33 @@ fn worker(
                     None
                 } else {
                     let start = Instant::now();
-                    let outcome = relocalize_session_start(&map, &first_scans, relocalization);
+                    let (outcome, search) =
+                        match render_submaps(map.placed_submaps(), relocalization.resolution) {
+                            Some(grid) => {
+                                let mut search = StartSearch::new(&grid, relocalization);
+                                (search.search(&first_scans), Some(search))
+                            }
+                            None => (RelocalizationOutcome::NotFound, None),
+                        };
                     summary.relocalization_ms = start.elapsed().as_secs_f64() * 1e3;
+                    // An ambiguous start keeps its hypotheses and every scan since, to be scored
+                    // again as the session drives on.
+                    start_search = search.filter(StartSearch::has_hypotheses);
+                    since_start = if start_search.is_some() {
+                        first_scans.clone()
+                    } else {
+                        Vec::new()
+                    };
                     match outcome {
                         RelocalizationOutcome::Found(_) => {}
                         RelocalizationOutcome::Ambiguous {
                             score,
                             runner_up_score,
+                            runner_up_from_best,
                         } => {
                             summary.relocalization_refused = Some("ambiguous".into());
                             summary.relocalization_ambiguity = Some([score, runner_up_score]);
+                            summary.relocalization_runner_up_from_best = Some(runner_up_from_best);
                         }
                         RelocalizationOutcome::NotFound => {
                             summary.relocalization_refused = Some("not_found".into());
@@ -532,6 +564,9 @@ fn worker(
                         recent.pop_front();
                     }
                     recent.push_back((local_pose, points.clone()));
+                    if start_search.is_some() {
+                        since_start.push((local_pose, points.clone()));
+                    }
                 }
                 let (_, events) = map.add_node(
                     session,
@@ -541,21 +576,50 @@ fn worker(
                     &insertion_submaps,
                     finished_submaps,
                 )?;
+                let due = |summary: &SessionSummary| {
+                    session > 0
+                        && retry_every > 0
+                        && (summary.nodes_added + 1).is_multiple_of(retry_every)
+                };
+                let mut placed_late = None;
                 if let Some(summary) = sessions.last_mut()
-                    && session > 0
-                    && retry_every > 0
                     && map.is_unplaced(session)
-                    && (summary.nodes_added + 1).is_multiple_of(retry_every)
+                    && due(summary)
+                    && let Some(search) = start_search.as_mut()
+                {
+                    // Score the start's hypotheses again with everything driven since.
+                    summary.disambiguation_steps += 1;
+                    match search.disambiguate(&since_start) {
+                        RelocalizationOutcome::Found(found) => {
+                            placed_late = Some(found.global_from_local);
+                            start_search = None;
+                        }
+                        RelocalizationOutcome::NotFound => start_search = None,
+                        RelocalizationOutcome::Ambiguous { .. } => {
+                            if since_start.len() > MAX_DISAMBIGUATION_NODES {
+                                start_search = None;
+                            }
+                        }
+                    }
+                    if start_search.is_none() {
+                        since_start = Vec::new();
+                    }
+                } else if let Some(summary) = sessions.last_mut()
+                    && map.is_unplaced(session)
+                    && due(summary)
                     && ((summary.nodes_added + 1) / retry_every).is_power_of_two()
                 {
                     let scans: Vec<_> = recent.iter().cloned().collect();
                     summary.relocalization_retries += 1;
-                    if let Some(found) =
-                        relocalize_session_start(&map, &scans, relocalization).found()
-                        && map.place_session(session, found.global_from_local)?
-                    {
-                        summary.placed_by_retry_at_node = Some(summary.nodes_added);
-                    }
+                    placed_late = relocalize_session_start(&map, &scans, relocalization)
+                        .found()
+                        .map(|f| f.global_from_local);
+                }
+                if let (Some(global_from_local), Some(summary)) = (placed_late, sessions.last_mut())
+                    && map.place_session(session, global_from_local)?
+                {
+                    summary.placed_by_retry_at_node = Some(summary.nodes_added);
+                    summary.placed_at_time = Some(time);
                 }
                 let jobs = map.take_search_jobs();
                 let results = run_searches(map.constraint_builder(), &jobs);

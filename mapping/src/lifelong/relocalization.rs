@@ -12,7 +12,7 @@ use nalgebra::{Point2, Vector2};
 use serde::Deserialize;
 
 use super::{LifelongMap, LifelongOptionsError, PlacedGrid};
-use crate::geometry::Rigid2;
+use crate::geometry::{Rigid2, Rigid2Ext as _};
 use crate::grid::{CellIndex, MapLimits, ProbabilityGrid, UNKNOWN_VALUE};
 use crate::local_slam::voxel_filter;
 use crate::scan_matching::{
@@ -133,6 +133,9 @@ pub enum RelocalizationOutcome {
         score: f32,
         /// Score of the best clearly different pose.
         runner_up_score: f32,
+        /// Where that pose lies in the best pose's frame: `[x, y, θ]` (m, m, rad) — along a corridor, a
+        /// neighbouring aisle, turned around.
+        runner_up_from_best: [f64; 3],
     },
     /// No pose reached `min_score`, or there was nothing to match (no map, no points).
     NotFound,
@@ -244,9 +247,16 @@ pub fn relocalize_scans_in_grid(
     scans: &[(Rigid2, Vec<Point2<f32>>)],
     options: &RelocalizationOptions,
 ) -> RelocalizationOutcome {
-    let Some((first_pose, _)) = scans.first() else {
-        return RelocalizationOutcome::NotFound;
-    };
+    StartSearch::new(grid, options).search(scans)
+}
+
+/// `scans` merged into one cloud in the first scan's frame (thinned to `voxel_size`), with
+/// `first_from_local`.
+fn merge_scans(
+    scans: &[(Rigid2, Vec<Point2<f32>>)],
+    voxel_size: f64,
+) -> Option<(Rigid2, Vec<Point2<f32>>)> {
+    let (first_pose, _) = scans.first()?;
     let first_from_local = first_pose.inverse();
     let mut cloud: Vec<Point2<f32>> = Vec::new();
     for (local_pose, points) in scans {
@@ -255,44 +265,175 @@ pub fn relocalize_scans_in_grid(
             (first_from_tracking * Point2::new(f64::from(p.x), f64::from(p.y))).cast::<f32>()
         }));
     }
-    if options.voxel_size > 0.0 {
-        cloud = voxel_filter(&cloud, options.voxel_size as f32);
+    if voxel_size > 0.0 {
+        cloud = voxel_filter(&cloud, voxel_size as f32);
     }
-    if cloud.is_empty() {
-        return RelocalizationOutcome::NotFound;
+    (!cloud.is_empty()).then_some((first_from_local, cloud))
+}
+
+/// Half-width of the window in which a remembered hypothesis is searched again with a longer cloud,
+/// metres: LLO's drift over the tens of metres the cloud grows by, plus the tolerance.
+const HYPOTHESIS_LINEAR_WINDOW_M: f64 = 0.4;
+/// … and radians (2°).
+const HYPOTHESIS_ANGULAR_WINDOW_RAD: f64 = 0.035;
+
+/// Session-start relocalization that can wait out an ambiguous start.
+///
+/// In a store of look-alike aisles the first metres of a session often fit two or more places equally well
+/// (see [`RelocalizationOptions::min_score_margin`]). Rather than searching the whole map again later with
+/// another short cloud, a `StartSearch` keeps the distinct candidates of its first search as hypotheses of
+/// where the session's first scan was; [`Self::disambiguate`] scores each again, in a small window around
+/// it, with the cloud of every scan since the start. As the robot drives on — to an aisle end, a pillar,
+/// a cross aisle — the cloud stops fitting the wrong places, and the session is placed once one hypothesis
+/// leads by the margin. Holds the map prepared once (built per session, dropped when placed).
+pub struct StartSearch {
+    relocalizer: Relocalizer,
+    /// The unfiltered map, when the search runs on a max-filtered copy.
+    sharp: Option<ProbabilityGrid>,
+    options: RelocalizationOptions,
+    /// `map_from_first` of each hypothesis with its last score, best first.
+    hypotheses: Vec<(Rigid2, f32)>,
+}
+
+impl StartSearch {
+    /// Prepares `grid` (a map-frame rendering of the site's submaps) for searches with `options`.
+    pub fn new(grid: &ProbabilityGrid, options: &RelocalizationOptions) -> Self {
+        let tolerance_cells = (options.match_tolerance / grid.limits().resolution).round() as u32;
+        let tolerant = (tolerance_cells > 0).then(|| max_filtered(grid, tolerance_cells));
+        let relocalizer = Relocalizer::new(
+            tolerant.as_ref().unwrap_or(grid),
+            RelocalizerOptions {
+                coarse_branch_and_bound_depth: options.branch_and_bound_depth,
+                min_score: options.min_score,
+                max_candidates: options.max_candidates.max(1),
+                least_squares: options.least_squares.clone(),
+                ..RelocalizerOptions::default()
+            },
+        );
+        Self {
+            relocalizer,
+            sharp: tolerant.is_some().then(|| grid.clone()),
+            options: options.clone(),
+            hypotheses: Vec::new(),
+        }
     }
-    let tolerance_cells = (options.match_tolerance / grid.limits().resolution).round() as u32;
-    let tolerant = (tolerance_cells > 0).then(|| max_filtered(grid, tolerance_cells));
-    let relocalizer = Relocalizer::new(
-        tolerant.as_ref().unwrap_or(grid),
-        RelocalizerOptions {
-            coarse_branch_and_bound_depth: options.branch_and_bound_depth,
-            min_score: options.min_score,
-            max_candidates: options.max_candidates.max(1),
-            least_squares: options.least_squares.clone(),
-            ..RelocalizerOptions::default()
-        },
-    );
-    let Some(found) = relocalizer.relocalize(&cloud) else {
-        return RelocalizationOutcome::NotFound;
-    };
-    if let Some(runner_up_score) = found
-        .runner_up_score
-        .filter(|&r| r >= found.score - options.min_score_margin)
-    {
-        return RelocalizationOutcome::Ambiguous {
-            score: found.score,
-            runner_up_score,
+
+    /// Whether an ambiguous search left hypotheses for [`Self::disambiguate`].
+    pub fn has_hypotheses(&self) -> bool {
+        !self.hypotheses.is_empty()
+    }
+
+    /// Searches the whole map for `scans` (`(local_from_tracking, points)`, first scan first). When the
+    /// result is ambiguous, remembers the distinct candidates.
+    pub fn search(&mut self, scans: &[(Rigid2, Vec<Point2<f32>>)]) -> RelocalizationOutcome {
+        self.hypotheses.clear();
+        let Some((first_from_local, cloud)) = merge_scans(scans, self.options.voxel_size) else {
+            return RelocalizationOutcome::NotFound;
         };
+        let Some(found) = self.relocalizer.relocalize(&cloud) else {
+            return RelocalizationOutcome::NotFound;
+        };
+        if let (Some(runner_up_score), Some(runner_up_pose)) =
+            (found.runner_up_score, found.runner_up_pose)
+            && runner_up_score >= found.score - self.options.min_score_margin
+        {
+            self.hypotheses = distinct(found.candidates);
+            let offset = found.pose.inverse() * runner_up_pose;
+            return RelocalizationOutcome::Ambiguous {
+                score: found.score,
+                runner_up_score,
+                runner_up_from_best: [offset.translation.x, offset.translation.y, offset.theta()],
+            };
+        }
+        self.found(&cloud, &found.pose, found.score, first_from_local)
     }
-    let pose = match &tolerant {
-        Some(_) => refine_on_sharp_map(grid, &cloud, &found.pose, options),
-        None => found.pose,
-    };
-    RelocalizationOutcome::Found(SessionRelocalization {
-        global_from_local: pose * first_from_local,
-        score: found.score,
-    })
+
+    /// Scores every remembered hypothesis again with `scans` (the same first scan as the search, and every
+    /// scan since): places the session when one leads by `min_score_margin` (or is the only one still
+    /// reaching `min_score`), forgets them all when none does (`NotFound`), and stays `Ambiguous`
+    /// otherwise. `NotFound` without hypotheses.
+    pub fn disambiguate(&mut self, scans: &[(Rigid2, Vec<Point2<f32>>)]) -> RelocalizationOutcome {
+        if self.hypotheses.is_empty() {
+            return RelocalizationOutcome::NotFound;
+        }
+        let Some((first_from_local, cloud)) = merge_scans(scans, self.options.voxel_size) else {
+            return RelocalizationOutcome::NotFound;
+        };
+        let mut rescored: Vec<(Rigid2, f32)> = self
+            .hypotheses
+            .iter()
+            .filter_map(|(pose, _)| {
+                self.relocalizer.match_near(
+                    pose,
+                    &cloud,
+                    HYPOTHESIS_LINEAR_WINDOW_M,
+                    HYPOTHESIS_ANGULAR_WINDOW_RAD,
+                )
+            })
+            .collect();
+        rescored.sort_by(|a, b| b.1.total_cmp(&a.1));
+        let rescored = distinct(rescored);
+        let Some(&(best_pose, best_score)) = rescored.first() else {
+            self.hypotheses.clear();
+            return RelocalizationOutcome::NotFound;
+        };
+        if let Some(&(runner_up_pose, runner_up_score)) = rescored.get(1)
+            && runner_up_score >= best_score - self.options.min_score_margin
+        {
+            self.hypotheses = rescored;
+            let offset = best_pose.inverse() * runner_up_pose;
+            return RelocalizationOutcome::Ambiguous {
+                score: best_score,
+                runner_up_score,
+                runner_up_from_best: [offset.translation.x, offset.translation.y, offset.theta()],
+            };
+        }
+        self.hypotheses.clear();
+        self.found(&cloud, &best_pose, best_score, first_from_local)
+    }
+
+    fn found(
+        &self,
+        cloud: &[Point2<f32>],
+        pose: &Rigid2,
+        score: f32,
+        first_from_local: Rigid2,
+    ) -> RelocalizationOutcome {
+        let pose = match &self.sharp {
+            Some(sharp) => refine_on_sharp_map(sharp, cloud, pose, &self.options),
+            None => {
+                let refiner = LeastSquaresScanMatcher::new(self.options.least_squares.clone());
+                refiner
+                    .match_pose(
+                        &pose.translation.vector,
+                        pose,
+                        cloud,
+                        self.relocalizer.fine_grid(),
+                    )
+                    .0
+            }
+        };
+        RelocalizationOutcome::Found(SessionRelocalization {
+            global_from_local: pose * first_from_local,
+            score,
+        })
+    }
+}
+
+/// `candidates` (best first) without those within 1 m and 10° of a better one.
+fn distinct(candidates: Vec<(Rigid2, f32)>) -> Vec<(Rigid2, f32)> {
+    let mut kept: Vec<(Rigid2, f32)> = Vec::new();
+    for (pose, score) in candidates {
+        let near = kept.iter().any(|(k, _)| {
+            (k.translation.vector - pose.translation.vector).norm() <= 1.0
+                && crate::geometry::normalize_angle(k.theta() - pose.theta()).abs()
+                    <= 10f64.to_radians()
+        });
+        if !near {
+            kept.push((pose, score));
+        }
+    }
+    kept
 }
 
 /// A pose found on the max-filtered map is only known to within the tolerance: search a window of that
@@ -317,4 +458,85 @@ fn refine_on_sharp_map(
         grid,
     );
     refined
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::{Rigid2Ext as _, rigid2};
+    use crate::scan_matching::test_support::{ROOM_WALLS, room_grid};
+
+    /// Points every 10 cm along the room's walls seen from `world_from_robot`; the inner walls (goods,
+    /// displays) stand `shift` metres further along +y than when the map was made.
+    fn changed_room_scan(world_from_robot: &Rigid2, shift: f64) -> Vec<Point2<f32>> {
+        let robot_from_world = world_from_robot.inverse();
+        let mut points = Vec::new();
+        for (k, (a, b)) in ROOM_WALLS.iter().enumerate() {
+            let offset = if k >= 4 {
+                Vector2::new(0.0, shift)
+            } else {
+                Vector2::zeros()
+            };
+            let (a, b) = (Vector2::from(*a) + offset, Vector2::from(*b) + offset);
+            let length = (b - a).norm();
+            let mut s = 0.05;
+            while s < length {
+                let p = robot_from_world * Point2::from(a + (b - a) * (s / length));
+                points.push(Point2::new(p.x as f32, p.y as f32));
+                s += 0.1;
+            }
+        }
+        points
+    }
+
+    #[test]
+    fn a_tolerant_match_survives_moved_goods_and_stays_precise() {
+        let grid = room_grid();
+        let truth = rigid2(2.7, 2.2, 0.4);
+        let scans = vec![(Rigid2::identity(), changed_room_scan(&truth, 0.15))];
+        let options = |match_tolerance| RelocalizationOptions {
+            voxel_size: 0.0,
+            min_score: 0.3,
+            match_tolerance,
+            ..RelocalizationOptions::default()
+        };
+        let exact = relocalize_scans_in_grid(&grid, &scans, &options(0.0))
+            .found()
+            .expect("the outer walls alone place the scan");
+        let tolerant = relocalize_scans_in_grid(&grid, &scans, &options(0.15))
+            .found()
+            .expect("tolerant match");
+        assert!(
+            tolerant.score > exact.score + 0.05,
+            "tolerant {} vs exact {}",
+            tolerant.score,
+            exact.score
+        );
+        let pose = tolerant.global_from_local;
+        let error = (pose.translation.vector - truth.translation.vector).norm();
+        assert!(error < 0.05, "refined on the sharp map: {error} m off");
+        assert!((pose.theta() - truth.theta()).abs() < 1f64.to_radians());
+    }
+
+    #[test]
+    fn nothing_to_match_is_not_found() {
+        let grid = room_grid();
+        let options = RelocalizationOptions::default();
+        assert_eq!(
+            relocalize_scans_in_grid(&grid, &[], &options),
+            RelocalizationOutcome::NotFound
+        );
+        assert_eq!(
+            relocalize_scans_in_grid(&grid, &[(Rigid2::identity(), Vec::new())], &options),
+            RelocalizationOutcome::NotFound
+        );
+        assert!(
+            RelocalizationOptions {
+                match_tolerance: -0.1,
+                ..options
+            }
+            .validate()
+            .is_err()
+        );
+    }
 }

@@ -100,7 +100,7 @@ impl RelocalizerOptions {
 }
 
 /// A relocalization result.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct Relocalization {
     /// `map_from_tracking` after refinement.
     pub pose: Rigid2,
@@ -111,6 +111,11 @@ pub struct Relocalization {
     /// Fine score of the best refined candidate at a clearly different pose (more than 1 m or 10° from
     /// the winner), if any: how ambiguous the match is (shelf rows and corridors repeat).
     pub runner_up_score: Option<f32>,
+    /// The pose of that runner-up (before refinement).
+    pub runner_up_pose: Option<Rigid2>,
+    /// Every refined candidate reaching `min_score`, `(pose before least squares, fine score)`, best
+    /// first: the hypotheses to keep when the match is ambiguous.
+    pub candidates: Vec<(Rigid2, f32)>,
 }
 
 /// A map prepared for relocalization: coarse and fine branch-and-bound matchers over it. Immutable and
@@ -225,6 +230,11 @@ impl Relocalizer {
         &self.options
     }
 
+    /// The full-resolution map it matches against.
+    pub fn fine_grid(&self) -> &ProbabilityGrid {
+        &self.fine_grid
+    }
+
     /// Where `points` (in the tracking frame) fit the map best, if anywhere well enough.
     pub fn relocalize(&self, points: &[Point2<f32>]) -> Option<Relocalization> {
         let o = &self.options;
@@ -257,7 +267,7 @@ impl Relocalizer {
             found_all.push((found.pose, found.score));
         }
         let &(best_pose, best_score) = found_all.iter().max_by(|a, b| a.1.total_cmp(&b.1))?;
-        let runner_up_score = found_all
+        let runner_up = found_all
             .iter()
             .filter(|(pose, _)| {
                 (pose.translation.vector - best_pose.translation.vector).norm() > 1.0
@@ -267,16 +277,42 @@ impl Relocalizer {
                     .abs()
                         > 10f64.to_radians()
             })
-            .map(|(_, score)| *score)
-            .max_by(f32::total_cmp);
+            .max_by(|a, b| a.1.total_cmp(&b.1));
+        let mut candidates = found_all.clone();
+        candidates.sort_by(|a, b| b.1.total_cmp(&a.1));
         let target: Vector2<f64> = best_pose.translation.vector;
         let (refined, _) = refiner.match_pose(&target, &best_pose, points, &self.fine_grid);
         Some(Relocalization {
             pose: refined,
             score: best_score,
             candidates_refined: candidates.len(),
-            runner_up_score,
+            runner_up_score: runner_up.map(|r| r.1),
+            runner_up_pose: runner_up.map(|r| r.0),
+            candidates,
         })
+    }
+}
+
+impl Relocalizer {
+    /// The best pose and fine score of `points` within `linear_window` metres and `angular_window` radians
+    /// of `initial` on the full-resolution map (no refinement), if it reaches `min_score`: follows up a
+    /// candidate of [`Self::relocalize`] with more points.
+    pub fn match_near(
+        &self,
+        initial: &Rigid2,
+        points: &[Point2<f32>],
+        linear_window: f64,
+        angular_window: f64,
+    ) -> Option<(Rigid2, f32)> {
+        self.fine
+            .match_within(
+                initial,
+                points,
+                self.options.min_score,
+                linear_window,
+                angular_window,
+            )
+            .map(|m| (m.pose, m.score))
     }
 }
 

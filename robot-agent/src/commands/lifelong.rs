@@ -196,9 +196,19 @@ pub fn run(args: &LifelongArgs) -> anyhow::Result<()> {
     let mut later: Vec<TrajectoryAccuracy> = Vec::new();
     for (k, truth) in truths.iter().enumerate() {
         let session = k as u32;
-        let estimate = run.session_scan_poses.get(k).map_or(&[][..], Vec::as_slice);
-        let accuracy = trajectory_accuracy(estimate, &truth.poses, &world_from_map);
         let summary = summaries.get(&session);
+        // A session placed late was not localized before: its scans until then count as lost (the
+        // end-of-session estimate would place them after the fact).
+        let placed_at = summary.and_then(|s| s.placed_at_time);
+        let estimate: Vec<(Timestamp, Rigid2)> = run
+            .session_scan_poses
+            .get(k)
+            .map_or(&[][..], Vec::as_slice)
+            .iter()
+            .filter(|(t, _)| placed_at.is_none_or(|p| *t >= p))
+            .copied()
+            .collect();
+        let accuracy = trajectory_accuracy(&estimate, &truth.poses, &world_from_map);
         let initialization_error = summary.and_then(|s| {
             let [x, y, theta] = s.relocalized_first_pose?;
             let time = s.first_node_time?;
