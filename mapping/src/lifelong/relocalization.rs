@@ -13,7 +13,7 @@ use serde::Deserialize;
 
 use super::{LifelongMap, LifelongOptionsError, PlacedGrid};
 use crate::geometry::{Rigid2, Rigid2Ext as _};
-use crate::grid::{CellIndex, MapLimits, ProbabilityGrid, UNKNOWN_VALUE};
+use crate::grid::{CellIndex, MIN_PROBABILITY, MapLimits, ProbabilityGrid, UNKNOWN_VALUE};
 use crate::local_slam::voxel_filter;
 use crate::scan_matching::{
     LeastSquaresScanMatcher, LeastSquaresScanMatcherOptions, RealTimeCorrelativeScanMatcher,
@@ -47,6 +47,13 @@ pub struct RelocalizationOptions {
     /// weeks-old map falls below `min_score` even where the walls, frames and pillars all agree. 0 scores
     /// cell-exactly. Default 0.15 m (half the simulated store's goods depth; three cells).
     pub match_tolerance: f64,
+    /// How decisively the hypotheses of an ambiguous start must separate before [`StartSearch::disambiguate`]
+    /// places the session: per point of the merged cloud, the difference between the best hypothesis' and
+    /// another's score at that point; the paired statistic `Σd / √(Σd²)` must reach this for every other
+    /// hypothesis. Points both explain equally (the shelves of two look-alike aisles) add nothing;
+    /// features only one explains (a pillar, an aisle end) add evidence; goods that fit one aisle by chance
+    /// as often fit the other and cancel. Unitless (about standard errors). Default 3.
+    pub min_disambiguation_z: f64,
     /// Distinct coarse candidates refined at full resolution (count ≥ 1; see [`RelocalizerOptions`]).
     /// Default 8: corridors and shelf rows make coarse maxima ambiguous, and the refinements are cheap
     /// next to the coarse search.
@@ -65,6 +72,7 @@ impl Default for RelocalizationOptions {
             max_candidates: 8,
             min_score_margin: 0.03,
             match_tolerance: 0.15,
+            min_disambiguation_z: 3.0,
             least_squares: LeastSquaresScanMatcherOptions::default(),
         }
     }
@@ -89,6 +97,12 @@ impl RelocalizationOptions {
             return Err(LifelongOptionsError::OutOfRange {
                 field: "match_tolerance",
                 reason: "must be in [0, 1] metres",
+            });
+        }
+        if !(self.min_disambiguation_z.is_finite() && self.min_disambiguation_z > 0.0) {
+            return Err(LifelongOptionsError::OutOfRange {
+                field: "min_disambiguation_z",
+                reason: "must be a positive number",
             });
         }
         if !(0.0..=1.0).contains(&self.min_score_margin) {
@@ -349,9 +363,10 @@ impl StartSearch {
     }
 
     /// Scores every remembered hypothesis again with `scans` (the same first scan as the search, and every
-    /// scan since): places the session when one leads by `min_score_margin` (or is the only one still
-    /// reaching `min_score`), forgets them all when none does (`NotFound`), and stays `Ambiguous`
-    /// otherwise. `NotFound` without hypotheses.
+    /// scan since): places the session when the best fits decisively better than every other (see
+    /// [`RelocalizationOptions::min_disambiguation_z`]; or is the only one still reaching `min_score`),
+    /// forgets them all when none reaches it (`NotFound`), and stays `Ambiguous` otherwise. `NotFound`
+    /// without hypotheses.
     pub fn disambiguate(&mut self, scans: &[(Rigid2, Vec<Point2<f32>>)]) -> RelocalizationOutcome {
         if self.hypotheses.is_empty() {
             return RelocalizationOutcome::NotFound;
@@ -377,8 +392,27 @@ impl StartSearch {
             self.hypotheses.clear();
             return RelocalizationOutcome::NotFound;
         };
+        // Hypotheses found on the max-filtered map wander within the tolerance; compare them refined on
+        // the unfiltered map, where a pillar's or an aisle end's points tell most.
+        let rescored: Vec<(Rigid2, f32)> = match &self.sharp {
+            Some(sharp) => rescored
+                .into_iter()
+                .map(|(pose, score)| {
+                    (
+                        refine_on_sharp_map(sharp, &cloud, &pose, &self.options),
+                        score,
+                    )
+                })
+                .collect(),
+            None => rescored,
+        };
+        let best_pose = rescored[0].0;
+        let grid = self.sharp.as_ref().unwrap_or(self.relocalizer.fine_grid());
+        let decisive = rescored[1..].iter().all(|(other, _)| {
+            paired_z(grid, &cloud, &best_pose, other) >= self.options.min_disambiguation_z
+        });
         if let Some(&(runner_up_pose, runner_up_score)) = rescored.get(1)
-            && runner_up_score >= best_score - self.options.min_score_margin
+            && !decisive
         {
             self.hypotheses = rescored;
             let offset = best_pose.inverse() * runner_up_pose;
@@ -417,6 +451,31 @@ impl StartSearch {
             global_from_local: pose * first_from_local,
             score,
         })
+    }
+}
+
+/// The paired statistic of [`RelocalizationOptions::min_disambiguation_z`]: how much better `cloud` fits
+/// `grid` at `best` than at `other`, point by point, in standard errors (0 when they fit identically).
+fn paired_z(grid: &ProbabilityGrid, cloud: &[Point2<f32>], best: &Rigid2, other: &Rigid2) -> f64 {
+    let limits = grid.limits();
+    let score = |pose: &Rigid2, p: &Point2<f32>| {
+        let index = limits.cell_index(&(pose * Point2::new(f64::from(p.x), f64::from(p.y))));
+        if grid.is_known(&index) {
+            f64::from(grid.probability(&index))
+        } else {
+            f64::from(MIN_PROBABILITY)
+        }
+    };
+    let (mut sum, mut squares) = (0.0, 0.0);
+    for p in cloud {
+        let d = score(best, p) - score(other, p);
+        sum += d;
+        squares += d * d;
+    }
+    if squares > 0.0 {
+        sum / squares.sqrt()
+    } else {
+        0.0
     }
 }
 
@@ -538,5 +597,139 @@ mod tests {
             .validate()
             .is_err()
         );
+    }
+
+    /// Two identical corridors, 20 m × 2 m, closed at x = 0 and open at x = 20; only the first
+    /// (y ∈ [0, 2]) has a pillar against its wall at x ∈ [15, 16]. Walls as segments.
+    const CORRIDORS: [([f64; 2], [f64; 2]); 8] = [
+        ([0.0, 0.0], [20.0, 0.0]),
+        ([0.0, 2.0], [20.0, 2.0]),
+        ([0.0, 0.0], [0.0, 2.0]),
+        ([15.0, 0.0], [15.0, 0.5]),
+        ([15.0, 0.5], [16.0, 0.5]),
+        ([16.0, 0.5], [16.0, 0.0]),
+        ([0.0, 8.0], [20.0, 8.0]),
+        ([0.0, 10.0], [20.0, 10.0]),
+    ];
+    const CORRIDOR_B_BACK: ([f64; 2], [f64; 2]) = ([0.0, 8.0], [0.0, 10.0]);
+
+    fn walls() -> Vec<(Vector2<f64>, Vector2<f64>)> {
+        CORRIDORS
+            .iter()
+            .chain(std::iter::once(&CORRIDOR_B_BACK))
+            .map(|(a, b)| (Vector2::from(*a), Vector2::from(*b)))
+            .collect()
+    }
+
+    fn distance_to_segment(p: &Vector2<f64>, a: &Vector2<f64>, b: &Vector2<f64>) -> f64 {
+        let ab = b - a;
+        let t = ((p - a).dot(&ab) / ab.norm_squared()).clamp(0.0, 1.0);
+        (p - (a + ab * t)).norm()
+    }
+
+    /// The corridors in a 5 cm grid (probability falling off from each wall, σ = 5 cm); only the
+    /// corridors and a 0.3 m margin are known.
+    fn corridors_grid() -> ProbabilityGrid {
+        use crate::grid::{CellIndex, MAX_PROBABILITY, MIN_PROBABILITY};
+        let limits = MapLimits::new(0.05, Vector2::new(-1.0, -1.0), 440, 240);
+        let mut grid = ProbabilityGrid::new(limits.clone());
+        let walls = walls();
+        for iy in 0..limits.height {
+            for ix in 0..limits.width {
+                let index = CellIndex::new(ix, iy);
+                let c = limits.cell_center(&index).coords;
+                let inside =
+                    |y0: f64| (-0.3..=20.3).contains(&c.x) && (y0 - 0.3..=y0 + 2.3).contains(&c.y);
+                if !(inside(0.0) || inside(8.0)) {
+                    continue;
+                }
+                let d = walls
+                    .iter()
+                    .map(|(a, b)| distance_to_segment(&c, a, b))
+                    .fold(f64::INFINITY, f64::min);
+                let p = f64::from(MIN_PROBABILITY)
+                    + f64::from(MAX_PROBABILITY - MIN_PROBABILITY) * (-d * d / 0.005).exp();
+                grid.set_probability(&index, p as f32);
+            }
+        }
+        grid
+    }
+
+    /// What a robot at `world_from_robot` in the first corridor sees: wall points every 10 cm within 4 m
+    /// of it (the first corridor's walls only), in its frame.
+    fn corridor_scan(world_from_robot: &Rigid2) -> Vec<Point2<f32>> {
+        let robot_from_world = world_from_robot.inverse();
+        let mut points = Vec::new();
+        for (a, b) in CORRIDORS[..6].iter() {
+            let (a, b) = (Vector2::from(*a), Vector2::from(*b));
+            let length = (b - a).norm();
+            let mut s = 0.05;
+            while s < length {
+                let w = a + (b - a) * (s / length);
+                if (w - world_from_robot.translation.vector).norm() <= 4.0 {
+                    let p = robot_from_world * Point2::from(w);
+                    points.push(Point2::new(p.x as f32, p.y as f32));
+                }
+                s += 0.1;
+            }
+        }
+        points
+    }
+
+    #[test]
+    fn an_ambiguous_start_is_placed_once_the_robot_sees_what_tells_the_places_apart() {
+        let grid = corridors_grid();
+        let options = RelocalizationOptions::default();
+        // The robot drives the first corridor from x = 3 to x = 18.5; LLO's frame is its first pose.
+        let start = rigid2(3.0, 1.0, 0.0);
+        let scans: Vec<(Rigid2, Vec<Point2<f32>>)> = (0..=31)
+            .map(|k| {
+                let world = rigid2(3.0 + 0.5 * f64::from(k), 1.0, 0.0);
+                (start.inverse() * world, corridor_scan(&world))
+            })
+            .collect();
+        let mut search = StartSearch::new(&grid, &options);
+        let first = search.search(&scans[..3]);
+        let RelocalizationOutcome::Ambiguous {
+            runner_up_from_best,
+            ..
+        } = first
+        else {
+            panic!("both corridors' closed ends look alike: {first:?}");
+        };
+        assert!(search.has_hypotheses());
+        // The runner-up is the other corridor, 8 m over.
+        let [dx, dy, _] = runner_up_from_best;
+        assert!((dx.hypot(dy) - 8.0).abs() < 0.5, "{runner_up_from_best:?}");
+        let mut placed = None;
+        for k in (5..=scans.len()).step_by(4) {
+            match search.disambiguate(&scans[..k]) {
+                RelocalizationOutcome::Found(found) => {
+                    placed = Some((k, found));
+                    break;
+                }
+                RelocalizationOutcome::Ambiguous { .. } => {}
+                RelocalizationOutcome::NotFound => panic!("lost every hypothesis at {k} scans"),
+            }
+        }
+        let (k, found) = placed.unwrap_or_else(|| {
+            let (_, cloud) = merge_scans(&scans, options.voxel_size).unwrap();
+            let h = search.hypotheses.clone();
+            let z = paired_z(search.sharp.as_ref().unwrap(), &cloud, &h[0].0, &h[1].0);
+            panic!(
+                "not placed by the corridor's end: {:?} z {z} points {} {h:?}",
+                search.disambiguate(&scans),
+                cloud.len()
+            )
+        });
+        // Only scans within 4 m of the pillar see it (x ≥ 11, scan 16 on).
+        assert!(
+            k > 16,
+            "placed at {k} scans, before anything told the corridors apart"
+        );
+        let error = (found.global_from_local.translation.vector - start.translation.vector).norm();
+        assert!(error < 0.05, "placed {error} m off");
+        assert!(found.global_from_local.theta().abs() < 1f64.to_radians());
+        assert!(!search.has_hypotheses());
     }
 }
