@@ -388,7 +388,7 @@ impl StartSearch {
             .collect();
         rescored.sort_by(|a, b| b.1.total_cmp(&a.1));
         let rescored = distinct(rescored);
-        let Some(&(best_pose, best_score)) = rescored.first() else {
+        let Some(&(_, best_score)) = rescored.first() else {
             self.hypotheses.clear();
             return RelocalizationOutcome::NotFound;
         };
