@@ -301,6 +301,10 @@ pub fn run(args: &LifelongArgs) -> anyhow::Result<()> {
     let summary = json!({
         "sessions": localized.len(),
         "cri": localized.iter().filter(|s| s.initialized).count() as f64 / n,
+        // Sessions placed in the map at all, and of those placed after their start (an ambiguous start
+        // told apart further on, or a retry): CRI counts neither as initialized.
+        "placed": localized.iter().filter(|s| s.placed).count(),
+        "placed_late": localized.iter().filter(|s| s.placed_by_retry_at_node.is_some()).count(),
         "mrcl": if distance > 0.0 { good / distance } else { 0.0 },
         "ams_mean": if ams.is_empty() { None } else { Some(ams.iter().sum::<f64>() / ams.len() as f64) },
         "ams_min": ams.iter().copied().reduce(f64::min),
