@@ -28,9 +28,9 @@ use serde::{Deserialize, Serialize};
 use crate::offline_slam::run_searches;
 use crate::source::Recording;
 
-/// An ambiguous start is given up after this many nodes since the session's start (about 80 m): LLO's
-/// drift over the merged cloud would outgrow the window its hypotheses are searched in.
-const MAX_DISAMBIGUATION_NODES: usize = 400;
+/// The cloud an unplaced session searches again with holds at most its latest this many nodes (about
+/// 80 m of driving): beyond that LLO's drift across the cloud outgrows the match tolerance.
+const MAX_SEARCH_AGAIN_NODES: usize = 400;
 
 /// Configuration of a multi-session run; one TOML file, every field optional.
 #[derive(Clone, Debug, PartialEq, Deserialize)]
@@ -45,12 +45,11 @@ pub struct SessionsConfig {
     /// How many of a session's first nodes are merged into the cloud that is relocalized (count ≥ 1).
     /// Default 10.
     pub relocalization_nodes: usize,
-    /// While a session is still unplaced (its start did not relocalize and no GLM match placed it): when
-    /// the start was ambiguous, score its hypotheses again with every node since the start each this many
-    /// nodes ([`StartSearch::disambiguate`], cheap: a small window per hypothesis); otherwise retry
-    /// relocalization with its latest `relocalization_nodes` nodes after this many nodes, then after twice,
-    /// four times, ... as many (each retry searches the whole map, so the doubling keeps a session that
-    /// cannot be placed from spending its time relocalizing). Count; 0 = never. Default 20.
+    /// While a session is still unplaced (its start did not relocalize and no GLM match placed it), search
+    /// the whole map again with every node since its start ([`StartSearch::search_again`]) after this many
+    /// nodes, then after twice, four times, ... as many (count; 0 = never). Each retry searches the whole
+    /// map, so the doubling keeps a session that cannot be placed from spending its time relocalizing.
+    /// Default 20.
     pub relocalization_retry_every_n_nodes: usize,
 }
 
@@ -103,8 +102,6 @@ pub struct SessionSummary {
     pub placed_by_retry_at_node: Option<usize>,
     /// The time of that node: the session was not localized before it.
     pub placed_at_time: Option<Timestamp>,
-    /// How many times an ambiguous start's hypotheses were scored again.
-    pub disambiguation_steps: usize,
     /// Its branch-and-bound score.
     pub relocalization_score: Option<f32>,
     /// Why session-start relocalization was refused: `ambiguous` (a clearly different pose scored within
@@ -503,15 +500,15 @@ fn worker(
                     let (outcome, search) =
                         match render_submaps(map.placed_submaps(), relocalization.resolution) {
                             Some(grid) => {
-                                let mut search = StartSearch::new(&grid, relocalization);
+                                let search = StartSearch::new(&grid, relocalization);
                                 (search.search(&first_scans), Some(search))
                             }
                             None => (RelocalizationOutcome::NotFound, None),
                         };
                     summary.relocalization_ms = start.elapsed().as_secs_f64() * 1e3;
-                    // An ambiguous start keeps its hypotheses and every scan since, to be scored
+                    // An unplaced start keeps the prepared map and every scan since, to be searched
                     // again as the session drives on.
-                    start_search = search.filter(StartSearch::has_hypotheses);
+                    start_search = search.filter(|_| outcome.found().is_none());
                     since_start = if start_search.is_some() {
                         first_scans.clone()
                     } else {
@@ -565,6 +562,9 @@ fn worker(
                     }
                     recent.push_back((local_pose, points.clone()));
                     if start_search.is_some() {
+                        if since_start.len() >= MAX_SEARCH_AGAIN_NODES {
+                            since_start.remove(0);
+                        }
                         since_start.push((local_pose, points.clone()));
                     }
                 }
@@ -576,44 +576,25 @@ fn worker(
                     &insertion_submaps,
                     finished_submaps,
                 )?;
-                let due = |summary: &SessionSummary| {
-                    session > 0
-                        && retry_every > 0
-                        && (summary.nodes_added + 1).is_multiple_of(retry_every)
-                };
                 let mut placed_late = None;
                 if let Some(summary) = sessions.last_mut()
+                    && session > 0
+                    && retry_every > 0
                     && map.is_unplaced(session)
-                    && due(summary)
-                    && let Some(search) = start_search.as_mut()
-                {
-                    // Score the start's hypotheses again with everything driven since.
-                    summary.disambiguation_steps += 1;
-                    match search.disambiguate(&since_start) {
-                        RelocalizationOutcome::Found(found) => {
-                            placed_late = Some(found.global_from_local);
-                            start_search = None;
-                        }
-                        RelocalizationOutcome::NotFound => start_search = None,
-                        RelocalizationOutcome::Ambiguous { .. } => {
-                            if since_start.len() > MAX_DISAMBIGUATION_NODES {
-                                start_search = None;
-                            }
-                        }
-                    }
-                    if start_search.is_none() {
-                        since_start = Vec::new();
-                    }
-                } else if let Some(summary) = sessions.last_mut()
-                    && map.is_unplaced(session)
-                    && due(summary)
+                    && (summary.nodes_added + 1).is_multiple_of(retry_every)
                     && ((summary.nodes_added + 1) / retry_every).is_power_of_two()
                 {
-                    let scans: Vec<_> = recent.iter().cloned().collect();
                     summary.relocalization_retries += 1;
-                    placed_late = relocalize_session_start(&map, &scans, relocalization)
-                        .found()
-                        .map(|f| f.global_from_local);
+                    let outcome = match start_search.as_ref() {
+                        // Every scan since the start, searched over the whole map again.
+                        Some(search) => search.search_again(&since_start),
+                        // No map at the start: the latest nodes against whatever is there now.
+                        None => {
+                            let scans: Vec<_> = recent.iter().cloned().collect();
+                            relocalize_session_start(&map, &scans, relocalization)
+                        }
+                    };
+                    placed_late = outcome.found().map(|f| f.global_from_local);
                 }
                 if let (Some(global_from_local), Some(summary)) = (placed_late, sessions.last_mut())
                     && map.place_session(session, global_from_local)?

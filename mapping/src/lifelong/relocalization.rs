@@ -47,10 +47,10 @@ pub struct RelocalizationOptions {
     /// weeks-old map falls below `min_score` even where the walls, frames and pillars all agree. 0 scores
     /// cell-exactly. Default 0.15 m (half the simulated store's goods depth; three cells).
     pub match_tolerance: f64,
-    /// How decisively the hypotheses of an ambiguous start must separate before [`StartSearch::disambiguate`]
-    /// places the session: per point of the merged cloud, the difference between the best hypothesis' and
-    /// another's score at that point; the paired statistic `Σd / √(Σd²)` must reach this for every other
-    /// hypothesis. Points both explain equally (the shelves of two look-alike aisles) add nothing;
+    /// How decisively the best pose must beat every other candidate before [`StartSearch::search_again`]
+    /// places an ambiguous start: per point of the merged cloud, the difference between the best pose's
+    /// and another candidate's score at that point; the paired statistic `Σd / √(Σd²)` must reach this
+    /// for every other candidate. Points both explain equally (the shelves of two look-alike aisles) add nothing;
     /// features only one explains (a pillar, an aisle end) add evidence; goods that fit one aisle by chance
     /// as often fit the other and cancel. Unitless (about standard errors). Default 3.
     pub min_disambiguation_z: f64,
@@ -285,28 +285,22 @@ fn merge_scans(
     (!cloud.is_empty()).then_some((first_from_local, cloud))
 }
 
-/// Half-width of the window in which a remembered hypothesis is searched again with a longer cloud,
-/// metres: LLO's drift over the tens of metres the cloud grows by, plus the tolerance.
-const HYPOTHESIS_LINEAR_WINDOW_M: f64 = 0.4;
-/// … and radians (2°).
-const HYPOTHESIS_ANGULAR_WINDOW_RAD: f64 = 0.035;
-
 /// Session-start relocalization that can wait out an ambiguous start.
 ///
 /// In a store of look-alike aisles the first metres of a session often fit two or more places equally well
-/// (see [`RelocalizationOptions::min_score_margin`]). Rather than searching the whole map again later with
-/// another short cloud, a `StartSearch` keeps the distinct candidates of its first search as hypotheses of
-/// where the session's first scan was; [`Self::disambiguate`] scores each again, in a small window around
-/// it, with the cloud of every scan since the start. As the robot drives on — to an aisle end, a pillar,
-/// a cross aisle — the cloud stops fitting the wrong places, and the session is placed once one hypothesis
-/// leads by the margin. Holds the map prepared once (built per session, dropped when placed).
+/// (see [`RelocalizationOptions::min_score_margin`]). A `StartSearch` holds the map prepared once for the
+/// session; [`Self::search_again`] searches it with the cloud of every scan since the start. As the robot
+/// drives on — to an aisle end, a pillar, a cross aisle — the cloud stops fitting the wrong places, and the
+/// session is placed once the best pose fits decisively better than every other candidate (a paired
+/// per-point test, [`RelocalizationOptions::min_disambiguation_z`]; a mean-score margin is diluted as the
+/// cloud grows). Each search covers the whole map, so the right place is always among the candidates;
+/// tracking only the first search's few candidates instead placed sessions in wrong aisles whenever the
+/// truth was not among them.
 pub struct StartSearch {
     relocalizer: Relocalizer,
     /// The unfiltered map, when the search runs on a max-filtered copy.
     sharp: Option<ProbabilityGrid>,
     options: RelocalizationOptions,
-    /// `map_from_first` of each hypothesis with its last score, best first.
-    hypotheses: Vec<(Rigid2, f32)>,
 }
 
 impl StartSearch {
@@ -328,19 +322,12 @@ impl StartSearch {
             relocalizer,
             sharp: tolerant.is_some().then(|| grid.clone()),
             options: options.clone(),
-            hypotheses: Vec::new(),
         }
     }
 
-    /// Whether an ambiguous search left hypotheses for [`Self::disambiguate`].
-    pub fn has_hypotheses(&self) -> bool {
-        !self.hypotheses.is_empty()
-    }
-
-    /// Searches the whole map for `scans` (`(local_from_tracking, points)`, first scan first). When the
-    /// result is ambiguous, remembers the distinct candidates.
-    pub fn search(&mut self, scans: &[(Rigid2, Vec<Point2<f32>>)]) -> RelocalizationOutcome {
-        self.hypotheses.clear();
+    /// Searches the whole map for `scans` (`(local_from_tracking, points)`, first scan first); refuses
+    /// a best pose whose runner-up scores within `min_score_margin` (`Ambiguous`).
+    pub fn search(&self, scans: &[(Rigid2, Vec<Point2<f32>>)]) -> RelocalizationOutcome {
         let Some((first_from_local, cloud)) = merge_scans(scans, self.options.voxel_size) else {
             return RelocalizationOutcome::NotFound;
         };
@@ -351,7 +338,6 @@ impl StartSearch {
             (found.runner_up_score, found.runner_up_pose)
             && runner_up_score >= found.score - self.options.min_score_margin
         {
-            self.hypotheses = distinct(found.candidates);
             let offset = found.pose.inverse() * runner_up_pose;
             return RelocalizationOutcome::Ambiguous {
                 score: found.score,
@@ -362,59 +348,40 @@ impl StartSearch {
         self.found(&cloud, &found.pose, found.score, first_from_local)
     }
 
-    /// Scores every remembered hypothesis again with `scans` (the same first scan as the search, and every
-    /// scan since): places the session when the best fits decisively better than every other (see
-    /// [`RelocalizationOptions::min_disambiguation_z`]; or is the only one still reaching `min_score`),
-    /// forgets them all when none reaches it (`NotFound`), and stays `Ambiguous` otherwise. `NotFound`
-    /// without hypotheses.
-    pub fn disambiguate(&mut self, scans: &[(Rigid2, Vec<Point2<f32>>)]) -> RelocalizationOutcome {
-        if self.hypotheses.is_empty() {
-            return RelocalizationOutcome::NotFound;
-        }
+    /// Searches the whole map again for `scans` — the same first scan as [`Self::search`] and every scan
+    /// since — and places the session when the best pose fits decisively better than every other distinct
+    /// candidate (see [`RelocalizationOptions::min_disambiguation_z`]), or is the only one reaching
+    /// `min_score`. `Ambiguous` otherwise; `NotFound` when nothing reaches `min_score`.
+    pub fn search_again(&self, scans: &[(Rigid2, Vec<Point2<f32>>)]) -> RelocalizationOutcome {
         let Some((first_from_local, cloud)) = merge_scans(scans, self.options.voxel_size) else {
             return RelocalizationOutcome::NotFound;
         };
-        let mut rescored: Vec<(Rigid2, f32)> = self
-            .hypotheses
-            .iter()
-            .filter_map(|(pose, _)| {
-                self.relocalizer.match_near(
-                    pose,
-                    &cloud,
-                    HYPOTHESIS_LINEAR_WINDOW_M,
-                    HYPOTHESIS_ANGULAR_WINDOW_RAD,
-                )
-            })
-            .collect();
-        rescored.sort_by(|a, b| b.1.total_cmp(&a.1));
-        let rescored = distinct(rescored);
-        let Some(&(_, best_score)) = rescored.first() else {
-            self.hypotheses.clear();
+        let Some(found) = self.relocalizer.relocalize(&cloud) else {
             return RelocalizationOutcome::NotFound;
         };
-        // Hypotheses found on the max-filtered map wander within the tolerance; compare them refined on
-        // the unfiltered map, where a pillar's or an aisle end's points tell most.
-        let rescored: Vec<(Rigid2, f32)> = match &self.sharp {
-            Some(sharp) => rescored
-                .into_iter()
-                .map(|(pose, score)| {
-                    (
-                        refine_on_sharp_map(sharp, &cloud, &pose, &self.options),
-                        score,
-                    )
-                })
-                .collect(),
-            None => rescored,
+        // Candidates found on the max-filtered map are only known to within the tolerance; compare them
+        // refined on the unfiltered map, where a pillar's or an aisle end's points tell most.
+        let candidates: Vec<(Rigid2, f32)> = distinct(found.candidates)
+            .into_iter()
+            .map(|(pose, score)| match &self.sharp {
+                Some(sharp) => (
+                    refine_on_sharp_map(sharp, &cloud, &pose, &self.options),
+                    score,
+                ),
+                None => (pose, score),
+            })
+            .collect();
+        let Some(&(best_pose, best_score)) = candidates.first() else {
+            return RelocalizationOutcome::NotFound;
         };
-        let best_pose = rescored[0].0;
         let grid = self.sharp.as_ref().unwrap_or(self.relocalizer.fine_grid());
-        let decisive = rescored[1..].iter().all(|(other, _)| {
-            paired_z(grid, &cloud, &best_pose, other) >= self.options.min_disambiguation_z
-        });
-        if let Some(&(runner_up_pose, runner_up_score)) = rescored.get(1)
-            && !decisive
+        let weakest = candidates[1..]
+            .iter()
+            .map(|(other, score)| (paired_z(grid, &cloud, &best_pose, other), *other, *score))
+            .min_by(|a, b| a.0.total_cmp(&b.0));
+        if let Some((z, runner_up_pose, runner_up_score)) = weakest
+            && z < self.options.min_disambiguation_z
         {
-            self.hypotheses = rescored;
             let offset = best_pose.inverse() * runner_up_pose;
             return RelocalizationOutcome::Ambiguous {
                 score: best_score,
@@ -422,7 +389,6 @@ impl StartSearch {
                 runner_up_from_best: [offset.translation.x, offset.translation.y, offset.theta()],
             };
         }
-        self.hypotheses.clear();
         self.found(&cloud, &best_pose, best_score, first_from_local)
     }
 
@@ -688,7 +654,7 @@ mod tests {
                 (start.inverse() * world, corridor_scan(&world))
             })
             .collect();
-        let mut search = StartSearch::new(&grid, &options);
+        let search = StartSearch::new(&grid, &options);
         let first = search.search(&scans[..3]);
         let RelocalizationOutcome::Ambiguous {
             runner_up_from_best,
@@ -697,29 +663,24 @@ mod tests {
         else {
             panic!("both corridors' closed ends look alike: {first:?}");
         };
-        assert!(search.has_hypotheses());
         // The runner-up is the other corridor, 8 m over.
         let [dx, dy, _] = runner_up_from_best;
         assert!((dx.hypot(dy) - 8.0).abs() < 0.5, "{runner_up_from_best:?}");
         let mut placed = None;
         for k in (5..=scans.len()).step_by(4) {
-            match search.disambiguate(&scans[..k]) {
+            match search.search_again(&scans[..k]) {
                 RelocalizationOutcome::Found(found) => {
                     placed = Some((k, found));
                     break;
                 }
                 RelocalizationOutcome::Ambiguous { .. } => {}
-                RelocalizationOutcome::NotFound => panic!("lost every hypothesis at {k} scans"),
+                RelocalizationOutcome::NotFound => panic!("nothing fits {k} scans"),
             }
         }
         let (k, found) = placed.unwrap_or_else(|| {
-            let (_, cloud) = merge_scans(&scans, options.voxel_size).unwrap();
-            let h = search.hypotheses.clone();
-            let z = paired_z(search.sharp.as_ref().unwrap(), &cloud, &h[0].0, &h[1].0);
             panic!(
-                "not placed by the corridor's end: {:?} z {z} points {} {h:?}",
-                search.disambiguate(&scans),
-                cloud.len()
+                "not placed by the corridor's end: {:?}",
+                search.search_again(&scans)
             )
         });
         // Only scans within 4 m of the pillar see it (x ≥ 11, scan 16 on).
@@ -730,6 +691,5 @@ mod tests {
         let error = (found.global_from_local.translation.vector - start.translation.vector).norm();
         assert!(error < 0.05, "placed {error} m off");
         assert!(found.global_from_local.theta().abs() < 1f64.to_radians());
-        assert!(!search.has_hypotheses());
     }
 }
