@@ -585,14 +585,13 @@ fn worker(
                     && ((summary.nodes_added + 1) / retry_every).is_power_of_two()
                 {
                     summary.relocalization_retries += 1;
-                    let outcome = match start_search.as_ref() {
+                    let outcome = if let Some(search) = start_search.as_ref() {
                         // Every scan since the start, searched over the whole map again.
-                        Some(search) => search.search_again(&since_start),
+                        search.search_again(&since_start)
+                    } else {
                         // No map at the start: the latest nodes against whatever is there now.
-                        None => {
-                            let scans: Vec<_> = recent.iter().cloned().collect();
-                            relocalize_session_start(&map, &scans, relocalization)
-                        }
+                        let scans: Vec<_> = recent.iter().cloned().collect();
+                        relocalize_session_start(&map, &scans, relocalization)
                     };
                     placed_late = outcome.found().map(|f| f.global_from_local);
                 }

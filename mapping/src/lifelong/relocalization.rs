@@ -399,19 +399,11 @@ impl StartSearch {
         score: f32,
         first_from_local: Rigid2,
     ) -> RelocalizationOutcome {
-        let pose = match &self.sharp {
-            Some(sharp) => refine_on_sharp_map(sharp, cloud, pose, &self.options),
-            None => {
-                let refiner = LeastSquaresScanMatcher::new(self.options.least_squares.clone());
-                refiner
-                    .match_pose(
-                        &pose.translation.vector,
-                        pose,
-                        cloud,
-                        self.relocalizer.fine_grid(),
-                    )
-                    .0
-            }
+        // Without a filtered copy the relocalizer already refined on the map itself.
+        let pose = if let Some(sharp) = &self.sharp {
+            refine_on_sharp_map(sharp, cloud, pose, &self.options)
+        } else {
+            *pose
         };
         RelocalizationOutcome::Found(SessionRelocalization {
             global_from_local: pose * first_from_local,
@@ -488,7 +480,7 @@ fn refine_on_sharp_map(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::geometry::{Rigid2Ext as _, rigid2};
+    use crate::geometry::rigid2;
     use crate::scan_matching::test_support::{ROOM_WALLS, room_grid};
 
     /// Points every 10 cm along the room's walls seen from `world_from_robot`; the inner walls (goods,
@@ -626,7 +618,7 @@ mod tests {
     fn corridor_scan(world_from_robot: &Rigid2) -> Vec<Point2<f32>> {
         let robot_from_world = world_from_robot.inverse();
         let mut points = Vec::new();
-        for (a, b) in CORRIDORS[..6].iter() {
+        for (a, b) in &CORRIDORS[..6] {
             let (a, b) = (Vector2::from(*a), Vector2::from(*b));
             let length = (b - a).norm();
             let mut s = 0.05;
