@@ -481,29 +481,20 @@ fn refine_on_sharp_map(
 mod tests {
     use super::*;
     use crate::geometry::rigid2;
-    use crate::scan_matching::test_support::{ROOM_WALLS, room_grid};
+    use crate::scan_matching::test_support::{ROOM_WALLS, room_grid, wall_points, walls_grid};
 
     /// Points every 10 cm along the room's walls seen from `world_from_robot`; the inner walls (goods,
     /// displays) stand `shift` metres further along +y than when the map was made.
     fn changed_room_scan(world_from_robot: &Rigid2, shift: f64) -> Vec<Point2<f32>> {
-        let robot_from_world = world_from_robot.inverse();
-        let mut points = Vec::new();
-        for (k, (a, b)) in ROOM_WALLS.iter().enumerate() {
-            let offset = if k >= 4 {
-                Vector2::new(0.0, shift)
-            } else {
-                Vector2::zeros()
-            };
-            let (a, b) = (Vector2::from(*a) + offset, Vector2::from(*b) + offset);
-            let length = (b - a).norm();
-            let mut s = 0.05;
-            while s < length {
-                let p = robot_from_world * Point2::from(a + (b - a) * (s / length));
-                points.push(Point2::new(p.x as f32, p.y as f32));
-                s += 0.1;
-            }
-        }
-        points
+        let walls: Vec<([f64; 2], [f64; 2])> = ROOM_WALLS
+            .iter()
+            .enumerate()
+            .map(|(k, &(a, b))| {
+                let dy = if k >= 4 { shift } else { 0.0 };
+                ([a[0], a[1] + dy], [b[0], b[1] + dy])
+            })
+            .collect();
+        wall_points(&walls, world_from_robot, 0.05, 0.1, f64::INFINITY)
     }
 
     #[test]
@@ -571,67 +562,22 @@ mod tests {
     ];
     const CORRIDOR_B_BACK: ([f64; 2], [f64; 2]) = ([0.0, 8.0], [0.0, 10.0]);
 
-    fn walls() -> Vec<(Vector2<f64>, Vector2<f64>)> {
-        CORRIDORS
-            .iter()
-            .chain(std::iter::once(&CORRIDOR_B_BACK))
-            .map(|(a, b)| (Vector2::from(*a), Vector2::from(*b)))
-            .collect()
-    }
-
-    fn distance_to_segment(p: &Vector2<f64>, a: &Vector2<f64>, b: &Vector2<f64>) -> f64 {
-        let ab = b - a;
-        let t = ((p - a).dot(&ab) / ab.norm_squared()).clamp(0.0, 1.0);
-        (p - (a + ab * t)).norm()
-    }
-
-    /// The corridors in a 5 cm grid (probability falling off from each wall, σ = 5 cm); only the
-    /// corridors and a 0.3 m margin are known.
+    /// The corridors in a 5 cm grid; only the corridors and a 0.3 m margin are known.
     fn corridors_grid() -> ProbabilityGrid {
-        use crate::grid::{CellIndex, MAX_PROBABILITY, MIN_PROBABILITY};
+        let walls: Vec<([f64; 2], [f64; 2])> =
+            CORRIDORS.iter().copied().chain([CORRIDOR_B_BACK]).collect();
         let limits = MapLimits::new(0.05, Vector2::new(-1.0, -1.0), 440, 240);
-        let mut grid = ProbabilityGrid::new(limits.clone());
-        let walls = walls();
-        for iy in 0..limits.height {
-            for ix in 0..limits.width {
-                let index = CellIndex::new(ix, iy);
-                let c = limits.cell_center(&index).coords;
-                let inside =
-                    |y0: f64| (-0.3..=20.3).contains(&c.x) && (y0 - 0.3..=y0 + 2.3).contains(&c.y);
-                if !(inside(0.0) || inside(8.0)) {
-                    continue;
-                }
-                let d = walls
-                    .iter()
-                    .map(|(a, b)| distance_to_segment(&c, a, b))
-                    .fold(f64::INFINITY, f64::min);
-                let p = f64::from(MIN_PROBABILITY)
-                    + f64::from(MAX_PROBABILITY - MIN_PROBABILITY) * (-d * d / 0.005).exp();
-                grid.set_probability(&index, p as f32);
-            }
-        }
-        grid
+        walls_grid(&walls, limits, |c| {
+            let inside =
+                |y0: f64| (-0.3..=20.3).contains(&c.x) && (y0 - 0.3..=y0 + 2.3).contains(&c.y);
+            inside(0.0) || inside(8.0)
+        })
     }
 
     /// What a robot at `world_from_robot` in the first corridor sees: wall points every 10 cm within 4 m
     /// of it (the first corridor's walls only), in its frame.
     fn corridor_scan(world_from_robot: &Rigid2) -> Vec<Point2<f32>> {
-        let robot_from_world = world_from_robot.inverse();
-        let mut points = Vec::new();
-        for (a, b) in &CORRIDORS[..6] {
-            let (a, b) = (Vector2::from(*a), Vector2::from(*b));
-            let length = (b - a).norm();
-            let mut s = 0.05;
-            while s < length {
-                let w = a + (b - a) * (s / length);
-                if (w - world_from_robot.translation.vector).norm() <= 4.0 {
-                    let p = robot_from_world * Point2::from(w);
-                    points.push(Point2::new(p.x as f32, p.y as f32));
-                }
-                s += 0.1;
-            }
-        }
-        points
+        wall_points(&CORRIDORS[..6], world_from_robot, 0.05, 0.1, 4.0)
     }
 
     #[test]
