@@ -567,7 +567,7 @@ mod tests {
         let walls: Vec<([f64; 2], [f64; 2])> =
             CORRIDORS.iter().copied().chain([CORRIDOR_B_BACK]).collect();
         let limits = MapLimits::new(0.05, Vector2::new(-1.0, -1.0), 440, 240);
-        walls_grid(&walls, limits, |c| {
+        walls_grid(&walls, &limits, |c| {
             let inside =
                 |y0: f64| (-0.3..=20.3).contains(&c.x) && (y0 - 0.3..=y0 + 2.3).contains(&c.y);
             inside(0.0) || inside(8.0)

@@ -28,7 +28,7 @@ fn distance_to_segment(p: &Vector2<f64>, a: &Vector2<f64>, b: &Vector2<f64>) -> 
 /// centre `known` rejects stay unknown.
 pub(crate) fn walls_grid(
     walls: &[([f64; 2], [f64; 2])],
-    limits: MapLimits,
+    limits: &MapLimits,
     known: impl Fn(&Vector2<f64>) -> bool,
 ) -> ProbabilityGrid {
     let mut grid = ProbabilityGrid::new(limits.clone());
@@ -84,7 +84,7 @@ pub(crate) fn wall_points(
 /// 0.6 m outside the room stay unknown.
 pub(crate) fn room_grid() -> ProbabilityGrid {
     let limits = MapLimits::new(0.05, Vector2::new(-1.0, -1.0), 160, 140);
-    walls_grid(&ROOM_WALLS, limits, |c| {
+    walls_grid(&ROOM_WALLS, &limits, |c| {
         !(c.x < -0.6 || c.y < -0.6 || c.x > 6.6 || c.y > 5.6)
     })
 }
