@@ -5,8 +5,12 @@
 //! few scans of the session are merged into one cloud in the first scan's frame (LLO is accurate over a
 //! few metres, and a wider cloud is far more distinctive than one scan); the coarse-to-fine
 //! [`Relocalizer`] searches it over the whole grid and every rotation (branch and bound on a 2× coarser
-//! max-grid, then on the full grid around the best few candidates) and the least-squares matcher refines
-//! the winner. Cost: one precomputation over the rendered map plus one coarse and a few local searches.
+//! max-grid, then on the full grid around the best few candidates), scoring against the map max-filtered
+//! by [`RelocalizationOptions::match_tolerance`] so that goods that moved a little still count, and the
+//! winner is refined on the unfiltered map. A near-tie with a clearly different pose is refused
+//! ([`RelocalizationOutcome::Ambiguous`]); [`StartSearch::search_again`] then searches again with every
+//! scan since the start until one pose wins a paired per-point test. Cost: one precomputation over the
+//! rendered map plus one coarse and a few local searches per attempt.
 
 use nalgebra::{Point2, Vector2};
 use serde::Deserialize;
