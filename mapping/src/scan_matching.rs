@@ -40,7 +40,8 @@ pub use real_time_correlative::{
     RealTimeCorrelativeScanMatcher, RealTimeCorrelativeScanMatcherOptions,
 };
 pub use relocalizer::{
-    Relocalization, Relocalizer, RelocalizerOptions, max_downsampled, max_filtered,
+    Relocalization, Relocalizer, RelocalizerOptions, clearly_different, max_downsampled,
+    max_filtered,
 };
 
 /// Errors of the scan matching module.

@@ -9,7 +9,7 @@
 //! As in `offline_slam`, LLO runs on the calling thread and the map (relocalization, GLM searches on two
 //! threads, optimization, trimming) on a named worker thread fed through a bounded channel.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, VecDeque};
 use std::sync::mpsc;
 use std::time::Instant;
 
@@ -470,16 +470,15 @@ fn worker(
 ) -> Result<WorkerOutput, SessionsError> {
     let relocalization = &config.relocalization;
     // The session's latest nodes (local pose, points), for relocalization retries.
-    let mut recent: std::collections::VecDeque<(Rigid2, Vec<Point2<f32>>)> =
-        std::collections::VecDeque::new();
     let mut sessions: Vec<SessionSummary> = Vec::new();
     let mut retired: BTreeMap<NodeId, Rigid2> = BTreeMap::new();
     let mut at_session_end: BTreeMap<NodeId, Rigid2> = BTreeMap::new();
     let mut priors: BTreeMap<u32, (Rigid2, Rigid2)> = BTreeMap::new();
     let mut scores: Vec<f32> = Vec::new();
-    // The current session's ambiguous start (hypotheses) and its scans since the start.
+    // While the current session is unplaced: the map prepared at its start (when there was one) and its
+    // latest nodes since the start (local pose, points), for relocalization retries.
     let mut start_search: Option<StartSearch> = None;
-    let mut since_start: Vec<(Rigid2, Vec<Point2<f32>>)> = Vec::new();
+    let mut since_start: VecDeque<(Rigid2, Vec<Point2<f32>>)> = VecDeque::new();
     for message in receiver {
         match message {
             Message::Start {
@@ -506,14 +505,9 @@ fn worker(
                             None => (RelocalizationOutcome::NotFound, None),
                         };
                     summary.relocalization_ms = start.elapsed().as_secs_f64() * 1e3;
-                    // An unplaced start keeps the prepared map and every scan since, to be searched
-                    // again as the session drives on.
+                    // An unplaced start keeps the prepared map, to be searched again with the nodes
+                    // that follow (the held-back first nodes arrive next, as `Node` messages).
                     start_search = search.filter(|_| outcome.found().is_none());
-                    since_start = if start_search.is_some() {
-                        first_scans.clone()
-                    } else {
-                        Vec::new()
-                    };
                     match outcome {
                         RelocalizationOutcome::Found(_) => {}
                         RelocalizationOutcome::Ambiguous {
@@ -544,7 +538,7 @@ fn worker(
                     found.map(|f| f.global_from_local)
                 };
                 map.start_session(session, prior)?;
-                recent.clear();
+                since_start.clear();
                 sessions.push(summary);
             }
             Message::Node {
@@ -557,16 +551,10 @@ fn worker(
             } => {
                 let retry_every = config.relocalization_retry_every_n_nodes;
                 if session > 0 && retry_every > 0 && map.is_unplaced(session) {
-                    if recent.len() >= config.relocalization_nodes {
-                        recent.pop_front();
+                    if since_start.len() >= MAX_SEARCH_AGAIN_NODES {
+                        since_start.pop_front();
                     }
-                    recent.push_back((local_pose, points.clone()));
-                    if start_search.is_some() {
-                        if since_start.len() >= MAX_SEARCH_AGAIN_NODES {
-                            since_start.remove(0);
-                        }
-                        since_start.push((local_pose, points.clone()));
-                    }
+                    since_start.push_back((local_pose, points.clone()));
                 }
                 let (_, events) = map.add_node(
                     session,
@@ -585,13 +573,16 @@ fn worker(
                     && ((summary.nodes_added + 1) / retry_every).is_power_of_two()
                 {
                     summary.relocalization_retries += 1;
+                    let since_start = since_start.make_contiguous();
                     let outcome = if let Some(search) = start_search.as_ref() {
-                        // Every scan since the start, searched over the whole map again.
-                        search.search_again(&since_start)
+                        // Every node since the start, searched over the whole map again.
+                        search.search_again(since_start)
                     } else {
                         // No map at the start: the latest nodes against whatever is there now.
-                        let scans: Vec<_> = recent.iter().cloned().collect();
-                        relocalize_session_start(&map, &scans, relocalization)
+                        let latest = since_start
+                            .len()
+                            .saturating_sub(config.relocalization_nodes);
+                        relocalize_session_start(&map, &since_start[latest..], relocalization)
                     };
                     placed_late = outcome.found().map(|f| f.global_from_local);
                 }

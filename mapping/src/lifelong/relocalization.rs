@@ -17,11 +17,12 @@ use serde::Deserialize;
 
 use super::{LifelongMap, LifelongOptionsError, PlacedGrid};
 use crate::geometry::{Rigid2, Rigid2Ext as _};
-use crate::grid::{CellIndex, MIN_PROBABILITY, MapLimits, ProbabilityGrid, UNKNOWN_VALUE};
+use crate::grid::{CellIndex, MapLimits, ProbabilityGrid, UNKNOWN_VALUE};
 use crate::local_slam::voxel_filter;
 use crate::scan_matching::{
     LeastSquaresScanMatcher, LeastSquaresScanMatcherOptions, RealTimeCorrelativeScanMatcher,
-    RealTimeCorrelativeScanMatcherOptions, Relocalizer, RelocalizerOptions, max_filtered,
+    RealTimeCorrelativeScanMatcherOptions, Relocalizer, RelocalizerOptions, clearly_different,
+    max_filtered,
 };
 
 /// Options of [`relocalize_session_start`].
@@ -243,8 +244,8 @@ fn render<'a>(
 
 /// Finds `global_from_local` of a new session from its first scans, with no prior, against `map`'s
 /// finished submaps (see the module docs). `scans` are `(local_from_tracking, points in the tracking
-/// frame)` in LLO's frame, first scan first. `None` when the map is empty, there are no points, or no
-/// pose reaches `min_score`.
+/// frame)` in LLO's frame, first scan first. `NotFound` when the map is empty, there are no points, or
+/// no pose reaches `min_score`.
 pub fn relocalize_session_start(
     map: &LifelongMap,
     scans: &[(Rigid2, Vec<Point2<f32>>)],
@@ -349,7 +350,10 @@ impl StartSearch {
                 runner_up_from_best: [offset.translation.x, offset.translation.y, offset.theta()],
             };
         }
-        self.found(&cloud, &found.pose, found.score, first_from_local)
+        RelocalizationOutcome::Found(SessionRelocalization {
+            global_from_local: self.sharpen(&cloud, &found.pose) * first_from_local,
+            score: found.score,
+        })
     }
 
     /// Searches the whole map again for `scans` — the same first scan as [`Self::search`] and every scan
@@ -367,13 +371,7 @@ impl StartSearch {
         // refined on the unfiltered map, where a pillar's or an aisle end's points tell most.
         let candidates: Vec<(Rigid2, f32)> = distinct(found.candidates)
             .into_iter()
-            .map(|(pose, score)| match &self.sharp {
-                Some(sharp) => (
-                    refine_on_sharp_map(sharp, &cloud, &pose, &self.options),
-                    score,
-                ),
-                None => (pose, score),
-            })
+            .map(|(pose, score)| (self.sharpen(&cloud, &pose), score))
             .collect();
         let Some(&(best_pose, best_score)) = candidates.first() else {
             return RelocalizationOutcome::NotFound;
@@ -393,26 +391,19 @@ impl StartSearch {
                 runner_up_from_best: [offset.translation.x, offset.translation.y, offset.theta()],
             };
         }
-        self.found(&cloud, &best_pose, best_score, first_from_local)
+        RelocalizationOutcome::Found(SessionRelocalization {
+            global_from_local: best_pose * first_from_local,
+            score: best_score,
+        })
     }
 
-    fn found(
-        &self,
-        cloud: &[Point2<f32>],
-        pose: &Rigid2,
-        score: f32,
-        first_from_local: Rigid2,
-    ) -> RelocalizationOutcome {
-        // Without a filtered copy the relocalizer already refined on the map itself.
-        let pose = if let Some(sharp) = &self.sharp {
-            refine_on_sharp_map(sharp, cloud, pose, &self.options)
-        } else {
-            *pose
-        };
-        RelocalizationOutcome::Found(SessionRelocalization {
-            global_from_local: pose * first_from_local,
-            score,
-        })
+    /// `pose` found on the max-filtered map, refined on the unfiltered one (without a filtered copy the
+    /// relocalizer already refined on the map itself).
+    fn sharpen(&self, cloud: &[Point2<f32>], pose: &Rigid2) -> Rigid2 {
+        match &self.sharp {
+            Some(sharp) => refine_on_sharp_map(sharp, cloud, pose, &self.options),
+            None => *pose,
+        }
     }
 }
 
@@ -420,13 +411,10 @@ impl StartSearch {
 /// `grid` at `best` than at `other`, point by point, in standard errors (0 when they fit identically).
 fn paired_z(grid: &ProbabilityGrid, cloud: &[Point2<f32>], best: &Rigid2, other: &Rigid2) -> f64 {
     let limits = grid.limits();
+    // Unknown cells read as the least probability, as in the search.
     let score = |pose: &Rigid2, p: &Point2<f32>| {
         let index = limits.cell_index(&(pose * Point2::new(f64::from(p.x), f64::from(p.y))));
-        if grid.is_known(&index) {
-            f64::from(grid.probability(&index))
-        } else {
-            f64::from(MIN_PROBABILITY)
-        }
+        f64::from(grid.probability(&index))
     };
     let (mut sum, mut squares) = (0.0, 0.0);
     for p in cloud {
@@ -441,16 +429,11 @@ fn paired_z(grid: &ProbabilityGrid, cloud: &[Point2<f32>], best: &Rigid2, other:
     }
 }
 
-/// `candidates` (best first) without those within 1 m and 10° of a better one.
+/// `candidates` (best first) without those not [`clearly_different`] from a better one.
 fn distinct(candidates: Vec<(Rigid2, f32)>) -> Vec<(Rigid2, f32)> {
     let mut kept: Vec<(Rigid2, f32)> = Vec::new();
     for (pose, score) in candidates {
-        let near = kept.iter().any(|(k, _)| {
-            (k.translation.vector - pose.translation.vector).norm() <= 1.0
-                && crate::geometry::normalize_angle(k.theta() - pose.theta()).abs()
-                    <= 10f64.to_radians()
-        });
-        if !near {
+        if kept.iter().all(|(k, _)| clearly_different(k, &pose)) {
             kept.push((pose, score));
         }
     }

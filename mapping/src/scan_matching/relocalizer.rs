@@ -108,13 +108,13 @@ pub struct Relocalization {
     pub score: f32,
     /// Coarse candidates that were refined.
     pub candidates_refined: usize,
-    /// Fine score of the best refined candidate at a clearly different pose (more than 1 m or 10° from
+    /// Fine score of the best refined candidate at a clearly different pose ([`clearly_different`] from
     /// the winner), if any: how ambiguous the match is (shelf rows and corridors repeat).
     pub runner_up_score: Option<f32>,
     /// The pose of that runner-up (before refinement).
     pub runner_up_pose: Option<Rigid2>,
     /// Every refined candidate reaching `min_score`, `(pose before least squares, fine score)`, best
-    /// first: the hypotheses to keep when the match is ambiguous.
+    /// first (several may belong to one peak; see [`clearly_different`]).
     pub candidates: Vec<(Rigid2, f32)>,
 }
 
@@ -269,51 +269,29 @@ impl Relocalizer {
         let &(best_pose, best_score) = found_all.iter().max_by(|a, b| a.1.total_cmp(&b.1))?;
         let runner_up = found_all
             .iter()
-            .filter(|(pose, _)| {
-                (pose.translation.vector - best_pose.translation.vector).norm() > 1.0
-                    || crate::geometry::normalize_angle(
-                        pose.rotation.angle() - best_pose.rotation.angle(),
-                    )
-                    .abs()
-                        > 10f64.to_radians()
-            })
-            .max_by(|a, b| a.1.total_cmp(&b.1));
-        let mut candidates = found_all.clone();
-        candidates.sort_by(|a, b| b.1.total_cmp(&a.1));
+            .filter(|(pose, _)| clearly_different(pose, &best_pose))
+            .max_by(|a, b| a.1.total_cmp(&b.1))
+            .copied();
         let target: Vector2<f64> = best_pose.translation.vector;
         let (refined, _) = refiner.match_pose(&target, &best_pose, points, &self.fine_grid);
+        found_all.sort_by(|a, b| b.1.total_cmp(&a.1));
         Some(Relocalization {
             pose: refined,
             score: best_score,
             candidates_refined: candidates.len(),
             runner_up_score: runner_up.map(|r| r.1),
             runner_up_pose: runner_up.map(|r| r.0),
-            candidates,
+            candidates: found_all,
         })
     }
 }
 
-impl Relocalizer {
-    /// The best pose and fine score of `points` within `linear_window` metres and `angular_window` radians
-    /// of `initial` on the full-resolution map (no refinement), if it reaches `min_score`: follows up a
-    /// candidate of [`Self::relocalize`] with more points.
-    pub fn match_near(
-        &self,
-        initial: &Rigid2,
-        points: &[Point2<f32>],
-        linear_window: f64,
-        angular_window: f64,
-    ) -> Option<(Rigid2, f32)> {
-        self.fine
-            .match_within(
-                initial,
-                points,
-                self.options.min_score,
-                linear_window,
-                angular_window,
-            )
-            .map(|m| (m.pose, m.score))
-    }
+/// Whether two poses are clearly different places for a relocalization (more than 1 m or 10° apart),
+/// rather than one peak of the score.
+pub fn clearly_different(a: &Rigid2, b: &Rigid2) -> bool {
+    (a.translation.vector - b.translation.vector).norm() > 1.0
+        || crate::geometry::normalize_angle(a.rotation.angle() - b.rotation.angle()).abs()
+            > 10f64.to_radians()
 }
 
 /// A coarse score bound check used in tests: the coarse map never reads lower than the fine one.
