@@ -27,7 +27,12 @@ use crate::scan_matching::{
 pub struct ConstraintBuilderOptions {
     /// Fraction of candidate (node, submap) pairs that are searched, in `[0, 1]`. Default 0.15.
     pub sampling_ratio: f64,
-    /// Pairs whose estimated node-to-submap-origin distance exceeds this (m) are not searched. Default 15 m.
+    /// Pairs whose estimated node-to-submap-origin distance exceeds this (m) are not searched. Default 20 m
+    /// (Cartographer's is 15 m): a finished submap holds twice LLO's `num_range_data` scans, about 34 m of
+    /// a straight aisle at the default motion filter, and with 15 m the far half of such a submap was never
+    /// matched, so nothing but LLO held a long aisle's heading (simulated store, session 0: trajectory error
+    /// 0.274 → 0.153 m RMS; 25 m gave 0.151, 30 m 0.165; Freiburg relations error equal or lower, see
+    /// BENCHMARKS.md).
     pub max_constraint_distance: f64,
     /// Minimum branch-and-bound score (mean probability at the scan points) to accept a loop closure
     /// near the current estimate. Default 0.55.
@@ -51,13 +56,13 @@ impl Default for ConstraintBuilderOptions {
     fn default() -> Self {
         Self {
             sampling_ratio: 0.15,
-            max_constraint_distance: 15.0,
+            max_constraint_distance: 20.0,
             min_score: 0.55,
             global_localization_min_score: 0.6,
             loop_closure_translation_sigma: 0.03,
             loop_closure_rotation_sigma: 0.01,
             huber_scale: 3.0,
-            // LLO drifts little over the 15 m a loop-closure candidate may be away, so a 4 m × ±20° window
+            // LLO drifts little over the 20 m a loop-closure candidate may be away, so a 4 m × ±20° window
             // finds the same closures as Cartographer's 7 m × ±30° at a third of the cost (CSAIL: 0.042 m
             // vs 0.041 m relations error, 10.6 s vs 36 s; see BENCHMARKS.md).
             fast_correlative: FastCorrelativeScanMatcherOptions {
