@@ -122,8 +122,11 @@ pub struct SessionSummary {
     pub cross_session_closures: usize,
     /// GLM constraints accepted during the session in all.
     pub closures: usize,
-    /// Submaps trimmed when the session ended.
+    /// Stale submaps trimmed when the session ended.
     pub trimmed: usize,
+    /// The session's own submaps dropped when it ended, since it does not update the map (never placed;
+    /// `frozen`).
+    pub dropped: usize,
     /// Nodes removed with them.
     pub nodes_trimmed: usize,
     /// Chow–Liu tree constraints added in their place.
@@ -635,7 +638,9 @@ fn worker(
                     count_closures(summary, &events, &mut scores);
                     let mut klds = Vec::new();
                     for event in &events_finish {
-                        if let LifelongEvent::SubmapTrimmed {
+                        if let LifelongEvent::SubmapTrimmed { dropped: true, .. } = event {
+                            summary.dropped += 1;
+                        } else if let LifelongEvent::SubmapTrimmed {
                             nodes_removed,
                             tree_edges,
                             kld,

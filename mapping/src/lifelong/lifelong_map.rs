@@ -57,6 +57,9 @@ pub enum LifelongEvent {
     SubmapTrimmed {
         /// The submap.
         submap: SubmapId,
+        /// Whether it was dropped with its own session, which does not update the map (never placed, or
+        /// any later session with `frozen`), rather than trimmed as stale.
+        dropped: bool,
         /// How many of its nodes went with it.
         nodes_removed: usize,
         /// Chow–Liu tree constraints added in their place (0 for `delete` and `frozen`).
@@ -90,8 +93,11 @@ pub struct GraphCounts {
     pub submaps: usize,
     /// Constraints.
     pub constraints: usize,
-    /// Submaps trimmed (or, with `frozen`, dropped) since the map was created.
+    /// Stale submaps trimmed since the map was created (`clt`, `delete`).
     pub trimmed_total: usize,
+    /// Submaps of sessions that did not update the map, dropped at their end (a session never placed;
+    /// every later session with `frozen`).
+    pub dropped_total: usize,
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -110,6 +116,7 @@ pub struct LifelongMap {
     /// The first session started: it maps the site and is never trimmed.
     base: Option<u32>,
     trimmed_total: usize,
+    dropped_total: usize,
     sparsifications_since_optimization: usize,
 }
 
@@ -123,6 +130,7 @@ impl LifelongMap {
             sessions: BTreeMap::new(),
             base: None,
             trimmed_total: 0,
+            dropped_total: 0,
             sparsifications_since_optimization: 0,
         })
     }
@@ -483,6 +491,7 @@ impl LifelongMap {
         self.trimmed_total += 1;
         let mut events = vec![LifelongEvent::SubmapTrimmed {
             submap,
+            dropped: false,
             nodes_removed: nodes.len(),
             tree_edges,
             kld,
@@ -517,9 +526,10 @@ impl LifelongMap {
             sparsification::delete(self.global.graph_mut(), &eliminate)
                 .map_err(|source| LifelongError::Sparsification { submap, source })?;
             self.global.forget(&[submap], &nodes);
-            self.trimmed_total += 1;
+            self.dropped_total += 1;
             events.push(LifelongEvent::SubmapTrimmed {
                 submap,
+                dropped: true,
                 nodes_removed: nodes.len(),
                 tree_edges: 0,
                 kld: None,
@@ -574,6 +584,7 @@ impl LifelongMap {
             submaps: self.global.submaps().len(),
             constraints: self.global.graph().num_constraints(),
             trimmed_total: self.trimmed_total,
+            dropped_total: self.dropped_total,
         }
     }
 

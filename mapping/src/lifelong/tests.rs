@@ -262,6 +262,12 @@ fn frozen_keeps_only_the_first_session_and_holds_it_still() {
     }
     assert!(site.trims.iter().all(|(id, _, _)| id.trajectory != 0));
     assert_eq!(site.trims.len(), 2 * first.submaps);
+    // Later sessions' own submaps were dropped with them; nothing stale was trimmed.
+    let last = site.counts[2];
+    assert_eq!(
+        (last.trimmed_total, last.dropped_total),
+        (0, 2 * first.submaps)
+    );
     // Session 0's poses were held fixed while later sessions localized against them.
     let start_map = run(TrimPolicy::Frozen, 1);
     for ((a, _, pa), (b, _, pb)) in site.map.node_poses().zip(start_map.map.node_poses()) {
