@@ -472,7 +472,6 @@ fn worker(
     receiver: &mpsc::Receiver<Message>,
 ) -> Result<WorkerOutput, SessionsError> {
     let relocalization = &config.relocalization;
-    // The session's latest nodes (local pose, points), for relocalization retries.
     let mut sessions: Vec<SessionSummary> = Vec::new();
     let mut retired: BTreeMap<NodeId, Rigid2> = BTreeMap::new();
     let mut at_session_end: BTreeMap<NodeId, Rigid2> = BTreeMap::new();
@@ -638,15 +637,18 @@ fn worker(
                     count_closures(summary, &events, &mut scores);
                     let mut klds = Vec::new();
                     for event in &events_finish {
-                        if let LifelongEvent::SubmapTrimmed { dropped: true, .. } = event {
-                            summary.dropped += 1;
-                        } else if let LifelongEvent::SubmapTrimmed {
+                        if let LifelongEvent::SubmapTrimmed {
+                            dropped,
                             nodes_removed,
                             tree_edges,
                             kld,
                             ..
                         } = event
                         {
+                            if *dropped {
+                                summary.dropped += 1;
+                                continue;
+                            }
                             summary.trimmed += 1;
                             summary.nodes_trimmed += nodes_removed;
                             summary.tree_edges += tree_edges;

@@ -30,9 +30,9 @@ pub struct ConstraintBuilderOptions {
     /// Pairs whose estimated node-to-submap-origin distance exceeds this (m) are not searched. Default 20 m
     /// (Cartographer's is 15 m): a finished submap holds twice LLO's `num_range_data` scans, about 34 m of
     /// a straight aisle at the default motion filter, and with 15 m the far half of such a submap was never
-    /// matched, so nothing but LLO held a long aisle's heading (simulated store, session 0: trajectory error
-    /// 0.274 → 0.153 m RMS; 25 m gave 0.151, 30 m 0.165; Freiburg relations error equal or lower, see
-    /// BENCHMARKS.md).
+    /// matched, so nothing but LLO held a long aisle's heading (simulated store, session 0, seed 1:
+    /// trajectory error 0.274 → 0.153 m RMS, 25 m gave 0.151, 30 m 0.165; seeds 2 and 3 gained 1 and 3 cm;
+    /// Freiburg relations error equal or lower; see BENCHMARKS.md).
     pub max_constraint_distance: f64,
     /// Minimum branch-and-bound score (mean probability at the scan points) to accept a loop closure
     /// near the current estimate. Default 0.55.
