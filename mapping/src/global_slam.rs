@@ -11,10 +11,17 @@ mod constraint_builder;
 mod fixed_ratio_sampler;
 mod global_slam_core;
 mod global_slam_options;
+mod loop_closure_check;
 
-pub use constraint_builder::{ConstraintBuilder, ConstraintBuilderOptions, LoopClosure, SearchJob};
+pub use constraint_builder::{
+    ConstraintBuilder, ConstraintBuilderOptions, LoopClosure, SearchJob, SearchWindow,
+};
 pub use fixed_ratio_sampler::FixedRatioSampler;
 pub use global_slam_core::{
     GlobalSlam, GlobalSlamError, GlobalSlamEvent, NodeRecord, SubmapRecord,
 };
 pub use global_slam_options::{GlobalSlamOptions, GlobalSlamOptionsError};
+pub use loop_closure_check::{
+    LoopClosureCheck, LoopClosurePrecision, TRUE_CLOSURE_ROTATION_RAD, TRUE_CLOSURE_TRANSLATION_M,
+    loop_closure_precision,
+};

@@ -313,7 +313,7 @@ pub fn run_session_inputs(
                 });
                 ok && pending.drain(..).all(&send)
             };
-            for event in &input.events {
+            for event in mapping::sensor::collate_for_llo(&input.events) {
                 match event {
                     SensorEvent::Odometry(o) => llo.add_odometry(o),
                     SensorEvent::Imu(i) => llo.add_imu(i),

@@ -130,7 +130,7 @@ pub fn run_offline(
         let mut scans_dropped = 0;
         let mut last_node: Option<NodeId> = None;
         let mut next_node_index = 0u32;
-        for event in &recording.events {
+        for event in mapping::sensor::collate_for_llo(&recording.events) {
             match event {
                 SensorEvent::Odometry(o) => llo.add_odometry(o),
                 SensorEvent::Imu(i) => llo.add_imu(i),

@@ -8,7 +8,7 @@
 use std::collections::BTreeMap;
 use std::sync::Arc;
 
-use nalgebra::Point2;
+use nalgebra::{Matrix2, Matrix3, Point2};
 use serde::Deserialize;
 
 use super::GlobalSlamOptionsError;
@@ -40,14 +40,49 @@ pub struct ConstraintBuilderOptions {
     /// Minimum score to accept a match searched over a whole submap with no prior (relocalization).
     /// Default 0.6.
     pub global_localization_min_score: f32,
+    /// A match is refused when the best clearly different pose in the same window (another peak, see
+    /// [`LoopClosure::runner_up_score`]) scores within this much of it: the scan fits two places about
+    /// equally well, and a loop closure at the wrong one tears the map. Score units (mean probability).
+    /// Default 0.02.
+    pub min_score_margin: f32,
     /// Standard deviation (m) of an accepted loop closure's translation. Default 0.03 m.
     pub loop_closure_translation_sigma: f64,
     /// Standard deviation (rad) of an accepted loop closure's rotation. Default 0.01 rad.
     pub loop_closure_rotation_sigma: f64,
     /// Huber threshold on the whitened loop-closure error (in standard deviations). Default 3.
     pub huber_scale: f64,
-    /// Branch-and-bound search window and depth. Defaults here: 4 m, ±20°, depth 7.
+    /// Branch-and-bound search window and depth. Defaults here: 4 m, ±20°, depth 7. This is the window
+    /// right after a loop closure; it grows with the distance travelled since (below).
     pub fast_correlative: FastCorrelativeScanMatcherOptions,
+    /// How much the translation window grows per metre travelled since the trajectory's last loop closure
+    /// (m/m): LLO's drift, so that the loop at the end of a long stretch without closures is still in
+    /// reach. Default 0.05 (5 %).
+    pub linear_window_growth: f64,
+    /// How much the rotation window grows per metre travelled since the last loop closure (rad/m).
+    /// Default 0.0035 (0.2°/m).
+    pub angular_window_growth: f64,
+    /// The translation window never grows beyond this (m). Default 20 m.
+    pub max_linear_search_window: f64,
+    /// A loop closure only resets the window growth when its submap lies at least this far back along the
+    /// trajectory (m): matching the submap the robot has just left says nothing about the drift around a
+    /// loop. Default 20 m.
+    pub min_loop_length: f64,
+    /// A match found in a grown window is held until a match of another node within this path distance
+    /// (m) agrees with it (the two closures and the trajectory between the nodes form a consistent cycle).
+    /// Default 30 m.
+    pub agreement_path_length: f64,
+    /// Two wide matches agree when the cycle they close is off by less than this translation (m) plus 2 %
+    /// of the path between their nodes … Default 0.3 m.
+    pub agreement_translation: f64,
+    /// … and this rotation (rad). Default 0.035 rad (2°).
+    pub agreement_rotation: f64,
+    /// A match whose scan pins one translation direction less than this fraction as well as the other
+    /// (eigenvalues of its least-squares information) lies in a corridor: a runner-up shifted along the
+    /// corridor is the same place, not a rival. Default 0.1.
+    pub degenerate_ratio: f64,
+    /// The weakest translation direction of a match keeps at least this fraction of the strongest's
+    /// information (see [`match_information`]). Default 0.01 (10× the sigma).
+    pub min_information_ratio: f64,
     /// Refinement of accepted matches.
     pub least_squares: LeastSquaresScanMatcherOptions,
 }
@@ -59,6 +94,7 @@ impl Default for ConstraintBuilderOptions {
             max_constraint_distance: 20.0,
             min_score: 0.55,
             global_localization_min_score: 0.6,
+            min_score_margin: 0.02,
             loop_closure_translation_sigma: 0.03,
             loop_closure_rotation_sigma: 0.01,
             huber_scale: 3.0,
@@ -71,6 +107,15 @@ impl Default for ConstraintBuilderOptions {
                 ..FastCorrelativeScanMatcherOptions::default()
             },
             least_squares: LeastSquaresScanMatcherOptions::default(),
+            linear_window_growth: 0.05,
+            angular_window_growth: 0.0035,
+            max_linear_search_window: 20.0,
+            min_loop_length: 20.0,
+            agreement_path_length: 30.0,
+            agreement_translation: 0.3,
+            agreement_rotation: 0.035,
+            degenerate_ratio: 0.1,
+            min_information_ratio: 0.01,
         }
     }
 }
@@ -90,6 +135,9 @@ impl ConstraintBuilderOptions {
                 "global_localization_min_score",
                 self.global_localization_min_score,
             ),
+            ("min_score_margin", self.min_score_margin),
+            ("degenerate_ratio", self.degenerate_ratio as f32),
+            ("min_information_ratio", self.min_information_ratio as f32),
         ] {
             if !(0.0..=1.0).contains(&v) {
                 return Err(GlobalSlamOptionsError::RatioOutOfRange {
@@ -110,6 +158,25 @@ impl ConstraintBuilderOptions {
             self.loop_closure_rotation_sigma,
         )?;
         check_sigma("huber_scale", "standard deviations", self.huber_scale)?;
+        for (name, unit, value) in [
+            ("linear_window_growth", "m/m", self.linear_window_growth),
+            ("angular_window_growth", "rad/m", self.angular_window_growth),
+            ("min_loop_length", "m", self.min_loop_length),
+            ("agreement_path_length", "m", self.agreement_path_length),
+        ] {
+            if !(value.is_finite() && value >= 0.0) {
+                return Err(GlobalSlamOptionsError::Invalid(format!(
+                    "{name} must be a finite number of {unit} >= 0, got {value}"
+                )));
+            }
+        }
+        check_sigma(
+            "max_linear_search_window",
+            "m",
+            self.max_linear_search_window,
+        )?;
+        check_sigma("agreement_translation", "m", self.agreement_translation)?;
+        check_sigma("agreement_rotation", "rad", self.agreement_rotation)?;
         self.fast_correlative
             .validate()
             .map_err(|e| GlobalSlamOptionsError::Invalid(e.to_string()))?;
@@ -130,6 +197,104 @@ pub struct LoopClosure {
     pub submap_from_node: Rigid2,
     /// Branch-and-bound score of the match.
     pub score: f32,
+    /// Score of the best clearly different pose in the same search window (another peak: more than
+    /// [`crate::scan_matching::DISTINCT_TRANSLATION_CELLS`] cells or
+    /// [`crate::scan_matching::DISTINCT_ROTATION_RAD`] away), if any reached `min_score`. A runner-up close
+    /// to `score` means the scan fits two places about equally well.
+    pub runner_up_score: Option<f32>,
+    /// Whether the search window was wider than the default one (drift had grown since the trajectory's
+    /// last loop closure): such a match is only used once another match agrees with it.
+    pub wide: bool,
+    /// Information (1/m², 1/rad²) of the match over the error in the node's frame, shaped by what the
+    /// scan pins: the loop-closure sigmas in its best-pinned direction, less along a corridor (see
+    /// [`match_information`]). `None`: the options' fixed sigmas (matches made elsewhere).
+    pub information: Option<Matrix3<f64>>,
+}
+
+/// The information of a scan match: the translation block follows the shape of the scan's own
+/// least-squares information `scan_information` (over `(tx, ty, θ)` in the grid frame, see
+/// [`crate::scan_matching::LeastSquaresSummary::scan_information`]), scaled so that its best-pinned
+/// direction gets `1 / translation_sigma²`, and expressed in the node's frame (the pose graph's error
+/// frame) through `grid_from_node`'s rotation; the rotation gets `1 / rotation_sigma²`. Along a featureless
+/// corridor the scan pins the position across it but hardly along it, and so does the match. The weakest
+/// direction keeps at least `min_ratio` of the strongest's information.
+pub fn match_information(
+    scan_information: &Matrix3<f64>,
+    grid_from_node: &Rigid2,
+    translation_sigma: f64,
+    rotation_sigma: f64,
+    min_ratio: f64,
+) -> Matrix3<f64> {
+    let block = Matrix2::new(
+        scan_information[(0, 0)],
+        scan_information[(0, 1)],
+        scan_information[(1, 0)],
+        scan_information[(1, 1)],
+    );
+    let eigen = block.symmetric_eigen();
+    let strongest = eigen.eigenvalues.max();
+    let strong = 1.0 / (translation_sigma * translation_sigma);
+    let shaped = if strongest > 0.0 && strongest.is_finite() {
+        let mut values = eigen
+            .eigenvalues
+            .map(|l| (l / strongest).clamp(min_ratio, 1.0) * strong);
+        if !values.iter().all(|v| v.is_finite()) {
+            values = nalgebra::Vector2::repeat(strong);
+        }
+        eigen.eigenvectors * Matrix2::from_diagonal(&values) * eigen.eigenvectors.transpose()
+    } else {
+        Matrix2::identity() * strong
+    };
+    let r = grid_from_node.rotation.to_rotation_matrix().into_inner();
+    let in_node = r.transpose() * shaped * r;
+    let mut information = Matrix3::zeros();
+    information.fixed_view_mut::<2, 2>(0, 0).copy_from(&in_node);
+    information[(2, 2)] = 1.0 / (rotation_sigma * rotation_sigma);
+    information
+}
+
+/// Whether `other` lies from `best` along `best`'s weakly pinned direction (a corridor's axis), so that it
+/// is the same place seen with the along-corridor position unknown rather than another place: the
+/// translation block's eigenvalues differ by more than `1 / degenerate_ratio`, the offset points within
+/// 20° of the weak axis and the rotations differ by under 5°.
+fn along_weak_axis(
+    scan_information: &Matrix3<f64>,
+    best: &Rigid2,
+    other: &Rigid2,
+    degenerate_ratio: f64,
+) -> bool {
+    let block = Matrix2::new(
+        scan_information[(0, 0)],
+        scan_information[(0, 1)],
+        scan_information[(1, 0)],
+        scan_information[(1, 1)],
+    );
+    let eigen = block.symmetric_eigen();
+    let (weak, strong) = if eigen.eigenvalues[0] <= eigen.eigenvalues[1] {
+        (0, 1)
+    } else {
+        (1, 0)
+    };
+    if !(eigen.eigenvalues[strong] > 0.0
+        && eigen.eigenvalues[weak].max(0.0) < degenerate_ratio * eigen.eigenvalues[strong])
+    {
+        return false;
+    }
+    let offset = other.translation.vector - best.translation.vector;
+    let axis = eigen.eigenvectors.column(weak);
+    let turned = crate::geometry::normalize_angle(other.rotation.angle() - best.rotation.angle());
+    offset.norm() > 0.0
+        && axis.dot(&offset).abs() >= 20f64.to_radians().cos() * offset.norm()
+        && turned.abs() < 5f64.to_radians()
+}
+
+/// An explicit search window for a [`SearchJob`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SearchWindow {
+    /// Half-width of the square translation window, metres.
+    pub linear_m: f64,
+    /// Half-width of the rotation window, radians (at most π).
+    pub angular_rad: f64,
 }
 
 /// A node-to-submap search to run.
@@ -143,6 +308,8 @@ pub struct SearchJob {
     pub points: Arc<Vec<Point2<f32>>>,
     /// Prior estimate of the node in the submap frame; `None` searches the whole submap at every rotation.
     pub submap_from_node_estimate: Option<Rigid2>,
+    /// The window around the estimate; `None`: the options' `fast_correlative` windows.
+    pub window: Option<SearchWindow>,
 }
 
 struct SubmapMatcher {
@@ -204,31 +371,150 @@ impl ConstraintBuilder {
         self.matchers.contains_key(&id)
     }
 
-    /// Runs one search; `None` when the submap is unknown or no match reaches the minimum score.
+    /// Runs one search; `None` when the submap is unknown, no match reaches the minimum score, or another
+    /// peak scores within `min_score_margin` of the best.
     pub fn run(&self, job: &SearchJob) -> Option<LoopClosure> {
         let entry = self.matchers.get(&job.submap)?;
-        let found = match &job.submap_from_node_estimate {
+        let default_window = SearchWindow {
+            linear_m: self.options.fast_correlative.linear_search_window,
+            angular_rad: self.options.fast_correlative.angular_search_window,
+        };
+        let window = job.window.unwrap_or(default_window);
+        let candidates = match &job.submap_from_node_estimate {
             Some(estimate) => {
                 let initial = entry.local_from_submap * estimate;
-                entry
-                    .matcher
-                    .match_near(&initial, &job.points, self.options.min_score)
+                entry.matcher.match_within_candidates(
+                    &initial,
+                    &job.points,
+                    self.options.min_score,
+                    window.linear_m,
+                    window.angular_rad.min(std::f64::consts::PI),
+                    3,
+                )
             }
-            None => entry
-                .matcher
-                .match_full(&job.points, self.options.global_localization_min_score),
-        }?;
-        let (refined, _summary) = self.least_squares.match_pose(
+            None => entry.matcher.match_full_candidates(
+                &job.points,
+                self.options.global_localization_min_score,
+                3,
+            ),
+        };
+        let found = *candidates.first()?;
+        let (refined, summary) = self.least_squares.match_pose(
             &found.pose.translation.vector,
             &found.pose,
             &job.points,
             &entry.grid,
+        );
+        // The runner-up: the best other peak that is not the same corridor position shifted along it.
+        let runner_up_score = candidates
+            .iter()
+            .skip(1)
+            .find(|m| {
+                !along_weak_axis(
+                    &summary.scan_information,
+                    &found.pose,
+                    &m.pose,
+                    self.options.degenerate_ratio,
+                )
+            })
+            .map(|m| m.score);
+        if runner_up_score.is_some_and(|r| r > found.score - self.options.min_score_margin) {
+            return None;
+        }
+        let information = match_information(
+            &summary.scan_information,
+            &refined,
+            self.options.loop_closure_translation_sigma,
+            self.options.loop_closure_rotation_sigma,
+            self.options.min_information_ratio,
         );
         Some(LoopClosure {
             submap: job.submap,
             node: job.node,
             submap_from_node: entry.local_from_submap.inverse() * refined,
             score: found.score,
+            runner_up_score,
+            wide: job.submap_from_node_estimate.is_some()
+                && (window.linear_m > default_window.linear_m
+                    || window.angular_rad > default_window.angular_rad),
+            information: Some(information),
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::rigid2;
+
+    /// A corridor along the grid's x axis: the scan pins y well and x hardly at all.
+    fn corridor_information() -> Matrix3<f64> {
+        Matrix3::from_diagonal(&nalgebra::Vector3::new(1.0, 400.0, 50.0))
+    }
+
+    #[test]
+    fn a_corridor_match_pins_across_the_corridor_only() {
+        let sigma = 0.03;
+        // The node faces along the corridor (heading 0): its x is along, y across.
+        let along = match_information(
+            &corridor_information(),
+            &rigid2(0.0, 0.0, 0.0),
+            sigma,
+            0.01,
+            0.01,
+        );
+        assert!(
+            (along[(1, 1)] - 1.0 / (sigma * sigma)).abs() < 1e-6,
+            "{along}"
+        );
+        assert!(
+            (along[(0, 0)] - 0.01 / (sigma * sigma)).abs() < 1e-6,
+            "{along}"
+        );
+        assert!((along[(2, 2)] - 1e4).abs() < 1e-6);
+        // Turned by 90°, the node's x is across the corridor: the strong direction follows.
+        let across = match_information(
+            &corridor_information(),
+            &rigid2(0.0, 0.0, std::f64::consts::FRAC_PI_2),
+            sigma,
+            0.01,
+            0.01,
+        );
+        assert!(
+            (across[(0, 0)] - 1.0 / (sigma * sigma)).abs() < 1e-3,
+            "{across}"
+        );
+        assert!(
+            (across[(1, 1)] - 0.01 / (sigma * sigma)).abs() < 1e-3,
+            "{across}"
+        );
+        // A scan that pins both directions equally gets the fixed sigma in both.
+        let room = match_information(
+            &Matrix3::identity(),
+            &rigid2(1.0, 2.0, 0.7),
+            sigma,
+            0.01,
+            0.01,
+        );
+        assert!((room[(0, 0)] - room[(1, 1)]).abs() < 1e-6 && room[(0, 1)].abs() < 1e-6);
+        // No information at all falls back to the fixed sigma rather than to zero or NaN.
+        let none = match_information(&Matrix3::zeros(), &rigid2(0.0, 0.0, 0.0), sigma, 0.01, 0.01);
+        assert!(none.iter().all(|v| v.is_finite()) && none[(0, 0)] > 0.0);
+    }
+
+    #[test]
+    fn a_runner_up_along_the_corridor_is_the_same_place() {
+        let info = corridor_information();
+        let best = rigid2(2.0, 1.0, 0.0);
+        assert!(along_weak_axis(&info, &best, &rigid2(2.6, 1.02, 0.01), 0.1));
+        // Across the corridor, turned, or in a room that pins both directions: a rival.
+        assert!(!along_weak_axis(&info, &best, &rigid2(2.0, 1.6, 0.0), 0.1));
+        assert!(!along_weak_axis(&info, &best, &rigid2(2.6, 1.0, 0.3), 0.1));
+        assert!(!along_weak_axis(
+            &Matrix3::identity(),
+            &best,
+            &rigid2(2.6, 1.0, 0.0),
+            0.1
+        ));
     }
 }

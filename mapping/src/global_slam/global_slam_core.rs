@@ -7,7 +7,7 @@ use nalgebra::{Matrix3, Point2};
 
 use super::{
     ConstraintBuilder, FixedRatioSampler, GlobalSlamOptions, GlobalSlamOptionsError, LoopClosure,
-    SearchJob,
+    LoopClosureCheck, SearchJob, SearchWindow,
 };
 use crate::geometry::Rigid2;
 use crate::grid::ProbabilityGrid;
@@ -28,6 +28,8 @@ pub struct NodeRecord {
     pub points: Arc<Vec<Point2<f32>>>,
     /// Submaps the node was inserted into.
     pub submaps: Vec<SubmapId>,
+    /// Distance (m) travelled along the trajectory from its first node to this one.
+    pub path_m: f64,
 }
 
 /// What global SLAM knows about a submap.
@@ -86,7 +88,7 @@ pub struct GlobalSlam {
     last_node: BTreeMap<u32, NodeId>,
     pending_jobs: Vec<SearchJob>,
     nodes_since_optimization: usize,
-    loop_closure_scores: Vec<f32>,
+    accepted_loop_closures: Vec<LoopClosure>,
     searches_queued: usize,
     /// Trajectories started without a prior while the map already had other trajectories: their
     /// estimates are in an arbitrary frame until a full-submap match places them (see
@@ -97,6 +99,11 @@ pub struct GlobalSlam {
     /// Trajectories whose cross-trajectory matches are found elsewhere (GLM on the robot; see
     /// [`GlobalSlam::set_matched_elsewhere`]).
     matched_elsewhere: BTreeSet<u32>,
+    /// Per trajectory, the path length (m) of its latest node with an accepted loop closure that closed a
+    /// loop (see `min_loop_length`): drift, and so the search window, grows from there.
+    last_loop_path: BTreeMap<u32, f64>,
+    /// Matches found in grown windows, waiting for another to agree with them.
+    pending_wide: Vec<LoopClosure>,
 }
 
 fn information(translation_sigma: f64, rotation_sigma: f64) -> Matrix3<f64> {
@@ -126,11 +133,13 @@ impl GlobalSlam {
             last_node: BTreeMap::new(),
             pending_jobs: Vec::new(),
             nodes_since_optimization: 0,
-            loop_closure_scores: Vec::new(),
+            accepted_loop_closures: Vec::new(),
             searches_queued: 0,
             unanchored: BTreeSet::new(),
             capped_optimizer: None,
             matched_elsewhere: BTreeSet::new(),
+            last_loop_path: BTreeMap::new(),
+            pending_wide: Vec::new(),
         })
     }
 
@@ -248,6 +257,15 @@ impl GlobalSlam {
             node_submaps.push(sid);
         }
 
+        let path_m = self
+            .last_node
+            .get(&trajectory)
+            .and_then(|p| self.nodes.get(p))
+            .map_or(0.0, |previous| {
+                previous.path_m
+                    + (local_pose.translation.vector - previous.local_pose.translation.vector)
+                        .norm()
+            });
         if let Some(previous) = self
             .last_node
             .get(&trajectory)
@@ -275,6 +293,7 @@ impl GlobalSlam {
                 local_pose,
                 points: Arc::new(points),
                 submaps: node_submaps,
+                path_m,
             },
         );
         self.last_node.insert(trajectory, id);
@@ -364,9 +383,13 @@ impl GlobalSlam {
                 node,
                 points: Arc::clone(&record.points),
                 submap_from_node_estimate: None,
+                window: None,
             });
             return;
         }
+        let window = self.search_window(node, record, sid, submap);
+        let cb = &self.options.constraint_builder;
+        let growth = window.linear_m - cb.fast_correlative.linear_search_window;
         let (Some(global_node), Some(global_submap)) = (
             self.graph.pose(VariableId::Node(node)),
             self.graph.pose(VariableId::Submap(sid)),
@@ -374,9 +397,7 @@ impl GlobalSlam {
             return;
         };
         let submap_from_node = global_submap.inverse() * global_node;
-        if submap_from_node.translation.vector.norm()
-            > self.options.constraint_builder.max_constraint_distance
-        {
+        if submap_from_node.translation.vector.norm() > cb.max_constraint_distance + growth {
             return;
         }
         debug_assert!(submap.grid.is_some());
@@ -393,7 +414,40 @@ impl GlobalSlam {
             node,
             points: Arc::clone(&record.points),
             submap_from_node_estimate: Some(submap_from_node),
+            window: Some(window),
         });
+    }
+
+    /// The search window for `node` against `submap`: the default one grown by the drift LLO may have
+    /// accumulated over the path since the node's trajectory last closed a loop (or, within one
+    /// trajectory, over the path between the submap and the node, if shorter).
+    fn search_window(
+        &self,
+        node: NodeId,
+        record: &NodeRecord,
+        sid: SubmapId,
+        submap: &SubmapRecord,
+    ) -> SearchWindow {
+        let cb = &self.options.constraint_builder;
+        let since_loop = record.path_m
+            - self
+                .last_loop_path
+                .get(&node.trajectory)
+                .copied()
+                .unwrap_or(0.0);
+        let mut drift_path = since_loop.max(0.0);
+        if sid.trajectory == node.trajectory
+            && let Some(first) = submap.nodes.first().and_then(|n| self.nodes.get(n))
+        {
+            drift_path = drift_path.min((record.path_m - first.path_m).abs());
+        }
+        let base = &cb.fast_correlative;
+        SearchWindow {
+            linear_m: (base.linear_search_window + cb.linear_window_growth * drift_path)
+                .min(cb.max_linear_search_window.max(base.linear_search_window)),
+            angular_rad: (base.angular_search_window + cb.angular_window_growth * drift_path)
+                .min(std::f64::consts::PI),
+        }
     }
 
     /// The loop-closure searches queued since the last call. Run them with
@@ -423,6 +477,8 @@ impl GlobalSlam {
         let loss = RobustLoss::Huber {
             delta: cb.huber_scale,
         };
+        let mut accepted = Vec::new();
+        let mut closed_wide = false;
         for closure in results {
             if !self.nodes.contains_key(&closure.node)
                 || !self.submaps.contains_key(&closure.submap)
@@ -434,6 +490,18 @@ impl GlobalSlam {
             {
                 continue; // never queued: an unplaced submap says nothing about placed nodes yet
             }
+            if closure.wide {
+                let agreeing = self.take_agreeing(&closure);
+                if agreeing.is_empty() {
+                    self.pending_wide.push(closure);
+                    continue;
+                }
+                closed_wide = true;
+                accepted.extend(agreeing);
+            }
+            accepted.push(closure);
+        }
+        for closure in accepted {
             if self.unanchored.contains(&closure.node.trajectory)
                 && closure.node.trajectory != closure.submap.trajectory
             {
@@ -444,20 +512,107 @@ impl GlobalSlam {
                 from: VariableId::Submap(closure.submap),
                 to: VariableId::Node(closure.node),
                 from_from_to: closure.submap_from_node,
-                information: loop_closure_information,
+                information: closure.information.unwrap_or(loop_closure_information),
                 loss,
             });
             if added.is_err() {
                 continue; // a non-finite match; nothing to learn from it
             }
-            self.loop_closure_scores.push(closure.score);
+            self.note_loop(&closure);
+            self.accepted_loop_closures.push(closure.clone());
             events.push(GlobalSlamEvent::LoopClosureAdded(closure));
         }
         let n = self.options.optimize_every_n_nodes;
-        if n > 0 && self.nodes_since_optimization >= n {
+        if closed_wide || (n > 0 && self.nodes_since_optimization >= n) {
+            // A loop closed across grown windows moves much of the trajectory: optimize at once, so that
+            // the next nodes are searched near where they really are.
             events.push(GlobalSlamEvent::Optimized(self.optimize()));
         }
         events
+    }
+
+    /// Records that `closure` was accepted: if it closes a loop (another trajectory's submap, or one at
+    /// least `min_loop_length` back along the path), drift and the search windows grow from its node again.
+    fn note_loop(&mut self, closure: &LoopClosure) {
+        let Some(node) = self.nodes.get(&closure.node) else {
+            return;
+        };
+        let closes_loop = closure.submap.trajectory != closure.node.trajectory
+            || self
+                .submaps
+                .get(&closure.submap)
+                .and_then(|s| s.nodes.first())
+                .and_then(|first| self.nodes.get(first))
+                .is_some_and(|first| {
+                    node.path_m - first.path_m >= self.options.constraint_builder.min_loop_length
+                });
+        if closes_loop {
+            let last = self
+                .last_loop_path
+                .entry(closure.node.trajectory)
+                .or_insert(0.0);
+            *last = last.max(node.path_m);
+        }
+    }
+
+    /// Removes from the pending wide matches those that agree with `closure` (see [`Self::agree`]) and
+    /// returns them; forgets pending matches too far behind along their trajectory to ever agree.
+    fn take_agreeing(&mut self, closure: &LoopClosure) -> Vec<LoopClosure> {
+        let horizon = self.options.constraint_builder.agreement_path_length;
+        let newest_path = |trajectory: u32, this: &Self| {
+            this.last_node
+                .get(&trajectory)
+                .and_then(|n| this.nodes.get(n))
+                .map_or(0.0, |r| r.path_m)
+        };
+        let pending = std::mem::take(&mut self.pending_wide);
+        let mut agreeing = Vec::new();
+        for p in pending {
+            let Some(record) = self.nodes.get(&p.node) else {
+                continue;
+            };
+            if newest_path(p.node.trajectory, self) - record.path_m > horizon
+                || !self.submaps.contains_key(&p.submap)
+            {
+                continue;
+            }
+            if self.agree(&p, closure) {
+                agreeing.push(p);
+            } else {
+                self.pending_wide.push(p);
+            }
+        }
+        agreeing
+    }
+
+    /// Whether two matches of different nodes of one trajectory close a consistent cycle: the relative
+    /// pose of their nodes through the two submaps equals the one along the trajectory, within
+    /// `agreement_translation` (plus 2 % of the path between them) and `agreement_rotation`.
+    fn agree(&self, a: &LoopClosure, b: &LoopClosure) -> bool {
+        let cb = &self.options.constraint_builder;
+        if a.node == b.node || a.node.trajectory != b.node.trajectory {
+            return false;
+        }
+        let (Some(ra), Some(rb)) = (self.nodes.get(&a.node), self.nodes.get(&b.node)) else {
+            return false;
+        };
+        let path = (ra.path_m - rb.path_m).abs();
+        if path > cb.agreement_path_length {
+            return false;
+        }
+        let (Some(na), Some(nb), Some(sa), Some(sb)) = (
+            self.node_pose(a.node),
+            self.node_pose(b.node),
+            self.submap_pose(a.submap),
+            self.submap_pose(b.submap),
+        ) else {
+            return false;
+        };
+        let through_submaps = (sa * a.submap_from_node).inverse() * (sb * b.submap_from_node);
+        let along_trajectory = na.inverse() * nb;
+        let cycle = along_trajectory.inverse() * through_submaps;
+        cycle.translation.vector.norm() <= cb.agreement_translation + 0.02 * path
+            && cycle.rotation.angle().abs() <= cb.agreement_rotation
     }
 
     /// Moves an unanchored trajectory so that `closure` holds exactly, and queues the searches its nodes
@@ -654,8 +809,165 @@ impl GlobalSlam {
         self.searches_queued
     }
 
-    /// Scores of every accepted loop closure, in acceptance order (their mean is the paper's AMS).
-    pub fn loop_closure_scores(&self) -> &[f32] {
-        &self.loop_closure_scores
+    /// Every accepted loop closure, in acceptance order (the mean of their scores is the paper's AMS),
+    /// including those whose node or submap was trimmed since.
+    pub fn accepted_loop_closures(&self) -> &[LoopClosure] {
+        &self.accepted_loop_closures
+    }
+
+    /// Every accepted loop closure whose node and submap are still in the graph, judged against the
+    /// current (optimized) poses: how far the optimized graph violates it.
+    pub fn loop_closure_checks(&self) -> Vec<LoopClosureCheck> {
+        self.accepted_loop_closures
+            .iter()
+            .filter_map(|closure| {
+                let submap = self.submap_pose(closure.submap)?;
+                let node = self.node_pose(closure.node)?;
+                let residual = closure.submap_from_node.inverse() * submap.inverse() * node;
+                Some(LoopClosureCheck {
+                    closure: closure.clone(),
+                    residual_translation_m: residual.translation.vector.norm(),
+                    residual_rotation_rad: residual.rotation.angle().abs(),
+                })
+            })
+            .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::rigid2;
+    use crate::grid::MapLimits;
+
+    /// One trajectory driving along x in 0.2 m steps; submap 0 holds its first 11 nodes and is finished.
+    fn straight_run(nodes: u32) -> GlobalSlam {
+        let options = GlobalSlamOptions {
+            optimize_every_n_nodes: 0,
+            constraint_builder: ConstraintBuilderOptions {
+                sampling_ratio: 0.0,
+                ..Default::default()
+            },
+            ..Default::default()
+        };
+        let mut global = GlobalSlam::new(options).expect("valid options");
+        for i in 0..nodes {
+            let submaps: &[(usize, Rigid2)] = if i <= 10 {
+                &[(0, Rigid2::identity())]
+            } else {
+                &[(1, rigid2(2.2, 0.0, 0.0))]
+            };
+            let finished = if i == 11 {
+                vec![(
+                    0,
+                    ProbabilityGrid::new(MapLimits::new(
+                        0.05,
+                        nalgebra::Vector2::new(-1.0, -1.0),
+                        40,
+                        40,
+                    )),
+                )]
+            } else {
+                Vec::new()
+            };
+            global
+                .add_node(
+                    0,
+                    Timestamp(i64::from(i) * 100_000_000),
+                    rigid2(0.2 * f64::from(i), 0.0, 0.0),
+                    vec![Point2::new(1.0, 0.0)],
+                    submaps,
+                    finished,
+                )
+                .expect("node added");
+        }
+        global
+    }
+
+    fn wide_closure(node: u32, error: Rigid2) -> LoopClosure {
+        LoopClosure {
+            submap: SubmapId {
+                trajectory: 0,
+                index: 0,
+            },
+            node: NodeId {
+                trajectory: 0,
+                index: node,
+            },
+            submap_from_node: rigid2(0.2 * f64::from(node), 0.0, 0.0) * error,
+            score: 0.7,
+            runner_up_score: None,
+            wide: true,
+            information: None,
+        }
+    }
+
+    #[test]
+    fn a_wide_match_waits_for_another_that_agrees_with_it() {
+        let mut global = straight_run(200);
+        let shifted = rigid2(1.5, -0.8, 0.2);
+        // Alone, a wide match is held back.
+        global.add_search_results([wide_closure(150, shifted)]);
+        assert!(global.accepted_loop_closures().is_empty());
+        // One that disagrees with it (the trajectory between them says otherwise) is held back too.
+        global.add_search_results([wide_closure(160, Rigid2::identity())]);
+        assert!(global.accepted_loop_closures().is_empty());
+        // One that agrees with the second closes the cycle: both are accepted, the first is not.
+        let events = global.add_search_results([wide_closure(170, rigid2(0.02, 0.01, 0.002))]);
+        let accepted: Vec<u32> = global
+            .accepted_loop_closures()
+            .iter()
+            .map(|c| c.node.index)
+            .collect();
+        assert_eq!(accepted, vec![160, 170]);
+        assert!(
+            events
+                .iter()
+                .any(|e| matches!(e, GlobalSlamEvent::Optimized(_))),
+            "a loop closed across grown windows is optimized at once"
+        );
+        // A wide match far behind along the path (more than agreement_path_length) never agrees.
+        let mut global = straight_run(400);
+        global.add_search_results([wide_closure(150, Rigid2::identity())]);
+        global.add_search_results([wide_closure(390, Rigid2::identity())]);
+        assert!(global.accepted_loop_closures().is_empty());
+    }
+
+    #[test]
+    fn the_search_window_grows_with_the_path_since_the_last_loop() {
+        let global = straight_run(300);
+        let cb = ConstraintBuilderOptions::default();
+        let node = NodeId {
+            trajectory: 0,
+            index: 250,
+        };
+        let sid = SubmapId {
+            trajectory: 0,
+            index: 0,
+        };
+        let window =
+            global.search_window(node, &global.nodes()[&node], sid, &global.submaps()[&sid]);
+        // 50 m driven since the start (no loop closed yet), the submap ~49 m back along the path.
+        let path = 0.2 * 250.0 - 0.0;
+        assert!(
+            (window.linear_m
+                - (cb.fast_correlative.linear_search_window + cb.linear_window_growth * path))
+                .abs()
+                < 1e-6,
+            "{window:?}"
+        );
+        assert!(window.angular_rad > cb.fast_correlative.angular_search_window);
+        // The submap the robot has just left is searched with the default window.
+        let recent = NodeId {
+            trajectory: 0,
+            index: 11,
+        };
+        let window = global.search_window(
+            recent,
+            &global.nodes()[&recent],
+            sid,
+            &global.submaps()[&sid],
+        );
+        assert!(window.linear_m < cb.fast_correlative.linear_search_window + 0.2);
     }
 }

@@ -156,6 +156,7 @@ impl MapMatcher {
                 node,
                 points: Arc::clone(points),
                 submap_from_node_estimate: Some(submap_from_node),
+                window: None,
             });
         }
         self.searches += jobs.len() as u64;

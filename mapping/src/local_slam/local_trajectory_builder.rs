@@ -43,6 +43,12 @@ pub struct LocalTrajectoryBuilderOptions {
     pub correlative_max_range: f32,
     /// Least-squares refinement weights.
     pub least_squares: LeastSquaresScanMatcherOptions,
+    /// The least-squares refinement pulls the translation toward the prediction (odometry, or constant
+    /// velocity), which carries the motion where the scan cannot see it (corridors), unless the
+    /// correlative search turned the pose more than this (radians) away from the prediction: odometry is
+    /// then wrong at this scan and the correlative result is the target. Default 1°; 0 = always the
+    /// correlative result, π = always the prediction.
+    pub max_odometry_target_disagreement: f64,
     /// When a scan becomes a node.
     pub motion_filter: MotionFilterOptions,
     /// Submap size and resolution.
@@ -59,6 +65,7 @@ impl Default for LocalTrajectoryBuilderOptions {
             real_time_correlative: RealTimeCorrelativeScanMatcherOptions::default(),
             correlative_max_range: 10.0,
             least_squares: LeastSquaresScanMatcherOptions::default(),
+            max_odometry_target_disagreement: 1f64.to_radians(),
             motion_filter: MotionFilterOptions::default(),
             submaps: SubmapsOptions::default(),
         }
@@ -79,6 +86,13 @@ impl LocalTrajectoryBuilderOptions {
             return Err(err(&"correlative_max_range must be finite and >= 0"));
         }
         self.least_squares.validate().map_err(|e| err(&e))?;
+        if !(self.max_odometry_target_disagreement >= 0.0
+            && self.max_odometry_target_disagreement.is_finite())
+        {
+            return Err(err(
+                &"max_odometry_target_disagreement must be finite and >= 0",
+            ));
+        }
         self.submaps
             .range_data_inserter
             .validate()
@@ -207,7 +221,7 @@ impl LocalTrajectoryBuilder {
             adaptive_voxel_filter(&range_data.returns, &self.options.adaptive_voxel_filter);
         let pose = match self.active.matching_submap() {
             Some(submap) => {
-                let initial = if self.options.use_correlative_scan_matching {
+                let (initial, center) = if self.options.use_correlative_scan_matching {
                     let max_range = self.options.correlative_max_range;
                     let near: Vec<Point2<f32>>;
                     let correlative_points = if max_range > 0.0 {
@@ -244,8 +258,9 @@ impl LocalTrajectoryBuilder {
                     } else {
                         &self.correlative
                     };
-                    let (mut best, mut best_score) =
+                    let (mut best, best_score) =
                         matcher.match_pose(&predicted, correlative_points, &submap.grid);
+                    let mut center = predicted;
                     // Wheel odometry sometimes stalls and then jumps (CSAIL: frozen for 0.8 s in a turn, then
                     // +85° at once). When the constant-velocity prediction disagrees by more than half the
                     // window, search around it too and keep the better match.
@@ -259,20 +274,27 @@ impl LocalTrajectoryBuilder {
                             &submap.grid,
                         );
                         if score > best_score {
-                            (best, best_score) = (pose, score);
+                            (best, center) = (pose, velocity);
                         }
                     }
-                    let _ = best_score;
-                    best
+                    (best, center)
                 } else {
-                    predicted
+                    (predicted, predicted)
                 };
-                let (refined, _) = self.least_squares.match_pose(
-                    &initial.translation.vector,
-                    &initial,
-                    &filtered,
-                    &submap.grid,
-                );
+                // Like Cartographer, the refinement is pulled toward the predicted translation (the
+                // centre of the correlative search): where the scan cannot see the motion (along a
+                // corridor) odometry carries it. Where the scan turned the pose away from the prediction,
+                // odometry is wrong at this scan (CSAIL: yaw jumps in turns) and so is its translation:
+                // the correlative result is the target then.
+                let disagreement = normalize_angle(initial.theta() - center.theta()).abs();
+                let target = if disagreement > self.options.max_odometry_target_disagreement {
+                    initial.translation.vector
+                } else {
+                    center.translation.vector
+                };
+                let (refined, _) =
+                    self.least_squares
+                        .match_pose(&target, &initial, &filtered, &submap.grid);
                 let finite = refined.translation.vector.iter().all(|v| v.is_finite())
                     && refined.theta().is_finite();
                 if finite { refined } else { initial }

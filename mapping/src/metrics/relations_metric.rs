@@ -75,26 +75,52 @@ fn median(values: &[f64]) -> f64 {
     }
 }
 
+/// The error of one relation.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct RelationError {
+    /// The relation's first stamp.
+    pub t1: Timestamp,
+    /// Its second stamp.
+    pub t2: Timestamp,
+    /// Absolute translational error, metres.
+    pub trans_m: f64,
+    /// Absolute rotational error, degrees.
+    pub rot_deg: f64,
+}
+
+/// The error of every relation that has estimated poses within 0.1 s of both stamps, in the relations'
+/// order (the others are left out): where in time a trajectory tears.
+pub fn relation_errors(
+    poses: &[(Timestamp, Rigid2)],
+    relations: &[Relation],
+) -> Vec<RelationError> {
+    relations
+        .iter()
+        .filter_map(|r| {
+            let (a, b) = (nearest(poses, r.t1)?, nearest(poses, r.t2)?);
+            let estimate = a.inverse() * b;
+            let dx = estimate.x() - r.delta.x();
+            let dy = estimate.y() - r.delta.y();
+            let dth = normalize_angle(estimate.theta() - r.delta.theta());
+            Some(RelationError {
+                t1: r.t1,
+                t2: r.t2,
+                trans_m: dx.hypot(dy),
+                rot_deg: dth.abs().to_degrees(),
+            })
+        })
+        .collect()
+}
+
 /// Scores a trajectory (sorted by time) against reference relations.
 pub fn relations_error(
     poses: &[(Timestamp, Rigid2)],
     relations: &[Relation],
 ) -> RelationsErrorStats {
-    let mut trans = Vec::with_capacity(relations.len());
-    let mut rot = Vec::with_capacity(relations.len());
-    let mut unmatched = 0;
-    for r in relations {
-        let (Some(a), Some(b)) = (nearest(poses, r.t1), nearest(poses, r.t2)) else {
-            unmatched += 1;
-            continue;
-        };
-        let estimate = a.inverse() * b;
-        let dx = estimate.x() - r.delta.x();
-        let dy = estimate.y() - r.delta.y();
-        let dth = normalize_angle(estimate.theta() - r.delta.theta());
-        trans.push(dx.hypot(dy));
-        rot.push(dth.abs().to_degrees());
-    }
+    let errors = relation_errors(poses, relations);
+    let unmatched = relations.len() - errors.len();
+    let trans: Vec<f64> = errors.iter().map(|e| e.trans_m).collect();
+    let rot: Vec<f64> = errors.iter().map(|e| e.rot_deg).collect();
     let (trans_abs_mean_m, trans_abs_std_m) = mean_std(&trans);
     let (rot_abs_mean_deg, rot_abs_std_deg) = mean_std(&rot);
     let sq = |v: &[f64]| {

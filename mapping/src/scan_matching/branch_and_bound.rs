@@ -158,6 +158,25 @@ impl FastCorrelativeScanMatcher {
         self.search(&self.near_space(initial, points), min_score)
     }
 
+    /// Up to `count` distinct poses within explicit windows (`linear_window` metres, `angular_window`
+    /// radians) around `initial`, best first, each reaching `min_score` (peaks as in
+    /// [`Self::match_full_candidates`]). The first result equals [`Self::match_within`]'s; the second is
+    /// the runner-up a loop closure must beat.
+    pub fn match_within_candidates(
+        &self,
+        initial: &Rigid2,
+        points: &[Point2<f32>],
+        min_score: f32,
+        linear_window: f64,
+        angular_window: f64,
+        count: usize,
+    ) -> Vec<Match> {
+        let mut space =
+            SearchSpace::around(initial, points, &self.limits, linear_window, angular_window);
+        space.shrink_to_fit(&self.limits);
+        self.search_many(&space, min_score, count.max(1))
+    }
+
     /// The best pose within explicit windows (`linear_window` metres, `angular_window` radians) around
     /// `initial`, if its score reaches `min_score`: [`Self::match_near`] with per-call windows.
     pub fn match_within(

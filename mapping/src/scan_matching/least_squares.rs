@@ -80,6 +80,10 @@ pub struct LeastSquaresSummary {
     pub iterations: u32,
     /// Whether a tolerance was met before `max_iterations`.
     pub converged: bool,
+    /// `JᵀJ` of the occupied-space residuals alone at the returned pose (the priors left out), over
+    /// `(tx, ty, θ)` in the grid frame: how well the scan itself pins each direction. Along a featureless
+    /// corridor its translation block has a near-zero eigenvalue along the corridor.
+    pub scan_information: Matrix3<f64>,
 }
 
 /// Levenberg–Marquardt scan-to-grid refinement. Stateless apart from its options; `Sync`.
@@ -107,6 +111,17 @@ struct Problem<'a> {
 }
 
 impl Problem<'_> {
+    /// `JᵀJ` of the occupied-space residuals at `x`.
+    fn scan_information(&self, x: &Vector3<f64>) -> Matrix3<f64> {
+        Problem {
+            translation_weight: 0.0,
+            rotation_weight: 0.0,
+            ..*self
+        }
+        .linearize(x)
+        .jtj
+    }
+
     fn linearize(&self, x: &Vector3<f64>) -> Linearization {
         let (sin, cos) = x.z.sin_cos();
         let mut cost = 0.0;
@@ -244,6 +259,7 @@ impl LeastSquaresScanMatcher {
             final_cost: current.cost,
             iterations,
             converged,
+            scan_information: problem.scan_information(&x),
         };
         (rigid2(x.x, x.y, normalize_angle(x.z)), summary)
     }

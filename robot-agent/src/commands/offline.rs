@@ -1,11 +1,17 @@
 //! `evermap-agent offline`: one recording in, trajectory + map + report out.
 
+use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::Context as _;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
+use mapping::geometry::Rigid2;
+use mapping::global_slam::{GlobalSlam, LoopClosureCheck, loop_closure_precision};
+use mapping::io::relations::Relation;
+use mapping::sensor::Timestamp;
+use robot_agent::line_chart::{LineChart, Series};
 use robot_agent::offline_slam::{SlamConfig, render_map, run_offline};
 use robot_agent::{map_image, process_stats, source};
 use serde_json::json;
@@ -82,16 +88,24 @@ pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
     map_image::write_gray_png(&args.out.join("map.png"), w, h, &pixels)?;
     map_image::write_nav2_map(&args.out, "map", &map)?;
 
-    let relations_json = relations.as_ref().map(|r| {
-        let error = mapping::metrics::relations_error(&run.scan_poses, r);
-        serde_json::to_value(error).unwrap_or_default()
-    });
-    let scores = run.global.loop_closure_scores();
-    let ams = if scores.is_empty() {
+    let relations_json = match &relations {
+        Some(r) => {
+            let start_time = run.scan_poses.first().map(|(t, _)| *t);
+            write_relation_errors(&args.out, &run.scan_poses, r, start_time)?;
+            let error = mapping::metrics::relations_error(&run.scan_poses, r);
+            Some(serde_json::to_value(error)?)
+        }
+        None => None,
+    };
+    let closures = run.global.accepted_loop_closures();
+    let ams = if closures.is_empty() {
         0.0
     } else {
-        scores.iter().map(|&s| f64::from(s)).sum::<f64>() / scores.len() as f64
+        closures.iter().map(|c| f64::from(c.score)).sum::<f64>() / closures.len() as f64
     };
+    let checks = run.global.loop_closure_checks();
+    write_loop_closures(&args.out.join("loop_closures.csv"), &run.global, &checks)?;
+    let precision = loop_closure_precision(&checks);
     let graph = run.global.graph();
     let report = json!({
         "input": args.input.display().to_string(),
@@ -103,7 +117,10 @@ pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
         "nodes": run.global.nodes().len(),
         "submaps": run.global.submaps().len(),
         "constraints": graph.num_constraints(),
-        "loop_closures": scores.len(),
+        "loop_closures": closures.len(),
+        "loop_closure_precision": precision.precision,
+        "loop_closures_held": precision.held,
+        "loop_closures_checked": precision.checked,
         "loop_closure_searches": run.global.searches_queued(),
         "ams": ams,
         "optimizations": run.optimizations,
@@ -118,4 +135,93 @@ pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
         .with_context(|| format!("cannot write {}", report_path.display()))?;
     println!("{}", serde_json::to_string(&report)?);
     Ok(())
+}
+
+/// Writes `relations.csv` (every relation's error, by time) and `relations_error.png` (translational error
+/// against the time of the relation's first stamp: where the trajectory tears).
+fn write_relation_errors(
+    out: &Path,
+    poses: &[(Timestamp, Rigid2)],
+    relations: &[Relation],
+    start: Option<Timestamp>,
+) -> anyhow::Result<()> {
+    let mut errors = mapping::metrics::relation_errors(poses, relations);
+    errors.sort_by_key(|e| e.t1);
+    let since_start = |t: Timestamp| start.map_or(0.0, |s| t.seconds_since(s));
+    let mut csv = String::from("t1_s,t2_s,trans_error_m,rot_error_deg\n");
+    for e in &errors {
+        writeln!(
+            csv,
+            "{:.3},{:.3},{:.4},{:.3}",
+            since_start(e.t1),
+            since_start(e.t2),
+            e.trans_m,
+            e.rot_deg
+        )?;
+    }
+    let path = out.join("relations.csv");
+    std::fs::write(&path, csv).with_context(|| format!("cannot write {}", path.display()))?;
+    let chart = LineChart {
+        title: "relations error against time (spikes: where the trajectory tears)".into(),
+        x_label: "time of the relation's first scan (s)".into(),
+        y_label: "translation error (m)".into(),
+        series: vec![
+            Series {
+                name: "translation (m)".into(),
+                color: [200, 40, 40],
+                points: errors
+                    .iter()
+                    .map(|e| (since_start(e.t1), e.trans_m))
+                    .collect(),
+            },
+            Series {
+                name: "rotation (deg / 10)".into(),
+                color: [30, 90, 200],
+                points: errors
+                    .iter()
+                    .map(|e| (since_start(e.t1), e.rot_deg / 10.0))
+                    .collect(),
+            },
+        ],
+        y_min: Some(0.0),
+    };
+    let (w, h, pixels) = chart.render(1000, 420);
+    map_image::write_rgb_png(&out.join("relations_error.png"), w, h, &pixels)?;
+    Ok(())
+}
+
+/// Writes `loop_closures.csv`: every accepted loop closure with its node's time, its score, the runner-up
+/// score at a clearly different pose and its residual after the final optimization.
+fn write_loop_closures(
+    path: &Path,
+    global: &GlobalSlam,
+    checks: &[LoopClosureCheck],
+) -> anyhow::Result<()> {
+    let start = global.nodes().values().next().map(|n| n.time);
+    let mut csv = String::from(
+        "node_time_s,node,submap_trajectory,submap,score,runner_up_score,residual_m,residual_deg,holds\n",
+    );
+    for c in checks {
+        let time = global
+            .nodes()
+            .get(&c.closure.node)
+            .zip(start)
+            .map_or(f64::NAN, |(n, s)| n.time.seconds_since(s));
+        writeln!(
+            csv,
+            "{:.3},{},{},{},{:.4},{},{:.4},{:.3},{}",
+            time,
+            c.closure.node.index,
+            c.closure.submap.trajectory,
+            c.closure.submap.index,
+            c.closure.score,
+            c.closure
+                .runner_up_score
+                .map_or(String::new(), |r| format!("{r:.4}")),
+            c.residual_translation_m,
+            c.residual_rotation_rad.to_degrees(),
+            u8::from(c.holds()),
+        )?;
+    }
+    std::fs::write(path, csv).with_context(|| format!("cannot write {}", path.display()))
 }

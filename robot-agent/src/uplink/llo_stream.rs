@@ -39,7 +39,7 @@ pub fn run_llo(
     let mut held: Option<Vec<UploadItem>> = None;
     let started = Instant::now();
     let first_time = recording.events.first().map(SensorEvent::time);
-    for event in &recording.events {
+    for event in mapping::sensor::collate_for_llo(&recording.events) {
         if replay_speed > 0.0
             && let Some(t0) = first_time
         {

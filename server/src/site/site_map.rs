@@ -385,6 +385,9 @@ impl SiteMap {
                 node: id,
                 submap_from_node: *submap_from_node,
                 score: *score,
+                runner_up_score: None,
+                wide: false,
+                information: None,
             },
         ));
         Ok(count_optimizations(&events))
@@ -467,7 +470,7 @@ impl SiteMap {
             constraints: graph.constraints as u64,
             trimmed_submaps: self.trimmed.len() as u64,
             dropped_sessions: self.dropped_sessions,
-            loop_closures: self.map.global().loop_closure_scores().len() as u64,
+            loop_closures: self.map.global().accepted_loop_closures().len() as u64,
         }
     }
 
