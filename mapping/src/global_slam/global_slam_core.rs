@@ -838,6 +838,7 @@ impl GlobalSlam {
 mod tests {
     use super::*;
     use crate::geometry::rigid2;
+    use crate::global_slam::ConstraintBuilderOptions;
     use crate::grid::MapLimits;
 
     /// One trajectory driving along x in 0.2 m steps; submap 0 holds its first 11 nodes and is finished.
