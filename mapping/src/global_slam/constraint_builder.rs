@@ -67,11 +67,15 @@ pub struct ConstraintBuilderOptions {
     /// trajectory (m): matching the submap the robot has just left says nothing about the drift around a
     /// loop. Default 20 m.
     pub min_loop_length: f64,
-    /// A match found in a grown window is held until a match of another node within this path distance
-    /// (m) agrees with it (the two closures and the trajectory between the nodes form a consistent cycle).
-    /// Default 30 m.
+    /// A match that would move its node more than this (m) from its current estimate is used only once a
+    /// match of another node agrees with it (see `agreement_path_length`). Default 0.5 m.
+    pub max_unconfirmed_translation: f64,
+    /// … or more than this (rad). Default 0.052 rad (3°).
+    pub max_unconfirmed_rotation: f64,
+    /// An unconfirmed match waits for a match of another node within this path distance (m) that agrees
+    /// with it (the two closures and the trajectory between the nodes form a consistent cycle). Default 30 m.
     pub agreement_path_length: f64,
-    /// Two wide matches agree when the cycle they close is off by less than this translation (m) plus 2 %
+    /// Two matches agree when the cycle they close is off by less than this translation (m) plus 2 %
     /// of the path between their nodes … Default 0.3 m.
     pub agreement_translation: f64,
     /// … and this rotation (rad). Default 0.035 rad (2°).
@@ -111,6 +115,8 @@ impl Default for ConstraintBuilderOptions {
             angular_window_growth: 0.0035,
             max_linear_search_window: 20.0,
             min_loop_length: 20.0,
+            max_unconfirmed_translation: 0.5,
+            max_unconfirmed_rotation: 0.052,
             agreement_path_length: 30.0,
             agreement_translation: 0.3,
             agreement_rotation: 0.035,
@@ -176,6 +182,16 @@ impl ConstraintBuilderOptions {
             self.max_linear_search_window,
         )?;
         check_sigma("agreement_translation", "m", self.agreement_translation)?;
+        check_sigma(
+            "max_unconfirmed_translation",
+            "m",
+            self.max_unconfirmed_translation,
+        )?;
+        check_sigma(
+            "max_unconfirmed_rotation",
+            "rad",
+            self.max_unconfirmed_rotation,
+        )?;
         check_sigma("agreement_rotation", "rad", self.agreement_rotation)?;
         self.fast_correlative
             .validate()
@@ -199,12 +215,10 @@ pub struct LoopClosure {
     pub score: f32,
     /// Score of the best clearly different pose in the same search window (another peak: more than
     /// [`crate::scan_matching::DISTINCT_TRANSLATION_CELLS`] cells or
-    /// [`crate::scan_matching::DISTINCT_ROTATION_RAD`] away), if any reached `min_score`. A runner-up close
-    /// to `score` means the scan fits two places about equally well.
+    /// [`crate::scan_matching::DISTINCT_ROTATION_RAD`] away, and not along the corridor the match lies in),
+    /// if any scored within [`RUNNER_UP_RANGE`] of `score` and reached `min_score`. A runner-up close to
+    /// `score` means the scan fits two places about equally well.
     pub runner_up_score: Option<f32>,
-    /// Whether the search window was wider than the default one (drift had grown since the trajectory's
-    /// last loop closure): such a match is only used once another match agrees with it.
-    pub wide: bool,
     /// Information (1/m², 1/rad²) of the match over the error in the node's frame, shaped by what the
     /// scan pins: the loop-closure sigmas in its best-pinned direction, less along a corridor (see
     /// [`match_information`]). `None`: the options' fixed sigmas (matches made elsewhere).
@@ -287,6 +301,10 @@ fn along_weak_axis(
         && axis.dot(&offset).abs() >= 20f64.to_radians().cos() * offset.norm()
         && turned.abs() < 5f64.to_radians()
 }
+
+/// Rivals of a match are looked for down to this much below its score (score units): enough to report
+/// near misses in the diagnostics, few enough that the second search stays cheap.
+pub const RUNNER_UP_RANGE: f32 = 0.1;
 
 /// An explicit search window for a [`SearchJob`].
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -380,25 +398,27 @@ impl ConstraintBuilder {
             angular_rad: self.options.fast_correlative.angular_search_window,
         };
         let window = job.window.unwrap_or(default_window);
-        let candidates = match &job.submap_from_node_estimate {
-            Some(estimate) => {
-                let initial = entry.local_from_submap * estimate;
-                entry.matcher.match_within_candidates(
-                    &initial,
-                    &job.points,
-                    self.options.min_score,
-                    window.linear_m,
-                    window.angular_rad.min(std::f64::consts::PI),
-                    3,
-                )
-            }
-            None => entry.matcher.match_full_candidates(
+        // First the best pose alone (most searches find nothing and stop here, pruned as hard as one
+        // search can be), then, for a match, its rivals: other peaks within `RUNNER_UP_RANGE` of it.
+        let search = |min_score: f32, count: usize| match &job.submap_from_node_estimate {
+            Some(estimate) => entry.matcher.match_within_candidates(
+                &(entry.local_from_submap * estimate),
                 &job.points,
-                self.options.global_localization_min_score,
-                3,
+                min_score,
+                window.linear_m,
+                window.angular_rad.min(std::f64::consts::PI),
+                count,
             ),
+            None => entry
+                .matcher
+                .match_full_candidates(&job.points, min_score, count),
         };
-        let found = *candidates.first()?;
+        let min_score = if job.submap_from_node_estimate.is_some() {
+            self.options.min_score
+        } else {
+            self.options.global_localization_min_score
+        };
+        let found = *search(min_score, 1).first()?;
         let (refined, summary) = self.least_squares.match_pose(
             &found.pose.translation.vector,
             &found.pose,
@@ -406,7 +426,7 @@ impl ConstraintBuilder {
             &entry.grid,
         );
         // The runner-up: the best other peak that is not the same corridor position shifted along it.
-        let runner_up_score = candidates
+        let runner_up_score = search((found.score - RUNNER_UP_RANGE).max(min_score), 3)
             .iter()
             .skip(1)
             .find(|m| {
@@ -434,9 +454,6 @@ impl ConstraintBuilder {
             submap_from_node: entry.local_from_submap.inverse() * refined,
             score: found.score,
             runner_up_score,
-            wide: job.submap_from_node_estimate.is_some()
-                && (window.linear_m > default_window.linear_m
-                    || window.angular_rad > default_window.angular_rad),
             information: Some(information),
         })
     }

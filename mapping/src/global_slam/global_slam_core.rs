@@ -102,8 +102,8 @@ pub struct GlobalSlam {
     /// Per trajectory, the path length (m) of its latest node with an accepted loop closure that closed a
     /// loop (see `min_loop_length`): drift, and so the search window, grows from there.
     last_loop_path: BTreeMap<u32, f64>,
-    /// Matches found in grown windows, waiting for another to agree with them.
-    pending_wide: Vec<LoopClosure>,
+    /// Matches that would move their node far from its estimate, waiting for another to agree with them.
+    pending_unconfirmed: Vec<LoopClosure>,
 }
 
 fn information(translation_sigma: f64, rotation_sigma: f64) -> Matrix3<f64> {
@@ -139,7 +139,7 @@ impl GlobalSlam {
             capped_optimizer: None,
             matched_elsewhere: BTreeSet::new(),
             last_loop_path: BTreeMap::new(),
-            pending_wide: Vec::new(),
+            pending_unconfirmed: Vec::new(),
         })
     }
 
@@ -478,7 +478,7 @@ impl GlobalSlam {
             delta: cb.huber_scale,
         };
         let mut accepted = Vec::new();
-        let mut closed_wide = false;
+        let mut confirmed_any = false;
         for closure in results {
             if !self.nodes.contains_key(&closure.node)
                 || !self.submaps.contains_key(&closure.submap)
@@ -490,13 +490,13 @@ impl GlobalSlam {
             {
                 continue; // never queued: an unplaced submap says nothing about placed nodes yet
             }
-            if closure.wide {
+            if self.needs_confirmation(&closure) {
                 let agreeing = self.take_agreeing(&closure);
                 if agreeing.is_empty() {
-                    self.pending_wide.push(closure);
+                    self.pending_unconfirmed.push(closure);
                     continue;
                 }
-                closed_wide = true;
+                confirmed_any = true;
                 accepted.extend(agreeing);
             }
             accepted.push(closure);
@@ -523,9 +523,9 @@ impl GlobalSlam {
             events.push(GlobalSlamEvent::LoopClosureAdded(closure));
         }
         let n = self.options.optimize_every_n_nodes;
-        if closed_wide || (n > 0 && self.nodes_since_optimization >= n) {
-            // A loop closed across grown windows moves much of the trajectory: optimize at once, so that
-            // the next nodes are searched near where they really are.
+        if confirmed_any || (n > 0 && self.nodes_since_optimization >= n) {
+            // Confirmed matches far from the estimates close a loop that moves much of the trajectory:
+            // optimize at once, so that the next nodes are searched near where they really are.
             events.push(GlobalSlamEvent::Optimized(self.optimize()));
         }
         events
@@ -555,7 +555,28 @@ impl GlobalSlam {
         }
     }
 
-    /// Removes from the pending wide matches those that agree with `closure` (see [`Self::agree`]) and
+    /// Whether a match would move its node farther from its current estimate (in the submap's frame) than
+    /// `max_unconfirmed_translation` or `max_unconfirmed_rotation`: then it is used only once another
+    /// match agrees with it (see [`Self::agree`]). A wrong match (a look-alike place, a corridor's other
+    /// end) is almost always far from the estimate; a right one far from it closes a loop after drift,
+    /// where a second match soon follows. The match that places an unanchored trajectory is exempt.
+    fn needs_confirmation(&self, closure: &LoopClosure) -> bool {
+        if self.unanchored.contains(&closure.node.trajectory) {
+            return false;
+        }
+        let (Some(submap), Some(node)) = (
+            self.submap_pose(closure.submap),
+            self.node_pose(closure.node),
+        ) else {
+            return false;
+        };
+        let cb = &self.options.constraint_builder;
+        let innovation = (submap.inverse() * node).inverse() * closure.submap_from_node;
+        innovation.translation.vector.norm() > cb.max_unconfirmed_translation
+            || innovation.rotation.angle().abs() > cb.max_unconfirmed_rotation
+    }
+
+    /// Removes from the pending unconfirmed matches those that agree with `closure` (see [`Self::agree`]) and
     /// returns them; forgets pending matches too far behind along their trajectory to ever agree.
     fn take_agreeing(&mut self, closure: &LoopClosure) -> Vec<LoopClosure> {
         let horizon = self.options.constraint_builder.agreement_path_length;
@@ -565,7 +586,7 @@ impl GlobalSlam {
                 .and_then(|n| this.nodes.get(n))
                 .map_or(0.0, |r| r.path_m)
         };
-        let pending = std::mem::take(&mut self.pending_wide);
+        let pending = std::mem::take(&mut self.pending_unconfirmed);
         let mut agreeing = Vec::new();
         for p in pending {
             let Some(record) = self.nodes.get(&p.node) else {
@@ -579,7 +600,7 @@ impl GlobalSlam {
             if self.agree(&p, closure) {
                 agreeing.push(p);
             } else {
-                self.pending_wide.push(p);
+                self.pending_unconfirmed.push(p);
             }
         }
         agreeing
@@ -898,39 +919,43 @@ mod tests {
             submap_from_node: rigid2(0.2 * f64::from(node), 0.0, 0.0) * error,
             score: 0.7,
             runner_up_score: None,
-            wide: true,
             information: None,
         }
     }
 
     #[test]
-    fn a_wide_match_waits_for_another_that_agrees_with_it() {
+    fn a_match_far_from_the_estimate_waits_for_another_that_agrees_with_it() {
         let mut global = straight_run(200);
+        // Near the estimate: accepted at once.
+        global.add_search_results([wide_closure(140, rigid2(0.05, -0.03, 0.004))]);
+        assert_eq!(global.accepted_loop_closures().len(), 1);
         let shifted = rigid2(1.5, -0.8, 0.2);
-        // Alone, a wide match is held back.
+        // Alone, a match 1.7 m from the estimate is held back.
         global.add_search_results([wide_closure(150, shifted)]);
-        assert!(global.accepted_loop_closures().is_empty());
+        assert_eq!(global.accepted_loop_closures().len(), 1);
         // One that disagrees with it (the trajectory between them says otherwise) is held back too.
-        global.add_search_results([wide_closure(160, Rigid2::identity())]);
-        assert!(global.accepted_loop_closures().is_empty());
+        let drift = rigid2(0.8, 0.6, 0.0);
+        global.add_search_results([wide_closure(160, drift)]);
+        assert_eq!(global.accepted_loop_closures().len(), 1);
         // One that agrees with the second closes the cycle: both are accepted, the first is not.
-        let events = global.add_search_results([wide_closure(170, rigid2(0.02, 0.01, 0.002))]);
+        let events =
+            global.add_search_results([wide_closure(170, drift * rigid2(0.02, 0.01, 0.002))]);
         let accepted: Vec<u32> = global
             .accepted_loop_closures()
             .iter()
             .map(|c| c.node.index)
             .collect();
-        assert_eq!(accepted, vec![160, 170]);
+        assert_eq!(accepted, vec![140, 160, 170]);
         assert!(
             events
                 .iter()
                 .any(|e| matches!(e, GlobalSlamEvent::Optimized(_))),
-            "a loop closed across grown windows is optimized at once"
+            "a confirmed loop is optimized at once"
         );
         // A wide match far behind along the path (more than agreement_path_length) never agrees.
         let mut global = straight_run(400);
-        global.add_search_results([wide_closure(150, Rigid2::identity())]);
-        global.add_search_results([wide_closure(390, Rigid2::identity())]);
+        global.add_search_results([wide_closure(150, rigid2(0.8, 0.6, 0.0))]);
+        global.add_search_results([wide_closure(390, rigid2(0.8, 0.6, 0.0))]);
         assert!(global.accepted_loop_closures().is_empty());
     }
 

@@ -76,7 +76,6 @@ mod tests {
                 submap_from_node: rigid2(0.0, 0.0, 0.0),
                 score: 0.7,
                 runner_up_score: None,
-                wide: false,
                 information: None,
             },
             residual_translation_m: t,

@@ -90,7 +90,6 @@ impl Site {
             submap_from_node: (submap_start * submap_local).inverse() * (start * node_local),
             score: 0.7,
             runner_up_score: None,
-            wide: false,
             information: None,
         })
     }

@@ -386,7 +386,6 @@ impl SiteMap {
                 submap_from_node: *submap_from_node,
                 score: *score,
                 runner_up_score: None,
-                wide: false,
                 information: None,
             },
         ));
