@@ -53,6 +53,16 @@ pub enum RobustLoss {
         /// Scale on the Mahalanobis distance `√s` (unitless, in standard deviations), > 0.
         scale: f64,
     },
+    /// Dynamic covariance scaling (Agarwal et al., ICRA 2013): the constraint's information is scaled by
+    /// `w = min(1, 2Φ / (Φ + s))²`, which is the weight of `ρ(s) = s` for `s ≤ Φ` and
+    /// `ρ(s) = 3Φ − 4Φ² / (Φ + s)` beyond. Redescending and bounded by `3Φ`: a constraint far from the
+    /// rest of the graph (a false loop closure) costs at most `3Φ` and pulls with a weight falling as
+    /// `1/s²`, where Huber's pull never fades. Quadratic below `Φ`, so a graph whose constraints all fit
+    /// within `Φ` keeps its least-squares optimum.
+    Dcs {
+        /// `Φ`, on the squared Mahalanobis norm `s` (unitless), > 0.
+        phi: f64,
+    },
 }
 
 impl RobustLoss {
@@ -71,6 +81,13 @@ impl RobustLoss {
                 let c2 = scale * scale;
                 c2 * (s / c2).ln_1p()
             }
+            Self::Dcs { phi } => {
+                if s <= phi {
+                    s
+                } else {
+                    3.0 * phi - 4.0 * phi * phi / (phi + s)
+                }
+            }
         }
     }
 
@@ -86,6 +103,14 @@ impl RobustLoss {
                 }
             }
             Self::Cauchy { scale } => 1.0 / (1.0 + s / (scale * scale)),
+            Self::Dcs { phi } => {
+                if s <= phi {
+                    1.0
+                } else {
+                    let scale = 2.0 * phi / (phi + s);
+                    scale * scale
+                }
+            }
         }
     }
 
@@ -93,7 +118,9 @@ impl RobustLoss {
     pub fn is_valid(&self) -> bool {
         match *self {
             Self::Trivial => true,
-            Self::Huber { delta: p } | Self::Cauchy { scale: p } => p.is_finite() && p > 0.0,
+            Self::Huber { delta: p } | Self::Cauchy { scale: p } | Self::Dcs { phi: p } => {
+                p.is_finite() && p > 0.0
+            }
         }
     }
 }
@@ -311,6 +338,7 @@ mod tests {
             RobustLoss::Trivial,
             RobustLoss::Huber { delta: 1.5 },
             RobustLoss::Cauchy { scale: 2.0 },
+            RobustLoss::Dcs { phi: 1.0 },
         ];
         for loss in losses {
             for s in [0.1, 1.0, 2.2499, 2.2501, 9.0, 100.0] {
@@ -325,5 +353,9 @@ mod tests {
         }
         assert!(RobustLoss::Huber { delta: 1.0 }.rho(100.0) < 100.0 / 2.0);
         assert!(!RobustLoss::Cauchy { scale: 0.0 }.is_valid());
+        // DCS is bounded by 3Φ and its weight is the square of Agarwal's scale.
+        let dcs = RobustLoss::Dcs { phi: 1.0 };
+        assert!(dcs.rho(1e9) < 3.0 && dcs.rho(1e9) > 2.99);
+        assert!((dcs.weight(3.0) - 0.25).abs() < 1e-12);
     }
 }

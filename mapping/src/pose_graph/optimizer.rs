@@ -306,6 +306,10 @@ impl Optimizer {
             damping_diagonal: &mut self.damping_diagonal,
         };
         let mut start_cost = initial_cost;
+        // The guess solves least squares over every constraint: with false loop closures among them it
+        // bends the odometry chain, and its (robust) cost then rises above the given poses' — so it is
+        // kept only where it lowers the cost, as on clean graphs, where it takes badly initialized files to
+        // their optimum.
         if self.options.rotation_first_initialization
             && let Some(guess) = rotation_first_guess(&problem, solver, &mut work)
         {

@@ -71,6 +71,7 @@ impl From<&Constraint> for pb::Constraint {
             RobustLoss::Trivial => (pb::RobustLossKind::Trivial, 0.0),
             RobustLoss::Huber { delta } => (pb::RobustLossKind::Huber, delta),
             RobustLoss::Cauchy { scale } => (pb::RobustLossKind::Cauchy, scale),
+            RobustLoss::Dcs { phi } => (pb::RobustLossKind::Dcs, phi),
         };
         Self {
             format_version: FORMAT_VERSION,
@@ -137,6 +138,7 @@ impl TryFrom<&pb::Constraint> for Constraint {
             Ok(pb::RobustLossKind::Trivial) => RobustLoss::Trivial,
             Ok(pb::RobustLossKind::Huber) => RobustLoss::Huber { delta: scale },
             Ok(pb::RobustLossKind::Cauchy) => RobustLoss::Cauchy { scale },
+            Ok(pb::RobustLossKind::Dcs) => RobustLoss::Dcs { phi: scale },
             _ => {
                 return Err(ConversionError::OutOfRange {
                     message: M,
