@@ -239,13 +239,7 @@ pub fn match_information(
     rotation_sigma: f64,
     min_ratio: f64,
 ) -> Matrix3<f64> {
-    let block = Matrix2::new(
-        scan_information[(0, 0)],
-        scan_information[(0, 1)],
-        scan_information[(1, 0)],
-        scan_information[(1, 1)],
-    );
-    let eigen = block.symmetric_eigen();
+    let eigen = translation_eigen(scan_information);
     let strongest = eigen.eigenvalues.max();
     let strong = 1.0 / (translation_sigma * translation_sigma);
     let shaped = if strongest > 0.0 && strongest.is_finite() {
@@ -267,6 +261,14 @@ pub fn match_information(
     information
 }
 
+/// The eigen-decomposition of the translation block of a least-squares information over `(tx, ty, θ)`.
+fn translation_eigen(information: &Matrix3<f64>) -> nalgebra::SymmetricEigen<f64, nalgebra::U2> {
+    information
+        .fixed_view::<2, 2>(0, 0)
+        .into_owned()
+        .symmetric_eigen()
+}
+
 /// Whether `other` lies from `best` along `best`'s weakly pinned direction (a corridor's axis), so that it
 /// is the same place seen with the along-corridor position unknown rather than another place: the
 /// translation block's eigenvalues differ by more than `1 / degenerate_ratio`, the offset points within
@@ -277,13 +279,7 @@ fn along_weak_axis(
     other: &Rigid2,
     degenerate_ratio: f64,
 ) -> bool {
-    let block = Matrix2::new(
-        scan_information[(0, 0)],
-        scan_information[(0, 1)],
-        scan_information[(1, 0)],
-        scan_information[(1, 1)],
-    );
-    let eigen = block.symmetric_eigen();
+    let eigen = translation_eigen(scan_information);
     let (weak, strong) = if eigen.eigenvalues[0] <= eigen.eigenvalues[1] {
         (0, 1)
     } else {
@@ -472,6 +468,13 @@ mod tests {
     #[test]
     fn a_corridor_match_pins_across_the_corridor_only() {
         let sigma = 0.03;
+        let (strong, weak) = (1.0 / (sigma * sigma), 0.01 / (sigma * sigma));
+        let diagonal_is = |information: &Matrix3<f64>, x: f64, y: f64| {
+            assert!(
+                (information[(0, 0)] - x).abs() < 1e-3 && (information[(1, 1)] - y).abs() < 1e-3,
+                "{information}"
+            );
+        };
         // The node faces along the corridor (heading 0): its x is along, y across.
         let along = match_information(
             &corridor_information(),
@@ -480,14 +483,7 @@ mod tests {
             0.01,
             0.01,
         );
-        assert!(
-            (along[(1, 1)] - 1.0 / (sigma * sigma)).abs() < 1e-6,
-            "{along}"
-        );
-        assert!(
-            (along[(0, 0)] - 0.01 / (sigma * sigma)).abs() < 1e-6,
-            "{along}"
-        );
+        diagonal_is(&along, weak, strong);
         assert!((along[(2, 2)] - 1e4).abs() < 1e-6);
         // Turned by 90°, the node's x is across the corridor: the strong direction follows.
         let across = match_information(
@@ -497,14 +493,7 @@ mod tests {
             0.01,
             0.01,
         );
-        assert!(
-            (across[(0, 0)] - 1.0 / (sigma * sigma)).abs() < 1e-3,
-            "{across}"
-        );
-        assert!(
-            (across[(1, 1)] - 0.01 / (sigma * sigma)).abs() < 1e-3,
-            "{across}"
-        );
+        diagonal_is(&across, strong, weak);
         // A scan that pins both directions equally gets the fixed sigma in both.
         let room = match_information(
             &Matrix3::identity(),

@@ -187,10 +187,9 @@ impl FastCorrelativeScanMatcher {
         linear_window: f64,
         angular_window: f64,
     ) -> Option<Match> {
-        let mut space =
-            SearchSpace::around(initial, points, &self.limits, linear_window, angular_window);
-        space.shrink_to_fit(&self.limits);
-        self.search(&space, min_score)
+        self.match_within_candidates(initial, points, min_score, linear_window, angular_window, 1)
+            .into_iter()
+            .next()
     }
 
     /// The best pose anywhere on the grid, at any rotation (no prior), if its score reaches `min_score`.
