@@ -18,7 +18,7 @@ pub use constraint_builder::{
 };
 pub use fixed_ratio_sampler::FixedRatioSampler;
 pub use global_slam_core::{
-    GlobalSlam, GlobalSlamError, GlobalSlamEvent, NodeRecord, SubmapRecord,
+    Acceptance, GlobalSlam, GlobalSlamError, GlobalSlamEvent, NodeRecord, SubmapRecord,
 };
 pub use global_slam_options::{GlobalSlamOptions, GlobalSlamOptionsError};
 pub use loop_closure_check::{

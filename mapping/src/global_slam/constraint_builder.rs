@@ -49,9 +49,11 @@ pub struct ConstraintBuilderOptions {
     pub loop_closure_translation_sigma: f64,
     /// Standard deviation (rad) of an accepted loop closure's rotation. Default 0.01 rad.
     pub loop_closure_rotation_sigma: f64,
-    /// Huber threshold on the whitened loop-closure error (in standard deviations). Default 3.
+    /// Huber threshold on the whitened loop-closure error (in standard deviations). Default 1: beyond one
+    /// sigma a closure pulls with a constant force, so the few wrong ones that pass every check cannot
+    /// bend the graph in proportion to how wrong they are.
     pub huber_scale: f64,
-    /// Branch-and-bound search window and depth. Defaults here: 4 m, ±20°, depth 7. This is the window
+    /// Branch-and-bound search window and depth. Defaults here: 1.5 m, ±15°, depth 7. This is the window
     /// right after a loop closure; it grows with the distance travelled since (below).
     pub fast_correlative: FastCorrelativeScanMatcherOptions,
     /// How much the translation window grows per metre travelled since the trajectory's last loop closure
@@ -67,6 +69,14 @@ pub struct ConstraintBuilderOptions {
     /// trajectory (m): matching the submap the robot has just left says nothing about the drift around a
     /// loop. Default 20 m.
     pub min_loop_length: f64,
+    /// A match that moves its node farther than this (m) from its current estimate, plus
+    /// `linear_window_growth` per metre driven since the last loop (the drift LLO may have accumulated), is
+    /// refused: on the Freiburg recordings 87–100 % of the matches that moved their node more than 0.5 m
+    /// with little drift behind them were wrong (violated after the final optimization), and a wrong match
+    /// tears the map. Default 0.5 m (0.3 m refused too many true ones: Intel 0.0324 → 0.0395 m).
+    pub max_innovation_translation: f64,
+    /// … or rotates it more than this (rad), plus `angular_window_growth` per metre. Default 0.052 rad (3°).
+    pub max_innovation_rotation: f64,
     /// A match that would move its node more than this (m) from its current estimate is used only once a
     /// match of another node agrees with it (see `agreement_path_length`). Default 0.5 m.
     pub max_unconfirmed_translation: f64,
@@ -87,7 +97,7 @@ pub struct ConstraintBuilderOptions {
     /// The weakest translation direction of a match keeps at least this fraction of the strongest's
     /// information (see [`match_information`]). Default 0.01 (10× the sigma).
     pub min_information_ratio: f64,
-    /// Refinement of accepted matches.
+    /// Refinement of accepted matches. Defaults here: occupied space 20, translation 10, rotation 1.
     pub least_squares: LeastSquaresScanMatcherOptions,
 }
 
@@ -101,20 +111,29 @@ impl Default for ConstraintBuilderOptions {
             min_score_margin: 0.02,
             loop_closure_translation_sigma: 0.03,
             loop_closure_rotation_sigma: 0.01,
-            huber_scale: 3.0,
-            // LLO drifts little over the 20 m a loop-closure candidate may be away, so a 4 m × ±20° window
-            // finds the same closures as Cartographer's 7 m × ±30° at a third of the cost (CSAIL: 0.042 m
-            // vs 0.041 m relations error, 10.6 s vs 36 s; see BENCHMARKS.md).
+            huber_scale: 1.0,
+            // Right after a loop closure LLO has drifted little, and the window grows with the path driven
+            // since (below): 1.5 m × ±15° finds the closures a 4 m × ±20° window found, a wrong match
+            // has less room, and it costs less (Intel 106 s → 91 s; see BENCHMARKS.md, session 9).
             fast_correlative: FastCorrelativeScanMatcherOptions {
-                linear_search_window: 4.0,
-                angular_search_window: 20f64.to_radians(),
+                linear_search_window: 1.5,
+                angular_search_window: 15f64.to_radians(),
                 ..FastCorrelativeScanMatcherOptions::default()
             },
-            least_squares: LeastSquaresScanMatcherOptions::default(),
+            // Cartographer's constraint-builder weights: the scan, not the branch-and-bound pose it starts
+            // from, decides the refined pose (LLO's 1 / 10 / 40 anchor it to the search's discrete angle).
+            least_squares: LeastSquaresScanMatcherOptions {
+                occupied_space_weight: 20.0,
+                translation_weight: 10.0,
+                rotation_weight: 1.0,
+                ..LeastSquaresScanMatcherOptions::default()
+            },
             linear_window_growth: 0.05,
             angular_window_growth: 0.0035,
             max_linear_search_window: 20.0,
             min_loop_length: 20.0,
+            max_innovation_translation: 0.5,
+            max_innovation_rotation: 0.052,
             max_unconfirmed_translation: 0.5,
             max_unconfirmed_rotation: 0.052,
             agreement_path_length: 30.0,
@@ -182,6 +201,16 @@ impl ConstraintBuilderOptions {
             self.max_linear_search_window,
         )?;
         check_sigma("agreement_translation", "m", self.agreement_translation)?;
+        check_sigma(
+            "max_innovation_translation",
+            "m",
+            self.max_innovation_translation,
+        )?;
+        check_sigma(
+            "max_innovation_rotation",
+            "rad",
+            self.max_innovation_rotation,
+        )?;
         check_sigma(
             "max_unconfirmed_translation",
             "m",

@@ -56,6 +56,18 @@ pub enum GlobalSlamEvent {
     Optimized(OptimizationSummary),
 }
 
+/// How a loop closure was accepted: how far it moved its node from the estimate of the moment, and
+/// whether it waited for another match to agree with it.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Acceptance {
+    /// Translation (m) between the match and the node's estimate in the submap's frame when it arrived.
+    pub innovation_translation_m: f64,
+    /// Absolute rotation (rad) between the two.
+    pub innovation_rotation_rad: f64,
+    /// Whether it was held until a match of another node agreed with it.
+    pub confirmed_by_agreement: bool,
+}
+
 /// Errors of [`GlobalSlam`].
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum GlobalSlamError {
@@ -89,6 +101,8 @@ pub struct GlobalSlam {
     pending_jobs: Vec<SearchJob>,
     nodes_since_optimization: usize,
     accepted_loop_closures: Vec<LoopClosure>,
+    /// How each accepted loop closure was accepted, parallel to `accepted_loop_closures`.
+    acceptances: Vec<Acceptance>,
     searches_queued: usize,
     /// Trajectories started without a prior while the map already had other trajectories: their
     /// estimates are in an arbitrary frame until a full-submap match places them (see
@@ -102,8 +116,12 @@ pub struct GlobalSlam {
     /// Per trajectory, the path length (m) of its latest node with an accepted loop closure that closed a
     /// loop (see `min_loop_length`): drift, and so the search window, grows from there.
     last_loop_path: BTreeMap<u32, f64>,
+    /// Matches refused because they moved their node farther than drift can explain.
+    closures_beyond_drift: usize,
+    /// Matches refused because other matches of their node disagreed with them.
+    closures_outvoted: usize,
     /// Matches that would move their node far from its estimate, waiting for another to agree with them.
-    pending_unconfirmed: Vec<LoopClosure>,
+    pending_unconfirmed: Vec<(LoopClosure, Acceptance)>,
 }
 
 fn information(translation_sigma: f64, rotation_sigma: f64) -> Matrix3<f64> {
@@ -134,12 +152,15 @@ impl GlobalSlam {
             pending_jobs: Vec::new(),
             nodes_since_optimization: 0,
             accepted_loop_closures: Vec::new(),
+            acceptances: Vec::new(),
             searches_queued: 0,
             unanchored: BTreeSet::new(),
             capped_optimizer: None,
             matched_elsewhere: BTreeSet::new(),
             last_loop_path: BTreeMap::new(),
             pending_unconfirmed: Vec::new(),
+            closures_beyond_drift: 0,
+            closures_outvoted: 0,
         })
     }
 
@@ -429,6 +450,26 @@ impl GlobalSlam {
         submap: &SubmapRecord,
     ) -> SearchWindow {
         let cb = &self.options.constraint_builder;
+        let drift_path = self.drift_path(node, record, sid, submap);
+        let base = &cb.fast_correlative;
+        SearchWindow {
+            linear_m: (base.linear_search_window + cb.linear_window_growth * drift_path)
+                .min(cb.max_linear_search_window.max(base.linear_search_window)),
+            angular_rad: (base.angular_search_window + cb.angular_window_growth * drift_path)
+                .min(std::f64::consts::PI),
+        }
+    }
+
+    /// The path (m) over which LLO's drift separates `node`'s estimate from `submap`'s: the path since the
+    /// node's trajectory last closed a loop or, within one trajectory, the path between the submap and the
+    /// node, if shorter.
+    fn drift_path(
+        &self,
+        node: NodeId,
+        record: &NodeRecord,
+        sid: SubmapId,
+        submap: &SubmapRecord,
+    ) -> f64 {
         let since_loop = record.path_m
             - self
                 .last_loop_path
@@ -441,13 +482,29 @@ impl GlobalSlam {
         {
             drift_path = drift_path.min((record.path_m - first.path_m).abs());
         }
-        let base = &cb.fast_correlative;
-        SearchWindow {
-            linear_m: (base.linear_search_window + cb.linear_window_growth * drift_path)
-                .min(cb.max_linear_search_window.max(base.linear_search_window)),
-            angular_rad: (base.angular_search_window + cb.angular_window_growth * drift_path)
-                .min(std::f64::consts::PI),
+        drift_path
+    }
+
+    /// Whether a match moves its node farther from its estimate than drift can explain: more than
+    /// `max_innovation_translation` plus `linear_window_growth` per metre of drift path, or more than
+    /// `max_innovation_rotation` plus `angular_window_growth` per metre (see [`Self::drift_path`]).
+    /// Trajectories not yet placed, and matches of unknown nodes or submaps, are never gated.
+    fn beyond_drift(&self, closure: &LoopClosure, acceptance: &Acceptance) -> bool {
+        if self.unanchored.contains(&closure.node.trajectory) {
+            return false;
         }
+        let (Some(record), Some(submap)) = (
+            self.nodes.get(&closure.node),
+            self.submaps.get(&closure.submap),
+        ) else {
+            return false;
+        };
+        let cb = &self.options.constraint_builder;
+        let drift_path = self.drift_path(closure.node, record, closure.submap, submap);
+        acceptance.innovation_translation_m
+            > cb.max_innovation_translation + cb.linear_window_growth * drift_path
+            || acceptance.innovation_rotation_rad
+                > cb.max_innovation_rotation + cb.angular_window_growth * drift_path
     }
 
     /// The loop-closure searches queued since the last call. Run them with
@@ -477,9 +534,15 @@ impl GlobalSlam {
         let loss = RobustLoss::Huber {
             delta: cb.huber_scale,
         };
-        let mut accepted = Vec::new();
+        let results: Vec<LoopClosure> = results.into_iter().collect();
+        let outvoted = self.outvoted(&results);
+        let mut accepted: Vec<(LoopClosure, Acceptance)> = Vec::new();
         let mut confirmed_any = false;
-        for closure in results {
+        for (closure, outvoted) in results.into_iter().zip(outvoted) {
+            if outvoted {
+                self.closures_outvoted += 1;
+                continue;
+            }
             if !self.nodes.contains_key(&closure.node)
                 || !self.submaps.contains_key(&closure.submap)
             {
@@ -490,18 +553,27 @@ impl GlobalSlam {
             {
                 continue; // never queued: an unplaced submap says nothing about placed nodes yet
             }
-            if self.needs_confirmation(&closure) {
+            let mut acceptance = self.acceptance(&closure);
+            if self.beyond_drift(&closure, &acceptance) {
+                self.closures_beyond_drift += 1;
+                continue;
+            }
+            if self.needs_confirmation(&closure, &acceptance) {
                 let agreeing = self.take_agreeing(&closure);
                 if agreeing.is_empty() {
-                    self.pending_unconfirmed.push(closure);
+                    self.pending_unconfirmed.push((closure, acceptance));
                     continue;
                 }
                 confirmed_any = true;
-                accepted.extend(agreeing);
+                acceptance.confirmed_by_agreement = true;
+                accepted.extend(agreeing.into_iter().map(|(c, mut a)| {
+                    a.confirmed_by_agreement = true;
+                    (c, a)
+                }));
             }
-            accepted.push(closure);
+            accepted.push((closure, acceptance));
         }
-        for closure in accepted {
+        for (closure, acceptance) in accepted {
             if self.unanchored.contains(&closure.node.trajectory)
                 && closure.node.trajectory != closure.submap.trajectory
             {
@@ -520,6 +592,7 @@ impl GlobalSlam {
             }
             self.note_loop(&closure);
             self.accepted_loop_closures.push(closure.clone());
+            self.acceptances.push(acceptance);
             events.push(GlobalSlamEvent::LoopClosureAdded(closure));
         }
         let n = self.options.optimize_every_n_nodes;
@@ -555,30 +628,92 @@ impl GlobalSlam {
         }
     }
 
+    /// Matches of one node against several submaps must agree on where the node is (within
+    /// `agreement_translation` and `agreement_rotation`, through the submaps' current poses). A match is
+    /// outvoted when another match of its node has more matches agreeing with it, or when its node has
+    /// other matches and none agrees with it: two places that fit one scan about equally well cannot both be
+    /// right, and which one is wrong is not known.
+    fn outvoted(&self, results: &[LoopClosure]) -> Vec<bool> {
+        let cb = &self.options.constraint_builder;
+        let implied: Vec<Option<Rigid2>> = results
+            .iter()
+            .map(|c| self.submap_pose(c.submap).map(|s| s * c.submap_from_node))
+            .collect();
+        let agree = |a: &Rigid2, b: &Rigid2| {
+            let d = a.inverse() * b;
+            d.translation.vector.norm() <= cb.agreement_translation
+                && d.rotation.angle().abs() <= cb.agreement_rotation
+        };
+        // Per match: (matches of the same node, of which agreeing with it, itself included).
+        let support: Vec<(usize, usize)> = (0..results.len())
+            .map(|i| {
+                let Some(pi) = implied[i] else {
+                    return (1, 1);
+                };
+                let mut same = 1;
+                let mut agreeing = 1;
+                for (j, pj) in implied.iter().enumerate() {
+                    if j == i || results[j].node != results[i].node {
+                        continue;
+                    }
+                    let Some(pj) = pj else { continue };
+                    same += 1;
+                    if agree(&pi, pj) {
+                        agreeing += 1;
+                    }
+                }
+                (same, agreeing)
+            })
+            .collect();
+        (0..results.len())
+            .map(|i| {
+                let (same, agreeing) = support[i];
+                if same == 1 {
+                    return false;
+                }
+                let best = (0..results.len())
+                    .filter(|&j| results[j].node == results[i].node)
+                    .map(|j| support[j].1)
+                    .max()
+                    .unwrap_or(agreeing);
+                agreeing == 1 || agreeing < best
+            })
+            .collect()
+    }
+
+    /// How far a match would move its node from its current estimate (in the submap's frame).
+    fn acceptance(&self, closure: &LoopClosure) -> Acceptance {
+        let (Some(submap), Some(node)) = (
+            self.submap_pose(closure.submap),
+            self.node_pose(closure.node),
+        ) else {
+            return Acceptance::default();
+        };
+        let innovation = (submap.inverse() * node).inverse() * closure.submap_from_node;
+        Acceptance {
+            innovation_translation_m: innovation.translation.vector.norm(),
+            innovation_rotation_rad: innovation.rotation.angle().abs(),
+            confirmed_by_agreement: false,
+        }
+    }
+
     /// Whether a match would move its node farther from its current estimate (in the submap's frame) than
     /// `max_unconfirmed_translation` or `max_unconfirmed_rotation`: then it is used only once another
     /// match agrees with it (see [`Self::agree`]). A wrong match (a look-alike place, a corridor's other
     /// end) is almost always far from the estimate; a right one far from it closes a loop after drift,
     /// where a second match soon follows. The match that places an unanchored trajectory is exempt.
-    fn needs_confirmation(&self, closure: &LoopClosure) -> bool {
+    fn needs_confirmation(&self, closure: &LoopClosure, acceptance: &Acceptance) -> bool {
         if self.unanchored.contains(&closure.node.trajectory) {
             return false;
         }
-        let (Some(submap), Some(node)) = (
-            self.submap_pose(closure.submap),
-            self.node_pose(closure.node),
-        ) else {
-            return false;
-        };
         let cb = &self.options.constraint_builder;
-        let innovation = (submap.inverse() * node).inverse() * closure.submap_from_node;
-        innovation.translation.vector.norm() > cb.max_unconfirmed_translation
-            || innovation.rotation.angle().abs() > cb.max_unconfirmed_rotation
+        acceptance.innovation_translation_m > cb.max_unconfirmed_translation
+            || acceptance.innovation_rotation_rad > cb.max_unconfirmed_rotation
     }
 
     /// Removes from the pending unconfirmed matches those that agree with `closure` (see [`Self::agree`]) and
     /// returns them; forgets pending matches too far behind along their trajectory to ever agree.
-    fn take_agreeing(&mut self, closure: &LoopClosure) -> Vec<LoopClosure> {
+    fn take_agreeing(&mut self, closure: &LoopClosure) -> Vec<(LoopClosure, Acceptance)> {
         let horizon = self.options.constraint_builder.agreement_path_length;
         let newest_path = |trajectory: u32, this: &Self| {
             this.last_node
@@ -588,7 +723,7 @@ impl GlobalSlam {
         };
         let pending = std::mem::take(&mut self.pending_unconfirmed);
         let mut agreeing = Vec::new();
-        for p in pending {
+        for (p, acceptance) in pending {
             let Some(record) = self.nodes.get(&p.node) else {
                 continue;
             };
@@ -598,9 +733,9 @@ impl GlobalSlam {
                 continue;
             }
             if self.agree(&p, closure) {
-                agreeing.push(p);
+                agreeing.push((p, acceptance));
             } else {
-                self.pending_unconfirmed.push(p);
+                self.pending_unconfirmed.push((p, acceptance));
             }
         }
         agreeing
@@ -825,6 +960,18 @@ impl GlobalSlam {
         &self.graph
     }
 
+    /// Matches refused so far because they moved their node farther from its estimate than the drift since
+    /// the last loop can explain (`max_innovation_translation`, `max_innovation_rotation`).
+    pub fn closures_beyond_drift(&self) -> usize {
+        self.closures_beyond_drift
+    }
+
+    /// Matches refused so far because other matches of their node, handed in together, disagreed with them
+    /// (see `add_search_results`).
+    pub fn closures_outvoted(&self) -> usize {
+        self.closures_outvoted
+    }
+
     /// Loop-closure searches queued so far.
     pub fn searches_queued(&self) -> usize {
         self.searches_queued
@@ -841,12 +988,14 @@ impl GlobalSlam {
     pub fn loop_closure_checks(&self) -> Vec<LoopClosureCheck> {
         self.accepted_loop_closures
             .iter()
-            .filter_map(|closure| {
+            .zip(&self.acceptances)
+            .filter_map(|(closure, acceptance)| {
                 let submap = self.submap_pose(closure.submap)?;
                 let node = self.node_pose(closure.node)?;
                 let residual = closure.submap_from_node.inverse() * submap.inverse() * node;
                 Some(LoopClosureCheck {
                     closure: closure.clone(),
+                    acceptance: *acceptance,
                     residual_translation_m: residual.translation.vector.norm(),
                     residual_rotation_rad: residual.rotation.angle().abs(),
                 })
@@ -957,6 +1106,33 @@ mod tests {
         global.add_search_results([wide_closure(150, rigid2(0.8, 0.6, 0.0))]);
         global.add_search_results([wide_closure(390, rigid2(0.8, 0.6, 0.0))]);
         assert!(global.accepted_loop_closures().is_empty());
+    }
+
+    #[test]
+    fn a_match_farther_than_drift_explains_is_refused_even_when_another_agrees() {
+        let mut global = straight_run(40);
+        // Nodes 12 and 13 are 2.4–2.6 m of path from submap 0's first node: drift explains at most
+        // 0.5 m + 5 % of that. Two matches that agree with each other 1 m away are both refused.
+        let error = rigid2(1.0, 0.0, 0.0);
+        global.add_search_results([wide_closure(12, error)]);
+        global.add_search_results([wide_closure(13, error)]);
+        assert!(global.accepted_loop_closures().is_empty());
+        assert_eq!(global.closures_beyond_drift(), 2);
+        // Within the bound (0.1 m) it is accepted at once, with its innovation recorded.
+        global.add_search_results([wide_closure(14, rigid2(0.1, 0.0, 0.0))]);
+        let checks = global.loop_closure_checks();
+        assert_eq!(checks.len(), 1);
+        assert!((checks[0].acceptance.innovation_translation_m - 0.1).abs() < 1e-9);
+        assert!(!checks[0].acceptance.confirmed_by_agreement);
+        // Far along the path (35 m driven, no loop closed) the same 1 m is within what drift explains: it
+        // waits for a second opinion instead.
+        let mut global = straight_run(200);
+        global.add_search_results([wide_closure(175, error)]);
+        global.add_search_results([wide_closure(178, error)]);
+        let checks = global.loop_closure_checks();
+        assert_eq!(checks.len(), 2);
+        assert!(checks.iter().all(|c| c.acceptance.confirmed_by_agreement));
+        assert_eq!(global.closures_beyond_drift(), 0);
     }
 
     #[test]

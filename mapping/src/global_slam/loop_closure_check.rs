@@ -4,7 +4,7 @@
 
 use serde::Serialize;
 
-use super::LoopClosure;
+use super::{Acceptance, LoopClosure};
 
 /// A loop closure counts as true when its residual after optimization is below this translation (m) …
 pub const TRUE_CLOSURE_TRANSLATION_M: f64 = 0.20;
@@ -16,6 +16,8 @@ pub const TRUE_CLOSURE_ROTATION_RAD: f64 = std::f64::consts::PI / 180.0;
 pub struct LoopClosureCheck {
     /// The closure as accepted.
     pub closure: LoopClosure,
+    /// How it was accepted.
+    pub acceptance: Acceptance,
     /// Translation (m) of `measured⁻¹ · optimized` for the node in the submap's frame.
     pub residual_translation_m: f64,
     /// Absolute rotation (rad) of that residual.
@@ -78,6 +80,7 @@ mod tests {
                 runner_up_score: None,
                 information: None,
             },
+            acceptance: Acceptance::default(),
             residual_translation_m: t,
             residual_rotation_rad: r,
         }

@@ -122,6 +122,8 @@ pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
         "loop_closures_held": precision.held,
         "loop_closures_checked": precision.checked,
         "loop_closure_searches": run.global.searches_queued(),
+        "loop_closures_beyond_drift": run.global.closures_beyond_drift(),
+        "loop_closures_outvoted": run.global.closures_outvoted(),
         "ams": ams,
         "optimizations": run.optimizations,
         "final_optimization": format!("{:?}", run.final_optimization),
@@ -199,7 +201,7 @@ fn write_loop_closures(
 ) -> anyhow::Result<()> {
     let start = global.nodes().values().next().map(|n| n.time);
     let mut csv = String::from(
-        "node_time_s,node,submap_trajectory,submap,score,runner_up_score,residual_m,residual_deg,holds\n",
+        "node_time_s,node,submap_trajectory,submap,score,runner_up_score,innovation_m,innovation_deg,confirmed,residual_m,residual_deg,holds\n",
     );
     for c in checks {
         let time = global
@@ -209,7 +211,7 @@ fn write_loop_closures(
             .map_or(f64::NAN, |(n, s)| n.time.seconds_since(s));
         writeln!(
             csv,
-            "{:.3},{},{},{},{:.4},{},{:.4},{:.3},{}",
+            "{:.3},{},{},{},{:.4},{},{:.4},{:.3},{},{:.4},{:.3},{}",
             time,
             c.closure.node.index,
             c.closure.submap.trajectory,
@@ -218,6 +220,9 @@ fn write_loop_closures(
             c.closure
                 .runner_up_score
                 .map_or(String::new(), |r| format!("{r:.4}")),
+            c.acceptance.innovation_translation_m,
+            c.acceptance.innovation_rotation_rad.to_degrees(),
+            u8::from(c.acceptance.confirmed_by_agreement),
             c.residual_translation_m,
             c.residual_rotation_rad.to_degrees(),
             u8::from(c.holds()),
