@@ -116,8 +116,10 @@ pub struct GlobalSlam {
     /// Per trajectory, the path length (m) of its latest node with an accepted loop closure that closed a
     /// loop (see `min_loop_length`): drift, and so the search window, grows from there.
     last_loop_path: BTreeMap<u32, f64>,
-    /// Matches refused because they moved their node farther than drift can explain.
+    /// Matches refused (so far) because they moved their node farther than drift can explain.
     closures_beyond_drift: usize,
+    /// Those matches, waiting for enough others to agree with them (`beyond_drift_confirmations`).
+    pending_beyond_drift: Vec<(LoopClosure, Acceptance)>,
     /// Matches refused because other matches of their node disagreed with them.
     closures_outvoted: usize,
     /// Matches that would move their node far from its estimate, waiting for another to agree with them.
@@ -160,6 +162,7 @@ impl GlobalSlam {
             last_loop_path: BTreeMap::new(),
             pending_unconfirmed: Vec::new(),
             closures_beyond_drift: 0,
+            pending_beyond_drift: Vec::new(),
             closures_outvoted: 0,
         })
     }
@@ -555,11 +558,38 @@ impl GlobalSlam {
             }
             let mut acceptance = self.acceptance(&closure);
             if self.beyond_drift(&closure, &acceptance) {
-                self.closures_beyond_drift += 1;
+                // A sudden LLO slip also moves a node farther than drift explains: its repair waits for
+                // several nodes' matches against more than one submap to agree on it.
+                let mut agreeing = self.take_agreeing(&closure, true);
+                let nodes: BTreeSet<NodeId> = agreeing
+                    .iter()
+                    .map(|(c, _)| c.node)
+                    .chain([closure.node])
+                    .collect();
+                let submaps: BTreeSet<SubmapId> = agreeing
+                    .iter()
+                    .map(|(c, _)| c.submap)
+                    .chain([closure.submap])
+                    .collect();
+                let needed = self.options.constraint_builder.beyond_drift_confirmations;
+                if needed == 0 || nodes.len() < needed || submaps.len() < 2 {
+                    self.pending_beyond_drift.append(&mut agreeing);
+                    self.pending_beyond_drift.push((closure, acceptance));
+                    self.closures_beyond_drift += 1;
+                    continue;
+                }
+                confirmed_any = true;
+                acceptance.confirmed_by_agreement = true;
+                self.closures_beyond_drift -= agreeing.len();
+                accepted.extend(agreeing.into_iter().map(|(c, mut a)| {
+                    a.confirmed_by_agreement = true;
+                    (c, a)
+                }));
+                accepted.push((closure, acceptance));
                 continue;
             }
             if self.needs_confirmation(&closure, &acceptance) {
-                let agreeing = self.take_agreeing(&closure);
+                let agreeing = self.take_agreeing(&closure, false);
                 if agreeing.is_empty() {
                     self.pending_unconfirmed.push((closure, acceptance));
                     continue;
@@ -713,7 +743,11 @@ impl GlobalSlam {
 
     /// Removes from the pending unconfirmed matches those that agree with `closure` (see [`Self::agree`]) and
     /// returns them; forgets pending matches too far behind along their trajectory to ever agree.
-    fn take_agreeing(&mut self, closure: &LoopClosure) -> Vec<(LoopClosure, Acceptance)> {
+    fn take_agreeing(
+        &mut self,
+        closure: &LoopClosure,
+        beyond_drift: bool,
+    ) -> Vec<(LoopClosure, Acceptance)> {
         let horizon = self.options.constraint_builder.agreement_path_length;
         let newest_path = |trajectory: u32, this: &Self| {
             this.last_node
@@ -721,7 +755,12 @@ impl GlobalSlam {
                 .and_then(|n| this.nodes.get(n))
                 .map_or(0.0, |r| r.path_m)
         };
-        let pending = std::mem::take(&mut self.pending_unconfirmed);
+        let pending = std::mem::take(if beyond_drift {
+            &mut self.pending_beyond_drift
+        } else {
+            &mut self.pending_unconfirmed
+        });
+        let mut kept = Vec::new();
         let mut agreeing = Vec::new();
         for (p, acceptance) in pending {
             let Some(record) = self.nodes.get(&p.node) else {
@@ -735,8 +774,13 @@ impl GlobalSlam {
             if self.agree(&p, closure) {
                 agreeing.push((p, acceptance));
             } else {
-                self.pending_unconfirmed.push((p, acceptance));
+                kept.push((p, acceptance));
             }
+        }
+        if beyond_drift {
+            self.pending_beyond_drift = kept;
+        } else {
+            self.pending_unconfirmed = kept;
         }
         agreeing
     }
@@ -1132,6 +1176,34 @@ mod tests {
         let checks = global.loop_closure_checks();
         assert_eq!(checks.len(), 2);
         assert!(checks.iter().all(|c| c.acceptance.confirmed_by_agreement));
+        assert_eq!(global.closures_beyond_drift(), 0);
+    }
+
+    #[test]
+    fn a_slip_beyond_drift_is_repaired_when_nodes_and_submaps_agree_on_it() {
+        let mut global = straight_run(40);
+        let error = rigid2(1.0, 0.0, 0.0);
+        let to_submap_1 = |node: u32| LoopClosure {
+            submap: SubmapId {
+                trajectory: 0,
+                index: 1,
+            },
+            submap_from_node: rigid2(0.2 * f64::from(node) - 2.2, 0.0, 0.0) * error,
+            ..wide_closure(node, error)
+        };
+        // Four nodes agree on a 1 m correction, all against submap 0: still refused.
+        for node in [12, 13, 14, 15] {
+            global.add_search_results([wide_closure(node, error)]);
+        }
+        assert!(global.accepted_loop_closures().is_empty());
+        // A fifth node agrees through another submap: the chorus is accepted together.
+        global.add_search_results([to_submap_1(5)]);
+        let accepted: Vec<u32> = global
+            .accepted_loop_closures()
+            .iter()
+            .map(|c| c.node.index)
+            .collect();
+        assert_eq!(accepted, vec![12, 13, 14, 15, 5]);
         assert_eq!(global.closures_beyond_drift(), 0);
     }
 
