@@ -41,6 +41,10 @@ pub struct OptimizeArgs {
     /// Φ of that dynamic covariance scaling (unitless, on the squared Mahalanobis norm).
     #[arg(long, default_value_t = DEFAULT_LOOP_CLOSURE_PHI)]
     pub loop_closure_phi: f64,
+    /// Constraints whose robust weight falls below this are left out of the linear system until it
+    /// rises above ten times this (`OptimizerOptions::prune_weight`; 0 keeps every constraint).
+    #[arg(long, default_value_t = OptimizerOptions::DEFAULT.prune_weight)]
+    pub prune_weight: f64,
     /// Benchmark: add this many false loop closures between random vertex pairs (random relative pose,
     /// the file's first loop closure's information), optimize the clean and the corrupted graph, and report
     /// how far the corrupted optimum lies from the clean one.
@@ -88,6 +92,7 @@ fn execute(args: &OptimizeArgs) -> Result<serde_json::Value> {
     let options = OptimizerOptions {
         rotation_first_initialization: !args.no_rotation_init,
         max_iterations: args.max_iterations.unwrap_or(defaults.max_iterations),
+        prune_weight: args.prune_weight,
         ..defaults
     };
     let mut optimizer = Optimizer::new(options.clone()).context("invalid optimizer options")?;
@@ -130,6 +135,7 @@ fn execute(args: &OptimizeArgs) -> Result<serde_json::Value> {
         "initial_chi2": summary.initial_chi2,
         "final_chi2": summary.final_chi2,
         "iterations": summary.iterations,
+        "pruned_constraints": summary.pruned_constraints,
         "time_ms": time_ms,
         "termination": summary.termination.to_string(),
     });
@@ -319,6 +325,7 @@ mod tests {
             max_iterations: None,
             loop_closure_phi: DEFAULT_LOOP_CLOSURE_PHI,
             robust: false,
+            prune_weight: OptimizerOptions::DEFAULT.prune_weight,
             add_outliers: 0,
             outlier_groups: 0,
             outlier_seed: 1,
