@@ -9,7 +9,8 @@ use anyhow::{Context as _, Result};
 use mapping::geometry::rigid2;
 use mapping::io::g2o::{read_pose_graph, write_pose_graph};
 use mapping::pose_graph::{
-    Constraint, ConstraintKind, NodeId, Optimizer, OptimizerOptions, PoseGraph, RobustLoss,
+    Constraint, ConstraintKind, NodeId, OptimizationSummary, Optimizer, OptimizerOptions, PoseGraph,
+    RobustLoss,
     VariableId,
 };
 use nalgebra::Matrix3;
@@ -41,6 +42,10 @@ pub struct OptimizeArgs {
     /// Φ of that dynamic covariance scaling (unitless, on the squared Mahalanobis norm).
     #[arg(long, default_value_t = DEFAULT_LOOP_CLOSURE_PHI)]
     pub loop_closure_phi: f64,
+    /// Stages before the last: optimize with the loop closures' DCS at each of these Φ in turn (each
+    /// stage to convergence, from the previous one's result), then at `--loop-closure-phi`.
+    #[arg(long, value_delimiter = ',')]
+    pub phi_stages: Vec<f64>,
     /// Constraints whose robust weight falls below this are left out of the linear system until it
     /// rises above ten times this (`OptimizerOptions::prune_weight`; 0 keeps every constraint).
     #[arg(long, default_value_t = OptimizerOptions::DEFAULT.prune_weight)]
@@ -95,14 +100,22 @@ fn execute(args: &OptimizeArgs) -> Result<serde_json::Value> {
         prune_weight: args.prune_weight,
         ..defaults
     };
+    let stages: Vec<RobustLoss> = match loss {
+        RobustLoss::Dcs { phi } => args
+            .phi_stages
+            .iter()
+            .chain(std::iter::once(&phi))
+            .map(|&phi| RobustLoss::Dcs { phi })
+            .collect(),
+        _ => vec![loss],
+    };
     let mut optimizer = Optimizer::new(options.clone()).context("invalid optimizer options")?;
     let benchmark = if args.add_outliers > 0 || args.outlier_groups > 0 {
         // The clean optimum first, on a copy; the file's graph is then corrupted and optimized below.
         let mut clean = graph.clone();
         let start = Instant::now();
-        Optimizer::new(options)
-            .context("invalid optimizer options")?
-            .optimize(&mut clean);
+        let mut clean_optimizer = Optimizer::new(options.clone()).context("invalid optimizer options")?;
+        optimize_in_stages(&mut clean_optimizer, &mut clean, &stages)?;
         let clean_time_ms = start.elapsed().as_secs_f64() * 1e3;
         let added = add_false_loop_closures(
             &mut graph,
@@ -116,7 +129,7 @@ fn execute(args: &OptimizeArgs) -> Result<serde_json::Value> {
         None
     };
     let start = Instant::now();
-    let summary = optimizer.optimize(&mut graph);
+    let summary = optimize_in_stages(&mut optimizer, &mut graph, &stages)?;
     let time_ms = start.elapsed().as_secs_f64() * 1e3;
     if let Some(out) = &args.out {
         let file = File::create(out).with_context(|| format!("cannot create {}", out.display()))?;
@@ -150,6 +163,49 @@ fn execute(args: &OptimizeArgs) -> Result<serde_json::Value> {
         report["time_vs_clean"] = serde_json::json!(time_ms / clean_time_ms.max(1e-9));
     }
     Ok(report)
+}
+
+/// Optimizes `graph` once per loop-closure loss in `stages` (each from the previous stage's result; the
+/// rotation-first guess only in the first), leaving the last stage's losses on the graph. The summary
+/// is the last stage's, with the first stage's initial χ²/cost and the iterations of all stages.
+fn optimize_in_stages(
+    optimizer: &mut Optimizer,
+    graph: &mut PoseGraph,
+    stages: &[RobustLoss],
+) -> Result<OptimizationSummary> {
+    let mut total: Option<OptimizationSummary> = None;
+    let mut later = None;
+    for (k, &loss) in stages.iter().enumerate() {
+        if stages.len() > 1 {
+            *graph = with_loop_closure_loss(graph, loss)?;
+        }
+        let summary = if k == 0 {
+            optimizer.optimize(graph)
+        } else {
+            let later = match later.as_mut() {
+                Some(o) => o,
+                None => later.insert(
+                    Optimizer::new(OptimizerOptions {
+                        rotation_first_initialization: false,
+                        ..optimizer.options().clone()
+                    })
+                    .context("invalid optimizer options")?,
+                ),
+            };
+            later.optimize(graph)
+        };
+        total = Some(match total {
+            None => summary,
+            Some(t) => OptimizationSummary {
+                initial_chi2: t.initial_chi2,
+                initial_cost: t.initial_cost,
+                iterations: t.iterations + summary.iterations,
+                accepted_steps: t.accepted_steps + summary.accepted_steps,
+                ..summary
+            },
+        });
+    }
+    total.context("no optimization stage")
 }
 
 /// Whether an edge of a g2o/TORO graph is a loop closure: its vertex ids are not consecutive.
@@ -326,6 +382,7 @@ mod tests {
             loop_closure_phi: DEFAULT_LOOP_CLOSURE_PHI,
             robust: false,
             prune_weight: OptimizerOptions::DEFAULT.prune_weight,
+            phi_stages: Vec::new(),
             add_outliers: 0,
             outlier_groups: 0,
             outlier_seed: 1,
