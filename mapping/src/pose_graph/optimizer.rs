@@ -335,8 +335,10 @@ impl Optimizer {
             }
         }
         // Then only the constraints whose weight at the start is not negligible.
-        problem.update_active(self.options.prune_weight);
-        if factorization.prepare(&mut problem).is_none() {
+        let changed = problem.update_active(self.options.prune_weight);
+        if (changed || !self.options.rotation_first_initialization)
+            && factorization.prepare(&mut problem).is_none()
+        {
             summary.termination = Termination::Failed(FailureReason::SymbolicFactorization);
             return summary;
         }
