@@ -55,6 +55,13 @@ pub struct OptimizerOptions {
     /// from it when its cost is lower than the current estimate's. Costs two extra linear solves; worth
     /// it from odometry-quality estimates, rarely from an already-optimized graph.
     pub rotation_first_initialization: bool,
+    /// A constraint whose robust weight `ρ'(s)` falls below this at a linearization point is left out of
+    /// the linear system — of its sparsity pattern too — until its weight rises above ten times this
+    /// (checked at every relinearization, from every constraint's `s`, which is cheap). Its cost still
+    /// counts in `F`, so steps are accepted on the true objective. A redescending loss (DCS) drives a
+    /// false loop closure's weight towards zero: without this, a thousand such long-range edges fill in
+    /// the Cholesky factor while contributing nothing. `0` keeps every constraint. Unitless, in `[0, 0.1)`.
+    pub prune_weight: f64,
 }
 
 impl OptimizerOptions {
@@ -70,6 +77,7 @@ impl OptimizerOptions {
         min_diagonal: 1e-6,
         max_diagonal: 1e32,
         rotation_first_initialization: false,
+        prune_weight: 1e-4,
     };
 
     /// Checks that every field is usable.
@@ -93,6 +101,9 @@ impl OptimizerOptions {
         }
         if self.min_diagonal <= 0.0 || self.min_diagonal > self.max_diagonal {
             return Err(OptimizerOptionsError::Diagonal);
+        }
+        if !(0.0..0.1).contains(&self.prune_weight) {
+            return Err(OptimizerOptionsError::PruneWeight(self.prune_weight));
         }
         Ok(())
     }
@@ -121,6 +132,9 @@ pub enum OptimizerOptionsError {
     /// Needs `0 < min_diagonal ≤ max_diagonal`.
     #[error("need 0 < min_diagonal <= max_diagonal")]
     Diagonal,
+    /// Needs `0 ≤ prune_weight < 0.1`.
+    #[error("prune_weight must be in [0, 0.1), got {0}")]
+    PruneWeight(f64),
 }
 
 /// Which convergence test stopped the optimizer.
@@ -204,6 +218,9 @@ pub struct OptimizationSummary {
     pub iterations: usize,
     /// Steps accepted (each one relinearization).
     pub accepted_steps: usize,
+    /// Constraints left out of the linear system at the end (robust weight below
+    /// [`OptimizerOptions::prune_weight`]).
+    pub pruned_constraints: usize,
     /// Why it stopped.
     pub termination: Termination,
 }
@@ -219,6 +236,9 @@ struct Edge {
     to_block: u32,
     /// Off-diagonal block at (min, max) of the free indices, or [`NO_BLOCK`] if an endpoint is fixed.
     cross_block: u32,
+    /// Whether the edge is in the linear system (see [`OptimizerOptions::prune_weight`]); an inactive
+    /// edge has [`NO_BLOCK`] everywhere, so assembly skips it.
+    active: bool,
 }
 
 /// Sparse Levenberg–Marquardt pose-graph optimizer. Keeps its symbolic factorization and work buffers
@@ -265,7 +285,6 @@ impl Optimizer {
     /// Minimises the graph's cost, writing the best estimate found back into `graph`.
     pub fn optimize(&mut self, graph: &mut PoseGraph) -> OptimizationSummary {
         let mut problem = Problem::new(graph);
-        let pattern = problem.block_pattern();
         let (initial_cost, initial_chi2) = problem.cost_and_chi2(&problem.poses);
         let mut summary = OptimizationSummary {
             initial_chi2,
@@ -274,6 +293,7 @@ impl Optimizer {
             final_cost: initial_cost,
             iterations: 0,
             accepted_steps: 0,
+            pruned_constraints: 0,
             termination: Termination::Converged(ConvergenceCriterion::GradientTolerance),
         };
         if !initial_cost.is_finite() {
@@ -283,21 +303,10 @@ impl Optimizer {
         if problem.num_free == 0 || problem.edges.is_empty() {
             return summary;
         }
-        if self.solver.as_ref().is_none_or(|s| *s.pattern() != pattern) {
-            self.solver = None;
-            let Ok(solver) = SparseCholesky::new(pattern) else {
-                summary.termination = Termination::Failed(FailureReason::SymbolicFactorization);
-                return summary;
-            };
-            self.solver = Some(solver);
-            self.symbolic_factorizations += 1;
-        }
-        let Some(solver) = self.solver.as_mut() else {
-            summary.termination = Termination::Failed(FailureReason::SymbolicFactorization);
-            return summary;
+        let mut factorization = Factorization {
+            solver: &mut self.solver,
+            count: &mut self.symbolic_factorizations,
         };
-        problem.assign_blocks(solver.pattern());
-
         let mut work = Work {
             hessian: &mut self.hessian,
             damped: &mut self.damped,
@@ -306,28 +315,76 @@ impl Optimizer {
             damping_diagonal: &mut self.damping_diagonal,
         };
         let mut start_cost = initial_cost;
-        // The guess solves least squares over every constraint: with false loop closures among them it
-        // bends the odometry chain, and its (robust) cost then rises above the given poses' — so it is
-        // kept only where it lowers the cost, as on clean graphs, where it takes badly initialized files to
-        // their optimum.
-        if self.options.rotation_first_initialization
-            && let Some(guess) = rotation_first_guess(&problem, solver, &mut work)
-        {
-            let (guess_cost, _) = problem.cost_and_chi2(&guess);
-            if guess_cost < start_cost {
-                problem.poses = guess;
-                start_cost = guess_cost;
+        // The guess solves least squares over every constraint (all of them active here): with false loop
+        // closures among them it bends the odometry chain, and its (robust) cost then rises above the given
+        // poses' — so it is kept only where it lowers the cost, as on clean graphs, where it takes badly
+        // initialized files to their optimum. (Solving it over the constraints that survive pruning at the
+        // start instead is cheaper but was kept on M3500 with 1000 false closures and led Levenberg–Marquardt
+        // to a minimum 12.7 m away.)
+        if self.options.rotation_first_initialization {
+            let Some(solver) = factorization.prepare(&mut problem) else {
+                summary.termination = Termination::Failed(FailureReason::SymbolicFactorization);
+                return summary;
+            };
+            if let Some(guess) = rotation_first_guess(&problem, solver, &mut work) {
+                let (guess_cost, _) = problem.cost_and_chi2(&guess);
+                if guess_cost < start_cost {
+                    problem.poses = guess;
+                    start_cost = guess_cost;
+                }
             }
         }
-        let (termination, cost, chi2, iterations, accepted) =
-            levenberg_marquardt(&self.options, &mut problem, solver, &mut work, start_cost);
+        // Then only the constraints whose weight at the start is not negligible.
+        let changed = problem.update_active(self.options.prune_weight);
+        if (changed || !self.options.rotation_first_initialization)
+            && factorization.prepare(&mut problem).is_none()
+        {
+            summary.termination = Termination::Failed(FailureReason::SymbolicFactorization);
+            return summary;
+        }
+        let (termination, cost, chi2, iterations, accepted) = levenberg_marquardt(
+            &self.options,
+            &mut problem,
+            &mut factorization,
+            &mut work,
+            start_cost,
+        );
         summary.termination = termination;
+        summary.pruned_constraints = problem.edges.iter().filter(|e| !e.active).count();
         summary.final_cost = cost;
         summary.final_chi2 = chi2;
         summary.iterations = iterations;
         summary.accepted_steps = accepted;
         problem.write_back(graph);
         summary
+    }
+}
+
+/// The optimizer's symbolic factorization slot: rebuilt when the active edges' block pattern changes.
+struct Factorization<'a> {
+    solver: &'a mut Option<SparseCholesky>,
+    count: &'a mut usize,
+}
+
+impl Factorization<'_> {
+    /// A solver for the block pattern of the problem's active edges (reused when unchanged), with the
+    /// edges' blocks assigned; `None` if the symbolic factorization fails.
+    fn prepare(&mut self, problem: &mut Problem) -> Option<&mut SparseCholesky> {
+        let pattern = problem.block_pattern();
+        if self.solver.as_ref().is_none_or(|s| *s.pattern() != pattern) {
+            *self.solver = None;
+            *self.solver = Some(SparseCholesky::new(pattern).ok()?);
+            *self.count += 1;
+        }
+        let solver = self.solver.as_mut()?;
+        problem.assign_blocks(solver.pattern());
+        Some(solver)
+    }
+
+    fn solver(&mut self) -> &mut SparseCholesky {
+        self.solver
+            .as_mut()
+            .expect("prepared before the Levenberg–Marquardt loop")
     }
 }
 
@@ -387,6 +444,7 @@ impl Problem {
                     from_block: NO_BLOCK,
                     to_block: NO_BLOCK,
                     cross_block: NO_BLOCK,
+                    active: true,
                 })
             })
             .collect::<Vec<_>>();
@@ -400,20 +458,51 @@ impl Problem {
     }
 
     /// The sparsity pattern of `H`: one block per free variable, plus one per pair of free variables
-    /// joined by an edge.
+    /// joined by an active edge.
     fn block_pattern(&self) -> BlockPattern {
         let free = &self.free_index;
         BlockPattern::new(
             self.num_free,
-            self.edges.iter().filter_map(|e| {
+            self.edges.iter().filter(|e| e.active).filter_map(|e| {
                 let (a, b) = (free[e.from as usize], free[e.to as usize]);
                 (a != u32::MAX && b != u32::MAX).then_some((a, b))
             }),
         )
     }
 
+    /// Re-decides which edges are in the linear system at the current poses: an active edge leaves when
+    /// its robust weight falls below `prune_weight`, an inactive one returns when its weight exceeds
+    /// ten times that (the gap keeps an edge near the threshold from toggling every step). Returns
+    /// whether the active set changed. `prune_weight = 0` keeps (or makes) every edge active.
+    fn update_active(&mut self, prune_weight: f64) -> bool {
+        let mut changed = false;
+        for e in &mut self.edges {
+            let m = &e.measurement;
+            let active = if prune_weight <= 0.0 {
+                true
+            } else {
+                let r = m.error(&self.poses[e.from as usize], &self.poses[e.to as usize]);
+                let w = m.loss.weight(r.dot(&(m.information * r)));
+                if e.active {
+                    w >= prune_weight
+                } else {
+                    w > 10.0 * prune_weight
+                }
+            };
+            changed |= active != e.active;
+            e.active = active;
+        }
+        changed
+    }
+
     fn assign_blocks(&mut self, pattern: &BlockPattern) {
         for e in &mut self.edges {
+            if !e.active {
+                e.from_block = NO_BLOCK;
+                e.to_block = NO_BLOCK;
+                e.cross_block = NO_BLOCK;
+                continue;
+            }
             let a = self.free_index[e.from as usize];
             let b = self.free_index[e.to as usize];
             e.from_block = if a == u32::MAX {
@@ -696,14 +785,11 @@ fn retract(pose: &Vector3<f64>, dx: f64, dy: f64, dtheta: f64) -> Vector3<f64> {
 fn levenberg_marquardt(
     options: &OptimizerOptions,
     problem: &mut Problem,
-    solver: &mut SparseCholesky,
+    factorization: &mut Factorization<'_>,
     work: &mut Work<'_>,
     initial_cost: f64,
 ) -> (Termination, f64, f64, usize, usize) {
-    let n = solver.pattern().dim();
-    let nnz = solver.pattern().nnz();
-    work.hessian.resize(nnz, 0.0);
-    work.damped.resize(nnz, 0.0);
+    let n = factorization.solver().pattern().dim();
     work.gradient.resize(n, 0.0);
     work.step.resize(n, 0.0);
     work.damping_diagonal.resize(n, 0.0);
@@ -718,6 +804,22 @@ fn levenberg_marquardt(
     let mut relinearize = true;
     loop {
         if relinearize {
+            // The active set follows the poses; a changed set means a new pattern (and ordering).
+            if problem.update_active(options.prune_weight)
+                && factorization.prepare(problem).is_none()
+            {
+                return (
+                    Termination::Failed(FailureReason::SymbolicFactorization),
+                    cost,
+                    chi2,
+                    iterations,
+                    accepted,
+                );
+            }
+            let nnz = factorization.solver().pattern().nnz();
+            work.hessian.resize(nnz, 0.0);
+            work.damped.resize(nnz, 0.0);
+            let solver = factorization.solver();
             problem.linearize(solver.pattern(), work.hessian, work.gradient);
             if work
                 .gradient
@@ -755,6 +857,7 @@ fn levenberg_marquardt(
         }
         iterations += 1;
 
+        let solver = factorization.solver();
         work.damped.copy_from_slice(work.hessian);
         for (&offset, &d) in solver
             .pattern()
