@@ -1,6 +1,6 @@
-//! End to end on real data: the Freiburg benchmark recordings (MIT CSAIL, ACES, Intel) through LLO + GLM
-//! + PGR with the default configuration, scored against the benchmark's ground-truth relations (Kümmerle
-//! et al. 2009) and by loop-closure precision (Hess et al. 2016, Table IV).
+//! End to end on real data: the Freiburg benchmark recordings (MIT CSAIL, ACES, Intel) through LLO, GLM
+//! and PGR with the default configuration, scored against the benchmark's ground-truth relations
+//! (Kümmerle et al. 2009) and by loop-closure precision (Hess et al. 2016, Table IV).
 //!
 //! The bounds are the figures measured with the release build (BENCHMARKS.md, session 9) plus a margin
 //! for floating-point differences between builds, not for regressions.
