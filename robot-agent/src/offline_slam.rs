@@ -14,7 +14,7 @@ use mapping::global_slam::{
 use mapping::grid::{MapLimits, ProbabilityGrid, RangeDataInserter, RangeDataInserterOptions};
 use mapping::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
 use mapping::pose_graph::{NodeId, OptimizationSummary};
-use mapping::scan_matching::RelocalizerOptions;
+use mapping::lifelong::RelocalizationOptions;
 use mapping::sensor::{RangeData, RangeStats, SensorEvent, Timestamp};
 use nalgebra::Point2;
 use serde::Deserialize;
@@ -29,8 +29,8 @@ pub struct SlamConfig {
     pub local: LocalTrajectoryBuilderOptions,
     /// Global matching and pose graph (GLM + PGR).
     pub global: GlobalSlamOptions,
-    /// Whole-map relocalization with no prior (session start, `relocalize`).
-    pub relocalization: RelocalizerOptions,
+    /// Whole-map relocalization with no prior (`relocalize`; the lifelong session start's options).
+    pub relocalization: RelocalizationOptions,
 }
 
 /// Errors of the offline pipeline.

@@ -290,6 +290,25 @@ fn merge_scans(
     (!cloud.is_empty()).then_some((first_from_local, cloud))
 }
 
+/// What [`StartSearch::evidence`] found: the best pose and how decisively it beats the others.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SearchEvidence {
+    /// `global_from_local` of the scans' local frame at the best pose (refined on the unfiltered map).
+    pub global_from_local: Rigid2,
+    /// Branch-and-bound score of the best pose (on the max-filtered map).
+    pub score: f32,
+    /// The best clearly different candidate: its score and where it lies in the best pose's frame,
+    /// `[x, y, θ]` (m, m, rad).
+    pub runner_up: Option<(f32, [f64; 3])>,
+    /// The other distinct candidate the best pose beats least decisively: the paired statistic of
+    /// [`RelocalizationOptions::min_disambiguation_z`], its score and its offset as in `runner_up`.
+    pub weakest: Option<(f64, f32, [f64; 3])>,
+    /// Distinct candidates reaching `min_score`, the best included.
+    pub distinct_candidates: usize,
+    /// Points of the merged, thinned cloud.
+    pub cloud_points: usize,
+}
+
 /// Session-start relocalization that can wait out an ambiguous start.
 ///
 /// In a store of look-alike aisles the first metres of a session often fit two or more places equally well
@@ -394,6 +413,74 @@ impl StartSearch {
         RelocalizationOutcome::Found(SessionRelocalization {
             global_from_local: best_pose * first_from_local,
             score: best_score,
+        })
+    }
+
+    /// Searches the whole map for `scans` like [`Self::search_again`] and returns the evidence behind a
+    /// decision instead of a decision: the best pose, its margin over the best clearly different pose and
+    /// the weakest paired test against any other distinct candidate. `None` when nothing reaches
+    /// `min_score` or there is nothing to match.
+    pub fn evidence(&self, scans: &[(Rigid2, Vec<Point2<f32>>)]) -> Option<SearchEvidence> {
+        let (first_from_local, cloud) = merge_scans(scans, self.options.voxel_size)?;
+        let found = self.relocalizer.relocalize(&cloud)?;
+        let candidates: Vec<(Rigid2, f32)> = distinct(found.candidates)
+            .into_iter()
+            .map(|(pose, score)| (self.sharpen(&cloud, &pose), score))
+            .collect();
+        let &(best_pose, best_score) = candidates.first()?;
+        let grid = self.sharp.as_ref().unwrap_or(self.relocalizer.fine_grid());
+        let offset = |other: &Rigid2| {
+            let o = best_pose.inverse() * other;
+            [o.translation.x, o.translation.y, o.theta()]
+        };
+        let runner_up = candidates.get(1).map(|(pose, score)| (*score, offset(pose)));
+        let weakest = candidates[1..]
+            .iter()
+            .map(|(other, score)| {
+                (
+                    paired_z(grid, &cloud, &best_pose, other),
+                    *score,
+                    offset(other),
+                )
+            })
+            .min_by(|a, b| a.0.total_cmp(&b.0));
+        Some(SearchEvidence {
+            global_from_local: best_pose * first_from_local,
+            score: best_score,
+            runner_up,
+            weakest,
+            distinct_candidates: candidates.len(),
+            cloud_points: cloud.len(),
+        })
+    }
+
+    /// The strict decision on [`Self::evidence`]: placed only when the best pose both scores clearly above
+    /// every clearly different pose (`min_score_margin`) and fits decisively better than every other
+    /// distinct candidate (`min_disambiguation_z`); `Ambiguous` otherwise, `NotFound` without evidence.
+    pub fn decide(&self, evidence: Option<&SearchEvidence>) -> RelocalizationOutcome {
+        let Some(e) = evidence else {
+            return RelocalizationOutcome::NotFound;
+        };
+        let ambiguous = |(runner_up_score, runner_up_from_best): (f32, [f64; 3])| {
+            RelocalizationOutcome::Ambiguous {
+                score: e.score,
+                runner_up_score,
+                runner_up_from_best,
+            }
+        };
+        if let Some(runner_up) = e.runner_up
+            && runner_up.0 >= e.score - self.options.min_score_margin
+        {
+            return ambiguous(runner_up);
+        }
+        if let Some((z, score, offset)) = e.weakest
+            && z < self.options.min_disambiguation_z
+        {
+            return ambiguous((score, offset));
+        }
+        RelocalizationOutcome::Found(SessionRelocalization {
+            global_from_local: e.global_from_local,
+            score: e.score,
         })
     }
 
@@ -616,5 +703,35 @@ mod tests {
         let error = (found.global_from_local.translation.vector - start.translation.vector).norm();
         assert!(error < 0.05, "placed {error} m off");
         assert!(found.global_from_local.theta().abs() < 1f64.to_radians());
+    }
+
+    #[test]
+    fn the_strict_decision_refuses_look_alike_places_and_answers_distinct_ones() {
+        let grid = corridors_grid();
+        let search = StartSearch::new(&grid, &RelocalizationOptions::default());
+        let one_scan = |world: &Rigid2| vec![(Rigid2::identity(), corridor_scan(world))];
+        // Near the closed end the two corridors look alike: refused, though one of them is right.
+        let evidence = search.evidence(&one_scan(&rigid2(3.0, 1.0, 0.0)));
+        let (_, _, offset) = evidence
+            .as_ref()
+            .and_then(|e| e.weakest)
+            .expect("the other corridor is a candidate");
+        assert!((offset[0].hypot(offset[1]) - 8.0).abs() < 0.5, "{evidence:?}");
+        let outcome = search.decide(evidence.as_ref());
+        assert!(
+            matches!(outcome, RelocalizationOutcome::Ambiguous { .. }),
+            "look-alike ends placed: {outcome:?}"
+        );
+        // Beside the pillar only the first corridor fits: placed, and right.
+        let truth = rigid2(14.0, 1.0, 0.3);
+        let evidence = search.evidence(&one_scan(&truth));
+        let found = search
+            .decide(evidence.as_ref())
+            .found()
+            .unwrap_or_else(|| panic!("the pillar tells the corridors apart: {evidence:?}"));
+        let error = (found.global_from_local.translation.vector - truth.translation.vector).norm();
+        assert!(error < 0.05, "placed {error} m off");
+        assert!((found.global_from_local.theta() - truth.theta()).abs() < 1f64.to_radians());
+        assert_eq!(search.decide(None), RelocalizationOutcome::NotFound);
     }
 }
