@@ -12,9 +12,9 @@ use mapping::global_slam::{
     LoopClosure, SearchJob,
 };
 use mapping::grid::{MapLimits, ProbabilityGrid, RangeDataInserter, RangeDataInserterOptions};
+use mapping::lifelong::RelocalizationOptions;
 use mapping::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
 use mapping::pose_graph::{NodeId, OptimizationSummary};
-use mapping::lifelong::RelocalizationOptions;
 use mapping::sensor::{RangeData, RangeStats, SensorEvent, Timestamp};
 use nalgebra::Point2;
 use serde::Deserialize;

@@ -81,22 +81,7 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
         .time()
         .offset_by(0.6 * last.time().seconds_since(first.time()));
 
-    eprintln!("mapping the whole recording for ground truth");
-    let full = run_offline(&recording, &config, &mut |_| {})?;
-    eprintln!("mapping the first 60 %");
-    let head = Recording {
-        events: recording
-            .events
-            .iter()
-            .filter(|e| e.time() < cut)
-            .cloned()
-            .collect(),
-        base_from_laser: recording.base_from_laser,
-        report: recording.report.clone(),
-    };
-    let map_run = run_offline(&head, &config, &mut |_| {})?;
-    let map = render_map(&map_run, config.local.submaps.resolution);
-
+    let (map, truth, common) = prepare(&recording, &config, cut)?;
     config
         .relocalization
         .validate()
@@ -109,23 +94,6 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
     let search = StartSearch::new(&map, &config.relocalization);
     let precompute_ms = build_start.elapsed().as_secs_f64() * 1e3;
 
-    // The map's frame is the head run's; the two runs agree on the first node but their maps differ by
-    // decimetres in places as their loop closures differ. A scan is relocalized against the part of the
-    // map around it, so its truth is the full run's pose expressed in the head run's frame through the
-    // rigid transform that best aligns the common scans within `LOCAL_ALIGNMENT_RADIUS_M` of it.
-    let full_poses: std::collections::BTreeMap<Timestamp, Rigid2> =
-        full.scan_poses.iter().copied().collect();
-    let common: Vec<(Rigid2, Rigid2)> = map_run
-        .scan_poses
-        .iter()
-        .filter_map(|(t, h)| full_poses.get(t).map(|f| (*h, *f)))
-        .collect();
-    let truth: std::collections::BTreeMap<Timestamp, Rigid2> = full
-        .scan_poses
-        .iter()
-        .filter(|(t, _)| *t >= cut)
-        .map(|(t, p)| (*t, align_near(&common, p) * p))
-        .collect();
     let candidates: Vec<Timestamp> = recording
         .events
         .iter()
@@ -156,8 +124,10 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
             results.push(json!({"time": sampled.to_string(), "answer": "no_scan"}));
             continue;
         };
-        let scans: Vec<(Rigid2, Vec<Point2<f32>>)> =
-            nodes.into_iter().map(|(_, pose, points)| (pose, points)).collect();
+        let scans: Vec<(Rigid2, Vec<Point2<f32>>)> = nodes
+            .into_iter()
+            .map(|(_, pose, points)| (pose, points))
+            .collect();
         let start = Instant::now();
         let evidence = search.evidence(&scans);
         let outcome = search.decide(evidence.as_ref());
@@ -211,6 +181,7 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
             "translation_error_m": best_error.map(|e| e.0),
             "rotation_error_deg": best_error.map(|e| e.1),
             "score": evidence.as_ref().map(|e| e.score),
+            "sharp_score": evidence.as_ref().map(|e| e.sharp_score),
             "runner_up_score": evidence.as_ref().and_then(|e| e.runner_up.map(|r| r.0)),
             "runner_up_from_best": evidence.as_ref().and_then(|e| e.runner_up.map(|r| r.1)),
             "weakest_z": evidence.as_ref().and_then(|e| e.weakest.map(|w| w.0)),
@@ -262,6 +233,54 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
             "median_ms": report["median_ms"], "p95_ms": report["p95_ms"]})
     );
     Ok(())
+}
+
+/// The map (from the first 60 % of `recording`, before `cut`), the truth of every scan after the cut in the
+/// map's frame, and the `(map run pose, full run pose)` pairs of the scans both runs placed.
+#[allow(clippy::type_complexity)]
+fn prepare(
+    recording: &Recording,
+    config: &robot_agent::offline_slam::SlamConfig,
+    cut: Timestamp,
+) -> anyhow::Result<(
+    mapping::grid::ProbabilityGrid,
+    std::collections::BTreeMap<Timestamp, Rigid2>,
+    Vec<(Rigid2, Rigid2)>,
+)> {
+    eprintln!("mapping the whole recording for ground truth");
+    let full = run_offline(recording, &config, &mut |_| {})?;
+    eprintln!("mapping the first 60 %");
+    let head = Recording {
+        events: recording
+            .events
+            .iter()
+            .filter(|e| e.time() < cut)
+            .cloned()
+            .collect(),
+        base_from_laser: recording.base_from_laser,
+        report: recording.report.clone(),
+    };
+    let map_run = run_offline(&head, &config, &mut |_| {})?;
+    let map = render_map(&map_run, config.local.submaps.resolution);
+
+    // The map's frame is the head run's; the two runs agree on the first node but their maps differ by
+    // decimetres in places as their loop closures differ. A scan is relocalized against the part of the
+    // map around it, so its truth is the full run's pose expressed in the head run's frame through the
+    // rigid transform that best aligns the common scans within `LOCAL_ALIGNMENT_RADIUS_M` of it.
+    let full_poses: std::collections::BTreeMap<Timestamp, Rigid2> =
+        full.scan_poses.iter().copied().collect();
+    let common: Vec<(Rigid2, Rigid2)> = map_run
+        .scan_poses
+        .iter()
+        .filter_map(|(t, h)| full_poses.get(t).map(|f| (*h, *f)))
+        .collect();
+    let truth: std::collections::BTreeMap<Timestamp, Rigid2> = full
+        .scan_poses
+        .iter()
+        .filter(|(t, _)| *t >= cut)
+        .map(|(t, p)| (*t, align_near(&common, p) * p))
+        .collect();
+    Ok((map, truth, common))
 }
 
 /// How the answers went: right, wrong (and how far off), refused.
