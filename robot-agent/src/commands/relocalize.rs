@@ -248,7 +248,7 @@ fn prepare(
     Vec<(Rigid2, Rigid2)>,
 )> {
     eprintln!("mapping the whole recording for ground truth");
-    let full = run_offline(recording, &config, &mut |_| {})?;
+    let full = run_offline(recording, config, &mut |_| {})?;
     eprintln!("mapping the first 60 %");
     let head = Recording {
         events: recording
@@ -260,7 +260,7 @@ fn prepare(
         base_from_laser: recording.base_from_laser,
         report: recording.report.clone(),
     };
-    let map_run = run_offline(&head, &config, &mut |_| {})?;
+    let map_run = run_offline(&head, config, &mut |_| {})?;
     let map = render_map(&map_run, config.local.submaps.resolution);
 
     // The map's frame is the head run's; the two runs agree on the first node but their maps differ by
