@@ -42,7 +42,8 @@ pub use options::{
     LifelongOptions, LifelongOptionsError, ParseTrimPolicyError, SubmapTrimmerOptions, TrimPolicy,
 };
 pub use relocalization::{
-    RelocalizationOptions, RelocalizationOutcome, SessionRelocalization, StartSearch,
-    relocalize_scans_in_grid, relocalize_session_start, render_submaps, render_submaps_newest,
+    RelocalizationOptions, RelocalizationOutcome, SearchEvidence, SessionRelocalization,
+    StartSearch, relocalize_scans_in_grid, relocalize_session_start, render_submaps,
+    render_submaps_newest,
 };
 pub use submap_trimmer::{PlacedGrid, covered_fraction};

@@ -12,9 +12,9 @@ use mapping::global_slam::{
     LoopClosure, SearchJob,
 };
 use mapping::grid::{MapLimits, ProbabilityGrid, RangeDataInserter, RangeDataInserterOptions};
+use mapping::lifelong::RelocalizationOptions;
 use mapping::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
 use mapping::pose_graph::{NodeId, OptimizationSummary};
-use mapping::scan_matching::RelocalizerOptions;
 use mapping::sensor::{RangeData, RangeStats, SensorEvent, Timestamp};
 use nalgebra::Point2;
 use serde::Deserialize;
@@ -29,8 +29,8 @@ pub struct SlamConfig {
     pub local: LocalTrajectoryBuilderOptions,
     /// Global matching and pose graph (GLM + PGR).
     pub global: GlobalSlamOptions,
-    /// Whole-map relocalization with no prior (session start, `relocalize`).
-    pub relocalization: RelocalizerOptions,
+    /// Whole-map relocalization with no prior (`relocalize`; the lifelong session start's options).
+    pub relocalization: RelocalizationOptions,
 }
 
 /// Errors of the offline pipeline.

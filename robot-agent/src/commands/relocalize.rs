@@ -1,9 +1,15 @@
 //! `evermap-agent relocalize`: how well and how fast a robot finds itself on a map with no prior.
 //!
 //! The map is built from the first 60 % of the recording (by time); scans sampled from the remaining 40 %
-//! are matched against the whole map with branch and bound over every position and rotation, then
-//! refined by least squares. Truth for each scan is its pose in a full `offline` run of the same
-//! recording (both runs hold the first node fixed at the same pose, so they share a frame).
+//! are placed on the whole map with no prior by the session-start search of the lifelong map
+//! ([`StartSearch`]: branch and bound over every position and rotation, the best distinct candidates
+//! refined and compared). With `--stack-s T`, what is placed is not the sampled scan alone but the local
+//! map LLO builds from the T seconds of driving that start at it ([`run_llo`], the nodes merged into one
+//! cloud in the first node's frame, as a lifelong session's held-back first nodes are); the pose scored is
+//! the first node's, the sampled scan's (or the first scan after it LLO could match). The search may refuse
+//! (ambiguous or no good fit); the report counts right answers, wrong answers and refusals apart. Truth for
+//! each scan is its pose in a full `offline` run of the same recording (both runs hold the first node fixed
+//! at the same pose, so they share a frame), re-aligned locally (see [`align_near`]).
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -12,14 +18,16 @@ use anyhow::Context as _;
 use clap::Args;
 use mapping::geometry::Rigid2;
 use mapping::geometry::{Rigid2Ext as _, normalize_angle};
-use mapping::local_slam::adaptive_voxel_filter;
-use mapping::scan_matching::Relocalizer;
+use mapping::lifelong::{RelocalizationOutcome, StartSearch};
 use mapping::sensor::{SensorEvent, Timestamp};
+use nalgebra::Point2;
+use proto::UploadItem;
 use rand::SeedableRng as _;
 use rand::seq::index::sample;
 use rand_pcg::Pcg64;
 use robot_agent::offline_slam::{render_map, run_offline};
 use robot_agent::source::{self, Recording};
+use robot_agent::uplink::run_llo;
 use serde_json::json;
 
 use super::offline::load_config;
@@ -42,6 +50,10 @@ pub struct RelocalizeArgs {
     /// A TOML file overriding the default SLAM configuration.
     #[arg(long)]
     config: Option<PathBuf>,
+    /// Relocalize the local map LLO builds from this many seconds of driving, starting at each sampled
+    /// scan, instead of the scan alone (0: the scan alone).
+    #[arg(long, default_value_t = 0.0)]
+    stack_s: f64,
 }
 
 /// A relocalization counts as correct within this distance of the truth, metres.
@@ -69,8 +81,174 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
         .time()
         .offset_by(0.6 * last.time().seconds_since(first.time()));
 
+    let (map, truth, common) = prepare(&recording, &config, cut)?;
+    config
+        .relocalization
+        .validate()
+        .context("invalid relocalization options")?;
+    anyhow::ensure!(
+        args.stack_s.is_finite() && args.stack_s >= 0.0,
+        "--stack-s must be a non-negative number of seconds"
+    );
+    let build_start = Instant::now();
+    let search = StartSearch::new(&map, &config.relocalization);
+    let precompute_ms = build_start.elapsed().as_secs_f64() * 1e3;
+
+    let candidates: Vec<Timestamp> = recording
+        .events
+        .iter()
+        .filter_map(|e| match e {
+            SensorEvent::Scan(s) if truth.contains_key(&s.time) => Some(s.time),
+            _ => None,
+        })
+        .collect();
+    anyhow::ensure!(
+        !candidates.is_empty(),
+        "no scans with a ground-truth pose after the 60 % cut"
+    );
+    let n = args.samples.min(candidates.len());
+    let mut rng = Pcg64::seed_from_u64(args.seed);
+    let mut picks = sample(&mut rng, candidates.len(), n).into_vec();
+    picks.sort_unstable();
+
+    let mut times_ms = Vec::with_capacity(n);
+    let mut results = Vec::with_capacity(n);
+    let mut tally = Tally::default();
+    for &k in &picks {
+        let sampled = candidates[k];
+        let llo_start = Instant::now();
+        let nodes = local_map(&recording, sampled, args.stack_s, &config.local);
+        let llo_ms = llo_start.elapsed().as_secs_f64() * 1e3;
+        let Some((scored_time, first_local)) = nodes.first().map(|(t, pose, _)| (*t, *pose)) else {
+            tally.refused += 1;
+            results.push(json!({"time": sampled.to_string(), "answer": "no_scan"}));
+            continue;
+        };
+        let scans: Vec<(Rigid2, Vec<Point2<f32>>)> = nodes
+            .into_iter()
+            .map(|(_, pose, points)| (pose, points))
+            .collect();
+        let start = Instant::now();
+        let evidence = search.evidence(&scans);
+        let outcome = search.decide(evidence.as_ref());
+        let ms = start.elapsed().as_secs_f64() * 1e3;
+        times_ms.push(ms);
+        let Some(&truth_pose) = truth.get(&scored_time) else {
+            tally.refused += 1;
+            results.push(json!({"time": sampled.to_string(), "answer": "no_truth"}));
+            continue;
+        };
+        // How far the scan is from where the map's run went: far means its area may not be mapped.
+        let nearest_mapped_m = common
+            .iter()
+            .map(|(h, _)| (h.translation.vector - truth_pose.translation.vector).norm())
+            .fold(f64::INFINITY, f64::min);
+        // The evidence's best pose is reported even when refused, to show what a refusal avoided.
+        let error = |global_from_local: &Rigid2| {
+            let p = global_from_local * first_local;
+            let dt = (p.translation.vector - truth_pose.translation.vector).norm();
+            let dth = normalize_angle(p.theta() - truth_pose.theta())
+                .abs()
+                .to_degrees();
+            (dt, dth)
+        };
+        let best_error = evidence.as_ref().map(|e| error(&e.global_from_local));
+        let answer = match &outcome {
+            RelocalizationOutcome::Found(found) => {
+                let (dt, dth) = error(&found.global_from_local);
+                if dt <= SUCCESS_TRANSLATION_M && dth <= SUCCESS_ROTATION_DEG {
+                    tally.right += 1;
+                    "right"
+                } else {
+                    tally.wrong_errors_m.push(dt);
+                    "wrong"
+                }
+            }
+            RelocalizationOutcome::Ambiguous { .. } => {
+                tally.refused += 1;
+                "ambiguous"
+            }
+            RelocalizationOutcome::NotFound => {
+                tally.refused += 1;
+                "not_found"
+            }
+        };
+        results.push(json!({
+            "time": sampled.to_string(),
+            "scored_time": scored_time.to_string(),
+            "answer": answer,
+            "success": answer == "right",
+            "translation_error_m": best_error.map(|e| e.0),
+            "rotation_error_deg": best_error.map(|e| e.1),
+            "score": evidence.as_ref().map(|e| e.score),
+            "sharp_score": evidence.as_ref().map(|e| e.sharp_score),
+            "runner_up_score": evidence.as_ref().and_then(|e| e.runner_up.map(|r| r.0)),
+            "runner_up_from_best": evidence.as_ref().and_then(|e| e.runner_up.map(|r| r.1)),
+            "weakest_z": evidence.as_ref().and_then(|e| e.weakest.map(|w| w.0)),
+            "weakest_score": evidence.as_ref().and_then(|e| e.weakest.map(|w| w.1)),
+            "distinct_candidates": evidence.as_ref().map(|e| e.distinct_candidates),
+            "cloud_points": evidence.as_ref().map(|e| e.cloud_points),
+            "scans_stacked": scans.len(),
+            "ms": ms,
+            "llo_ms": llo_ms,
+            "nearest_mapped_m": nearest_mapped_m,
+        }));
+    }
+    let mut sorted = times_ms.clone();
+    sorted.sort_by(f64::total_cmp);
+    let answered = tally.right + tally.wrong_errors_m.len();
+    let mut wrong_sorted = tally.wrong_errors_m.clone();
+    wrong_sorted.sort_by(f64::total_cmp);
+    let report = json!({
+        "input": args.input.display().to_string(),
+        "stack_s": args.stack_s,
+        "samples": n,
+        "success_rate": tally.right as f64 / n as f64,
+        "precision": if answered > 0 { tally.right as f64 / answered as f64 } else { 1.0 },
+        "answered_rate": answered as f64 / n as f64,
+        "right": tally.right,
+        "wrong": wrong_sorted.len(),
+        "refused": tally.refused,
+        "wrong_over_1m": wrong_sorted.iter().filter(|&&d| d > 1.0).count(),
+        "wrong_median_m": (!wrong_sorted.is_empty()).then(|| percentile(&wrong_sorted, 0.5)),
+        "wrong_max_m": wrong_sorted.last(),
+        "timed": "StartSearch::evidence + decide: merging, thinning, whole-map search, refinement and acceptance tests (not LLO nor the map precomputation)",
+        "median_ms": percentile(&sorted, 0.5),
+        "p95_ms": percentile(&sorted, 0.95),
+        "precompute_ms": precompute_ms,
+        "map_cells": [map.limits().width, map.limits().height],
+        "truth_alignment_radius_m": LOCAL_ALIGNMENT_RADIUS_M,
+        "success_translation_m": SUCCESS_TRANSLATION_M,
+        "success_rotation_deg": SUCCESS_ROTATION_DEG,
+        "results": results,
+    });
+    let path = args.out.join("report.json");
+    std::fs::write(&path, serde_json::to_string_pretty(&report)? + "\n")
+        .with_context(|| format!("cannot write {}", path.display()))?;
+    println!(
+        "{}",
+        json!({"samples": n, "stack_s": args.stack_s, "success_rate": report["success_rate"],
+            "precision": report["precision"], "answered_rate": report["answered_rate"],
+            "wrong": report["wrong"], "refused": report["refused"],
+            "median_ms": report["median_ms"], "p95_ms": report["p95_ms"]})
+    );
+    Ok(())
+}
+
+/// The map (from the first 60 % of `recording`, before `cut`), the truth of every scan after the cut in the
+/// map's frame, and the `(map run pose, full run pose)` pairs of the scans both runs placed.
+#[allow(clippy::type_complexity)]
+fn prepare(
+    recording: &Recording,
+    config: &robot_agent::offline_slam::SlamConfig,
+    cut: Timestamp,
+) -> anyhow::Result<(
+    mapping::grid::ProbabilityGrid,
+    std::collections::BTreeMap<Timestamp, Rigid2>,
+    Vec<(Rigid2, Rigid2)>,
+)> {
     eprintln!("mapping the whole recording for ground truth");
-    let full = run_offline(&recording, &config, &mut |_| {})?;
+    let full = run_offline(recording, config, &mut |_| {})?;
     eprintln!("mapping the first 60 %");
     let head = Recording {
         events: recording
@@ -82,16 +260,8 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
         base_from_laser: recording.base_from_laser,
         report: recording.report.clone(),
     };
-    let map_run = run_offline(&head, &config, &mut |_| {})?;
+    let map_run = run_offline(&head, config, &mut |_| {})?;
     let map = render_map(&map_run, config.local.submaps.resolution);
-
-    config
-        .relocalization
-        .validate()
-        .context("invalid relocalization options")?;
-    let build_start = Instant::now();
-    let relocalizer = Relocalizer::new(&map, config.relocalization.clone());
-    let precompute_ms = build_start.elapsed().as_secs_f64() * 1e3;
 
     // The map's frame is the head run's; the two runs agree on the first node but their maps differ by
     // decimetres in places as their loop closures differ. A scan is relocalized against the part of the
@@ -110,88 +280,55 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
         .filter(|(t, _)| *t >= cut)
         .map(|(t, p)| (*t, align_near(&common, p) * p))
         .collect();
-    let candidates: Vec<_> = recording
-        .events
-        .iter()
-        .filter_map(|e| match e {
-            SensorEvent::Scan(s) if truth.contains_key(&s.time) => Some(s),
-            _ => None,
-        })
-        .collect();
-    anyhow::ensure!(
-        !candidates.is_empty(),
-        "no scans with a ground-truth pose after the 60 % cut"
-    );
-    let n = args.samples.min(candidates.len());
-    let mut rng = Pcg64::seed_from_u64(args.seed);
-    let mut picks = sample(&mut rng, candidates.len(), n).into_vec();
-    picks.sort_unstable();
-
-    let mut times_ms = Vec::with_capacity(n);
-    let mut results = Vec::with_capacity(n);
-    let mut successes = 0;
-    for &k in &picks {
-        let scan = candidates[k];
-        let (range_data, _) = scan.to_range_data(&config.local.range_conversion);
-        let range_data = range_data.transformed(&recording.base_from_laser);
-        let start = Instant::now();
-        let points =
-            adaptive_voxel_filter(&range_data.returns, &config.local.adaptive_voxel_filter);
-        let pose = relocalizer.relocalize(&points).map(|r| (r.pose, r.score));
-        let ms = start.elapsed().as_secs_f64() * 1e3;
-        times_ms.push(ms);
-        let truth_pose = truth[&scan.time];
-        // How far the scan is from where the map's run went: far means its area may not be mapped.
-        let nearest_mapped_m = common
-            .iter()
-            .map(|(h, _)| (h.translation.vector - truth_pose.translation.vector).norm())
-            .fold(f64::INFINITY, f64::min);
-        let (ok, dt, dth, score) = match pose {
-            Some((p, score)) => {
-                let dt = (p.translation.vector - truth_pose.translation.vector).norm();
-                let dth = normalize_angle(p.theta() - truth_pose.theta())
-                    .abs()
-                    .to_degrees();
-                (
-                    dt <= SUCCESS_TRANSLATION_M && dth <= SUCCESS_ROTATION_DEG,
-                    Some(dt),
-                    Some(dth),
-                    Some(score),
-                )
-            }
-            None => (false, None, None, None),
-        };
-        successes += usize::from(ok);
-        results.push(
-            json!({"time": scan.time.to_string(), "success": ok, "translation_error_m": dt,
-                            "rotation_error_deg": dth, "score": score, "ms": ms,
-                            "nearest_mapped_m": nearest_mapped_m}),
-        );
-    }
-    let mut sorted = times_ms.clone();
-    sorted.sort_by(f64::total_cmp);
-    let report = json!({
-        "input": args.input.display().to_string(),
-        "samples": n,
-        "success_rate": successes as f64 / n as f64,
-        "median_ms": percentile(&sorted, 0.5),
-        "p95_ms": percentile(&sorted, 0.95),
-        "precompute_ms": precompute_ms,
-        "map_cells": [map.limits().width, map.limits().height],
-        "truth_alignment_radius_m": LOCAL_ALIGNMENT_RADIUS_M,
-        "success_translation_m": SUCCESS_TRANSLATION_M,
-        "success_rotation_deg": SUCCESS_ROTATION_DEG,
-        "results": results,
-    });
-    let path = args.out.join("report.json");
-    std::fs::write(&path, serde_json::to_string_pretty(&report)? + "\n")
-        .with_context(|| format!("cannot write {}", path.display()))?;
-    println!(
-        "{}",
-        json!({"samples": n, "success_rate": report["success_rate"], "median_ms": report["median_ms"], "p95_ms": report["p95_ms"]})
-    );
-    Ok(())
+    Ok((map, truth, common))
 }
+
+/// How the answers went: right, wrong (and how far off), refused.
+#[derive(Default)]
+struct Tally {
+    right: usize,
+    refused: usize,
+    wrong_errors_m: Vec<f64>,
+}
+
+/// The nodes `(time, local_from_tracking, filtered points)` LLO makes from `stack_s` seconds of `recording`
+/// starting at the scan at `start` (only that scan's node when `stack_s` is 0), first node first: the local
+/// map a session start would relocalize.
+fn local_map(
+    recording: &Recording,
+    start: Timestamp,
+    stack_s: f64,
+    options: &mapping::local_slam::LocalTrajectoryBuilderOptions,
+) -> Vec<(Timestamp, Rigid2, Vec<Point2<f32>>)> {
+    let end = start.offset_by(stack_s);
+    // Odometry from a moment before the first scan, so that LLO can interpolate at it.
+    let lead_in = start.offset_by(-ODOMETRY_LEAD_IN_S);
+    let window = Recording {
+        events: recording
+            .events
+            .iter()
+            .filter(|e| match e {
+                SensorEvent::Scan(s) => s.time >= start && s.time <= end,
+                other => other.time() >= lead_in && other.time() <= end,
+            })
+            .cloned()
+            .collect(),
+        base_from_laser: recording.base_from_laser,
+        report: recording.report.clone(),
+    };
+    let mut nodes = Vec::new();
+    run_llo(&window, options, 0.0, None, &mut |items| {
+        nodes.extend(items.into_iter().filter_map(|item| match item {
+            UploadItem::NodeAdded(node) => Some((node.time, node.local_pose, node.points)),
+            _ => None,
+        }));
+        true
+    });
+    nodes
+}
+
+/// Seconds of odometry before a stack's first scan given to LLO.
+const ODOMETRY_LEAD_IN_S: f64 = 0.5;
 
 /// Radius (metres) around a sampled scan within which the two runs' common scans define its truth frame.
 const LOCAL_ALIGNMENT_RADIUS_M: f64 = 8.0;
