@@ -247,23 +247,17 @@ fn optimize_in_stages(
         });
     }
     if args.robust && args.truncate_chi2 > 0.0 {
-        let mut inliers = PoseGraph::new();
-        for (id, pose, fixed) in graph.variables() {
-            inliers.add_variable(id, pose)?;
-            inliers.set_fixed(id, fixed)?;
-        }
-        for (_, c) in graph.constraints() {
+        let mut inliers = graph.with_constraints(|c| {
             let keep = !is_loop_closure(c)
                 || match (graph.pose(c.from), graph.pose(c.to)) {
                     (Some(a), Some(b)) => c.chi2(&a, &b) <= args.truncate_chi2,
                     _ => false,
                 };
-            if keep {
-                let mut c = c.clone();
-                c.loss = RobustLoss::Trivial;
-                inliers.add_constraint(c)?;
-            }
-        }
+            keep.then(|| Constraint {
+                loss: RobustLoss::Trivial,
+                ..c.clone()
+            })
+        })?;
         let summary = Optimizer::new(later_options)?.optimize(&mut inliers);
         for (id, pose, _) in inliers.variables() {
             graph.set_pose(id, pose)?;
@@ -289,21 +283,16 @@ fn is_loop_closure(constraint: &Constraint) -> bool {
 /// A copy of `graph` whose loop closures (see [`is_loop_closure`]) carry `loss`; odometry edges stay plain
 /// least squares.
 fn with_loop_closure_loss(graph: &PoseGraph, loss: RobustLoss) -> Result<PoseGraph> {
-    let mut out = PoseGraph::new();
-    for (id, pose, fixed) in graph.variables() {
-        out.add_variable(id, pose)?;
-        out.set_fixed(id, fixed)?;
-    }
-    for (_, constraint) in graph.constraints() {
-        let mut constraint = constraint.clone();
-        constraint.loss = if is_loop_closure(&constraint) {
-            loss
-        } else {
-            RobustLoss::Trivial
-        };
-        out.add_constraint(constraint)?;
-    }
-    Ok(out)
+    Ok(graph.with_constraints(|c| {
+        Some(Constraint {
+            loss: if is_loop_closure(c) {
+                loss
+            } else {
+                RobustLoss::Trivial
+            },
+            ..c.clone()
+        })
+    })?)
 }
 
 /// Adds `random` false loop closures between random vertex pairs and `groups` groups of 10 (10

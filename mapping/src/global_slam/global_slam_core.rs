@@ -116,7 +116,8 @@ pub struct GlobalSlam {
     /// Per trajectory, the path length (m) of its latest node with an accepted loop closure that closed a
     /// loop (see `min_loop_length`): drift, and so the search window, grows from there.
     last_loop_path: BTreeMap<u32, f64>,
-    /// Matches refused (so far) because they moved their node farther than drift can explain.
+    /// Matches refused because they moved their node farther than drift can explain: those still waiting
+    /// for a chorus or given up, not those a chorus confirmed later.
     closures_beyond_drift: usize,
     /// Those matches, waiting for enough others to agree with them (`beyond_drift_confirmations`).
     pending_beyond_drift: Vec<(LoopClosure, Acceptance)>,
@@ -124,6 +125,26 @@ pub struct GlobalSlam {
     closures_outvoted: usize,
     /// Matches that would move their node far from its estimate, waiting for another to agree with them.
     pending_unconfirmed: Vec<(LoopClosure, Acceptance)>,
+}
+
+/// `agreeing` pending matches and the `closure` that confirmed them, all marked confirmed by agreement.
+fn confirmed(
+    agreeing: Vec<(LoopClosure, Acceptance)>,
+    closure: LoopClosure,
+    acceptance: Acceptance,
+) -> impl Iterator<Item = (LoopClosure, Acceptance)> {
+    agreeing
+        .into_iter()
+        .chain([(closure, acceptance)])
+        .map(|(c, a)| {
+            (
+                c,
+                Acceptance {
+                    confirmed_by_agreement: true,
+                    ..a
+                },
+            )
+        })
 }
 
 fn information(translation_sigma: f64, rotation_sigma: f64) -> Matrix3<f64> {
@@ -556,7 +577,7 @@ impl GlobalSlam {
             {
                 continue; // never queued: an unplaced submap says nothing about placed nodes yet
             }
-            let mut acceptance = self.acceptance(&closure);
+            let acceptance = self.acceptance(&closure);
             if self.beyond_drift(&closure, &acceptance) {
                 // A sudden LLO slip also moves a node farther than drift explains: its repair waits for
                 // several nodes' matches against more than one submap to agree on it.
@@ -579,13 +600,8 @@ impl GlobalSlam {
                     continue;
                 }
                 confirmed_any = true;
-                acceptance.confirmed_by_agreement = true;
                 self.closures_beyond_drift -= agreeing.len();
-                accepted.extend(agreeing.into_iter().map(|(c, mut a)| {
-                    a.confirmed_by_agreement = true;
-                    (c, a)
-                }));
-                accepted.push((closure, acceptance));
+                accepted.extend(confirmed(agreeing, closure, acceptance));
                 continue;
             }
             if self.needs_confirmation(&closure, &acceptance) {
@@ -595,11 +611,8 @@ impl GlobalSlam {
                     continue;
                 }
                 confirmed_any = true;
-                acceptance.confirmed_by_agreement = true;
-                accepted.extend(agreeing.into_iter().map(|(c, mut a)| {
-                    a.confirmed_by_agreement = true;
-                    (c, a)
-                }));
+                accepted.extend(confirmed(agreeing, closure, acceptance));
+                continue;
             }
             accepted.push((closure, acceptance));
         }

@@ -561,15 +561,9 @@ impl StartSearch {
 /// The paired statistic of [`RelocalizationOptions::min_disambiguation_z`]: how much better `cloud` fits
 /// `grid` at `best` than at `other`, point by point, in standard errors (0 when they fit identically).
 fn paired_z(grid: &ProbabilityGrid, cloud: &[Point2<f32>], best: &Rigid2, other: &Rigid2) -> f64 {
-    let limits = grid.limits();
-    // Unknown cells read as the least probability, as in the search.
-    let score = |pose: &Rigid2, p: &Point2<f32>| {
-        let index = limits.cell_index(&(pose * Point2::new(f64::from(p.x), f64::from(p.y))));
-        f64::from(grid.probability(&index))
-    };
     let (mut sum, mut squares) = (0.0, 0.0);
     for p in cloud {
-        let d = score(best, p) - score(other, p);
+        let d = probability_at(grid, best, *p) - probability_at(grid, other, *p);
         sum += d;
         squares += d * d;
     }
@@ -580,16 +574,16 @@ fn paired_z(grid: &ProbabilityGrid, cloud: &[Point2<f32>], best: &Rigid2, other:
     }
 }
 
-/// Mean probability of `grid` at `cloud` placed at `pose` (unknown cells read as the least probability).
+/// The probability of `grid` at point `p` placed at `pose`; unknown cells read as the least probability,
+/// as in the search.
+fn probability_at(grid: &ProbabilityGrid, pose: &Rigid2, p: Point2<f32>) -> f64 {
+    let world = pose * Point2::new(f64::from(p.x), f64::from(p.y));
+    f64::from(grid.probability(&grid.limits().cell_index(&world)))
+}
+
+/// Mean probability of `grid` at `cloud` placed at `pose`.
 fn mean_probability(grid: &ProbabilityGrid, cloud: &[Point2<f32>], pose: &Rigid2) -> f64 {
-    let limits = grid.limits();
-    let sum: f64 = cloud
-        .iter()
-        .map(|p| {
-            let index = limits.cell_index(&(pose * Point2::new(f64::from(p.x), f64::from(p.y))));
-            f64::from(grid.probability(&index))
-        })
-        .sum();
+    let sum: f64 = cloud.iter().map(|&p| probability_at(grid, pose, p)).sum();
     sum / cloud.len().max(1) as f64
 }
 

@@ -229,6 +229,26 @@ impl PoseGraph {
         self.constraints.len()
     }
 
+    /// A copy with the same variables (poses and fixed flags) and, for each constraint, what `map` makes of
+    /// it (`None` leaves it out): to change losses or drop constraints, e.g. loop closures an optimization
+    /// rejected. Fails only if `map` returns an invalid constraint.
+    pub fn with_constraints(
+        &self,
+        mut map: impl FnMut(&Constraint) -> Option<Constraint>,
+    ) -> Result<PoseGraph, PoseGraphError> {
+        let mut out = PoseGraph::new();
+        for (id, pose, fixed) in self.variables() {
+            out.add_variable(id, pose)?;
+            out.set_fixed(id, fixed)?;
+        }
+        for (_, constraint) in self.constraints() {
+            if let Some(constraint) = map(constraint) {
+                out.add_constraint(constraint)?;
+            }
+        }
+        Ok(out)
+    }
+
     /// χ² = Σ eᵀΩe over all constraints (g2o convention, robust losses ignored).
     pub fn chi2(&self) -> f64 {
         self.sum_over_constraints(Constraint::chi2)

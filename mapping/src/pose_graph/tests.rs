@@ -543,3 +543,44 @@ fn pruning_moves_the_optimum_only_by_the_pruned_constraints_residual_pull() {
     let again = pruned_optimizer.optimize(&mut fixed);
     assert_eq!(again.pruned_constraints, 0, "{again:?}");
 }
+
+#[test]
+fn with_constraints_keeps_the_variables_and_maps_or_drops_each_constraint() {
+    let (mut graph, _) = square_world(12, RobustLoss::Dcs { phi: 1.0 });
+    graph.set_fixed(node(0), true).unwrap();
+    let loop_closures = graph
+        .constraints()
+        .filter(|(_, c)| c.kind == ConstraintKind::NodeToNode)
+        .count();
+    assert!(loop_closures > 0);
+    let odometry_only = graph
+        .with_constraints(|c| {
+            (c.kind == ConstraintKind::Odometry).then(|| Constraint {
+                loss: RobustLoss::Trivial,
+                ..c.clone()
+            })
+        })
+        .unwrap();
+    assert_eq!(odometry_only.num_variables(), graph.num_variables());
+    assert_eq!(
+        odometry_only.num_constraints(),
+        graph.num_constraints() - loop_closures
+    );
+    assert!(
+        odometry_only
+            .constraints()
+            .all(|(_, c)| c.loss == RobustLoss::Trivial)
+    );
+    for (id, pose, fixed) in graph.variables() {
+        assert_eq!(odometry_only.pose(id), Some(pose));
+        assert_eq!(odometry_only.is_fixed(id), Some(fixed));
+    }
+    // A constraint the map makes invalid is an error, not a silently smaller graph.
+    let broken = graph.with_constraints(|c| {
+        Some(Constraint {
+            information: Matrix3::from_element(f64::NAN),
+            ..c.clone()
+        })
+    });
+    assert!(broken.is_err());
+}

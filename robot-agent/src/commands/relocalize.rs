@@ -81,7 +81,7 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
         .time()
         .offset_by(0.6 * last.time().seconds_since(first.time()));
 
-    let (map, truth, common) = prepare(&recording, &config, cut)?;
+    let Reference { map, truth, common } = prepare(&recording, &config, cut)?;
     config
         .relocalization
         .validate()
@@ -235,18 +235,22 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// The map (from the first 60 % of `recording`, before `cut`), the truth of every scan after the cut in the
-/// map's frame, and the `(map run pose, full run pose)` pairs of the scans both runs placed.
-#[allow(clippy::type_complexity)]
+/// What relocalizations are placed on and scored against.
+struct Reference {
+    /// The map of the first 60 % of the recording (before the cut).
+    map: mapping::grid::ProbabilityGrid,
+    /// Every scan after the cut: its pose in the full run, in the map's frame.
+    truth: std::collections::BTreeMap<Timestamp, Rigid2>,
+    /// `(map run pose, full run pose)` of the scans both runs placed.
+    common: Vec<(Rigid2, Rigid2)>,
+}
+
+/// Maps the whole recording and its part before `cut`, and expresses the first in the second's frame.
 fn prepare(
     recording: &Recording,
     config: &robot_agent::offline_slam::SlamConfig,
     cut: Timestamp,
-) -> anyhow::Result<(
-    mapping::grid::ProbabilityGrid,
-    std::collections::BTreeMap<Timestamp, Rigid2>,
-    Vec<(Rigid2, Rigid2)>,
-)> {
+) -> anyhow::Result<Reference> {
     eprintln!("mapping the whole recording for ground truth");
     let full = run_offline(recording, config, &mut |_| {})?;
     eprintln!("mapping the first 60 %");
@@ -280,7 +284,7 @@ fn prepare(
         .filter(|(t, _)| *t >= cut)
         .map(|(t, p)| (*t, align_near(&common, p) * p))
         .collect();
-    Ok((map, truth, common))
+    Ok(Reference { map, truth, common })
 }
 
 /// How the answers went: right, wrong (and how far off), refused.
