@@ -20,6 +20,7 @@ mod branch_and_bound;
 mod correlative;
 mod interpolated_grid;
 mod least_squares;
+mod paired_evidence;
 mod precomputation_grid;
 mod real_time_correlative;
 mod relocalizer;
@@ -36,6 +37,7 @@ pub use interpolated_grid::InterpolatedGrid;
 pub use least_squares::{
     LeastSquaresScanMatcher, LeastSquaresScanMatcherOptions, LeastSquaresSummary,
 };
+pub use paired_evidence::{paired_z, probability_at};
 pub use real_time_correlative::{
     RealTimeCorrelativeScanMatcher, RealTimeCorrelativeScanMatcherOptions,
 };

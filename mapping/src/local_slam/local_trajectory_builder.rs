@@ -15,9 +15,10 @@ use super::{
     Submap, SubmapRef, SubmapsOptions, adaptive_voxel_filter,
 };
 use crate::geometry::{Rigid2, Rigid2Ext as _, normalize_angle};
+use crate::grid::ProbabilityGrid;
 use crate::scan_matching::{
     LeastSquaresScanMatcher, LeastSquaresScanMatcherOptions, RealTimeCorrelativeScanMatcher,
-    RealTimeCorrelativeScanMatcherOptions,
+    RealTimeCorrelativeScanMatcherOptions, paired_z,
 };
 use crate::sensor::{ImuReading, OdometryReading, RangeConversionOptions, RangeData, Timestamp};
 
@@ -41,6 +42,31 @@ pub struct LocalTrajectoryBuilderOptions {
     /// initial guess. If fewer than `min_num_returns` points are that close, all are used. 0 = no cut.
     /// Default 10 m.
     pub correlative_max_range: f32,
+    /// Half-width (radians) of the rotation window around the prediction within which the prediction is
+    /// trusted, plus `trusted_window_per_radian` × the rotation it claims since the last scan. The
+    /// correlative search still spans the wider window (`real_time_correlative.angular_search_window` plus
+    /// the whole claimed rotation, and a search around the constant-velocity prediction when odometry
+    /// stalls), but a match outside the trusted window replaces the best one inside only when it fits the
+    /// scan better by `min_deviation_z` (point-paired, see [`paired_z`]). Without this, a scan that overlaps
+    /// its submap poorly (1–2 scans per second in a fast turn) always finds some slightly better fit tens of
+    /// degrees away and LLO turns by it. Default 10°.
+    pub trusted_angular_window: f64,
+    /// Growth of the trusted window with the claimed rotation (radians per radian). Default 0.25.
+    pub trusted_window_per_radian: f64,
+    /// How much better (paired statistic, see [`paired_z`]) a match outside the trusted window must fit
+    /// than the best one inside it to be taken. Default 4.
+    pub min_deviation_z: f64,
+    /// When the best correlative match of the windows above scores below this (mean probability), the
+    /// scan fits nowhere near the prediction: odometry stalled or slipped by more than the window (Intel
+    /// at 1 scan per second: a 25° turn in place reported as 0.2°). The search is then repeated over every
+    /// rotation, and its result taken if it fits clearly better than the best match near the prediction
+    /// (`min_recovery_z`). Matched scans score 0.4–0.8 on the default grids. Default 0.35.
+    pub min_recovery_score: f64,
+    /// How much better (paired statistic) the search over every rotation must fit than the best match
+    /// near the prediction. Higher than `min_deviation_z`: it tries about ten times as many rotations, so
+    /// chance alone finds larger values (Intel, 4 scans per second: a look-alike room 93° away at 5.1 while
+    /// the scan had turned 6°; the stalled turns it exists for score 7–12). Default 6.
+    pub min_recovery_z: f64,
     /// Least-squares refinement weights.
     pub least_squares: LeastSquaresScanMatcherOptions,
     /// The least-squares refinement pulls the translation toward the prediction (odometry, or constant
@@ -64,6 +90,11 @@ impl Default for LocalTrajectoryBuilderOptions {
             use_correlative_scan_matching: true,
             real_time_correlative: RealTimeCorrelativeScanMatcherOptions::default(),
             correlative_max_range: 10.0,
+            trusted_angular_window: 10f64.to_radians(),
+            trusted_window_per_radian: 0.25,
+            min_deviation_z: 4.0,
+            min_recovery_score: 0.35,
+            min_recovery_z: 6.0,
             least_squares: LeastSquaresScanMatcherOptions::default(),
             max_odometry_target_disagreement: 1f64.to_radians(),
             motion_filter: MotionFilterOptions::default(),
@@ -84,6 +115,19 @@ impl LocalTrajectoryBuilderOptions {
         self.real_time_correlative.validate().map_err(|e| err(&e))?;
         if !(self.correlative_max_range.is_finite() && self.correlative_max_range >= 0.0) {
             return Err(err(&"correlative_max_range must be finite and >= 0"));
+        }
+        for (name, value) in [
+            ("min_recovery_score", self.min_recovery_score),
+            ("min_recovery_z", self.min_recovery_z),
+            ("trusted_angular_window", self.trusted_angular_window),
+            ("trusted_window_per_radian", self.trusted_window_per_radian),
+            ("min_deviation_z", self.min_deviation_z),
+        ] {
+            if !(value.is_finite() && value >= 0.0) {
+                return Err(LocalTrajectoryBuilderOptionsError(format!(
+                    "{name} must be finite and >= 0"
+                )));
+            }
         }
         self.least_squares.validate().map_err(|e| err(&e))?;
         if !(self.max_odometry_target_disagreement >= 0.0
@@ -163,7 +207,6 @@ pub struct LocalTrajectoryBuilder {
     extrapolator: PoseExtrapolator,
     active: ActiveSubmaps,
     motion_filter: MotionFilter,
-    correlative: RealTimeCorrelativeScanMatcher,
     least_squares: LeastSquaresScanMatcher,
     last_pose: Option<Rigid2>,
     dropped: usize,
@@ -176,7 +219,6 @@ impl LocalTrajectoryBuilder {
             extrapolator: PoseExtrapolator::new(),
             active: ActiveSubmaps::new(options.submaps.clone()),
             motion_filter: MotionFilter::new(options.motion_filter.clone()),
-            correlative: RealTimeCorrelativeScanMatcher::new(options.real_time_correlative.clone()),
             least_squares: LeastSquaresScanMatcher::new(options.least_squares.clone()),
             options,
             last_pose: None,
@@ -202,6 +244,75 @@ impl LocalTrajectoryBuilder {
     /// Scans dropped (too few hits, or time went backwards) plus sensor readings the extrapolator refused.
     pub fn num_rejected(&self) -> usize {
         self.dropped + self.extrapolator.rejected()
+    }
+
+    /// The correlative search: returns the initial pose for least squares and the centre of the search
+    /// it came from (the odometry prediction, or the constant-velocity one when odometry stalled).
+    ///
+    /// The best match within the trusted window around the prediction is the answer unless a match
+    /// elsewhere in the wide window (or around the constant-velocity prediction) fits the scan clearly
+    /// better (see [`LocalTrajectoryBuilderOptions::trusted_angular_window`]).
+    fn correlative_match(
+        &self,
+        predicted: &Rigid2,
+        time: Timestamp,
+        points: &[Point2<f32>],
+        grid: &ProbabilityGrid,
+    ) -> (Rigid2, Rigid2) {
+        let o = &self.options;
+        let base = &o.real_time_correlative;
+        let claimed_rotation = self.last_pose.map_or(0.0, |last| {
+            normalize_angle(predicted.theta() - last.theta()).abs()
+        });
+        let linear_search_window = base.linear_search_window;
+        let search = |center: &Rigid2, angular_search_window: f64| {
+            RealTimeCorrelativeScanMatcher::new(RealTimeCorrelativeScanMatcherOptions {
+                linear_search_window,
+                angular_search_window: angular_search_window.min(std::f64::consts::PI),
+                ..base.clone()
+            })
+            .match_pose(center, points, grid)
+        };
+        // Wheel odometry is least trustworthy in turns (CSAIL: −46° reported where the scans say −21°):
+        // the wide window spans the whole claimed rotation.
+        let wide_window = base.angular_search_window + claimed_rotation;
+        let trusted_window = (o.trusted_angular_window
+            + o.trusted_window_per_radian * claimed_rotation)
+            .min(wide_window);
+        let trusted = search(predicted, trusted_window);
+        let mut alternatives = Vec::with_capacity(2);
+        if wide_window > trusted_window {
+            alternatives.push((search(predicted, wide_window), *predicted));
+        }
+        // Wheel odometry sometimes stalls and then jumps (CSAIL: frozen for 0.8 s in a turn, then +85° at
+        // once). When the constant-velocity prediction disagrees by more than half the base window, search
+        // around it too.
+        let velocity = self.extrapolator.extrapolate_constant_velocity(time);
+        if normalize_angle(velocity.theta() - predicted.theta()).abs()
+            > 0.5 * base.angular_search_window
+        {
+            alternatives.push((search(&velocity, base.angular_search_window), velocity));
+        }
+        let best_alternative = alternatives
+            .into_iter()
+            .max_by(|((_, a), _), ((_, b), _)| a.total_cmp(b));
+        let clearly_better = |(pose, score): &(Rigid2, f32), min_z: f64| {
+            *score > trusted.1 && paired_z(grid, points, pose, &trusted.0) >= min_z
+        };
+        let best_score = best_alternative.map_or(trusted.1, |((_, s), _)| s.max(trusted.1));
+        if f64::from(best_score) < o.min_recovery_score {
+            // Nothing near the prediction fits: search every rotation.
+            let recovery = search(predicted, std::f64::consts::PI);
+            if clearly_better(&recovery, o.min_recovery_z) {
+                return (recovery.0, *predicted);
+            }
+        }
+        match best_alternative {
+            Some((alternative, center)) if clearly_better(&alternative, o.min_deviation_z) => {
+                (alternative.0, center)
+            }
+            _ => (trusted.0, *predicted),
+        }
     }
 
     /// Matches and maybe inserts one scan given in the tracking frame. `None` when the scan was dropped.
@@ -239,45 +350,7 @@ impl LocalTrajectoryBuilder {
                     } else {
                         &filtered[..]
                     };
-                    // Widen the angular window by the rotation the prediction claims: wheel odometry is
-                    // least trustworthy in turns (CSAIL: −46° reported where the scans say −21°).
-                    let claimed = self.last_pose.map_or(0.0, |last| {
-                        normalize_angle(predicted.theta() - last.theta()).abs()
-                    });
-                    let base = &self.options.real_time_correlative;
-                    let widened;
-                    let matcher = if claimed > 1e-3 {
-                        widened = RealTimeCorrelativeScanMatcher::new(
-                            RealTimeCorrelativeScanMatcherOptions {
-                                angular_search_window: (base.angular_search_window + claimed)
-                                    .min(std::f64::consts::PI),
-                                ..base.clone()
-                            },
-                        );
-                        &widened
-                    } else {
-                        &self.correlative
-                    };
-                    let (mut best, best_score) =
-                        matcher.match_pose(&predicted, correlative_points, &submap.grid);
-                    let mut center = predicted;
-                    // Wheel odometry sometimes stalls and then jumps (CSAIL: frozen for 0.8 s in a turn, then
-                    // +85° at once). When the constant-velocity prediction disagrees by more than half the
-                    // window, search around it too and keep the better match.
-                    let velocity = self.extrapolator.extrapolate_constant_velocity(time);
-                    if normalize_angle(velocity.theta() - predicted.theta()).abs()
-                        > 0.5 * base.angular_search_window
-                    {
-                        let (pose, score) = self.correlative.match_pose(
-                            &velocity,
-                            correlative_points,
-                            &submap.grid,
-                        );
-                        if score > best_score {
-                            (best, center) = (pose, velocity);
-                        }
-                    }
-                    (best, center)
+                    self.correlative_match(&predicted, time, correlative_points, &submap.grid)
                 } else {
                     (predicted, predicted)
                 };
@@ -324,5 +397,112 @@ impl LocalTrajectoryBuilder {
                 finished_submaps: finished,
             }),
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use nalgebra::Vector2;
+
+    use super::*;
+    use crate::geometry::rigid2;
+    use crate::simulation::{Aabb, RayCaster};
+
+    /// An irregular 12 m × 9 m room with pillars and a recess, so that no rotation of a scan fits as
+    /// well as the true one.
+    fn room() -> RayCaster {
+        let wall = 0.2;
+        RayCaster::new(
+            vec![
+                Aabb::new(0.0, 0.0, 12.0, wall),
+                Aabb::new(0.0, 9.0 - wall, 7.0, 9.0),
+                Aabb::new(7.0, 7.5, 12.0, 7.5 + wall),
+                Aabb::new(7.0, 7.5, 7.0 + wall, 9.0),
+                Aabb::new(0.0, 0.0, wall, 9.0),
+                Aabb::new(12.0 - wall, 0.0, 12.0, 7.7),
+                Aabb::new(3.0, 2.0, 3.6, 2.6),
+                Aabb::new(8.5, 4.0, 9.5, 4.4),
+                Aabb::new(5.0, 6.5, 5.3, 7.6),
+                Aabb::new(2.0, 6.0, 2.4, 6.4),
+            ],
+            1.0,
+        )
+    }
+
+    /// A 180° scan (1° beams, 20 m) from `world_from_tracking`, in the tracking frame.
+    fn scan(room: &RayCaster, world_from_tracking: &Rigid2) -> RangeData {
+        let origin = Point2::from(world_from_tracking.translation.vector);
+        let mut returns = Vec::new();
+        for k in 0..180 {
+            let angle = (k as f64 - 89.5).to_radians();
+            let direction = world_from_tracking.rotation * Vector2::new(angle.cos(), angle.sin());
+            if let Some(range) = room.cast(&origin, &direction, 20.0) {
+                let local = Vector2::new(angle.cos(), angle.sin()) * range;
+                returns.push(Point2::new(local.x as f32, local.y as f32));
+            }
+        }
+        RangeData {
+            origin: Vector2::zeros(),
+            returns,
+            misses: Vec::new(),
+        }
+    }
+
+    /// The robot turns in place at 10°/s, one scan per second; odometry reports the first three turns
+    /// and then stalls while the robot turns 40° more (as Intel's bursty odometry does at one scan per
+    /// second). Returns the heading error (degrees) at the stalled scan.
+    fn stalled_turn_error(options: LocalTrajectoryBuilderOptions) -> f64 {
+        let room = room();
+        let mut llo = LocalTrajectoryBuilder::new(options);
+        let headings = [0.0f64, 10.0, 20.0, 30.0, 70.0];
+        let reported = [0.0f64, 10.0, 20.0, 30.0, 30.0];
+        let mut pose = Rigid2::identity();
+        for (k, (truth, odometry)) in headings.iter().zip(reported).enumerate() {
+            let time = Timestamp::from_secs_f64(k as f64);
+            let odom = rigid2(4.0, 3.0, odometry.to_radians());
+            llo.add_odometry(&OdometryReading { time, pose: odom });
+            let world_from_tracking = rigid2(4.0, 3.0, truth.to_radians());
+            let result = llo
+                .add_range_data(time, &scan(&room, &world_from_tracking))
+                .expect("scan matched");
+            pose = result.local_pose;
+        }
+        // The local frame starts at the first scan's pose (heading 0).
+        (normalize_angle(pose.theta()) - 70f64.to_radians())
+            .to_degrees()
+            .abs()
+    }
+
+    #[test]
+    fn a_scan_that_fits_nowhere_near_a_stalled_odometry_is_found_by_the_recovery_search() {
+        let error = stalled_turn_error(LocalTrajectoryBuilderOptions::default());
+        assert!(error < 1.5, "heading error {error}°");
+        // Without the recovery search the 40° the odometry missed lie outside every window.
+        let without = stalled_turn_error(LocalTrajectoryBuilderOptions {
+            min_recovery_score: 0.0,
+            ..LocalTrajectoryBuilderOptions::default()
+        });
+        assert!(without > 10.0, "heading error without recovery {without}°");
+    }
+
+    #[test]
+    fn negative_or_nan_judging_options_are_refused() {
+        for broken in [
+            LocalTrajectoryBuilderOptions {
+                min_deviation_z: -1.0,
+                ..Default::default()
+            },
+            LocalTrajectoryBuilderOptions {
+                trusted_angular_window: f64::NAN,
+                ..Default::default()
+            },
+            LocalTrajectoryBuilderOptions {
+                min_recovery_score: f64::INFINITY,
+                ..Default::default()
+            },
+        ] {
+            assert!(broken.validate().is_err());
+        }
+        assert!(LocalTrajectoryBuilderOptions::default().validate().is_ok());
     }
 }
