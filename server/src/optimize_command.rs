@@ -431,10 +431,11 @@ EDGE2 3 0 1.05 0 1.5707963 10 0 10 10 0 0
             ..args(input.clone(), None)
         })
         .unwrap();
-        // DCS alone: 0.0034 m (the false closures' residual pull); truncating them afterwards leaves the
-        // clean optimum over the true closures.
+        // The default: truncated least squares on the loop closures, reached by the rejection track
+        // (DCS alone ended 0.0034 m off: the false closures' residual pull).
         let rms = report["rms_vs_clean_m"].as_f64().unwrap();
         assert!(rms < 1e-3, "{report}");
+        assert_eq!(report["track"], "Rejection", "{report}");
         assert_eq!(report["outliers_rejected"], 100, "{report}");
         assert_eq!(report["inliers_rejected"], 0, "{report}");
         // Plain least squares is dragged away by the same closures.

@@ -411,8 +411,8 @@ mod tests {
             "both sides of the threshold are checked"
         );
         // Exactly 0 beyond: a rejected constraint does not pull at all.
-        assert_eq!(tls.weight(25.0 + 1e-9), 0.0);
-        assert_eq!(tls.weight(25.0), 1.0);
-        assert_eq!(tls.rho(1e12), 25.0);
+        assert_eq!(tls.weight(25.0 + 1e-9).to_bits(), 0.0_f64.to_bits());
+        assert_eq!(tls.weight(25.0).to_bits(), 1.0_f64.to_bits());
+        assert_eq!(tls.rho(1e12).to_bits(), 25.0_f64.to_bits());
     }
 }
