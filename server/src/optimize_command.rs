@@ -125,7 +125,7 @@ impl CommandOptimizer {
                 }
             }
             Self::Robust(optimizer) => {
-                let s = optimizer.optimize(graph, is_loop_closure)?;
+                let s = optimizer.optimize(graph, is_loop_closure);
                 Outcome {
                     initial_chi2: s.initial_chi2,
                     final_chi2: s.final_chi2,

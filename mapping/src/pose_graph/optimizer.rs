@@ -23,7 +23,7 @@ use nalgebra::{Matrix3, Vector3};
 use serde::Deserialize;
 use thiserror::Error;
 
-use super::constraint::PreparedMeasurement;
+use super::constraint::{Constraint, PreparedMeasurement, RobustLoss};
 use super::graph::PoseGraph;
 use super::ids::VariableId;
 use super::linear_system::{BlockPattern, LinearSystemError, NO_BLOCK, SparseCholesky};
@@ -288,7 +288,7 @@ impl Optimizer {
     /// the graph's. Returns whether it did. The guess's symbolic factorization (all constraints) stays
     /// cached, so an [`Optimizer::optimize`] that follows on the same structure reuses it.
     pub fn initialize_rotation_first(&mut self, graph: &mut PoseGraph) -> bool {
-        let mut problem = Problem::new(graph);
+        let mut problem = Problem::new(graph, |c| c.loss);
         if problem.num_free == 0 || problem.edges.is_empty() {
             return false;
         }
@@ -315,7 +315,18 @@ impl Optimizer {
 
     /// Minimises the graph's cost, writing the best estimate found back into `graph`.
     pub fn optimize(&mut self, graph: &mut PoseGraph) -> OptimizationSummary {
-        let mut problem = Problem::new(graph);
+        self.optimize_with_losses(graph, |c| c.loss)
+    }
+
+    /// [`Optimizer::optimize`] with `loss_of(constraint)` in place of each constraint's own loss (for
+    /// this call only: the graph's constraints are left as they are, only the poses are written). Each
+    /// returned loss must be valid ([`RobustLoss::is_valid`]).
+    pub fn optimize_with_losses(
+        &mut self,
+        graph: &mut PoseGraph,
+        loss_of: impl Fn(&Constraint) -> RobustLoss,
+    ) -> OptimizationSummary {
+        let mut problem = Problem::new(graph, loss_of);
         let (initial_cost, initial_chi2) = problem.cost_and_chi2(&problem.poses);
         let mut summary = OptimizationSummary {
             initial_chi2,
@@ -457,7 +468,7 @@ struct Problem {
 }
 
 impl Problem {
-    fn new(graph: &PoseGraph) -> Self {
+    fn new(graph: &PoseGraph, loss_of: impl Fn(&Constraint) -> RobustLoss) -> Self {
         let mut ids = Vec::with_capacity(graph.num_variables());
         let mut poses = Vec::with_capacity(graph.num_variables());
         let mut fixed = Vec::with_capacity(graph.num_variables());
@@ -490,7 +501,10 @@ impl Problem {
                 Some(Edge {
                     from: index(&c.from)?,
                     to: index(&c.to)?,
-                    measurement: PreparedMeasurement::new(c),
+                    measurement: PreparedMeasurement {
+                        loss: loss_of(c),
+                        ..PreparedMeasurement::new(c)
+                    },
                     from_block: NO_BLOCK,
                     to_block: NO_BLOCK,
                     cross_block: NO_BLOCK,
@@ -1034,7 +1048,7 @@ mod tests {
     #[test]
     fn assembled_gradient_matches_finite_differences_of_the_cost() {
         let graph = graph();
-        let mut problem = Problem::new(&graph);
+        let mut problem = Problem::new(&graph, |c| c.loss);
         assert_eq!(
             problem.num_free, 4,
             "node 2 is fixed, so no implicit gauge is added"

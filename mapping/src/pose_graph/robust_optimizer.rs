@@ -13,18 +13,20 @@
 //!    candidate still fits at the end, the graph holds a least-squares optimum of all its constraints
 //!    and that is the answer: a clean graph costs one least-squares optimization. (The guess of each
 //!    benchmark graph fits every one of its loop closures; with 100 or 1000 false closures 186 to 2515
-//!    constraints lie beyond, and Levenberg–Marquardt from such a bent start took 35 to 80 steps, more
-//!    than the rejection track, to a worse cost — so it is not run.)
-//! 2. **Rejection track** — when track 1's start or end leaves a candidate beyond the threshold. From the given
-//!    estimate (no rotation-first guess: with false closures the guess is bent by them), dynamic
+//!    candidates lie beyond the threshold at the guess, bent by the false ones, and running
+//!    Levenberg–Marquardt from there anyway cost up to 100 steps and never gave the lower `F` — so it
+//!    is not run.)
+//! 2. **Rejection track** — when track 1's start or end leaves a candidate beyond the threshold. From
+//!    the given estimate (no rotation-first guess: with false closures it is bent by them), dynamic
 //!    covariance scaling (Agarwal et al., ICRA 2013) at a small `Φ` on the candidates rejects the false
 //!    ones while the odometry chain holds the graph; then Levenberg–Marquardt on `F` from there, so that
-//!    the rejected closures lose the residual pull DCS leaves them and the true closures DCS
-//!    down-weighted count fully again.
+//!    the rejected closures lose the residual pull DCS leaves them, the true closures DCS down-weighted
+//!    count fully again, and closures that fit again are taken back.
 //!
-//! When both tracks ran to the end, the one whose result has the lower `F` is kept. Constraints whose weight falls below
-//! [`OptimizerOptions::prune_weight`] (every candidate beyond the threshold) are left out of the sparse
-//! linear system, so a thousand rejected long-range closures add no fill-in to the factorization.
+//! When both tracks ran to the end, the one whose result has the lower `F` is kept. Constraints whose
+//! weight falls below [`OptimizerOptions::prune_weight`] (every candidate beyond the threshold) are left
+//! out of the sparse linear system, so a thousand rejected long-range closures add no fill-in to the
+//! factorization.
 //!
 //! The trade-off: a false closure that happens to fit the graph — one whose χ² stays below the
 //! threshold once the graph bends a little towards it — is an inlier of `F` and is kept; truncation
@@ -34,8 +36,10 @@ use serde::Deserialize;
 use thiserror::Error;
 
 use super::constraint::{Constraint, RobustLoss};
-use super::graph::{PoseGraph, PoseGraphError};
+use super::graph::PoseGraph;
+use super::ids::VariableId;
 use super::optimizer::{Optimizer, OptimizerOptions, OptimizerOptionsError, Termination};
+use crate::geometry::Rigid2;
 
 /// Options of the [`RobustOptimizer`].
 #[derive(Clone, Debug, PartialEq, Deserialize)]
@@ -165,80 +169,84 @@ impl RobustOptimizer {
 
     /// Minimises `F` (module docs) with the constraints for which `is_candidate` holds truncated,
     /// writing the kept track's poses into `graph`; the graph's constraints (and their losses) are left
-    /// as they are. Fails only if a constraint's loss cannot be replaced (never for a valid graph).
+    /// as they are.
     pub fn optimize(
         &mut self,
         graph: &mut PoseGraph,
         is_candidate: impl Fn(&Constraint) -> bool,
-    ) -> Result<RobustOptimizationSummary, PoseGraphError> {
+    ) -> RobustOptimizationSummary {
         let truncated = RobustLoss::TruncatedLeastSquares {
             threshold: self.options.inlier_chi2,
         };
-        let with_candidate_loss = |graph: &PoseGraph, loss: RobustLoss| {
-            graph.with_constraints(|c| {
-                Some(if is_candidate(c) {
-                    Constraint { loss, ..c.clone() }
-                } else {
-                    c.clone()
-                })
-            })
+        let dcs = RobustLoss::Dcs {
+            phi: self.options.rejection_phi,
+        };
+        let candidates_get = |loss: RobustLoss| {
+            let is_candidate = &is_candidate;
+            move |c: &Constraint| if is_candidate(c) { loss } else { c.loss }
         };
         let candidates = graph.constraints().filter(|(_, c)| is_candidate(c)).count();
         let initial_chi2 = graph.chi2();
+        let given = poses(graph);
 
         // 1. The all-inlier track, from the least-squares start, only if that start fits every candidate.
-        let mut first = with_candidate_loss(graph, truncated)?;
         if self.options.optimizer.rotation_first_initialization {
-            self.optimizer.initialize_rotation_first(&mut first);
+            self.optimizer.initialize_rotation_first(graph);
         }
         let mut iterations = 0;
-        let first = if self.rejected(&first, &is_candidate) == 0 {
-            let summary = self.optimizer.optimize(&mut first);
+        let mut first = None;
+        if self.rejected(graph, &is_candidate) == 0 {
+            let summary = self
+                .optimizer
+                .optimize_with_losses(graph, candidates_get(truncated));
             iterations += summary.iterations;
-            Some((first, summary))
-        } else {
-            None
-        };
-        let (kept, kept_summary, track, rejection_track_ran) = match first {
-            Some((first, summary)) if self.rejected(&first, &is_candidate) == 0 => {
-                (first, summary, RobustTrack::AllInliers, false)
+            if self.rejected(graph, &is_candidate) == 0 {
+                return RobustOptimizationSummary {
+                    initial_chi2,
+                    final_chi2: summary.final_chi2,
+                    final_cost: summary.final_cost,
+                    iterations,
+                    candidates,
+                    rejected: 0,
+                    pruned_constraints: summary.pruned_constraints,
+                    rejection_track_ran: false,
+                    track: RobustTrack::AllInliers,
+                    termination: summary.termination,
+                };
             }
-            first => {
-                // 2. The rejection track, from the given poses.
-                let mut second = with_candidate_loss(
-                    graph,
-                    RobustLoss::Dcs {
-                        phi: self.options.rejection_phi,
-                    },
-                )?;
-                iterations += self.optimizer.optimize(&mut second).iterations;
-                let mut second = with_candidate_loss(&second, truncated)?;
-                let second_summary = self.optimizer.optimize(&mut second);
-                iterations += second_summary.iterations;
-                match first {
-                    Some((first, summary)) if first.cost() <= second.cost() => {
-                        (first, summary, RobustTrack::Truncated, true)
-                    }
-                    _ => (second, second_summary, RobustTrack::Rejection, true),
-                }
-            }
-        };
-        let rejected = self.rejected(&kept, &is_candidate);
-        for (id, pose, _) in kept.variables() {
-            graph.set_pose(id, pose)?;
+            first = Some((poses(graph), summary));
         }
-        Ok(RobustOptimizationSummary {
+
+        // 2. The rejection track, from the given poses.
+        set_poses(graph, &given);
+        iterations += self
+            .optimizer
+            .optimize_with_losses(graph, candidates_get(dcs))
+            .iterations;
+        let mut summary = self
+            .optimizer
+            .optimize_with_losses(graph, candidates_get(truncated));
+        iterations += summary.iterations;
+        let mut track = RobustTrack::Rejection;
+        if let Some((first_poses, first_summary)) = first
+            && first_summary.final_cost <= summary.final_cost
+        {
+            set_poses(graph, &first_poses);
+            summary = first_summary;
+            track = RobustTrack::Truncated;
+        }
+        RobustOptimizationSummary {
             initial_chi2,
-            final_chi2: graph.chi2(),
-            final_cost: kept.cost(),
+            final_chi2: summary.final_chi2,
+            final_cost: summary.final_cost,
             iterations,
             candidates,
-            rejected,
-            pruned_constraints: kept_summary.pruned_constraints,
-            rejection_track_ran,
+            rejected: self.rejected(graph, &is_candidate),
+            pruned_constraints: summary.pruned_constraints,
+            rejection_track_ran: true,
             track,
-            termination: kept_summary.termination,
-        })
+            termination: summary.termination,
+        }
     }
 
     /// How many candidates of `graph` lie beyond the threshold at its poses.
@@ -251,5 +259,18 @@ impl RobustOptimizer {
                 _ => false,
             })
             .count()
+    }
+}
+
+/// The graph's poses, by variable.
+fn poses(graph: &PoseGraph) -> Vec<(VariableId, Rigid2)> {
+    graph.variables().map(|(id, pose, _)| (id, pose)).collect()
+}
+
+/// Puts back poses taken from this graph by [`poses`].
+fn set_poses(graph: &mut PoseGraph, poses: &[(VariableId, Rigid2)]) {
+    for &(id, pose) in poses {
+        // Cannot fail: the ids came from this graph and the poses are finite.
+        let _ = graph.set_pose(id, pose);
     }
 }
