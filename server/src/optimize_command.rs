@@ -111,8 +111,8 @@ impl CommandOptimizer {
         })
     }
 
-    fn optimize(&mut self, graph: &mut PoseGraph) -> Result<Outcome> {
-        Ok(match self {
+    fn optimize(&mut self, graph: &mut PoseGraph) -> Outcome {
+        match self {
             Self::LeastSquares(optimizer) => {
                 let s = optimizer.optimize(graph);
                 Outcome {
@@ -135,7 +135,7 @@ impl CommandOptimizer {
                     track: Some((s.track, s.rejection_track_ran)),
                 }
             }
-        })
+        }
     }
 }
 
@@ -152,7 +152,7 @@ fn execute(args: &OptimizeArgs) -> Result<serde_json::Value> {
         // file's graph is then corrupted and optimized below.
         let mut clean = graph.clone();
         let start = Instant::now();
-        CommandOptimizer::new(args)?.optimize(&mut clean)?;
+        CommandOptimizer::new(args)?.optimize(&mut clean);
         let clean_time_ms = start.elapsed().as_secs_f64() * 1e3;
         let added = add_false_loop_closures(
             &mut graph,
@@ -165,7 +165,7 @@ fn execute(args: &OptimizeArgs) -> Result<serde_json::Value> {
         None
     };
     let start = Instant::now();
-    let outcome = optimizer.optimize(&mut graph)?;
+    let outcome = optimizer.optimize(&mut graph);
     let time_ms = start.elapsed().as_secs_f64() * 1e3;
     if let Some(out) = &args.out {
         let file = File::create(out).with_context(|| format!("cannot create {}", out.display()))?;
