@@ -31,6 +31,7 @@ mod graph;
 mod ids;
 mod linear_system;
 mod optimizer;
+mod robust_optimizer;
 #[cfg(test)]
 mod tests;
 
@@ -41,4 +42,8 @@ pub use ids::{ConstraintId, NodeId, SubmapId, VariableId};
 pub use optimizer::{
     ConvergenceCriterion, FailureReason, OptimizationSummary, Optimizer, OptimizerOptions,
     OptimizerOptionsError, Termination,
+};
+pub use robust_optimizer::{
+    RobustOptimizationSummary, RobustOptimizer, RobustOptimizerOptions,
+    RobustOptimizerOptionsError, RobustTrack,
 };

@@ -9,14 +9,18 @@ use anyhow::{Context as _, Result};
 use mapping::geometry::rigid2;
 use mapping::io::g2o::{read_pose_graph, write_pose_graph};
 use mapping::pose_graph::{
-    Constraint, ConstraintKind, NodeId, OptimizationSummary, Optimizer, OptimizerOptions,
-    PoseGraph, RobustLoss, VariableId,
+    Constraint, ConstraintKind, NodeId, Optimizer, OptimizerOptions, PoseGraph, RobustLoss,
+    RobustOptimizer, RobustOptimizerOptions, RobustTrack, Termination, VariableId,
 };
 use nalgebra::Matrix3;
 use rand::{Rng as _, SeedableRng as _};
 use rand_pcg::Pcg64;
 
 /// Arguments of `evermap-server optimize`.
+///
+/// By default every loop closure (an edge between vertices whose ids are not consecutive; consecutive
+/// ones are odometry and stay plain least squares) may be rejected: `mapping::pose_graph::RobustOptimizer`
+/// truncates them at `--inlier-chi2`. A graph whose loop closures all fit keeps its least-squares optimum.
 #[derive(clap::Args, Debug)]
 pub struct OptimizeArgs {
     /// Pose graph to optimize, g2o (`VERTEX_SE2`/`EDGE_SE2`) or TORO (`VERTEX2`/`EDGE2`), detected by content.
@@ -28,33 +32,20 @@ pub struct OptimizeArgs {
     /// Start from the file's values only, without trying the rotation-first initial guess.
     #[arg(long)]
     pub no_rotation_init: bool,
-    /// Override the maximum number of Levenberg–Marquardt steps.
+    /// Override the maximum number of Levenberg–Marquardt steps (of each stage).
     #[arg(long)]
     pub max_iterations: Option<usize>,
-    /// Treat every loop closure (an edge between vertices whose ids are not consecutive; consecutive ones
-    /// are odometry and stay plain least squares) with dynamic covariance scaling, so that false ones
-    /// are rejected. Not the default: at Φ = 1 it leaves ring (a bad start) and CSAIL, input_INTEL and
-    /// M3500a (true closures above Φ at the optimum) away from their least-squares optimum, and no Φ or
-    /// Φ schedule measured keeps those while rejecting 1000 random false closures (BENCHMARKS.md).
+    /// Plain least squares on every edge, no loop closure rejected (false ones drag the graph).
     #[arg(long)]
-    pub robust: bool,
-    /// Φ of that dynamic covariance scaling (unitless, on the squared Mahalanobis norm).
-    #[arg(long, default_value_t = DEFAULT_LOOP_CLOSURE_PHI)]
-    pub loop_closure_phi: f64,
-    /// With `--robust`, stages before the last: optimize with the loop closures' DCS at each Φ in turn (each
-    /// stage to convergence, from the previous one's result), then at `--loop-closure-phi`.
-    #[arg(long, value_delimiter = ',')]
-    pub phi_stages: Vec<f64>,
-    /// With `--robust`: choose between the file's values and the rotation-first guess by their cost
-    /// under DCS at this Φ (0: under the first stage's loss, as the optimizer does).
-    #[arg(long, default_value_t = 0.0)]
-    pub guess_phi: f64,
-    /// With `--robust`: after the DCS stages, drop the loop closures whose χ² exceeds this (unitless,
-    /// squared Mahalanobis norm) and optimize the rest as plain least squares, so that rejected closures
-    /// keep no residual pull (DCS's weight never reaches 0) and the true ones DCS down-weighted (s above Φ)
-    /// count fully again. 0: off.
-    #[arg(long, default_value_t = DEFAULT_TRUNCATE_CHI2)]
-    pub truncate_chi2: f64,
+    pub least_squares: bool,
+    /// χ² (squared Mahalanobis norm, unitless) beyond which a loop closure is rejected
+    /// (`RobustOptimizerOptions::inlier_chi2`).
+    #[arg(long, default_value_t = RobustOptimizerOptions::DEFAULT.inlier_chi2)]
+    pub inlier_chi2: f64,
+    /// Φ of the dynamic covariance scaling that starts the rejection track
+    /// (`RobustOptimizerOptions::rejection_phi`).
+    #[arg(long, default_value_t = RobustOptimizerOptions::DEFAULT.rejection_phi)]
+    pub rejection_phi: f64,
     /// Constraints whose robust weight falls below this are left out of the linear system until it
     /// rises above ten times this (`OptimizerOptions::prune_weight`; 0 keeps every constraint).
     #[arg(long, default_value_t = OptimizerOptions::DEFAULT.prune_weight)]
@@ -73,19 +64,79 @@ pub struct OptimizeArgs {
     pub outlier_seed: u64,
 }
 
-/// Default Φ of the loop closures' dynamic covariance scaling (Agarwal et al. use 1).
-pub const DEFAULT_LOOP_CLOSURE_PHI: f64 = 1.0;
-
-/// Default χ² above which `--robust` drops a loop closure after DCS (5σ; the benchmark graphs' true
-/// closures stay below it at their optimum — CSAIL and M3500a keep their best χ² — while false ones sit
-/// in the thousands).
-pub const DEFAULT_TRUNCATE_CHI2: f64 = 25.0;
-
 /// Runs the command: prints `{"file", "nodes", "edges", "initial_chi2", "final_chi2", "iterations", "time_ms",
-/// "termination"}` on one line; `time_ms` covers the optimization only (not parsing or writing).
+/// "termination", ...}` on one line; `time_ms` covers the optimization only (not parsing or writing).
 pub fn run(args: &OptimizeArgs) -> Result<()> {
     println!("{}", execute(args)?);
     Ok(())
+}
+
+/// What one optimization of the command did, whichever optimizer ran.
+struct Outcome {
+    initial_chi2: f64,
+    final_chi2: f64,
+    iterations: usize,
+    pruned_constraints: usize,
+    termination: Termination,
+    /// The robust optimizer's kept track and whether its rejection track ran (`None` for least squares).
+    track: Option<(RobustTrack, bool)>,
+}
+
+/// The command's optimizer: plain least squares or the loop-closure-rejecting one.
+enum CommandOptimizer {
+    LeastSquares(Optimizer),
+    Robust(RobustOptimizer),
+}
+
+impl CommandOptimizer {
+    fn new(args: &OptimizeArgs) -> Result<Self> {
+        let defaults = OptimizerOptions::default();
+        let options = OptimizerOptions {
+            rotation_first_initialization: !args.no_rotation_init,
+            max_iterations: args.max_iterations.unwrap_or(defaults.max_iterations),
+            prune_weight: args.prune_weight,
+            ..defaults
+        };
+        Ok(if args.least_squares {
+            Self::LeastSquares(Optimizer::new(options).context("invalid optimizer options")?)
+        } else {
+            Self::Robust(
+                RobustOptimizer::new(RobustOptimizerOptions {
+                    inlier_chi2: args.inlier_chi2,
+                    rejection_phi: args.rejection_phi,
+                    optimizer: options,
+                })
+                .context("invalid optimizer options")?,
+            )
+        })
+    }
+
+    fn optimize(&mut self, graph: &mut PoseGraph) -> Outcome {
+        match self {
+            Self::LeastSquares(optimizer) => {
+                let s = optimizer.optimize(graph);
+                Outcome {
+                    initial_chi2: s.initial_chi2,
+                    final_chi2: s.final_chi2,
+                    iterations: s.iterations,
+                    pruned_constraints: s.pruned_constraints,
+                    termination: s.termination,
+                    track: None,
+                }
+            }
+            Self::Robust(optimizer) => {
+                let s = optimizer.optimize(graph, is_loop_closure);
+                Outcome {
+                    initial_chi2: s.initial_chi2,
+                    final_chi2: s.final_chi2,
+                    iterations: s.iterations,
+                    pruned_constraints: s.pruned_constraints,
+                    termination: s.termination,
+                    track: Some((s.track, s.rejection_track_ran)),
+                }
+            }
+        }
+    }
 }
 
 /// Reads, optimizes and (with `--out`) writes the graph; returns the JSON report.
@@ -94,67 +145,27 @@ fn execute(args: &OptimizeArgs) -> Result<serde_json::Value> {
         File::open(&args.input).with_context(|| format!("cannot open {}", args.input.display()))?;
     let parsed = read_pose_graph(BufReader::new(file))
         .with_context(|| format!("cannot read pose graph {}", args.input.display()))?;
-    let loss = if args.robust {
-        let loss = RobustLoss::Dcs {
-            phi: args.loop_closure_phi,
-        };
-        anyhow::ensure!(
-            loss.is_valid(),
-            "--loop-closure-phi must be a positive number"
-        );
-        loss
-    } else {
-        RobustLoss::Trivial
-    };
-    let mut graph = with_loop_closure_loss(&parsed.graph, loss)?;
-    let defaults = OptimizerOptions::default();
-    let options = OptimizerOptions {
-        rotation_first_initialization: !args.no_rotation_init,
-        max_iterations: args.max_iterations.unwrap_or(defaults.max_iterations),
-        prune_weight: args.prune_weight,
-        ..defaults
-    };
-    let stages: Vec<RobustLoss> = match loss {
-        RobustLoss::Dcs { phi } => args
-            .phi_stages
-            .iter()
-            .chain(std::iter::once(&phi))
-            .map(|&phi| RobustLoss::Dcs { phi })
-            .collect(),
-        _ => vec![loss],
-    };
-    anyhow::ensure!(
-        stages.iter().all(RobustLoss::is_valid),
-        "--phi-stages must be positive numbers"
-    );
-    anyhow::ensure!(
-        [args.guess_phi, args.truncate_chi2]
-            .iter()
-            .all(|v| v.is_finite() && *v >= 0.0),
-        "--guess-phi and --truncate-chi2 must be finite and non-negative"
-    );
-    let mut optimizer = Optimizer::new(options.clone()).context("invalid optimizer options")?;
+    let mut graph = parsed.graph;
+    let mut optimizer = CommandOptimizer::new(args)?;
     let benchmark = if args.add_outliers > 0 || args.outlier_groups > 0 {
-        // The clean optimum first, on a copy; the file's graph is then corrupted and optimized below.
+        // The clean optimum first, on a copy, by a fresh optimizer (no factorization carried over); the
+        // file's graph is then corrupted and optimized below.
         let mut clean = graph.clone();
         let start = Instant::now();
-        let mut clean_optimizer =
-            Optimizer::new(options.clone()).context("invalid optimizer options")?;
-        optimize_in_stages(&mut clean_optimizer, &mut clean, &stages, args)?;
+        CommandOptimizer::new(args)?.optimize(&mut clean);
         let clean_time_ms = start.elapsed().as_secs_f64() * 1e3;
         let added = add_false_loop_closures(
             &mut graph,
             args.add_outliers,
             args.outlier_groups,
             args.outlier_seed,
-            loss,
         )?;
         Some((clean, clean_time_ms, added))
     } else {
         None
     };
     let start = Instant::now();
-    let summary = optimize_in_stages(&mut optimizer, &mut graph, &stages, args)?;
+    let outcome = optimizer.optimize(&mut graph);
     let time_ms = start.elapsed().as_secs_f64() * 1e3;
     if let Some(out) = &args.out {
         let file = File::create(out).with_context(|| format!("cannot create {}", out.display()))?;
@@ -165,111 +176,51 @@ fn execute(args: &OptimizeArgs) -> Result<serde_json::Value> {
             .flush()
             .with_context(|| format!("cannot write {}", out.display()))?;
     }
+    let beyond = |c: &Constraint| match (graph.pose(c.from), graph.pose(c.to)) {
+        (Some(a), Some(b)) => c.chi2(&a, &b) > args.inlier_chi2,
+        _ => false,
+    };
+    let loop_closures = graph
+        .constraints()
+        .filter(|(_, c)| is_loop_closure(c))
+        .count();
+    let beyond_threshold = graph
+        .constraints()
+        .filter(|(_, c)| is_loop_closure(c) && beyond(c))
+        .count();
     let mut report = serde_json::json!({
         "file": args.input.display().to_string(),
         "nodes": graph.num_variables(),
         "edges": graph.num_constraints(),
-        "loop_closure_loss": format!("{loss:?}"),
-        "initial_chi2": summary.initial_chi2,
-        "final_chi2": summary.final_chi2,
-        "iterations": summary.iterations,
-        "pruned_constraints": summary.pruned_constraints,
+        "loop_closures": loop_closures,
+        "loop_closures_beyond_inlier_chi2": beyond_threshold,
+        "initial_chi2": outcome.initial_chi2,
+        "final_chi2": outcome.final_chi2,
+        "iterations": outcome.iterations,
+        "pruned_constraints": outcome.pruned_constraints,
         "time_ms": time_ms,
-        "termination": summary.termination.to_string(),
+        "termination": outcome.termination.to_string(),
     });
+    match outcome.track {
+        None => report["optimizer"] = serde_json::json!("least squares"),
+        Some((track, rejection_track_ran)) => {
+            report["optimizer"] = serde_json::json!("robust");
+            report["track"] = serde_json::json!(format!("{track:?}"));
+            report["rejection_track_ran"] = serde_json::json!(rejection_track_ran);
+        }
+    }
     if let Some((clean, clean_time_ms, added)) = benchmark {
-        let (outliers_rejected, inliers_rejected) = rejected(&graph, &added);
+        let outliers_rejected = added.iter().filter(|c| beyond(c)).count();
         report["clean_time_ms"] = serde_json::json!(clean_time_ms);
         report["clean_chi2"] = serde_json::json!(clean.chi2());
         report["outliers_added"] = serde_json::json!(added.len());
         report["outliers_rejected"] = serde_json::json!(outliers_rejected);
-        report["inliers_rejected"] = serde_json::json!(inliers_rejected);
+        report["inliers_rejected"] =
+            serde_json::json!(beyond_threshold.saturating_sub(outliers_rejected));
         report["rms_vs_clean_m"] = serde_json::json!(rms_position_difference(&clean, &graph));
         report["time_vs_clean"] = serde_json::json!(time_ms / clean_time_ms.max(1e-9));
     }
     Ok(report)
-}
-
-/// Optimizes `graph` once per loop-closure loss in `stages` (each from the previous stage's result; the
-/// rotation-first guess only in the first), leaving the last stage's losses on the graph. The summary
-/// is the last stage's, with the first stage's initial χ²/cost and the iterations of all stages.
-fn optimize_in_stages(
-    optimizer: &mut Optimizer,
-    graph: &mut PoseGraph,
-    stages: &[RobustLoss],
-    args: &OptimizeArgs,
-) -> Result<OptimizationSummary> {
-    let mut total: Option<OptimizationSummary> = None;
-    let mut later: Option<Optimizer> = None;
-    let later_options = OptimizerOptions {
-        rotation_first_initialization: false,
-        ..optimizer.options().clone()
-    };
-    let mut skip_guess = false;
-    if args.robust && args.guess_phi > 0.0 && optimizer.options().rotation_first_initialization {
-        *graph = with_loop_closure_loss(
-            graph,
-            RobustLoss::Dcs {
-                phi: args.guess_phi,
-            },
-        )?;
-        let mut chooser = Optimizer::new(OptimizerOptions {
-            max_iterations: 0,
-            ..optimizer.options().clone()
-        })?;
-        chooser.optimize(graph);
-        skip_guess = true;
-    }
-    for (k, &loss) in stages.iter().enumerate() {
-        if stages.len() > 1 {
-            *graph = with_loop_closure_loss(graph, loss)?;
-        }
-        let summary = if k == 0 && !skip_guess {
-            optimizer.optimize(graph)
-        } else {
-            let later = match later.as_mut() {
-                Some(o) => o,
-                None => later.insert(
-                    Optimizer::new(later_options.clone()).context("invalid optimizer options")?,
-                ),
-            };
-            later.optimize(graph)
-        };
-        total = Some(match total {
-            None => summary,
-            Some(t) => OptimizationSummary {
-                initial_chi2: t.initial_chi2,
-                initial_cost: t.initial_cost,
-                iterations: t.iterations + summary.iterations,
-                accepted_steps: t.accepted_steps + summary.accepted_steps,
-                ..summary
-            },
-        });
-    }
-    if args.robust && args.truncate_chi2 > 0.0 {
-        let mut inliers = graph.with_constraints(|c| {
-            let keep = !is_loop_closure(c)
-                || match (graph.pose(c.from), graph.pose(c.to)) {
-                    (Some(a), Some(b)) => c.chi2(&a, &b) <= args.truncate_chi2,
-                    _ => false,
-                };
-            keep.then(|| Constraint {
-                loss: RobustLoss::Trivial,
-                ..c.clone()
-            })
-        })?;
-        let summary = Optimizer::new(later_options)?.optimize(&mut inliers);
-        for (id, pose, _) in inliers.variables() {
-            graph.set_pose(id, pose)?;
-        }
-        if let Some(t) = total.as_mut() {
-            t.iterations += summary.iterations;
-            t.accepted_steps += summary.accepted_steps;
-            t.final_chi2 = graph.chi2();
-            t.final_cost = graph.cost();
-        }
-    }
-    total.context("no optimization stage")
 }
 
 /// Whether an edge of a g2o/TORO graph is a loop closure: its vertex ids are not consecutive.
@@ -278,21 +229,6 @@ fn is_loop_closure(constraint: &Constraint) -> bool {
         (VariableId::Node(a), VariableId::Node(b)) => a.index.abs_diff(b.index) != 1,
         _ => true,
     }
-}
-
-/// A copy of `graph` whose loop closures (see [`is_loop_closure`]) carry `loss`; odometry edges stay plain
-/// least squares.
-fn with_loop_closure_loss(graph: &PoseGraph, loss: RobustLoss) -> Result<PoseGraph> {
-    Ok(graph.with_constraints(|c| {
-        Some(Constraint {
-            loss: if is_loop_closure(c) {
-                loss
-            } else {
-                RobustLoss::Trivial
-            },
-            ..c.clone()
-        })
-    })?)
 }
 
 /// Adds `random` false loop closures between random vertex pairs and `groups` groups of 10 (10
@@ -304,7 +240,6 @@ fn add_false_loop_closures(
     random: usize,
     groups: usize,
     seed: u64,
-    loss: RobustLoss,
 ) -> Result<Vec<Constraint>> {
     let nodes: Vec<u32> = graph
         .variables()
@@ -369,30 +304,12 @@ fn add_false_loop_closures(
             to: node(j),
             from_from_to: pose,
             information,
-            loss,
+            loss: RobustLoss::Trivial,
         };
         graph.add_constraint(constraint.clone())?;
         added.push(constraint);
     }
     Ok(added)
-}
-
-/// How many of `added` (false closures) and of the other loop closures end with an IRLS weight below 0.5.
-fn rejected(graph: &PoseGraph, added: &[Constraint]) -> (usize, usize) {
-    let weight = |c: &Constraint| -> Option<f64> {
-        let (a, b) = (graph.pose(c.from)?, graph.pose(c.to)?);
-        Some(c.loss.weight(c.chi2(&a, &b)))
-    };
-    let outliers = added
-        .iter()
-        .filter(|c| weight(c).is_some_and(|w| w < 0.5))
-        .count();
-    let all_rejected = graph
-        .constraints()
-        .map(|(_, c)| c)
-        .filter(|c| is_loop_closure(c) && weight(c).is_some_and(|w| w < 0.5))
-        .count();
-    (outliers, all_rejected.saturating_sub(outliers))
 }
 
 /// RMS (m) of the difference of vertex positions between two graphs over the same vertices.
@@ -438,12 +355,10 @@ mod tests {
             out,
             no_rotation_init: false,
             max_iterations: None,
-            loop_closure_phi: DEFAULT_LOOP_CLOSURE_PHI,
-            robust: false,
+            least_squares: false,
+            inlier_chi2: RobustOptimizerOptions::DEFAULT.inlier_chi2,
+            rejection_phi: RobustOptimizerOptions::DEFAULT.rejection_phi,
             prune_weight: OptimizerOptions::DEFAULT.prune_weight,
-            phi_stages: Vec::new(),
-            guess_phi: 0.0,
-            truncate_chi2: DEFAULT_TRUNCATE_CHI2,
             add_outliers: 0,
             outlier_groups: 0,
             outlier_seed: 1,
@@ -510,21 +425,22 @@ EDGE2 3 0 1.05 0 1.5707963 10 0 10 10 0 0
             .find(|path| path.is_file())
             .expect("../shared/datasets beside the repository");
         let report = execute(&OptimizeArgs {
-            robust: true,
             add_outliers: 90,
             outlier_groups: 1,
             outlier_seed: 7,
             ..args(input.clone(), None)
         })
         .unwrap();
-        // DCS alone: 0.0034 m (the false closures' residual pull); truncating them afterwards leaves the
-        // clean optimum over the true closures.
+        // The default: truncated least squares on the loop closures, reached by the rejection track
+        // (DCS alone ended 0.0034 m off: the false closures' residual pull).
         let rms = report["rms_vs_clean_m"].as_f64().unwrap();
         assert!(rms < 1e-3, "{report}");
+        assert_eq!(report["track"], "Rejection", "{report}");
         assert_eq!(report["outliers_rejected"], 100, "{report}");
         assert_eq!(report["inliers_rejected"], 0, "{report}");
         // Plain least squares is dragged away by the same closures.
         let plain = execute(&OptimizeArgs {
+            least_squares: true,
             add_outliers: 90,
             outlier_groups: 1,
             outlier_seed: 7,

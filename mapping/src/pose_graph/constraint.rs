@@ -63,6 +63,16 @@ pub enum RobustLoss {
         /// `Φ`, on the squared Mahalanobis norm `s` (unitless), > 0.
         phi: f64,
     },
+    /// Truncated least squares: `ρ(s) = min(s, threshold)`, weight 1 up to the threshold and exactly 0
+    /// beyond. The least-squares term of a constraint that fits, a constant for one that does not: a
+    /// rejected constraint keeps no pull at all (DCS's `(2Φ/s)²` never reaches 0), and a graph whose
+    /// constraints all lie within the threshold at its least-squares optimum keeps that optimum exactly.
+    /// Not differentiable at the threshold and flat beyond it, so it needs a start near the answer
+    /// (see [`super::RobustOptimizer`]).
+    TruncatedLeastSquares {
+        /// The threshold `c̄²`, on the squared Mahalanobis norm `s` (unitless), > 0.
+        threshold: f64,
+    },
 }
 
 impl RobustLoss {
@@ -88,6 +98,7 @@ impl RobustLoss {
                     3.0 * phi - 4.0 * phi * phi / (phi + s)
                 }
             }
+            Self::TruncatedLeastSquares { threshold } => s.min(threshold),
         }
     }
 
@@ -111,6 +122,13 @@ impl RobustLoss {
                     scale * scale
                 }
             }
+            Self::TruncatedLeastSquares { threshold } => {
+                if s <= threshold {
+                    1.0
+                } else {
+                    0.0
+                }
+            }
         }
     }
 
@@ -118,9 +136,10 @@ impl RobustLoss {
     pub fn is_valid(&self) -> bool {
         match *self {
             Self::Trivial => true,
-            Self::Huber { delta: p } | Self::Cauchy { scale: p } | Self::Dcs { phi: p } => {
-                p.is_finite() && p > 0.0
-            }
+            Self::Huber { delta: p }
+            | Self::Cauchy { scale: p }
+            | Self::Dcs { phi: p }
+            | Self::TruncatedLeastSquares { threshold: p } => p.is_finite() && p > 0.0,
         }
     }
 }
@@ -357,5 +376,43 @@ mod tests {
         let dcs = RobustLoss::Dcs { phi: 1.0 };
         assert!(dcs.rho(1e9) < 3.0 && dcs.rho(1e9) > 2.99);
         assert!((dcs.weight(3.0) - 0.25).abs() < 1e-12);
+    }
+
+    #[test]
+    fn truncated_least_squares_is_quadratic_then_flat_with_a_zero_weight() {
+        let tls = RobustLoss::TruncatedLeastSquares { threshold: 25.0 };
+        assert!(tls.is_valid());
+        assert!(!RobustLoss::TruncatedLeastSquares { threshold: 0.0 }.is_valid());
+        assert!(
+            !RobustLoss::TruncatedLeastSquares {
+                threshold: f64::NAN
+            }
+            .is_valid()
+        );
+        // Brute force over a grid: ρ(s) = min(s, c̄²), and the weight is its derivative away from the kink.
+        let h = 1e-6;
+        let mut below = 0;
+        let mut beyond = 0;
+        for k in 0..200 {
+            let s = 0.37 * f64::from(k);
+            assert_relative_eq!(tls.rho(s), if s < 25.0 { s } else { 25.0 }, epsilon = 1e-12);
+            if (s - 25.0).abs() > 2.0 * h {
+                let numeric = (tls.rho(s + h) - tls.rho(s - h)) / (2.0 * h);
+                assert_relative_eq!(tls.weight(s), numeric, epsilon = 1e-6);
+                if s < 25.0 {
+                    below += 1;
+                } else {
+                    beyond += 1;
+                }
+            }
+        }
+        assert!(
+            below > 10 && beyond > 10,
+            "both sides of the threshold are checked"
+        );
+        // Exactly 0 beyond: a rejected constraint does not pull at all.
+        assert_eq!(tls.weight(25.0 + 1e-9).to_bits(), 0.0_f64.to_bits());
+        assert_eq!(tls.weight(25.0).to_bits(), 1.0_f64.to_bits());
+        assert_eq!(tls.rho(1e12).to_bits(), 25.0_f64.to_bits());
     }
 }

@@ -23,7 +23,7 @@ use nalgebra::{Matrix3, Vector3};
 use serde::Deserialize;
 use thiserror::Error;
 
-use super::constraint::PreparedMeasurement;
+use super::constraint::{Constraint, PreparedMeasurement, RobustLoss};
 use super::graph::PoseGraph;
 use super::ids::VariableId;
 use super::linear_system::{BlockPattern, LinearSystemError, NO_BLOCK, SparseCholesky};
@@ -52,7 +52,8 @@ pub struct OptimizerOptions {
     pub max_diagonal: f64,
     /// Before iterating, compute a rotation-first initial guess (orientations by linear least squares
     /// on the angle errors, then positions by linear least squares given those orientations) and start
-    /// from it when its cost is lower than the current estimate's. Costs two extra linear solves; worth
+    /// from it when its χ² (robust losses ignored: the guess is a least-squares estimate) is lower than
+    /// the current estimate's. Costs two extra linear solves; worth
     /// it from odometry-quality estimates, rarely from an already-optimized graph.
     pub rotation_first_initialization: bool,
     /// A constraint whose robust weight `ρ'(s)` falls below this at a linearization point is left out of
@@ -282,9 +283,50 @@ impl Optimizer {
         self.symbolic_factorizations
     }
 
+    /// Only the rotation-first initialization of [`OptimizerOptions::rotation_first_initialization`],
+    /// whatever that option says: computes the guess and writes it into `graph` if its χ² is lower than
+    /// the graph's. Returns whether it did. The guess's symbolic factorization (all constraints) stays
+    /// cached, so an [`Optimizer::optimize`] that follows on the same structure reuses it.
+    pub fn initialize_rotation_first(&mut self, graph: &mut PoseGraph) -> bool {
+        let mut problem = Problem::new(graph, |c| c.loss);
+        if problem.num_free == 0 || problem.edges.is_empty() {
+            return false;
+        }
+        let mut factorization = Factorization {
+            solver: &mut self.solver,
+            count: &mut self.symbolic_factorizations,
+        };
+        let mut work = Work {
+            hessian: &mut self.hessian,
+            damped: &mut self.damped,
+            gradient: &mut self.gradient,
+            step: &mut self.step,
+            damping_diagonal: &mut self.damping_diagonal,
+        };
+        let taken = matches!(
+            take_rotation_first_guess(&mut problem, &mut factorization, &mut work),
+            Ok(Some(_))
+        );
+        if taken {
+            problem.write_back(graph);
+        }
+        taken
+    }
+
     /// Minimises the graph's cost, writing the best estimate found back into `graph`.
     pub fn optimize(&mut self, graph: &mut PoseGraph) -> OptimizationSummary {
-        let mut problem = Problem::new(graph);
+        self.optimize_with_losses(graph, |c| c.loss)
+    }
+
+    /// [`Optimizer::optimize`] with `loss_of(constraint)` in place of each constraint's own loss (for
+    /// this call only: the graph's constraints are left as they are, only the poses are written). Each
+    /// returned loss must be valid ([`RobustLoss::is_valid`]).
+    pub fn optimize_with_losses(
+        &mut self,
+        graph: &mut PoseGraph,
+        loss_of: impl Fn(&Constraint) -> RobustLoss,
+    ) -> OptimizationSummary {
+        let mut problem = Problem::new(graph, loss_of);
         let (initial_cost, initial_chi2) = problem.cost_and_chi2(&problem.poses);
         let mut summary = OptimizationSummary {
             initial_chi2,
@@ -315,23 +357,14 @@ impl Optimizer {
             damping_diagonal: &mut self.damping_diagonal,
         };
         let mut start_cost = initial_cost;
-        // The guess solves least squares over every constraint (all of them active here): with false loop
-        // closures among them it bends the odometry chain, and its (robust) cost then rises above the given
-        // poses' — so it is kept only where it lowers the cost, as on clean graphs, where it takes badly
-        // initialized files to their optimum. (Solving it over the constraints that survive pruning at the
-        // start instead is cheaper but was kept on M3500 with 1000 false closures and led Levenberg–Marquardt
-        // to a minimum 12.7 m away.)
         if self.options.rotation_first_initialization {
-            let Some(solver) = factorization.prepare(&mut problem) else {
-                summary.termination = Termination::Failed(FailureReason::SymbolicFactorization);
-                return summary;
-            };
-            if let Some(guess) = rotation_first_guess(&problem, solver, &mut work) {
-                let (guess_cost, _) = problem.cost_and_chi2(&guess);
-                if guess_cost < start_cost {
-                    problem.poses = guess;
-                    start_cost = guess_cost;
+            match take_rotation_first_guess(&mut problem, &mut factorization, &mut work) {
+                Err(()) => {
+                    summary.termination = Termination::Failed(FailureReason::SymbolicFactorization);
+                    return summary;
                 }
+                Ok(Some(cost)) => start_cost = cost,
+                Ok(None) => {}
             }
         }
         // Then only the constraints whose weight at the start is not negligible.
@@ -357,6 +390,34 @@ impl Optimizer {
         summary.accepted_steps = accepted;
         problem.write_back(graph);
         summary
+    }
+}
+
+/// Computes the rotation-first guess over every constraint (all of them active) and, if its χ² is below
+/// the current poses', makes it the problem's poses. Returns the guess's robust cost if taken; `Err` if
+/// the symbolic factorization fails.
+///
+/// The guess solves least squares over every constraint, so it is judged by least squares too. (Judged
+/// by a bounded robust cost instead, a far-off start wins cheaply: each loop closure of an odometry chain
+/// costs at most the loss's bound, and on ring.g2o truncated least squares then never closed a loop.
+/// With false loop closures the guess is bent by them; `RobustOptimizer` starts its rejection track from
+/// the given poses for that reason.)
+fn take_rotation_first_guess(
+    problem: &mut Problem,
+    factorization: &mut Factorization<'_>,
+    work: &mut Work<'_>,
+) -> Result<Option<f64>, ()> {
+    let solver = factorization.prepare(problem).ok_or(())?;
+    let Some(guess) = rotation_first_guess(problem, solver, work) else {
+        return Ok(None);
+    };
+    let (_, chi2) = problem.cost_and_chi2(&problem.poses);
+    let (guess_cost, guess_chi2) = problem.cost_and_chi2(&guess);
+    if guess_chi2 < chi2 && guess_cost.is_finite() {
+        problem.poses = guess;
+        Ok(Some(guess_cost))
+    } else {
+        Ok(None)
     }
 }
 
@@ -407,7 +468,7 @@ struct Problem {
 }
 
 impl Problem {
-    fn new(graph: &PoseGraph) -> Self {
+    fn new(graph: &PoseGraph, loss_of: impl Fn(&Constraint) -> RobustLoss) -> Self {
         let mut ids = Vec::with_capacity(graph.num_variables());
         let mut poses = Vec::with_capacity(graph.num_variables());
         let mut fixed = Vec::with_capacity(graph.num_variables());
@@ -440,7 +501,10 @@ impl Problem {
                 Some(Edge {
                     from: index(&c.from)?,
                     to: index(&c.to)?,
-                    measurement: PreparedMeasurement::new(c),
+                    measurement: PreparedMeasurement {
+                        loss: loss_of(c),
+                        ..PreparedMeasurement::new(c)
+                    },
                     from_block: NO_BLOCK,
                     to_block: NO_BLOCK,
                     cross_block: NO_BLOCK,
@@ -984,7 +1048,7 @@ mod tests {
     #[test]
     fn assembled_gradient_matches_finite_differences_of_the_cost() {
         let graph = graph();
-        let mut problem = Problem::new(&graph);
+        let mut problem = Problem::new(&graph, |c| c.loss);
         assert_eq!(
             problem.num_free, 4,
             "node 2 is fixed, so no implicit gauge is added"

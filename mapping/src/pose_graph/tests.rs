@@ -584,3 +584,187 @@ fn with_constraints_keeps_the_variables_and_maps_or_drops_each_constraint() {
     });
     assert!(broken.is_err());
 }
+
+/// Loop closures in these tests: every constraint between non-consecutive nodes (in `square_world`, the
+/// closures across the square and the edge that closes the loop of odometry).
+fn is_loop_closure(c: &Constraint) -> bool {
+    match (c.from, c.to) {
+        (VariableId::Node(a), VariableId::Node(b)) => a.index.abs_diff(b.index) != 1,
+        _ => true,
+    }
+}
+
+fn robust_optimizer() -> RobustOptimizer {
+    RobustOptimizer::new(RobustOptimizerOptions::default()).unwrap()
+}
+
+/// `square_world(n)` with every measurement off by a small deterministic amount (≈ 0.1–0.5 σ), so that
+/// the least-squares optimum has residuals everywhere.
+fn noisy_square_world(n: u32) -> PoseGraph {
+    let (graph, _) = square_world(n, RobustLoss::Trivial);
+    let mut k = 0.0;
+    graph
+        .with_constraints(|c| {
+            k += 1.0;
+            let noise = rigid2(
+                0.03 * f64::sin(k),
+                0.02 * f64::cos(2.0 * k),
+                0.01 * f64::sin(3.0 * k),
+            );
+            Some(Constraint {
+                from_from_to: c.from_from_to * noise,
+                ..c.clone()
+            })
+        })
+        .unwrap()
+}
+
+#[test]
+fn robust_optimizer_keeps_the_least_squares_optimum_when_every_closure_fits() {
+    let mut robust = noisy_square_world(40);
+    let mut plain = robust.clone();
+    let summary = robust_optimizer().optimize(&mut robust, is_loop_closure);
+    let least_squares = Optimizer::new(RobustOptimizerOptions::DEFAULT.optimizer)
+        .unwrap()
+        .optimize(&mut plain);
+    assert_eq!(summary.track, RobustTrack::AllInliers, "{summary:?}");
+    assert!(!summary.rejection_track_ran);
+    assert_eq!((summary.candidates, summary.rejected), (21, 0));
+    assert!(
+        least_squares.final_chi2 > 0.1,
+        "the optimum must have residuals"
+    );
+    assert_relative_eq!(
+        summary.final_chi2,
+        least_squares.final_chi2,
+        max_relative = 1e-12
+    );
+    assert_eq!(summary.iterations, least_squares.iterations);
+    for (id, pose, _) in plain.variables() {
+        assert_relative_eq!(robust.pose(id).unwrap(), pose, epsilon = 1e-12);
+    }
+}
+
+#[test]
+fn robust_optimizer_rejects_false_closures_and_keeps_no_pull_from_them() {
+    let (mut graph, truth) = square_world_with_false_closures(RobustLoss::Trivial);
+    let graph_losses: Vec<RobustLoss> = graph.constraints().map(|(_, c)| c.loss).collect();
+    let summary = robust_optimizer().optimize(&mut graph, is_loop_closure);
+    assert_eq!(summary.track, RobustTrack::Rejection, "{summary:?}");
+    assert_eq!(
+        (summary.candidates, summary.rejected),
+        (51, 30),
+        "{summary:?}"
+    );
+    assert_eq!(summary.pruned_constraints, 30);
+    // Exact measurements and no residual pull from the rejected closures: the truth, to round-off.
+    assert!(max_pose_error(&graph, &truth) < 1e-9, "{summary:?}");
+    // The caller's constraints keep their losses.
+    let after: Vec<RobustLoss> = graph.constraints().map(|(_, c)| c.loss).collect();
+    assert_eq!(after, graph_losses);
+    // What is not a candidate is never rejected: with only odometry as candidates, the false closures
+    // hold and drag the graph.
+    let (mut dragged, _) = square_world_with_false_closures(RobustLoss::Trivial);
+    let summary = robust_optimizer().optimize(&mut dragged, |c| !is_loop_closure(c));
+    assert_eq!(summary.candidates, 39);
+    assert!(max_pose_error(&dragged, &truth) > 0.5, "{summary:?}");
+}
+
+#[test]
+fn robust_optimizer_reaches_the_truncated_least_squares_minimum_found_by_exhaustive_search() {
+    // 8 nodes, 5 true closures (one of them 3σ off) and 2 false ones; F's global minimum is the best,
+    // over every subset S of closures, of the least-squares optimum over the odometry and S plus the
+    // threshold for each closure left out (min_x Σ min(s, c̄²) = min_S min_x [Σ_S s + c̄²·|S̄|]).
+    let (clean, _) = square_world(8, RobustLoss::Trivial);
+    let mut graph = clean
+        .with_constraints(|c| {
+            let off = c.from == node(1) && c.to == node(5);
+            Some(Constraint {
+                from_from_to: if off {
+                    c.from_from_to * rigid2(0.3, 0.0, 0.0)
+                } else {
+                    c.from_from_to
+                },
+                ..c.clone()
+            })
+        })
+        .unwrap();
+    for (a, b) in [(0, 3), (2, 7)] {
+        graph
+            .add_constraint(constraint(
+                a,
+                b,
+                rigid2(2.0, -1.5, 0.8),
+                RobustLoss::Trivial,
+            ))
+            .unwrap();
+    }
+    let threshold = RobustOptimizerOptions::DEFAULT.inlier_chi2;
+    let closures: Vec<Constraint> = graph
+        .constraints()
+        .map(|(_, c)| c.clone())
+        .filter(is_loop_closure)
+        .collect();
+    assert_eq!(closures.len(), 7);
+    let mut best = f64::INFINITY;
+    for subset in 0u32..(1 << closures.len()) {
+        let mut k = 0;
+        let mut candidate = graph
+            .with_constraints(|c| {
+                if !is_loop_closure(c) {
+                    return Some(c.clone());
+                }
+                k += 1;
+                (subset & (1 << (k - 1)) != 0).then(|| c.clone())
+            })
+            .unwrap();
+        // Least squares from the truth-like start of the clean graph's optimum.
+        for (id, pose, _) in clean.variables() {
+            candidate.set_pose(id, pose).unwrap();
+        }
+        let summary = optimizer().optimize(&mut candidate);
+        let left_out = closures.len() - subset.count_ones() as usize;
+        best = best.min(summary.final_chi2 + threshold * left_out as f64);
+    }
+    let summary = robust_optimizer().optimize(&mut graph, is_loop_closure);
+    assert_relative_eq!(summary.final_cost, best, max_relative = 1e-6);
+    // The 3σ-off closure fits (χ² = 0.3² · 100 = 9 before the graph bends towards it): an inlier.
+    assert_eq!(summary.rejected, 2, "{summary:?}");
+}
+
+#[test]
+fn robust_optimizer_options_are_validated() {
+    let defaults = RobustOptimizerOptions::default();
+    assert_eq!(defaults.validate(), Ok(()));
+    for bad in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+        let inlier = RobustOptimizerOptions {
+            inlier_chi2: bad,
+            ..defaults.clone()
+        };
+        assert!(matches!(
+            RobustOptimizer::new(inlier),
+            Err(RobustOptimizerOptionsError::InlierChi2(_))
+        ));
+        let phi = RobustOptimizerOptions {
+            rejection_phi: bad,
+            ..defaults.clone()
+        };
+        assert!(matches!(
+            phi.validate(),
+            Err(RobustOptimizerOptionsError::RejectionPhi(_))
+        ));
+    }
+    let optimizer = RobustOptimizerOptions {
+        optimizer: OptimizerOptions {
+            prune_weight: 0.5,
+            ..OptimizerOptions::DEFAULT
+        },
+        ..defaults
+    };
+    assert!(matches!(
+        optimizer.validate(),
+        Err(RobustOptimizerOptionsError::Optimizer(
+            OptimizerOptionsError::PruneWeight(_)
+        ))
+    ));
+}

@@ -72,6 +72,9 @@ impl From<&Constraint> for pb::Constraint {
             RobustLoss::Huber { delta } => (pb::RobustLossKind::Huber, delta),
             RobustLoss::Cauchy { scale } => (pb::RobustLossKind::Cauchy, scale),
             RobustLoss::Dcs { phi } => (pb::RobustLossKind::Dcs, phi),
+            RobustLoss::TruncatedLeastSquares { threshold } => {
+                (pb::RobustLossKind::TruncatedLeastSquares, threshold)
+            }
         };
         Self {
             format_version: FORMAT_VERSION,
@@ -139,6 +142,9 @@ impl TryFrom<&pb::Constraint> for Constraint {
             Ok(pb::RobustLossKind::Huber) => RobustLoss::Huber { delta: scale },
             Ok(pb::RobustLossKind::Cauchy) => RobustLoss::Cauchy { scale },
             Ok(pb::RobustLossKind::Dcs) => RobustLoss::Dcs { phi: scale },
+            Ok(pb::RobustLossKind::TruncatedLeastSquares) => {
+                RobustLoss::TruncatedLeastSquares { threshold: scale }
+            }
             _ => {
                 return Err(ConversionError::OutOfRange {
                     message: M,
@@ -197,6 +203,21 @@ mod tests {
         assert_eq!(back.information, c.information);
         assert_eq!(back.loss, c.loss);
         approx::assert_relative_eq!(back.from_from_to, c.from_from_to, epsilon = 1e-12);
+        let losses = [
+            RobustLoss::Trivial,
+            RobustLoss::Cauchy { scale: 2.0 },
+            RobustLoss::Dcs { phi: 1.0 },
+            RobustLoss::TruncatedLeastSquares { threshold: 25.0 },
+        ];
+        for loss in losses {
+            let c = Constraint { loss, ..sample() };
+            assert_eq!(
+                Constraint::try_from(&pb::Constraint::from(&c))
+                    .unwrap()
+                    .loss,
+                loss
+            );
+        }
     }
 
     #[test]
