@@ -227,12 +227,16 @@ mod tests {
             returns: vec![Point2::new(0.55f32, 0.05)],
             misses: vec![Point2::new(0.05f32, 0.55)],
         };
+        let options = RangeDataInserterOptions::default();
         inserter.insert(&data, &mut grid);
         let hit = grid.limits().cell_index(&Point2::new(0.55, 0.05));
-        assert!((grid.probability(&hit) - 0.55).abs() < 1e-3);
+        assert!((grid.probability(&hit) - options.hit_probability).abs() < 1e-3);
         for x in [0.05, 0.25, 0.45] {
             let c = grid.limits().cell_index(&Point2::new(x, 0.05));
-            assert!((grid.probability(&c) - 0.49).abs() < 1e-3, "x = {x}");
+            assert!(
+                (grid.probability(&c) - options.miss_probability).abs() < 1e-3,
+                "x = {x}"
+            );
         }
         let miss_end = grid.limits().cell_index(&Point2::new(0.05, 0.55));
         assert!(grid.is_known(&miss_end));
