@@ -11,7 +11,9 @@ pub use match_score::match_score;
 pub use relations_metric::{RelationError, RelationsErrorStats, relation_errors, relations_error};
 pub use run_score::{RunScore, score_run};
 pub use scoring_options::{ScoringOptions, ScoringOptionsError};
-pub use session_score::{Placement, SessionScore, SessionTrack, score_session};
+pub use session_score::{
+    Placement, SessionScore, SessionTrack, average_match_score, score_session,
+};
 pub use trajectory_metric::{
     PoseTolerance, TrajectoryAccuracy, align_to_truth, pose_error, rigid_alignment,
     trajectory_accuracy,

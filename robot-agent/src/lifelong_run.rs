@@ -329,7 +329,9 @@ pub fn run_session_inputs(
     std::thread::scope(|scope| {
         let worker = std::thread::Builder::new()
             .name("lifelong-map".into())
-            .spawn_scoped(scope, move || worker(map, config, &receiver, on_session_end))
+            .spawn_scoped(scope, move || {
+                worker(map, config, &receiver, on_session_end)
+            })
             .map_err(|e| SessionsError::Worker(e.to_string()))?;
 
         let mut anchors: Vec<(u32, ScanAnchor)> = Vec::new();
@@ -629,13 +631,14 @@ fn worker(
                     if let (Some(f), Some((first_local, _))) = (found, first_scans.first()) {
                         priors.insert(session, (f.global_from_local, *first_local));
                         let pose = f.global_from_local * first_local;
-                        record.placement = first_time.zip(decided_time).map(|(time, decided_at)| {
-                            Placement {
-                                decided_at,
-                                time,
-                                map_from_base: pose,
-                            }
-                        });
+                        record.placement =
+                            first_time
+                                .zip(decided_time)
+                                .map(|(time, decided_at)| Placement {
+                                    decided_at,
+                                    time,
+                                    map_from_base: pose,
+                                });
                         summary.relocalized_first_pose = Some([
                             pose.translation.vector.x,
                             pose.translation.vector.y,
@@ -724,8 +727,8 @@ fn worker(
                             map_from_base: pose,
                         });
                     }
-                    let placed = session == 0
-                        || record.placement.is_some_and(|p| time >= p.decided_at);
+                    let placed =
+                        session == 0 || record.placement.is_some_and(|p| time >= p.decided_at);
                     let online = pose.filter(|_| placed);
                     if let Some(pose) = online {
                         online_nodes.insert(id, pose);

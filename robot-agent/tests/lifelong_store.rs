@@ -31,9 +31,14 @@ fn later_sessions_relocalize_and_localize_in_the_session_zero_frame() {
         base_from_laser: s.base_from_laser,
     });
     let mut ended = Vec::new();
-    let run = run_session_inputs(inputs, &SessionsConfig::default(), &mut |_| {}, &mut |end| {
-        ended.push(end.summary.session);
-    })
+    let run = run_session_inputs(
+        inputs,
+        &SessionsConfig::default(),
+        &mut |_| {},
+        &mut |end| {
+            ended.push(end.summary.session);
+        },
+    )
     .expect("run");
     assert_eq!(run.sessions.len(), 3);
     assert_eq!(ended, [0, 1, 2], "every session reported as it ended");
@@ -62,9 +67,17 @@ fn later_sessions_relocalize_and_localize_in_the_session_zero_frame() {
         assert!(score.initialized, "session {k}: {score:?}");
         assert!(!score.wrong_placement);
         assert!(score.mrcl > 0.9, "session {k}: MRCL {}", score.mrcl);
-        assert!(score.mrcl_smoothed > 0.9, "session {k}: {}", score.mrcl_smoothed);
+        assert!(
+            score.mrcl_smoothed > 0.9,
+            "session {k}: {}",
+            score.mrcl_smoothed
+        );
         assert_eq!(score.scored_scans, summary.nodes_added);
-        assert!(score.ams.is_some_and(|a| a > 0.5), "session {k}: {:?}", score.ams);
+        assert!(
+            score.ams.is_some_and(|a| a > 0.5),
+            "session {k}: {:?}",
+            score.ams
+        );
         assert!(summary.cross_session_closures > 0);
     }
 }

@@ -55,7 +55,10 @@ mod tests {
         assert!((outside - f64::from(MIN_PROBABILITY)).abs() < 1e-6);
         // Half on the wall, half out of the map.
         let half = match_score(&map, &points, &rigid2(0.05, 0.85, 0.0));
-        assert!((half - 0.5 * (0.9 + f64::from(MIN_PROBABILITY))).abs() < 1e-3, "{half}");
+        assert!(
+            (half - 0.5 * (0.9 + f64::from(MIN_PROBABILITY))).abs() < 1e-3,
+            "{half}"
+        );
         assert!(match_score(&map, &[], &Rigid2::identity()).abs() < f64::EPSILON);
     }
 }

@@ -122,6 +122,11 @@ fn truth_at(truth: &[(Timestamp, Rigid2)], time: Timestamp) -> Option<Rigid2> {
     }
 }
 
+/// AMS: the mean of the match scores of a session's scans (`None` for none).
+pub fn average_match_score(match_scores: &[f64]) -> Option<f64> {
+    (!match_scores.is_empty()).then(|| match_scores.iter().sum::<f64>() / match_scores.len() as f64)
+}
+
 /// Scores one session (see the module docs) in the truth's frame through `world_from_map`.
 pub fn score_session(
     track: &SessionTrack<'_>,
@@ -159,9 +164,7 @@ pub fn score_session(
         placement_error_deg: placement.map(|p| p.1),
         placed_after_s: placement.map(|p| p.2),
         wrong_placement,
-        ams: (!track.match_scores.is_empty()).then(|| {
-            track.match_scores.iter().sum::<f64>() / track.match_scores.len() as f64
-        }),
+        ams: average_match_score(track.match_scores),
         scored_scans: track.match_scores.len(),
         good_distance_m: [good(&online), good(&smoothed)],
     }

@@ -209,12 +209,18 @@ mod tests {
         let estimate: Vec<_> = (0..11)
             .map(|k| (t(k), rigid2(k as f64, if k > 5 { 1.0 } else { 0.0 }, 0.0)))
             .collect();
-        let a = trajectory_accuracy(&estimate, &truth, &Rigid2::identity(), &PoseTolerance::CORRECT);
+        let a = trajectory_accuracy(
+            &estimate,
+            &truth,
+            &Rigid2::identity(),
+            &PoseTolerance::CORRECT,
+        );
         assert_eq!(a.matched, 11);
         assert!((a.distance_m - 10.0).abs() < 1e-12);
         assert!((a.mrcl - 0.5).abs() < 1e-12, "{a:?}");
         assert!((a.max_error_m - 1.0).abs() < 1e-12);
-        let perfect = trajectory_accuracy(&truth, &truth, &Rigid2::identity(), &PoseTolerance::CORRECT);
+        let perfect =
+            trajectory_accuracy(&truth, &truth, &Rigid2::identity(), &PoseTolerance::CORRECT);
         assert!((perfect.mrcl - 1.0).abs() < 1e-12 && perfect.ate_rms_m == 0.0);
     }
 
@@ -226,7 +232,12 @@ mod tests {
             .collect();
         // No estimate for the last 4 poses: 4 of the 10 m are not localized.
         let estimate: Vec<_> = truth[..7].to_vec();
-        let a = trajectory_accuracy(&estimate, &truth, &Rigid2::identity(), &PoseTolerance::CORRECT);
+        let a = trajectory_accuracy(
+            &estimate,
+            &truth,
+            &Rigid2::identity(),
+            &PoseTolerance::CORRECT,
+        );
         assert_eq!(a.matched, 7);
         assert!((a.distance_m - 10.0).abs() < 1e-12);
         assert!((a.mrcl - 0.6).abs() < 1e-12, "{a:?}");

@@ -89,7 +89,10 @@ fn layout_changes_more_than_half_in_25_sessions() {
     // Day to day the store changes much less, but it does change: the tolerance is below the
     // simulator's smallest move.
     let day = change(0, 1);
-    assert!(day > 0.0 && day < 0.5 * rate, "one day: {day}, 25 days: {rate}");
+    assert!(
+        day > 0.0 && day < 0.5 * rate,
+        "one day: {day}, 25 days: {rate}"
+    );
     assert!(change(3, 3).abs() < f64::EPSILON);
 }
 

@@ -497,7 +497,9 @@ fn write_charts(out: &Path, scores: &[SessionRow]) -> anyhow::Result<()> {
             series("AMS", [30, 90, 200], &|s| s.score.ams),
             series("MRCL", [0, 150, 0], &|s| Some(s.score.mrcl)),
             series("MCR", [200, 40, 40], &|s| s.mcr),
-            series("world change", [150, 150, 150], &|s| Some(s.world_change_rate)),
+            series("world change", [150, 150, 150], &|s| {
+                Some(s.world_change_rate)
+            }),
         ],
         y_min: Some(0.0),
     };

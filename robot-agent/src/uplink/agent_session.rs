@@ -151,9 +151,13 @@ fn push_held_estimates(trace: &mut SessionTrace, held: &[Vec<UploadItem>]) {
     for (i, items) in held.iter().enumerate() {
         let decided = i + 1 == held.len();
         let local = node_local_pose(items);
-        trace
-            .node_estimates
-            .push(trace.prior.zip(local).filter(|_| decided).map(|(p, l)| p * l));
+        trace.node_estimates.push(
+            trace
+                .prior
+                .zip(local)
+                .filter(|_| decided)
+                .map(|(p, l)| p * l),
+        );
     }
 }
 
