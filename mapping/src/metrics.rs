@@ -7,7 +7,7 @@ mod scoring_options;
 mod session_score;
 mod trajectory_metric;
 
-pub use match_score::match_score;
+pub use match_score::{MatchScorer, match_score};
 pub use relations_metric::{RelationError, RelationsErrorStats, relation_errors, relations_error};
 pub use run_score::{RunScore, score_run};
 pub use scoring_options::{ScoringOptions, ScoringOptionsError};

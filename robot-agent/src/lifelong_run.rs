@@ -20,7 +20,7 @@ use mapping::lifelong::{
     RelocalizationOutcome, StartSearch, relocalize_session_start, render_submaps,
 };
 use mapping::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
-use mapping::metrics::{Placement, SessionTrack, match_score};
+use mapping::metrics::{MatchScorer, Placement, ScoringOptions, SessionTrack};
 use mapping::pose_graph::NodeId;
 use mapping::sensor::{RangeData, SensorEvent, Timestamp};
 use nalgebra::Point2;
@@ -52,6 +52,8 @@ pub struct SessionsConfig {
     /// map, so the doubling keeps a session that cannot be placed from spending its time relocalizing.
     /// Default 20.
     pub relocalization_retry_every_n_nodes: usize,
+    /// What the scores count, and the window AMS searches each node's match in.
+    pub scoring: ScoringOptions,
 }
 
 impl Default for SessionsConfig {
@@ -62,6 +64,7 @@ impl Default for SessionsConfig {
             relocalization: RelocalizationOptions::default(),
             relocalization_nodes: 10,
             relocalization_retry_every_n_nodes: 20,
+            scoring: ScoringOptions::default(),
         }
     }
 }
@@ -179,8 +182,9 @@ pub struct SessionRecord {
     /// The placement the session committed to (`None`: never placed, and session 0, which defines the
     /// map).
     pub placement: Option<Placement>,
-    /// Per node, in order, its match score ([`match_score`]) at the robot's estimate against the map of
-    /// the finished sessions rendered when the session started; 0 while the session was not placed.
+    /// Per node, in order, its branch-and-bound score ([`MatchScorer`], within the scoring's match window
+    /// of the robot's estimate) against the map of the finished sessions rendered when the session
+    /// started; 0 while the session was not placed.
     /// Empty for session 0 (no map before it).
     pub match_scores: Vec<f64>,
 }
@@ -316,6 +320,10 @@ pub fn run_session_inputs(
         .map_err(|e| SessionsError::Config(e.to_string()))?;
     config
         .relocalization
+        .validate()
+        .map_err(|e| SessionsError::Config(e.to_string()))?;
+    config
+        .scoring
         .validate()
         .map_err(|e| SessionsError::Config(e.to_string()))?;
     if config.relocalization_nodes == 0 {
@@ -562,7 +570,7 @@ fn worker(
     // and the map of the finished sessions as it was at its start (for the match scores).
     let mut node_local: BTreeMap<NodeId, Rigid2> = BTreeMap::new();
     let mut online_nodes: BTreeMap<NodeId, Rigid2> = BTreeMap::new();
-    let mut map_at_start: Option<ProbabilityGrid> = None;
+    let mut map_at_start: Option<MatchScorer> = None;
     let mut priors: BTreeMap<u32, (Rigid2, Rigid2)> = BTreeMap::new();
     let mut scores: Vec<f32> = Vec::new();
     // While the current session is unplaced: the map prepared at its start (when there was one) and its
@@ -596,17 +604,21 @@ fn worker(
                     None
                 } else {
                     let start = Instant::now();
+                    let mut rendered = None;
                     let (outcome, search) =
                         match render_submaps(map.placed_submaps(), relocalization.resolution) {
                             Some(grid) => {
                                 let search = StartSearch::new(&grid, relocalization);
                                 let outcome = search.search(&first_scans);
-                                map_at_start = Some(grid);
+                                rendered = Some(grid);
                                 (outcome, Some(search))
                             }
                             None => (RelocalizationOutcome::NotFound, None),
                         };
                     summary.relocalization_ms = start.elapsed().as_secs_f64() * 1e3;
+                    map_at_start = rendered
+                        .as_ref()
+                        .map(|grid| MatchScorer::new(grid, config.scoring.match_window));
                     // An unplaced start keeps the prepared map, to be searched again with the nodes
                     // that follow (the held-back first nodes arrive next, as `Node` messages).
                     start_search = search.filter(|_| outcome.found().is_none());
@@ -735,7 +747,7 @@ fn worker(
                     }
                     if let Some(points) = scored_points {
                         let score = match (online, &map_at_start) {
-                            (Some(pose), Some(grid)) => match_score(grid, &points, &pose),
+                            (Some(pose), Some(scorer)) => scorer.score(&points, &pose),
                             _ => 0.0,
                         };
                         record.match_scores.push(score);

@@ -32,6 +32,10 @@ pub struct ScoringOptions {
     /// A committed placement farther than this from the truth is a wrong placement (the robot would
     /// navigate in the wrong place). Default 0.5 m and 5°.
     pub wrong_placement: PoseTolerance,
+    /// AMS scores each scan by branch and bound within this window around the robot's estimate
+    /// ([`MatchScorer`](super::MatchScorer)). Default 0.3 m and 5° (the correct-localization tolerance:
+    /// a scan matches the map where the robot believed it was, up to what still counts as correct).
+    pub match_window: PoseTolerance,
 }
 
 impl ScoringOptions {
@@ -43,6 +47,7 @@ impl ScoringOptions {
             translation_m: 0.5,
             rotation_deg: 5.0,
         },
+        match_window: PoseTolerance::CORRECT,
     };
 
     /// Checks every tolerance and window.
@@ -59,6 +64,11 @@ impl ScoringOptions {
                 "wrong_placement.rotation_deg",
                 self.wrong_placement.rotation_deg,
             ),
+            (
+                "match_window.translation_m",
+                self.match_window.translation_m,
+            ),
+            ("match_window.rotation_deg", self.match_window.rotation_deg),
         ];
         for (field, value) in fields {
             if !(value.is_finite() && value >= 0.0) {

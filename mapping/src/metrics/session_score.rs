@@ -12,7 +12,8 @@
 //! - **Placement error**: the committed placement's error against the truth at the scan it placed, and
 //!   whether it was a wrong placement ([`ScoringOptions::wrong_placement`]).
 //! - **AMS** (average matching score): the mean of the match scores of every scan of the session against
-//!   the map as it was then (the caller scores them, see [`match_score`](super::match_score)); a scan the
+//!   the map as it was then (the caller scores them by branch and bound near the robot's estimate, see
+//!   [`MatchScorer`](super::MatchScorer)); a scan the
 //!   robot could not place scores 0, so a lost session counts as matching nothing instead of being left
 //!   out.
 //!
@@ -322,11 +323,12 @@ mod tests {
     #[test]
     fn truth_at_takes_the_nearest_sample() {
         let truth = truth();
-        assert_eq!(truth_at(&truth, t(3.0)).unwrap().translation.x, 3.0);
-        assert_eq!(truth_at(&truth, t(3.4)).unwrap().translation.x, 3.0);
-        assert_eq!(truth_at(&truth, t(3.6)).unwrap().translation.x, 4.0);
-        assert_eq!(truth_at(&truth, t(-1.0)).unwrap().translation.x, 0.0);
-        assert_eq!(truth_at(&truth, t(99.0)).unwrap().translation.x, 10.0);
+        let x_at = |seconds: f64| truth_at(&truth, t(seconds)).unwrap().translation.x;
+        assert!((x_at(3.0) - 3.0).abs() < 1e-12);
+        assert!((x_at(3.4) - 3.0).abs() < 1e-12);
+        assert!((x_at(3.6) - 4.0).abs() < 1e-12);
+        assert!((x_at(-1.0) - 0.0).abs() < 1e-12);
+        assert!((x_at(99.0) - 10.0).abs() < 1e-12);
         assert!(truth_at(&[], t(1.0)).is_none());
     }
 }

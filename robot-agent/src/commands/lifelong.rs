@@ -363,7 +363,7 @@ pub fn run(args: &LifelongArgs) -> anyhow::Result<()> {
         config: &config,
         options: &options,
         store: &store,
-        scoring: ScoringOptions::default(),
+        scoring: config.scoring,
         truths: &truths,
         world_from_map: None,
         truth_day_zero: store.occupancy(0, resolution).surface_grid(),

@@ -101,9 +101,7 @@ impl RobotGlm {
                 cached_submaps(&cache, own_trajectory)
             })
         });
-        let Some(mut matcher) = self.matcher.take() else {
-            return None;
-        };
+        let mut matcher = self.matcher.take()?;
         let work = tokio::task::spawn_blocking(move || {
             if let Some(snapshot) = snapshot {
                 sync_matcher(&mut matcher, &snapshot);
