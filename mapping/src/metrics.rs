@@ -1,9 +1,20 @@
-//! Accuracy measures of SLAM results.
+//! Accuracy measures of SLAM results, and the scores of a lifelong run (what each session lived).
 
+mod match_score;
 mod relations_metric;
+mod run_score;
+mod scoring_options;
+mod session_score;
 mod trajectory_metric;
 
+pub use match_score::{MatchScorer, match_score};
 pub use relations_metric::{RelationError, RelationsErrorStats, relation_errors, relations_error};
+pub use run_score::{RunScore, score_run};
+pub use scoring_options::{ScoringOptions, ScoringOptionsError};
+pub use session_score::{
+    Placement, SessionScore, SessionTrack, average_match_score, score_session,
+};
 pub use trajectory_metric::{
-    MRCL_ROTATION_DEG, MRCL_TRANSLATION_M, TrajectoryAccuracy, rigid_alignment, trajectory_accuracy,
+    PoseTolerance, TrajectoryAccuracy, align_to_truth, pose_error, rigid_alignment,
+    trajectory_accuracy,
 };

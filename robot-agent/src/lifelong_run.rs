@@ -20,6 +20,7 @@ use mapping::lifelong::{
     RelocalizationOutcome, StartSearch, relocalize_session_start, render_submaps,
 };
 use mapping::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
+use mapping::metrics::{MatchScorer, Placement, ScoringOptions, SessionTrack};
 use mapping::pose_graph::NodeId;
 use mapping::sensor::{RangeData, SensorEvent, Timestamp};
 use nalgebra::Point2;
@@ -51,6 +52,8 @@ pub struct SessionsConfig {
     /// map, so the doubling keeps a session that cannot be placed from spending its time relocalizing.
     /// Default 20.
     pub relocalization_retry_every_n_nodes: usize,
+    /// What the scores count, and the window AMS searches each node's match in.
+    pub scoring: ScoringOptions,
 }
 
 impl Default for SessionsConfig {
@@ -61,6 +64,7 @@ impl Default for SessionsConfig {
             relocalization: RelocalizationOptions::default(),
             relocalization_nodes: 10,
             relocalization_retry_every_n_nodes: 20,
+            scoring: ScoringOptions::default(),
         }
     }
 }
@@ -158,6 +162,57 @@ pub struct SessionInput {
     pub base_from_laser: Rigid2,
 }
 
+/// What one session lived, recorded as it happened: the robot's estimate at the time of each scan, the
+/// placement it committed to, each node's match score against the map as it was then, and the
+/// trajectory smoothed at the session's end. [`Self::track`] hands it to
+/// [`mapping::metrics::score_session`].
+#[derive(Clone, Debug, Default)]
+pub struct SessionRecord {
+    /// Session id.
+    pub session: u32,
+    /// Time of the session's first event.
+    pub start_time: Timestamp,
+    /// `map_from_base` of each matched scan as the robot estimated it at that scan: its node's global
+    /// pose right after the map took the node in (its matches and any placement included), composed with
+    /// LLO's motion since. Only scans after the session committed to a placement have one (session 0:
+    /// every scan).
+    pub online: Vec<(Timestamp, Rigid2)>,
+    /// `map_from_base` of each matched scan when the session ended (after its final optimization).
+    pub smoothed: Vec<(Timestamp, Rigid2)>,
+    /// The placement the session committed to (`None`: never placed, and session 0, which defines the
+    /// map).
+    pub placement: Option<Placement>,
+    /// Per node, in order, its branch-and-bound score ([`MatchScorer`], within the scoring's match window
+    /// of the robot's estimate) against the map of the finished sessions rendered when the session
+    /// started; 0 while the session was not placed.
+    /// Empty for session 0 (no map before it).
+    pub match_scores: Vec<f64>,
+}
+
+impl SessionRecord {
+    /// The record as [`mapping::metrics::score_session`] takes it, with the session's truth.
+    pub fn track<'a>(&'a self, truth: &'a [(Timestamp, Rigid2)]) -> SessionTrack<'a> {
+        SessionTrack {
+            truth,
+            start_time: self.start_time,
+            online: &self.online,
+            smoothed: &self.smoothed,
+            placement: self.placement,
+            match_scores: &self.match_scores,
+        }
+    }
+}
+
+/// Handed to the caller of [`run_session_inputs`] when a session has ended (on the map's worker thread).
+pub struct SessionEnd<'a> {
+    /// What happened.
+    pub summary: &'a SessionSummary,
+    /// What it lived.
+    pub record: &'a SessionRecord,
+    /// The map right after the session ended (trimmed).
+    pub map: &'a LifelongMap,
+}
+
 /// What a multi-session run produced.
 pub struct SessionsRun {
     /// The final global pose of every scan LLO matched, in time order: from the final map where its node
@@ -173,15 +228,18 @@ pub struct SessionsRun {
     pub node_range_data: BTreeMap<NodeId, (Rigid2, RangeData)>,
     /// Data duration, seconds: the sum of each session's first-to-last event span.
     pub data_duration_s: f64,
-    /// Per session, the global pose of each of its matched scans as estimated when the session ended (the
-    /// localization the robot had then, before later sessions moved anything).
-    pub session_scan_poses: Vec<Vec<(Timestamp, Rigid2)>>,
+    /// What each session that had data lived, in session order.
+    pub records: Vec<SessionRecord>,
 }
 
 enum Message {
     Start {
         session: u32,
+        /// The session's first event.
+        start_time: Timestamp,
         first_time: Option<Timestamp>,
+        /// The scan time of the last held-back node (when the start decision is taken).
+        decided_time: Option<Timestamp>,
         first_scans: Vec<(Rigid2, Vec<Point2<f32>>)>,
     },
     Node {
@@ -195,6 +253,8 @@ enum Message {
     Finish {
         session: u32,
         active_submaps: Vec<(usize, ProbabilityGrid)>,
+        /// Every matched scan of the session, in time order.
+        scans: Vec<ScanAnchor>,
     },
 }
 
@@ -237,7 +297,7 @@ pub fn run_sessions(
     for event in &recording.events {
         inputs[session_of(event.time())].events.push(event.clone());
     }
-    let mut run = run_session_inputs(inputs.into_iter(), config, progress)?;
+    let mut run = run_session_inputs(inputs.into_iter(), config, progress, &mut |_| {})?;
     // Spans without data still count as sessions of the split.
     run.boundaries = boundaries;
     run.data_duration_s = data_duration_s;
@@ -246,11 +306,13 @@ pub fn run_sessions(
 
 /// Runs each of `inputs` as one session, in order, through the lifelong map (see the module docs).
 /// Sessions are pulled from the iterator one at a time, so a simulator can generate them lazily.
-/// `progress` gets the number of scans processed so far.
+/// `progress` gets the number of scans processed so far; `on_session_end` is called on the map's worker
+/// thread as each session ends (a long run can report what it measured so far).
 pub fn run_session_inputs(
     inputs: impl Iterator<Item = SessionInput>,
     config: &SessionsConfig,
     progress: &mut dyn FnMut(usize),
+    on_session_end: &mut (dyn FnMut(&SessionEnd<'_>) + Send),
 ) -> Result<SessionsRun, SessionsError> {
     config
         .local
@@ -258,6 +320,10 @@ pub fn run_session_inputs(
         .map_err(|e| SessionsError::Config(e.to_string()))?;
     config
         .relocalization
+        .validate()
+        .map_err(|e| SessionsError::Config(e.to_string()))?;
+    config
+        .scoring
         .validate()
         .map_err(|e| SessionsError::Config(e.to_string()))?;
     if config.relocalization_nodes == 0 {
@@ -271,10 +337,13 @@ pub fn run_session_inputs(
     std::thread::scope(|scope| {
         let worker = std::thread::Builder::new()
             .name("lifelong-map".into())
-            .spawn_scoped(scope, move || worker(map, config, &receiver))
+            .spawn_scoped(scope, move || {
+                worker(map, config, &receiver, on_session_end)
+            })
             .map_err(|e| SessionsError::Worker(e.to_string()))?;
 
         let mut anchors: Vec<(u32, ScanAnchor)> = Vec::new();
+        let mut session_anchors: Vec<ScanAnchor> = Vec::new();
         let mut node_data: BTreeMap<NodeId, (Rigid2, RangeData)> = BTreeMap::new();
         let mut scans_per_session: Vec<usize> = Vec::new();
         let mut boundaries: Vec<Timestamp> = Vec::new();
@@ -301,14 +370,19 @@ pub fn run_session_inputs(
             let mut pending: Vec<Message> = Vec::new();
             let mut pending_scans: Vec<(Rigid2, Vec<Point2<f32>>)> = Vec::new();
             let mut first_time: Option<Timestamp> = None;
+            let mut decided_time: Option<Timestamp> = None;
             let mut started = false;
+            let start_time = first.time();
             let flush_start = |pending: &mut Vec<Message>,
                                pending_scans: &mut Vec<(Rigid2, Vec<Point2<f32>>)>,
-                               first_time: Option<Timestamp>|
+                               first_time: Option<Timestamp>,
+                               decided_time: Option<Timestamp>|
              -> bool {
                 let ok = send(Message::Start {
                     session,
+                    start_time,
                     first_time,
+                    decided_time,
                     first_scans: std::mem::take(pending_scans),
                 });
                 ok && pending.drain(..).all(&send)
@@ -353,12 +427,17 @@ pub fn run_session_inputs(
                                 alive = send(message);
                             } else {
                                 first_time.get_or_insert(result.time);
+                                decided_time = Some(result.time);
                                 pending_scans
                                     .push((result.local_pose, insertion.node.filtered_points));
                                 pending.push(message);
                                 if pending.len() >= config.relocalization_nodes {
-                                    alive =
-                                        flush_start(&mut pending, &mut pending_scans, first_time);
+                                    alive = flush_start(
+                                        &mut pending,
+                                        &mut pending_scans,
+                                        first_time,
+                                        decided_time,
+                                    );
                                     started = true;
                                 }
                             }
@@ -366,14 +445,13 @@ pub fn run_session_inputs(
                                 break;
                             }
                         }
-                        anchors.push((
-                            session,
-                            ScanAnchor {
-                                time: result.time,
-                                local_pose: result.local_pose,
-                                node: last_node,
-                            },
-                        ));
+                        let anchor = ScanAnchor {
+                            time: result.time,
+                            local_pose: result.local_pose,
+                            node: last_node,
+                        };
+                        anchors.push((session, anchor));
+                        session_anchors.push(anchor);
                         if scans_done % 64 == 0 {
                             progress(scans_done);
                         }
@@ -382,12 +460,13 @@ pub fn run_session_inputs(
             }
             scans_per_session.push(scans);
             if alive && !started {
-                alive = flush_start(&mut pending, &mut pending_scans, first_time);
+                alive = flush_start(&mut pending, &mut pending_scans, first_time, decided_time);
             }
             alive = alive
                 && send(Message::Finish {
                     session,
                     active_submaps: active_grids(&llo),
+                    scans: std::mem::take(&mut session_anchors),
                 });
             if !alive {
                 // The worker stopped; its error is reported by `join` below.
@@ -403,7 +482,7 @@ pub fn run_session_inputs(
             map,
             mut sessions,
             retired,
-            at_session_end,
+            records,
         } = output;
 
         // Last known global pose of every node: the final map, else its pose when it was trimmed.
@@ -421,12 +500,6 @@ pub fn run_session_inputs(
             .iter()
             .filter_map(|(_, a)| scan_pose(&node_pose, a))
             .collect();
-        let mut session_scan_poses = vec![Vec::new(); scans_per_session.len()];
-        for (session, anchor) in &anchors {
-            if let Some(pose) = scan_pose(&at_session_end, anchor) {
-                session_scan_poses[*session as usize].push(pose);
-            }
-        }
         for summary in &mut sessions {
             let k = summary.session as usize;
             summary.start_time = boundaries[k];
@@ -443,7 +516,7 @@ pub fn run_session_inputs(
             map,
             node_range_data,
             data_duration_s,
-            session_scan_poses,
+            records,
         })
     })
 }
@@ -462,19 +535,42 @@ struct WorkerOutput {
     sessions: Vec<SessionSummary>,
     /// Every node's pose when the last session that saw it in the map ended.
     retired: BTreeMap<NodeId, Rigid2>,
-    /// Every node's pose when its own session ended.
-    at_session_end: BTreeMap<NodeId, Rigid2>,
+    records: Vec<SessionRecord>,
+}
+
+/// `map_from_base` of each scan whose node has a pose in `node_poses`: the node's pose composed with
+/// LLO's motion from the node to the scan.
+fn poses_of_scans(
+    scans: &[ScanAnchor],
+    node_local: &BTreeMap<NodeId, Rigid2>,
+    node_poses: &BTreeMap<NodeId, Rigid2>,
+) -> Vec<(Timestamp, Rigid2)> {
+    scans
+        .iter()
+        .filter_map(|a| {
+            let node = a.node?;
+            let global = node_poses.get(&node)?;
+            let local = node_local.get(&node)?;
+            Some((a.time, global * local.inverse() * a.local_pose))
+        })
+        .collect()
 }
 
 fn worker(
     mut map: LifelongMap,
     config: &SessionsConfig,
     receiver: &mpsc::Receiver<Message>,
+    on_session_end: &mut (dyn FnMut(&SessionEnd<'_>) + Send),
 ) -> Result<WorkerOutput, SessionsError> {
     let relocalization = &config.relocalization;
     let mut sessions: Vec<SessionSummary> = Vec::new();
     let mut retired: BTreeMap<NodeId, Rigid2> = BTreeMap::new();
-    let mut at_session_end: BTreeMap<NodeId, Rigid2> = BTreeMap::new();
+    let mut records: Vec<SessionRecord> = Vec::new();
+    // The current session's: node local poses, node poses as the robot had them when each was added,
+    // and the map of the finished sessions as it was at its start (for the match scores).
+    let mut node_local: BTreeMap<NodeId, Rigid2> = BTreeMap::new();
+    let mut online_nodes: BTreeMap<NodeId, Rigid2> = BTreeMap::new();
+    let mut map_at_start: Option<MatchScorer> = None;
     let mut priors: BTreeMap<u32, (Rigid2, Rigid2)> = BTreeMap::new();
     let mut scores: Vec<f32> = Vec::new();
     // While the current session is unplaced: the map prepared at its start (when there was one) and its
@@ -485,7 +581,9 @@ fn worker(
         match message {
             Message::Start {
                 session,
+                start_time,
                 first_time,
+                decided_time,
                 first_scans,
             } => {
                 let mut summary = SessionSummary {
@@ -493,20 +591,34 @@ fn worker(
                     first_node_time: first_time,
                     ..SessionSummary::default()
                 };
+                let mut record = SessionRecord {
+                    session,
+                    start_time,
+                    ..SessionRecord::default()
+                };
                 scores.clear();
+                node_local.clear();
+                online_nodes.clear();
+                map_at_start = None;
                 let prior = if session == 0 {
                     None
                 } else {
                     let start = Instant::now();
+                    let mut rendered = None;
                     let (outcome, search) =
                         match render_submaps(map.placed_submaps(), relocalization.resolution) {
                             Some(grid) => {
                                 let search = StartSearch::new(&grid, relocalization);
-                                (search.search(&first_scans), Some(search))
+                                let outcome = search.search(&first_scans);
+                                rendered = Some(grid);
+                                (outcome, Some(search))
                             }
                             None => (RelocalizationOutcome::NotFound, None),
                         };
                     summary.relocalization_ms = start.elapsed().as_secs_f64() * 1e3;
+                    map_at_start = rendered
+                        .as_ref()
+                        .map(|grid| MatchScorer::new(grid, config.scoring.match_window));
                     // An unplaced start keeps the prepared map, to be searched again with the nodes
                     // that follow (the held-back first nodes arrive next, as `Node` messages).
                     start_search = search.filter(|_| outcome.found().is_none());
@@ -531,6 +643,14 @@ fn worker(
                     if let (Some(f), Some((first_local, _))) = (found, first_scans.first()) {
                         priors.insert(session, (f.global_from_local, *first_local));
                         let pose = f.global_from_local * first_local;
+                        record.placement =
+                            first_time
+                                .zip(decided_time)
+                                .map(|(time, decided_at)| Placement {
+                                    decided_at,
+                                    time,
+                                    map_from_base: pose,
+                                });
                         summary.relocalized_first_pose = Some([
                             pose.translation.vector.x,
                             pose.translation.vector.y,
@@ -542,6 +662,7 @@ fn worker(
                 map.start_session(session, prior)?;
                 since_start.clear();
                 sessions.push(summary);
+                records.push(record);
             }
             Message::Node {
                 session,
@@ -558,7 +679,8 @@ fn worker(
                     }
                     since_start.push_back((local_pose, points.clone()));
                 }
-                let (_, events) = map.add_node(
+                let scored_points = (session > 0).then(|| points.clone());
+                let (id, events) = map.add_node(
                     session,
                     time,
                     local_pose,
@@ -602,10 +724,40 @@ fn worker(
                     summary.nodes_added += 1;
                     count_closures(summary, &events_after, &mut scores);
                 }
+                // What the robot has now, at this scan: placed or not, and where.
+                node_local.insert(id, local_pose);
+                let pose = map.global().node_pose(id);
+                if let Some(record) = records.last_mut() {
+                    if session > 0
+                        && record.placement.is_none()
+                        && map.is_placed(session)
+                        && let Some(pose) = pose
+                    {
+                        record.placement = Some(Placement {
+                            decided_at: time,
+                            time,
+                            map_from_base: pose,
+                        });
+                    }
+                    let placed =
+                        session == 0 || record.placement.is_some_and(|p| time >= p.decided_at);
+                    let online = pose.filter(|_| placed);
+                    if let Some(pose) = online {
+                        online_nodes.insert(id, pose);
+                    }
+                    if let Some(points) = scored_points {
+                        let score = match (online, &map_at_start) {
+                            (Some(pose), Some(scorer)) => scorer.score(&points, &pose),
+                            _ => 0.0,
+                        };
+                        record.match_scores.push(score);
+                    }
+                }
             }
             Message::Finish {
                 session,
                 active_submaps,
+                scans,
             } => {
                 map.finish_submaps(session, active_submaps)?;
                 let jobs = map.take_search_jobs();
@@ -613,6 +765,7 @@ fn worker(
                 let events = map.add_search_results(results);
                 let start = Instant::now();
                 map.optimize();
+                let mut at_session_end = BTreeMap::new();
                 for (id, _, pose) in map.node_poses() {
                     retired.insert(id, pose);
                     if id.trajectory == session {
@@ -663,6 +816,15 @@ fn worker(
                     summary.relocalization_offset_m = offset;
                     summary.peak_rss_mb = crate::process_stats::peak_rss_mb();
                 }
+                if let (Some(summary), Some(record)) = (sessions.last(), records.last_mut()) {
+                    record.online = poses_of_scans(&scans, &node_local, &online_nodes);
+                    record.smoothed = poses_of_scans(&scans, &node_local, &at_session_end);
+                    on_session_end(&SessionEnd {
+                        summary,
+                        record,
+                        map: &map,
+                    });
+                }
             }
         }
     }
@@ -671,7 +833,7 @@ fn worker(
         map,
         sessions,
         retired,
-        at_session_end,
+        records,
     })
 }
 

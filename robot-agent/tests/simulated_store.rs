@@ -10,17 +10,13 @@ fn ate_rms(
     estimate: &[(mapping::sensor::Timestamp, Rigid2)],
     truth: &[(mapping::sensor::Timestamp, Rigid2)],
 ) -> (f64, usize) {
-    let by_time: std::collections::BTreeMap<_, _> = truth.iter().copied().collect();
-    let pairs: Vec<_> = estimate
-        .iter()
-        .filter_map(|(t, e)| {
-            by_time
-                .get(t)
-                .map(|g| (e.translation.vector, g.translation.vector))
-        })
-        .collect();
-    let world_from_map = mapping::metrics::rigid_alignment(&pairs);
-    let accuracy = mapping::metrics::trajectory_accuracy(estimate, truth, &world_from_map);
+    let world_from_map = mapping::metrics::align_to_truth(estimate, truth);
+    let accuracy = mapping::metrics::trajectory_accuracy(
+        estimate,
+        truth,
+        &world_from_map,
+        &mapping::metrics::PoseTolerance::CORRECT,
+    );
     (accuracy.ate_rms_m, accuracy.matched)
 }
 

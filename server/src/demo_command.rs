@@ -21,12 +21,14 @@ use std::time::{Duration, Instant};
 use anyhow::Context as _;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use mapping::geometry::{Rigid2, Rigid2Ext as _, normalize_angle};
+use mapping::geometry::Rigid2;
 use mapping::lifelong::{
     MAP_CHANGE_TOLERANCE_M, PlacedGrid, RelocalizationOptions, map_change_rate,
     render_submaps_newest,
 };
-use mapping::metrics::{MRCL_ROTATION_DEG, MRCL_TRANSLATION_M, rigid_alignment};
+use mapping::metrics::{
+    Placement, ScoringOptions, SessionScore, SessionTrack, align_to_truth, score_run, score_session,
+};
 use mapping::pose_graph::NodeId;
 use mapping::sensor::Timestamp;
 use mapping::simulation::{SessionOptions as SimSessionOptions, Store, StoreOptions};
@@ -98,6 +100,8 @@ struct SessionRun {
     trajectory: u32,
     truth: Vec<(Timestamp, Rigid2)>,
     node_times: Vec<Timestamp>,
+    /// The robot's own estimate of each node's global pose at its time (see `SessionTrace`).
+    node_estimates: Vec<Option<Rigid2>>,
     prior: Option<Rigid2>,
     first_local_pose: Option<Rigid2>,
     score: Option<f32>,
@@ -323,7 +327,8 @@ async fn demo(args: &DemoArgs) -> anyhow::Result<()> {
         .iter()
         .flat_map(|r| r.end_poses.iter().map(|(id, pose)| (*id, *pose)))
         .collect();
-    let report = score(&runs, &poses);
+    let scoring = ScoringOptions::default();
+    let report = score(&runs, &poses, &scoring);
     let agents_at: Vec<u64> = caches
         .iter()
         .map(|c| c.lock().map_or(0, |c| c.version()))
@@ -346,8 +351,12 @@ async fn demo(args: &DemoArgs) -> anyhow::Result<()> {
             "dropped_sessions": final_version.counts.dropped_sessions,
         },
         "agents_at_version": agents_at,
-        "cri": report.cri,
-        "localized_fraction": report.localized,
+        "cri": report.run.cri,
+        "mrcl": report.run.mrcl,
+        "mrcl_smoothed": report.run.mrcl_smoothed,
+        "wrong_placements": report.run.wrong_placements,
+        "score": report.run,
+        "scoring": scoring,
         "relocalization_score_mean": report.score_mean,
         "mcr": mcr,
         "wall_time_s": wall_time_s,
@@ -364,15 +373,17 @@ async fn demo(args: &DemoArgs) -> anyhow::Result<()> {
         .with_context(|| format!("cannot write {}", report_path.display()))?;
     server.shutdown().await?;
     println!(
-        "demo done in {wall_time_s:.0} s: version {} ({} sessions, {} nodes, {} submaps, {} trimmed); every robot at version {:?}; CRI {:.2}, nodes within {MRCL_TRANSLATION_M} m / {MRCL_ROTATION_DEG}° of truth {:.3}, MCR {}; maps in {}",
+        "demo done in {wall_time_s:.0} s: version {} ({} sessions, {} nodes, {} submaps, {} trimmed); every robot at version {:?}; CRI {}, MRCL {:.3} (smoothed {:.3}), {} wrong placements, MCR {}; maps in {}",
         final_version.version,
         final_version.counts.sessions,
         final_version.counts.nodes,
         final_version.counts.submaps,
         final_version.counts.trimmed_submaps,
         agents_at,
-        report.cri,
-        report.localized,
+        report.run.cri.map_or("-".into(), |c| format!("{c:.2}")),
+        report.run.mrcl,
+        report.run.mrcl_smoothed,
+        report.run.wrong_placements,
         mcr.map_or("-".into(), |m| format!("{m:.3}")),
         args.out.display()
     );
@@ -446,6 +457,7 @@ async fn run_session(
         trajectory: opened.trajectory,
         truth: simulated.ground_truth,
         node_times: trace.node_times,
+        node_estimates: trace.node_estimates,
         prior: trace.prior,
         first_local_pose: trace.first_local_pose,
         score: trace.score,
@@ -566,17 +578,22 @@ fn write_map_change(cache: &Mutex<GlobalSubmapCache>, out: &Path) -> anyhow::Res
 }
 
 struct Scores {
-    cri: f64,
-    localized: f64,
+    run: mapping::metrics::RunScore,
     score_mean: Option<f64>,
     sessions: Vec<serde_json::Value>,
 }
 
-/// Each session's node poses when it ended (`poses`) against the simulator's truth, in session 0's frame
-/// (the measure of the `lifelong` command: a session later trimmed still counts as it was localized).
-fn score(runs: &[SessionRun], poses: &BTreeMap<NodeId, Rigid2>) -> Scores {
-    let node_pairs = |run: &SessionRun| -> Vec<(Rigid2, Rigid2)> {
-        let truth: BTreeMap<Timestamp, Rigid2> = run.truth.iter().copied().collect();
+/// Each session scored by `mapping::metrics` (as `lifelong` scores its sessions) at node level: the
+/// robot's own estimate of each node at its time, and the node poses the site map had right after the
+/// session ended (`poses`, smoothed), against the simulator's truth in session 0's frame. The placement
+/// a session committed to is its relocalized start (a session the server placed later never had a pose
+/// of its own on the robot). AMS is not measured here.
+fn score(
+    runs: &[SessionRun],
+    poses: &BTreeMap<NodeId, Rigid2>,
+    scoring: &ScoringOptions,
+) -> Scores {
+    let smoothed = |run: &SessionRun| -> Vec<(Timestamp, Rigid2)> {
         run.node_times
             .iter()
             .enumerate()
@@ -585,55 +602,55 @@ fn score(runs: &[SessionRun], poses: &BTreeMap<NodeId, Rigid2>) -> Scores {
                     trajectory: run.trajectory,
                     index: u32::try_from(i).ok()?,
                 };
-                Some((*poses.get(&id)?, *truth.get(t)?))
+                Some((*t, *poses.get(&id)?))
             })
             .collect()
     };
     let world_from_map = runs
         .iter()
         .find(|r| r.session == 0)
-        .map_or_else(Rigid2::identity, |r| {
-            let pairs: Vec<_> = node_pairs(r)
-                .iter()
-                .map(|(m, w)| (m.translation.vector, w.translation.vector))
-                .collect();
-            rigid_alignment(&pairs)
-        });
-    let correct = |map: &Rigid2, world: &Rigid2| {
-        let p = world_from_map * map;
-        (p.translation.vector - world.translation.vector).norm() <= MRCL_TRANSLATION_M
-            && normalize_angle(p.theta() - world.theta())
-                .abs()
-                .to_degrees()
-                <= MRCL_ROTATION_DEG
-    };
-    let (mut initialized, mut later, mut good_nodes, mut nodes) = (0usize, 0usize, 0usize, 0usize);
-    let mut scores = Vec::new();
+        .map_or_else(Rigid2::identity, |r| align_to_truth(&smoothed(r), &r.truth));
+    let mut later: Vec<SessionScore> = Vec::new();
+    let mut relocalization_scores = Vec::new();
     let mut sessions = Vec::new();
     for run in runs {
-        let pairs = node_pairs(run);
-        let good = pairs.iter().filter(|(m, w)| correct(m, w)).count();
-        // Correct initialization: the prior sent at the start put the first node within tolerance.
-        let first_truth = run
-            .node_times
-            .first()
-            .and_then(|t| run.truth.iter().find(|(tt, _)| tt == t))
-            .map(|(_, p)| *p);
-        let init_ok = match (run.prior, run.first_local_pose, first_truth) {
-            (Some(prior), Some(local), Some(truth)) => correct(&(prior * local), &truth),
-            _ => false,
+        let smoothed = smoothed(run);
+        let online: Vec<(Timestamp, Rigid2)> = if run.session == 0 {
+            // The mapping session defines the map: its own estimate is the map's.
+            smoothed.clone()
+        } else {
+            run.node_times
+                .iter()
+                .zip(&run.node_estimates)
+                .filter_map(|(t, e)| Some((*t, (*e)?)))
+                .collect()
         };
+        let placement = match (run.prior, run.first_local_pose, run.node_times.first()) {
+            (Some(prior), Some(local), Some(&first)) if run.session > 0 => Some(Placement {
+                // The start is decided at the last held-back node: the first with an estimate.
+                decided_at: online.first().map_or(first, |(t, _)| *t),
+                time: first,
+                map_from_base: prior * local,
+            }),
+            _ => None,
+        };
+        let track = SessionTrack {
+            truth: &run.truth,
+            start_time: run.truth.first().map_or(Timestamp::default(), |(t, _)| *t),
+            online: &online,
+            smoothed: &smoothed,
+            placement,
+            match_scores: &[],
+        };
+        let score = score_session(&track, &world_from_map, scoring);
         if run.session > 0 {
-            later += 1;
-            initialized += usize::from(init_ok);
-            good_nodes += good;
-            nodes += run.node_times.len();
-            scores.extend(run.score.map(f64::from));
+            later.push(score);
+            relocalization_scores.extend(run.score.map(f64::from));
         }
         sessions.push(json!({
             "session": run.session, "robot": run.robot, "trajectory": run.trajectory,
-            "nodes": run.node_times.len(), "nodes_in_map": pairs.len(),
-            "nodes_localized": good, "initialized": run.session == 0 || init_ok,
+            "nodes": run.node_times.len(), "nodes_in_map": smoothed.len(),
+            "score": score,
             "relocalization_score": run.score, "relocalization_ms": run.relocalization_ms,
             "distance_m": run.distance_m, "batches": run.batches,
             "failed_flushes": run.failed_flushes, "left_in_outbox": run.left_in_outbox,
@@ -641,17 +658,10 @@ fn score(runs: &[SessionRun], poses: &BTreeMap<NodeId, Rigid2>) -> Scores {
         }));
     }
     Scores {
-        cri: if later > 0 {
-            initialized as f64 / later as f64
-        } else {
-            1.0
-        },
-        localized: if nodes > 0 {
-            good_nodes as f64 / nodes as f64
-        } else {
-            1.0
-        },
-        score_mean: (!scores.is_empty()).then(|| scores.iter().sum::<f64>() / scores.len() as f64),
+        run: score_run(&later),
+        score_mean: (!relocalization_scores.is_empty()).then(|| {
+            relocalization_scores.iter().sum::<f64>() / relocalization_scores.len() as f64
+        }),
         sessions,
     }
 }

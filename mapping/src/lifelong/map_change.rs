@@ -26,10 +26,11 @@ use crate::grid::{CellIndex, MapLimits, ProbabilityGrid};
 pub const OCCUPIED_PROBABILITY: f32 = 0.5;
 
 /// Registration tolerance of [`map_change_rate`], metres: an occupied cell with an occupied cell of the
-/// other map this close has not changed. 0.1 m: two cells of the submaps' 0.05 m grid, above the
-/// cross-session registration error of localized sessions and well below the size of anything that
-/// moves in a store (a pallet, a goods module, a door).
-pub const MAP_CHANGE_TOLERANCE_M: f64 = 0.1;
+/// other map this close has not changed. 0.05 m: one cell of the submaps' 0.05 m grid, which absorbs a
+/// wall landing one cell over, and below the smallest change the simulator makes (goods move in 0.1 m
+/// steps, which a 0.1 m tolerance hid). The simulator's own change rate is measured with it too
+/// (`TruthOccupancy::surface_grid`).
+pub const MAP_CHANGE_TOLERANCE_M: f64 = 0.05;
 
 /// What happened to one cell between the two maps.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -4,15 +4,62 @@
 use std::collections::BTreeMap;
 
 use nalgebra::{Rotation2, Vector2};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::geometry::{Rigid2, Rigid2Ext as _, normalize_angle, rigid2};
 use crate::sensor::Timestamp;
 
-/// A pose counts as correctly localized within this distance of the truth (metres) …
-pub const MRCL_TRANSLATION_M: f64 = 0.3;
-/// … and this rotation (degrees).
-pub const MRCL_ROTATION_DEG: f64 = 5.0;
+/// How far an estimated pose may be from the truth and still count.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PoseTolerance {
+    /// Position error, metres.
+    pub translation_m: f64,
+    /// Heading error, degrees.
+    pub rotation_deg: f64,
+}
+
+impl PoseTolerance {
+    /// The paper's correct localization: within 0.3 m and 5° of the truth.
+    pub const CORRECT: Self = Self {
+        translation_m: 0.3,
+        rotation_deg: 5.0,
+    };
+
+    /// Whether a pose `error_m` metres and `error_deg` degrees off is within the tolerance.
+    pub fn accepts(&self, error_m: f64, error_deg: f64) -> bool {
+        error_m <= self.translation_m && error_deg <= self.rotation_deg
+    }
+}
+
+/// Position (m) and absolute heading (degrees) error of `map_from_base`, placed in the world through
+/// `world_from_map`, against the truth `world_from_base`.
+pub fn pose_error(
+    world_from_map: &Rigid2,
+    map_from_base: &Rigid2,
+    world_from_base: &Rigid2,
+) -> (f64, f64) {
+    let estimated = world_from_map * map_from_base;
+    let error = (estimated.translation.vector - world_from_base.translation.vector).norm();
+    let rotation = normalize_angle(estimated.theta() - world_from_base.theta())
+        .abs()
+        .to_degrees();
+    (error, rotation)
+}
+
+/// `world_from_map` aligning the positions of `estimate` (map frame) to those of `truth` (world frame)
+/// at equal timestamps ([`rigid_alignment`]; identity when no stamps match).
+pub fn align_to_truth(estimate: &[(Timestamp, Rigid2)], truth: &[(Timestamp, Rigid2)]) -> Rigid2 {
+    let truth: BTreeMap<Timestamp, Rigid2> = truth.iter().copied().collect();
+    let pairs: Vec<_> = estimate
+        .iter()
+        .filter_map(|(t, pose)| {
+            let world = truth.get(t)?;
+            Some((pose.translation.vector, world.translation.vector))
+        })
+        .collect();
+    rigid_alignment(&pairs)
+}
 
 /// The rigid transform `b_from_a` minimizing `Σ |b_from_a · a_i − b_i|²` over the positions of the pairs
 /// `(a_i, b_i)` (2D Kabsch, no scale); identity for no pairs.
@@ -43,21 +90,22 @@ pub struct TrajectoryAccuracy {
     pub ate_rms_m: f64,
     /// Largest position error, metres.
     pub max_error_m: f64,
-    /// Distance travelled (truth) while within [`MRCL_TRANSLATION_M`] and [`MRCL_ROTATION_DEG`] of the
-    /// truth, over the whole distance travelled (1 when nothing moved).
+    /// Distance travelled (truth) while within the tolerance of the truth, over the whole distance
+    /// travelled (1 when nothing moved).
     pub mrcl: f64,
     /// Truth distance travelled, metres.
     pub distance_m: f64,
 }
 
 /// Compares `estimate` (map frame) with `truth` (world frame) through `world_from_map`, pose by pose at
-/// equal timestamps. A truth step counts toward MRCL when both of its ends are localized correctly; a
+/// equal timestamps. A truth step counts toward MRCL when both of its ends are within `tolerance`; a
 /// truth pose without an estimate counts as not localized (MRCL is over the whole truth distance), while
 /// the ATE is over the matched poses only.
 pub fn trajectory_accuracy(
     estimate: &[(Timestamp, Rigid2)],
     truth: &[(Timestamp, Rigid2)],
     world_from_map: &Rigid2,
+    tolerance: &PoseTolerance,
 ) -> TrajectoryAccuracy {
     let estimate: BTreeMap<Timestamp, Rigid2> = estimate.iter().copied().collect();
     let mut accuracy = TrajectoryAccuracy::default();
@@ -72,12 +120,8 @@ pub fn trajectory_accuracy(
             previous = Some((*world_from_base, false));
             continue;
         };
-        let estimated = world_from_map * map_from_base;
-        let error = (estimated.translation.vector - world_from_base.translation.vector).norm();
-        let rotation = normalize_angle(estimated.theta() - world_from_base.theta())
-            .abs()
-            .to_degrees();
-        let correct = error <= MRCL_TRANSLATION_M && rotation <= MRCL_ROTATION_DEG;
+        let (error, rotation) = pose_error(world_from_map, map_from_base, world_from_base);
+        let correct = tolerance.accepts(error, rotation);
         accuracy.matched += 1;
         sum_squared += error * error;
         accuracy.max_error_m = accuracy.max_error_m.max(error);
@@ -123,6 +167,39 @@ mod tests {
     }
 
     #[test]
+    fn align_to_truth_pairs_equal_stamps_only() {
+        let t = |k: i64| Timestamp(k * 1_000_000_000);
+        let world_from_map = rigid2(1.0, 2.0, 0.3);
+        let truth: Vec<_> = (0..10)
+            .map(|k| (t(k), rigid2(k as f64, (k * k) as f64 * 0.1, 0.0)))
+            .collect();
+        // The estimate is the truth in the map frame, plus a stamp the truth lacks (far off: if it were
+        // paired, the fit would move).
+        let mut estimate: Vec<_> = truth
+            .iter()
+            .map(|(time, p)| (*time, world_from_map.inverse() * p))
+            .collect();
+        estimate.push((t(100), rigid2(50.0, 50.0, 0.0)));
+        let found = align_to_truth(&estimate, &truth);
+        assert!((found.translation.vector - world_from_map.translation.vector).norm() < 1e-9);
+        assert!((found.theta() - 0.3).abs() < 1e-9);
+        assert_eq!(align_to_truth(&[], &truth), Rigid2::identity());
+    }
+
+    #[test]
+    fn pose_error_and_tolerance() {
+        let (m, deg) = pose_error(
+            &rigid2(1.0, 0.0, 0.0),
+            &rigid2(0.0, 0.3, 0.1),
+            &rigid2(1.0, 0.0, 0.0),
+        );
+        assert!((m - 0.3).abs() < 1e-12 && (deg - 0.1f64.to_degrees()).abs() < 1e-9);
+        assert!(PoseTolerance::CORRECT.accepts(0.3, 5.0));
+        assert!(!PoseTolerance::CORRECT.accepts(0.31, 0.0));
+        assert!(!PoseTolerance::CORRECT.accepts(0.0, 5.1));
+    }
+
+    #[test]
     fn mrcl_counts_distance_while_localized() {
         let t = |k: i64| Timestamp(k * 1_000_000_000);
         let truth: Vec<_> = (0..11)
@@ -132,12 +209,18 @@ mod tests {
         let estimate: Vec<_> = (0..11)
             .map(|k| (t(k), rigid2(k as f64, if k > 5 { 1.0 } else { 0.0 }, 0.0)))
             .collect();
-        let a = trajectory_accuracy(&estimate, &truth, &Rigid2::identity());
+        let a = trajectory_accuracy(
+            &estimate,
+            &truth,
+            &Rigid2::identity(),
+            &PoseTolerance::CORRECT,
+        );
         assert_eq!(a.matched, 11);
         assert!((a.distance_m - 10.0).abs() < 1e-12);
         assert!((a.mrcl - 0.5).abs() < 1e-12, "{a:?}");
         assert!((a.max_error_m - 1.0).abs() < 1e-12);
-        let perfect = trajectory_accuracy(&truth, &truth, &Rigid2::identity());
+        let perfect =
+            trajectory_accuracy(&truth, &truth, &Rigid2::identity(), &PoseTolerance::CORRECT);
         assert!((perfect.mrcl - 1.0).abs() < 1e-12 && perfect.ate_rms_m == 0.0);
     }
 
@@ -149,7 +232,12 @@ mod tests {
             .collect();
         // No estimate for the last 4 poses: 4 of the 10 m are not localized.
         let estimate: Vec<_> = truth[..7].to_vec();
-        let a = trajectory_accuracy(&estimate, &truth, &Rigid2::identity());
+        let a = trajectory_accuracy(
+            &estimate,
+            &truth,
+            &Rigid2::identity(),
+            &PoseTolerance::CORRECT,
+        );
         assert_eq!(a.matched, 7);
         assert!((a.distance_m - 10.0).abs() < 1e-12);
         assert!((a.mrcl - 0.6).abs() < 1e-12, "{a:?}");

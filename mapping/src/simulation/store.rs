@@ -6,7 +6,10 @@ use rand_pcg::Pcg64;
 
 use super::ray_caster::Aabb;
 use super::{SessionOptions, SimulatedSession, SimulationError, StoreOptions, simulated_session};
-use crate::grid::{CellIndex, MapLimits};
+use crate::grid::{
+    CellIndex, MAX_PROBABILITY, MIN_PROBABILITY, MapLimits, ProbabilityGrid, UNKNOWN_VALUE,
+    probability_to_value,
+};
 
 /// What a movable item is (for pictures and statistics).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -100,20 +103,23 @@ impl TruthOccupancy {
         surface
     }
 
-    /// The truth map change rate between two layouts of the same store: surface cells of exactly one of
-    /// them over surface cells of either.
-    pub fn change_rate(&self, other: &TruthOccupancy) -> f64 {
-        let (a, b) = (self.surface(), other.surface());
-        let (mut either, mut differ) = (0usize, 0usize);
-        for (x, y) in a.iter().zip(&b) {
-            either += usize::from(*x || *y);
-            differ += usize::from(x != y);
+    /// The layout as a map would see it: surface cells occupied ([`MAX_PROBABILITY`]), free cells free
+    /// ([`MIN_PROBABILITY`]), the interiors of obstacles unknown (a LiDAR never sees them). Compared with
+    /// [`map_change_rate`](crate::lifelong::map_change_rate), two layouts give the simulator's own change
+    /// rate, measured exactly as the map change rate (MCR) of the maps is.
+    pub fn surface_grid(&self) -> ProbabilityGrid {
+        let surface = self.surface();
+        let mut grid = ProbabilityGrid::new(self.limits.clone());
+        for (i, value) in grid.values_mut().iter_mut().enumerate() {
+            *value = if surface[i] {
+                probability_to_value(MAX_PROBABILITY)
+            } else if self.occupied[i] {
+                UNKNOWN_VALUE
+            } else {
+                probability_to_value(MIN_PROBABILITY)
+            };
         }
-        if either == 0 {
-            0.0
-        } else {
-            differ as f64 / either as f64
-        }
+        grid
     }
 }
 

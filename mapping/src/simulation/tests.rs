@@ -1,5 +1,7 @@
 use super::*;
 use crate::geometry::Rigid2Ext as _;
+use crate::grid::{UNKNOWN_VALUE, value_to_probability};
+use crate::lifelong::{MAP_CHANGE_TOLERANCE_M, OCCUPIED_PROBABILITY, map_change_rate};
 use crate::sensor::SensorEvent;
 
 fn short() -> SessionOptions {
@@ -78,12 +80,42 @@ fn routes_stay_clear_of_obstacles() {
 #[test]
 fn layout_changes_more_than_half_in_25_sessions() {
     let store = Store::generate(&StoreOptions::default(), 5).expect("store");
-    let first = store.occupancy(0, 0.1);
-    let rate = first.change_rate(&store.occupancy(25, 0.1));
+    let change = |a: u32, b: u32| {
+        let (a, b) = (store.occupancy(a, 0.05), store.occupancy(b, 0.05));
+        map_change_rate(&a.surface_grid(), &b.surface_grid(), MAP_CHANGE_TOLERANCE_M).rate
+    };
+    let rate = change(0, 25);
     assert!(rate > 0.5, "truth change rate {rate}");
-    // Day to day the store changes much less.
-    let day = first.change_rate(&store.occupancy(1, 0.1));
-    assert!(day < 0.5 * rate, "one day: {day}, 25 days: {rate}");
+    // Day to day the store changes much less, but it does change: the tolerance is below the
+    // simulator's smallest move.
+    let day = change(0, 1);
+    assert!(
+        day > 0.0 && day < 0.5 * rate,
+        "one day: {day}, 25 days: {rate}"
+    );
+    assert!(change(3, 3).abs() < f64::EPSILON);
+}
+
+#[test]
+fn surface_grid_marks_surfaces_occupied_free_space_free_and_interiors_unknown() {
+    let store = Store::generate(&StoreOptions::default(), 5).expect("store");
+    let occupancy = store.occupancy(0, 0.1);
+    let surface = occupancy.surface();
+    let grid = occupancy.surface_grid();
+    let (mut surfaces, mut interiors) = (0, 0);
+    for (i, value) in grid.values().iter().enumerate() {
+        let p = value_to_probability(*value);
+        if surface[i] {
+            surfaces += 1;
+            assert!(p > OCCUPIED_PROBABILITY);
+        } else if occupancy.occupied[i] {
+            interiors += 1;
+            assert_eq!(*value, UNKNOWN_VALUE);
+        } else {
+            assert!(*value != UNKNOWN_VALUE && p < OCCUPIED_PROBABILITY);
+        }
+    }
+    assert!(surfaces > 0 && interiors > 0, "{surfaces} {interiors}");
 }
 
 #[test]

@@ -10,21 +10,26 @@
 use std::cell::RefCell;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use std::sync::Mutex;
 use std::time::Instant;
 
 use anyhow::Context as _;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use mapping::geometry::{Rigid2, Rigid2Ext as _, normalize_angle};
+use mapping::geometry::{Rigid2, Rigid2Ext as _};
+use mapping::grid::ProbabilityGrid;
 use mapping::lifelong::{
-    MAP_CHANGE_TOLERANCE_M, TrimPolicy, map_change_rate, render_submaps_newest,
+    LifelongMap, MAP_CHANGE_TOLERANCE_M, MapChange, TrimPolicy, map_change_rate,
+    render_submaps_newest,
 };
 use mapping::metrics::{
-    MRCL_ROTATION_DEG, MRCL_TRANSLATION_M, TrajectoryAccuracy, rigid_alignment, trajectory_accuracy,
+    ScoringOptions, SessionScore, align_to_truth, pose_error, score_run, score_session,
 };
 use mapping::sensor::Timestamp;
 use mapping::simulation::{SessionOptions, Store, StoreOptions};
-use robot_agent::lifelong_run::{SessionInput, SessionSummary, SessionsConfig, run_session_inputs};
+use robot_agent::lifelong_run::{
+    SessionEnd, SessionInput, SessionRecord, SessionSummary, SessionsConfig, run_session_inputs,
+};
 use robot_agent::line_chart::{LineChart, Series};
 use robot_agent::{map_image, process_stats};
 use serde::Serialize;
@@ -61,22 +66,19 @@ pub struct LifelongArgs {
     mapping_duration_s: Option<f64>,
 }
 
-/// What one session scored.
+/// What one session scored and did, as `report.json` lists it.
 #[derive(Debug, Serialize)]
-struct SessionScore {
+struct SessionRow {
     session: u32,
-    /// Whether session-start relocalization (no prior) put the first node within the MRCL tolerance of
-    /// the truth (the paper's correct initialization). Session 0 defines the map: always true.
-    initialized: bool,
-    /// Relocalization error of the first node, metres, when relocalization found a pose.
-    initialization_error_m: Option<f64>,
-    mrcl: f64,
-    /// Mean score of the session's accepted GLM matches against older sessions' submaps (`null` when none
-    /// was; session 0: its matches within itself).
-    ams: Option<f64>,
-    ate_rms_m: f64,
-    max_error_m: f64,
-    distance_m: f64,
+    /// The scores of what the session lived ([`SessionScore`]: MRCL from the estimate at the time of
+    /// each scan and smoothed, placement error, initialization, AMS over every scan).
+    #[serde(flatten)]
+    score: SessionScore,
+    /// Map change rate after this session: session 0's map against the map as its newest submaps
+    /// describe the site now (both rendered newest-wins, tolerance [`MAP_CHANGE_TOLERANCE_M`]).
+    mcr: Option<f64>,
+    /// The simulator's own change rate from day 0 to this session's day, measured the same way.
+    world_change_rate: f64,
     nodes: usize,
     submaps: usize,
     constraints: usize,
@@ -85,9 +87,13 @@ struct SessionScore {
     dropped_total: usize,
     pgr_ms: f64,
     peak_rss_mb: Option<f64>,
+    /// Scans LLO matched.
     scans: usize,
     closures: usize,
     cross_session_closures: usize,
+    /// Mean score of the session's accepted GLM matches against older sessions' submaps (what the
+    /// reports called AMS before it was measured over every scan).
+    glm_match_score_mean: Option<f64>,
     trimmed: usize,
     /// The session's own submaps dropped at its end (it did not update the map).
     dropped: usize,
@@ -95,11 +101,13 @@ struct SessionScore {
     trim_kld_mean: Option<f64>,
     /// Branch-and-bound score of the session-start relocalization, when it found a pose.
     relocalization_score: Option<f32>,
+    /// Why the start was refused (`ambiguous`, `not_found`), if it was.
+    relocalization_refused: Option<String>,
     /// Relocalization retries while the session was unplaced.
     relocalization_retries: usize,
     /// The node count at which a retry placed the session (`null`: placed at its start, or never).
     placed_by_retry_at_node: Option<usize>,
-    /// Whether the session was placed in the map at all (by its start or a retry).
+    /// Whether the session was placed in the map at all (by its start, a retry or a match).
     placed: bool,
 }
 
@@ -118,9 +126,181 @@ fn load_config(args: &LifelongArgs) -> anyhow::Result<SessionsConfig> {
     Ok(config)
 }
 
-/// Truth of one generated session, kept for scoring.
-struct SessionTruth {
-    poses: Vec<(Timestamp, Rigid2)>,
+/// Scores each session as it ends and rewrites `report.json`, so a long run keeps what it measured.
+struct Reporter<'a> {
+    args: &'a LifelongArgs,
+    config: &'a SessionsConfig,
+    options: &'a SessionOptions,
+    store: &'a Store,
+    scoring: ScoringOptions,
+    /// The truth of each generated session (pushed by the simulator, read as sessions end).
+    truths: &'a Mutex<Vec<Vec<(Timestamp, Rigid2)>>>,
+    /// Session 0's map aligned to its truth, once session 0 has ended.
+    world_from_map: Option<Rigid2>,
+    /// Day 0's layout as a map would see it.
+    truth_day_zero: ProbabilityGrid,
+    rows: Vec<SessionRow>,
+    details: Vec<SessionSummary>,
+    /// The latest map change (after the last session that ended), for the picture.
+    last_change: Option<(MapChange, ProbabilityGrid)>,
+    started: Instant,
+}
+
+impl Reporter<'_> {
+    fn session_ended(&mut self, end: &SessionEnd<'_>) -> anyhow::Result<()> {
+        let k = end.summary.session;
+        let truth = self
+            .truths
+            .lock()
+            .map_err(|_| anyhow::anyhow!("the truth lock is poisoned"))?
+            .get(k as usize)
+            .cloned()
+            .with_context(|| format!("no truth for session {k}"))?;
+        // The fixed frame: session 0's end-of-session trajectory aligned to its truth.
+        let world_from_map = *self
+            .world_from_map
+            .get_or_insert_with(|| align_to_truth(&end.record.smoothed, &truth));
+        let score = score_session(&end.record.track(&truth), &world_from_map, &self.scoring);
+        let resolution = self.config.local.submaps.resolution;
+        let change = map_change(end.map, resolution);
+        let world_change_rate = map_change_rate(
+            &self.truth_day_zero,
+            &self.store.occupancy(k, resolution).surface_grid(),
+            MAP_CHANGE_TOLERANCE_M,
+        )
+        .rate;
+        let s = end.summary;
+        let counts = s.counts;
+        self.rows.push(SessionRow {
+            session: k,
+            score,
+            mcr: change.as_ref().map(|(c, _)| c.rate),
+            world_change_rate,
+            nodes: counts.nodes,
+            submaps: counts.submaps,
+            constraints: counts.constraints,
+            trimmed_total: counts.trimmed_total,
+            dropped_total: counts.dropped_total,
+            pgr_ms: s.finish_ms,
+            peak_rss_mb: s.peak_rss_mb,
+            scans: end.record.smoothed.len(),
+            closures: s.closures,
+            cross_session_closures: s.cross_session_closures,
+            glm_match_score_mean: if k == 0 {
+                (s.closures > 0).then_some(s.ams)
+            } else {
+                s.cross_session_ams
+            },
+            trimmed: s.trimmed,
+            dropped: s.dropped,
+            tree_edges: s.tree_edges,
+            trim_kld_mean: s.trim_kld_mean,
+            relocalization_score: s.relocalization_score,
+            relocalization_refused: s.relocalization_refused.clone(),
+            relocalization_retries: s.relocalization_retries,
+            placed_by_retry_at_node: s.placed_by_retry_at_node,
+            placed: k == 0 || s.placed,
+        });
+        self.details.push(s.clone());
+        self.last_change = change;
+        eprintln!(
+            "session {k:>2}: init {:<5} placement {} mrcl {:.3} (smoothed {:.3}) ams {} ate {:.3} m | mcr {} world {:.3} | nodes {} submaps {} constraints {} | pgr {:.0} ms",
+            if k == 0 {
+                "-".to_string()
+            } else {
+                score.initialized.to_string()
+            },
+            score
+                .placement_error_m
+                .map_or("-".to_string(), |m| format!("{m:.2} m")),
+            score.mrcl,
+            score.mrcl_smoothed,
+            score.ams.map_or("-".to_string(), |a| format!("{a:.3}")),
+            score.ate_rms_m,
+            self.rows
+                .last()
+                .and_then(|r| r.mcr)
+                .map_or("-".to_string(), |m| format!("{m:.3}")),
+            world_change_rate,
+            counts.nodes,
+            counts.submaps,
+            counts.constraints,
+            s.finish_ms
+        );
+        self.write_report(false, None)
+    }
+
+    /// The report of the sessions ended so far; `complete` once the run is over.
+    fn report(&self, complete: bool, data_duration_s: Option<f64>) -> serde_json::Value {
+        let later: Vec<SessionScore> = self
+            .rows
+            .iter()
+            .filter(|r| r.session > 0)
+            .map(|r| r.score)
+            .collect();
+        let run = score_run(&later);
+        let last = self.rows.last();
+        json!({
+            "world": "store",
+            "seed": self.args.seed,
+            "policy": self.config.lifelong.policy.name(),
+            "complete": complete,
+            "session_options": self.options,
+            "scoring": self.scoring,
+            "map_change_tolerance_m": MAP_CHANGE_TOLERANCE_M,
+            "mcr_detail": self.last_change.as_ref().map(|(c, _)| json!({
+                "rate": c.rate, "unchanged": c.unchanged, "removed": c.removed, "added": c.added,
+            })),
+            "summary": {
+                "sessions_ended": self.rows.len(),
+                "score": run,
+                // The figures the reports quote, at the top level.
+                "cri": run.cri,
+                "mrcl": run.mrcl,
+                "mrcl_smoothed": run.mrcl_smoothed,
+                "ams_mean": run.ams_mean,
+                "ams_min": run.ams_min,
+                "wrong_placements": run.wrong_placements,
+                "mcr": last.and_then(|r| r.mcr),
+                "world_change_rate": last.map(|r| r.world_change_rate),
+                "final": last.map(|r| json!({
+                    "nodes": r.nodes, "submaps": r.submaps, "constraints": r.constraints,
+                    "trimmed_total": r.trimmed_total, "dropped_total": r.dropped_total,
+                })),
+                "wall_time_s": self.started.elapsed().as_secs_f64(),
+                "data_duration_s": data_duration_s,
+                "peak_rss_mb": process_stats::peak_rss_mb(),
+            },
+            "sessions": self.rows,
+            "session_details": self.details,
+        })
+    }
+
+    fn write_report(&self, complete: bool, data_duration_s: Option<f64>) -> anyhow::Result<()> {
+        let report = self.report(complete, data_duration_s);
+        let path = self.args.out.join("report.json");
+        let temporary = self.args.out.join("report.json.partial");
+        std::fs::write(&temporary, serde_json::to_string_pretty(&report)? + "\n")
+            .with_context(|| format!("cannot write {}", temporary.display()))?;
+        std::fs::rename(&temporary, &path)
+            .with_context(|| format!("cannot write {}", path.display()))
+    }
+}
+
+/// MCR: session 0's map against the map as its newest submaps describe the site now (both rendered
+/// newest-wins, so that an unchanged site compares equal), and that newest map.
+fn map_change(map: &LifelongMap, resolution: f64) -> Option<(MapChange, ProbabilityGrid)> {
+    let before = render_submaps_newest(
+        map.placed_submaps_by_id()
+            .filter(|(id, _)| id.trajectory == 0)
+            .map(|(_, g)| g),
+        resolution,
+    )?;
+    let after = render_submaps_newest(map.placed_submaps_by_id().map(|(_, g)| g), resolution)?;
+    Some((
+        map_change_rate(&before, &after, MAP_CHANGE_TOLERANCE_M),
+        after,
+    ))
 }
 
 /// Runs the command.
@@ -147,7 +327,7 @@ pub fn run(args: &LifelongArgs) -> anyhow::Result<()> {
         )
         .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
-    let truths: RefCell<Vec<SessionTruth>> = RefCell::new(Vec::new());
+    let truths: Mutex<Vec<Vec<(Timestamp, Rigid2)>>> = Mutex::new(Vec::new());
     let failure: RefCell<Option<anyhow::Error>> = RefCell::new(None);
     let inputs = (0..=args.sessions).map_while(|k| {
         bar.set_message(format!("simulating session {k}/{}", args.sessions));
@@ -163,9 +343,9 @@ pub fn run(args: &LifelongArgs) -> anyhow::Result<()> {
                     eprintln!("[{:>6.0} s] {message}", start.elapsed().as_secs_f64());
                 }
                 bar.set_message(message);
-                truths.borrow_mut().push(SessionTruth {
-                    poses: session.ground_truth,
-                });
+                if let Ok(mut truths) = truths.lock() {
+                    truths.push(session.ground_truth);
+                }
                 Some(SessionInput {
                     events: session.events,
                     base_from_laser: session.base_from_laser,
@@ -177,185 +357,60 @@ pub fn run(args: &LifelongArgs) -> anyhow::Result<()> {
             }
         }
     });
-    let run = run_session_inputs(inputs, &config, &mut |done| {
-        bar.set_position(done as u64);
-    })?;
+    let resolution = config.local.submaps.resolution;
+    let mut reporter = Reporter {
+        args,
+        config: &config,
+        options: &options,
+        store: &store,
+        scoring: config.scoring,
+        truths: &truths,
+        world_from_map: None,
+        truth_day_zero: store.occupancy(0, resolution).surface_grid(),
+        rows: Vec::new(),
+        details: Vec::new(),
+        last_change: None,
+        started: start,
+    };
+    let mut report_failure: Option<anyhow::Error> = None;
+    let run = run_session_inputs(
+        inputs,
+        &config,
+        &mut |done| {
+            bar.set_position(done as u64);
+        },
+        &mut |end| {
+            if let Err(e) = reporter.session_ended(end) {
+                report_failure.get_or_insert(e);
+            }
+        },
+    )?;
     bar.finish_and_clear();
     if let Some(e) = failure.into_inner() {
         return Err(e.context("the simulator failed"));
     }
-    let truths = truths.into_inner();
-    let wall_time_s = start.elapsed().as_secs_f64();
-
-    // The fixed frame: session 0's end-of-session trajectory aligned to its truth.
-    let world_from_map = align(
-        run.session_scan_poses
-            .first()
-            .map_or(&[][..], Vec::as_slice),
-        &truths[0].poses,
-    );
-    let summaries: BTreeMap<u32, &SessionSummary> =
-        run.sessions.iter().map(|s| (s.session, s)).collect();
-    let mut scores = Vec::new();
-    let mut later: Vec<TrajectoryAccuracy> = Vec::new();
-    for (k, truth) in truths.iter().enumerate() {
-        let session = k as u32;
-        let summary = summaries.get(&session);
-        // A session placed late was not localized before: its scans until then count as lost (the
-        // end-of-session estimate would place them after the fact).
-        let placed_at = summary.and_then(|s| s.placed_at_time);
-        let estimate: Vec<(Timestamp, Rigid2)> = run
-            .session_scan_poses
-            .get(k)
-            .map_or(&[][..], Vec::as_slice)
-            .iter()
-            .filter(|(t, _)| placed_at.is_none_or(|p| *t >= p))
-            .copied()
-            .collect();
-        let accuracy = trajectory_accuracy(&estimate, &truth.poses, &world_from_map);
-        let initialization_error = summary.and_then(|s| {
-            let [x, y, theta] = s.relocalized_first_pose?;
-            let time = s.first_node_time?;
-            let truth_pose = truth.poses.iter().find(|(t, _)| *t == time)?.1;
-            let found = world_from_map * mapping::geometry::rigid2(x, y, theta);
-            Some((
-                (found.translation.vector - truth_pose.translation.vector).norm(),
-                normalize_angle(found.theta() - truth_pose.theta())
-                    .abs()
-                    .to_degrees(),
-            ))
-        });
-        let initialized = session == 0
-            || initialization_error
-                .is_some_and(|(m, deg)| m <= MRCL_TRANSLATION_M && deg <= MRCL_ROTATION_DEG);
-        if session > 0 {
-            later.push(accuracy);
-        }
-        let counts = summary.map(|s| s.counts).unwrap_or_default();
-        scores.push(SessionScore {
-            session,
-            initialized,
-            initialization_error_m: initialization_error.map(|(m, _)| m),
-            mrcl: accuracy.mrcl,
-            ams: if session == 0 {
-                summary.filter(|s| s.closures > 0).map(|s| s.ams)
-            } else {
-                summary.and_then(|s| s.cross_session_ams)
-            },
-            ate_rms_m: accuracy.ate_rms_m,
-            max_error_m: accuracy.max_error_m,
-            distance_m: accuracy.distance_m,
-            nodes: counts.nodes,
-            submaps: counts.submaps,
-            constraints: counts.constraints,
-            trimmed_total: counts.trimmed_total,
-            dropped_total: counts.dropped_total,
-            pgr_ms: summary.map_or(0.0, |s| s.finish_ms),
-            peak_rss_mb: summary.and_then(|s| s.peak_rss_mb),
-            scans: summary.map_or(0, |s| s.scans),
-            closures: summary.map_or(0, |s| s.closures),
-            cross_session_closures: summary.map_or(0, |s| s.cross_session_closures),
-            trimmed: summary.map_or(0, |s| s.trimmed),
-            dropped: summary.map_or(0, |s| s.dropped),
-            tree_edges: summary.map_or(0, |s| s.tree_edges),
-            trim_kld_mean: summary.and_then(|s| s.trim_kld_mean),
-            relocalization_score: summary.and_then(|s| s.relocalization_score),
-            relocalization_retries: summary.map_or(0, |s| s.relocalization_retries),
-            placed_by_retry_at_node: summary.and_then(|s| s.placed_by_retry_at_node),
-            placed: session == 0 || summary.is_some_and(|s| s.placed),
-        });
+    if let Some(e) = report_failure {
+        return Err(e.context("scoring a session failed"));
     }
-
-    // MCR: session 0's map against the map as its newest submaps describe the site now (both rendered
-    // newest-wins, so that an unchanged site compares equal).
-    let resolution = config.local.submaps.resolution;
-    let before = render_submaps_newest(
-        run.map
-            .placed_submaps_by_id()
-            .filter(|(id, _)| id.trajectory == 0)
-            .map(|(_, g)| g),
-        resolution,
-    );
-    let after = render_submaps_newest(run.map.placed_submaps_by_id().map(|(_, g)| g), resolution);
-    let mut mcr = None;
-    if let (Some(before), Some(after)) = (&before, &after) {
-        let change = map_change_rate(before, after, MAP_CHANGE_TOLERANCE_M);
-        let (w, h, pixels) = map_image::map_change_to_rgb(&change);
+    reporter.write_report(true, Some(run.data_duration_s))?;
+    if let Some((change, after)) = &reporter.last_change {
+        let (w, h, pixels) = map_image::map_change_to_rgb(change);
         map_image::write_rgb_png(&args.out.join("map_change.png"), w, h, &pixels)?;
         let (w, h, pixels) = map_image::grid_to_gray(after);
         map_image::write_gray_png(&args.out.join("map.png"), w, h, &pixels)?;
-        mcr = Some(json!({
-            "rate": change.rate, "unchanged": change.unchanged, "removed": change.removed,
-            "added": change.added,
-        }));
     }
-    let truth_resolution = 0.1;
-    let world_change_rate = store
-        .occupancy(0, truth_resolution)
-        .change_rate(&store.occupancy(args.sessions, truth_resolution));
-
-    let localized: Vec<&SessionScore> = scores.iter().filter(|s| s.session > 0).collect();
-    let n = localized.len().max(1) as f64;
-    let distance: f64 = later.iter().map(|a| a.distance_m).sum();
-    let good: f64 = later.iter().map(|a| a.mrcl * a.distance_m).sum();
-    let matched: usize = later.iter().map(|a| a.matched).sum();
-    let squared: f64 = later
-        .iter()
-        .map(|a| a.ate_rms_m * a.ate_rms_m * a.matched as f64)
-        .sum();
-    let ams: Vec<f64> = localized.iter().filter_map(|s| s.ams).collect();
-    let summary = json!({
-        "sessions": localized.len(),
-        "cri": localized.iter().filter(|s| s.initialized).count() as f64 / n,
-        // Sessions placed in the map at all, and of those placed after their start (an ambiguous start
-        // told apart further on, or a retry): CRI counts neither as initialized.
-        "placed": localized.iter().filter(|s| s.placed).count(),
-        "placed_late": localized.iter().filter(|s| s.placed_by_retry_at_node.is_some()).count(),
-        "mrcl": if distance > 0.0 { good / distance } else { 0.0 },
-        "ams_mean": if ams.is_empty() { None } else { Some(ams.iter().sum::<f64>() / ams.len() as f64) },
-        "ams_min": ams.iter().copied().reduce(f64::min),
-        "mcr": mcr.as_ref().map(|m| m["rate"].clone()),
-        "ate_rms_m": if matched > 0 { (squared / matched as f64).sqrt() } else { 0.0 },
-        "world_change_rate": world_change_rate,
-        "final": run.map.counts(),
-        "wall_time_s": wall_time_s,
-        "data_duration_s": run.data_duration_s,
-        "peak_rss_mb": process_stats::peak_rss_mb(),
-    });
-    write_charts(&args.out, &scores)?;
+    write_charts(&args.out, &reporter.rows)?;
+    let truths = truths
+        .lock()
+        .map_err(|_| anyhow::anyhow!("the truth lock is poisoned"))?
+        .clone();
     write_trajectories(
         &args.out.join("trajectories.csv"),
-        &run.session_scan_poses,
+        &run.records,
         &truths,
-        &world_from_map,
+        &reporter.world_from_map.unwrap_or_else(Rigid2::identity),
     )?;
-    let report = json!({
-        "world": "store",
-        "seed": args.seed,
-        "policy": config.lifelong.policy.name(),
-        "session_options": options,
-        "mcr_detail": mcr,
-        "summary": summary,
-        "sessions": scores,
-        "session_details": run.sessions,
-    });
-    let report_path = args.out.join("report.json");
-    std::fs::write(&report_path, serde_json::to_string_pretty(&report)? + "\n")
-        .with_context(|| format!("cannot write {}", report_path.display()))?;
-    for s in &scores {
-        eprintln!(
-            "session {:>2}: init {:<5} mrcl {:.3} ams {} ate {:.3} m | nodes {} submaps {} constraints {} | pgr {:.0} ms",
-            s.session,
-            s.initialized,
-            s.mrcl,
-            s.ams.map_or("-".to_string(), |a| format!("{a:.3}")),
-            s.ate_rms_m,
-            s.nodes,
-            s.submaps,
-            s.constraints,
-            s.pgr_ms
-        );
-    }
+    let report = reporter.report(true, Some(run.data_duration_s));
     println!(
         "{}",
         json!({"policy": config.lifelong.policy.name(), "summary": report["summary"]})
@@ -363,41 +418,38 @@ pub fn run(args: &LifelongArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// `world_from_map` aligning `estimate` to `truth` at equal stamps (identity when none match).
-fn align(estimate: &[(Timestamp, Rigid2)], truth: &[(Timestamp, Rigid2)]) -> Rigid2 {
-    let truth: BTreeMap<Timestamp, Rigid2> = truth.iter().copied().collect();
-    let pairs: Vec<_> = estimate
-        .iter()
-        .filter_map(|(t, pose)| {
-            let world = truth.get(t)?;
-            Some((pose.translation.vector, world.translation.vector))
-        })
-        .collect();
-    rigid_alignment(&pairs)
-}
-
-/// Writes every scan's estimated pose (in the truth's frame, through `world_from_map`) beside its truth:
-/// `session,time_s,x,y,theta,true_x,true_y,true_theta,error_m` (m, rad), for plotting where a session lost
-/// its way.
+/// Writes every scan's pose smoothed at its session's end (in the truth's frame, through
+/// `world_from_map`) beside its truth and the error of the robot's estimate at the time of the scan:
+/// `session,time_s,x,y,theta,true_x,true_y,true_theta,error_m,online_error_m` (m, rad; `online_error_m`
+/// empty while the session was not placed), for plotting where a session lost its way.
 fn write_trajectories(
     path: &Path,
-    estimates: &[Vec<(Timestamp, Rigid2)>],
-    truths: &[SessionTruth],
+    records: &[SessionRecord],
+    truths: &[Vec<(Timestamp, Rigid2)>],
     world_from_map: &Rigid2,
 ) -> anyhow::Result<()> {
     use std::fmt::Write as _;
-    let mut csv = String::from("session,time_s,x,y,theta,true_x,true_y,true_theta,error_m\n");
-    for (session, (estimate, truth)) in estimates.iter().zip(truths).enumerate() {
-        let truth: BTreeMap<Timestamp, Rigid2> = truth.poses.iter().copied().collect();
-        for (time, map_from_base) in estimate {
+    let mut csv =
+        String::from("session,time_s,x,y,theta,true_x,true_y,true_theta,error_m,online_error_m\n");
+    for record in records {
+        let Some(truth) = truths.get(record.session as usize) else {
+            continue;
+        };
+        let truth: BTreeMap<Timestamp, Rigid2> = truth.iter().copied().collect();
+        let online: BTreeMap<Timestamp, Rigid2> = record.online.iter().copied().collect();
+        for (time, map_from_base) in &record.smoothed {
             let Some(world) = truth.get(time) else {
                 continue;
             };
             let e = world_from_map * map_from_base;
-            let error = (e.translation.vector - world.translation.vector).norm();
+            let (error, _) = pose_error(world_from_map, map_from_base, world);
+            let online_error = online.get(time).map_or(String::new(), |p| {
+                format!("{:.4}", pose_error(world_from_map, p, world).0)
+            });
             let _ = writeln!(
                 csv,
-                "{session},{:.3},{:.4},{:.4},{:.5},{:.4},{:.4},{:.5},{error:.4}",
+                "{},{:.3},{:.4},{:.4},{:.5},{:.4},{:.4},{:.5},{error:.4},{online_error}",
+                record.session,
                 time.as_secs_f64(),
                 e.translation.x,
                 e.translation.y,
@@ -411,8 +463,8 @@ fn write_trajectories(
     std::fs::write(path, csv).with_context(|| format!("cannot write {}", path.display()))
 }
 
-fn write_charts(out: &Path, scores: &[SessionScore]) -> anyhow::Result<()> {
-    let series = |name: &str, color: [u8; 3], f: &dyn Fn(&SessionScore) -> Option<f64>| Series {
+fn write_charts(out: &Path, scores: &[SessionRow]) -> anyhow::Result<()> {
+    let series = |name: &str, color: [u8; 3], f: &dyn Fn(&SessionRow) -> Option<f64>| Series {
         name: name.to_string(),
         color,
         points: scores
@@ -442,8 +494,12 @@ fn write_charts(out: &Path, scores: &[SessionScore]) -> anyhow::Result<()> {
         x_label: "session".into(),
         y_label: "score / rate".into(),
         series: vec![
-            series("AMS", [30, 90, 200], &|s| s.ams),
-            series("MRCL", [0, 150, 0], &|s| Some(s.mrcl)),
+            series("AMS", [30, 90, 200], &|s| s.score.ams),
+            series("MRCL", [0, 150, 0], &|s| Some(s.score.mrcl)),
+            series("MCR", [200, 40, 40], &|s| s.mcr),
+            series("world change", [150, 150, 150], &|s| {
+                Some(s.world_change_rate)
+            }),
         ],
         y_min: Some(0.0),
     };

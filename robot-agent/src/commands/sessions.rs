@@ -1,5 +1,10 @@
 //! `evermap-agent sessions`: one recording run as several time sessions through the lifelong map,
-//! scored over the relations whose two stamps fall in different sessions, and over all.
+//! scored over the relations whose two stamps fall in different sessions, and over all: once with the
+//! final map's trajectory, once with the estimate the robot had at the time of each scan (what it would
+//! have navigated with; scans before a session was placed have none and leave their relations
+//! unmatched). Per session, the AMS over every node against the map as it was at the session's start
+//! and when the session committed to its placement (`mapping::metrics`, as `lifelong` scores them;
+//! there is no pose truth here, so no MRCL or placement error).
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -7,9 +12,10 @@ use std::time::Instant;
 use anyhow::Context as _;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
+use mapping::geometry::Rigid2;
 use mapping::io::relations::{Relation, read_relations};
 use mapping::lifelong::TrimPolicy;
-use mapping::metrics::relations_error;
+use mapping::metrics::{average_match_score, relations_error};
 use mapping::sensor::Timestamp;
 use robot_agent::lifelong_run::{SessionsConfig, run_sessions};
 use robot_agent::offline_slam::render_range_data;
@@ -102,7 +108,13 @@ pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
     map_image::write_gray_png(&args.out.join("map.png"), w, h, &pixels)?;
 
     let session_of = |t: Timestamp| run.boundaries.partition_point(|b| *b <= t);
-    let (all, cross) = match &relations {
+    let mut online: Vec<(Timestamp, Rigid2)> = run
+        .records
+        .iter()
+        .flat_map(|r| r.online.iter().copied())
+        .collect();
+    online.sort_by_key(|(t, _)| *t);
+    let (all, cross, cross_online) = match &relations {
         Some(relations) => {
             let cross: Vec<Relation> = relations
                 .iter()
@@ -112,10 +124,24 @@ pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
             (
                 Some(relations_error(&run.scan_poses, relations)),
                 Some(relations_error(&run.scan_poses, &cross)),
+                Some(relations_error(&online, &cross)),
             )
         }
-        None => (None, None),
+        None => (None, None, None),
     };
+    let scores: Vec<_> = run
+        .records
+        .iter()
+        .map(|r| {
+            json!({
+                "session": r.session,
+                "ams": average_match_score(&r.match_scores),
+                "scored_nodes": r.match_scores.len(),
+                "placed_after_s": r.placement.map(|p| p.decided_at.seconds_since(r.start_time)),
+                "scans_localized_at_the_time": r.online.len(),
+            })
+        })
+        .collect();
     let counts = run.map.counts();
     let report = json!({
         "input": args.input.display().to_string(),
@@ -126,6 +152,8 @@ pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
         "realtime_factor": if wall_time_s > 0.0 { run.data_duration_s / wall_time_s } else { 0.0 },
         "relations_all": all,
         "relations_cross_session": cross,
+        "relations_cross_session_at_the_time": cross_online,
+        "session_scores": scores,
         "scan_poses": run.scan_poses.len(),
         "final": counts,
         "sessions": run.sessions,
@@ -137,6 +165,7 @@ pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
     println!(
         "{}",
         json!({"relations_all": report["relations_all"], "relations_cross_session": report["relations_cross_session"],
+               "relations_cross_session_at_the_time": report["relations_cross_session_at_the_time"],
                "wall_time_s": wall_time_s, "final": counts})
     );
     Ok(())

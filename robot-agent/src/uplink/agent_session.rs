@@ -111,6 +111,10 @@ pub struct SessionTrace {
     pub relocalization_ms: f64,
     /// Scan time of every node, in node order (node `i` of the session has `node_times[i]`).
     pub node_times: Vec<Timestamp>,
+    /// The robot's own estimate of every node's global pose (`world_from_tracking`) at the time of the
+    /// node, in node order: the prior, re-anchored by GLM on the robot as it matches; `None` before the
+    /// start was decided (the held-back nodes but the last) and when the start was not relocalized.
+    pub node_estimates: Vec<Option<Rigid2>>,
     /// The first node's local pose (`local_from_tracking`).
     pub first_local_pose: Option<Rigid2>,
     /// Whether GLM ran on the robot for this session.
@@ -131,6 +135,30 @@ pub async fn stream_recording<U: MapUplink>(
     stream_session(recording, options, uploader, None)
         .await
         .map(|(report, _)| report)
+}
+
+/// The local pose of the node of a node's items.
+fn node_local_pose(items: &[UploadItem]) -> Option<Rigid2> {
+    items.iter().find_map(|item| match item {
+        UploadItem::NodeAdded(node) => Some(node.local_pose),
+        _ => None,
+    })
+}
+
+/// The estimates of the held-back nodes once the start is decided: none for those before the
+/// decision, the prior for the node it was decided at (the last).
+fn push_held_estimates(trace: &mut SessionTrace, held: &[Vec<UploadItem>]) {
+    for (i, items) in held.iter().enumerate() {
+        let decided = i + 1 == held.len();
+        let local = node_local_pose(items);
+        trace.node_estimates.push(
+            trace
+                .prior
+                .zip(local)
+                .filter(|_| decided)
+                .map(|(p, l)| p * l),
+        );
+    }
 }
 
 /// Starts GLM on the robot when the session was relocalized (and GLM is on), matching the held-back
@@ -272,9 +300,16 @@ pub async fn stream_session<U: MapUplink>(
                 }
                 if started {
                     let mut items = items;
-                    if let (Some(glm), Some(start)) = (glm.as_mut(), start.as_ref()) {
-                        glm.match_items(start.cache, uploader.trajectory(), &mut items).await;
-                    }
+                    let estimate = match (glm.as_mut(), start.as_ref()) {
+                        (Some(glm), Some(start)) => {
+                            glm.match_items(start.cache, uploader.trajectory(), &mut items).await
+                        }
+                        _ => None,
+                    };
+                    let local = node_local_pose(&items);
+                    trace.node_estimates.push(
+                        estimate.or_else(|| Some(trace.prior? * local?)),
+                    );
                     nodes_in_batch += 1;
                     batch.extend(items);
                 } else {
@@ -288,6 +323,7 @@ pub async fn stream_session<U: MapUplink>(
                         glm = begin_glm(start, options, &mut held, &trace).await;
                     }
                     started = true;
+                    push_held_estimates(&mut trace, &held);
                     if let Some(prior) = trace.prior {
                         batch.push(UploadItem::SessionStartPrior {
                             global_from_local: prior,
@@ -319,6 +355,7 @@ pub async fn stream_session<U: MapUplink>(
             relocalize_start(start, &held, &mut trace).await;
             glm = begin_glm(start, options, &mut held, &trace).await;
         }
+        push_held_estimates(&mut trace, &held);
         if let Some(prior) = trace.prior {
             batch.push(UploadItem::SessionStartPrior {
                 global_from_local: prior,

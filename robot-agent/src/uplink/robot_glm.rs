@@ -82,25 +82,26 @@ impl RobotGlm {
     /// Matches the node of `items` (a node's items: `NodeAdded` then its `SubmapFinished`s) on a
     /// blocking thread, first re-syncing the matcher when the cache has a new version, and appends the
     /// accepted matches. `own_trajectory`: the session's trajectory in the site map, once known.
+    /// Returns the robot's estimate of the node's global pose after the match (`world_from_tracking`;
+    /// `None` when `items` holds no node or GLM has stopped).
     pub async fn match_items(
         &mut self,
         cache: &Mutex<GlobalSubmapCache>,
         own_trajectory: Option<u32>,
         items: &mut Vec<UploadItem>,
-    ) {
+    ) -> Option<Rigid2> {
         let Some(UploadItem::NodeAdded(node)) = items.first() else {
-            return;
+            return None;
         };
         let node = node.clone();
+        let local_pose = node.local_pose;
         let snapshot: Option<Vec<SubmapSnapshot>> = cache.lock().ok().and_then(|cache| {
             (self.synced_version != Some(cache.version())).then(|| {
                 self.synced_version = Some(cache.version());
                 cached_submaps(&cache, own_trajectory)
             })
         });
-        let Some(mut matcher) = self.matcher.take() else {
-            return;
-        };
+        let mut matcher = self.matcher.take()?;
         let work = tokio::task::spawn_blocking(move || {
             if let Some(snapshot) = snapshot {
                 sync_matcher(&mut matcher, &snapshot);
@@ -113,10 +114,12 @@ impl RobotGlm {
             tracing::warn!(
                 "the GLM thread failed: GLM on the robot is off for the rest of the session"
             );
-            return;
+            return None;
         };
+        let estimate = matcher.global_from_local() * local_pose;
         self.matcher = Some(matcher);
         self.matches += found.len() as u64;
         items.extend(found);
+        Some(estimate)
     }
 }
