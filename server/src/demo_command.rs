@@ -634,8 +634,18 @@ fn score(
             }),
             _ => None,
         };
+        // The robots report an estimate per node (scans that passed the motion filter), not per scan:
+        // the session is scored on its nodes' scans.
+        let node_times: std::collections::BTreeSet<Timestamp> =
+            run.node_times.iter().copied().collect();
+        let truth: Vec<(Timestamp, Rigid2)> = run
+            .truth
+            .iter()
+            .filter(|(t, _)| node_times.contains(t))
+            .copied()
+            .collect();
         let track = SessionTrack {
-            truth: &run.truth,
+            truth: &truth,
             start_time: run.truth.first().map_or(Timestamp::default(), |(t, _)| *t),
             online: &online,
             smoothed: &smoothed,

@@ -41,9 +41,18 @@ fn demo_reaches_every_robot(transport: &str) {
     // Nothing left undelivered, and the later sessions found their place.
     for session in report["sessions"].as_array().expect("sessions") {
         assert_eq!(session["left_in_outbox"].as_u64(), Some(0), "{session}");
-        assert!(session["initialized"].as_bool().expect("bool"), "{session}");
+        if session["session"].as_u64() != Some(0) {
+            assert!(
+                session["score"]["initialized"].as_bool().expect("bool"),
+                "{session}"
+            );
+        }
     }
-    assert!(report["localized_fraction"].as_f64().expect("f64") > 0.95);
+    assert_eq!(report["wrong_placements"].as_u64(), Some(0));
+    // The robots' own estimates at the time of each node (the scoring module's MRCL): measured 0.888,
+    // the held-back nodes before the start is decided count as lost.
+    let mrcl = report["mrcl"].as_f64().expect("f64");
+    assert!(mrcl > 0.8, "MRCL {mrcl}");
     assert!(out.join("map.png").exists() && out.join("map_change.png").exists());
     assert!(
         std::fs::read_dir(out.join("maps")).expect("maps").count() >= 1,
