@@ -322,6 +322,9 @@ pub struct SearchEvidence {
     /// cloud's pose, then (with more than one scan) the first scan's alone from there, so that LLO's drift
     /// over the stack does not blur the first scan's pose.
     pub global_from_local: Rigid2,
+    /// `global_from_local` of the whole cloud's best pose, before the first scan's own refinement (the
+    /// same as `global_from_local` for one scan).
+    pub cloud_global_from_local: Rigid2,
     /// Branch-and-bound score of the best pose (on the max-filtered map).
     pub score: f32,
     /// Mean probability of the cloud's points at the best pose on the unfiltered map (what candidates are
@@ -504,6 +507,7 @@ impl StartSearch {
         };
         Some(SearchEvidence {
             global_from_local: first_pose * first_from_local,
+            cloud_global_from_local: best_pose * first_from_local,
             score: best_score,
             sharp_score: best_sharp as f32,
             runner_up,
