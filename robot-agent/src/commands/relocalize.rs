@@ -1,6 +1,6 @@
 //! `evermap-agent relocalize`: how well and how fast a robot finds itself on a map with no prior.
 //!
-//! The map is built from the first 60 % of the recording (by time); scans sampled from the remaining 40 %
+//! The map shows the first 60 % of the recording (by time); scans sampled from the remaining 40 %
 //! are placed on the whole map with no prior by the session-start search of the lifelong map
 //! ([`StartSearch`]: branch and bound over every position and rotation, the best distinct candidates
 //! refined and compared). With `--stack-s T`, what is placed is not the sampled scan alone but the local
