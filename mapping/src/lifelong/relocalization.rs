@@ -567,7 +567,11 @@ impl StartSearch {
 
     /// The whole-map search for `cloud`, thinned to at most `max_search_points` for it.
     fn relocalize(&self, cloud: &[Point2<f32>]) -> Option<crate::scan_matching::Relocalization> {
-        let thinned = thinned_to(cloud, self.options.max_search_points, self.options.voxel_size);
+        let thinned = thinned_to(
+            cloud,
+            self.options.max_search_points,
+            self.options.voxel_size,
+        );
         self.relocalizer.relocalize(&thinned)
     }
 
@@ -866,7 +870,11 @@ mod tests {
             .map(|k| Point2::new((k % 50) as f32 * 0.1, (k / 50) as f32 * 0.1))
             .collect();
         let thinned = thinned_to(&cloud, 200, 0.05);
-        assert!(thinned.len() <= 200 && thinned.len() > 50, "{}", thinned.len());
+        assert!(
+            thinned.len() <= 200 && thinned.len() > 50,
+            "{}",
+            thinned.len()
+        );
         assert_eq!(thinned_to(&cloud[..100], 200, 0.05).len(), 100);
         // The voxels stop growing at 2 m: a cap below what 2 m voxels leave is not met.
         assert!(thinned_to(&cloud, 1, 0.05).len() > 1);
