@@ -1,23 +1,31 @@
 //! `evermap-agent relocalize`: how well and how fast a robot finds itself on a map with no prior.
 //!
-//! The map is built from the first 60 % of the recording (by time); scans sampled from the remaining 40 %
+//! The map shows the first 60 % of the recording (by time); scans sampled from the remaining 40 %
 //! are placed on the whole map with no prior by the session-start search of the lifelong map
 //! ([`StartSearch`]: branch and bound over every position and rotation, the best distinct candidates
 //! refined and compared). With `--stack-s T`, what is placed is not the sampled scan alone but the local
 //! map LLO builds from the T seconds of driving that start at it ([`run_llo`], the nodes merged into one
 //! cloud in the first node's frame, as a lifelong session's held-back first nodes are); the pose scored is
 //! the first node's, the sampled scan's (or the first scan after it LLO could match). The search may refuse
-//! (ambiguous or no good fit); the report counts right answers, wrong answers and refusals apart. Truth for
-//! each scan is its pose in a full `offline` run of the same recording (both runs hold the first node fixed
-//! at the same pose, so they share a frame), re-aligned locally (see [`align_near`]).
+//! (ambiguous or no good fit); the report counts right answers, wrong answers and refusals apart.
+//!
+//! Truth (`--truth`): by default (`own`) the map and the truth come from one `offline` run of the whole
+//! recording: the map is that run's nodes before the cut, re-inserted at their optimized poses, and a
+//! sampled scan's truth is that run's pose of it, so a relocalization is scored against exactly the frame
+//! the map was drawn in. With `aligned` (the earlier definition) the map is a separate run of the first
+//! 60 % and the truth is the full run's pose re-aligned locally to it ([`align_near`]): the two runs' maps
+//! differ by decimetres in places, and that disagreement lands in the score. With `--relations`, every
+//! sample is also checked against the benchmark's manually verified relations that tie a scan near it to
+//! a scan in the map ([`relations_truth`]), a truth independent of both runs' optimizations.
 
 use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Context as _;
-use clap::Args;
+use clap::{Args, ValueEnum};
 use mapping::geometry::Rigid2;
 use mapping::geometry::{Rigid2Ext as _, normalize_angle};
+use mapping::io::relations::{Relation, read_relations};
 use mapping::lifelong::{RelocalizationOutcome, StartSearch};
 use mapping::sensor::{SensorEvent, Timestamp};
 use nalgebra::Point2;
@@ -25,7 +33,7 @@ use proto::UploadItem;
 use rand::SeedableRng as _;
 use rand::seq::index::sample;
 use rand_pcg::Pcg64;
-use robot_agent::offline_slam::{render_map, run_offline};
+use robot_agent::offline_slam::{render_map, render_range_data, run_offline};
 use robot_agent::source::{self, Recording};
 use robot_agent::uplink::run_llo;
 use serde_json::json;
@@ -54,6 +62,21 @@ pub struct RelocalizeArgs {
     /// scan, instead of the scan alone (0: the scan alone).
     #[arg(long, default_value_t = 0.0)]
     stack_s: f64,
+    /// What the answers are scored against (see the module docs).
+    #[arg(long, value_enum, default_value_t = Truth::Own)]
+    truth: Truth,
+    /// The benchmark's relations file (`t1 t2 x y z roll pitch yaw`) to check every sample against too.
+    #[arg(long)]
+    relations: Option<PathBuf>,
+}
+
+/// Where the map and the truth come from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum Truth {
+    /// One run of the whole recording: the map is its nodes before the cut, the truth its poses.
+    Own,
+    /// The map is a run of the first 60 %; the truth is a full run's pose re-aligned within 8 m.
+    Aligned,
 }
 
 /// A relocalization counts as correct within this distance of the truth, metres.
@@ -81,7 +104,24 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
         .time()
         .offset_by(0.6 * last.time().seconds_since(first.time()));
 
-    let Reference { map, truth, common } = prepare(&recording, &config, cut)?;
+    let relations: Vec<Relation> = match &args.relations {
+        Some(path) => {
+            let file = std::fs::File::open(path)
+                .with_context(|| format!("cannot open {}", path.display()))?;
+            read_relations(std::io::BufReader::new(file))
+                .with_context(|| format!("invalid relations file {}", path.display()))?
+        }
+        None => Vec::new(),
+    };
+    let Reference {
+        map,
+        truth,
+        map_poses,
+        full_poses,
+    } = match args.truth {
+        Truth::Own => prepare_own(&recording, &config, cut)?,
+        Truth::Aligned => prepare_aligned(&recording, &config, cut)?,
+    };
     config
         .relocalization
         .validate()
@@ -139,10 +179,18 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
             continue;
         };
         // How far the scan is from where the map's run went: far means its area may not be mapped.
-        let nearest_mapped_m = common
+        let nearest_mapped_m = map_poses
             .iter()
-            .map(|(h, _)| (h.translation.vector - truth_pose.translation.vector).norm())
+            .map(|(_, h)| (h.translation.vector - truth_pose.translation.vector).norm())
             .fold(f64::INFINITY, f64::min);
+        // The relations' truths of this scan, and how far the scored truth lies from them.
+        let relation_truths = relations_truth(&relations, &map_poses, &full_poses, scored_time);
+        let truth_vs_relations_m = median(
+            relation_truths
+                .iter()
+                .map(|r| (r.translation.vector - truth_pose.translation.vector).norm())
+                .collect(),
+        );
         // The evidence's best pose is reported even when refused, to show what a refusal avoided.
         let error = |global_from_local: &Rigid2| {
             let p = global_from_local * first_local;
@@ -153,8 +201,31 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
             (dt, dth)
         };
         let best_error = evidence.as_ref().map(|e| error(&e.global_from_local));
+        // The error in the scan's own frame (x ahead, y left): along a corridor or across it.
+        let error_in_scan_frame = |global_from_local: &Rigid2| {
+            let d = truth_pose.inverse() * (global_from_local * first_local);
+            [d.translation.x, d.translation.y, d.theta().to_degrees()]
+        };
+        let relations_error = |global_from_local: &Rigid2| {
+            let p = global_from_local * first_local;
+            median(
+                relation_truths
+                    .iter()
+                    .map(|r| (r.translation.vector - p.translation.vector).norm())
+                    .collect(),
+            )
+        };
+        let best_relations_error_m = evidence
+            .as_ref()
+            .and_then(|e| relations_error(&e.global_from_local));
         let answer = match &outcome {
             RelocalizationOutcome::Found(found) => {
+                if let Some(e) = relations_error(&found.global_from_local) {
+                    tally.relations_checked += 1;
+                    if e > SUCCESS_TRANSLATION_M {
+                        tally.relations_wrong += 1;
+                    }
+                }
                 let (dt, dth) = error(&found.global_from_local);
                 if dt <= SUCCESS_TRANSLATION_M && dth <= SUCCESS_ROTATION_DEG {
                     tally.right += 1;
@@ -179,6 +250,8 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
             "answer": answer,
             "success": answer == "right",
             "translation_error_m": best_error.map(|e| e.0),
+            "error_in_scan_frame": evidence.as_ref().map(|e| error_in_scan_frame(&e.global_from_local)),
+            "cloud_error_in_scan_frame": evidence.as_ref().map(|e| error_in_scan_frame(&e.cloud_global_from_local)),
             "rotation_error_deg": best_error.map(|e| e.1),
             "score": evidence.as_ref().map(|e| e.score),
             "sharp_score": evidence.as_ref().map(|e| e.sharp_score),
@@ -192,6 +265,9 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
             "ms": ms,
             "llo_ms": llo_ms,
             "nearest_mapped_m": nearest_mapped_m,
+            "relations": relation_truths.len(),
+            "truth_vs_relations_m": truth_vs_relations_m,
+            "relations_error_m": best_relations_error_m,
         }));
     }
     let mut sorted = times_ms.clone();
@@ -217,7 +293,10 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
         "p95_ms": percentile(&sorted, 0.95),
         "precompute_ms": precompute_ms,
         "map_cells": [map.limits().width, map.limits().height],
-        "truth_alignment_radius_m": LOCAL_ALIGNMENT_RADIUS_M,
+        "truth": format!("{:?}", args.truth).to_lowercase(),
+        "truth_alignment_radius_m": (args.truth == Truth::Aligned).then_some(LOCAL_ALIGNMENT_RADIUS_M),
+        "answers_checked_by_relations": tally.relations_checked,
+        "answers_off_by_relations": tally.relations_wrong,
         "success_translation_m": SUCCESS_TRANSLATION_M,
         "success_rotation_deg": SUCCESS_ROTATION_DEG,
         "results": results,
@@ -230,6 +309,8 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
         json!({"samples": n, "stack_s": args.stack_s, "success_rate": report["success_rate"],
             "precision": report["precision"], "answered_rate": report["answered_rate"],
             "wrong": report["wrong"], "refused": report["refused"],
+            "answers_checked_by_relations": report["answers_checked_by_relations"],
+            "answers_off_by_relations": report["answers_off_by_relations"],
             "median_ms": report["median_ms"], "p95_ms": report["p95_ms"]})
     );
     Ok(())
@@ -237,16 +318,46 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
 
 /// What relocalizations are placed on and scored against.
 struct Reference {
-    /// The map of the first 60 % of the recording (before the cut).
+    /// The map of the recording before the cut.
     map: mapping::grid::ProbabilityGrid,
-    /// Every scan after the cut: its pose in the full run, in the map's frame.
+    /// Every scan after the cut: its true pose in the map's frame.
     truth: std::collections::BTreeMap<Timestamp, Rigid2>,
-    /// `(map run pose, full run pose)` of the scans both runs placed.
-    common: Vec<(Rigid2, Rigid2)>,
+    /// The scans drawn into the map, with their poses in the map's frame, in time order.
+    map_poses: Vec<(Timestamp, Rigid2)>,
+    /// Every scan's pose in the full run (its own frame), in time order: its short-range relative motion
+    /// bridges from a relation's stamp to a nearby sampled scan.
+    full_poses: Vec<(Timestamp, Rigid2)>,
 }
 
-/// Maps the whole recording and its part before `cut`, and expresses the first in the second's frame.
-fn prepare(
+/// `--truth own`: one run of the whole recording; the map is its nodes before `cut` re-inserted at their
+/// optimized poses, and the truth of a later scan is that run's pose of it.
+fn prepare_own(
+    recording: &Recording,
+    config: &robot_agent::offline_slam::SlamConfig,
+    cut: Timestamp,
+) -> anyhow::Result<Reference> {
+    eprintln!("mapping the whole recording");
+    let full = run_offline(recording, config, &mut |_| {})?;
+    let nodes = full.global.nodes();
+    let map = render_range_data(
+        full.node_range_data.iter().filter_map(|(id, data)| {
+            (nodes.get(id)?.time < cut).then_some((full.global.node_pose(*id)?, data))
+        }),
+        config.local.submaps.resolution,
+    );
+    let (map_poses, after): (Vec<_>, Vec<_>) =
+        full.scan_poses.iter().copied().partition(|(t, _)| *t < cut);
+    Ok(Reference {
+        map,
+        truth: after.into_iter().collect(),
+        map_poses,
+        full_poses: full.scan_poses,
+    })
+}
+
+/// `--truth aligned`: maps the whole recording and its part before `cut`, and expresses the first in the
+/// second's frame.
+fn prepare_aligned(
     recording: &Recording,
     config: &robot_agent::offline_slam::SlamConfig,
     cut: Timestamp,
@@ -271,12 +382,12 @@ fn prepare(
     // decimetres in places as their loop closures differ. A scan is relocalized against the part of the
     // map around it, so its truth is the full run's pose expressed in the head run's frame through the
     // rigid transform that best aligns the common scans within `LOCAL_ALIGNMENT_RADIUS_M` of it.
-    let full_poses: std::collections::BTreeMap<Timestamp, Rigid2> =
+    let full_by_time: std::collections::BTreeMap<Timestamp, Rigid2> =
         full.scan_poses.iter().copied().collect();
     let common: Vec<(Rigid2, Rigid2)> = map_run
         .scan_poses
         .iter()
-        .filter_map(|(t, h)| full_poses.get(t).map(|f| (*h, *f)))
+        .filter_map(|(t, h)| full_by_time.get(t).map(|f| (*h, *f)))
         .collect();
     let truth: std::collections::BTreeMap<Timestamp, Rigid2> = full
         .scan_poses
@@ -284,7 +395,81 @@ fn prepare(
         .filter(|(t, _)| *t >= cut)
         .map(|(t, p)| (*t, align_near(&common, p) * p))
         .collect();
-    Ok(Reference { map, truth, common })
+    Ok(Reference {
+        map,
+        truth,
+        map_poses: map_run.scan_poses,
+        full_poses: full.scan_poses,
+    })
+}
+
+/// Largest gap between a relation's stamp and a pose of a run for the pose to stand for it, seconds (the
+/// reference tool's).
+const RELATION_STAMP_GAP_S: f64 = 0.1;
+
+/// Longest stretch of driving (seconds) from a relation's stamp after the cut to a sampled scan over which
+/// the full run's relative motion carries a relation's truth to it.
+const RELATION_BRIDGE_S: f64 = 2.0;
+
+/// The pose nearest in time to `t` within [`RELATION_STAMP_GAP_S`] in `poses` (time-ordered).
+fn pose_at(poses: &[(Timestamp, Rigid2)], t: Timestamp) -> Option<Rigid2> {
+    let i = poses.partition_point(|(s, _)| *s < t);
+    [i.checked_sub(1), Some(i)]
+        .into_iter()
+        .flatten()
+        .filter_map(|k| poses.get(k))
+        .min_by(|a, b| {
+            a.0.seconds_since(t)
+                .abs()
+                .total_cmp(&b.0.seconds_since(t).abs())
+        })
+        .filter(|(s, _)| s.seconds_since(t).abs() <= RELATION_STAMP_GAP_S)
+        .map(|(_, p)| *p)
+}
+
+/// The truths of the scan at `t` in the map's frame that the relations give: for each relation between a
+/// scan drawn into the map (in `map_poses`) and a scan at most [`RELATION_BRIDGE_S`] from `t` not in the
+/// map, the map's pose of the first composed with the relation, then carried to `t` by the full run's
+/// relative motion. The relations were built from manually checked scan matches, so these truths depend
+/// on neither run's loop closures, only on where the map itself drew the related scan.
+fn relations_truth(
+    relations: &[Relation],
+    map_poses: &[(Timestamp, Rigid2)],
+    full_poses: &[(Timestamp, Rigid2)],
+    t: Timestamp,
+) -> Vec<Rigid2> {
+    let Some(full_at_t) = pose_at(full_poses, t) else {
+        return Vec::new();
+    };
+    let map_end = map_poses.last().map(|(s, _)| *s);
+    let in_map = |s: Timestamp| map_end.is_some_and(|end| s <= end);
+    let mut out = Vec::new();
+    for r in relations {
+        // `mapped_from_near`: the relative pose from the mapped scan to the one near `t`.
+        let (mapped, near, mapped_from_near) = if in_map(r.t1) && !in_map(r.t2) {
+            (r.t1, r.t2, r.delta)
+        } else if in_map(r.t2) && !in_map(r.t1) {
+            (r.t2, r.t1, r.delta.inverse())
+        } else {
+            continue;
+        };
+        if near.seconds_since(t).abs() > RELATION_BRIDGE_S {
+            continue;
+        }
+        let (Some(map_from_mapped), Some(full_from_near)) =
+            (pose_at(map_poses, mapped), pose_at(full_poses, near))
+        else {
+            continue;
+        };
+        out.push(map_from_mapped * mapped_from_near * full_from_near.inverse() * full_at_t);
+    }
+    out
+}
+
+/// The median of `values` (`None` if empty).
+fn median(mut values: Vec<f64>) -> Option<f64> {
+    values.sort_by(f64::total_cmp);
+    (!values.is_empty()).then(|| percentile(&values, 0.5))
 }
 
 /// How the answers went: right, wrong (and how far off), refused.
@@ -293,6 +478,10 @@ struct Tally {
     right: usize,
     refused: usize,
     wrong_errors_m: Vec<f64>,
+    /// Answers with at least one relation's truth.
+    relations_checked: usize,
+    /// … of which more than the success distance from the relations' (median) truth.
+    relations_wrong: usize,
 }
 
 /// The nodes `(time, local_from_tracking, filtered points)` LLO makes from `stack_s` seconds of `recording`
