@@ -434,7 +434,7 @@ mod tests {
         let origin = Point2::from(world_from_tracking.translation.vector);
         let mut returns = Vec::new();
         for k in 0..180 {
-            let angle = (k as f64 - 89.5).to_radians();
+            let angle = (f64::from(k) - 89.5).to_radians();
             let direction = world_from_tracking.rotation * Vector2::new(angle.cos(), angle.sin());
             if let Some(range) = room.cast(&origin, &direction, 20.0) {
                 let local = Vector2::new(angle.cos(), angle.sin()) * range;
