@@ -22,7 +22,7 @@ use crate::local_slam::voxel_filter;
 use crate::scan_matching::{
     LeastSquaresScanMatcher, LeastSquaresScanMatcherOptions, RealTimeCorrelativeScanMatcher,
     RealTimeCorrelativeScanMatcherOptions, Relocalizer, RelocalizerOptions, clearly_different,
-    max_filtered,
+    max_filtered, paired_z, probability_at,
 };
 
 /// Options of [`relocalize_session_start`].
@@ -583,29 +583,6 @@ impl StartSearch {
             None => *pose,
         }
     }
-}
-
-/// The paired statistic of [`RelocalizationOptions::min_disambiguation_z`]: how much better `cloud` fits
-/// `grid` at `best` than at `other`, point by point, in standard errors (0 when they fit identically).
-fn paired_z(grid: &ProbabilityGrid, cloud: &[Point2<f32>], best: &Rigid2, other: &Rigid2) -> f64 {
-    let (mut sum, mut squares) = (0.0, 0.0);
-    for p in cloud {
-        let d = probability_at(grid, best, *p) - probability_at(grid, other, *p);
-        sum += d;
-        squares += d * d;
-    }
-    if squares > 0.0 {
-        sum / squares.sqrt()
-    } else {
-        0.0
-    }
-}
-
-/// The probability of `grid` at point `p` placed at `pose`; unknown cells read as the least probability,
-/// as in the search.
-fn probability_at(grid: &ProbabilityGrid, pose: &Rigid2, p: Point2<f32>) -> f64 {
-    let world = pose * Point2::new(f64::from(p.x), f64::from(p.y));
-    f64::from(grid.probability(&grid.limits().cell_index(&world)))
 }
 
 /// Mean probability of `grid` at `cloud` placed at `pose`.
