@@ -264,10 +264,8 @@ impl LocalTrajectoryBuilder {
         let claimed_rotation = self.last_pose.map_or(0.0, |last| {
             normalize_angle(predicted.theta() - last.theta()).abs()
         });
-        let linear_search_window = base.linear_search_window;
         let search = |center: &Rigid2, angular_search_window: f64| {
             RealTimeCorrelativeScanMatcher::new(RealTimeCorrelativeScanMatcherOptions {
-                linear_search_window,
                 angular_search_window: angular_search_window.min(std::f64::consts::PI),
                 ..base.clone()
             })
