@@ -12,8 +12,8 @@ use super::{
 use crate::geometry::Rigid2;
 use crate::grid::ProbabilityGrid;
 use crate::pose_graph::{
-    Constraint, ConstraintKind, NodeId, OptimizationSummary, Optimizer, PoseGraph, PoseGraphError,
-    RobustLoss, SubmapId, VariableId,
+    Constraint, ConstraintId, ConstraintKind, NodeId, OptimizationSummary, Optimizer, PoseGraph,
+    PoseGraphError, RobustLoss, SubmapId, VariableId,
 };
 use crate::sensor::Timestamp;
 
@@ -68,6 +68,17 @@ pub struct Acceptance {
     pub confirmed_by_agreement: bool,
 }
 
+/// Where an accepted loop closure stands.
+#[derive(Clone, Debug)]
+enum ClosureState {
+    /// In the graph as this constraint.
+    InGraph(ConstraintId),
+    /// Taken out because the optimized graph refused it; put back once the graph fits it again.
+    Retracted(Constraint),
+    /// Its node or submap was trimmed.
+    Gone,
+}
+
 /// Errors of [`GlobalSlam`].
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum GlobalSlamError {
@@ -103,6 +114,8 @@ pub struct GlobalSlam {
     accepted_loop_closures: Vec<LoopClosure>,
     /// How each accepted loop closure was accepted, parallel to `accepted_loop_closures`.
     acceptances: Vec<Acceptance>,
+    /// Where each accepted loop closure stands, parallel to `accepted_loop_closures`.
+    closure_states: Vec<ClosureState>,
     searches_queued: usize,
     /// Trajectories started without a prior while the map already had other trajectories: their
     /// estimates are in an arbitrary frame until a full-submap match places them (see
@@ -176,6 +189,7 @@ impl GlobalSlam {
             nodes_since_optimization: 0,
             accepted_loop_closures: Vec::new(),
             acceptances: Vec::new(),
+            closure_states: Vec::new(),
             searches_queued: 0,
             unanchored: BTreeSet::new(),
             capped_optimizer: None,
@@ -327,7 +341,9 @@ impl GlobalSlam {
                         self.options.odometry_translation_sigma,
                         self.options.odometry_rotation_sigma,
                     ),
-                    loss: RobustLoss::Trivial,
+                    loss: RobustLoss::Huber {
+                        delta: self.options.odometry_huber_scale,
+                    },
                 })
                 .map_err(graph_error)?;
         }
@@ -630,9 +646,11 @@ impl GlobalSlam {
                 information: closure.information.unwrap_or(loop_closure_information),
                 loss,
             });
-            if added.is_err() {
+            let Ok(constraint_id) = added else {
                 continue; // a non-finite match; nothing to learn from it
-            }
+            };
+            self.closure_states
+                .push(ClosureState::InGraph(constraint_id));
             self.note_loop(&closure);
             self.accepted_loop_closures.push(closure.clone());
             self.acceptances.push(acceptance);
@@ -901,10 +919,74 @@ impl GlobalSlam {
 
     /// Optimizes the whole graph now and updates each trajectory's `global_from_local`.
     pub fn optimize(&mut self) -> OptimizationSummary {
-        let summary = self.optimizer.optimize(&mut self.graph);
+        let mut summary = self.optimizer.optimize(&mut self.graph);
+        if self.retract_refused_loop_closures() > 0 {
+            // Without the refused closures' pull.
+            summary = self.optimizer.optimize(&mut self.graph);
+        }
         self.nodes_since_optimization = 0;
         self.update_global_from_local();
         summary
+    }
+
+    /// Takes out of the graph every accepted loop closure that the optimized graph refuses — its χ² (with
+    /// its own information) exceeds `loop_closure_retraction_chi2` at the current poses — and puts back
+    /// every retracted one the graph now fits within it. A closure the graph has just been optimized with
+    /// and still violates by that much disagrees with the odometry chain and the other closures together
+    /// (a look-alike place, or several matches that agreed on the wrong one); as later closures reshape
+    /// the graph, it is judged again. Returns how many changed sides.
+    fn retract_refused_loop_closures(&mut self) -> usize {
+        let max_chi2 = self.options.loop_closure_retraction_chi2;
+        if max_chi2 <= 0.0 {
+            return 0;
+        }
+        let mut changed = 0;
+        for state in &mut self.closure_states {
+            let constraint = match state {
+                ClosureState::InGraph(id) => match self.graph.constraint(*id) {
+                    Some(c) => c.clone(),
+                    None => {
+                        *state = ClosureState::Gone; // its node or submap was trimmed
+                        continue;
+                    }
+                },
+                ClosureState::Retracted(c) => c.clone(),
+                ClosureState::Gone => continue,
+            };
+            let (Some(from), Some(to)) = (
+                self.graph.pose(constraint.from),
+                self.graph.pose(constraint.to),
+            ) else {
+                *state = ClosureState::Gone;
+                continue;
+            };
+            let fits = constraint.chi2(&from, &to) <= max_chi2;
+            match state {
+                ClosureState::InGraph(id) if !fits => {
+                    if self.graph.remove_constraint(*id).is_ok() {
+                        *state = ClosureState::Retracted(constraint);
+                        changed += 1;
+                    }
+                }
+                ClosureState::Retracted(_) if fits => {
+                    if let Ok(id) = self.graph.add_constraint(constraint) {
+                        *state = ClosureState::InGraph(id);
+                        changed += 1;
+                    }
+                }
+                _ => {}
+            }
+        }
+        changed
+    }
+
+    /// Loop closures out of the graph now because the optimized graph refuses them (see
+    /// `GlobalSlamOptions::loop_closure_retraction_chi2`).
+    pub fn closures_retracted(&self) -> usize {
+        self.closure_states
+            .iter()
+            .filter(|s| matches!(s, ClosureState::Retracted(_)))
+            .count()
     }
 
     /// Re-derives each trajectory's `global_from_local` from its last node's optimized pose.
@@ -1041,12 +1123,13 @@ impl GlobalSlam {
     }
 
     /// Every accepted loop closure whose node and submap are still in the graph, judged against the
-    /// current (optimized) poses: how far the optimized graph violates it.
+    /// current (optimized) poses: how far the optimized graph violates it (retracted ones included, marked).
     pub fn loop_closure_checks(&self) -> Vec<LoopClosureCheck> {
         self.accepted_loop_closures
             .iter()
             .zip(&self.acceptances)
-            .filter_map(|(closure, acceptance)| {
+            .zip(&self.closure_states)
+            .filter_map(|((closure, acceptance), state)| {
                 let submap = self.submap_pose(closure.submap)?;
                 let node = self.node_pose(closure.node)?;
                 let residual = closure.submap_from_node.inverse() * submap.inverse() * node;
@@ -1055,6 +1138,7 @@ impl GlobalSlam {
                     acceptance: *acceptance,
                     residual_translation_m: residual.translation.vector.norm(),
                     residual_rotation_rad: residual.rotation.angle().abs(),
+                    retracted: matches!(state, ClosureState::Retracted(_)),
                 })
             })
             .collect()
@@ -1164,6 +1248,87 @@ mod tests {
         global.add_search_results([wide_closure(150, rigid2(0.8, 0.6, 0.0))]);
         global.add_search_results([wide_closure(390, rigid2(0.8, 0.6, 0.0))]);
         assert!(global.accepted_loop_closures().is_empty());
+    }
+
+    #[test]
+    fn a_closure_the_optimized_graph_refuses_is_retracted() {
+        let mut global = straight_run(200);
+        // Three neighbouring nodes; the middle one matched 0.3 m sideways (10σ), its neighbours where the
+        // chain puts them. Each is near enough its estimate to be accepted at once.
+        global.add_search_results([
+            wide_closure(139, rigid2(0.0, 0.01, 0.0)),
+            wide_closure(140, rigid2(0.0, 0.3, 0.0)),
+            wide_closure(141, rigid2(0.0, 0.0, 0.0)),
+        ]);
+        assert_eq!(global.accepted_loop_closures().len(), 3);
+        global.optimize();
+        assert_eq!(global.closures_retracted(), 1);
+        let checks = global.loop_closure_checks();
+        let retracted: Vec<u32> = checks
+            .iter()
+            .filter(|c| c.retracted)
+            .map(|c| c.closure.node.index)
+            .collect();
+        assert_eq!(retracted, vec![140]);
+        // Optimized again without it: the others hold, and it no longer pulls node 140 sideways.
+        assert!(
+            checks
+                .iter()
+                .filter(|c| !c.retracted)
+                .all(LoopClosureCheck::holds)
+        );
+        let node = global
+            .node_pose(NodeId {
+                trajectory: 0,
+                index: 140,
+            })
+            .expect("node");
+        assert!(node.translation.vector.y.abs() < 0.02, "{node:?}");
+        // With retraction off, the same closure stays in the graph.
+        let mut global = straight_run(200);
+        global.options.loop_closure_retraction_chi2 = 0.0;
+        global.add_search_results([
+            wide_closure(139, rigid2(0.0, 0.01, 0.0)),
+            wide_closure(140, rigid2(0.0, 0.3, 0.0)),
+            wide_closure(141, rigid2(0.0, 0.0, 0.0)),
+        ]);
+        global.optimize();
+        assert_eq!(global.closures_retracted(), 0);
+        assert!(global.loop_closure_checks().iter().all(|c| !c.retracted));
+    }
+
+    #[test]
+    fn a_retracted_closure_returns_once_the_graph_fits_it() {
+        let mut global = straight_run(200);
+        global.add_search_results([
+            wide_closure(139, rigid2(0.0, 0.01, 0.0)),
+            wide_closure(140, rigid2(0.0, 0.3, 0.0)),
+            wide_closure(141, rigid2(0.0, 0.0, 0.0)),
+        ]);
+        global.optimize();
+        assert_eq!(global.closures_retracted(), 1);
+        let sideways = |global: &GlobalSlam| {
+            global
+                .node_pose(NodeId {
+                    trajectory: 0,
+                    index: 140,
+                })
+                .expect("node")
+                .translation
+                .vector
+                .y
+        };
+        let retracted = sideways(&global);
+        // A looser bound (standing in for a graph reshaped by later closures) fits it again: it is back in
+        // the graph and pulls node 140 sideways once more.
+        global.options.loop_closure_retraction_chi2 = 1e6;
+        global.optimize();
+        assert_eq!(global.closures_retracted(), 0);
+        assert!(
+            sideways(&global) > retracted + 0.01,
+            "{} vs {retracted}",
+            sideways(&global)
+        );
     }
 
     #[test]

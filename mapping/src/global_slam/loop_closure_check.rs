@@ -22,6 +22,9 @@ pub struct LoopClosureCheck {
     pub residual_translation_m: f64,
     /// Absolute rotation (rad) of that residual.
     pub residual_rotation_rad: f64,
+    /// Whether the back end removed it from the graph because the optimized graph refused it (see
+    /// `GlobalSlamOptions::loop_closure_retraction_chi2`).
+    pub retracted: bool,
 }
 
 impl LoopClosureCheck {
@@ -36,25 +39,37 @@ impl LoopClosureCheck {
 /// Summary of [`LoopClosureCheck`]s.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
 pub struct LoopClosurePrecision {
-    /// Closures checked.
+    /// Closures checked that are in the graph (not retracted).
     pub checked: usize,
     /// Those the optimized graph holds.
     pub held: usize,
-    /// `held / checked` (1 when nothing was checked).
+    /// `held / checked` (1 when nothing was checked): the precision of the closures the map is made of.
     pub precision: f64,
+    /// Closures the back end retracted (not in `checked`).
+    pub retracted: usize,
+    /// The share of every match GLM accepted, retracted ones included, that the optimized graph holds
+    /// (1 when there were none): how good the matching is, whatever the back end made of it.
+    pub precision_as_matched: f64,
 }
 
 /// The share of `checks` the optimized graph holds.
 pub fn loop_closure_precision(checks: &[LoopClosureCheck]) -> LoopClosurePrecision {
-    let held = checks.iter().filter(|c| c.holds()).count();
-    LoopClosurePrecision {
-        checked: checks.len(),
-        held,
-        precision: if checks.is_empty() {
+    let ratio = |held: usize, of: usize| {
+        if of == 0 {
             1.0
         } else {
-            held as f64 / checks.len() as f64
-        },
+            held as f64 / of as f64
+        }
+    };
+    let retracted = checks.iter().filter(|c| c.retracted).count();
+    let checked = checks.len() - retracted;
+    let held = checks.iter().filter(|c| !c.retracted && c.holds()).count();
+    LoopClosurePrecision {
+        checked,
+        held,
+        precision: ratio(held, checked),
+        retracted,
+        precision_as_matched: ratio(checks.iter().filter(|c| c.holds()).count(), checks.len()),
     }
 }
 
@@ -83,6 +98,7 @@ mod tests {
             acceptance: Acceptance::default(),
             residual_translation_m: t,
             residual_rotation_rad: r,
+            retracted: false,
         }
     }
 
@@ -98,5 +114,17 @@ mod tests {
         assert_eq!((p.checked, p.held), (4, 2));
         assert!((p.precision - 0.5).abs() < 1e-12);
         assert!((loop_closure_precision(&[]).precision - 1.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn retracted_closures_leave_the_map_precision_but_not_the_matched_one() {
+        let retracted = |t| LoopClosureCheck {
+            retracted: true,
+            ..check(t, 0.001)
+        };
+        let p = loop_closure_precision(&[check(0.05, 0.001), retracted(0.9), retracted(0.1)]);
+        assert_eq!((p.checked, p.held, p.retracted), (1, 1, 2));
+        assert!((p.precision - 1.0).abs() < 1e-12);
+        assert!((p.precision_as_matched - 2.0 / 3.0).abs() < 1e-12);
     }
 }

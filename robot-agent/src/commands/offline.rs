@@ -121,6 +121,8 @@ pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
         "loop_closure_precision": precision.precision,
         "loop_closures_held": precision.held,
         "loop_closures_checked": precision.checked,
+        "loop_closures_retracted": precision.retracted,
+        "loop_closure_precision_as_matched": precision.precision_as_matched,
         "loop_closure_searches": run.global.searches_queued(),
         "loop_closures_beyond_drift": run.global.closures_beyond_drift(),
         "loop_closures_outvoted": run.global.closures_outvoted(),
@@ -201,7 +203,7 @@ fn write_loop_closures(
 ) -> anyhow::Result<()> {
     let start = global.nodes().values().next().map(|n| n.time);
     let mut csv = String::from(
-        "node_time_s,node,submap_trajectory,submap,score,runner_up_score,innovation_m,innovation_deg,confirmed,residual_m,residual_deg,holds\n",
+        "node_time_s,node,submap_trajectory,submap,score,runner_up_score,innovation_m,innovation_deg,confirmed,residual_m,residual_deg,holds,retracted\n",
     );
     for c in checks {
         let time = global
@@ -211,7 +213,7 @@ fn write_loop_closures(
             .map_or(f64::NAN, |(n, s)| n.time.seconds_since(s));
         writeln!(
             csv,
-            "{:.3},{},{},{},{:.4},{},{:.4},{:.3},{},{:.4},{:.3},{}",
+            "{:.3},{},{},{},{:.4},{},{:.4},{:.3},{},{:.4},{:.3},{},{}",
             time,
             c.closure.node.index,
             c.closure.submap.trajectory,
@@ -226,6 +228,7 @@ fn write_loop_closures(
             c.residual_translation_m,
             c.residual_rotation_rad.to_degrees(),
             u8::from(c.holds()),
+            u8::from(c.retracted),
         )?;
     }
     std::fs::write(path, csv).with_context(|| format!("cannot write {}", path.display()))
