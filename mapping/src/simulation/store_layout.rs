@@ -200,15 +200,15 @@ impl Grid {
         ];
         for pair in self.lanes.windows(2) {
             let (from, to) = (pair[0], pair[1]);
-            let mut y = from;
+            let mut at_to = false;
             for (j, &x) in self.columns.iter().enumerate() {
                 if j > 0 {
-                    tour.push(p(x, y));
+                    tour.push(p(x, if at_to { to } else { from }));
                 }
-                y = if y == from { to } else { from };
-                tour.push(p(x, y));
+                at_to = !at_to;
+                tour.push(p(x, if at_to { to } else { from }));
             }
-            if y == from {
+            if !at_to {
                 tour.push(p(right, to));
             }
             tour.push(p(left, to));
