@@ -61,7 +61,8 @@ pub struct LifelongArgs {
     /// Length cap of sessions 1..N, seconds (default: the simulator's, 300 s).
     #[arg(long)]
     session_duration_s: Option<f64>,
-    /// Length cap of the mapping session 0, seconds (default: the whole sweep of every aisle, ~45 min).
+    /// Length cap of the mapping session 0, seconds (default: the whole cleaning route, ~62 min in `store`,
+    /// ~45 min in `aisles`).
     #[arg(long)]
     mapping_duration_s: Option<f64>,
 }

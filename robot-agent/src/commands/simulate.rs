@@ -23,7 +23,8 @@ pub struct SimulateArgs {
     /// random start with that day's layout.
     #[arg(long, default_value_t = 0)]
     session: u32,
-    /// Length cap in seconds (session 0 default: the whole sweep, ~45 min; later sessions: 300 s).
+    /// Length cap in seconds (session 0 default: the whole cleaning route, ~62 min in `store`, ~45 min in
+    /// `aisles`; later sessions: 300 s).
     #[arg(long)]
     max_duration_s: Option<f64>,
     /// The bag to write; the truth goes to `<out>.truth.tum` and a picture of the day's layout (static
