@@ -465,18 +465,20 @@ pub(crate) fn lay_out(o: &StoreOptions, seed: u64) -> Layout {
             items.push(goods_item(&mut rng, frame_lo, -1.0, y0, y1, 0));
             items.push(goods_item(&mut rng, frame_hi, 1.0, y0, y1, 0));
         }
-        let outer = |y: f64| {
-            grid.banks.iter().any(|&(lo, hi)| {
-                (y - lo).abs() < end + 4.0 * MODULE_LENGTH_M
-                    || (hi - y).abs() < end + 4.0 * MODULE_LENGTH_M
-            })
+        // A promotion space in front of the end caps near a bank's edge (where a run ends at a lane; the
+        // inner ends of a split run face a cross-over, which only sometimes falls in this band).
+        let near_bank_edge = |y: f64| {
+            let band = end + 4.0 * MODULE_LENGTH_M;
+            grid.banks
+                .iter()
+                .any(|&(lo, hi)| (y - lo).abs() < band || (hi - y).abs() < band)
         };
         for (y, sign) in [(a, -1.0), (b, 1.0)] {
             let cap = y + sign * END_CAP_DEPTH_M;
             fixed.push(Aabb::new(g, y, g + GONDOLA_DEPTH_M, cap));
             items.push(goods_item(&mut rng, cap, sign, g, g + GONDOLA_DEPTH_M, 1));
             let promo = cap + sign * GOODS_DEPTH_M;
-            if outer(y) {
+            if near_bank_edge(y) {
                 let shapes = [
                     Aabb::new(g, promo, g + GONDOLA_DEPTH_M, promo + sign * PROMO_DEPTH_M),
                     Aabb::new(g + 0.2, promo, g + 1.1, promo + sign * 0.4),
