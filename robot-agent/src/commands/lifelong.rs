@@ -62,7 +62,7 @@ pub struct LifelongArgs {
     #[arg(long)]
     session_duration_s: Option<f64>,
     /// Length cap of the mapping session 0, seconds (default: the whole cleaning route, ~62 min in `store`,
-    /// ~45 min in `aisles`).
+    /// ~54 min in `aisles`).
     #[arg(long)]
     mapping_duration_s: Option<f64>,
 }

@@ -23,7 +23,7 @@ pub struct SimulateArgs {
     /// random start with that day's layout.
     #[arg(long, default_value_t = 0)]
     session: u32,
-    /// Length cap in seconds (session 0 default: the whole cleaning route, ~62 min in `store`, ~45 min in
+    /// Length cap in seconds (session 0 default: the whole cleaning route, ~62 min in `store`, ~54 min in
     /// `aisles`; later sessions: 300 s).
     #[arg(long)]
     max_duration_s: Option<f64>,
