@@ -1,30 +1,44 @@
 //! A seeded simulator of a changing supermarket, for the lifelong experiments (the paper's month in a
 //! store, whose data are not public).
 //!
-//! * [`Store`] lays out a store of [`StoreOptions`] (default 120 m × 90 m = 10,800 m²): outer walls with
-//!   doors, fixed shelf frames in blocks separated by cross aisles, pillars, and movable items — goods on
-//!   every shelf module (protruding 0.1–0.3 m or absent), pallets in aisles, displays and promotion stands,
-//!   doors open or closed. Each movable item changes state between sessions with a fixed probability (a
-//!   seeded Markov chain per item), so the layout of day `k` is reproducible without simulating days
-//!   `0..k` of sensor data. Pedestrians and carts walk the aisles during a session.
-//! * [`Store::session`] drives the robot along a cleaning route — session 0 sweeps every aisle (the mapping
-//!   run); later sessions start in a random aisle and clean for [`SessionOptions::max_duration_s`] — and
-//!   returns the sensor events a recording would hold (SICK TiM571-like scans, drifting wheel odometry,
-//!   a biased gyro) plus ground truth.
+//! * [`Store`] lays out one of two worlds ([`WorldOptions`]), both 120 m × 90 m = 10,800 m² by default:
+//!   - `store` ([`StoreOptions`], the default): a supermarket after typical published floor plans —
+//!     checkouts, entrance and a service desk at the front, refrigerated and frozen cases along the walls,
+//!     service counters at the back, produce islands at the entrance side, gondola runs of different
+//!     lengths with end caps in banks, structural columns on a grid (see [`store_layout`] for the figures
+//!     and what they are based on);
+//!   - `aisles` ([`AislesOptions`]): the adversarial case, blocks of identical shelf rows with pillars at
+//!     some row ends, where from inside an aisle no method can tell which aisle it is in.
+//!
+//!   Both have fixed structure that never moves and movable items — goods on every shelf section
+//!   (protruding in 0.1 m steps or absent), pallets, displays and promotions, cart rows, doors open or
+//!   closed. Each movable item changes state between sessions with a fixed probability (a seeded Markov
+//!   chain per item), so the layout of day `k` is reproducible without simulating days `0..k` of sensor
+//!   data. Pedestrians and carts walk the aisles during a session.
+//! * [`Store::session`] drives the robot along a cleaning route — session 0 drives the whole route once
+//!   (the mapping run); later sessions start at a random place on it and clean for
+//!   [`SessionOptions::max_duration_s`] — and returns the sensor events a recording would hold (SICK
+//!   TiM571-like scans, drifting wheel odometry, a biased gyro) plus ground truth.
 //!
 //! Pure and deterministic: the same options and seed give the same sessions bit for bit.
 
+mod aisles;
+mod aisles_options;
 mod ray_caster;
 mod session_options;
 mod simulated_session;
 mod store;
+pub mod store_layout;
 mod store_options;
+mod world_options;
 
+pub use aisles_options::AislesOptions;
 pub use ray_caster::{Aabb, RayCaster};
 pub use session_options::SessionOptions;
 pub use simulated_session::SimulatedSession;
 pub use store::{ItemKind, Store, TruthOccupancy};
 pub use store_options::StoreOptions;
+pub use world_options::WorldOptions;
 
 /// Errors of the simulator.
 #[derive(Debug, thiserror::Error, Clone, PartialEq)]

@@ -11,3 +11,4 @@ pub mod outbox;
 pub mod process_stats;
 pub mod source;
 pub mod uplink;
+pub mod world;

@@ -2,12 +2,12 @@
 //! people about) start with no prior, relocalize and localize in session 0's frame.
 
 use mapping::metrics::{ScoringOptions, align_to_truth, score_session};
-use mapping::simulation::{SessionOptions, Store, StoreOptions};
+use mapping::simulation::{AislesOptions, SessionOptions, Store};
 use robot_agent::lifelong_run::{SessionInput, SessionsConfig, run_session_inputs};
 
 #[test]
 fn later_sessions_relocalize_and_localize_in_the_session_zero_frame() {
-    let store_options = StoreOptions {
+    let store_options = AislesOptions {
         width: 36.0,
         depth: 24.0,
         blocks: 1,
@@ -16,7 +16,7 @@ fn later_sessions_relocalize_and_localize_in_the_session_zero_frame() {
         doors: 2,
         pedestrians: 3,
         carts: 1,
-        ..StoreOptions::default()
+        ..AislesOptions::default()
     };
     let store = Store::generate(&store_options, 5).expect("store");
     let options = SessionOptions {

@@ -22,7 +22,7 @@ fn ate_rms(
 
 #[test]
 fn tracks_a_simulated_cleaning_run() {
-    let store = Store::generate(&StoreOptions::default(), 3).expect("store");
+    let store = Store::generate(StoreOptions::default(), 3).expect("store");
     let options = SessionOptions {
         max_duration_s: 120.0,
         ..SessionOptions::default()
@@ -46,7 +46,7 @@ fn tracks_a_simulated_cleaning_run() {
 
 #[test]
 fn simulated_sessions_round_trip_through_a_ros_bag() {
-    let store = Store::generate(&StoreOptions::default(), 9).expect("store");
+    let store = Store::generate(StoreOptions::default(), 9).expect("store");
     let options = SessionOptions {
         max_duration_s: 10.0,
         ..SessionOptions::default()

@@ -31,7 +31,7 @@ use mapping::metrics::{
 };
 use mapping::pose_graph::NodeId;
 use mapping::sensor::Timestamp;
-use mapping::simulation::{SessionOptions as SimSessionOptions, Store, StoreOptions};
+use mapping::simulation::{SessionOptions as SimSessionOptions, Store};
 use robot_agent::map_image;
 use robot_agent::outbox::Outbox;
 use robot_agent::source::{ReadReport, Recording};
@@ -39,6 +39,7 @@ use robot_agent::uplink::{
     FleetUplink, GlobalSubmapCache, GrpcUplink, MapUplink as _, SessionOptions, SessionStart,
     Uploader, ZenohLinkOptions, ZenohUplink, follow_site, stream_session,
 };
+use robot_agent::world::World;
 use serde_json::json;
 use server::site::SiteHandle;
 use server::{RobotConfig, RunningServer, ServerConfig, SiteConfig};
@@ -67,6 +68,10 @@ pub struct DemoArgs {
     /// Seed of the store layout, its change schedule and the routes.
     #[arg(long, default_value_t = 1)]
     seed: u64,
+    /// Which simulated world, at 48 × 30 m: `store` (a realistic supermarket) or `aisles` (identical
+    /// shelf rows, adversarial).
+    #[arg(long, value_enum, default_value_t = World::Store)]
+    world: World,
     /// Length of each cleaning session, seconds of simulated time.
     #[arg(long, default_value_t = 90.0)]
     session_duration_s: f64,
@@ -76,21 +81,6 @@ pub struct DemoArgs {
     /// How the agents reach the server: `zenoh` (loopback TCP, peer mode) or `grpc`.
     #[arg(long, default_value = "zenoh", value_parser = ["zenoh", "grpc"])]
     transport: String,
-}
-
-/// The demo's store: the simulator's supermarket at a quarter of the default floor area.
-pub(crate) fn demo_store() -> StoreOptions {
-    StoreOptions {
-        width: 48.0,
-        depth: 30.0,
-        blocks: 2,
-        pallet_slots: 14,
-        display_slots: 10,
-        doors: 3,
-        pedestrians: 4,
-        carts: 2,
-        ..StoreOptions::default()
-    }
 }
 
 /// One session as run by one agent.
@@ -191,7 +181,7 @@ async fn demo(args: &DemoArgs) -> anyhow::Result<()> {
         args.sessions_per_agent
     );
 
-    let world = Store::generate(&demo_store(), args.seed)?;
+    let world = Store::generate(args.world.demo_options(), args.seed)?;
     let sim = SimSessionOptions {
         max_duration_s: args.session_duration_s,
         mapping_max_duration_s: args.mapping_duration_s.unwrap_or(0.0),
@@ -339,6 +329,7 @@ async fn demo(args: &DemoArgs) -> anyhow::Result<()> {
     let (pgr_runs, pgr_mean_ms) = metrics.pgr_mean_ms();
     let summary = json!({
         "site": SITE,
+        "world": args.world.name(),
         "transport": args.transport,
         "final_version": final_version.version,
         "counts": {

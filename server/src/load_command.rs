@@ -39,13 +39,14 @@ use robot_agent::uplink::{
     GlobalSubmapCache, GrpcUplink, MapUplink as _, SessionOptions, Uploader, cached_submaps,
     follow_site_with, match_node, relocalize_nodes, run_llo, stream_recording, sync_matcher,
 };
+use robot_agent::world::World;
 use serde_json::json;
 use server::{RobotConfig, RunningServer, ServerConfig, SiteConfig};
 use storage::{SledStore, SledStoreOptions};
 use tokio::sync::watch;
 
 use crate::command_runtime::{block_on, recreate_dir};
-use crate::demo_command::{MAX_MESSAGE_BYTES, demo_store};
+use crate::demo_command::MAX_MESSAGE_BYTES;
 
 /// Nodes per upload batch (a batch holding a finished submap goes at once).
 const NODES_PER_BATCH: usize = 10;
@@ -74,6 +75,10 @@ pub struct LoadArgs {
     /// Seed of the stores and routes (site `s` uses `seed + s`).
     #[arg(long, default_value_t = 1)]
     seed: u64,
+    /// Which simulated world each site is, at the demo's 48 × 30 m: `store` (a realistic supermarket)
+    /// or `aisles` (identical shelf rows, adversarial).
+    #[arg(long, value_enum, default_value_t = World::Store)]
+    world: World,
     /// Let the server run GLM for every node (the design before GLM moved onto the robots) instead of
     /// the robots sending their own matches.
     #[arg(long)]
@@ -224,7 +229,7 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
         }
     }
     let worlds: Vec<Store> = (0..args.sites)
-        .map(|s| Store::generate(&demo_store(), args.seed + s as u64))
+        .map(|s| Store::generate(args.world.demo_options(), args.seed + s as u64))
         .collect::<Result<_, _>>()?;
 
     // 1. Every site's robot 0 maps its store.
@@ -527,6 +532,7 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
         })
         .collect();
     let report = json!({
+        "world": args.world.name(),
         "agents": args.agents,
         "glm": if args.glm_on_server { "server" } else { "robot" },
         "robot_glm_matches": glm_matches,

@@ -1,11 +1,15 @@
-//! The simulated supermarket: fixed structure, movable items with a per-session schedule, walkers, routes.
+//! The simulated world: fixed structure, movable items with a per-session schedule, walkers, routes. The
+//! floor plans themselves are laid out by [`store_layout`](super::store_layout) (`--world store`) and
+//! [`aisles`](super::aisles) (`--world aisles`).
 
 use nalgebra::{Point2, Vector2};
 use rand::{Rng as _, SeedableRng as _};
 use rand_pcg::Pcg64;
 
+use super::aisles::{self, AislesPlan};
 use super::ray_caster::Aabb;
-use super::{SessionOptions, SimulatedSession, SimulationError, StoreOptions, simulated_session};
+use super::store_layout::{self, StorePlan};
+use super::{SessionOptions, SimulatedSession, SimulationError, WorldOptions, simulated_session};
 use crate::grid::{
     CellIndex, MAX_PROBABILITY, MIN_PROBABILITY, MapLimits, ProbabilityGrid, UNKNOWN_VALUE,
     probability_to_value,
@@ -22,14 +26,41 @@ pub enum ItemKind {
     Display,
     /// A door in the outer wall (present = closed).
     Door,
+    /// A row of nested shopping carts parked at the front (`store` world only).
+    CartRow,
+}
+
+impl ItemKind {
+    /// How many kinds there are (the length of [`Store::items_present`]).
+    pub const COUNT: usize = 5;
 }
 
 /// A movable item: the shapes it can take (`None` = absent) and its schedule.
 #[derive(Clone, Debug)]
-struct MovableItem {
-    kind: ItemKind,
-    variants: Vec<Option<Aabb>>,
-    initial: usize,
+pub(crate) struct MovableItem {
+    pub kind: ItemKind,
+    pub variants: Vec<Option<Aabb>>,
+    pub initial: usize,
+}
+
+/// A floor plan as a layout module produces it: fixed structure, movable items, where to drive.
+#[derive(Clone, Debug)]
+pub(crate) struct Layout {
+    /// Structure that never moves (walls, columns, shelf frames, cases, checkouts, counters).
+    pub fixed: Vec<Aabb>,
+    /// Everything that changes from day to day.
+    pub items: Vec<MovableItem>,
+    /// Routes and walker lanes.
+    pub plan: Plan,
+}
+
+/// Where the robot and the walkers drive, per world.
+#[derive(Clone, Debug)]
+pub(crate) enum Plan {
+    /// The `aisles` world's grid of aisles and cross aisles.
+    Aisles(AislesPlan),
+    /// The `store` world's cleaning tour.
+    Store(StorePlan),
 }
 
 /// A person or cart moving back and forth along a line during a session.
@@ -126,193 +157,73 @@ impl TruthOccupancy {
 /// A seeded supermarket: see the module documentation of [`crate::simulation`].
 #[derive(Clone, Debug)]
 pub struct Store {
-    options: StoreOptions,
+    options: WorldOptions,
     seed: u64,
     fixed: Vec<Aabb>,
     items: Vec<MovableItem>,
-    /// y of every aisle centre line, bottom to top (the first and last are the perimeter aisles).
-    aisle_ys: Vec<f64>,
-    /// x of every cross-aisle centre line, left to right (the first and last are the perimeter aisles).
-    cross_xs: Vec<f64>,
+    plan: Plan,
 }
 
-fn seeded(seed: u64, stream: u64) -> Pcg64 {
+/// A random stream of `seed`, one per purpose (`stream`), so adding draws to one purpose leaves the others
+/// unchanged.
+pub(crate) fn seeded(seed: u64, stream: u64) -> Pcg64 {
     Pcg64::seed_from_u64(seed ^ stream.wrapping_mul(0x9E37_79B9_7F4A_7C15))
 }
 
 impl Store {
-    /// Lays out a store from `options` and `seed`.
-    pub fn generate(options: &StoreOptions, seed: u64) -> Result<Self, SimulationError> {
+    /// Lays out the world `options` names (a [`StoreOptions`](super::StoreOptions) or an
+    /// [`AislesOptions`](super::AislesOptions) converts into one) from `seed`.
+    pub fn generate(options: impl Into<WorldOptions>, seed: u64) -> Result<Self, SimulationError> {
+        let options = options.into();
         options.validate()?;
-        let o = options;
-        let mut rng = seeded(seed, 1);
-        let (w, d, t) = (o.width, o.depth, o.wall_thickness);
-        let mut fixed = Vec::new();
-        let mut items = Vec::new();
-
-        // Outer walls with door gaps.
-        let door_width = 2.0;
-        let mut door_gaps: Vec<(usize, f64)> = Vec::new(); // (wall 0..4, centre along the wall)
-        for k in 0..o.doors {
-            let wall = k % 4;
-            let length = if wall < 2 { w } else { d };
-            let slot = (k / 4 + 1) as f64 / ((o.doors / 4 + 1) as f64 + 1.0);
-            door_gaps.push((wall, (slot * length).clamp(door_width, length - door_width)));
-        }
-        for wall in 0..4 {
-            let length = if wall < 2 { w } else { d };
-            let mut gaps: Vec<f64> = door_gaps
-                .iter()
-                .filter(|g| g.0 == wall)
-                .map(|g| g.1)
-                .collect();
-            gaps.sort_by(f64::total_cmp);
-            let mut from = -t;
-            let mut pieces = Vec::new();
-            for c in &gaps {
-                pieces.push((from, c - door_width / 2.0));
-                from = c + door_width / 2.0;
-            }
-            pieces.push((from, length + t));
-            let rect = |a: f64, b: f64| match wall {
-                0 => Aabb::new(a, -t, b, 0.0),
-                1 => Aabb::new(a, d, b, d + t),
-                2 => Aabb::new(-t, a, 0.0, b),
-                _ => Aabb::new(w, a, w + t, b),
-            };
-            for (a, b) in pieces {
-                if b > a {
-                    fixed.push(rect(a, b));
-                }
-            }
-            for c in gaps {
-                items.push(MovableItem {
-                    kind: ItemKind::Door,
-                    variants: vec![None, Some(rect(c - door_width / 2.0, c + door_width / 2.0))],
-                    initial: rng.random_range(0..2),
-                });
-            }
-        }
-
-        // Blocks, shelf rows, goods modules, pillars.
-        let c = o.cross_aisle_width;
-        let block_width = (w - (o.blocks + 1) as f64 * c) / o.blocks as f64;
-        let shelf = o.frame_depth + 2.0 * o.goods_depth;
-        let pitch = o.row_pitch();
-        let mut rows = Vec::new(); // y of each row's lower edge
-        let mut y = c;
-        while y + shelf <= d - c + 1e-9 {
-            rows.push(y);
-            y += pitch;
-        }
-        let mut aisle_ys = vec![c / 2.0];
-        for pair in rows.windows(2) {
-            aisle_ys.push(0.5 * (pair[0] + shelf + pair[1]));
-        }
-        let last_end = rows.last().map_or(c, |r| r + shelf);
-        aisle_ys.push(last_end + 0.5 * (d - last_end).min(c));
-        let mut cross_xs = vec![c / 2.0];
-        let mut block_xs = Vec::new();
-        for b in 0..o.blocks {
-            let x0 = c + b as f64 * (block_width + c);
-            block_xs.push((x0, x0 + block_width));
-            cross_xs.push(x0 + block_width + c / 2.0);
-        }
-        for &(x0, x1) in &block_xs {
-            for &row in &rows {
-                let frame_lo = row + o.goods_depth;
-                let frame_hi = frame_lo + o.frame_depth;
-                fixed.push(Aabb::new(x0, frame_lo, x1, frame_hi));
-                if rng.random::<f64>() < o.pillar_fraction {
-                    let yc = 0.5 * (frame_lo + frame_hi);
-                    fixed.push(Aabb::new(x0 - 0.6, yc - 0.3, x0, yc + 0.3));
-                    fixed.push(Aabb::new(x1, yc - 0.3, x1 + 0.6, yc + 0.3));
-                }
-                let modules = (block_width / o.module_length).floor().max(1.0) as usize;
-                let module = block_width / modules as f64;
-                for m in 0..modules {
-                    let (a, b) = (x0 + m as f64 * module, x0 + (m + 1) as f64 * module);
-                    for (face, sign) in [(frame_lo, -1.0), (frame_hi, 1.0)] {
-                        let variants = std::iter::once(None)
-                            .chain((1..=3).map(|k| {
-                                let depth = o.goods_depth * f64::from(k) / 3.0;
-                                Some(Aabb::new(a, face, b, face + sign * depth))
-                            }))
-                            .collect();
-                        items.push(MovableItem {
-                            kind: ItemKind::Goods,
-                            variants,
-                            initial: rng.random_range(0..4),
-                        });
-                    }
-                }
-            }
-        }
-
-        // Pallets against shelf faces, in aisles.
-        for _ in 0..o.pallet_slots {
-            let (x0, x1) = block_xs[rng.random_range(0..block_xs.len())];
-            let row = rows[rng.random_range(0..rows.len())];
-            let x = rng.random_range(x0..(x1 - 1.2).max(x0 + 0.01));
-            let (face, sign) = if rng.random::<bool>() {
-                (row + o.goods_depth, -1.0)
-            } else {
-                (row + o.goods_depth + o.frame_depth, 1.0)
-            };
-            items.push(MovableItem {
-                kind: ItemKind::Pallet,
-                variants: vec![None, Some(Aabb::new(x, face, x + 1.2, face + sign * 0.8))],
-                initial: usize::from(rng.random::<f64>() < 0.3),
-            });
-        }
-        // Displays: against the side walls (in the perimeter aisle) and at shelf ends (in cross aisles).
-        for k in 0..o.display_slots {
-            let shape = if k % 2 == 0 {
-                let y = rng.random_range(c..(d - c - 1.0));
-                if rng.random::<bool>() {
-                    Aabb::new(0.0, y, 0.8, y + 1.0)
-                } else {
-                    Aabb::new(w - 0.8, y, w, y + 1.0)
-                }
-            } else {
-                let (x0, x1) = block_xs[rng.random_range(0..block_xs.len())];
-                let row = rows[rng.random_range(0..rows.len())];
-                if rng.random::<bool>() {
-                    Aabb::new(x0 - 0.7, row, x0, row + shelf)
-                } else {
-                    Aabb::new(x1, row, x1 + 0.7, row + shelf)
-                }
-            };
-            items.push(MovableItem {
-                kind: ItemKind::Display,
-                variants: vec![None, Some(shape)],
-                initial: usize::from(rng.random::<f64>() < 0.5),
-            });
-        }
+        let Layout { fixed, items, plan } = match &options {
+            WorldOptions::Store(o) => store_layout::lay_out(o, seed),
+            WorldOptions::Aisles(o) => aisles::lay_out(o, seed),
+        };
         Ok(Self {
-            options: options.clone(),
+            options,
             seed,
             fixed,
             items,
-            aisle_ys,
-            cross_xs,
+            plan,
         })
     }
 
     /// The options the store was generated with.
-    pub fn options(&self) -> &StoreOptions {
+    pub fn options(&self) -> &WorldOptions {
         &self.options
     }
 
     /// Floor area inside the outer walls, m².
     pub fn area_m2(&self) -> f64 {
-        self.options.width * self.options.depth
+        self.options.width() * self.options.depth()
+    }
+
+    /// The static structure: walls, columns, shelf frames, cases, checkouts, counters. It is part of
+    /// [`obstacles`](Self::obstacles) on every day.
+    pub fn structure(&self) -> &[Aabb] {
+        &self.fixed
+    }
+
+    /// The movable items, in the order of [`states`](Self::states).
+    #[cfg(test)]
+    pub(crate) fn movable_items(&self) -> &[MovableItem] {
+        &self.items
+    }
+
+    /// The centre lines of the aisles between shelf rows (perimeter and cross aisles excluded), as
+    /// `(from, to)` segments.
+    pub fn aisles(&self) -> Vec<(Point2<f64>, Point2<f64>)> {
+        match &self.plan {
+            Plan::Aisles(plan) => plan.aisles(),
+            Plan::Store(plan) => plan.aisles(),
+        }
     }
 
     /// The variant each movable item shows in session `session` (a Markov chain per item: each session
     /// an item changes to a different variant with probability `change_probability`).
-    fn states(&self, session: u32) -> Vec<usize> {
-        let p = self.options.change_probability;
+    pub(crate) fn states(&self, session: u32) -> Vec<usize> {
+        let p = self.options.change_probability();
         self.items
             .iter()
             .enumerate()
@@ -341,10 +252,10 @@ impl Store {
         boxes
     }
 
-    /// How many movable items of each kind are present in session `session`: (goods, pallets, displays,
-    /// closed doors).
-    pub fn items_present(&self, session: u32) -> [usize; 4] {
-        let mut counts = [0; 4];
+    /// How many movable items of each kind are present in session `session`, indexed by
+    /// `ItemKind as usize` (goods, pallets, displays, closed doors, cart rows).
+    pub fn items_present(&self, session: u32) -> [usize; ItemKind::COUNT] {
+        let mut counts = [0; ItemKind::COUNT];
         for (item, state) in self.items.iter().zip(self.states(session)) {
             if item.variants[state].is_some() {
                 counts[item.kind as usize] += 1;
@@ -356,9 +267,9 @@ impl Store {
     /// The layout of session `session` rasterized at `resolution` metres (a cell is occupied when its
     /// centre is inside an obstacle).
     pub fn occupancy(&self, session: u32, resolution: f64) -> TruthOccupancy {
-        let t = self.options.wall_thickness + resolution;
-        let width = ((self.options.width + 2.0 * t) / resolution).ceil() as i32;
-        let height = ((self.options.depth + 2.0 * t) / resolution).ceil() as i32;
+        let t = self.options.wall_thickness() + resolution;
+        let width = ((self.options.width() + 2.0 * t) / resolution).ceil() as i32;
+        let height = ((self.options.depth() + 2.0 * t) / resolution).ceil() as i32;
         let limits = MapLimits::new(resolution, Vector2::new(-t, -t), width, height);
         let mut occupied = vec![false; limits.num_cells()];
         for b in self.obstacles(session) {
@@ -380,87 +291,26 @@ impl Store {
 
     /// The pedestrians and carts of session `session`.
     pub(crate) fn walkers(&self, session: u32) -> Vec<Walker> {
-        let o = &self.options;
-        let mut rng = seeded(self.seed, 500_000 + u64::from(session));
-        let n = o.pedestrians + o.carts;
-        (0..n)
-            .map(|k| {
-                let along_aisle = rng.random::<bool>();
-                let offset = if rng.random::<bool>() { 0.6 } else { -0.6 };
-                let (start, end) = if along_aisle {
-                    let y = self.aisle_ys[rng.random_range(0..self.aisle_ys.len())] + offset;
-                    let b = rng.random_range(0..self.cross_xs.len() - 1);
-                    (
-                        Point2::new(self.cross_xs[b], y),
-                        Point2::new(self.cross_xs[b + 1], y),
-                    )
-                } else {
-                    let x = self.cross_xs[rng.random_range(0..self.cross_xs.len())] + offset;
-                    (
-                        Point2::new(x, self.aisle_ys[0]),
-                        Point2::new(x, self.aisle_ys[self.aisle_ys.len() - 1]),
-                    )
-                };
-                Walker {
-                    start,
-                    end,
-                    speed: rng.random_range(0.5..1.3),
-                    phase: rng.random_range(0.0..200.0),
-                    radius: (k < o.pedestrians).then_some(0.25),
-                }
-            })
-            .collect()
+        let (pedestrians, carts) = self.options.walkers();
+        match &self.plan {
+            Plan::Aisles(plan) => plan.walkers(self.seed, session, pedestrians, carts),
+            Plan::Store(plan) => plan.walkers(self.seed, session, pedestrians, carts),
+        }
     }
 
-    /// Aisle centre lines (y) and cross-aisle centre lines (x): where the robot drives.
-    pub fn driving_lines(&self) -> (&[f64], &[f64]) {
-        (&self.aisle_ys, &self.cross_xs)
-    }
-
-    /// The waypoints of a session's route: session 0 sweeps every aisle of every block from the bottom-left
-    /// corner; a later session starts in a random aisle of a random block (`seed`, `session`) and sweeps on
-    /// from there. The route is long enough for any duration (it wraps around the store).
+    /// The waypoints of a session's route, `laps` times around the world's cleaning route (session 0
+    /// from the route's start, later sessions from a seeded random place on it).
     pub(crate) fn route(&self, session: u32, laps: usize) -> Vec<Point2<f64>> {
-        let (ys, xs) = (&self.aisle_ys, &self.cross_xs);
-        let blocks = xs.len() - 1;
-        let (mut block, mut aisle, mut up, mut at_left) = (0, 0, true, true);
-        if session > 0 {
-            let mut rng = seeded(self.seed, 900_000 + u64::from(session));
-            block = rng.random_range(0..blocks);
-            aisle = rng.random_range(0..ys.len());
-            up = rng.random::<bool>();
-            at_left = rng.random::<bool>();
+        match &self.plan {
+            Plan::Aisles(plan) => plan.route(self.seed, session, laps),
+            Plan::Store(plan) => plan.route(self.seed, session, laps),
         }
-        let mut points = Vec::new();
-        let x_of = |block: usize, left: bool| if left { xs[block] } else { xs[block + 1] };
-        points.push(Point2::new(x_of(block, at_left), ys[aisle]));
-        let last = ys.len() - 1;
-        let mut visited_blocks = 0;
-        while visited_blocks < blocks * laps {
-            // Sweep the rest of this block.
-            loop {
-                at_left = !at_left;
-                points.push(Point2::new(x_of(block, at_left), ys[aisle]));
-                let next = if up {
-                    aisle.checked_add(1).filter(|a| *a <= last)
-                } else {
-                    aisle.checked_sub(1)
-                };
-                let Some(next) = next else { break };
-                aisle = next;
-                points.push(Point2::new(x_of(block, at_left), ys[aisle]));
-            }
-            // On to the next block along the perimeter aisle we ended in.
-            visited_blocks += 1;
-            let next_block = (block + 1) % blocks;
-            let target_x = xs[next_block];
-            points.push(Point2::new(target_x, ys[aisle]));
-            block = next_block;
-            at_left = true;
-            up = !up;
-        }
-        points.dedup_by(|a, b| (*a - *b).norm() < 1e-9);
-        points
+    }
+
+    /// One lap of session `session`'s cleaning route: the waypoints the robot drives through, turning in
+    /// place at each (session 0: the whole mapping run).
+    pub fn cleaning_route(&self, session: u32) -> Vec<Point2<f64>> {
+        self.route(session, 1)
     }
 
     /// Simulates session `session` (see [`SimulatedSession`]).

@@ -1,51 +1,45 @@
-//! The layout and change schedule of the simulated supermarket.
+//! Size and dynamics of the `store` world, the simulated supermarket laid out by
+//! [`store_layout`](super::store_layout).
 
 use serde::{Deserialize, Serialize};
 
 use super::SimulationError;
+use super::store_layout::{
+    CASE_DEPTH_M, CHECKSTAND_LENGTH_M, END_CAP_DEPTH_M, FRONT_CORRIDOR_WIDTH_M, GONDOLA_DEPTH_M,
+    GOODS_DEPTH_M, ISLAND_WIDTH_M, MAIN_AISLE_WIDTH_M, MODULE_LENGTH_M, POWER_AISLE_WIDTH_M,
+    PRODUCE_LANE_WIDTH_M, PROMO_DEPTH_M, SERVICE_ZONE_DEPTH_M,
+};
 
-/// Layout and dynamics of a simulated supermarket. All lengths in metres.
-///
-/// The floor is `width × depth` inside the outer walls. Shelf rows run along x in `blocks` blocks separated
-/// by cross aisles; a perimeter aisle runs along the walls. A shelf row is a fixed frame (`frame_depth`)
-/// with a goods zone of `goods_depth` on each face, filled module by module with goods that protrude by a
-/// varying amount or are absent, so what the LiDAR sees of a shelf changes from day to day while the frame
-/// behind stays put.
+/// Size and dynamics of the simulated supermarket (`--world store`). All lengths in metres. The fixture
+/// dimensions (gondola depth, case depth, checkstands, column grid, ...) are the documented constants of
+/// [`store_layout`](super::store_layout); these options choose the floor and how busy and changeable it
+/// is.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct StoreOptions {
-    /// Inner width (x) of the store. Default 120 m.
+    /// Inner width (x, along the front wall) of the store. Default 120 m.
     pub width: f64,
-    /// Inner depth (y) of the store. Default 90 m (10,800 m² with the default width).
+    /// Inner depth (y, front wall to back wall) of the store. Default 90 m (10,800 m², the area the
+    /// lifelong benchmarks have always used).
     pub depth: f64,
     /// Thickness of the outer walls. Default 0.3 m.
     pub wall_thickness: f64,
-    /// Number of shelf blocks along x. Default 3.
-    pub blocks: usize,
-    /// Width of the cross aisles between blocks and of the perimeter aisle. Default 4 m.
-    pub cross_aisle_width: f64,
-    /// Width of the aisles between shelf rows (between goods zones). Default 2.6 m.
+    /// Gondola banks from front to back, separated by cross aisles. Default 2.
+    pub banks: usize,
+    /// Width of the aisles between gondolas (between the goods fronts). Default 2.0 m (typical
+    /// 1.8–2.4 m).
     pub aisle_width: f64,
-    /// Depth of a shelf row's fixed frame. Default 0.8 m.
-    pub frame_depth: f64,
-    /// Depth of the goods zone on each face of a shelf row. Default 0.3 m.
-    pub goods_depth: f64,
-    /// Length of one shelf module (goods change module by module). Default 1.25 m.
-    pub module_length: f64,
-    /// Fraction of shelf rows with a fixed pillar at each end. Default 0.25.
-    pub pillar_fraction: f64,
-    /// Probability that a goods module, pallet, display or door changes state from one session to the
-    /// next. Default 0.12 (after 25 sessions about 96 % of them have changed at least once).
+    /// Probability that a goods module, pallet, display, promotion, cart row or door changes state from
+    /// one session to the next. Default 0.12, as in the `aisles` world.
     pub change_probability: f64,
-    /// Pallet slots (in aisles, against a shelf face); each is occupied or not per session. Default 60.
+    /// Half-pallet slots against gondola faces in the aisles; each is occupied or not per session.
+    /// Default 40.
     pub pallet_slots: usize,
-    /// Display / promotion-stand slots (against walls and shelf ends). Default 40.
+    /// Impulse-display slots along the power aisle in front of the checkouts. Default 16.
     pub display_slots: usize,
-    /// Doors in the outer walls (open or closed per session). Default 6.
-    pub doors: usize,
-    /// Pedestrians walking the aisles during a session. Default 12.
+    /// Pedestrians walking during a session. Default 12.
     pub pedestrians: usize,
-    /// Shopping carts pushed through the aisles during a session. Default 6.
+    /// Shopping carts pushed about during a session. Default 6.
     pub carts: usize,
 }
 
@@ -55,17 +49,11 @@ impl Default for StoreOptions {
             width: 120.0,
             depth: 90.0,
             wall_thickness: 0.3,
-            blocks: 3,
-            cross_aisle_width: 4.0,
-            aisle_width: 2.6,
-            frame_depth: 0.8,
-            goods_depth: 0.3,
-            module_length: 1.25,
-            pillar_fraction: 0.25,
+            banks: 2,
+            aisle_width: 2.0,
             change_probability: 0.12,
-            pallet_slots: 60,
-            display_slots: 40,
-            doors: 6,
+            pallet_slots: 40,
+            display_slots: 16,
             pedestrians: 12,
             carts: 6,
         }
@@ -73,19 +61,14 @@ impl Default for StoreOptions {
 }
 
 impl StoreOptions {
-    /// Checks that every length is positive and the layout fits.
+    /// Checks that lengths are positive, the aisle width is one a robot and shoppers use, and the floor
+    /// has room for the front end, the perimeter, at least two gondolas and every bank.
     pub fn validate(&self) -> Result<(), SimulationError> {
-        let positive = [
+        for (field, v) in [
             ("width", self.width),
             ("depth", self.depth),
             ("wall_thickness", self.wall_thickness),
-            ("cross_aisle_width", self.cross_aisle_width),
-            ("aisle_width", self.aisle_width),
-            ("frame_depth", self.frame_depth),
-            ("goods_depth", self.goods_depth),
-            ("module_length", self.module_length),
-        ];
-        for (field, v) in positive {
+        ] {
             if !(v.is_finite() && v > 0.0) {
                 return Err(SimulationError::InvalidOption {
                     field,
@@ -93,49 +76,69 @@ impl StoreOptions {
                 });
             }
         }
-        for (field, v) in [
-            ("pillar_fraction", self.pillar_fraction),
-            ("change_probability", self.change_probability),
-        ] {
-            if !(0.0..=1.0).contains(&v) {
-                return Err(SimulationError::InvalidOption {
-                    field,
-                    reason: "must be in [0, 1]".into(),
-                });
-            }
-        }
-        if self.blocks == 0 {
+        if !(1.6..=3.0).contains(&self.aisle_width) {
             return Err(SimulationError::InvalidOption {
-                field: "blocks",
+                field: "aisle_width",
+                reason: "must be in [1.6, 3.0] m (a robot and a shopper pass each other)".into(),
+            });
+        }
+        if !(0.0..=1.0).contains(&self.change_probability) {
+            return Err(SimulationError::InvalidOption {
+                field: "change_probability",
+                reason: "must be in [0, 1]".into(),
+            });
+        }
+        if self.banks == 0 {
+            return Err(SimulationError::InvalidOption {
+                field: "banks",
                 reason: "must be at least 1".into(),
             });
         }
-        if self.aisle_width < 1.6 || self.cross_aisle_width < 2.4 {
-            return Err(SimulationError::InvalidOption {
-                field: "aisle_width",
-                reason: "aisles must be at least 1.6 m and cross aisles 2.4 m wide for the robot"
-                    .into(),
-            });
-        }
-        let block_width =
-            (self.width - (self.blocks + 1) as f64 * self.cross_aisle_width) / self.blocks as f64;
-        if block_width < 2.0 * self.module_length {
+        if self.width < self.min_width() {
             return Err(SimulationError::InvalidOption {
                 field: "width",
-                reason: format!("blocks would be {block_width:.2} m wide: too narrow"),
+                reason: format!("must be at least {:.1} m", self.min_width()),
             });
         }
-        if self.depth < 2.0 * self.cross_aisle_width + self.row_pitch() {
+        if self.depth < self.min_depth() {
             return Err(SimulationError::InvalidOption {
                 field: "depth",
-                reason: "no room for a shelf row".into(),
+                reason: format!(
+                    "must be at least {:.1} m for {} banks",
+                    self.min_depth(),
+                    self.banks
+                ),
             });
         }
         Ok(())
     }
 
-    /// Distance between the centre lines of neighbouring shelf rows.
-    pub fn row_pitch(&self) -> f64 {
-        self.frame_depth + 2.0 * self.goods_depth + self.aisle_width
+    /// Distance between neighbouring gondolas' left edges.
+    pub fn gondola_pitch(&self) -> f64 {
+        GONDOLA_DEPTH_M + self.aisle_width
+    }
+
+    /// The narrowest floor: wall cases and a perimeter aisle on each side, eight gondolas, the produce
+    /// department, and room along the front for a few checkouts.
+    fn min_width(&self) -> f64 {
+        2.0 * (CASE_DEPTH_M + MAIN_AISLE_WIDTH_M)
+            + 8.0 * self.gondola_pitch()
+            + 2.0 * ISLAND_WIDTH_M
+            + PRODUCE_LANE_WIDTH_M
+            + MAIN_AISLE_WIDTH_M
+    }
+
+    /// The shallowest floor: the front end, the back service zone and aisle, and banks with gondola runs
+    /// of at least four modules between their end caps.
+    fn min_depth(&self) -> f64 {
+        let end = END_CAP_DEPTH_M + GOODS_DEPTH_M + PROMO_DEPTH_M;
+        let bank = 2.0 * end + 4.0 * MODULE_LENGTH_M;
+        FRONT_CORRIDOR_WIDTH_M
+            + CHECKSTAND_LENGTH_M
+            + POWER_AISLE_WIDTH_M
+            + SERVICE_ZONE_DEPTH_M
+            + MAIN_AISLE_WIDTH_M
+            + self.banks as f64 * bank
+            + (self.banks - 1) as f64 * MAIN_AISLE_WIDTH_M
     }
 }

@@ -4,21 +4,16 @@
 use std::path::PathBuf;
 
 use anyhow::Context as _;
-use clap::{Args, ValueEnum};
-use mapping::simulation::{SessionOptions, Store, StoreOptions};
+use clap::Args;
+use mapping::simulation::{SessionOptions, Store};
+use robot_agent::map_image;
 use robot_agent::source::write_bag;
-
-/// The simulated worlds.
-#[derive(Clone, Copy, Debug, ValueEnum)]
-pub enum World {
-    /// The changing supermarket of `mapping::simulation` (10,800 m²).
-    Store,
-}
+pub use robot_agent::world::World;
 
 /// Arguments of `simulate`.
 #[derive(Args)]
 pub struct SimulateArgs {
-    /// Which world.
+    /// Which world: `store` (a realistic supermarket) or `aisles` (identical shelf rows, adversarial).
     #[arg(long, value_enum, default_value_t = World::Store)]
     world: World,
     /// Seed of the store layout and its change schedule.
@@ -28,18 +23,19 @@ pub struct SimulateArgs {
     /// random start with that day's layout.
     #[arg(long, default_value_t = 0)]
     session: u32,
-    /// Length cap in seconds (session 0 default: the whole sweep, ~45 min; later sessions: 300 s).
+    /// Length cap in seconds (session 0 default: the whole cleaning route, ~62 min in `store`, ~54 min in
+    /// `aisles`; later sessions: 300 s).
     #[arg(long)]
     max_duration_s: Option<f64>,
-    /// The bag to write; the truth goes to `<out>.truth.tum`.
+    /// The bag to write; the truth goes to `<out>.truth.tum` and a picture of the day's layout (static
+    /// structure black, what changes from day to day gray, the route red) to `<out>.layout.png`.
     #[arg(long)]
     out: PathBuf,
 }
 
 /// Runs the command.
 pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
-    let World::Store = args.world;
-    let store = Store::generate(&StoreOptions::default(), args.seed)?;
+    let store = Store::generate(args.world.options(), args.seed)?;
     let mut options = SessionOptions::default();
     if let Some(t) = args.max_duration_s {
         options.max_duration_s = t;
@@ -60,11 +56,17 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
     let truth_file = std::fs::File::create(&truth_path)
         .with_context(|| format!("cannot create {}", truth_path.to_string_lossy()))?;
     mapping::io::tum::write_tum(std::io::BufWriter::new(truth_file), &session.ground_truth)?;
+    let mut layout_path = args.out.clone().into_os_string();
+    layout_path.push(".layout.png");
+    let (w, h, pixels) = map_image::layout_to_rgb(&store, args.session, 0.05);
+    map_image::write_rgb_png(std::path::Path::new(&layout_path), w, h, &pixels)?;
     println!(
         "{}",
         serde_json::json!({
             "bag": args.out.display().to_string(),
             "truth": truth_path.to_string_lossy(),
+            "layout": layout_path.to_string_lossy(),
+            "world": args.world.name(),
             "events": session.events.len(),
             "scans": session.ground_truth.len(),
             "duration_s": session.duration_s,
