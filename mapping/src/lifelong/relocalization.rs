@@ -76,6 +76,13 @@ pub struct RelocalizationOptions {
     /// max-filtered map somewhere with no rival at all (ACES: 0.38–0.40 at poses 30 m off, right answers
     /// from 0.45 up; stacks of scans fit lower as LLO's drift blurs them). Score units. Default 0.4.
     pub min_unfiltered_score: f32,
+    /// Largest shift (metres) of the first scan's own refinement from the pose the whole cloud gave it
+    /// ([`SearchEvidence::first_scan_shift_m`]) for a one-shot answer ([`StartSearch::decide`]): the cloud
+    /// and its first scan are two estimates of one pose, and when they disagree by about the accuracy an
+    /// answer claims, one of them is off by that much. On Intel (10–30 s stacks) the answers the first scan
+    /// alone placed 0.16–0.24 m off had moved 0.150–0.251 m from clouds placed within 0.06 m; right answers
+    /// moved up to 0.113 m, and two more 0.156 and 0.209 m. Default 0.13 m.
+    pub max_first_scan_shift: f64,
     /// Distinct coarse candidates refined at full resolution (count ≥ 1; see [`RelocalizerOptions`]).
     /// Default 8: corridors and shelf rows make coarse maxima ambiguous, and the refinements are cheap
     /// next to the coarse search.
@@ -98,6 +105,7 @@ impl Default for RelocalizationOptions {
             min_disambiguation_z: 3.0,
             min_answer_z: 4.0,
             min_unfiltered_score: 0.4,
+            max_first_scan_shift: 0.13,
             least_squares: LeastSquaresScanMatcherOptions::default(),
         }
     }
@@ -146,6 +154,12 @@ impl RelocalizationOptions {
             return Err(LifelongOptionsError::OutOfRange {
                 field: "min_answer_z",
                 reason: "must be a positive number",
+            });
+        }
+        if !(self.max_first_scan_shift.is_finite() && self.max_first_scan_shift >= 0.0) {
+            return Err(LifelongOptionsError::OutOfRange {
+                field: "max_first_scan_shift",
+                reason: "must be a non-negative number of metres",
             });
         }
         if !(0.0..=1.0).contains(&self.min_unfiltered_score) {
@@ -338,6 +352,9 @@ pub struct SearchEvidence {
     /// `global_from_local` of the whole cloud's best pose, before the first scan's own refinement (the
     /// same as `global_from_local` for one scan).
     pub cloud_global_from_local: Rigid2,
+    /// How far (metres) the first scan's own refinement moved it from where the whole cloud put it: two
+    /// estimates of one pose (0 for one scan).
+    pub first_scan_shift_m: f64,
     /// Branch-and-bound score of the best pose (on the max-filtered map).
     pub score: f32,
     /// Mean probability of the cloud's points at the best pose on the unfiltered map (what candidates are
@@ -351,6 +368,21 @@ pub struct SearchEvidence {
     pub weakest: Option<(f64, f32, [f64; 3])>,
     /// Distinct candidates reaching `min_score`, the best included.
     pub distinct_candidates: usize,
+    /// Points of the merged, thinned cloud.
+    pub cloud_points: usize,
+}
+
+/// How well the merged cloud of some scans fits the map at one given pose ([`StartSearch::fit`]): what a
+/// search could at best find there (for reports: is the truth's fit good at all?).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CloudFit {
+    /// Mean probability of the cloud's points on the unfiltered map (as [`SearchEvidence::sharp_score`]).
+    pub sharp_score: f32,
+    /// Share of the points on cells the map observed (free or occupied), 0–1.
+    pub known_fraction: f64,
+    /// Share of the points within [`RelocalizationOptions::match_tolerance`] of a cell the map holds as
+    /// more likely occupied than not, 0–1: how much of the cloud the map's walls explain there.
+    pub hit_fraction: f64,
     /// Points of the merged, thinned cloud.
     pub cloud_points: usize,
 }
@@ -521,6 +553,8 @@ impl StartSearch {
         Some(SearchEvidence {
             global_from_local: first_pose * first_from_local,
             cloud_global_from_local: best_pose * first_from_local,
+            first_scan_shift_m: (first_pose.translation.vector - best_pose.translation.vector)
+                .norm(),
             score: best_score,
             sharp_score: best_sharp as f32,
             runner_up,
@@ -559,9 +593,40 @@ impl StartSearch {
         {
             return ambiguous((score, offset));
         }
+        if e.first_scan_shift_m > self.options.max_first_scan_shift {
+            // The cloud's pose of the first scan is the rival: it fits the cloud, the refined one the scan.
+            let o = e.global_from_local.inverse() * e.cloud_global_from_local;
+            return ambiguous((e.sharp_score, [o.translation.x, o.translation.y, o.theta()]));
+        }
         RelocalizationOutcome::Found(SessionRelocalization {
             global_from_local: e.global_from_local,
             score: e.score,
+        })
+    }
+
+    /// How the merged cloud of `scans` (as [`Self::evidence`] merges it) fits the map with the scans'
+    /// local frame at `global_from_local`; `None` when there are no points.
+    pub fn fit(
+        &self,
+        scans: &[(Rigid2, Vec<Point2<f32>>)],
+        global_from_local: &Rigid2,
+    ) -> Option<CloudFit> {
+        let (first_from_local, cloud) = merge_scans(scans, self.options.voxel_size)?;
+        let pose = global_from_local * first_from_local.inverse();
+        let sharp = self.sharp.as_ref().unwrap_or(self.relocalizer.fine_grid());
+        let tolerant = self.relocalizer.fine_grid();
+        let share = |keep: &dyn Fn(Point2<f64>) -> bool| {
+            let kept = cloud
+                .iter()
+                .filter(|p| keep(pose * Point2::new(f64::from(p.x), f64::from(p.y))))
+                .count();
+            kept as f64 / cloud.len() as f64
+        };
+        Some(CloudFit {
+            sharp_score: mean_probability(sharp, &cloud, &pose) as f32,
+            known_fraction: share(&|w| sharp.is_known(&sharp.limits().cell_index(&w))),
+            hit_fraction: share(&|w| tolerant.probability(&tolerant.limits().cell_index(&w)) > 0.5),
+            cloud_points: cloud.len(),
         })
     }
 
@@ -646,7 +711,9 @@ fn refine_on_sharp_map(
 mod tests {
     use super::*;
     use crate::geometry::rigid2;
-    use crate::scan_matching::test_support::{ROOM_WALLS, room_grid, wall_points, walls_grid};
+    use crate::scan_matching::test_support::{
+        ROOM_WALLS, room_grid, room_scan, wall_points, walls_grid,
+    };
 
     /// Points every 10 cm along the room's walls seen from `world_from_robot`; the inner walls (goods,
     /// displays) stand `shift` metres further along +y than when the map was made.
@@ -839,6 +906,60 @@ mod tests {
         assert!(error < 0.05, "placed {error} m off");
         assert!((found.global_from_local.theta() - truth.theta()).abs() < 1f64.to_radians());
         assert_eq!(search.decide(None), RelocalizationOutcome::NotFound);
+    }
+
+    #[test]
+    fn a_first_scan_that_disagrees_with_its_cloud_is_refused() {
+        let grid = room_grid();
+        let search = StartSearch::new(&grid, &RelocalizationOptions::default());
+        let cloud_pose = rigid2(2.5, 2.0, 0.3);
+        let evidence = |shift: f64| SearchEvidence {
+            global_from_local: rigid2(2.5 + shift, 2.0, 0.3),
+            cloud_global_from_local: cloud_pose,
+            first_scan_shift_m: shift,
+            score: 0.7,
+            sharp_score: 0.6,
+            runner_up: None,
+            weakest: None,
+            distinct_candidates: 1,
+            cloud_points: 300,
+        };
+        let agreeing = search.decide(Some(&evidence(0.05)));
+        assert!(agreeing.found().is_some(), "{agreeing:?}");
+        let RelocalizationOutcome::Ambiguous {
+            runner_up_from_best,
+            ..
+        } = search.decide(Some(&evidence(0.2)))
+        else {
+            panic!("a first scan 0.2 m from its cloud's pose of it was placed");
+        };
+        // The rival reported is the cloud's pose of the first scan.
+        let [dx, dy, dtheta] = runner_up_from_best;
+        assert!((dx.hypot(dy) - 0.2).abs() < 1e-9, "{runner_up_from_best:?}");
+        assert!(dtheta.abs() < 1e-9, "{runner_up_from_best:?}");
+    }
+
+    #[test]
+    fn the_fit_at_a_pose_tells_mapped_ground_from_unmapped() {
+        let grid = room_grid();
+        let truth = rigid2(2.5, 2.0, 0.3);
+        let scans = vec![(rigid2(1.0, -2.0, 0.5), room_scan(&truth))];
+        let search = StartSearch::new(&grid, &RelocalizationOptions::default());
+        // The scans' local frame at the truth: the first scan lands on the truth.
+        let global_from_local = truth * scans[0].0.inverse();
+        let at_truth = search.fit(&scans, &global_from_local).expect("points");
+        assert!(at_truth.hit_fraction > 0.95, "{at_truth:?}");
+        assert!((at_truth.known_fraction - 1.0).abs() < 1e-9, "{at_truth:?}");
+        assert!(at_truth.sharp_score > 0.8, "{at_truth:?}");
+        // Moved 3 m along x, most of the cloud falls outside the room's known cells.
+        let off = search
+            .fit(&scans, &(rigid2(3.0, 0.0, 0.0) * global_from_local))
+            .expect("points");
+        assert!(off.known_fraction < 0.7, "{off:?}");
+        assert!(off.hit_fraction < 0.4, "{off:?}");
+        assert!(off.sharp_score < at_truth.sharp_score - 0.3, "{off:?}");
+        assert_eq!(at_truth.cloud_points, off.cloud_points);
+        assert!(search.fit(&[], &global_from_local).is_none());
     }
 
     #[test]
