@@ -69,12 +69,15 @@ pub struct RelocalizationOptions {
     /// cannot wait for more data: answers placed metres off passed 3 on the Intel and MIT CSAIL recordings
     /// (z 3.1 and 3.4, single scans) but none passed 4 (BENCHMARKS.md, relocalization with no prior). The
     /// session start keeps `min_disambiguation_z` for its retries (each adds scans, and a session placed
-    /// wrongly is still checked by cross-session matches). Unitless. Default 4.
+    /// wrongly is still checked by cross-session matches). On the 0.7 / 0.45 grids 3 placed an Intel single
+    /// scan 0.21 m off (precision 0.98). Unitless. Default 4.
     pub min_answer_z: f64,
     /// Smallest mean probability of the cloud at the best pose on the unfiltered map for a one-shot answer
     /// ([`StartSearch::decide`]): a cloud from ground the map never saw can reach `min_score` on the
     /// max-filtered map somewhere with no rival at all (ACES: 0.38–0.40 at poses 30 m off, right answers
-    /// from 0.45 up; stacks of scans fit lower as LLO's drift blurs them). Score units. Default 0.4.
+    /// from 0.45 up; stacks of scans fit lower as LLO's drift blurs them). On the sharper 0.7 / 0.45 grids
+    /// right answers refused by it fit 0.30–0.38, but 0.34 placed an ACES scan 29 m off and 0.32 a MIT
+    /// CSAIL 10 s stack metres off (BENCHMARKS.md, session 11). Score units. Default 0.4.
     pub min_unfiltered_score: f32,
     /// Largest shift (metres) of the first scan's own refinement from the pose the whole cloud gave it
     /// ([`SearchEvidence::first_scan_shift_m`]) for a one-shot answer ([`StartSearch::decide`]), which
@@ -352,8 +355,8 @@ pub struct SearchEvidence {
     pub global_from_local: Rigid2,
     /// `global_from_local` with the first scan alone refined on the unfiltered map from where the cloud
     /// put it (the same as `global_from_local` for one scan): a check of the cloud's pose at its start.
-    /// (Answering this pose instead placed 4 Intel and 10 MIT CSAIL 10 s stacks 0.13–0.21 m off whose
-    /// clouds were within 0.07 m, and no stack right that the cloud's pose had wrong but one.)
+    /// (Answering this pose instead placed 2 Intel and 6 MIT CSAIL 10 s stacks 0.16–0.21 m off whose
+    /// clouds were within 0.07 m; the reverse happened once, an Intel cloud 0.24 m off.)
     pub first_scan_global_from_local: Rigid2,
     /// How far (metres) the first scan's own refinement moved it from where the whole cloud put it: two
     /// estimates of one pose (0 for one scan).
