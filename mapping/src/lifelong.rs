@@ -42,7 +42,7 @@ pub use options::{
     LifelongOptions, LifelongOptionsError, ParseTrimPolicyError, SubmapTrimmerOptions, TrimPolicy,
 };
 pub use relocalization::{
-    RelocalizationOptions, RelocalizationOutcome, SearchEvidence, SessionRelocalization,
+    CloudFit, RelocalizationOptions, RelocalizationOutcome, SearchEvidence, SessionRelocalization,
     StartSearch, relocalize_scans_in_grid, relocalize_session_start, render_submaps,
     render_submaps_newest,
 };

@@ -69,13 +69,25 @@ pub struct RelocalizationOptions {
     /// cannot wait for more data: answers placed metres off passed 3 on the Intel and MIT CSAIL recordings
     /// (z 3.1 and 3.4, single scans) but none passed 4 (BENCHMARKS.md, relocalization with no prior). The
     /// session start keeps `min_disambiguation_z` for its retries (each adds scans, and a session placed
-    /// wrongly is still checked by cross-session matches). Unitless. Default 4.
+    /// wrongly is still checked by cross-session matches). On the 0.7 / 0.45 grids 3 placed an Intel single
+    /// scan 0.21 m off (precision 0.98). Unitless. Default 4.
     pub min_answer_z: f64,
     /// Smallest mean probability of the cloud at the best pose on the unfiltered map for a one-shot answer
     /// ([`StartSearch::decide`]): a cloud from ground the map never saw can reach `min_score` on the
     /// max-filtered map somewhere with no rival at all (ACES: 0.38–0.40 at poses 30 m off, right answers
-    /// from 0.45 up; stacks of scans fit lower as LLO's drift blurs them). Score units. Default 0.4.
+    /// from 0.45 up; stacks of scans fit lower as LLO's drift blurs them). On the sharper 0.7 / 0.45 grids
+    /// right answers refused by it fit 0.30–0.38, but 0.34 placed an ACES scan 29 m off and 0.32 a MIT
+    /// CSAIL 10 s stack metres off (BENCHMARKS.md, session 11). Score units. Default 0.4.
     pub min_unfiltered_score: f32,
+    /// Largest shift (metres) of the first scan's own refinement from the pose the whole cloud gave it
+    /// ([`SearchEvidence::first_scan_shift_m`]) for a one-shot answer ([`StartSearch::decide`]), which
+    /// answers the cloud's pose: the cloud and its first scan are two estimates of one pose, and when they
+    /// disagree by much more than the accuracy an answer claims, the stack is bent at its start (LLO's
+    /// drift) or the scan fits better elsewhere, and the cloud's pose of it is not to be trusted either.
+    /// On the Intel and MIT CSAIL recordings (10–30 s stacks, 0.7 / 0.45 grids) the cloud's pose was
+    /// within 0.15 m wherever the shift was at most 0.16 m (and at 0.197 and 0.222 m), and 0.21–0.24 m off
+    /// at shifts of 0.209 m and more. Default 0.18 m.
+    pub max_first_scan_shift: f64,
     /// Distinct coarse candidates refined at full resolution (count ≥ 1; see [`RelocalizerOptions`]).
     /// Default 8: corridors and shelf rows make coarse maxima ambiguous, and the refinements are cheap
     /// next to the coarse search.
@@ -98,6 +110,7 @@ impl Default for RelocalizationOptions {
             min_disambiguation_z: 3.0,
             min_answer_z: 4.0,
             min_unfiltered_score: 0.4,
+            max_first_scan_shift: 0.18,
             least_squares: LeastSquaresScanMatcherOptions::default(),
         }
     }
@@ -146,6 +159,12 @@ impl RelocalizationOptions {
             return Err(LifelongOptionsError::OutOfRange {
                 field: "min_answer_z",
                 reason: "must be a positive number",
+            });
+        }
+        if !(self.max_first_scan_shift.is_finite() && self.max_first_scan_shift >= 0.0) {
+            return Err(LifelongOptionsError::OutOfRange {
+                field: "max_first_scan_shift",
+                reason: "must be a non-negative number of metres",
             });
         }
         if !(0.0..=1.0).contains(&self.min_unfiltered_score) {
@@ -331,13 +350,17 @@ fn merge_scans(
 /// What [`StartSearch::evidence`] found: the best pose and how decisively it beats the others.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SearchEvidence {
-    /// `global_from_local` of the scans' local frame at the best pose, refined on the unfiltered map: the
-    /// cloud's pose, then (with more than one scan) the first scan's alone from there, so that LLO's drift
-    /// over the stack does not blur the first scan's pose.
+    /// `global_from_local` of the scans' local frame at the whole cloud's best pose, refined on the
+    /// unfiltered map: the pose every test of [`StartSearch::decide`] is about, and its answer.
     pub global_from_local: Rigid2,
-    /// `global_from_local` of the whole cloud's best pose, before the first scan's own refinement (the
-    /// same as `global_from_local` for one scan).
-    pub cloud_global_from_local: Rigid2,
+    /// `global_from_local` with the first scan alone refined on the unfiltered map from where the cloud
+    /// put it (the same as `global_from_local` for one scan): a check of the cloud's pose at its start.
+    /// (Answering this pose instead placed 2 Intel and 6 MIT CSAIL 10 s stacks 0.16–0.21 m off whose
+    /// clouds were within 0.07 m; the reverse happened once, an Intel cloud 0.24 m off.)
+    pub first_scan_global_from_local: Rigid2,
+    /// How far (metres) the first scan's own refinement moved it from where the whole cloud put it: two
+    /// estimates of one pose (0 for one scan).
+    pub first_scan_shift_m: f64,
     /// Branch-and-bound score of the best pose (on the max-filtered map).
     pub score: f32,
     /// Mean probability of the cloud's points at the best pose on the unfiltered map (what candidates are
@@ -351,6 +374,21 @@ pub struct SearchEvidence {
     pub weakest: Option<(f64, f32, [f64; 3])>,
     /// Distinct candidates reaching `min_score`, the best included.
     pub distinct_candidates: usize,
+    /// Points of the merged, thinned cloud.
+    pub cloud_points: usize,
+}
+
+/// How well the merged cloud of some scans fits the map at one given pose ([`StartSearch::fit`]): what a
+/// search could at best find there (for reports: is the truth's fit good at all?).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CloudFit {
+    /// Mean probability of the cloud's points on the unfiltered map (as [`SearchEvidence::sharp_score`]).
+    pub sharp_score: f32,
+    /// Share of the points on cells the map observed (free or occupied), 0–1.
+    pub known_fraction: f64,
+    /// Share of the points within [`RelocalizationOptions::match_tolerance`] of a cell the map holds as
+    /// more likely occupied than not, 0–1: how much of the cloud the map's walls explain there.
+    pub hit_fraction: f64,
     /// Points of the merged, thinned cloud.
     pub cloud_points: usize,
 }
@@ -506,7 +544,7 @@ impl StartSearch {
             })
             .min_by(|a, b| a.0.total_cmp(&b.0));
         // LLO drifts over a long stack, which bends the cloud: the first scan alone, refined on the
-        // unfiltered map from where the cloud put it, is placed more precisely.
+        // unfiltered map from where the cloud put it, checks the cloud's pose at the stack's start.
         let first_pose = if scans.len() > 1 {
             let first = &scans[0].1;
             let points = if self.options.voxel_size > 0.0 {
@@ -519,8 +557,10 @@ impl StartSearch {
             best_pose
         };
         Some(SearchEvidence {
-            global_from_local: first_pose * first_from_local,
-            cloud_global_from_local: best_pose * first_from_local,
+            global_from_local: best_pose * first_from_local,
+            first_scan_global_from_local: first_pose * first_from_local,
+            first_scan_shift_m: (first_pose.translation.vector - best_pose.translation.vector)
+                .norm(),
             score: best_score,
             sharp_score: best_sharp as f32,
             runner_up,
@@ -559,9 +599,40 @@ impl StartSearch {
         {
             return ambiguous((score, offset));
         }
+        if e.first_scan_shift_m > self.options.max_first_scan_shift {
+            // The first scan's own pose is the rival: the cloud's pose fits the cloud, it the scan.
+            let o = e.global_from_local.inverse() * e.first_scan_global_from_local;
+            return ambiguous((e.sharp_score, [o.translation.x, o.translation.y, o.theta()]));
+        }
         RelocalizationOutcome::Found(SessionRelocalization {
             global_from_local: e.global_from_local,
             score: e.score,
+        })
+    }
+
+    /// How the merged cloud of `scans` (as [`Self::evidence`] merges it) fits the map with the scans'
+    /// local frame at `global_from_local`; `None` when there are no points.
+    pub fn fit(
+        &self,
+        scans: &[(Rigid2, Vec<Point2<f32>>)],
+        global_from_local: &Rigid2,
+    ) -> Option<CloudFit> {
+        let (first_from_local, cloud) = merge_scans(scans, self.options.voxel_size)?;
+        let pose = global_from_local * first_from_local.inverse();
+        let sharp = self.sharp.as_ref().unwrap_or(self.relocalizer.fine_grid());
+        let tolerant = self.relocalizer.fine_grid();
+        let share = |keep: &dyn Fn(Point2<f64>) -> bool| {
+            let kept = cloud
+                .iter()
+                .filter(|p| keep(pose * Point2::new(f64::from(p.x), f64::from(p.y))))
+                .count();
+            kept as f64 / cloud.len() as f64
+        };
+        Some(CloudFit {
+            sharp_score: mean_probability(sharp, &cloud, &pose) as f32,
+            known_fraction: share(&|w| sharp.is_known(&sharp.limits().cell_index(&w))),
+            hit_fraction: share(&|w| tolerant.probability(&tolerant.limits().cell_index(&w)) > 0.5),
+            cloud_points: cloud.len(),
         })
     }
 
@@ -646,7 +717,9 @@ fn refine_on_sharp_map(
 mod tests {
     use super::*;
     use crate::geometry::rigid2;
-    use crate::scan_matching::test_support::{ROOM_WALLS, room_grid, wall_points, walls_grid};
+    use crate::scan_matching::test_support::{
+        ROOM_WALLS, room_grid, room_scan, wall_points, walls_grid,
+    };
 
     /// Points every 10 cm along the room's walls seen from `world_from_robot`; the inner walls (goods,
     /// displays) stand `shift` metres further along +y than when the map was made.
@@ -839,6 +912,64 @@ mod tests {
         assert!(error < 0.05, "placed {error} m off");
         assert!((found.global_from_local.theta() - truth.theta()).abs() < 1f64.to_radians());
         assert_eq!(search.decide(None), RelocalizationOutcome::NotFound);
+    }
+
+    #[test]
+    fn a_first_scan_that_disagrees_with_its_cloud_is_refused() {
+        let grid = room_grid();
+        let search = StartSearch::new(&grid, &RelocalizationOptions::default());
+        let cloud_pose = rigid2(2.5, 2.0, 0.3);
+        let evidence = |shift: f64| SearchEvidence {
+            global_from_local: cloud_pose,
+            first_scan_global_from_local: rigid2(2.5 + shift, 2.0, 0.3),
+            first_scan_shift_m: shift,
+            score: 0.7,
+            sharp_score: 0.6,
+            runner_up: None,
+            weakest: None,
+            distinct_candidates: 1,
+            cloud_points: 300,
+        };
+        // A small shift is answered with the cloud's pose.
+        let agreeing = search.decide(Some(&evidence(0.05))).found();
+        assert_eq!(agreeing.map(|f| f.global_from_local), Some(cloud_pose));
+        let RelocalizationOutcome::Ambiguous {
+            runner_up_from_best,
+            ..
+        } = search.decide(Some(&evidence(0.25)))
+        else {
+            panic!("a first scan 0.25 m from its cloud's pose of it was placed");
+        };
+        // The rival reported is the first scan's own pose.
+        let [dx, dy, dtheta] = runner_up_from_best;
+        assert!(
+            (dx.hypot(dy) - 0.25).abs() < 1e-9,
+            "{runner_up_from_best:?}"
+        );
+        assert!(dtheta.abs() < 1e-9, "{runner_up_from_best:?}");
+    }
+
+    #[test]
+    fn the_fit_at_a_pose_tells_mapped_ground_from_unmapped() {
+        let grid = room_grid();
+        let truth = rigid2(2.5, 2.0, 0.3);
+        let scans = vec![(rigid2(1.0, -2.0, 0.5), room_scan(&truth))];
+        let search = StartSearch::new(&grid, &RelocalizationOptions::default());
+        // The scans' local frame at the truth: the first scan lands on the truth.
+        let global_from_local = truth * scans[0].0.inverse();
+        let at_truth = search.fit(&scans, &global_from_local).expect("points");
+        assert!(at_truth.hit_fraction > 0.95, "{at_truth:?}");
+        assert!((at_truth.known_fraction - 1.0).abs() < 1e-9, "{at_truth:?}");
+        assert!(at_truth.sharp_score > 0.8, "{at_truth:?}");
+        // Moved 3 m along x, most of the cloud falls outside the room's known cells.
+        let off = search
+            .fit(&scans, &(rigid2(3.0, 0.0, 0.0) * global_from_local))
+            .expect("points");
+        assert!(off.known_fraction < 0.7, "{off:?}");
+        assert!(off.hit_fraction < 0.4, "{off:?}");
+        assert!(off.sharp_score < at_truth.sharp_score - 0.3, "{off:?}");
+        assert_eq!(at_truth.cloud_points, off.cloud_points);
+        assert!(search.fit(&[], &global_from_local).is_none());
     }
 
     #[test]

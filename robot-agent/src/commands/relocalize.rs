@@ -26,7 +26,7 @@ use clap::{Args, ValueEnum};
 use mapping::geometry::Rigid2;
 use mapping::geometry::{Rigid2Ext as _, normalize_angle};
 use mapping::io::relations::{Relation, read_relations};
-use mapping::lifelong::{RelocalizationOutcome, StartSearch};
+use mapping::lifelong::{RelocalizationOutcome, SearchEvidence, StartSearch};
 use mapping::sensor::{SensorEvent, Timestamp};
 use nalgebra::Point2;
 use proto::UploadItem;
@@ -39,6 +39,9 @@ use robot_agent::uplink::run_llo;
 use serde_json::json;
 
 use super::offline::load_config;
+
+/// Scans to relocalize: `(local_from_tracking, points)`, first scan first.
+type Stack = Vec<(Rigid2, Vec<Point2<f32>>)>;
 
 /// Arguments of `relocalize`.
 #[derive(Args)]
@@ -62,9 +65,26 @@ pub struct RelocalizeArgs {
     /// scan, instead of the scan alone (0: the scan alone).
     #[arg(long, default_value_t = 0.0)]
     stack_s: f64,
+    /// While the search refuses, grow the stack by `--grow-step-s` seconds of driving and search again,
+    /// up to this many seconds (as a session start keeps searching while it drives); the report gives the
+    /// stack each answer needed. Off (no growth) unless given.
+    #[arg(long)]
+    grow_to_s: Option<f64>,
+    /// Seconds of driving each growth step adds (with `--grow-to-s`).
+    #[arg(long, default_value_t = 5.0)]
+    grow_step_s: f64,
+    /// With `--grow-to-s`, search every stack length even after an answer (for studying the decision on
+    /// longer stacks; the outcome is still the first answer's, and only its time is counted).
+    #[arg(long)]
+    every_step: bool,
     /// What the answers are scored against (see the module docs).
     #[arg(long, value_enum, default_value_t = Truth::Own)]
     truth: Truth,
+    /// A file holding the map and the truth (written by a first run, read by later ones): the mapping
+    /// runs are the same for every search setting of one recording and `--truth`, and take most of the
+    /// time. The caller keeps files of different recordings, truths or SLAM configurations apart.
+    #[arg(long)]
+    reference: Option<PathBuf>,
     /// The benchmark's relations file (`t1 t2 x y z roll pitch yaw`) to check every sample against too.
     #[arg(long)]
     relations: Option<PathBuf>,
@@ -118,9 +138,18 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
         truth,
         map_poses,
         full_poses,
-    } = match args.truth {
-        Truth::Own => prepare_own(&recording, &config, cut)?,
-        Truth::Aligned => prepare_aligned(&recording, &config, cut)?,
+    } = match &args.reference {
+        Some(path) if path.exists() => Reference::read(path)?,
+        cache => {
+            let reference = match args.truth {
+                Truth::Own => prepare_own(&recording, &config, cut)?,
+                Truth::Aligned => prepare_aligned(&recording, &config, cut)?,
+            };
+            if let Some(path) = cache {
+                reference.write(path)?;
+            }
+            reference
+        }
     };
     config
         .relocalization
@@ -130,6 +159,19 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
         args.stack_s.is_finite() && args.stack_s >= 0.0,
         "--stack-s must be a non-negative number of seconds"
     );
+    anyhow::ensure!(
+        args.grow_step_s.is_finite() && args.grow_step_s > 0.0,
+        "--grow-step-s must be a positive number of seconds"
+    );
+    let grow_to_s = args.grow_to_s.unwrap_or(args.stack_s).max(args.stack_s);
+    anyhow::ensure!(grow_to_s.is_finite(), "--grow-to-s must be finite");
+    // The stack lengths tried, seconds: `stack_s`, then one growth step more each time up to `grow_to_s`.
+    let mut lengths = vec![args.stack_s];
+    while let Some(&last) = lengths.last()
+        && last + args.grow_step_s <= grow_to_s + 1e-9
+    {
+        lengths.push(last + args.grow_step_s);
+    }
     let build_start = Instant::now();
     let search = StartSearch::new(&map, &config.relocalization);
     let precompute_ms = build_start.elapsed().as_secs_f64() * 1e3;
@@ -157,27 +199,79 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
     for &k in &picks {
         let sampled = candidates[k];
         let llo_start = Instant::now();
-        let nodes = local_map(&recording, sampled, args.stack_s, &config.local);
+        let nodes = local_map(&recording, sampled, grow_to_s, &config.local);
         let llo_ms = llo_start.elapsed().as_secs_f64() * 1e3;
         let Some((scored_time, first_local)) = nodes.first().map(|(t, pose, _)| (*t, *pose)) else {
             tally.refused += 1;
             results.push(json!({"time": sampled.to_string(), "answer": "no_scan"}));
             continue;
         };
-        let scans: Vec<(Rigid2, Vec<Point2<f32>>)> = nodes
-            .into_iter()
-            .map(|(_, pose, points)| (pose, points))
-            .collect();
-        let start = Instant::now();
-        let evidence = search.evidence(&scans);
-        let outcome = search.decide(evidence.as_ref());
-        let ms = start.elapsed().as_secs_f64() * 1e3;
+        let truth_pose = truth.get(&scored_time).copied();
+        // The scans' local frame at the truth: what the search should find.
+        let truth_global_from_local = truth_pose.map(|t| t * first_local.inverse());
+        let attempt_error = |global_from_local: &Rigid2| {
+            truth_pose.map(|t| {
+                let p = global_from_local * first_local;
+                (p.translation.vector - t.translation.vector).norm()
+            })
+        };
+        // Search ever longer stacks until the decision answers (one length without `--grow-to-s`); the
+        // time counted is every search until then.
+        let mut ms = 0.0;
+        let mut attempts = Vec::new();
+        let mut decided: Option<(Stack, Option<SearchEvidence>, RelocalizationOutcome, f64)> = None;
+        for (k, &length) in lengths.iter().enumerate() {
+            let end = sampled.offset_by(length);
+            let scans: Stack = nodes
+                .iter()
+                .enumerate()
+                .filter(|(k, (t, _, _))| *k == 0 || *t <= end)
+                .map(|(_, (_, pose, points))| (*pose, points.clone()))
+                .collect();
+            let start = Instant::now();
+            let evidence = search.evidence(&scans);
+            let outcome = search.decide(evidence.as_ref());
+            let attempt_ms = start.elapsed().as_secs_f64() * 1e3;
+            attempts.push(json!({
+                "stack_s": length,
+                "scans": scans.len(),
+                "answer": match outcome {
+                    RelocalizationOutcome::Found(_) => "found",
+                    RelocalizationOutcome::Ambiguous { .. } => "ambiguous",
+                    RelocalizationOutcome::NotFound => "not_found",
+                },
+                "translation_error_m": evidence.as_ref().and_then(|e| attempt_error(&e.global_from_local)),
+                "first_scan_error_m": evidence.as_ref().and_then(|e| attempt_error(&e.first_scan_global_from_local)),
+                "sharp_score": evidence.as_ref().map(|e| e.sharp_score),
+                "runner_up_score": evidence.as_ref().and_then(|e| e.runner_up.map(|r| r.0)),
+                "weakest_z": evidence.as_ref().and_then(|e| e.weakest.map(|w| w.0)),
+                "distinct_candidates": evidence.as_ref().map(|e| e.distinct_candidates),
+                "first_scan_shift_m": evidence.as_ref().map(|e| e.first_scan_shift_m),
+                "truth_fit": truth_global_from_local.and_then(|g| search.fit(&scans, &g)).map(|f| f.sharp_score),
+                "ms": attempt_ms,
+            }));
+            let answered = matches!(outcome, RelocalizationOutcome::Found(_));
+            if decided.is_none() {
+                ms += attempt_ms;
+                if answered || k + 1 == lengths.len() {
+                    decided = Some((scans, evidence, outcome, length));
+                }
+            }
+            if decided.is_some() && !args.every_step {
+                break;
+            }
+        }
+        let Some((scans, evidence, outcome, stack_s_used)) = decided else {
+            unreachable!("the last length always decides");
+        };
         times_ms.push(ms);
-        let Some(&truth_pose) = truth.get(&scored_time) else {
+        let Some(truth_pose) = truth_pose else {
             tally.refused += 1;
             results.push(json!({"time": sampled.to_string(), "answer": "no_truth"}));
             continue;
         };
+        // How the cloud fits at the truth: the best any search could find.
+        let truth_fit = truth_global_from_local.and_then(|g| search.fit(&scans, &g));
         // How far the scan is from where the map's run went: far means its area may not be mapped.
         let nearest_mapped_m = map_poses
             .iter()
@@ -251,7 +345,7 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
             "success": answer == "right",
             "translation_error_m": best_error.map(|e| e.0),
             "error_in_scan_frame": evidence.as_ref().map(|e| error_in_scan_frame(&e.global_from_local)),
-            "cloud_error_in_scan_frame": evidence.as_ref().map(|e| error_in_scan_frame(&e.cloud_global_from_local)),
+            "first_scan_error_in_scan_frame": evidence.as_ref().map(|e| error_in_scan_frame(&e.first_scan_global_from_local)),
             "rotation_error_deg": best_error.map(|e| e.1),
             "score": evidence.as_ref().map(|e| e.score),
             "sharp_score": evidence.as_ref().map(|e| e.sharp_score),
@@ -260,8 +354,14 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
             "weakest_z": evidence.as_ref().and_then(|e| e.weakest.map(|w| w.0)),
             "weakest_score": evidence.as_ref().and_then(|e| e.weakest.map(|w| w.1)),
             "distinct_candidates": evidence.as_ref().map(|e| e.distinct_candidates),
+            "first_scan_shift_m": evidence.as_ref().map(|e| e.first_scan_shift_m),
             "cloud_points": evidence.as_ref().map(|e| e.cloud_points),
             "scans_stacked": scans.len(),
+            "stack_s_used": stack_s_used,
+            "attempts": attempts,
+            "truth_sharp_score": truth_fit.map(|f| f.sharp_score),
+            "truth_known_fraction": truth_fit.map(|f| f.known_fraction),
+            "truth_hit_fraction": truth_fit.map(|f| f.hit_fraction),
             "ms": ms,
             "llo_ms": llo_ms,
             "nearest_mapped_m": nearest_mapped_m,
@@ -278,6 +378,8 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
     let report = json!({
         "input": args.input.display().to_string(),
         "stack_s": args.stack_s,
+        "grow_to_s": args.grow_to_s,
+        "grow_step_s": args.grow_to_s.map(|_| args.grow_step_s),
         "samples": n,
         "success_rate": tally.right as f64 / n as f64,
         "precision": if answered > 0 { tally.right as f64 / answered as f64 } else { 1.0 },
@@ -327,6 +429,63 @@ struct Reference {
     /// Every scan's pose in the full run (its own frame), in time order: its short-range relative motion
     /// bridges from a relation's stamp to a nearby sampled scan.
     full_poses: Vec<(Timestamp, Rigid2)>,
+}
+
+/// A pose as `[x, y, θ]` (m, m, rad), for the reference file.
+fn to_xyt(pose: &Rigid2) -> [f64; 3] {
+    [pose.translation.x, pose.translation.y, pose.theta()]
+}
+
+fn from_xyt([x, y, theta]: [f64; 3]) -> Rigid2 {
+    mapping::geometry::rigid2(x, y, theta)
+}
+
+/// [`Reference`] as stored by `--reference`.
+#[derive(serde::Serialize, serde::Deserialize)]
+struct StoredReference {
+    limits: mapping::grid::MapLimits,
+    cells: Vec<u16>,
+    truth: Vec<(Timestamp, [f64; 3])>,
+    map_poses: Vec<(Timestamp, [f64; 3])>,
+    full_poses: Vec<(Timestamp, [f64; 3])>,
+}
+
+impl Reference {
+    fn write(&self, path: &std::path::Path) -> anyhow::Result<()> {
+        let poses = |v: &[(Timestamp, Rigid2)]| v.iter().map(|(t, p)| (*t, to_xyt(p))).collect();
+        let stored = StoredReference {
+            limits: self.map.limits().clone(),
+            cells: self.map.values().to_vec(),
+            truth: self.truth.iter().map(|(t, p)| (*t, to_xyt(p))).collect(),
+            map_poses: poses(&self.map_poses),
+            full_poses: poses(&self.full_poses),
+        };
+        std::fs::write(path, serde_json::to_string(&stored)?)
+            .with_context(|| format!("cannot write {}", path.display()))
+    }
+
+    fn read(path: &std::path::Path) -> anyhow::Result<Self> {
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("cannot read {}", path.display()))?;
+        let stored: StoredReference = serde_json::from_str(&text)
+            .with_context(|| format!("invalid reference file {}", path.display()))?;
+        let mut map = mapping::grid::ProbabilityGrid::new(stored.limits);
+        anyhow::ensure!(
+            map.values().len() == stored.cells.len(),
+            "invalid reference file {}: the cells do not fill the map",
+            path.display()
+        );
+        map.values_mut().copy_from_slice(&stored.cells);
+        let poses = |v: Vec<(Timestamp, [f64; 3])>| -> Vec<(Timestamp, Rigid2)> {
+            v.into_iter().map(|(t, p)| (t, from_xyt(p))).collect()
+        };
+        Ok(Self {
+            map,
+            truth: poses(stored.truth).into_iter().collect(),
+            map_poses: poses(stored.map_poses),
+            full_poses: poses(stored.full_poses),
+        })
+    }
 }
 
 /// `--truth own`: one run of the whole recording; the map is its nodes before `cut` re-inserted at their
