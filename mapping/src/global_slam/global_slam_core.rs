@@ -943,13 +943,13 @@ impl GlobalSlam {
         let mut changed = 0;
         for state in &mut self.closure_states {
             let constraint = match state {
-                ClosureState::InGraph(id) => match self.graph.constraint(*id) {
-                    Some(c) => c.clone(),
-                    None => {
+                ClosureState::InGraph(id) => {
+                    let Some(c) = self.graph.constraint(*id) else {
                         *state = ClosureState::Gone; // its node or submap was trimmed
                         continue;
-                    }
-                },
+                    };
+                    c.clone()
+                }
                 ClosureState::Retracted(c) => c.clone(),
                 ClosureState::Gone => continue,
             };
@@ -962,11 +962,9 @@ impl GlobalSlam {
             };
             let fits = constraint.chi2(&from, &to) <= max_chi2;
             match state {
-                ClosureState::InGraph(id) if !fits => {
-                    if self.graph.remove_constraint(*id).is_ok() {
-                        *state = ClosureState::Retracted(constraint);
-                        changed += 1;
-                    }
+                ClosureState::InGraph(id) if !fits && self.graph.remove_constraint(*id).is_ok() => {
+                    *state = ClosureState::Retracted(constraint);
+                    changed += 1;
                 }
                 ClosureState::Retracted(_) if fits => {
                     if let Ok(id) = self.graph.add_constraint(constraint) {
