@@ -18,9 +18,8 @@ use std::time::Instant;
 use mapping::geometry::{Rigid2, Rigid2Ext as _};
 use mapping::grid::ProbabilityGrid;
 use mapping::lifelong::{
-    GraphCounts, LifelongError, LifelongEvent, LifelongMap, LifelongOptions, RelocalizationOptions,
-    RelocalizationOutcome, RevokeReason, SessionStart, SessionStartEvent, SessionStartOptions,
-    StartSearch, render_submaps,
+    GraphCounts, LifelongError, LifelongEvent, LifelongMap, LifelongOptions, RelocalizationOutcome,
+    RevokeReason, SessionStart, SessionStartEvent, StartSearch, render_submaps,
 };
 use mapping::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
 use mapping::metrics::{MatchScorer, Placement, ScoringOptions, SessionTrack};
@@ -38,12 +37,9 @@ use crate::source::Recording;
 pub struct SessionsConfig {
     /// Local LiDAR odometry (LLO), restarted for every session.
     pub local: LocalTrajectoryBuilderOptions,
-    /// The lifelong map (global SLAM, trimming, policy).
+    /// The lifelong map (global SLAM, the session start — `[lifelong.relocalization]` and
+    /// `[lifelong.session_start]` —, trimming, policy).
     pub lifelong: LifelongOptions,
-    /// The whole-map search of a session's start.
-    pub relocalization: RelocalizationOptions,
-    /// Hold-back, retries and probation of a session's start ([`SessionStart`]).
-    pub session_start: SessionStartOptions,
     /// What the scores count, and the window AMS searches each node's match in.
     pub scoring: ScoringOptions,
 }
@@ -53,8 +49,6 @@ impl Default for SessionsConfig {
         Self {
             local: LocalTrajectoryBuilderOptions::default(),
             lifelong: LifelongOptions::default(),
-            relocalization: RelocalizationOptions::default(),
-            session_start: SessionStartOptions::default(),
             scoring: ScoringOptions::default(),
         }
     }
@@ -315,15 +309,7 @@ pub fn run_session_inputs(
         .validate()
         .map_err(|e| SessionsError::Config(e.to_string()))?;
     config
-        .relocalization
-        .validate()
-        .map_err(|e| SessionsError::Config(e.to_string()))?;
-    config
         .scoring
-        .validate()
-        .map_err(|e| SessionsError::Config(e.to_string()))?;
-    config
-        .session_start
         .validate()
         .map_err(|e| SessionsError::Config(e.to_string()))?;
     let map = LifelongMap::new(config.lifelong.clone())?;
@@ -519,7 +505,7 @@ fn worker(
     receiver: &mpsc::Receiver<Message>,
     on_session_end: &mut (dyn FnMut(&SessionEnd<'_>) + Send),
 ) -> Result<WorkerOutput, SessionsError> {
-    let relocalization = &config.relocalization;
+    let relocalization = &config.lifelong.relocalization;
     let mut sessions: Vec<SessionSummary> = Vec::new();
     let mut retired: BTreeMap<NodeId, Rigid2> = BTreeMap::new();
     let mut records: Vec<SessionRecord> = Vec::new();
@@ -554,7 +540,7 @@ fn worker(
                         .as_ref()
                         .map(|grid| StartSearch::new(grid, relocalization));
                     start = Some(
-                        SessionStart::new(config.session_start.clone(), search)
+                        SessionStart::new(config.lifelong.session_start.clone(), search)
                             .map_err(|e| SessionsError::Config(e.to_string()))?,
                     );
                 }
