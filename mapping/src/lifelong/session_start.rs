@@ -20,9 +20,12 @@
 //!    trims nothing. It is committed once [`SessionStartOptions::probation_matches`] *independent*
 //!    matches agree with it: matches of nodes at least [`SessionStartOptions::probation_min_separation_m`]
 //!    apart along the route (and that far past the node the placement was decided at, whose cloud placed
-//!    it), each against a different submap. A match agrees when the node pose it implies lies within
-//!    `agreement_translation_m` (+ `agreement_growth` per metre of route from the placement's node, for
-//!    LLO's drift) and `agreement_rotation_rad` of the node's pose under the placement.
+//!    it), against at least [`SessionStartOptions::probation_min_submaps`] different submaps (a finished
+//!    submap spans tens of metres of an aisle, so one per match would wait for most of a session). A
+//!    match agrees when the node pose it implies lies within `agreement_translation_m` (+
+//!    `agreement_growth` per metre of route from the placement's node, for LLO's drift) and
+//!    `agreement_rotation_rad` of the node's pose under the placement: the same place at the scale of
+//!    the look-alike places it must tell apart (an aisle pitch), while GLM refines the pose.
 //!    [`SessionStartOptions::probation_disagreements`] independent disagreeing matches, or
 //!    `probation_timeout_m` of route without a commit, revoke the placement and searching resumes (a
 //!    search that finds a revoked placement again is refused).
@@ -62,15 +65,20 @@ pub struct SessionStartOptions {
     /// Independent agreeing matches that commit a placement (count; 0 = commit as soon as placed).
     /// Default 3.
     pub probation_matches: usize,
-    /// Two matches are independent when their nodes lie at least this far apart along the route and they
-    /// match different submaps; an agreeing match must also lie this far past the node the placement was
-    /// decided at. Metres ≥ 0. Default 3 m.
+    /// Two matches are independent when their nodes lie at least this far apart along the route; an
+    /// agreeing match must also lie this far past the node the placement was decided at. Metres ≥ 0.
+    /// Default 3 m.
     pub probation_min_separation_m: f64,
+    /// The agreeing matches that commit a placement must be of at least this many different submaps
+    /// (count ≥ 1; capped by `probation_matches`). Default 2.
+    pub probation_min_submaps: usize,
     /// A match agrees when the node position it implies lies within this of the node's position under the
-    /// placement (plus `agreement_growth` per metre of route). Metres > 0. Default 0.3 m (the CRI
-    /// tolerance).
+    /// placement (plus `agreement_growth` per metre of route). Metres > 0. Default 1 m: a quarter of the
+    /// simulated store's aisle pitch (4 m), so a placement in the next aisle disagrees, while a placement
+    /// a few decimetres off along a corridor, which GLM then pulls into place, agrees (MIT CSAIL's second
+    /// session starts 0.6 m off along a corridor).
     pub agreement_translation_m: f64,
-    /// ... and its heading within this. Radians > 0. Default 3°.
+    /// ... and its heading within this. Radians > 0. Default 5° (the wrong-placement bound of the scores).
     pub agreement_rotation_rad: f64,
     /// Growth of the translation tolerance per metre of route between the placement's node and the
     /// matched node (LLO's drift), metres per metre ≥ 0. Default 0.01.
@@ -95,8 +103,9 @@ impl Default for SessionStartOptions {
             give_up_after_nodes: 0,
             probation_matches: 3,
             probation_min_separation_m: 3.0,
-            agreement_translation_m: 0.3,
-            agreement_rotation_rad: 3f64.to_radians(),
+            probation_min_submaps: 2,
+            agreement_translation_m: 1.0,
+            agreement_rotation_rad: 5f64.to_radians(),
             agreement_growth: 0.01,
             probation_disagreements: 2,
             probation_timeout_m: 60.0,
@@ -121,6 +130,9 @@ impl SessionStartOptions {
                 "probation_min_separation_m",
                 "must be a non-negative number of metres",
             );
+        }
+        if self.probation_min_submaps == 0 {
+            return out_of_range("probation_min_submaps", "must be at least 1");
         }
         if !(self.agreement_translation_m.is_finite() && self.agreement_translation_m > 0.0) {
             return out_of_range(
@@ -399,7 +411,15 @@ impl SessionStart {
             {
                 self.agreeing.push(counted);
             }
-            if self.agreeing.len() >= self.options.probation_matches {
+            let mut submaps: Vec<SubmapId> = self.agreeing.iter().map(|c| c.submap).collect();
+            submaps.sort_unstable();
+            submaps.dedup();
+            let min_submaps = self
+                .options
+                .probation_min_submaps
+                .min(self.options.probation_matches);
+            if self.agreeing.len() >= self.options.probation_matches && submaps.len() >= min_submaps
+            {
                 self.state = SessionStartState::Committed(placement);
                 self.cloud.clear();
                 return vec![SessionStartEvent::Committed { placement, node }];
@@ -527,12 +547,11 @@ impl SessionStart {
     }
 }
 
-/// Whether `candidate` is at least `separation` metres along the route from, and of another submap
-/// than, every match in `counted`.
+/// Whether `candidate` is at least `separation` metres along the route from every match in `counted`.
 fn independent(counted: &[Counted], candidate: Counted, separation: f64) -> bool {
     counted
         .iter()
-        .all(|c| (c.path_m - candidate.path_m).abs() >= separation && c.submap != candidate.submap)
+        .all(|c| (c.path_m - candidate.path_m).abs() >= separation)
 }
 
 #[cfg(test)]

@@ -13,6 +13,8 @@ fn options() -> SessionStartOptions {
         retry_every_n_nodes: 4,
         probation_matches: 2,
         probation_min_separation_m: 1.0,
+        agreement_translation_m: 0.3,
+        agreement_rotation_rad: 3f64.to_radians(),
         probation_timeout_m: 0.0,
         ..SessionStartOptions::default()
     }
@@ -109,12 +111,13 @@ fn a_placement_is_committed_after_independent_agreeing_matches() {
     // Node 1 lies only 0.5 m past the placement's node: its cloud placed the session.
     assert!(start.add_match(1, agreeing(1), submap(0)).is_empty());
     assert!(start.add_match(4, agreeing(4), submap(1)).is_empty());
-    // Another match of the same submap, and one 0.5 m from the counted one, are not independent.
+    // Another of the same submap counts, but two submaps are needed; one 0.5 m from a counted one is
+    // not independent.
     assert!(start.add_match(10, agreeing(10), submap(1)).is_empty());
     assert!(start.add_match(5, agreeing(5), submap(2)).is_empty());
-    let events = start.add_match(9, agreeing(9), submap(3));
-    let [SessionStartEvent::Committed { placement, node: 9 }] = events[..] else {
-        panic!("committed by the second independent match: {events:?}");
+    let events = start.add_match(7, agreeing(7), submap(3));
+    let [SessionStartEvent::Committed { placement, node: 7 }] = events[..] else {
+        panic!("committed by an independent match of a second submap: {events:?}");
     };
     assert_eq!(placement.global_from_local, placed);
     assert!(start.is_committed());
