@@ -86,8 +86,11 @@ pub struct SessionStartOptions {
     /// Independent disagreeing matches that revoke a placement (count ≥ 1). Default 2: one false match
     /// does not undo a placement, two independent ones do.
     pub probation_disagreements: usize,
-    /// Revoke a placement not committed after this much route past its node, metres (0 = never): a
-    /// placement nothing confirms is not kept forever, and searching resumes. Default 60 m.
+    /// Revoke a placement not committed after this much route past its node, metres (0 = never), and
+    /// search again. Default 0: a placement nothing confirms stays on probation (it trims nothing and is
+    /// dropped at the session's end); with 60 m, MIT CSAIL's second session — placed 0.6 m off along a
+    /// corridor, 10 cross-session matches in its first 60 m, none far enough apart — was revoked and
+    /// never placed again.
     pub probation_timeout_m: f64,
     /// A search answer within this distance (metres, at the latest node) and `agreement_rotation_rad` of
     /// a revoked placement is refused as that placement again. Metres ≥ 0. Default 1 m.
@@ -108,7 +111,7 @@ impl Default for SessionStartOptions {
             agreement_rotation_rad: 5f64.to_radians(),
             agreement_growth: 0.01,
             probation_disagreements: 2,
-            probation_timeout_m: 60.0,
+            probation_timeout_m: 0.0,
             revoked_radius_m: 1.0,
         }
     }
