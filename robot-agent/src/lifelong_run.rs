@@ -32,7 +32,7 @@ use crate::offline_slam::run_searches;
 use crate::source::Recording;
 
 /// Configuration of a multi-session run; one TOML file, every field optional.
-#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct SessionsConfig {
     /// Local LiDAR odometry (LLO), restarted for every session.
@@ -42,16 +42,6 @@ pub struct SessionsConfig {
     pub lifelong: LifelongOptions,
     /// What the scores count, and the window AMS searches each node's match in.
     pub scoring: ScoringOptions,
-}
-
-impl Default for SessionsConfig {
-    fn default() -> Self {
-        Self {
-            local: LocalTrajectoryBuilderOptions::default(),
-            lifelong: LifelongOptions::default(),
-            scoring: ScoringOptions::default(),
-        }
-    }
 }
 
 /// Errors of a multi-session run.
