@@ -29,6 +29,7 @@ mod map_change;
 mod map_matcher;
 mod options;
 mod relocalization;
+mod session_start;
 mod submap_trimmer;
 #[cfg(test)]
 mod tests;
@@ -45,5 +46,9 @@ pub use relocalization::{
     CloudFit, RelocalizationOptions, RelocalizationOutcome, SearchEvidence, SessionRelocalization,
     StartSearch, relocalize_scans_in_grid, relocalize_session_start, render_submaps,
     render_submaps_newest,
+};
+pub use session_start::{
+    RevokeReason, SessionStart, SessionStartEvent, SessionStartOptions, SessionStartState,
+    StartPlacement,
 };
 pub use submap_trimmer::{PlacedGrid, covered_fraction};

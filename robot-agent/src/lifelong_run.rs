@@ -1,23 +1,25 @@
 //! One recording run as several time sessions through the lifelong map (`evermap-agent sessions`).
 //!
 //! The recording is cut into `split` equal spans of time. Each span is a session: LLO starts afresh (its
-//! own local frame, no knowledge of the others), and the session starts on the map with no prior: its
-//! first few nodes are merged and relocalized against the map of the earlier sessions
-//! ([`relocalize_session_start`]); then its nodes localize by GLM against the older sessions' submaps
-//! while its own submaps join the map, and at its end stale submaps are trimmed per the policy.
+//! own local frame, no knowledge of the others), and the session starts on the map with no prior: a
+//! [`SessionStart`] decides where (its first few nodes merged and searched over the map of the earlier
+//! sessions, retries while unplaced, probation until GLM matches along the route agree with the
+//! placement); this shell only feeds it nodes and matches and acts on its events. Its nodes localize by
+//! GLM against the older sessions' submaps while its own submaps join the map, and at its end stale
+//! submaps are trimmed per the policy (by a session whose placement was committed).
 //!
 //! As in `offline_slam`, LLO runs on the calling thread and the map (relocalization, GLM searches on two
 //! threads, optimization, trimming) on a named worker thread fed through a bounded channel.
 
-use std::collections::{BTreeMap, VecDeque};
+use std::collections::BTreeMap;
 use std::sync::mpsc;
 use std::time::Instant;
 
 use mapping::geometry::{Rigid2, Rigid2Ext as _};
 use mapping::grid::ProbabilityGrid;
 use mapping::lifelong::{
-    GraphCounts, LifelongError, LifelongEvent, LifelongMap, LifelongOptions, RelocalizationOptions,
-    RelocalizationOutcome, StartSearch, relocalize_session_start, render_submaps,
+    GraphCounts, LifelongError, LifelongEvent, LifelongMap, LifelongOptions, RelocalizationOutcome,
+    RevokeReason, SessionStart, SessionStartEvent, StartSearch, render_submaps,
 };
 use mapping::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
 use mapping::metrics::{MatchScorer, Placement, ScoringOptions, SessionTrack};
@@ -29,44 +31,17 @@ use serde::{Deserialize, Serialize};
 use crate::offline_slam::run_searches;
 use crate::source::Recording;
 
-/// The cloud an unplaced session searches again with holds at most its latest this many nodes (about
-/// 80 m of driving): beyond that LLO's drift across the cloud outgrows the match tolerance.
-const MAX_SEARCH_AGAIN_NODES: usize = 400;
-
 /// Configuration of a multi-session run; one TOML file, every field optional.
-#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct SessionsConfig {
     /// Local LiDAR odometry (LLO), restarted for every session.
     pub local: LocalTrajectoryBuilderOptions,
-    /// The lifelong map (global SLAM, trimming, policy).
+    /// The lifelong map (global SLAM, the session start — `[lifelong.relocalization]` and
+    /// `[lifelong.session_start]` —, trimming, policy).
     pub lifelong: LifelongOptions,
-    /// Session-start relocalization.
-    pub relocalization: RelocalizationOptions,
-    /// How many of a session's first nodes are merged into the cloud that is relocalized (count ≥ 1).
-    /// Default 10.
-    pub relocalization_nodes: usize,
-    /// While a session is still unplaced (its start did not relocalize and no GLM match placed it), search
-    /// the whole map again with every node since its start ([`StartSearch::search_again`]) after this many
-    /// nodes, then after twice, four times, ... as many (count; 0 = never). Each retry searches the whole
-    /// map, so the doubling keeps a session that cannot be placed from spending its time relocalizing.
-    /// Default 20.
-    pub relocalization_retry_every_n_nodes: usize,
     /// What the scores count, and the window AMS searches each node's match in.
     pub scoring: ScoringOptions,
-}
-
-impl Default for SessionsConfig {
-    fn default() -> Self {
-        Self {
-            local: LocalTrajectoryBuilderOptions::default(),
-            lifelong: LifelongOptions::default(),
-            relocalization: RelocalizationOptions::default(),
-            relocalization_nodes: 10,
-            relocalization_retry_every_n_nodes: 20,
-            scoring: ScoringOptions::default(),
-        }
-    }
 }
 
 /// Errors of a multi-session run.
@@ -97,13 +72,20 @@ pub struct SessionSummary {
     pub scans: usize,
     /// Nodes the session added.
     pub nodes_added: usize,
-    /// Whether session-start relocalization found a pose (always false for session 0).
+    /// Whether the first whole-map search (after the hold-back) placed the session (always false for
+    /// session 0).
     pub relocalized: bool,
-    /// Relocalization retries while the session was unplaced.
+    /// Whole-map searches after the first (retries while the session was unplaced).
     pub relocalization_retries: usize,
-    /// The node index at which a retry or the disambiguation of an ambiguous start placed the session,
-    /// if one did.
+    /// The node index at which a retry placed the session (tentatively), if one did.
     pub placed_by_retry_at_node: Option<usize>,
+    /// The node index at which the session's placement was committed (probation passed), if it was.
+    pub committed_at_node: Option<usize>,
+    /// Placements revoked during the session (probation failed: `disagreement` or `timeout`), in order.
+    pub revoked: Vec<String>,
+    /// Whether the session ended with its placement still on probation (then dropped, like an unplaced
+    /// session).
+    pub ended_on_probation: bool,
     /// The time of that node: the session was not localized before it.
     pub placed_at_time: Option<Timestamp>,
     /// Its branch-and-bound score.
@@ -115,12 +97,14 @@ pub struct SessionSummary {
     pub relocalization_ambiguity: Option<[f32; 2]>,
     /// When refused as ambiguous, the runner-up pose in the best pose's frame `[x, y, θ]` (m, m, rad).
     pub relocalization_runner_up_from_best: Option<[f64; 3]>,
-    /// Wall time of the relocalization, milliseconds.
+    /// Wall time of the first whole-map search, milliseconds.
     pub relocalization_ms: f64,
+    /// Wall time of every whole-map search of the session, milliseconds.
+    pub relocalization_ms_total: f64,
     /// Distance (m) between the relocalized pose of the session's first node and its final estimate
     /// (how far off relocalization was, judged by the finished map).
     pub relocalization_offset_m: Option<f64>,
-    /// Whether the session ended placed in the map (by relocalization or a later match).
+    /// Whether the session ended placed in the map with its placement committed.
     pub placed: bool,
     /// GLM constraints accepted during the session between its nodes and older sessions' submaps.
     pub cross_session_closures: usize,
@@ -174,13 +158,13 @@ pub struct SessionRecord {
     pub start_time: Timestamp,
     /// `map_from_base` of each matched scan as the robot estimated it at that scan: its node's global
     /// pose right after the map took the node in (its matches and any placement included), composed with
-    /// LLO's motion since. Only scans after the session committed to a placement have one (session 0:
-    /// every scan).
+    /// LLO's motion since. Only scans while the session was placed (on probation — the robot navigates
+    /// with a tentative placement too — or committed) have one (session 0: every scan).
     pub online: Vec<(Timestamp, Rigid2)>,
     /// `map_from_base` of each matched scan when the session ended (after its final optimization).
     pub smoothed: Vec<(Timestamp, Rigid2)>,
-    /// The placement the session committed to (`None`: never placed, and session 0, which defines the
-    /// map).
+    /// The placement the session committed to (`None`: never committed, and session 0, which defines
+    /// the map): [`SessionStartEvent::Committed`]'s, decided at the scan whose match committed it.
     pub placement: Option<Placement>,
     /// Per node, in order, its branch-and-bound score ([`MatchScorer`], within the scoring's match window
     /// of the robot's estimate) against the map of the finished sessions rendered when the session
@@ -237,10 +221,6 @@ enum Message {
         session: u32,
         /// The session's first event.
         start_time: Timestamp,
-        first_time: Option<Timestamp>,
-        /// The scan time of the last held-back node (when the start decision is taken).
-        decided_time: Option<Timestamp>,
-        first_scans: Vec<(Rigid2, Vec<Point2<f32>>)>,
     },
     Node {
         session: u32,
@@ -319,18 +299,9 @@ pub fn run_session_inputs(
         .validate()
         .map_err(|e| SessionsError::Config(e.to_string()))?;
     config
-        .relocalization
-        .validate()
-        .map_err(|e| SessionsError::Config(e.to_string()))?;
-    config
         .scoring
         .validate()
         .map_err(|e| SessionsError::Config(e.to_string()))?;
-    if config.relocalization_nodes == 0 {
-        return Err(SessionsError::Config(
-            "relocalization_nodes must be at least 1".into(),
-        ));
-    }
     let map = LifelongMap::new(config.lifelong.clone())?;
 
     let (sender, receiver) = mpsc::sync_channel::<Message>(256);
@@ -350,7 +321,6 @@ pub fn run_session_inputs(
         let mut data_duration_s = 0.0;
         let mut scans_done = 0;
         let send = |m: Message| sender.send(m).is_ok();
-        let mut alive = true;
         for (session, input) in inputs.enumerate() {
             let session = u32::try_from(session)
                 .map_err(|_| SessionsError::Config("too many sessions".into()))?;
@@ -366,27 +336,10 @@ pub fn run_session_inputs(
             let mut llo = LocalTrajectoryBuilder::new(config.local.clone());
             let mut next_index = 0u32;
             let mut last_node: Option<NodeId> = None;
-            // The session's first nodes, held back until they can be relocalized.
-            let mut pending: Vec<Message> = Vec::new();
-            let mut pending_scans: Vec<(Rigid2, Vec<Point2<f32>>)> = Vec::new();
-            let mut first_time: Option<Timestamp> = None;
-            let mut decided_time: Option<Timestamp> = None;
-            let mut started = false;
-            let start_time = first.time();
-            let flush_start = |pending: &mut Vec<Message>,
-                               pending_scans: &mut Vec<(Rigid2, Vec<Point2<f32>>)>,
-                               first_time: Option<Timestamp>,
-                               decided_time: Option<Timestamp>|
-             -> bool {
-                let ok = send(Message::Start {
-                    session,
-                    start_time,
-                    first_time,
-                    decided_time,
-                    first_scans: std::mem::take(pending_scans),
-                });
-                ok && pending.drain(..).all(&send)
-            };
+            let mut alive = send(Message::Start {
+                session,
+                start_time: first.time(),
+            });
             for event in mapping::sensor::collate_for_llo(&input.events) {
                 match event {
                     SensorEvent::Odometry(o) => llo.add_odometry(o),
@@ -411,7 +364,7 @@ pub fn run_session_inputs(
                                 session,
                                 time: result.time,
                                 local_pose: result.local_pose,
-                                points: insertion.node.filtered_points.clone(),
+                                points: insertion.node.filtered_points,
                                 insertion_submaps: insertion
                                     .insertion_submaps
                                     .iter()
@@ -423,24 +376,7 @@ pub fn run_session_inputs(
                                     .map(|(index, submap)| (index, submap.grid))
                                     .collect(),
                             };
-                            if started {
-                                alive = send(message);
-                            } else {
-                                first_time.get_or_insert(result.time);
-                                decided_time = Some(result.time);
-                                pending_scans
-                                    .push((result.local_pose, insertion.node.filtered_points));
-                                pending.push(message);
-                                if pending.len() >= config.relocalization_nodes {
-                                    alive = flush_start(
-                                        &mut pending,
-                                        &mut pending_scans,
-                                        first_time,
-                                        decided_time,
-                                    );
-                                    started = true;
-                                }
-                            }
+                            alive = alive && send(message);
                             if !alive {
                                 break;
                             }
@@ -459,9 +395,6 @@ pub fn run_session_inputs(
                 }
             }
             scans_per_session.push(scans);
-            if alive && !started {
-                alive = flush_start(&mut pending, &mut pending_scans, first_time, decided_time);
-            }
             alive = alive
                 && send(Message::Finish {
                     session,
@@ -562,7 +495,7 @@ fn worker(
     receiver: &mpsc::Receiver<Message>,
     on_session_end: &mut (dyn FnMut(&SessionEnd<'_>) + Send),
 ) -> Result<WorkerOutput, SessionsError> {
-    let relocalization = &config.relocalization;
+    let relocalization = &config.lifelong.relocalization;
     let mut sessions: Vec<SessionSummary> = Vec::new();
     let mut retired: BTreeMap<NodeId, Rigid2> = BTreeMap::new();
     let mut records: Vec<SessionRecord> = Vec::new();
@@ -573,96 +506,45 @@ fn worker(
     let mut map_at_start: Option<MatchScorer> = None;
     let mut priors: BTreeMap<u32, (Rigid2, Rigid2)> = BTreeMap::new();
     let mut scores: Vec<f32> = Vec::new();
-    // While the current session is unplaced: the map prepared at its start (when there was one) and its
-    // latest nodes since the start (local pose, points), for relocalization retries.
-    let mut start_search: Option<StartSearch> = None;
-    let mut since_start: VecDeque<(Rigid2, Vec<Point2<f32>>)> = VecDeque::new();
+    // The current session's start (none for session 0, which defines the map) and its nodes' times.
+    let mut start: Option<SessionStart> = None;
+    let mut node_times: Vec<Timestamp> = Vec::new();
     for message in receiver {
         match message {
             Message::Start {
                 session,
                 start_time,
-                first_time,
-                decided_time,
-                first_scans,
             } => {
-                let mut summary = SessionSummary {
-                    session,
-                    first_node_time: first_time,
-                    ..SessionSummary::default()
-                };
-                let mut record = SessionRecord {
-                    session,
-                    start_time,
-                    ..SessionRecord::default()
-                };
                 scores.clear();
                 node_local.clear();
                 online_nodes.clear();
+                node_times.clear();
                 map_at_start = None;
-                let prior = if session == 0 {
-                    None
-                } else {
-                    let start = Instant::now();
-                    let mut rendered = None;
-                    let (outcome, search) =
-                        match render_submaps(map.placed_submaps(), relocalization.resolution) {
-                            Some(grid) => {
-                                let search = StartSearch::new(&grid, relocalization);
-                                let outcome = search.search(&first_scans);
-                                rendered = Some(grid);
-                                (outcome, Some(search))
-                            }
-                            None => (RelocalizationOutcome::NotFound, None),
-                        };
-                    summary.relocalization_ms = start.elapsed().as_secs_f64() * 1e3;
+                start = None;
+                if session > 0 {
+                    let rendered = render_submaps(map.placed_submaps(), relocalization.resolution);
                     map_at_start = rendered
                         .as_ref()
                         .map(|grid| MatchScorer::new(grid, config.scoring.match_window));
-                    // An unplaced start keeps the prepared map, to be searched again with the nodes
-                    // that follow (the held-back first nodes arrive next, as `Node` messages).
-                    start_search = search.filter(|_| outcome.found().is_none());
-                    match outcome {
-                        RelocalizationOutcome::Found(_) => {}
-                        RelocalizationOutcome::Ambiguous {
-                            score,
-                            runner_up_score,
-                            runner_up_from_best,
-                        } => {
-                            summary.relocalization_refused = Some("ambiguous".into());
-                            summary.relocalization_ambiguity = Some([score, runner_up_score]);
-                            summary.relocalization_runner_up_from_best = Some(runner_up_from_best);
-                        }
-                        RelocalizationOutcome::NotFound => {
-                            summary.relocalization_refused = Some("not_found".into());
-                        }
-                    }
-                    let found = outcome.found();
-                    summary.relocalized = found.is_some();
-                    summary.relocalization_score = found.map(|f| f.score);
-                    if let (Some(f), Some((first_local, _))) = (found, first_scans.first()) {
-                        priors.insert(session, (f.global_from_local, *first_local));
-                        let pose = f.global_from_local * first_local;
-                        record.placement =
-                            first_time
-                                .zip(decided_time)
-                                .map(|(time, decided_at)| Placement {
-                                    decided_at,
-                                    time,
-                                    map_from_base: pose,
-                                });
-                        summary.relocalized_first_pose = Some([
-                            pose.translation.vector.x,
-                            pose.translation.vector.y,
-                            pose.theta(),
-                        ]);
-                    }
-                    found.map(|f| f.global_from_local)
-                };
-                map.start_session(session, prior)?;
-                since_start.clear();
-                sessions.push(summary);
-                records.push(record);
+                    let search = rendered
+                        .as_ref()
+                        .map(|grid| StartSearch::new(grid, relocalization));
+                    start = Some(
+                        SessionStart::new(config.lifelong.session_start.clone(), search)
+                            .map_err(|e| SessionsError::Config(e.to_string()))?,
+                    );
+                }
+                // Every later session starts unplaced; its `SessionStart` places it.
+                map.start_session(session, None)?;
+                sessions.push(SessionSummary {
+                    session,
+                    ..SessionSummary::default()
+                });
+                records.push(SessionRecord {
+                    session,
+                    start_time,
+                    ..SessionRecord::default()
+                });
             }
             Message::Node {
                 session,
@@ -672,14 +554,8 @@ fn worker(
                 insertion_submaps,
                 finished_submaps,
             } => {
-                let retry_every = config.relocalization_retry_every_n_nodes;
-                if session > 0 && retry_every > 0 && map.is_unplaced(session) {
-                    if since_start.len() >= MAX_SEARCH_AGAIN_NODES {
-                        since_start.pop_front();
-                    }
-                    since_start.push_back((local_pose, points.clone()));
-                }
                 let scored_points = (session > 0).then(|| points.clone());
+                let start_points = start.as_ref().map(|_| points.clone());
                 let (id, events) = map.add_node(
                     session,
                     time,
@@ -688,70 +564,89 @@ fn worker(
                     &insertion_submaps,
                     finished_submaps,
                 )?;
-                let mut placed_late = None;
-                if let Some(summary) = sessions.last_mut()
-                    && session > 0
-                    && retry_every > 0
-                    && map.is_unplaced(session)
-                    && (summary.nodes_added + 1).is_multiple_of(retry_every)
-                    && ((summary.nodes_added + 1) / retry_every).is_power_of_two()
-                {
-                    summary.relocalization_retries += 1;
-                    let since_start = since_start.make_contiguous();
-                    let outcome = if let Some(search) = start_search.as_ref() {
-                        // Every node since the start, searched over the whole map again.
-                        search.search_again(since_start)
-                    } else {
-                        // No map at the start: the latest nodes against whatever is there now.
-                        let latest = since_start
-                            .len()
-                            .saturating_sub(config.relocalization_nodes);
-                        relocalize_session_start(&map, &since_start[latest..], relocalization)
-                    };
-                    placed_late = outcome.found().map(|f| f.global_from_local);
+                node_local.insert(id, local_pose);
+                node_times.push(time);
+                let mut decisions = Vec::new();
+                let mut first_search = false;
+                if let (Some(start), Some(points)) = (start.as_mut(), start_points) {
+                    let began = Instant::now();
+                    let searches = start.searches();
+                    decisions = start.add_node(local_pose, points);
+                    if let Some(summary) = sessions.last_mut() {
+                        summary.first_node_time = node_times.first().copied();
+                        if start.searches() > searches {
+                            let ms = began.elapsed().as_secs_f64() * 1e3;
+                            first_search = searches == 0;
+                            if first_search {
+                                summary.relocalization_ms = ms;
+                            }
+                            summary.relocalization_ms_total += ms;
+                            summary.relocalization_retries = start.searches() - 1;
+                        }
+                    }
                 }
-                if let (Some(global_from_local), Some(summary)) = (placed_late, sessions.last_mut())
-                    && map.place_session(session, global_from_local)?
-                {
-                    summary.placed_by_retry_at_node = Some(summary.nodes_added);
-                    summary.placed_at_time = Some(time);
-                }
+                act_on_start(
+                    &mut map,
+                    session,
+                    first_search,
+                    &decisions,
+                    &node_times,
+                    &node_local,
+                    sessions.last_mut(),
+                    records.last_mut(),
+                    &mut priors,
+                )?;
                 let jobs = map.take_search_jobs();
                 let results = run_searches(map.constraint_builder(), &jobs);
                 let mut events_after = map.add_search_results(results);
                 events_after.extend(events);
+                // The matches of this session's nodes against the existing map judge its placement.
+                if let Some(start) = start.as_mut() {
+                    let mut decisions = Vec::new();
+                    for event in &events_after {
+                        if let LifelongEvent::LoopClosureAdded(closure) = event
+                            && closure.node.trajectory == session
+                            && closure.submap.trajectory != session
+                            && let Some(submap_pose) = map.global().submap_pose(closure.submap)
+                        {
+                            decisions.extend(start.add_match(
+                                closure.node.index as usize,
+                                submap_pose * closure.submap_from_node,
+                                closure.submap,
+                            ));
+                        }
+                    }
+                    act_on_start(
+                        &mut map,
+                        session,
+                        false,
+                        &decisions,
+                        &node_times,
+                        &node_local,
+                        sessions.last_mut(),
+                        records.last_mut(),
+                        &mut priors,
+                    )?;
+                }
                 if let Some(summary) = sessions.last_mut() {
                     summary.nodes_added += 1;
                     count_closures(summary, &events_after, &mut scores);
                 }
-                // What the robot has now, at this scan: placed or not, and where.
-                node_local.insert(id, local_pose);
-                let pose = map.global().node_pose(id);
-                if let Some(record) = records.last_mut() {
-                    if session > 0
-                        && record.placement.is_none()
-                        && map.is_placed(session)
-                        && let Some(pose) = pose
-                    {
-                        record.placement = Some(Placement {
-                            decided_at: time,
-                            time,
-                            map_from_base: pose,
-                        });
-                    }
-                    let placed =
-                        session == 0 || record.placement.is_some_and(|p| time >= p.decided_at);
-                    let online = pose.filter(|_| placed);
-                    if let Some(pose) = online {
-                        online_nodes.insert(id, pose);
-                    }
-                    if let Some(points) = scored_points {
-                        let score = match (online, &map_at_start) {
-                            (Some(pose), Some(scorer)) => scorer.score(&points, &pose),
-                            _ => 0.0,
-                        };
-                        record.match_scores.push(score);
-                    }
+                // What the robot has now, at this scan: placed (on probation or committed) or not, and
+                // where.
+                let online = map
+                    .global()
+                    .node_pose(id)
+                    .filter(|_| map.is_placed(session));
+                if let Some(pose) = online {
+                    online_nodes.insert(id, pose);
+                }
+                if let (Some(points), Some(record)) = (scored_points, records.last_mut()) {
+                    let score = match (online, &map_at_start) {
+                        (Some(pose), Some(scorer)) => scorer.score(&points, &pose),
+                        _ => 0.0,
+                    };
+                    record.match_scores.push(score);
                 }
             }
             Message::Finish {
@@ -763,7 +658,7 @@ fn worker(
                 let jobs = map.take_search_jobs();
                 let results = run_searches(map.constraint_builder(), &jobs);
                 let events = map.add_search_results(results);
-                let start = Instant::now();
+                let start_ms = Instant::now();
                 map.optimize();
                 let mut at_session_end = BTreeMap::new();
                 for (id, _, pose) in map.node_poses() {
@@ -772,9 +667,10 @@ fn worker(
                         at_session_end.insert(id, pose);
                     }
                 }
+                let on_probation = map.is_on_probation(session);
                 let events_finish = map.finish_session(session)?;
-                let finish_ms = start.elapsed().as_secs_f64() * 1e3;
-                let placed = map.is_placed(session);
+                let finish_ms = start_ms.elapsed().as_secs_f64() * 1e3;
+                let placed = map.is_placed(session) && !on_probation;
                 let counts = map.counts();
                 let first_node = NodeId {
                     trajectory: session,
@@ -811,6 +707,7 @@ fn worker(
                     summary.trim_kld_mean =
                         (!klds.is_empty()).then(|| klds.iter().sum::<f64>() / klds.len() as f64);
                     summary.placed = placed;
+                    summary.ended_on_probation = on_probation;
                     summary.counts = counts;
                     summary.finish_ms = finish_ms;
                     summary.relocalization_offset_m = offset;
@@ -835,6 +732,113 @@ fn worker(
         retired,
         records,
     })
+}
+
+/// Acts on the session start's `decisions` for `session` (`first_search`: they come from its first
+/// whole-map search): places it in the map on probation, commits or revokes its placement, and notes
+/// what happened in its summary and record.
+#[allow(clippy::too_many_arguments)]
+fn act_on_start(
+    map: &mut LifelongMap,
+    session: u32,
+    first_search: bool,
+    decisions: &[SessionStartEvent],
+    node_times: &[Timestamp],
+    node_local: &BTreeMap<NodeId, Rigid2>,
+    mut summary: Option<&mut SessionSummary>,
+    mut record: Option<&mut SessionRecord>,
+    priors: &mut BTreeMap<u32, (Rigid2, Rigid2)>,
+) -> Result<(), SessionsError> {
+    let local = |node: usize| {
+        node_local.get(&NodeId {
+            trajectory: session,
+            index: u32::try_from(node).ok()?,
+        })
+    };
+    for decision in decisions {
+        match decision {
+            SessionStartEvent::Refused { outcome, .. } => {
+                if let Some(summary) = summary.as_deref_mut() {
+                    // The first search's refusal, for the report.
+                    if first_search {
+                        match *outcome {
+                            RelocalizationOutcome::Ambiguous {
+                                score,
+                                runner_up_score,
+                                runner_up_from_best,
+                            } => {
+                                summary.relocalization_refused = Some("ambiguous".into());
+                                summary.relocalization_ambiguity = Some([score, runner_up_score]);
+                                summary.relocalization_runner_up_from_best =
+                                    Some(runner_up_from_best);
+                            }
+                            RelocalizationOutcome::NotFound => {
+                                summary.relocalization_refused = Some("not_found".into());
+                            }
+                            RelocalizationOutcome::Found(_) => {
+                                summary.relocalization_refused = Some("revoked_before".into());
+                            }
+                        }
+                    }
+                }
+            }
+            SessionStartEvent::Placed(placement) => {
+                map.place_session(session, placement.global_from_local)?;
+                map.begin_probation(session)?;
+                if let Some(summary) = summary.as_deref_mut() {
+                    if first_search {
+                        summary.relocalized = true;
+                    } else {
+                        summary.placed_by_retry_at_node = Some(placement.node);
+                        summary.placed_at_time = node_times.get(placement.node).copied();
+                    }
+                    summary.relocalization_score = placement.score;
+                    if let Some(first_local) = local(0) {
+                        let pose = placement.global_from_local * first_local;
+                        priors.insert(session, (placement.global_from_local, *first_local));
+                        summary.relocalized_first_pose = Some([
+                            pose.translation.vector.x,
+                            pose.translation.vector.y,
+                            pose.theta(),
+                        ]);
+                    }
+                }
+            }
+            SessionStartEvent::Committed { placement, node } => {
+                map.commit_session(session);
+                if let Some(summary) = summary.as_deref_mut() {
+                    summary.committed_at_node = Some(*node);
+                }
+                if let (Some(record), Some(decided_at), Some(time), Some(placed_local)) = (
+                    record.as_deref_mut(),
+                    node_times.last(),
+                    node_times.get(placement.node),
+                    local(placement.node),
+                ) {
+                    record.placement = Some(Placement {
+                        decided_at: *decided_at,
+                        time: *time,
+                        map_from_base: placement.global_from_local * placed_local,
+                    });
+                }
+            }
+            SessionStartEvent::Revoked { reason, .. } => {
+                map.revoke_placement(session)?;
+                priors.remove(&session);
+                if let Some(summary) = summary.as_deref_mut() {
+                    summary.revoked.push(
+                        match reason {
+                            RevokeReason::Disagreement => "disagreement",
+                            RevokeReason::Timeout => "timeout",
+                        }
+                        .into(),
+                    );
+                }
+            }
+            SessionStartEvent::GaveUp { .. } => {}
+        }
+    }
+    Ok(())
 }
 
 fn count_closures(summary: &mut SessionSummary, events: &[LifelongEvent], scores: &mut Vec<f32>) {

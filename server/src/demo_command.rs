@@ -93,7 +93,10 @@ struct SessionRun {
     /// The robot's own estimate of each node's global pose at its time (see `SessionTrace`).
     node_estimates: Vec<Option<Rigid2>>,
     prior: Option<Rigid2>,
-    first_local_pose: Option<Rigid2>,
+    /// The placement the robot committed to (probation passed on its GLM matches).
+    committed: Option<Placement>,
+    /// Whether the robot's placement was revoked.
+    revoked: bool,
     score: Option<f32>,
     relocalization_ms: f64,
     distance_m: f64,
@@ -430,7 +433,7 @@ async fn run_session(
     let start = relocalize.then(|| SessionStart {
         cache: &agent.cache,
         relocalization: RelocalizationOptions::default(),
-        nodes: 10,
+        session_start: mapping::lifelong::SessionStartOptions::default(),
     });
     let (report, trace) = stream_session(recording, &options, &mut uploader, start).await?;
     // Opening is idempotent: this returns the trajectory the server gave the session.
@@ -450,7 +453,8 @@ async fn run_session(
         node_times: trace.node_times,
         node_estimates: trace.node_estimates,
         prior: trace.prior,
-        first_local_pose: trace.first_local_pose,
+        committed: trace.committed,
+        revoked: trace.revoked,
         score: trace.score,
         relocalization_ms: trace.relocalization_ms,
         distance_m: simulated.distance_m,
@@ -577,7 +581,7 @@ struct Scores {
 /// Each session scored by `mapping::metrics` (as `lifelong` scores its sessions) at node level: the
 /// robot's own estimate of each node at its time, and the node poses the site map had right after the
 /// session ended (`poses`, smoothed), against the simulator's truth in session 0's frame. The placement
-/// a session committed to is its relocalized start (a session the server placed later never had a pose
+/// a session committed to is its robot's, once its probation passed (a session the server placed later never had a pose
 /// of its own on the robot). AMS is not measured here.
 fn score(
     runs: &[SessionRun],
@@ -616,15 +620,8 @@ fn score(
                 .filter_map(|(t, e)| Some((*t, (*e)?)))
                 .collect()
         };
-        let placement = match (run.prior, run.first_local_pose, run.node_times.first()) {
-            (Some(prior), Some(local), Some(&first)) if run.session > 0 => Some(Placement {
-                // The start is decided at the last held-back node: the first with an estimate.
-                decided_at: online.first().map_or(first, |(t, _)| *t),
-                time: first,
-                map_from_base: prior * local,
-            }),
-            _ => None,
-        };
+        // The placement the robot committed to (after its probation), not the tentative prior.
+        let placement = run.committed.filter(|_| run.session > 0);
         // The robots report an estimate per node (scans that passed the motion filter), not per scan:
         // the session is scored on its nodes' scans.
         let node_times: std::collections::BTreeSet<Timestamp> =
@@ -653,6 +650,8 @@ fn score(
             "nodes": run.node_times.len(), "nodes_in_map": smoothed.len(),
             "score": score,
             "relocalization_score": run.score, "relocalization_ms": run.relocalization_ms,
+            "placed_tentatively": run.prior.is_some(), "committed": run.committed.is_some(),
+            "revoked": run.revoked,
             "distance_m": run.distance_m, "batches": run.batches,
             "failed_flushes": run.failed_flushes, "left_in_outbox": run.left_in_outbox,
             "wall_s": run.wall_s,

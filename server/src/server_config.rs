@@ -27,7 +27,6 @@ use std::collections::BTreeSet;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 
-use mapping::global_slam::GlobalSlamOptions;
 use mapping::lifelong::LifelongOptions;
 use robot_agent::uplink::ZenohLinkOptions;
 use serde::Deserialize;
@@ -102,13 +101,10 @@ pub struct ServerConfig {
     pub site_queue_depth: usize,
     /// On-disk storage.
     pub storage: SledStoreOptions,
-    /// The multi-session map of every site: GLM, PGR, trimming policy and sparsification (the `mapping`
-    /// crate's `LifelongOptions`, TOML section `[map]`). Default: `LifelongOptions::default()` except
-    /// `map.global.unanchored_search_every_n_nodes` = 10 (`GlobalSlamOptions`' own default), because the
-    /// server has no relocalization retries of its own: a session whose robot could not relocalize at
-    /// its start is placed by a whole-submap match of every 10th node. A `[map]` section starts from
-    /// `LifelongOptions::default()` instead (serde fills the fields it omits), where that search is off:
-    /// add `[map.global] unanchored_search_every_n_nodes = 10` to keep it.
+    /// The multi-session map of every site: GLM, PGR, the session start (`[map.relocalization]`,
+    /// `[map.session_start]`: the server searches for a session its robot could not place, and holds every
+    /// placement on probation), trimming policy and sparsification (the `mapping` crate's
+    /// `LifelongOptions`, TOML section `[map]`). Default: `LifelongOptions::default()`.
     pub map: LifelongOptions,
     /// gRPC over TLS (rustls) with these certificates (TOML section `[tls]`: `cert_pem`, `key_pem`).
     /// Default none: plaintext gRPC, for loopback and private networks only. (The zenoh front end's links
@@ -130,10 +126,7 @@ impl Default for ServerConfig {
             delta_chunk_bytes: 4 << 20,
             site_queue_depth: 64,
             storage: SledStoreOptions::default(),
-            map: LifelongOptions {
-                global: GlobalSlamOptions::default(),
-                ..LifelongOptions::default()
-            },
+            map: LifelongOptions::default(),
             tls: None,
             zenoh: None,
             sites: Vec::new(),
@@ -228,15 +221,9 @@ mod tests {
         assert_eq!(config.map.policy, mapping::lifelong::TrimPolicy::Clt);
         assert_eq!(
             config.map.global.unanchored_search_every_n_nodes, 0,
-            "as documented: a [map] section starts from LifelongOptions::default()"
+            "no single-scan whole-submap placement: the session start places sessions"
         );
-        assert_eq!(
-            ServerConfig::default()
-                .map
-                .global
-                .unanchored_search_every_n_nodes,
-            10
-        );
+        assert_eq!(ServerConfig::default().map, LifelongOptions::default());
         assert!(ServerConfig::from_toml("lisen = \"x\"").is_err());
     }
 

@@ -927,7 +927,7 @@ impl Robot {
         let start = relocalize.then(|| robot_agent::uplink::SessionStart {
             cache: &self.cache,
             relocalization: mapping::lifelong::RelocalizationOptions::default(),
-            nodes: 10,
+            session_start: mapping::lifelong::SessionStartOptions::default(),
         });
         let (report, trace) = bounded(
             "a session",

@@ -873,6 +873,52 @@ impl GlobalSlam {
         true
     }
 
+    /// Undoes a placement (see [`Self::place_trajectory`]) found wrong: removes every constraint between
+    /// `trajectory` and the other trajectories (its matches against their submaps and theirs against its
+    /// own), forgets its queued and pending cross-trajectory matches, and makes it unanchored again (its
+    /// estimates keep their values, which mean nothing in the map frame until it is placed again).
+    /// Returns false (and changes nothing) when it is unanchored already or unknown.
+    pub fn unplace_trajectory(&mut self, trajectory: u32) -> bool {
+        if self.unanchored.contains(&trajectory) || !self.last_node.contains_key(&trajectory) {
+            return false;
+        }
+        let of = |id: VariableId| match id {
+            VariableId::Node(n) => n.trajectory,
+            VariableId::Submap(s) => s.trajectory,
+        };
+        let crossing: Vec<_> = self
+            .graph
+            .constraints()
+            .filter(|(_, c)| {
+                let (a, b) = (of(c.from), of(c.to));
+                a != b && (a == trajectory || b == trajectory)
+            })
+            .map(|(id, _)| id)
+            .collect();
+        for id in crossing {
+            // Cannot fail: the id came from the graph.
+            let _ = self.graph.remove_constraint(id);
+        }
+        let crosses = |node: NodeId, submap: SubmapId| {
+            node.trajectory != submap.trajectory
+                && (node.trajectory == trajectory || submap.trajectory == trajectory)
+        };
+        self.pending_jobs.retain(|j| !crosses(j.node, j.submap));
+        self.pending_unconfirmed
+            .retain(|(c, _)| !crosses(c.node, c.submap));
+        self.pending_beyond_drift
+            .retain(|(c, _)| !crosses(c.node, c.submap));
+        self.last_loop_path.remove(&trajectory);
+        self.unanchored.insert(trajectory);
+        true
+    }
+
+    /// Stops treating `trajectory`'s cross-trajectory matches as found elsewhere (see
+    /// [`Self::set_matched_elsewhere`]): its nodes are searched here again from now on.
+    pub fn clear_matched_elsewhere(&mut self, trajectory: u32) {
+        self.matched_elsewhere.remove(&trajectory);
+    }
+
     /// Applies `correction` (new global from old global) to every variable of `trajectory`, anchors it and
     /// queues its nodes' searches.
     fn move_trajectory(&mut self, trajectory: u32, correction: Rigid2) {

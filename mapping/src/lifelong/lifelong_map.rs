@@ -1,6 +1,6 @@
 //! One site's multi-session map: sessions, trimming and sparsification around [`GlobalSlam`].
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
 
 use nalgebra::Point2;
@@ -115,6 +115,9 @@ pub struct LifelongMap {
     sessions: BTreeMap<u32, Session>,
     /// The first session started: it maps the site and is never trimmed.
     base: Option<u32>,
+    /// Sessions placed tentatively (see [`super::SessionStart`]): in the graph, matched by GLM, but their
+    /// submaps stay out of [`LifelongMap::placed_submaps`] and they trim nothing.
+    probation: BTreeSet<u32>,
     trimmed_total: usize,
     dropped_total: usize,
     sparsifications_since_optimization: usize,
@@ -129,6 +132,7 @@ impl LifelongMap {
             options,
             sessions: BTreeMap::new(),
             base: None,
+            probation: BTreeSet::new(),
             trimmed_total: 0,
             dropped_total: 0,
             sparsifications_since_optimization: 0,
@@ -196,6 +200,52 @@ impl LifelongMap {
     ) -> Result<bool, LifelongError> {
         self.active(session)?;
         Ok(self.global.place_trajectory(session, global_from_local))
+    }
+
+    /// Puts a placed session on probation ([`super::SessionStart`]): GLM matches its nodes near their
+    /// estimates as before, but its submaps leave [`Self::placed_submaps`] (what relocalization renders)
+    /// and the trimmer's view, and if it ends on probation it is dropped like an unplaced session.
+    pub fn begin_probation(&mut self, session: u32) -> Result<(), LifelongError> {
+        self.active(session)?;
+        self.probation.insert(session);
+        Ok(())
+    }
+
+    /// Commits a session's placement: ends its probation. Returns whether it was on probation.
+    pub fn commit_session(&mut self, session: u32) -> bool {
+        self.probation.remove(&session)
+    }
+
+    /// Revokes a session's placement found wrong: removes its matches against the other sessions (and
+    /// theirs against it) and makes it unplaced again (see [`GlobalSlam::unplace_trajectory`]); it can
+    /// be placed again with [`Self::place_session`]. Returns false when it was not placed.
+    pub fn revoke_placement(&mut self, session: u32) -> Result<bool, LifelongError> {
+        self.active(session)?;
+        self.probation.remove(&session);
+        Ok(self.global.unplace_trajectory(session))
+    }
+
+    /// Whether a session is placed tentatively (on probation).
+    pub fn is_on_probation(&self, session: u32) -> bool {
+        self.probation.contains(&session)
+    }
+
+    /// Whether a session is placed and its placement committed (not on probation): its submaps are
+    /// part of the map robots relocalize against.
+    pub fn is_committed(&self, session: u32) -> bool {
+        self.is_placed(session) && !self.probation.contains(&session)
+    }
+
+    /// From now on the session's nodes are matched against the other sessions here again (after
+    /// [`Self::set_matched_on_robot`], when the robot's placement was revoked).
+    pub fn set_matched_here(&mut self, session: u32) {
+        self.global.clear_matched_elsewhere(session);
+    }
+
+    /// Whether `trajectory`'s submaps belong to the map others localize against: placed, not on
+    /// probation.
+    fn in_map(&self, trajectory: u32) -> bool {
+        !self.global.is_unanchored(trajectory) && !self.probation.contains(&trajectory)
     }
 
     fn active(&self, session: u32) -> Result<Session, LifelongError> {
@@ -294,9 +344,11 @@ impl LifelongMap {
         self.active(session)?;
         let mut events = vec![LifelongEvent::Optimized(self.global.optimize())];
         let is_base = self.base == Some(session);
-        if !is_base && self.global.is_unanchored(session) {
-            // Never placed in the map: its submaps are in a frame nothing ties to the site, so they can
-            // neither update the map nor justify trimming anything. Dropped whatever the policy.
+        if !is_base && !self.in_map(session) {
+            // Never placed in the map, or its placement never confirmed: its submaps are in a frame
+            // nothing (trustworthy) ties to the site, so they can neither update the map nor justify
+            // trimming anything. Dropped whatever the policy.
+            self.probation.remove(&session);
             events.extend(self.drop_session(session)?);
             if let Some(s) = self.sessions.get_mut(&session) {
                 s.finished = true;
@@ -330,7 +382,7 @@ impl LifelongMap {
         self.global
             .submaps()
             .iter()
-            .filter(|(id, _)| !self.global.is_unanchored(id.trajectory))
+            .filter(|(id, _)| self.in_map(id.trajectory))
             .filter_map(|(id, record)| {
                 let grid = record.grid.as_ref()?;
                 let global = self.global.submap_pose(*id)?;
@@ -339,11 +391,12 @@ impl LifelongMap {
             .collect()
     }
 
-    /// Every finished submap of a placed session, its grid placed in the map frame (what relocalization
-    /// renders; an unplaced session's submaps float in a frame nothing ties to the site).
+    /// Every finished submap of a placed session not on probation, its grid placed in the map frame (what
+    /// relocalization renders; an unplaced session's submaps float in a frame nothing ties to the site,
+    /// and a session on probation's may be in the wrong place).
     pub fn placed_submaps(&self) -> impl Iterator<Item = PlacedGrid<'_>> + '_ {
         self.global.submaps().iter().filter_map(|(id, record)| {
-            if self.global.is_unanchored(id.trajectory) {
+            if !self.in_map(id.trajectory) {
                 return None;
             }
             let grid = record.grid.as_deref()?;
@@ -358,7 +411,7 @@ impl LifelongMap {
     /// [`Self::placed_submaps`] with their ids, in id order (oldest session first).
     pub fn placed_submaps_by_id(&self) -> impl Iterator<Item = (SubmapId, PlacedGrid<'_>)> + '_ {
         self.global.submaps().iter().filter_map(|(id, record)| {
-            if self.global.is_unanchored(id.trajectory) {
+            if !self.in_map(id.trajectory) {
                 return None;
             }
             let grid = record.grid.as_deref()?;

@@ -150,6 +150,11 @@ pub struct LifelongOptions {
     /// unplaced session is placed by retrying relocalization over the whole map (one coarse-to-fine
     /// search) rather than by a full search of every submap (hundreds on a store-sized map).
     pub global: GlobalSlamOptions,
+    /// The whole-map search of a session's start ([`super::StartSearch`]).
+    pub relocalization: super::RelocalizationOptions,
+    /// Hold-back, retries and probation of a session's start ([`super::SessionStart`]): every shell
+    /// (offline commands, fleet agent, server) starts sessions with these.
+    pub session_start: super::SessionStartOptions,
     /// When stale submaps are trimmed.
     pub trimmer: SubmapTrimmerOptions,
     /// What trimming does. Default `clt`.
@@ -173,6 +178,8 @@ impl Default for LifelongOptions {
                 unanchored_search_every_n_nodes: 0,
                 ..GlobalSlamOptions::default()
             },
+            relocalization: super::RelocalizationOptions::default(),
+            session_start: super::SessionStartOptions::default(),
             trimmer: SubmapTrimmerOptions::default(),
             policy: TrimPolicy::default(),
             optimize_every_n_sparsifications: 5,
@@ -187,6 +194,8 @@ impl LifelongOptions {
     /// Checks every field.
     pub fn validate(&self) -> Result<(), LifelongOptionsError> {
         self.global.validate()?;
+        self.relocalization.validate()?;
+        self.session_start.validate()?;
         self.trimmer.validate()?;
         self.sparsification.validate()?;
         if self.optimize_every_n_sparsifications == 0 {

@@ -108,7 +108,13 @@ struct SessionRow {
     relocalization_retries: usize,
     /// The node count at which a retry placed the session (`null`: placed at its start, or never).
     placed_by_retry_at_node: Option<usize>,
-    /// Whether the session was placed in the map at all (by its start, a retry or a match).
+    /// The node count at which its placement was committed (probation passed).
+    committed_at_node: Option<usize>,
+    /// Placements revoked (probation failed).
+    revocations: usize,
+    /// Whether the session ended on probation (its placement never confirmed; dropped).
+    ended_on_probation: bool,
+    /// Whether the session ended placed in the map with a committed placement.
     placed: bool,
 }
 
@@ -200,6 +206,9 @@ impl Reporter<'_> {
             relocalization_refused: s.relocalization_refused.clone(),
             relocalization_retries: s.relocalization_retries,
             placed_by_retry_at_node: s.placed_by_retry_at_node,
+            committed_at_node: s.committed_at_node,
+            revocations: s.revoked.len(),
+            ended_on_probation: s.ended_on_probation,
             placed: k == 0 || s.placed,
         });
         self.details.push(s.clone());

@@ -265,7 +265,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         let start = SessionStart {
             cache: &cache,
             relocalization: RelocalizationOptions::default(),
-            nodes: 10,
+            session_start: mapping::lifelong::SessionStartOptions::default(),
         };
         let (report, trace) =
             stream_session(recording, &options, &mut uploader, Some(start)).await?;

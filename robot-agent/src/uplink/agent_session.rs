@@ -7,9 +7,11 @@ use std::time::{Duration, Instant};
 use mapping::geometry::Rigid2;
 use mapping::global_slam::{ConstraintBuilderOptions, GlobalSlamOptions};
 use mapping::lifelong::{
-    PlacedGrid, RelocalizationOptions, relocalize_scans_in_grid, render_submaps,
+    PlacedGrid, RelocalizationOptions, SessionStart as StartDecision, SessionStartEvent,
+    SessionStartOptions, StartSearch, relocalize_scans_in_grid, render_submaps,
 };
 use mapping::local_slam::LocalTrajectoryBuilderOptions;
+use mapping::metrics::Placement;
 use mapping::sensor::Timestamp;
 use nalgebra::Point2;
 use proto::UploadItem;
@@ -86,16 +88,21 @@ pub enum SessionError {
     Llo(String),
 }
 
-/// How a session finds its place in the site map before its first upload: its first `nodes` nodes are
-/// held back, merged and relocalized with no prior against the agent's cache of the site's submaps, and
-/// the session opens with that `SessionStartPrior` (or without one when nothing matched).
+/// How a session finds its place in the site map before its first upload, through
+/// `mapping::lifelong::SessionStart` (the session start every shell uses) against the agent's cache of the
+/// site's submaps: its nodes are held back while it searches (the first search after
+/// `session_start.hold_back_nodes`, retries on its schedule), and the session opens with the placement as
+/// its `SessionStartPrior`. The robot holds at most `session_start.max_search_nodes` nodes back (it gives
+/// up searching there when `give_up_after_nodes` is 0 or larger): a session it cannot place streams
+/// without a prior and the server searches for it. The robot's GLM matches then judge the placement on
+/// probation (the server judges it the same way); a revoked placement stops GLM on the robot.
 pub struct SessionStart<'a> {
     /// The agent's cache of the site's global submaps.
     pub cache: &'a Mutex<GlobalSubmapCache>,
-    /// Relocalization settings.
+    /// The whole-map search.
     pub relocalization: RelocalizationOptions,
-    /// Nodes merged into the relocalized cloud (at least 1).
-    pub nodes: usize,
+    /// Hold-back, retries and probation.
+    pub session_start: SessionStartOptions,
 }
 
 /// What a session's start relocalization found and which nodes the session made.
@@ -107,8 +114,15 @@ pub struct SessionTrace {
     pub prior: Option<Rigid2>,
     /// Its branch-and-bound score.
     pub score: Option<f32>,
-    /// Wall time of the relocalization, milliseconds.
+    /// Wall time of the first whole-map search, milliseconds.
     pub relocalization_ms: f64,
+    /// Whole-map searches made.
+    pub searches: usize,
+    /// The placement the robot committed to (probation passed on its own GLM matches): decided at the
+    /// node whose match committed it.
+    pub committed: Option<Placement>,
+    /// Whether the robot's placement was revoked (its GLM stopped then).
+    pub revoked: bool,
     /// Scan time of every node, in node order (node `i` of the session has `node_times[i]`).
     pub node_times: Vec<Timestamp>,
     /// The robot's own estimate of every node's global pose (`world_from_tracking`) at the time of the
@@ -177,22 +191,109 @@ async fn begin_glm(
     Some(glm)
 }
 
-/// Relocalizes held-back nodes against the cache (on a blocking thread).
-async fn relocalize_start(
-    start: &SessionStart<'_>,
-    held: &[Vec<UploadItem>],
-    trace: &mut SessionTrace,
-) {
-    let started = Instant::now();
-    let Some(found) =
-        relocalize_nodes(start.cache, &start.relocalization, held.iter().flatten()).await
-    else {
-        return;
+/// The cache rendered and prepared for whole-map searches (on a blocking thread); `None` when it holds
+/// no submaps.
+async fn prepare_search(
+    cache: &Mutex<GlobalSubmapCache>,
+    options: &RelocalizationOptions,
+) -> Option<StartSearch> {
+    let submaps = cached_grids(cache);
+    if submaps.is_empty() {
+        return None;
+    }
+    let options = options.clone();
+    tokio::task::spawn_blocking(move || {
+        let grid = render_submaps(
+            submaps.iter().map(|(global_from_grid, grid)| PlacedGrid {
+                global_from_grid: *global_from_grid,
+                grid,
+            }),
+            options.resolution,
+        )?;
+        Some(StartSearch::new(&grid, &options))
+    })
+    .await
+    .ok()
+    .flatten()
+}
+
+/// `global_from_grid` and grid of every cached submap.
+fn cached_grids(
+    cache: &Mutex<GlobalSubmapCache>,
+) -> Vec<(Rigid2, Arc<mapping::grid::ProbabilityGrid>)> {
+    cache
+        .lock()
+        .map(|cache| {
+            cache
+                .submaps()
+                .values()
+                .map(|s| (s.global_pose * s.local_pose.inverse(), Arc::clone(&s.grid)))
+                .collect()
+        })
+        .unwrap_or_default()
+}
+
+/// Feeds the node of `items` to the session start (on a blocking thread: a search may be due).
+async fn feed_node(
+    decision: StartDecision,
+    items: &[UploadItem],
+) -> (StartDecision, Vec<SessionStartEvent>) {
+    let node = items.iter().find_map(|item| match item {
+        UploadItem::NodeAdded(node) => Some((node.local_pose, node.points.clone())),
+        _ => None,
+    });
+    let Some((local_pose, points)) = node else {
+        return (decision, Vec::new());
     };
-    trace.relocalization_attempted = true;
-    trace.relocalization_ms = started.elapsed().as_secs_f64() * 1e3;
-    trace.prior = found.map(|(prior, _)| prior);
-    trace.score = found.map(|(_, score)| score);
+    let mut decision = decision;
+    match tokio::task::spawn_blocking(move || {
+        let events = decision.add_node(local_pose, points);
+        (decision, events)
+    })
+    .await
+    {
+        Ok(done) => done,
+        Err(e) => panic!("the session start's search panicked: {e}"),
+    }
+}
+
+/// Feeds the robot's GLM matches among `items` (of the session's node `node`) to the session start.
+fn feed_matches(
+    decision: &mut StartDecision,
+    cache: &Mutex<GlobalSubmapCache>,
+    node: usize,
+    items: &[UploadItem],
+) -> Vec<SessionStartEvent> {
+    let mut events = Vec::new();
+    let Ok(cache) = cache.lock() else {
+        return events;
+    };
+    for item in items {
+        if let UploadItem::GlobalMatch {
+            submap,
+            submap_from_node,
+            ..
+        } = item
+            && let Some(cached) = cache.submaps().get(submap)
+        {
+            events.extend(decision.add_match(node, cached.global_pose * submap_from_node, *submap));
+        }
+    }
+    events
+}
+
+/// The committed placement as the scores take it: decided at the latest node, placing the node the
+/// placement was decided at.
+fn committed_placement(
+    trace: &SessionTrace,
+    placement: &mapping::lifelong::StartPlacement,
+    local_poses: &[Option<Rigid2>],
+) -> Option<Placement> {
+    Some(Placement {
+        decided_at: *trace.node_times.last()?,
+        time: *trace.node_times.get(placement.node)?,
+        map_from_base: placement.global_from_local * local_poses.get(placement.node).copied()??,
+    })
 }
 
 /// Relocalizes the nodes among `items` (merged in their local frame) with no prior against the cached
@@ -210,16 +311,7 @@ pub async fn relocalize_nodes<'a>(
             _ => None,
         })
         .collect();
-    let submaps: Vec<(Rigid2, Arc<mapping::grid::ProbabilityGrid>)> = cache
-        .lock()
-        .map(|cache| {
-            cache
-                .submaps()
-                .values()
-                .map(|s| (s.global_pose * s.local_pose.inverse(), Arc::clone(&s.grid)))
-                .collect()
-        })
-        .unwrap_or_default();
+    let submaps = cached_grids(cache);
     if submaps.is_empty() || scans.is_empty() {
         return None;
     }
@@ -267,9 +359,13 @@ pub async fn stream_session<U: MapUplink>(
     let mut retry = tokio::time::interval(options.retry_interval);
     retry.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     let mut backlog = false;
-    // Nodes held back until the start is relocalized (only with a `SessionStart`).
+    // Nodes held back until the start is decided (only with a `SessionStart`), and the decision.
     let mut held: Vec<Vec<UploadItem>> = Vec::new();
     let mut started = start.is_none();
+    let mut decision: Option<StartDecision> = None;
+    let mut prepared = false;
+    // Every node's local pose, in node order.
+    let mut held_local: Vec<Option<Rigid2>> = Vec::new();
     // GLM on the robot, once the start is relocalized.
     let mut glm: Option<RobotGlm> = None;
     let flush = async |uploader: &mut Uploader<U>,
@@ -298,6 +394,7 @@ pub async fn stream_session<U: MapUplink>(
                         trace.node_times.push(node.time);
                     }
                 }
+                let node = trace.node_times.len().saturating_sub(1);
                 if started {
                     let mut items = items;
                     let estimate = match (glm.as_mut(), start.as_ref()) {
@@ -306,20 +403,95 @@ pub async fn stream_session<U: MapUplink>(
                         }
                         _ => None,
                     };
+                    if let (Some(d), Some(start)) = (decision.as_mut(), start.as_ref()) {
+                        // On probation: no search is due, so the node is fed on this thread.
+                        let mut events = items
+                            .iter()
+                            .find_map(|item| match item {
+                                UploadItem::NodeAdded(n) => {
+                                    Some(d.add_node(n.local_pose, n.points.clone()))
+                                }
+                                _ => None,
+                            })
+                            .unwrap_or_default();
+                        events.extend(feed_matches(d, start.cache, node, &items));
+                        for event in events {
+                            match event {
+                                SessionStartEvent::Committed { placement, .. } => {
+                                    trace.committed = committed_placement(&trace, &placement, &held_local);
+                                }
+                                SessionStartEvent::Revoked { .. } => {
+                                    // The robot cannot take its prior back: it stops matching, and the
+                                    // server (which revokes it on the same matches) searches for it.
+                                    trace.revoked = true;
+                                    glm = None;
+                                }
+                                _ => {}
+                            }
+                        }
+                        if trace.revoked || d.is_committed() {
+                            decision = None;
+                        }
+                    }
                     let local = node_local_pose(&items);
-                    trace.node_estimates.push(
-                        estimate.or_else(|| Some(trace.prior? * local?)),
-                    );
+                    held_local.push(local);
+                    trace.node_estimates.push(if trace.revoked {
+                        None
+                    } else {
+                        estimate.or_else(|| Some(trace.prior? * local?))
+                    });
                     nodes_in_batch += 1;
                     batch.extend(items);
                 } else {
+                    held_local.push(node_local_pose(&items));
                     held.push(items);
-                    let wanted = start.as_ref().map_or(1, |s| s.nodes.max(1));
-                    if held.len() < wanted {
+                    if !prepared && let Some(start) = start.as_ref() {
+                        prepared = true;
+                        let mut session_start = start.session_start.clone();
+                        // Nodes are held back while searching: not longer than `max_search_nodes`.
+                        if session_start.give_up_after_nodes == 0
+                            || session_start.give_up_after_nodes > session_start.max_search_nodes
+                        {
+                            session_start.give_up_after_nodes = session_start.max_search_nodes;
+                        }
+                        if let Some(search) = prepare_search(start.cache, &start.relocalization).await {
+                            decision = StartDecision::new(session_start, Some(search)).ok();
+                        }
+                    }
+                    let mut decided = decision.is_none();
+                    if let (Some(d), Some(last)) = (decision.take(), held.last()) {
+                        let searches = d.searches();
+                        let began = Instant::now();
+                        let (d, events) = feed_node(d, last).await;
+                        if d.searches() > searches {
+                            trace.relocalization_attempted = true;
+                            trace.searches = d.searches();
+                            if searches == 0 {
+                                trace.relocalization_ms = began.elapsed().as_secs_f64() * 1e3;
+                            }
+                        }
+                        for event in &events {
+                            match event {
+                                SessionStartEvent::Placed(placement) => {
+                                    trace.prior = Some(placement.global_from_local);
+                                    trace.score = placement.score;
+                                    decided = true;
+                                }
+                                SessionStartEvent::Committed { placement, .. } => {
+                                    trace.committed = committed_placement(&trace, placement, &held_local);
+                                }
+                                SessionStartEvent::GaveUp { .. } => decided = true,
+                                _ => {}
+                            }
+                        }
+                        if !d.is_committed() && trace.prior.is_some() || !decided {
+                            decision = Some(d);
+                        }
+                    }
+                    if !decided {
                         continue;
                     }
                     if let Some(start) = &start {
-                        relocalize_start(start, &held, &mut trace).await;
                         glm = begin_glm(start, options, &mut held, &trace).await;
                     }
                     started = true;
@@ -350,11 +522,8 @@ pub async fn stream_session<U: MapUplink>(
         .join()
         .map_err(|_| SessionError::Llo("the LLO thread panicked".into()))?;
     if !started {
-        // Shorter than the relocalization window: relocalize what there is.
-        if let Some(start) = &start {
-            relocalize_start(start, &held, &mut trace).await;
-            glm = begin_glm(start, options, &mut held, &trace).await;
-        }
+        // Shorter than the hold-back, or still searching: the session streams without a prior and the
+        // server searches for it.
         push_held_estimates(&mut trace, &held);
         if let Some(prior) = trace.prior {
             batch.push(UploadItem::SessionStartPrior {

@@ -6,19 +6,27 @@
 //! gives the same map, which is how the server rebuilds a site after a restart.
 //!
 //! A session joins the lifelong map at its first node, with the agent's `SessionStartPrior`
-//! (`global_from_local`, found by relocalizing with no prior on the robot) when it sent one. Without a
-//! prior the session is unplaced until a whole-submap GLM match places it; an unplaced session's submaps
-//! are not published (they float in a frame nothing ties to the site), and a session that ends unplaced is
-//! dropped. Closing a session trims the stale submaps it overlaps (per the configured policy); trimmed
+//! (`global_from_local`, found on the robot by the same [`SessionStart`] against its cache) when it sent
+//! one. Every session after the first has a [`SessionStart`] here too — the one session-start mechanism
+//! of `mapping::lifelong` —, fed each node and each accepted match of its nodes against the other
+//! sessions: a robot's prior is on probation until independent matches along the route agree with it
+//! (disagreement revokes it: the robot's matches are ignored from then on and the server searches for
+//! the session itself); without a prior the server holds the session unplaced and searches the whole
+//! map for it (hold-back, retries), then puts the placement on probation. Only committed sessions'
+//! submaps are published (an unplaced session's float in a frame nothing ties to the site; a session on
+//! probation's may be in the wrong place), and a session that ends unplaced or on probation is dropped. Closing a session trims the stale submaps it overlaps (per the configured policy); trimmed
 //! submaps leave the map at that version and deltas list them.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
 
 use mapping::geometry::{Rigid2, Rigid2Ext as _, normalize_angle};
 use mapping::global_slam::LoopClosure;
 use mapping::grid::ProbabilityGrid;
-use mapping::lifelong::{LifelongError, LifelongEvent, LifelongMap, LifelongOptions};
+use mapping::lifelong::{
+    LifelongError, LifelongEvent, LifelongMap, LifelongOptions, SessionStart, SessionStartEvent,
+    StartSearch, render_submaps,
+};
 use mapping::pose_graph::{NodeId, SubmapId};
 use proto::{MapDelta, NodeAdded, SubmapSnapshot, UploadBatch, UploadItem};
 
@@ -104,6 +112,10 @@ pub struct SiteMap {
     version: u64,
     optimizations: u64,
     dropped_sessions: u64,
+    /// Each running session's start (every session but the first), by trajectory.
+    starts: BTreeMap<u32, SessionStart>,
+    /// Sessions whose robot's placement was revoked: their robot's matches are ignored.
+    robot_revoked: BTreeSet<u32>,
 }
 
 impl SiteMap {
@@ -118,6 +130,8 @@ impl SiteMap {
             version: 0,
             optimizations: 0,
             dropped_sessions: 0,
+            starts: BTreeMap::new(),
+            robot_revoked: BTreeSet::new(),
         })
     }
 
@@ -303,13 +317,7 @@ impl SiteMap {
                         items.next();
                     }
                     if !self.map.is_started(trajectory) {
-                        self.map
-                            .start_session(trajectory, prior)
-                            .map_err(|e| SiteError::InvalidBatch(e.to_string()))?;
-                        // Only a placed session can be matched on the robot: it needs the prior.
-                        if glm_on_robot && prior.is_some() {
-                            self.map.set_matched_on_robot(trajectory);
-                        }
+                        self.start_session(trajectory, prior, glm_on_robot)?;
                     }
                     optimizations += self.add_node(trajectory, node, finished, &matches)?;
                     nodes += 1;
@@ -331,6 +339,92 @@ impl SiteMap {
         Ok(optimizations + count_optimizations(&events))
     }
 
+    /// Starts a session in the lifelong map. Every session but the first gets a [`SessionStart`]: on
+    /// probation at the robot's `prior`, or searching the map for itself without one.
+    fn start_session(
+        &mut self,
+        trajectory: u32,
+        prior: Option<Rigid2>,
+        glm_on_robot: bool,
+    ) -> Result<(), SiteError> {
+        let is_first = self.map.counts().nodes == 0;
+        let invalid = |e: LifelongError| SiteError::InvalidBatch(e.to_string());
+        self.map.start_session(trajectory, prior).map_err(invalid)?;
+        // Only a placed session can be matched on the robot: it needs the prior.
+        if glm_on_robot && prior.is_some() {
+            self.map.set_matched_on_robot(trajectory);
+        }
+        if is_first {
+            return Ok(());
+        }
+        let options = self.map.options().session_start.clone();
+        let internal =
+            |e: mapping::lifelong::LifelongOptionsError| SiteError::Internal(e.to_string());
+        let start = match prior {
+            Some(prior) => {
+                // The robot decided at its last held-back node.
+                let decided_at = options.hold_back_nodes.saturating_sub(1);
+                self.map.begin_probation(trajectory).map_err(invalid)?;
+                let (start, events) =
+                    SessionStart::with_placement(options, None, prior, decided_at)
+                        .map_err(internal)?;
+                self.starts.insert(trajectory, start);
+                self.act_on_start(trajectory, &events)?;
+                return Ok(());
+            }
+            None => SessionStart::new(options, self.start_search()).map_err(internal)?,
+        };
+        self.starts.insert(trajectory, start);
+        Ok(())
+    }
+
+    /// The committed map prepared for whole-map searches (`None` while it is empty).
+    fn start_search(&self) -> Option<StartSearch> {
+        let relocalization = &self.map.options().relocalization;
+        render_submaps(self.map.placed_submaps(), relocalization.resolution)
+            .map(|grid| StartSearch::new(&grid, relocalization))
+    }
+
+    /// Acts on `trajectory`'s session-start decisions: places, commits or revokes it in the map.
+    fn act_on_start(
+        &mut self,
+        trajectory: u32,
+        decisions: &[SessionStartEvent],
+    ) -> Result<(), SiteError> {
+        let internal = |e: LifelongError| SiteError::Internal(e.to_string());
+        for decision in decisions {
+            match decision {
+                SessionStartEvent::Placed(placement) => {
+                    self.map
+                        .place_session(trajectory, placement.global_from_local)
+                        .map_err(internal)?;
+                    self.map.begin_probation(trajectory).map_err(internal)?;
+                }
+                SessionStartEvent::Committed { .. } => {
+                    self.map.commit_session(trajectory);
+                }
+                SessionStartEvent::Revoked { .. } => {
+                    self.map.revoke_placement(trajectory).map_err(internal)?;
+                    // The robot's frame is wrong: its matches say nothing more; search here.
+                    self.map.set_matched_here(trajectory);
+                    self.robot_revoked.insert(trajectory);
+                    let needs_search = self
+                        .starts
+                        .get(&trajectory)
+                        .is_some_and(|s| !s.has_search());
+                    if needs_search
+                        && let Some(search) = self.start_search()
+                        && let Some(start) = self.starts.get_mut(&trajectory)
+                    {
+                        start.set_search(search);
+                    }
+                }
+                SessionStartEvent::Refused { .. } | SessionStartEvent::GaveUp { .. } => {}
+            }
+        }
+        Ok(())
+    }
+
     /// Ends a session in the lifelong map (final optimization, trimming) and marks it closed.
     fn end_session(&mut self, session_uuid: &str) -> Result<Vec<LifelongEvent>, SiteError> {
         let Some(session) = self.sessions.get(session_uuid) else {
@@ -338,8 +432,9 @@ impl SiteMap {
         };
         let trajectory = session.trajectory;
         let mut events = Vec::new();
+        self.starts.remove(&trajectory);
         if self.map.is_started(trajectory) && !self.map.is_finished(trajectory) {
-            let unplaced = self.map.is_unplaced(trajectory);
+            let unplaced = self.map.is_unplaced(trajectory) || self.map.is_on_probation(trajectory);
             events = self.map.finish_session(trajectory).map_err(|e| {
                 SiteError::Internal(format!("ending session {session_uuid:?}: {e}"))
             })?;
@@ -377,18 +472,57 @@ impl SiteMap {
                 finished,
             )
             .map_err(|e| SiteError::InvalidBatch(e.to_string()))?;
-        // The robot's GLM matches (a submap trimmed since the robot matched it is skipped by the map),
-        // then what the server's own searches found.
-        let events = self.map.run_pending_searches(matches.iter().map(
-            |(submap, submap_from_node, score)| LoopClosure {
-                submap: *submap,
-                node: id,
-                submap_from_node: *submap_from_node,
-                score: *score,
-                runner_up_score: None,
-                information: None,
-            },
-        ));
+        // A session started on an empty committed map searches once there is one.
+        let needs_search = self
+            .starts
+            .get(&trajectory)
+            .is_some_and(|s| !s.has_search() && s.placement().is_none());
+        if needs_search
+            && let Some(search) = self.start_search()
+            && let Some(start) = self.starts.get_mut(&trajectory)
+        {
+            start.set_search(search);
+        }
+        let decisions = self
+            .starts
+            .get_mut(&trajectory)
+            .map(|start| start.add_node(node.local_pose, node.points.clone()))
+            .unwrap_or_default();
+        self.act_on_start(trajectory, &decisions)?;
+        // The robot's GLM matches while its placement stands (a submap trimmed since the robot matched
+        // it is skipped by the map), then what the server's own searches found.
+        let robot_trusted =
+            self.map.is_placed(trajectory) && !self.robot_revoked.contains(&trajectory);
+        let events = self
+            .map
+            .run_pending_searches(matches.iter().filter(|_| robot_trusted).map(
+                |(submap, submap_from_node, score)| LoopClosure {
+                    submap: *submap,
+                    node: id,
+                    submap_from_node: *submap_from_node,
+                    score: *score,
+                    runner_up_score: None,
+                    information: None,
+                },
+            ));
+        // Its matches against the other sessions judge its placement.
+        let mut decisions = Vec::new();
+        if let Some(start) = self.starts.get_mut(&trajectory) {
+            for event in &events {
+                if let LifelongEvent::LoopClosureAdded(closure) = event
+                    && closure.node.trajectory == trajectory
+                    && closure.submap.trajectory != trajectory
+                    && let Some(submap_pose) = self.map.global().submap_pose(closure.submap)
+                {
+                    decisions.extend(start.add_match(
+                        closure.node.index as usize,
+                        submap_pose * closure.submap_from_node,
+                        closure.submap,
+                    ));
+                }
+            }
+        }
+        self.act_on_start(trajectory, &decisions)?;
         Ok(count_optimizations(&events))
     }
 
@@ -431,7 +565,7 @@ impl SiteMap {
             }
         }
         for (id, pose, grid) in self.map.submaps() {
-            if grid.is_none() || !self.map.is_placed(id.trajectory) {
+            if grid.is_none() || !self.map.is_committed(id.trajectory) {
                 continue;
             }
             match self.submap_versions.get_mut(&id) {

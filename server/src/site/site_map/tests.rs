@@ -42,6 +42,14 @@ fn open(map: &mut SiteMap, session: &str) -> SessionOpened {
     opened
 }
 
+/// Options under which a robot's prior is committed at once (no probation): for the tests of what
+/// follows a placement.
+fn committed_at_once() -> LifelongOptions {
+    let mut options = LifelongOptions::default();
+    options.session_start.probation_matches = 0;
+    options
+}
+
 fn apply(map: &mut SiteMap, b: &UploadBatch) {
     assert_eq!(map.check_upload(b).unwrap(), UploadCheck::Apply);
     map.apply_upload(b, map.version() + 1).unwrap();
@@ -210,7 +218,7 @@ fn a_start_prior_places_the_session() {
 fn a_prior_placed_sessions_grids_are_drawn_at_the_prior() {
     // A session whose local frame sits at `prior` in the site frame: its submap grid (drawn in the
     // session's own LLO frame) must be placed by `prior`, in renders and in the deltas agents cache.
-    let mut map = SiteMap::new("s", LifelongOptions::default()).unwrap();
+    let mut map = SiteMap::new("s", committed_at_once()).unwrap();
     open(&mut map, "a");
     apply(&mut map, &batch("a", 1, vec![node(0, &[0])]));
     open(&mut map, "b");
@@ -292,7 +300,7 @@ fn ids(trajectory: u32, submaps: u32) -> Vec<SubmapId> {
 
 #[test]
 fn a_covering_session_trims_stale_submaps_but_never_session_zero_and_deltas_say_so() {
-    let mut map = SiteMap::new("s", LifelongOptions::default()).unwrap();
+    let mut map = SiteMap::new("s", committed_at_once()).unwrap();
     for session in ["a", "b"] {
         open(&mut map, session);
         let prior = (session != "a").then(Rigid2::identity);
@@ -331,7 +339,7 @@ fn a_covering_session_trims_stale_submaps_but_never_session_zero_and_deltas_say_
 
 #[test]
 fn a_running_session_is_never_trimmed() {
-    let mut map = SiteMap::new("s", LifelongOptions::default()).unwrap();
+    let mut map = SiteMap::new("s", committed_at_once()).unwrap();
     open(&mut map, "a");
     apply(&mut map, &batch("a", 1, covering_session(6, None, true)));
     open(&mut map, "b");
@@ -360,8 +368,8 @@ fn an_unplaced_session_is_not_published_and_is_dropped_when_it_ends() {
     open(&mut map, "a");
     apply(&mut map, &batch("a", 1, covering_session(6, None, true)));
     open(&mut map, "b");
-    // No prior: the robot could not relocalize, and the default lifelong options run no whole-submap
-    // search, so nothing places b.
+    // No prior: the robot could not place it, and b ends before the server's session start has held
+    // back enough nodes to search, so nothing places b.
     apply(&mut map, &batch("b", 1, covering_session(6, None, false)));
     assert_eq!(map.counts().finished_submaps, 6, "b's submaps float");
     assert!(
@@ -418,4 +426,79 @@ fn a_robot_matched_session_gets_the_robots_matches_and_no_cross_session_search()
     assert_eq!(run(true, false), (0, 0));
     let (_, searched) = run(false, false);
     assert!(searched > 0, "without GLM on the robot the server searches");
+}
+
+#[test]
+fn a_prior_on_probation_is_not_published_trims_nothing_and_is_dropped_if_never_confirmed() {
+    // Reference: Zhao et al. 2021 §III (a session updates the map only once localized); issue 14 §3.
+    let mut map = SiteMap::new("s", LifelongOptions::default()).unwrap();
+    open(&mut map, "a");
+    apply(&mut map, &batch("a", 1, covering_session(6, None, true)));
+    for session in ["b", "c"] {
+        open(&mut map, session);
+        // The robot's prior, and no match along the route agrees with it.
+        apply(
+            &mut map,
+            &batch(
+                session,
+                1,
+                covering_session(6, Some(Rigid2::identity()), false),
+            ),
+        );
+        assert_eq!(
+            map.counts().finished_submaps,
+            6,
+            "{session} is on probation"
+        );
+        apply(&mut map, &batch(session, 2, vec![UploadItem::SessionEnd]));
+    }
+    // c covers b cell for cell, but neither was confirmed: nothing trimmed, both dropped.
+    let counts = map.counts();
+    assert_eq!(
+        (counts.dropped_sessions, counts.trimmed_submaps),
+        (2, 0),
+        "{counts:?}"
+    );
+    assert!(map.node_poses().keys().all(|n| n.trajectory == 0));
+}
+
+#[test]
+fn agreeing_robot_matches_commit_a_prior_and_publish_its_submaps() {
+    let mut options = LifelongOptions::default();
+    options.session_start.probation_matches = 2;
+    options.session_start.probation_min_separation_m = 0.15;
+    options.session_start.hold_back_nodes = 1;
+    let mut map = SiteMap::new("s", options).unwrap();
+    open(&mut map, "a");
+    apply(&mut map, &batch("a", 1, covering_session(6, None, true)));
+    open(&mut map, "b");
+    // b drives a's route (node k at x = 0.1 k) and its robot matches node k to a's submap k where it is.
+    let mut items = vec![UploadItem::SessionStartPrior {
+        global_from_local: Rigid2::identity(),
+        glm_on_robot: true,
+    }];
+    for k in 0..6u32 {
+        items.push(node(k, &[k]));
+        items.push(UploadItem::SubmapFinished {
+            index: k,
+            grid: grid(),
+        });
+        if k % 2 == 0 {
+            // Submap k of a sits at x = k (see `node`), node k at x = 0.1 k.
+            items.push(UploadItem::GlobalMatch {
+                submap: SubmapId {
+                    trajectory: 0,
+                    index: k,
+                },
+                submap_from_node: rigid2(0.1 * f64::from(k) - f64::from(k), 0.0, 0.0),
+                score: 0.9,
+            });
+        }
+    }
+    apply(&mut map, &batch("b", 1, items));
+    assert_eq!(
+        map.counts().finished_submaps,
+        12,
+        "committed: b's submaps are published"
+    );
 }

@@ -1,0 +1,561 @@
+//! Where a session starts in the site map: one state machine for every shell (the offline `lifelong` and
+//! `sessions` commands, the fleet agent and the server).
+//!
+//! A [`SessionStart`] is fed the session's nodes as LLO makes them ([`SessionStart::add_node`]) and, once
+//! it has placed the session, the GLM matches of its nodes against the existing map
+//! ([`SessionStart::add_match`]); it answers with [`SessionStartEvent`]s and the shell acts on them
+//! (places the session in its map, commits or revokes it). It does no I/O and reads no clock; the
+//! whole-map searches run on the calling thread through [`StartSearch`]'s public API.
+//!
+//! 1. **Hold-back.** The first [`SessionStartOptions::hold_back_nodes`] nodes are merged into one cloud
+//!    and searched over the whole map ([`StartSearch::search`]: a near-tie with a clearly different pose
+//!    is refused as ambiguous).
+//! 2. **Retries.** While unplaced, the whole map is searched again with every node since the start (at
+//!    most the latest [`SessionStartOptions::max_search_nodes`]) after `retry_every_n_nodes` nodes, then
+//!    twice, four times ... as many ([`StartSearch::search_again`]: placed when the best pose beats every
+//!    other candidate in the paired per-point test). After [`SessionStartOptions::give_up_after_nodes`]
+//!    the session stops searching.
+//! 3. **Probation.** A placement is tentative: the shell places the session so that GLM can match its
+//!    nodes near their estimates, but its submaps stay out of the map robots relocalize against and it
+//!    trims nothing. It is committed once [`SessionStartOptions::probation_matches`] *independent*
+//!    matches agree with it: matches of nodes at least [`SessionStartOptions::probation_min_separation_m`]
+//!    apart along the route (and that far past the node the placement was decided at, whose cloud placed
+//!    it), against at least [`SessionStartOptions::probation_min_submaps`] different submaps (a finished
+//!    submap spans tens of metres of an aisle, so one per match would wait for most of a session). A
+//!    match agrees when the node pose it implies lies within `agreement_translation_m` (+
+//!    `agreement_growth` per metre of route from the placement's node, for LLO's drift) and
+//!    `agreement_rotation_rad` of the node's pose under the placement: the same place at the scale of
+//!    the look-alike places it must tell apart (an aisle pitch), while GLM refines the pose.
+//!    [`SessionStartOptions::probation_disagreements`] independent disagreeing matches, or
+//!    `probation_timeout_m` of route without a commit, revoke the placement and searching resumes (a
+//!    search that finds a revoked placement again is refused).
+//!
+//! The trade-off: a correct placement waits a few metres before its submaps update the map (the robot
+//! still navigates with it), and matches searched near a wrong estimate in a look-alike aisle can agree
+//! with it where the aisles look the same — probation catches a wrong placement only where the route
+//! shows what tells the places apart.
+
+use std::collections::VecDeque;
+
+use nalgebra::Point2;
+use serde::Deserialize;
+
+use super::{LifelongOptionsError, RelocalizationOutcome, StartSearch};
+use crate::geometry::{Rigid2, Rigid2Ext as _, normalize_angle};
+use crate::pose_graph::SubmapId;
+
+/// Options of [`SessionStart`].
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SessionStartOptions {
+    /// Nodes held back and merged into the cloud of the first whole-map search (count ≥ 1). Default 10
+    /// (about 2 m of driving).
+    pub hold_back_nodes: usize,
+    /// While unplaced, search the whole map again with every node since the start after this many nodes
+    /// (counted from the start, or from the last revocation), then after twice, four times ... as many
+    /// (count; 0 = never retry). The doubling keeps a session that cannot be placed from spending its
+    /// time searching. Default 20.
+    pub retry_every_n_nodes: usize,
+    /// Most nodes (the latest) a retry's cloud holds (count ≥ `hold_back_nodes`). Default 400 (about
+    /// 80 m of driving): beyond that LLO's drift across the cloud outgrows the match tolerance.
+    pub max_search_nodes: usize,
+    /// Stop searching after this many nodes without a placement (count; 0 = never): the session stays
+    /// unplaced. Default 0.
+    pub give_up_after_nodes: usize,
+    /// Independent agreeing matches that commit a placement (count; 0 = commit as soon as placed).
+    /// Default 3.
+    pub probation_matches: usize,
+    /// Two matches are independent when their nodes lie at least this far apart along the route; an
+    /// agreeing match must also lie this far past the node the placement was decided at. Metres ≥ 0.
+    /// Default 3 m.
+    pub probation_min_separation_m: f64,
+    /// The agreeing matches that commit a placement must be of at least this many different submaps
+    /// (count ≥ 1; capped by `probation_matches`). Default 2.
+    pub probation_min_submaps: usize,
+    /// A match agrees when the node position it implies lies within this of the node's position under the
+    /// placement (plus `agreement_growth` per metre of route). Metres > 0. Default 1 m: a quarter of the
+    /// simulated store's aisle pitch (4 m), so a placement in the next aisle disagrees, while a placement
+    /// a few decimetres off along a corridor, which GLM then pulls into place, agrees (MIT CSAIL's second
+    /// session starts 0.6 m off along a corridor).
+    pub agreement_translation_m: f64,
+    /// ... and its heading within this. Radians > 0. Default 5° (the wrong-placement bound of the scores).
+    pub agreement_rotation_rad: f64,
+    /// Growth of the translation tolerance per metre of route between the placement's node and the
+    /// matched node (LLO's drift), metres per metre ≥ 0. Default 0.01.
+    pub agreement_growth: f64,
+    /// Independent disagreeing matches that revoke a placement (count ≥ 1). Default 2: one false match
+    /// does not undo a placement, two independent ones do.
+    pub probation_disagreements: usize,
+    /// Revoke a placement not committed after this much route past its node, metres (0 = never), and
+    /// search again. Default 0: a placement nothing confirms stays on probation (it trims nothing and is
+    /// dropped at the session's end); with 60 m, MIT CSAIL's second session — placed 0.6 m off along a
+    /// corridor, 10 cross-session matches in its first 60 m, none far enough apart — was revoked and
+    /// never placed again.
+    pub probation_timeout_m: f64,
+    /// A search answer within this distance (metres, at the latest node) and `agreement_rotation_rad` of
+    /// a revoked placement is refused as that placement again. Metres ≥ 0. Default 1 m.
+    pub revoked_radius_m: f64,
+}
+
+impl Default for SessionStartOptions {
+    fn default() -> Self {
+        Self {
+            hold_back_nodes: 10,
+            retry_every_n_nodes: 20,
+            max_search_nodes: 400,
+            give_up_after_nodes: 0,
+            probation_matches: 3,
+            probation_min_separation_m: 3.0,
+            probation_min_submaps: 2,
+            agreement_translation_m: 1.0,
+            agreement_rotation_rad: 5f64.to_radians(),
+            agreement_growth: 0.01,
+            probation_disagreements: 2,
+            probation_timeout_m: 0.0,
+            revoked_radius_m: 1.0,
+        }
+    }
+}
+
+impl SessionStartOptions {
+    /// Checks every field.
+    pub fn validate(&self) -> Result<(), LifelongOptionsError> {
+        let out_of_range = |field, reason| Err(LifelongOptionsError::OutOfRange { field, reason });
+        if self.hold_back_nodes == 0 {
+            return out_of_range("hold_back_nodes", "must be at least 1");
+        }
+        if self.max_search_nodes < self.hold_back_nodes {
+            return out_of_range("max_search_nodes", "must be at least hold_back_nodes");
+        }
+        let non_negative = |v: f64| v.is_finite() && v >= 0.0;
+        if !non_negative(self.probation_min_separation_m) {
+            return out_of_range(
+                "probation_min_separation_m",
+                "must be a non-negative number of metres",
+            );
+        }
+        if self.probation_min_submaps == 0 {
+            return out_of_range("probation_min_submaps", "must be at least 1");
+        }
+        if !(self.agreement_translation_m.is_finite() && self.agreement_translation_m > 0.0) {
+            return out_of_range(
+                "agreement_translation_m",
+                "must be a positive number of metres",
+            );
+        }
+        if !(self.agreement_rotation_rad.is_finite() && self.agreement_rotation_rad > 0.0) {
+            return out_of_range(
+                "agreement_rotation_rad",
+                "must be a positive number of radians",
+            );
+        }
+        if !non_negative(self.agreement_growth) {
+            return out_of_range("agreement_growth", "must be non-negative");
+        }
+        if self.probation_disagreements == 0 {
+            return out_of_range("probation_disagreements", "must be at least 1");
+        }
+        if !non_negative(self.probation_timeout_m) {
+            return out_of_range(
+                "probation_timeout_m",
+                "must be a non-negative number of metres",
+            );
+        }
+        if !non_negative(self.revoked_radius_m) {
+            return out_of_range(
+                "revoked_radius_m",
+                "must be a non-negative number of metres",
+            );
+        }
+        Ok(())
+    }
+}
+
+/// A placement of the session: where its LLO frame sits in the map.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StartPlacement {
+    /// `global_from_local` of the session's LLO frame.
+    pub global_from_local: Rigid2,
+    /// Index (in the session, from 0) of the node at which it was decided.
+    pub node: usize,
+    /// Branch-and-bound score of the search that found it (`None`: given by the caller, e.g. a robot's
+    /// prior).
+    pub score: Option<f32>,
+}
+
+/// Why a placement was revoked.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum RevokeReason {
+    /// Independent matches disagreed with it.
+    Disagreement,
+    /// Nothing confirmed it within `probation_timeout_m`.
+    Timeout,
+}
+
+/// What [`SessionStart`] decided; the shell acts on it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum SessionStartEvent {
+    /// A whole-map search did not place the session (ambiguous, nothing found, or a revoked placement
+    /// found again); searching goes on.
+    Refused {
+        /// The node the search was made at.
+        node: usize,
+        /// What the search found (`Found` only when it repeated a revoked placement).
+        outcome: RelocalizationOutcome,
+    },
+    /// Placed tentatively: place the session in the map, on probation (its submaps stay out of the
+    /// relocalization map and it trims nothing).
+    Placed(StartPlacement),
+    /// The placement is confirmed: commit it.
+    Committed {
+        /// The placement.
+        placement: StartPlacement,
+        /// The node whose match committed it.
+        node: usize,
+    },
+    /// The placement was revoked: un-place the session; searching resumes.
+    Revoked {
+        /// The placement.
+        placement: StartPlacement,
+        /// Why.
+        reason: RevokeReason,
+        /// The node at which it was revoked.
+        node: usize,
+    },
+    /// The session stopped searching (`give_up_after_nodes`); it stays unplaced.
+    GaveUp {
+        /// The node at which it gave up.
+        node: usize,
+    },
+}
+
+/// Where a [`SessionStart`] stands.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum SessionStartState {
+    /// Holding nodes back, or searching between retries.
+    Searching,
+    /// Placed, not yet confirmed.
+    Probation(StartPlacement),
+    /// Placed and confirmed (final).
+    Committed(StartPlacement),
+    /// Stopped searching, unplaced (final).
+    GaveUp,
+}
+
+/// A match counted toward (or against) a placement: its node's route position and its submap.
+#[derive(Clone, Copy, Debug)]
+struct Counted {
+    path_m: f64,
+    submap: SubmapId,
+}
+
+/// The session-start state machine (see the module docs).
+pub struct SessionStart {
+    options: SessionStartOptions,
+    search: Option<StartSearch>,
+    state: SessionStartState,
+    /// Per node: `local_from_tracking` and the route length from the first node, metres.
+    nodes: Vec<(Rigid2, f64)>,
+    /// The latest nodes' `(local_from_tracking, points)`, while the session may still search.
+    cloud: VecDeque<(Rigid2, Vec<Point2<f32>>)>,
+    /// The node count at which the current search schedule started (0, or a revocation).
+    schedule_start: usize,
+    searches: usize,
+    agreeing: Vec<Counted>,
+    disagreeing: Vec<Counted>,
+    revoked: Vec<Rigid2>,
+    revocations: usize,
+}
+
+impl SessionStart {
+    /// A session that searches for its start. `search`: the map prepared for whole-map searches
+    /// (`None` when there is no map yet: searches find nothing until [`Self::set_search`]).
+    pub fn new(
+        options: SessionStartOptions,
+        search: Option<StartSearch>,
+    ) -> Result<Self, LifelongOptionsError> {
+        options.validate()?;
+        Ok(Self {
+            options,
+            search,
+            state: SessionStartState::Searching,
+            nodes: Vec::new(),
+            cloud: VecDeque::new(),
+            schedule_start: 0,
+            searches: 0,
+            agreeing: Vec::new(),
+            disagreeing: Vec::new(),
+            revoked: Vec::new(),
+            revocations: 0,
+        })
+    }
+
+    /// A session placed elsewhere (a robot's prior, decided at its node `node`), on probation from the
+    /// start; committed at once when `probation_matches` is 0. Returns the events of that decision.
+    pub fn with_placement(
+        options: SessionStartOptions,
+        search: Option<StartSearch>,
+        global_from_local: Rigid2,
+        node: usize,
+    ) -> Result<(Self, Vec<SessionStartEvent>), LifelongOptionsError> {
+        let mut start = Self::new(options, search)?;
+        let placement = StartPlacement {
+            global_from_local,
+            node,
+            score: None,
+        };
+        let events = start.place(placement, node);
+        Ok((start, events))
+    }
+
+    /// Hands over the map to search when the session was created without one.
+    pub fn set_search(&mut self, search: StartSearch) {
+        self.search = Some(search);
+    }
+
+    /// Whether a map to search is set.
+    pub fn has_search(&self) -> bool {
+        self.search.is_some()
+    }
+
+    /// Where the session stands.
+    pub fn state(&self) -> SessionStartState {
+        self.state
+    }
+
+    /// The current placement (on probation or committed).
+    pub fn placement(&self) -> Option<StartPlacement> {
+        match self.state {
+            SessionStartState::Probation(p) | SessionStartState::Committed(p) => Some(p),
+            _ => None,
+        }
+    }
+
+    /// Whether the placement is committed.
+    pub fn is_committed(&self) -> bool {
+        matches!(self.state, SessionStartState::Committed(_))
+    }
+
+    /// Whole-map searches made so far.
+    pub fn searches(&self) -> usize {
+        self.searches
+    }
+
+    /// Placements revoked so far.
+    pub fn revocations(&self) -> usize {
+        self.revocations
+    }
+
+    /// Nodes added so far.
+    pub fn nodes(&self) -> usize {
+        self.nodes.len()
+    }
+
+    /// Adds the session's next node (`local_from_tracking` and its points in the tracking frame) and runs
+    /// whatever it makes due: the first search once `hold_back_nodes` are in, a retry, a probation
+    /// timeout, giving up.
+    pub fn add_node(
+        &mut self,
+        local_pose: Rigid2,
+        points: Vec<Point2<f32>>,
+    ) -> Vec<SessionStartEvent> {
+        let path_m = self.nodes.last().map_or(0.0, |(last, length)| {
+            length + (local_pose.translation.vector - last.translation.vector).norm()
+        });
+        self.nodes.push((local_pose, path_m));
+        let node = self.nodes.len() - 1;
+        match self.state {
+            SessionStartState::Committed(_) | SessionStartState::GaveUp => Vec::new(),
+            SessionStartState::Probation(placement) => {
+                self.keep_cloud(local_pose, points);
+                let timeout = self.options.probation_timeout_m;
+                let past = path_m - self.path_at(placement.node).unwrap_or(path_m);
+                if timeout > 0.0 && past > timeout {
+                    self.revoke(placement, RevokeReason::Timeout, node)
+                } else {
+                    Vec::new()
+                }
+            }
+            SessionStartState::Searching => {
+                self.keep_cloud(local_pose, points);
+                self.search_if_due(node)
+            }
+        }
+    }
+
+    /// A GLM match of the session's node `node` against the existing map, implying the node's map pose
+    /// `map_from_node` (`world_from_tracking`), against `submap`. Counts only while on probation.
+    pub fn add_match(
+        &mut self,
+        node: usize,
+        map_from_node: Rigid2,
+        submap: SubmapId,
+    ) -> Vec<SessionStartEvent> {
+        let SessionStartState::Probation(placement) = self.state else {
+            return Vec::new();
+        };
+        let (Some(&(local_pose, path_m)), Some(placed_path)) =
+            (self.nodes.get(node), self.path_at(placement.node))
+        else {
+            return Vec::new();
+        };
+        let expected = placement.global_from_local * local_pose;
+        let route = (path_m - placed_path).abs();
+        let translation = (map_from_node.translation.vector - expected.translation.vector).norm();
+        let rotation = normalize_angle(map_from_node.theta() - expected.theta()).abs();
+        let agrees = translation
+            <= self.options.agreement_translation_m + self.options.agreement_growth * route
+            && rotation <= self.options.agreement_rotation_rad;
+        let counted = Counted { path_m, submap };
+        let separation = self.options.probation_min_separation_m;
+        if agrees {
+            if path_m - placed_path >= separation
+                && independent(&self.agreeing, counted, separation)
+            {
+                self.agreeing.push(counted);
+            }
+            let mut submaps: Vec<SubmapId> = self.agreeing.iter().map(|c| c.submap).collect();
+            submaps.sort_unstable();
+            submaps.dedup();
+            let min_submaps = self
+                .options
+                .probation_min_submaps
+                .min(self.options.probation_matches);
+            if self.agreeing.len() >= self.options.probation_matches && submaps.len() >= min_submaps
+            {
+                self.state = SessionStartState::Committed(placement);
+                self.cloud.clear();
+                return vec![SessionStartEvent::Committed { placement, node }];
+            }
+        } else if independent(&self.disagreeing, counted, separation) {
+            self.disagreeing.push(counted);
+            if self.disagreeing.len() >= self.options.probation_disagreements {
+                let last = self.nodes.len().saturating_sub(1);
+                return self.revoke(placement, RevokeReason::Disagreement, last);
+            }
+        }
+        Vec::new()
+    }
+
+    fn path_at(&self, node: usize) -> Option<f64> {
+        self.nodes.get(node).map(|(_, path)| *path)
+    }
+
+    fn keep_cloud(&mut self, local_pose: Rigid2, points: Vec<Point2<f32>>) {
+        if self.cloud.len() >= self.options.max_search_nodes {
+            self.cloud.pop_front();
+        }
+        self.cloud.push_back((local_pose, points));
+    }
+
+    /// The first search at `hold_back_nodes`, retries on the doubling schedule, giving up.
+    fn search_if_due(&mut self, node: usize) -> Vec<SessionStartEvent> {
+        let count = node + 1;
+        let since = count - self.schedule_start;
+        let give_up = self.options.give_up_after_nodes;
+        if give_up > 0 && since >= give_up {
+            self.state = SessionStartState::GaveUp;
+            self.cloud.clear();
+            return vec![SessionStartEvent::GaveUp { node }];
+        }
+        let first = self.searches == 0 && count == self.options.hold_back_nodes;
+        let every = self.options.retry_every_n_nodes;
+        let retry = self.searches > 0
+            && every > 0
+            && since.is_multiple_of(every)
+            && (since / every).is_power_of_two();
+        if !(first || retry) {
+            return Vec::new();
+        }
+        self.searches += 1;
+        let outcome = match &self.search {
+            None => RelocalizationOutcome::NotFound,
+            Some(search) => {
+                let scans = self.cloud.make_contiguous();
+                if first {
+                    search.search(scans)
+                } else {
+                    search.search_again(scans)
+                }
+            }
+        };
+        // The cloud's frame is its first node's local frame, which the search resolves: `found` is
+        // already `global_from_local` of the session's LLO frame.
+        match outcome {
+            RelocalizationOutcome::Found(found)
+                if !self.repeats_revoked(&found.global_from_local) =>
+            {
+                let placement = StartPlacement {
+                    global_from_local: found.global_from_local,
+                    node,
+                    score: Some(found.score),
+                };
+                let mut events = vec![SessionStartEvent::Placed(placement)];
+                events.extend(self.place(placement, node));
+                events
+            }
+            outcome => vec![SessionStartEvent::Refused { node, outcome }],
+        }
+    }
+
+    /// Enters probation on `placement` (or commits it when no match is asked for); the `Placed` event
+    /// is the caller's to emit.
+    fn place(&mut self, placement: StartPlacement, node: usize) -> Vec<SessionStartEvent> {
+        self.agreeing.clear();
+        self.disagreeing.clear();
+        if self.options.probation_matches == 0 {
+            self.state = SessionStartState::Committed(placement);
+            self.cloud.clear();
+            return vec![SessionStartEvent::Committed { placement, node }];
+        }
+        self.state = SessionStartState::Probation(placement);
+        Vec::new()
+    }
+
+    fn revoke(
+        &mut self,
+        placement: StartPlacement,
+        reason: RevokeReason,
+        node: usize,
+    ) -> Vec<SessionStartEvent> {
+        self.revoked.push(placement.global_from_local);
+        self.revocations += 1;
+        self.agreeing.clear();
+        self.disagreeing.clear();
+        self.state = SessionStartState::Searching;
+        // Retries count again from here; the first search was made, so the next one is `search_again`.
+        self.schedule_start = node + 1;
+        self.searches = self.searches.max(1);
+        vec![SessionStartEvent::Revoked {
+            placement,
+            reason,
+            node,
+        }]
+    }
+
+    /// Whether `global_from_local` puts the latest node within `revoked_radius_m` and
+    /// `agreement_rotation_rad` of where a revoked placement put it.
+    fn repeats_revoked(&self, global_from_local: &Rigid2) -> bool {
+        let Some(&(local, _)) = self.nodes.last() else {
+            return false;
+        };
+        let here = global_from_local * local;
+        self.revoked.iter().any(|revoked| {
+            let there = revoked * local;
+            (here.translation.vector - there.translation.vector).norm()
+                <= self.options.revoked_radius_m
+                && normalize_angle(here.theta() - there.theta()).abs()
+                    <= self.options.agreement_rotation_rad
+        })
+    }
+}
+
+/// Whether `candidate` is at least `separation` metres along the route from every match in `counted`.
+fn independent(counted: &[Counted], candidate: Counted, separation: f64) -> bool {
+    counted
+        .iter()
+        .all(|c| (c.path_m - candidate.path_m).abs() >= separation)
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,309 @@
+//! The session-start state machine on synthetic inputs: a room it can place a session in, and matches
+//! made up to agree or disagree with a placement.
+
+use super::*;
+use crate::geometry::rigid2;
+use crate::lifelong::RelocalizationOptions;
+use crate::scan_matching::test_support::{room_grid, room_scan};
+
+/// Options with small counts so that each test drives only a few nodes.
+fn options() -> SessionStartOptions {
+    SessionStartOptions {
+        hold_back_nodes: 3,
+        retry_every_n_nodes: 4,
+        probation_matches: 2,
+        probation_min_separation_m: 1.0,
+        agreement_translation_m: 0.3,
+        agreement_rotation_rad: 3f64.to_radians(),
+        probation_timeout_m: 0.0,
+        ..SessionStartOptions::default()
+    }
+}
+
+/// The room prepared for whole-map searches.
+fn room_search() -> StartSearch {
+    let options = RelocalizationOptions {
+        voxel_size: 0.0,
+        min_score: 0.3,
+        ..RelocalizationOptions::default()
+    };
+    StartSearch::new(&room_grid(), &options)
+}
+
+fn submap(index: u32) -> SubmapId {
+    SubmapId {
+        trajectory: 0,
+        index,
+    }
+}
+
+/// Node `k` of a session driving +x in its LLO frame, 0.5 m per node, with no points.
+fn local(k: usize) -> Rigid2 {
+    rigid2(0.5 * k as f64, 0.0, 0.0)
+}
+
+/// A session placed at `global_from_local` (decided at node 0) that has driven `nodes` nodes.
+fn on_probation(
+    options: SessionStartOptions,
+    global_from_local: Rigid2,
+    nodes: usize,
+) -> SessionStart {
+    let (mut start, events) =
+        SessionStart::with_placement(options, None, global_from_local, 0).unwrap();
+    assert!(events.is_empty(), "{events:?}");
+    for k in 0..nodes {
+        assert!(start.add_node(local(k), Vec::new()).is_empty());
+    }
+    start
+}
+
+#[test]
+fn the_held_back_nodes_place_the_session_on_probation() {
+    let mut start = SessionStart::new(options(), Some(room_search())).unwrap();
+    // The robot stands in the room at `truth`; its LLO frame is its first pose.
+    let truth = rigid2(2.7, 2.2, 0.4);
+    let mut events = Vec::new();
+    for k in 0..3 {
+        let world = truth * rigid2(0.05 * f64::from(k), 0.0, 0.0);
+        events.push(start.add_node(truth.inverse() * world, room_scan(&world)));
+    }
+    assert!(events[0].is_empty() && events[1].is_empty(), "{events:?}");
+    let [SessionStartEvent::Placed(placement)] = events[2][..] else {
+        panic!("placed at the third node: {events:?}");
+    };
+    assert_eq!(placement.node, 2);
+    let error = (placement.global_from_local.translation.vector - truth.translation.vector).norm();
+    assert!(error < 0.05, "placed {error} m off");
+    assert_eq!(start.state(), SessionStartState::Probation(placement));
+    assert!(!start.is_committed());
+}
+
+#[test]
+fn a_refused_start_retries_on_the_doubling_schedule() {
+    // No map: every search finds nothing.
+    let mut start = SessionStart::new(options(), None).unwrap();
+    let searched_at: Vec<usize> = (0..20)
+        .filter(|&k| {
+            let events = start.add_node(local(k), Vec::new());
+            match events[..] {
+                [] => false,
+                [
+                    SessionStartEvent::Refused {
+                        node,
+                        outcome: RelocalizationOutcome::NotFound,
+                    },
+                ] => node == k,
+                _ => panic!("{events:?}"),
+            }
+        })
+        .collect();
+    // The hold-back (3 nodes), then 4, 8 and 16 nodes in.
+    assert_eq!(searched_at, vec![2, 3, 7, 15]);
+    assert_eq!(start.searches(), 4);
+    assert_eq!(start.state(), SessionStartState::Searching);
+}
+
+#[test]
+fn a_placement_is_committed_after_independent_agreeing_matches() {
+    let placed = rigid2(10.0, 5.0, 0.3);
+    let mut start = on_probation(options(), placed, 12);
+    let agreeing = |k: usize| placed * local(k) * rigid2(0.05, -0.05, 0.01);
+    // Node 1 lies only 0.5 m past the placement's node: its cloud placed the session.
+    assert!(start.add_match(1, agreeing(1), submap(0)).is_empty());
+    assert!(start.add_match(4, agreeing(4), submap(1)).is_empty());
+    // Another of the same submap counts, but two submaps are needed; one 0.5 m from a counted one is
+    // not independent.
+    assert!(start.add_match(10, agreeing(10), submap(1)).is_empty());
+    assert!(start.add_match(5, agreeing(5), submap(2)).is_empty());
+    let events = start.add_match(7, agreeing(7), submap(3));
+    let [SessionStartEvent::Committed { placement, node: 7 }] = events[..] else {
+        panic!("committed by an independent match of a second submap: {events:?}");
+    };
+    assert_eq!(placement.global_from_local, placed);
+    assert!(start.is_committed());
+    // Committed is final: matches and nodes change nothing.
+    let far = rigid2(30.0, 0.0, 0.0);
+    assert!(start.add_match(11, far, submap(4)).is_empty());
+    assert!(start.add_node(local(12), Vec::new()).is_empty());
+    assert_eq!(start.placement(), Some(placement));
+}
+
+#[test]
+fn independent_disagreeing_matches_revoke_a_placement_and_searching_resumes() {
+    let placed = rigid2(10.0, 5.0, 0.3);
+    let mut start = on_probation(options(), placed, 12);
+    // The matches put the nodes 4 m over: the next aisle.
+    let elsewhere = |k: usize| rigid2(0.0, 4.0, 0.0) * placed * local(k);
+    assert!(start.add_match(6, elsewhere(6), submap(0)).is_empty());
+    // Too close along the route to the first to count again.
+    assert!(start.add_match(7, elsewhere(7), submap(1)).is_empty());
+    let events = start.add_match(9, elsewhere(9), submap(2));
+    let [
+        SessionStartEvent::Revoked {
+            placement,
+            reason: RevokeReason::Disagreement,
+            node: 11,
+        },
+    ] = events[..]
+    else {
+        panic!("revoked by the second independent disagreement: {events:?}");
+    };
+    assert_eq!(placement.global_from_local, placed);
+    assert_eq!(start.state(), SessionStartState::Searching);
+    assert_eq!(start.revocations(), 1);
+    // Searching resumes on the schedule, counted from the revocation: 4 nodes later.
+    let events: Vec<Vec<SessionStartEvent>> = (12..16)
+        .map(|k| start.add_node(local(k), Vec::new()))
+        .collect();
+    assert!(events[..3].iter().all(Vec::is_empty), "{events:?}");
+    assert!(
+        matches!(events[3][..], [SessionStartEvent::Refused { node: 15, .. }]),
+        "{events:?}"
+    );
+}
+
+#[test]
+fn one_disagreeing_match_among_agreeing_ones_does_not_revoke() {
+    let placed = rigid2(-3.0, 1.0, -1.0);
+    let mut start = on_probation(options(), placed, 12);
+    let wrong = rigid2(0.0, 4.0, 0.0) * placed * local(3);
+    assert!(start.add_match(3, wrong, submap(0)).is_empty());
+    assert!(start.add_match(4, placed * local(4), submap(1)).is_empty());
+    let events = start.add_match(8, placed * local(8), submap(2));
+    assert!(
+        matches!(events[..], [SessionStartEvent::Committed { .. }]),
+        "{events:?}"
+    );
+}
+
+#[test]
+fn a_placement_nothing_confirms_times_out() {
+    let options = SessionStartOptions {
+        probation_timeout_m: 3.0,
+        ..options()
+    };
+    let placed = rigid2(1.0, 2.0, 0.0);
+    let (mut start, _) = SessionStart::with_placement(options, None, placed, 0).unwrap();
+    // 0.5 m per node: node 7 is 3.5 m past the placement's node 0.
+    let events: Vec<Vec<SessionStartEvent>> = (0..8)
+        .map(|k| start.add_node(local(k), Vec::new()))
+        .collect();
+    assert!(events[..7].iter().all(Vec::is_empty), "{events:?}");
+    assert!(
+        matches!(
+            events[7][..],
+            [SessionStartEvent::Revoked {
+                reason: RevokeReason::Timeout,
+                node: 7,
+                ..
+            }]
+        ),
+        "{events:?}"
+    );
+}
+
+#[test]
+fn a_session_that_cannot_be_placed_gives_up() {
+    let options = SessionStartOptions {
+        give_up_after_nodes: 10,
+        ..options()
+    };
+    let mut start = SessionStart::new(options, None).unwrap();
+    let events: Vec<Vec<SessionStartEvent>> = (0..12)
+        .map(|k| start.add_node(local(k), Vec::new()))
+        .collect();
+    assert!(
+        matches!(events[9][..], [SessionStartEvent::GaveUp { node: 9 }]),
+        "{events:?}"
+    );
+    assert!(events[10..].iter().all(Vec::is_empty));
+    assert_eq!(start.state(), SessionStartState::GaveUp);
+}
+
+#[test]
+fn a_revoked_placement_found_again_is_refused() {
+    let truth = rigid2(2.7, 2.2, 0.4);
+    // Placed where the search will find it, then revoked by made-up disagreements.
+    let options = SessionStartOptions {
+        probation_min_separation_m: 0.0,
+        ..options()
+    };
+    let (mut start, _) =
+        SessionStart::with_placement(options, Some(room_search()), truth, 0).unwrap();
+    let scan = |k: usize| {
+        let world = truth * rigid2(0.02 * k as f64, 0.0, 0.0);
+        (truth.inverse() * world, room_scan(&world))
+    };
+    for k in 0..4 {
+        let (pose, points) = scan(k);
+        assert!(start.add_node(pose, points).is_empty());
+    }
+    let off = |k: usize| rigid2(1.0, 0.0, 0.0) * truth * scan(k).0;
+    start.add_match(0, off(0), submap(0));
+    let events = start.add_match(3, off(3), submap(1));
+    assert!(
+        matches!(events[..], [SessionStartEvent::Revoked { .. }]),
+        "{events:?}"
+    );
+    // The next search (4 nodes after the revocation at node 3) finds the same pose: refused.
+    let mut last = Vec::new();
+    for k in 4..8 {
+        let (pose, points) = scan(k);
+        last = start.add_node(pose, points);
+    }
+    assert!(
+        matches!(
+            last[..],
+            [SessionStartEvent::Refused {
+                outcome: RelocalizationOutcome::Found(_),
+                ..
+            }]
+        ),
+        "{last:?}"
+    );
+}
+
+#[test]
+fn committing_at_once_without_probation() {
+    let options = SessionStartOptions {
+        probation_matches: 0,
+        ..options()
+    };
+    let placed = rigid2(1.0, 2.0, 0.0);
+    let (start, events) = SessionStart::with_placement(options, None, placed, 5).unwrap();
+    assert!(
+        matches!(events[..], [SessionStartEvent::Committed { node: 5, .. }]),
+        "{events:?}"
+    );
+    assert!(start.is_committed());
+}
+
+#[test]
+fn invalid_options_are_refused() {
+    let bad = [
+        SessionStartOptions {
+            hold_back_nodes: 0,
+            ..SessionStartOptions::default()
+        },
+        SessionStartOptions {
+            max_search_nodes: 5,
+            ..SessionStartOptions::default()
+        },
+        SessionStartOptions {
+            agreement_translation_m: 0.0,
+            ..SessionStartOptions::default()
+        },
+        SessionStartOptions {
+            probation_disagreements: 0,
+            ..SessionStartOptions::default()
+        },
+        SessionStartOptions {
+            probation_timeout_m: f64::NAN,
+            ..SessionStartOptions::default()
+        },
+    ];
+    for options in bad {
+        assert!(options.validate().is_err(), "{options:?}");
+    }
+    assert!(SessionStartOptions::default().validate().is_ok());
+}
