@@ -903,6 +903,16 @@ impl GlobalSlam {
             node.trajectory != submap.trajectory
                 && (node.trajectory == trajectory || submap.trajectory == trajectory)
         };
+        // Its cross-trajectory closures are gone for good, retracted ones included (never put back).
+        for (closure, state) in self
+            .accepted_loop_closures
+            .iter()
+            .zip(&mut self.closure_states)
+        {
+            if crosses(closure.node, closure.submap) {
+                *state = ClosureState::Gone;
+            }
+        }
         self.pending_jobs.retain(|j| !crosses(j.node, j.submap));
         self.pending_unconfirmed
             .retain(|(c, _)| !crosses(c.node, c.submap));
@@ -1166,13 +1176,15 @@ impl GlobalSlam {
         &self.accepted_loop_closures
     }
 
-    /// Every accepted loop closure whose node and submap are still in the graph, judged against the
-    /// current (optimized) poses: how far the optimized graph violates it (retracted ones included, marked).
+    /// Every accepted loop closure whose node and submap are still in the graph (and whose trajectory was
+    /// not unplaced since), judged against the current (optimized) poses: how far the optimized graph
+    /// violates it (retracted ones included, marked).
     pub fn loop_closure_checks(&self) -> Vec<LoopClosureCheck> {
         self.accepted_loop_closures
             .iter()
             .zip(&self.acceptances)
             .zip(&self.closure_states)
+            .filter(|(_, state)| !matches!(state, ClosureState::Gone))
             .filter_map(|((closure, acceptance), state)| {
                 let submap = self.submap_pose(closure.submap)?;
                 let node = self.node_pose(closure.node)?;
