@@ -203,13 +203,7 @@ async fn prepare_search(
     }
     let options = options.clone();
     tokio::task::spawn_blocking(move || {
-        let grid = render_submaps(
-            submaps.iter().map(|(global_from_grid, grid)| PlacedGrid {
-                global_from_grid: *global_from_grid,
-                grid,
-            }),
-            options.resolution,
-        )?;
+        let grid = render_cached(&submaps, options.resolution)?;
         Some(StartSearch::new(&grid, &options))
     })
     .await
@@ -218,6 +212,20 @@ async fn prepare_search(
 }
 
 /// `global_from_grid` and grid of every cached submap.
+/// The cached submaps rendered into one grid at `resolution` (blocking: call off the async threads).
+fn render_cached(
+    submaps: &[(Rigid2, Arc<mapping::grid::ProbabilityGrid>)],
+    resolution: f64,
+) -> Option<mapping::grid::ProbabilityGrid> {
+    render_submaps(
+        submaps.iter().map(|(global_from_grid, grid)| PlacedGrid {
+            global_from_grid: *global_from_grid,
+            grid,
+        }),
+        resolution,
+    )
+}
+
 fn cached_grids(
     cache: &Mutex<GlobalSubmapCache>,
 ) -> Vec<(Rigid2, Arc<mapping::grid::ProbabilityGrid>)> {
@@ -317,13 +325,7 @@ pub async fn relocalize_nodes<'a>(
     }
     let options = options.clone();
     let found = tokio::task::spawn_blocking(move || {
-        let grid = render_submaps(
-            submaps.iter().map(|(global_from_grid, grid)| PlacedGrid {
-                global_from_grid: *global_from_grid,
-                grid,
-            }),
-            options.resolution,
-        )?;
+        let grid = render_cached(&submaps, options.resolution)?;
         relocalize_scans_in_grid(&grid, &scans, &options).found()
     })
     .await
