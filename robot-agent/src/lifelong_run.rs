@@ -163,9 +163,12 @@ pub struct SessionRecord {
     pub online: Vec<(Timestamp, Rigid2)>,
     /// `map_from_base` of each matched scan when the session ended (after its final optimization).
     pub smoothed: Vec<(Timestamp, Rigid2)>,
+    /// Every placement the robot acted on, in order: each [`SessionStartEvent::Placed`] (tentative,
+    /// on probation), decided at the scan that placed it. Empty for session 0 (it defines the map).
+    pub placements: Vec<Placement>,
     /// The placement the session committed to (`None`: never committed, and session 0, which defines
     /// the map): [`SessionStartEvent::Committed`]'s, decided at the scan whose match committed it.
-    pub placement: Option<Placement>,
+    pub committed: Option<Placement>,
     /// Per node, in order, its branch-and-bound score ([`MatchScorer`], within the scoring's match window
     /// of the robot's estimate) against the map of the finished sessions rendered when the session
     /// started; 0 while the session was not placed.
@@ -181,7 +184,8 @@ impl SessionRecord {
             start_time: self.start_time,
             online: &self.online,
             smoothed: &self.smoothed,
-            placement: self.placement,
+            placements: &self.placements,
+            committed: self.committed,
             match_scores: &self.match_scores,
         }
     }
@@ -785,6 +789,18 @@ fn act_on_start(
             SessionStartEvent::Placed(placement) => {
                 map.place_session(session, placement.global_from_local)?;
                 map.begin_probation(session)?;
+                if let (Some(record), Some(decided_at), Some(time), Some(placed_local)) = (
+                    record.as_deref_mut(),
+                    node_times.last(),
+                    node_times.get(placement.node),
+                    local(placement.node),
+                ) {
+                    record.placements.push(Placement {
+                        decided_at: *decided_at,
+                        time: *time,
+                        map_from_base: placement.global_from_local * placed_local,
+                    });
+                }
                 if let Some(summary) = summary.as_deref_mut() {
                     if first_search {
                         summary.relocalized = true;
@@ -815,7 +831,7 @@ fn act_on_start(
                     node_times.get(placement.node),
                     local(placement.node),
                 ) {
-                    record.placement = Some(Placement {
+                    record.committed = Some(Placement {
                         decided_at: *decided_at,
                         time: *time,
                         map_from_base: placement.global_from_local * placed_local,

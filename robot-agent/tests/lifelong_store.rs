@@ -65,6 +65,7 @@ fn later_sessions_relocalize_and_localize_in_the_session_zero_frame() {
             summary.cross_session_closures,
         );
         assert!(score.initialized, "session {k}: {score:?}");
+        assert!(score.initialized_committed, "session {k}: {score:?}");
         assert!(!score.wrong_placement);
         assert!(score.mrcl > 0.9, "session {k}: MRCL {}", score.mrcl);
         assert!(

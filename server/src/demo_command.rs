@@ -93,6 +93,8 @@ struct SessionRun {
     /// The robot's own estimate of each node's global pose at its time (see `SessionTrace`).
     node_estimates: Vec<Option<Rigid2>>,
     prior: Option<Rigid2>,
+    /// Every placement the robot acted on (tentative, on probation).
+    placements: Vec<Placement>,
     /// The placement the robot committed to (probation passed on its GLM matches).
     committed: Option<Placement>,
     /// Whether the robot's placement was revoked.
@@ -346,6 +348,7 @@ async fn demo(args: &DemoArgs) -> anyhow::Result<()> {
         },
         "agents_at_version": agents_at,
         "cri": report.run.cri,
+        "cri_committed": report.run.cri_committed,
         "mrcl": report.run.mrcl,
         "mrcl_smoothed": report.run.mrcl_smoothed,
         "wrong_placements": report.run.wrong_placements,
@@ -453,6 +456,7 @@ async fn run_session(
         node_times: trace.node_times,
         node_estimates: trace.node_estimates,
         prior: trace.prior,
+        placements: trace.placements,
         committed: trace.committed,
         revoked: trace.revoked,
         score: trace.score,
@@ -620,8 +624,12 @@ fn score(
                 .filter_map(|(t, e)| Some((*t, (*e)?)))
                 .collect()
         };
-        // The placement the robot committed to (after its probation), not the tentative prior.
-        let placement = run.committed.filter(|_| run.session > 0);
+        // Every placement the robot acted on, and the one it committed to (the mapping session has none).
+        let (placements, committed): (&[Placement], _) = if run.session > 0 {
+            (&run.placements, run.committed)
+        } else {
+            (&[], None)
+        };
         // The robots report an estimate per node (scans that passed the motion filter), not per scan:
         // the session is scored on its nodes' scans.
         let node_times: std::collections::BTreeSet<Timestamp> =
@@ -637,7 +645,8 @@ fn score(
             start_time: run.truth.first().map_or(Timestamp::default(), |(t, _)| *t),
             online: &online,
             smoothed: &smoothed,
-            placement,
+            placements,
+            committed,
             match_scores: &[],
         };
         let score = score_session(&track, &world_from_map, scoring);

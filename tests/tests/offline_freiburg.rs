@@ -2,7 +2,7 @@
 //! and PGR with the default configuration, scored against the benchmark's ground-truth relations
 //! (Kümmerle et al. 2009) and by loop-closure precision (Hess et al. 2016, Table IV).
 //!
-//! The bounds are the figures measured with the release build (BENCHMARKS.md, session 11) plus a margin
+//! The bounds are the figures measured with the release build (BENCHMARKS.md, session 12) plus a margin
 //! for floating-point differences between builds, not for regressions.
 
 use mapping::geometry::Rigid2;
@@ -51,7 +51,8 @@ fn check(name: &str, bounds: &Bounds) -> anyhow::Result<()> {
 
 #[test]
 fn csail_offline_run_is_accurate() -> anyhow::Result<()> {
-    // Measured 0.0343 m, 0.389°, precision 0.993 (318 closures, 24 retracted; session 10: 0.0341 m, 0.975;
+    // Measured 0.0340 m, 0.393°, precision 1.000 (318 closures, 30 retracted; session 11: 0.0343 m, 0.993;
+    // session 10: 0.0341 m, 0.975;
     // session 9: 0.0405 m, 0.413°). Cartographer published 0.0319 m, 0.369°;
     // stock Cartographer run on this machine: 1.5 m.
     check(
@@ -60,7 +61,7 @@ fn csail_offline_run_is_accurate() -> anyhow::Result<()> {
             relations: 1172,
             trans_m: 0.045,
             rot_deg: 0.45,
-            precision: 0.97,
+            precision: 0.985,
             min_closures: 200,
         },
     )
@@ -68,7 +69,8 @@ fn csail_offline_run_is_accurate() -> anyhow::Result<()> {
 
 #[test]
 fn aces_offline_run_is_accurate() -> anyhow::Result<()> {
-    // Measured 0.0358 m, 0.353°, precision 0.994 (508 closures, 13 retracted; session 10: 0.0356 m, 0.978). Cartographer published 0.0375 m, 0.373°.
+    // Measured 0.0359 m, 0.351°, precision 0.998 (506 closures, 8 retracted; session 11: 0.0358 m, 0.994;
+    // session 10: 0.0356 m, 0.978). Cartographer published 0.0375 m, 0.373°.
     // Before session 8 one large loop stayed open (2.07 m mean error).
     check(
         "aces",
@@ -76,7 +78,7 @@ fn aces_offline_run_is_accurate() -> anyhow::Result<()> {
             relations: 1279,
             trans_m: 0.040,
             rot_deg: 0.40,
-            precision: 0.97,
+            precision: 0.985,
             min_closures: 350,
         },
     )
@@ -84,7 +86,8 @@ fn aces_offline_run_is_accurate() -> anyhow::Result<()> {
 
 #[test]
 fn intel_offline_run_is_accurate() -> anyhow::Result<()> {
-    // Measured 0.0313 m, 0.394°, precision 0.973 (6199 closures, 634 retracted; session 10: 0.0324 m, 0.911). Cartographer published 0.0229 m, 0.453°.
+    // Measured 0.0314 m, 0.395°, precision 0.984 (6189 closures, 862 retracted; session 11: 0.0313 m,
+    // 0.973; session 10: 0.0324 m, 0.911). Cartographer published 0.0229 m, 0.453°.
     // Intel's odometry and scan stamps come in bursts (see ../shared/datasets/README.md).
     check(
         "intel",
@@ -92,7 +95,7 @@ fn intel_offline_run_is_accurate() -> anyhow::Result<()> {
             relations: 2984,
             trans_m: 0.036,
             rot_deg: 0.44,
-            precision: 0.95,
+            precision: 0.97,
             min_closures: 4500,
         },
     )

@@ -59,10 +59,13 @@ pub struct GlobalSlamOptions {
     /// unitless) still exceeds this is taken out of the graph, and the graph is optimized again without
     /// it: the odometry chain and the other closures together refuse it (a look-alike place, or several
     /// matches that agreed on the wrong one). A retracted closure the graph fits again later is put back.
-    /// 0 = never. Default 9 (3σ on one axis). Freiburg recordings, session 11 (relations error; share of
-    /// the map's closures within 0.2 m and 1°): Intel 0.0320 → 0.0313 m and 0.912 → 0.973, CSAIL
-    /// 0.0341 → 0.0343 m and 0.975 → 0.993, ACES 0.0356 → 0.0358 m and 0.978 → 0.994; at 25: Intel
-    /// 0.0313 m, 0.944.
+    /// 0 = never. Default 6 (2.4σ on one axis; the closures' 3 cm / 0.57° sigmas put the loop-closure
+    /// precision bounds, 0.2 m and 1°, at χ² ≈ 3 on rotation alone). Freiburg recordings (relations
+    /// error; share of the map's closures within 0.2 m and 1°), none → 9 (session 11) → 6 (session 12):
+    /// Intel 0.0320 → 0.0313 → 0.0314 m and 0.912 → 0.973 → 0.984, CSAIL 0.0341 → 0.0343 → 0.0340 m and
+    /// 0.975 → 0.993 → 1.000, ACES 0.0356 → 0.0358 → 0.0359 m and 0.978 → 0.994 → 0.998; at 25: Intel
+    /// 0.0313 m, 0.944; at 4 and 5: Intel 0.0318 and 0.0316 m, 0.998 and 0.994, but 4–5× the wall time
+    /// (more closures retracted and put back, each a re-optimization).
     pub loop_closure_retraction_chi2: f64,
     /// For a trajectory started with no prior on a map that already holds others (see
     /// `GlobalSlam::start_trajectory`): every this many nodes (count; 0 = never), match the node
@@ -84,7 +87,7 @@ impl Default for GlobalSlamOptions {
             odometry_translation_sigma: 0.02,
             odometry_rotation_sigma: 0.01,
             odometry_huber_scale: 3.0,
-            loop_closure_retraction_chi2: 9.0,
+            loop_closure_retraction_chi2: 6.0,
             unanchored_search_every_n_nodes: 10,
             constraint_builder: ConstraintBuilderOptions::default(),
             optimizer: OptimizerOptions::default(),

@@ -12,11 +12,16 @@ pub struct RunScore {
     pub sessions: usize,
     /// Correct initialization rate: initialized sessions over sessions (`None` for no session).
     pub cri: Option<f64>,
-    /// Sessions initialized (placed correctly within the window).
+    /// Sessions initialized (the robot's first placement correct and within the window, none wrong).
     pub initialized: usize,
-    /// Sessions that committed to a placement at all.
+    /// The map's side of initialization: sessions whose committed placement is correct and was committed
+    /// within the window, over sessions (`None` for no session).
+    pub cri_committed: Option<f64>,
+    /// Sessions that were placed at all (the robot had a pose).
     pub placed: usize,
-    /// Sessions whose committed placement was wrong.
+    /// Sessions whose placement was committed.
+    pub committed: usize,
+    /// Sessions that acted on a wrong placement (tentative or committed).
     pub wrong_placements: usize,
     /// MRCL over the run from the estimate at the time of each scan: good distance over distance.
     pub mrcl: f64,
@@ -49,7 +54,13 @@ pub fn score_run(sessions: &[SessionScore]) -> RunScore {
         sessions: n,
         cri: (n > 0).then(|| initialized as f64 / n as f64),
         initialized,
+        cri_committed: (n > 0)
+            .then(|| sessions.iter().filter(|s| s.initialized_committed).count() as f64 / n as f64),
         placed: sessions
+            .iter()
+            .filter(|s| s.placed_after_s.is_some())
+            .count(),
+        committed: sessions
             .iter()
             .filter(|s| s.placement_error_m.is_some())
             .count(),
@@ -104,7 +115,8 @@ mod tests {
             start_time: t(0.0),
             online: &online,
             smoothed: &truth,
-            placement,
+            placements: &[],
+            committed: placement,
             match_scores: &scores,
         };
         score_session(&track, &Rigid2::identity(), &ScoringOptions::DEFAULT)
@@ -127,7 +139,9 @@ mod tests {
         assert_eq!(run.sessions, 4);
         assert_eq!(run.initialized, 1);
         assert!((run.cri.unwrap() - 0.25).abs() < 1e-12);
+        assert!((run.cri_committed.unwrap() - 0.25).abs() < 1e-12);
         assert_eq!(run.placed, 3);
+        assert_eq!(run.committed, 3);
         assert_eq!(run.wrong_placements, 1);
         assert!((run.distance_m - 120.0).abs() < 1e-9);
         assert!((run.mrcl - 30.0 / 120.0).abs() < 1e-9, "{run:?}");

@@ -6,11 +6,17 @@
 //!   without an estimate (the session not placed yet) counts as lost. The same measure of the trajectory
 //!   smoothed when the session ended is kept beside it as `mrcl_smoothed`: it says how well the map
 //!   explains the session after the fact, not what the robot knew.
-//! - **Initialization** (CRI, over a run): the session committed to a placement within
-//!   [`ScoringOptions::initialization_window_s`] of its first scan, and that placement was correct
-//!   ([`ScoringOptions::correct`]). Refused for longer, or placed wrong, is a failure.
+//! - **Initialization** (CRI, over a run) as the robot lived it: the robot's first placement — the pose it
+//!   started navigating with, tentative while the session is on probation — came within
+//!   [`ScoringOptions::initialization_window_s`] of its first scan and was correct
+//!   ([`ScoringOptions::correct`]), and no placement the robot acted on was wrong. Refused for longer, or
+//!   placed wrong (a tentative placement later revoked included), is a failure. Probation protects the
+//!   shared map, not the robot: the robot navigates with its tentative placement. How long the map took to
+//!   take the session in is scored beside it (`initialized_committed`: the committed placement, correct and
+//!   committed within the window).
 //! - **Placement error**: the committed placement's error against the truth at the scan it placed, and
-//!   whether it was a wrong placement ([`ScoringOptions::wrong_placement`]).
+//!   whether the session was placed wrong ([`ScoringOptions::wrong_placement`]): any placement the robot
+//!   acted on — tentative or committed — off by more than that tolerance.
 //! - **AMS** (average matching score): the mean of the match scores of every scan of the session against
 //!   the map as it was then (the caller scores them by branch and bound near the robot's estimate, see
 //!   [`MatchScorer`](super::MatchScorer)); a scan the
@@ -50,8 +56,13 @@ pub struct SessionTrack<'a> {
     pub online: &'a [(Timestamp, Rigid2)],
     /// The estimate of each scan smoothed when the session ended.
     pub smoothed: &'a [(Timestamp, Rigid2)],
-    /// The placement the session committed to; `None` when it never was placed.
-    pub placement: Option<Placement>,
+    /// Every placement the robot acted on, in the order it made them: each tentative placement of its
+    /// session start, decided at the scan it was made at (the committed placement is one of them). Empty
+    /// when it never was placed.
+    pub placements: &'a [Placement],
+    /// The placement the session committed to (probation passed), decided at the scan whose match
+    /// committed it; `None` when it never committed.
+    pub committed: Option<Placement>,
     /// The match score of each of its scans against the map as it was then (0 for a scan the robot could
     /// not place); empty when not measured (the mapping session, which has no map before it).
     pub match_scores: &'a [f64],
@@ -74,15 +85,25 @@ pub struct SessionScore {
     pub localized_scans: usize,
     /// Distance the session drove (truth), metres.
     pub distance_m: f64,
-    /// Placed correctly within the initialization window (counts toward CRI).
+    /// The robot's first placement came within the initialization window and was correct, and no
+    /// placement it acted on was wrong (counts toward CRI).
     pub initialized: bool,
-    /// Position error of the committed placement, metres; `None` when never placed.
+    /// The committed placement is correct and was committed within the initialization window.
+    pub initialized_committed: bool,
+    /// Position error of the committed placement, metres; `None` when never committed.
     pub placement_error_m: Option<f64>,
-    /// Heading error of the committed placement, degrees; `None` when never placed.
+    /// Heading error of the committed placement, degrees; `None` when never committed.
     pub placement_error_deg: Option<f64>,
-    /// How long after its first scan the session committed to its placement, seconds.
+    /// Position error of the robot's first placement, metres; `None` when never placed.
+    pub first_placement_error_m: Option<f64>,
+    /// How long after its first scan the robot was first placed (had a pose to navigate with), seconds.
     pub placed_after_s: Option<f64>,
-    /// The committed placement is off by more than [`ScoringOptions::wrong_placement`].
+    /// How long after its first scan the session's placement was committed, seconds.
+    pub committed_after_s: Option<f64>,
+    /// Placements the robot acted on (more than one: a tentative placement was revoked and another made).
+    pub placements: usize,
+    /// A placement the robot acted on (tentative or committed) is off by more than
+    /// [`ScoringOptions::wrong_placement`].
     pub wrong_placement: bool,
     /// Mean match score of every scan against the map as it was then; `None` when not measured.
     pub ams: Option<f64>,
@@ -141,16 +162,27 @@ pub fn score_session(
         world_from_map,
         &options.correct,
     );
-    let placement = track.placement.and_then(|p| {
+    // (metres, degrees, seconds after the session's first scan) of a placement.
+    let judge = |p: &Placement| {
         let truth = truth_at(track.truth, p.time)?;
         let (m, deg) = pose_error(world_from_map, &p.map_from_base, &truth);
         Some((m, deg, p.decided_at.seconds_since(track.start_time)))
-    });
-    let initialized = placement.is_some_and(|(m, deg, after)| {
+    };
+    let in_time_and_correct = |(m, deg, after): (f64, f64, f64)| {
         after <= options.initialization_window_s && options.correct.accepts(m, deg)
-    });
-    let wrong_placement =
-        placement.is_some_and(|(m, deg, _)| !options.wrong_placement.accepts(m, deg));
+    };
+    let committed = track.committed.as_ref().and_then(judge);
+    let lived: Vec<(f64, f64, f64)> = track
+        .placements
+        .iter()
+        .chain(track.committed.as_ref())
+        .filter_map(judge)
+        .collect();
+    let first = track.placements.first().and_then(judge).or(committed);
+    let wrong_placement = lived
+        .iter()
+        .any(|&(m, deg, _)| !options.wrong_placement.accepts(m, deg));
+    let initialized = !wrong_placement && first.is_some_and(in_time_and_correct);
     let good = |a: &TrajectoryAccuracy| a.mrcl * a.distance_m;
     SessionScore {
         mrcl: online.mrcl,
@@ -161,9 +193,13 @@ pub fn score_session(
         localized_scans: online.matched,
         distance_m: online.distance_m,
         initialized,
-        placement_error_m: placement.map(|p| p.0),
-        placement_error_deg: placement.map(|p| p.1),
-        placed_after_s: placement.map(|p| p.2),
+        initialized_committed: committed.is_some_and(in_time_and_correct),
+        placement_error_m: committed.map(|p| p.0),
+        placement_error_deg: committed.map(|p| p.1),
+        first_placement_error_m: first.map(|p| p.0),
+        placed_after_s: first.map(|p| p.2),
+        committed_after_s: committed.map(|p| p.2),
+        placements: track.placements.len().max(usize::from(committed.is_some())),
         wrong_placement,
         ams: average_match_score(track.match_scores),
         scored_scans: track.match_scores.len(),
@@ -212,7 +248,8 @@ mod tests {
             start_time: t(0.0),
             online: &online,
             smoothed: &truth,
-            placement: Some(placement_at(0.0, 0.0, 0.0, 0.0)),
+            placements: &[],
+            committed: Some(placement_at(0.0, 0.0, 0.0, 0.0)),
             match_scores: &[],
         };
         let score = score_session(&track, &Rigid2::identity(), &ScoringOptions::DEFAULT);
@@ -237,7 +274,8 @@ mod tests {
             start_time: t(0.0),
             online: &online,
             smoothed: &truth,
-            placement: Some(placement_at(6.0, 6.0, 0.1, 0.0)),
+            placements: &[],
+            committed: Some(placement_at(6.0, 6.0, 0.1, 0.0)),
             match_scores: &[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.8, 0.8, 0.8, 0.8, 0.8],
         };
         let score = score_session(&track, &Rigid2::identity(), &ScoringOptions::DEFAULT);
@@ -266,7 +304,8 @@ mod tests {
                 start_time: t(0.0),
                 online: &[],
                 smoothed: &[],
-                placement,
+                placements: &[],
+                committed: placement,
                 match_scores: &[],
             };
             score_session(&track, &Rigid2::identity(), &options)
@@ -295,6 +334,53 @@ mod tests {
     }
 
     #[test]
+    fn initialization_is_the_first_placement_the_robot_acted_on() {
+        let truth = truth();
+        let score = |placements: &[Placement], committed: Option<Placement>| {
+            let track = SessionTrack {
+                truth: &truth,
+                start_time: t(0.0),
+                online: &[],
+                smoothed: &[],
+                placements,
+                committed,
+                match_scores: &[],
+            };
+            score_session(&track, &Rigid2::identity(), &ScoringOptions::DEFAULT)
+        };
+        // Placed tentatively at 2 s, 0.1 m off; committed (the same placement) at 40 s: the robot
+        // navigated correctly from 2 s, the map took the session in late.
+        let tentative = placement_at(2.0, 1.0, 0.1, 0.0);
+        let committed = Placement {
+            decided_at: t(40.0),
+            ..tentative
+        };
+        let s = score(&[tentative], Some(committed));
+        assert!(
+            s.initialized && !s.initialized_committed && !s.wrong_placement,
+            "{s:?}"
+        );
+        assert!((s.placed_after_s.unwrap() - 2.0).abs() < 1e-9);
+        assert!((s.committed_after_s.unwrap() - 40.0).abs() < 1e-9);
+        assert_eq!(s.placements, 1);
+        // Placed on probation, never committed: still initialized (the robot had its pose).
+        let s = score(&[tentative], None);
+        assert!(s.initialized && s.placement_error_m.is_none());
+        assert!((s.first_placement_error_m.unwrap() - 0.1).abs() < 1e-9);
+        // A wrong tentative placement, revoked, then a correct one committed: the robot lived a wrong
+        // placement.
+        let wrong = placement_at(1.0, 1.0, 2.0, 0.0);
+        let right = placement_at(8.0, 8.0, 0.0, 0.0);
+        let s = score(&[wrong, right], Some(right));
+        assert!(s.wrong_placement && !s.initialized, "{s:?}");
+        assert!(s.placement_error_m.unwrap() < 1e-9);
+        assert_eq!(s.placements, 2);
+        // A correct first placement, revoked, then a wrong one committed: wrong.
+        let s = score(&[right, wrong], Some(wrong));
+        assert!(s.wrong_placement && !s.initialized);
+    }
+
+    #[test]
     fn placement_is_judged_in_the_world_frame() {
         let truth = truth();
         // The map is the world shifted by (−2, 1): a placement at map (3, −1) is at world (1, 0) = truth
@@ -310,7 +396,8 @@ mod tests {
             start_time: t(0.0),
             online: &[],
             smoothed: &[],
-            placement: Some(placement),
+            placements: &[],
+            committed: Some(placement),
             match_scores: &[],
         };
         let s = score_session(&track, &world_from_map, &ScoringOptions::DEFAULT);

@@ -214,12 +214,18 @@ impl Reporter<'_> {
         self.details.push(s.clone());
         self.last_change = change;
         eprintln!(
-            "session {k:>2}: init {:<5} placement {} mrcl {:.3} (smoothed {:.3}) ams {} ate {:.3} m | mcr {} world {:.3} | nodes {} submaps {} constraints {} | pgr {:.0} ms",
+            "session {k:>2}: init {:<5} placed {} committed {} placement {} mrcl {:.3} (smoothed {:.3}) ams {} ate {:.3} m | mcr {} world {:.3} | nodes {} submaps {} constraints {} | pgr {:.0} ms",
             if k == 0 {
                 "-".to_string()
             } else {
                 score.initialized.to_string()
             },
+            score
+                .placed_after_s
+                .map_or("-".to_string(), |s| format!("{s:.1} s")),
+            score
+                .committed_after_s
+                .map_or("-".to_string(), |s| format!("{s:.1} s")),
             score
                 .placement_error_m
                 .map_or("-".to_string(), |m| format!("{m:.2} m")),
@@ -266,6 +272,7 @@ impl Reporter<'_> {
                 "score": run,
                 // The figures the reports quote, at the top level.
                 "cri": run.cri,
+                "cri_committed": run.cri_committed,
                 "mrcl": run.mrcl,
                 "mrcl_smoothed": run.mrcl_smoothed,
                 "ams_mean": run.ams_mean,

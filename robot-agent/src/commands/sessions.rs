@@ -137,7 +137,8 @@ pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
                 "session": r.session,
                 "ams": average_match_score(&r.match_scores),
                 "scored_nodes": r.match_scores.len(),
-                "placed_after_s": r.placement.map(|p| p.decided_at.seconds_since(r.start_time)),
+                "placed_after_s": r.placements.first().map(|p| p.decided_at.seconds_since(r.start_time)),
+                "committed_after_s": r.committed.map(|p| p.decided_at.seconds_since(r.start_time)),
                 "scans_localized_at_the_time": r.online.len(),
             })
         })

@@ -118,6 +118,9 @@ pub struct SessionTrace {
     pub relocalization_ms: f64,
     /// Whole-map searches made.
     pub searches: usize,
+    /// Every placement the robot acted on (its tentative start placements), decided at the node that
+    /// placed it.
+    pub placements: Vec<Placement>,
     /// The placement the robot committed to (probation passed on its own GLM matches): decided at the
     /// node whose match committed it.
     pub committed: Option<Placement>,
@@ -290,9 +293,9 @@ fn feed_matches(
     events
 }
 
-/// The committed placement as the scores take it: decided at the latest node, placing the node the
+/// A session-start placement as the scores take it: decided at the latest node, placing the node the
 /// placement was decided at.
-fn committed_placement(
+fn placement_at(
     trace: &SessionTrace,
     placement: &mapping::lifelong::StartPlacement,
     local_poses: &[Option<Rigid2>],
@@ -420,7 +423,7 @@ pub async fn stream_session<U: MapUplink>(
                         for event in events {
                             match event {
                                 SessionStartEvent::Committed { placement, .. } => {
-                                    trace.committed = committed_placement(&trace, &placement, &held_local);
+                                    trace.committed = placement_at(&trace, &placement, &held_local);
                                 }
                                 SessionStartEvent::Revoked { .. } => {
                                     // The robot cannot take its prior back: it stops matching, and the
@@ -477,10 +480,13 @@ pub async fn stream_session<U: MapUplink>(
                                 SessionStartEvent::Placed(placement) => {
                                     trace.prior = Some(placement.global_from_local);
                                     trace.score = placement.score;
+                                    trace
+                                        .placements
+                                        .extend(placement_at(&trace, placement, &held_local));
                                     decided = true;
                                 }
                                 SessionStartEvent::Committed { placement, .. } => {
-                                    trace.committed = committed_placement(&trace, placement, &held_local);
+                                    trace.committed = placement_at(&trace, placement, &held_local);
                                 }
                                 SessionStartEvent::GaveUp { .. } => decided = true,
                                 _ => {}
