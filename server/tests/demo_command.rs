@@ -38,11 +38,13 @@ fn demo_reaches_every_robot(transport: &str) {
         assert_eq!(at.as_u64(), Some(version));
     }
     assert_eq!(report["counts"]["sessions"].as_u64(), Some(3));
-    // Nothing left undelivered, every later session placed (tentatively) by its robot, and at least one
-    // committed to a correct placement. A placement is on probation until GLM matches along the route
-    // agree with it (issue 14 §3): on this 2-minute map a 20 s session may end unconfirmed, and is then
-    // dropped and not initialized (measured: robot 1's session, placed 0.04 m off, got no confirming
-    // match; robot 2's committed after 12.9 s).
+    // Nothing left undelivered, and every later session placed by its robot within the initialization
+    // window, correctly: the robot navigates with its tentative placement while probation decides whether
+    // its submaps join the map (issue 14 §3). On this 2-minute map a 20 s session may end unconfirmed (then
+    // dropped from the map), so commits are not required here (measured: robot 1's session placed 0.04 m
+    // off got no confirming match; robot 2's committed after 12.9 s; the release demo: every session placed
+    // 0.02–0.03 m off within 2.3 s, committed within 14.3 s).
+    let mut later = 0;
     let mut initialized = 0;
     for session in report["sessions"].as_array().expect("sessions") {
         assert_eq!(session["left_in_outbox"].as_u64(), Some(0), "{session}");
@@ -51,10 +53,11 @@ fn demo_reaches_every_robot(transport: &str) {
                 session["placed_tentatively"].as_bool().expect("bool"),
                 "{session}"
             );
+            later += 1;
             initialized += usize::from(session["score"]["initialized"].as_bool().expect("bool"));
         }
     }
-    assert!(initialized >= 1, "{report:#}");
+    assert_eq!(initialized, later, "{report:#}");
     assert_eq!(report["wrong_placements"].as_u64(), Some(0));
     // The robots' own estimates at the time of each node (the scoring module's MRCL): measured 0.888,
     // the held-back nodes before the start is decided count as lost.
