@@ -357,9 +357,17 @@ impl SiteTask {
             });
         }
         let version = map.version() + 1;
+        // The map applies exactly what replay will: the batch decoded from its stored form (a pose's
+        // angle goes through `atan2` and `sin`/`cos` once more, which can move its last bit), so a
+        // restart rebuilds this map bit for bit. A batch whose stored form does not decode is refused
+        // before anything is stored.
+        let entry = pb::UploadBatch::from(&batch);
+        let batch = UploadBatch::try_from(&entry).map_err(|e| {
+            SiteError::InvalidBatch(format!("its stored form would not decode: {e}"))
+        })?;
         self.persist(
             version,
-            pb::site_log_entry::Entry::Upload(pb::UploadBatch::from(&batch)),
+            pb::site_log_entry::Entry::Upload(entry),
             Some((batch.session_uuid.clone(), batch.seq)),
         )
         .await?;
