@@ -277,7 +277,10 @@ mod tests {
         assert_eq!(pending[0].seq, 2);
         assert_eq!(
             outbox.unfinished_sessions().unwrap(),
-            [("a".to_owned(), "r".to_owned()), ("b".to_owned(), "r".to_owned())]
+            [
+                ("a".to_owned(), "r".to_owned()),
+                ("b".to_owned(), "r".to_owned())
+            ]
         );
     }
 }

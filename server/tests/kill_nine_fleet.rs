@@ -20,7 +20,8 @@
 //! themselves are checked against LLO run here.
 //!
 //! Server kills: `EVERMAP_CHAOS_SERVER_KILLS` (default 4, CI; the issue's 20 in the benchmark of
-//! BENCHMARKS.md); seed: `EVERMAP_CHAOS_SEED` (default 16). Needs `evermap-agent` built beside
+//! BENCHMARKS.md); seed: `EVERMAP_CHAOS_SEED` (default 16); scans each robot replays:
+//! `EVERMAP_CHAOS_SCANS` (default 600), robot 2's slice starting 45 % of that later than robot 1's. Needs `evermap-agent` built beside
 //! `evermap-server`, as `cargo nextest run --workspace` does. Every wait is bounded.
 
 use std::collections::BTreeMap;
@@ -45,13 +46,11 @@ use storage::{MapStore as _, RecordKind, SledStore, SledStoreOptions};
 use tonic::transport::{Channel, Endpoint};
 
 const SITE: &str = "store-k9";
-/// (robot id, token, first scan of its slice of CSAIL).
-const ROBOTS: [(&str, &str, usize); 2] = [
-    ("r1", "token-k9-robot-1", 0),
-    ("r2", "token-k9-robot-2", 400),
+/// (robot id, token, where its slice of CSAIL starts as a fraction of the slice length).
+const ROBOTS: [(&str, &str, f64); 2] = [
+    ("r1", "token-k9-robot-1", 0.0),
+    ("r2", "token-k9-robot-2", 0.45),
 ];
-/// Scans each robot replays.
-const SCANS: usize = 900;
 /// Longest any single wait may take.
 const WAIT: Duration = Duration::from_secs(60);
 /// Longest the whole run may take.
@@ -92,15 +91,15 @@ fn free_port() -> u16 {
         .port()
 }
 
-/// Scans `from..from + SCANS` of `recording` with the odometry between them.
-fn slice(recording: &Recording, from: usize) -> Recording {
+/// Scans `from..from + scans` of `recording` with the odometry between them.
+fn slice(recording: &Recording, from: usize, scans: usize) -> Recording {
     let scan_times: Vec<_> = recording
         .events
         .iter()
         .filter(|e| matches!(e, SensorEvent::Scan(_)))
         .map(SensorEvent::time)
         .collect();
-    let last = (from + SCANS).min(scan_times.len()) - 1;
+    let last = (from + scans).min(scan_times.len()) - 1;
     let (start, end) = (scan_times[from], scan_times[last]);
     Recording::from_unsorted(
         recording
@@ -175,13 +174,12 @@ fn authed<T>(message: T, token: &str) -> tonic::Request<T> {
 }
 
 async fn get_version(client: &mut MapServiceClient<Channel>) -> Option<pb::MapVersion> {
-    let request = authed(
-        pb::GetVersionRequest {
-            site: SITE.into(),
-        },
-        ROBOTS[0].1,
-    );
-    client.get_version(request).await.ok().map(|r| r.into_inner())
+    let request = authed(pb::GetVersionRequest { site: SITE.into() }, ROBOTS[0].1);
+    client
+        .get_version(request)
+        .await
+        .ok()
+        .map(|r| r.into_inner())
 }
 
 /// Waits until the server answers (restarting it if it died starting, e.g. on a port not yet free).
@@ -292,26 +290,39 @@ struct StoredSession {
 async fn server_and_agents_killed_anywhere_lose_nothing_and_duplicate_nothing() {
     let server_kills: usize = env_or("EVERMAP_CHAOS_SERVER_KILLS", 4);
     let seed: u64 = env_or("EVERMAP_CHAOS_SEED", 16);
+    let scans: usize = env_or("EVERMAP_CHAOS_SCANS", 600);
     let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
     let dir = tempfile::tempdir().expect("tempdir");
     let csail = read_recording(&datasets_dir().join("rosbag1/mit-csail.orig.bag")).expect("CSAIL");
 
-    // Each robot's recording, its duration, and the nodes LLO makes of it.
-    let mut expected = BTreeMap::new();
+    // Each robot's recording and its duration; the nodes LLO makes of it are computed beside the run.
+    let mut bags = BTreeMap::new();
     let mut duration_s: f64 = 0.0;
     for (robot, _, from) in ROBOTS {
         let path = dir.path().join(format!("{robot}.bag"));
-        let part = slice(&csail, from);
+        let part = slice(&csail, (from * scans as f64) as usize, scans);
         let mut out = std::io::BufWriter::new(File::create(&path).expect("bag"));
         write_bag(&mut out, &part.events, &part.base_from_laser).expect("write bag");
         drop(out);
-        let part = read_recording(&path).expect("read back");
         let (first, last) = (part.events.first(), part.events.last());
         if let (Some(first), Some(last)) = (first, last) {
             duration_s = duration_s.max((last.time().0 - first.time().0) as f64 * 1e-9);
         }
-        expected.insert(robot, (path, llo_nodes(&part)));
+        bags.insert(robot, path);
     }
+    let llo = {
+        let bags = bags.clone();
+        std::thread::Builder::new()
+            .name("expected-llo".into())
+            .spawn(move || {
+                bags.into_iter()
+                    .map(|(robot, path)| {
+                        (robot, llo_nodes(&read_recording(&path).expect("read back")))
+                    })
+                    .collect::<BTreeMap<_, _>>()
+            })
+            .expect("a thread")
+    };
     // A session lasts long enough for every server kill to land while the robots stream.
     let session_s = (1.2 * server_kills as f64).max(8.0);
     let replay_speed = duration_s / session_s;
@@ -383,13 +394,13 @@ async fn server_and_agents_killed_anywhere_lose_nothing_and_duplicate_nothing() 
                      token = \"{token}\"\nsource = \"{}\"\nreplay_speed = {replay_speed}\n\
                      outbox_dir = \"{}\"\nnodes_per_batch = 5\ncall_timeout_s = 5.0\n\
                      retry_interval_s = 0.2\nfinal_flush_timeout_s = 120.0\n",
-                    expected[robot].0.display(),
+                    bags[robot].display(),
                     outbox.display()
                 ),
             )
             .expect("agent config");
             let log = dir.path().join(format!("{robot}.log"));
-            let kill_after = Duration::from_secs_f64(session_s * rng.random_range(0.1..0.5));
+            let kill_after = Duration::from_secs_f64(session_s * rng.random_range(0.35..0.6));
             let child = spawn_logged(
                 &agent_binary(),
                 &["run", "--config", &config.to_string_lossy()],
@@ -505,6 +516,7 @@ async fn server_and_agents_killed_anywhere_lose_nothing_and_duplicate_nothing() 
     kill(&mut server);
 
     let store = SledStore::open(&SledStoreOptions::at(&data)).expect("the server's store");
+    let expected = llo.join().expect("the expected LLO output");
     let mut reference = SiteMap::new(SITE, LifelongOptions::default()).expect("site map");
     let mut sessions: BTreeMap<String, StoredSession> = BTreeMap::new();
     let mut order = Vec::new();
@@ -520,17 +532,9 @@ async fn server_and_agents_killed_anywhere_lose_nothing_and_duplicate_nothing() 
         match entry.entry.expect("an entry") {
             pb::site_log_entry::Entry::SessionOpened(open) => {
                 reference
-                    .open_session(
-                        &open.robot_id,
-                        &open.session_uuid,
-                        open.trajectory,
-                        version,
-                    )
+                    .open_session(&open.robot_id, &open.session_uuid, open.trajectory, version)
                     .expect("open");
-                assert!(
-                    !sessions.contains_key(&open.session_uuid),
-                    "opened twice"
-                );
+                assert!(!sessions.contains_key(&open.session_uuid), "opened twice");
                 order.push(open.session_uuid.clone());
                 sessions.insert(
                     open.session_uuid,
@@ -571,14 +575,17 @@ async fn server_and_agents_killed_anywhere_lose_nothing_and_duplicate_nothing() 
             }
         }
     }
-    assert_eq!(store.map_version(SITE).expect("version"), reference.version());
+    assert_eq!(
+        store.map_version(SITE).expect("version"),
+        reference.version()
+    );
 
     // Every robot: its interrupted session (everything acknowledged before the kill and everything
     // still in its outbox then, a prefix of its nodes, ended by the restarted agent) and its complete
     // one (all its nodes, ended by itself); every batch exactly once.
     for agent in &agents {
         let at_kill = agent.at_kill.as_ref().expect("killed");
-        let (_, nodes) = &expected[agent.robot];
+        let nodes = &expected[agent.robot];
         let mine: Vec<&String> = order
             .iter()
             .filter(|s| sessions[*s].robot == agent.robot)
@@ -657,9 +664,13 @@ async fn server_and_agents_killed_anywhere_lose_nothing_and_duplicate_nothing() 
         )
     );
     // Through the wire form, as the live one came.
-    let reference_delta =
-        MapDelta::from_pb_chunks(&reference.delta_since(0).expect("delta").to_pb_chunks(1 << 20))
-            .expect("delta");
+    let reference_delta = MapDelta::from_pb_chunks(
+        &reference
+            .delta_since(0)
+            .expect("delta")
+            .to_pb_chunks(1 << 20),
+    )
+    .expect("delta");
     assert_eq!(
         live_delta.submaps_added.len(),
         reference_delta.submaps_added.len()
@@ -693,14 +704,16 @@ async fn server_and_agents_killed_anywhere_lose_nothing_and_duplicate_nothing() 
     eprintln!(
         "kill -9 chaos (seed {seed}): {kills} server kills ({kills_while_streaming} while robots \
          streamed), 2 agent kills, {run_s:.1} s; restarts answered after {restart_s:.2?} s; final \
-         version {}, {} sessions, {} nodes, {} constraints, {} finished submaps, {} trimmed; \
-         versions seen {}",
+         version {}, {} sessions, {} nodes ({:?} per complete session), {} constraints, {} finished \
+         submaps, {} trimmed, {} dropped; versions seen {}",
         live.version,
         counts.sessions,
         counts.nodes,
+        expected.values().map(Vec::len).collect::<Vec<_>>(),
         counts.constraints,
         counts.finished_submaps,
         counts.trimmed_submaps,
+        counts.dropped_sessions,
         seen.len()
     );
 }

@@ -241,7 +241,9 @@ impl SiteMap {
         }
         // The wire conversion refuses empty batches, so a stored one could never be replayed.
         if batch.items.is_empty() {
-            return Err(SiteError::InvalidBatch("a batch needs at least one item".into()));
+            return Err(SiteError::InvalidBatch(
+                "a batch needs at least one item".into(),
+            ));
         }
         let mut nodes = session.nodes;
         let mut last_insertion: &[(u32, Rigid2)] = &[];

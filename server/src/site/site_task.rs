@@ -516,7 +516,10 @@ mod tests {
             items: vec![proto::UploadItem::NodeAdded(proto::NodeAdded {
                 time: mapping::sensor::Timestamp(seq as i64 * 1_000_000_000),
                 local_pose: mapping::geometry::rigid2(0.1 * seq as f64, 0.0, 0.0),
-                points: vec![nalgebra::Point2::new(1.0, 0.5), nalgebra::Point2::new(2.0, 0.0)],
+                points: vec![
+                    nalgebra::Point2::new(1.0, 0.5),
+                    nalgebra::Point2::new(2.0, 0.0),
+                ],
                 insertion_submaps: vec![(0, mapping::geometry::rigid2(0.0, 0.0, 0.0))],
             })],
         }
