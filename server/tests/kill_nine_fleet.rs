@@ -84,6 +84,11 @@ fn agent_binary() -> PathBuf {
     agent
 }
 
+/// `s` seconds (finite and non-negative here).
+fn seconds(s: f64) -> Duration {
+    Duration::try_from_secs_f64(s).expect("a duration")
+}
+
 fn free_port() -> u16 {
     TcpListener::bind("127.0.0.1:0")
         .and_then(|l| l.local_addr())
@@ -179,7 +184,7 @@ async fn get_version(client: &mut MapServiceClient<Channel>) -> Option<pb::MapVe
         .get_version(request)
         .await
         .ok()
-        .map(|r| r.into_inner())
+        .map(tonic::Response::into_inner)
 }
 
 /// Waits until the server answers (restarting it if it died starting, e.g. on a port not yet free).
@@ -330,10 +335,11 @@ async fn server_and_agents_killed_anywhere_lose_nothing_and_duplicate_nothing() 
     let port = free_port();
     let data = dir.path().join("server-data");
     let server_config = dir.path().join("server.toml");
-    let robots: String = ROBOTS
+    let robots = ROBOTS
         .iter()
-        .map(|(id, token, _)| format!("{{ id = \"{id}\", token = \"{token}\" }}, "))
-        .collect();
+        .map(|(id, token, _)| format!("{{ id = \"{id}\", token = \"{token}\" }}"))
+        .collect::<Vec<_>>()
+        .join(", ");
     std::fs::write(
         &server_config,
         format!(
@@ -400,7 +406,7 @@ async fn server_and_agents_killed_anywhere_lose_nothing_and_duplicate_nothing() 
             )
             .expect("agent config");
             let log = dir.path().join(format!("{robot}.log"));
-            let kill_after = Duration::from_secs_f64(session_s * rng.random_range(0.35..0.6));
+            let kill_after = seconds(session_s * rng.random_range(0.35..0.6));
             let child = spawn_logged(
                 &agent_binary(),
                 &["run", "--config", &config.to_string_lossy()],
@@ -424,7 +430,7 @@ async fn server_and_agents_killed_anywhere_lose_nothing_and_duplicate_nothing() 
     let mut kills = 0;
     let mut kills_while_streaming = 0;
     let mut restart_s = Vec::new();
-    let mut next_kill = Instant::now() + Duration::from_secs_f64(rng.random_range(0.3..1.2));
+    let mut next_kill = Instant::now() + seconds(rng.random_range(0.3..1.2));
     while agents.iter().any(|a| a.exit.is_none()) {
         assert!(
             began.elapsed() < RUN_LIMIT,
@@ -450,14 +456,14 @@ async fn server_and_agents_killed_anywhere_lose_nothing_and_duplicate_nothing() 
             kills_while_streaming += usize::from(agents.iter().any(|a| a.exit.is_none()));
             kill(&mut server);
             kills += 1;
-            tokio::time::sleep(Duration::from_secs_f64(rng.random_range(0.05..0.5))).await;
+            tokio::time::sleep(seconds(rng.random_range(0.05..0.5))).await;
             server = start_server();
             restart_s.push(
                 wait_up(&mut server, &start_server, &mut client)
                     .await
                     .as_secs_f64(),
             );
-            next_kill = Instant::now() + Duration::from_secs_f64(rng.random_range(0.3..1.2));
+            next_kill = Instant::now() + seconds(rng.random_range(0.3..1.2));
         }
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
@@ -484,7 +490,7 @@ async fn server_and_agents_killed_anywhere_lose_nothing_and_duplicate_nothing() 
     let _ = stop_watching.send(true);
     let _ = tokio::time::timeout(WAIT, watcher).await;
     let live = get_version(&mut client).await.expect("the final version");
-    let live_counts = live.counts.clone().expect("counts");
+    let live_counts = live.counts.expect("counts");
     let seen = seen.lock().expect("seen").clone();
     assert!(
         seen.windows(2).all(|w| w[0] <= w[1]),

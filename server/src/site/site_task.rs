@@ -212,24 +212,20 @@ impl SiteTask {
         let Some(timeout) = self.session_idle_timeout else {
             return;
         };
-        let Ok(map) = self.map() else { return };
+        let Ok(open) = self.map().map(SiteMap::open_sessions) else {
+            return;
+        };
         let now = tokio::time::Instant::now();
-        let silent: Vec<(String, String)> = map
-            .open_sessions()
+        // Every open session is heard of at the task's start and at its open; one that somehow was
+        // not counts as silent from now on.
+        let silent: Vec<(String, String)> = open
             .into_iter()
             .filter(|(session, _)| {
-                self.last_heard
-                    .get(session)
-                    .is_none_or(|heard| now.duration_since(*heard) > timeout)
+                let heard = *self.last_heard.entry(session.clone()).or_insert(now);
+                now.duration_since(heard) > timeout
             })
             .collect();
-        // A session opened by a request this task has not seen (none: every open goes through it)
-        // would count as silent from now on.
         for (session, robot) in silent {
-            if !self.last_heard.contains_key(&session) {
-                self.last_heard.insert(session, now);
-                continue;
-            }
             match self.close_session(&robot, &session).await {
                 Ok(version) => {
                     self.metrics.session_timed_out();
