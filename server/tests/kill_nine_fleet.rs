@@ -19,9 +19,12 @@
 //! stored: a map that is fed exactly that without being killed is the comparable one, and the nodes
 //! themselves are checked against LLO run here.
 //!
-//! Server kills: `EVERMAP_CHAOS_SERVER_KILLS` (default 4, CI; the issue's 20 in the benchmark of
-//! BENCHMARKS.md); seed: `EVERMAP_CHAOS_SEED` (default 16); scans each robot replays:
-//! `EVERMAP_CHAOS_SCANS` (default 600), robot 2's slice starting 45 % of that later than robot 1's. Needs `evermap-agent` built beside
+//! Two tests: the agents' uplink over gRPC, and over zenoh (the agents reach the server's zenoh
+//! endpoint, which dies with it: their zenoh links drop at every kill and come back by zenoh's own
+//! reconnection). Server kills: `EVERMAP_CHAOS_SERVER_KILLS` (default 4 over gRPC and 2 over zenoh, CI;
+//! the issue's 20 in the benchmark of BENCHMARKS.md); seed: `EVERMAP_CHAOS_SEED` (default 16); scans
+//! each robot replays: `EVERMAP_CHAOS_SCANS` (default 600), robot 2's slice starting 45 % of that later
+//! than robot 1's. Needs `evermap-agent` built beside
 //! `evermap-server`, as `cargo nextest run --workspace` does. Every wait is bounded.
 
 use std::collections::BTreeMap;
@@ -293,9 +296,29 @@ struct StoredSession {
 // Reference: issue 16 §1 "Kill -9, anywhere".
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn server_and_agents_killed_anywhere_lose_nothing_and_duplicate_nothing() {
-    let server_kills: usize = env_or("EVERMAP_CHAOS_SERVER_KILLS", 4);
+    chaos("grpc", 4).await;
+}
+
+// Reference: issue 16 §1 "the same for the zenoh path: the link ... drop[s] mid-session; nothing is lost
+// or duplicated".
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn zenoh_links_dropping_with_a_killed_server_lose_nothing_and_duplicate_nothing() {
+    chaos("zenoh", 2).await;
+}
+
+async fn chaos(transport: &str, default_kills: usize) {
+    let server_kills: usize = env_or("EVERMAP_CHAOS_SERVER_KILLS", default_kills);
     let seed: u64 = env_or("EVERMAP_CHAOS_SEED", 16);
     let scans: usize = env_or("EVERMAP_CHAOS_SCANS", 600);
+    let zenoh_endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    let (server_zenoh, agent_zenoh) = if transport == "zenoh" {
+        (
+            format!("[zenoh]\nlisten = [\"{zenoh_endpoint}\"]\n"),
+            format!("[zenoh]\nconnect = [\"{zenoh_endpoint}\"]\n"),
+        )
+    } else {
+        (String::new(), String::new())
+    };
     let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
     let dir = tempfile::tempdir().expect("tempdir");
     let csail = read_recording(&datasets_dir().join("rosbag1/mit-csail.orig.bag")).expect("CSAIL");
@@ -345,7 +368,7 @@ async fn server_and_agents_killed_anywhere_lose_nothing_and_duplicate_nothing() 
         format!(
             "listen = \"127.0.0.1:{port}\"\nmetrics_listen = \"127.0.0.1:0\"\n\
              session_idle_timeout_s = 600.0\n[storage]\npath = \"{}\"\n\
-             [[sites]]\nid = \"{SITE}\"\nrobots = [{robots}]\n",
+             {server_zenoh}[[sites]]\nid = \"{SITE}\"\nrobots = [{robots}]\n",
             data.display()
         ),
     )
@@ -399,14 +422,14 @@ async fn server_and_agents_killed_anywhere_lose_nothing_and_duplicate_nothing() 
                     "server_url = \"{url}\"\nsite = \"{SITE}\"\nrobot_id = \"{robot}\"\n\
                      token = \"{token}\"\nsource = \"{}\"\nreplay_speed = {replay_speed}\n\
                      outbox_dir = \"{}\"\nnodes_per_batch = 5\ncall_timeout_s = 5.0\n\
-                     retry_interval_s = 0.2\nfinal_flush_timeout_s = 120.0\n",
+                     retry_interval_s = 0.2\nfinal_flush_timeout_s = 120.0\n{agent_zenoh}",
                     bags[robot].display(),
                     outbox.display()
                 ),
             )
             .expect("agent config");
             let log = dir.path().join(format!("{robot}.log"));
-            let kill_after = seconds(session_s * rng.random_range(0.35..0.6));
+            let kill_after = seconds(session_s * rng.random_range(0.5..0.75));
             let child = spawn_logged(
                 &agent_binary(),
                 &["run", "--config", &config.to_string_lossy()],
@@ -475,6 +498,13 @@ async fn server_and_agents_killed_anywhere_lose_nothing_and_duplicate_nothing() 
             "{} failed ({status}):\n{}",
             agent.robot,
             tail(&agent.log)
+        );
+        let log = std::fs::read_to_string(&agent.log).unwrap_or_default();
+        assert!(
+            log.contains(&format!("transport=\"{transport}\""))
+                || log.contains(&format!("transport={transport}")),
+            "{} did not use {transport}",
+            agent.robot
         );
         let outbox = Outbox::open(&agent.outbox, SITE).expect("outbox");
         assert!(outbox.is_empty().expect("outbox"), "{}", agent.robot);
@@ -708,7 +738,7 @@ async fn server_and_agents_killed_anywhere_lose_nothing_and_duplicate_nothing() 
     );
     assert!(live_delta == reference_delta, "the served map differs");
     eprintln!(
-        "kill -9 chaos (seed {seed}): {kills} server kills ({kills_while_streaming} while robots \
+        "kill -9 chaos ({transport}, seed {seed}): {kills} server kills ({kills_while_streaming} while robots \
          streamed), 2 agent kills, {run_s:.1} s; restarts answered after {restart_s:.2?} s; final \
          version {}, {} sessions, {} nodes ({:?} per complete session), {} constraints, {} finished \
          submaps, {} trimmed, {} dropped; versions seen {}",
