@@ -28,7 +28,7 @@ fn node(i: i64) -> Vec<UploadItem> {
     })]
 }
 
-async fn open_sessions(server: &RunningServer) -> u64 {
+fn open_sessions(server: &RunningServer) -> u64 {
     server
         .site(SITE)
         .expect("site")
@@ -68,9 +68,9 @@ async fn a_silent_robots_session_is_ended_and_its_late_batches_are_dropped_by_th
         assert_eq!(robot.flush().await.expect("flush").applied, 2);
         robot.enqueue(&node(3)).expect("enqueue");
     }
-    assert_eq!(open_sessions(&server).await, 1);
+    assert_eq!(open_sessions(&server), 1);
     let began = Instant::now();
-    while open_sessions(&server).await > 0 {
+    while open_sessions(&server) > 0 {
         assert!(
             began.elapsed() < WAIT,
             "the silent session was not ended within {WAIT:?}"
@@ -96,6 +96,6 @@ async fn a_silent_robots_session_is_ended_and_its_late_batches_are_dropped_by_th
     assert!(outbox.is_empty().expect("outbox"));
     back.enqueue(&node(4)).expect("enqueue");
     assert_eq!(back.flush().await.expect("flush").applied, 1);
-    assert_eq!(open_sessions(&server).await, 1);
+    assert_eq!(open_sessions(&server), 1);
     server.shutdown().await.expect("shutdown");
 }
