@@ -5,6 +5,13 @@
 //! site in a [`storage::MapStore`] — sled on disk, or in memory for tests — keyed by session then
 //! sequence number, and written with a durable flush before [`Outbox::push`] returns. Calls block for a
 //! disk flush (milliseconds).
+//!
+//! Beside the batches, every session the robot has not finished yet has a marker (a
+//! `RecordKind::Session` record: session uuid → robot id), written in the same atomic write as the
+//! session's batches and removed only once the server has the session's end ([`Outbox::finish_session`]).
+//! A marker that survives a restart of the agent is an interrupted session: its acknowledged batches may
+//! all be gone from the outbox, but the server still holds it open, and the restarted agent ends it
+//! (see `uplink::Uploader`).
 
 use std::path::Path;
 use std::sync::Arc;
@@ -75,16 +82,60 @@ impl Outbox {
         }
     }
 
-    /// Stores a batch durably (replacing one with the same session and sequence number).
+    /// Stores a batch durably (replacing one with the same session and sequence number), marking its
+    /// session unfinished in the same atomic write.
     pub fn push(&self, batch: &pb::UploadBatch) -> Result<(), OutboxError> {
         let mut write = WriteBatch::new(&self.site);
-        write.put(
-            RecordKind::Outbox,
-            record_id(&batch.session_uuid, batch.seq),
-            batch.encode_to_vec(),
-        );
+        write
+            .put(
+                RecordKind::Outbox,
+                record_id(&batch.session_uuid, batch.seq),
+                batch.encode_to_vec(),
+            )
+            .put(
+                RecordKind::Session,
+                batch.session_uuid.as_str(),
+                batch.robot_id.as_bytes(),
+            );
         self.store.apply_durable(&write)?;
         Ok(())
+    }
+
+    /// Every session with a batch pushed and no [`Self::finish_session`] since, as (session uuid, robot
+    /// id), ordered by session uuid.
+    pub fn unfinished_sessions(&self) -> Result<Vec<(String, String)>, OutboxError> {
+        self.store
+            .scan(&self.site, RecordKind::Session)?
+            .map(|record| {
+                let (id, robot) = record?;
+                let corrupt = |what: &str| OutboxError::Corrupt {
+                    id: id.to_string(),
+                    reason: format!("the session marker's {what} is not UTF-8"),
+                };
+                let session = String::from_utf8(id.as_bytes().to_vec())
+                    .map_err(|_| corrupt("session uuid"))?;
+                let robot = String::from_utf8(robot).map_err(|_| corrupt("robot id"))?;
+                Ok((session, robot))
+            })
+            .collect()
+    }
+
+    /// Marks `session` finished (the server has its end) and removes whatever of it is still pending,
+    /// durably and atomically. Returns how many batches were removed.
+    pub fn finish_session(&self, session: &str) -> Result<usize, OutboxError> {
+        let mut write = WriteBatch::new(&self.site);
+        for record in self.store.scan(&self.site, RecordKind::Outbox)? {
+            let (id, _) = record?;
+            if let Some((s, _)) = session_prefix(&id)
+                && s == session.as_bytes()
+            {
+                write.delete(RecordKind::Outbox, id);
+            }
+        }
+        let removed = write.len();
+        write.delete(RecordKind::Session, session);
+        self.store.apply_durable(&write)?;
+        Ok(removed)
     }
 
     /// Every pending batch, ordered by session then sequence number.
@@ -187,6 +238,29 @@ mod tests {
     }
 
     #[test]
+    fn a_session_stays_unfinished_until_finished_even_with_nothing_pending() {
+        let outbox = Outbox::in_memory("s");
+        assert!(outbox.unfinished_sessions().unwrap().is_empty());
+        outbox.push(&batch("a", 1)).unwrap();
+        outbox.push(&batch("b", 1)).unwrap();
+        outbox.push(&batch("b", 2)).unwrap();
+        assert_eq!(outbox.remove_through("a", 1).unwrap(), 1);
+        let unfinished = |o: &Outbox| {
+            o.unfinished_sessions()
+                .unwrap()
+                .into_iter()
+                .map(|(s, r)| format!("{s}/{r}"))
+                .collect::<Vec<_>>()
+        };
+        assert_eq!(unfinished(&outbox), ["a/r", "b/r"], "acked is not finished");
+        assert_eq!(outbox.finish_session("b").unwrap(), 2);
+        assert_eq!(unfinished(&outbox), ["a/r"]);
+        assert!(outbox.is_empty().unwrap());
+        assert_eq!(outbox.finish_session("a").unwrap(), 0);
+        assert!(outbox.unfinished_sessions().unwrap().is_empty());
+    }
+
+    #[test]
     fn a_sled_outbox_survives_reopening() {
         let dir = tempfile::tempdir().unwrap();
         {
@@ -194,10 +268,19 @@ mod tests {
             outbox.push(&batch("a", 1)).unwrap();
             outbox.push(&batch("a", 2)).unwrap();
             outbox.remove_through("a", 1).unwrap();
+            outbox.push(&batch("b", 1)).unwrap();
+            outbox.remove_through("b", 1).unwrap();
         }
         let outbox = Outbox::open(dir.path(), "s").unwrap();
         let pending = outbox.pending().unwrap();
         assert_eq!(pending.len(), 1);
         assert_eq!(pending[0].seq, 2);
+        assert_eq!(
+            outbox.unfinished_sessions().unwrap(),
+            [
+                ("a".to_owned(), "r".to_owned()),
+                ("b".to_owned(), "r".to_owned())
+            ]
+        );
     }
 }

@@ -14,7 +14,7 @@ use tokio::task::JoinHandle;
 
 use crate::grpc::{AgentApi, ApiContext, Auth, MapApi};
 use crate::metrics_endpoint::serve_metrics;
-use crate::site::{SiteError, SiteHandle, SiteTask};
+use crate::site::{SiteError, SiteHandle, SiteTask, SiteTaskOptions};
 use crate::zenoh_front::ZenohFront;
 use crate::{ServerConfig, ServerConfigError, ServerMetrics};
 
@@ -88,7 +88,10 @@ impl RunningServer {
                 config.map.clone(),
                 Arc::clone(&store),
                 Arc::clone(&metrics),
-                config.site_queue_depth,
+                SiteTaskOptions {
+                    queue_depth: config.site_queue_depth,
+                    session_idle_timeout: config.session_idle_timeout()?,
+                },
             )
             .await
             .map_err(|source| ServeError::Site {

@@ -4,6 +4,7 @@
 //! listen = "127.0.0.1:50051"          # gRPC
 //! metrics_listen = "127.0.0.1:9464"   # Prometheus text at /metrics; remove the line to disable
 //! max_message_bytes = 67108864
+//! session_idle_timeout_s = 3600.0    # end a session whose robot has been silent this long; 0 = never
 //!
 //! [storage]
 //! path = "./evermap-data"
@@ -26,6 +27,7 @@
 use std::collections::BTreeSet;
 use std::net::SocketAddr;
 use std::path::PathBuf;
+use std::time::Duration;
 
 use mapping::lifelong::LifelongOptions;
 use robot_agent::uplink::ZenohLinkOptions;
@@ -99,6 +101,13 @@ pub struct ServerConfig {
     pub delta_chunk_bytes: usize,
     /// Commands queued per site before callers wait (backpressure), count. Default 64.
     pub site_queue_depth: usize,
+    /// End a session whose robot has sent nothing of it (no open, upload or close) for this long,
+    /// seconds, as if the robot had ended it: a robot that dies and never comes back must not hold its
+    /// session (and the trimming its end brings) open for ever. Counted from the last request, or from
+    /// the server's start for sessions open across a restart. Must be longer than the link outages
+    /// robots ride out with their outbox: the rest of a session ended this way is refused. 0 = never.
+    /// Default 3600 (one hour).
+    pub session_idle_timeout_s: f64,
     /// On-disk storage.
     pub storage: SledStoreOptions,
     /// The multi-session map of every site: GLM, PGR, the session start (`[map.relocalization]`,
@@ -125,6 +134,7 @@ impl Default for ServerConfig {
             max_message_bytes: 64 << 20,
             delta_chunk_bytes: 4 << 20,
             site_queue_depth: 64,
+            session_idle_timeout_s: 3600.0,
             storage: SledStoreOptions::default(),
             map: LifelongOptions::default(),
             tls: None,
@@ -138,6 +148,18 @@ impl ServerConfig {
     /// Parses TOML text (unknown keys are errors).
     pub fn from_toml(text: &str) -> Result<Self, toml::de::Error> {
         toml::from_str(text)
+    }
+
+    /// [`Self::session_idle_timeout_s`] as a duration; `None` when 0 (never).
+    pub fn session_idle_timeout(&self) -> Result<Option<Duration>, ServerConfigError> {
+        match Duration::try_from_secs_f64(self.session_idle_timeout_s) {
+            Ok(d) if d.is_zero() => Ok(None),
+            Ok(d) => Ok(Some(d)),
+            Err(e) => Err(ServerConfigError::Invalid {
+                field: "session_idle_timeout_s".into(),
+                reason: e.to_string(),
+            }),
+        }
     }
 
     /// Checks every field.
@@ -156,6 +178,12 @@ impl ServerConfig {
         }
         if self.site_queue_depth == 0 {
             return invalid("site_queue_depth", "must be at least 1");
+        }
+        if self.session_idle_timeout().is_err() {
+            return invalid(
+                "session_idle_timeout_s",
+                "must be a number of seconds ≥ 0 (0 = never)",
+            );
         }
         if let Err(e) = self.storage.validate() {
             return invalid("storage", &e.to_string());
@@ -270,5 +298,24 @@ mod tests {
             ..ServerConfig::default()
         };
         assert!(small.validate().is_err());
+        for bad in [-1.0, f64::NAN, f64::INFINITY] {
+            let config = ServerConfig {
+                session_idle_timeout_s: bad,
+                ..ServerConfig::default()
+            };
+            assert!(
+                matches!(config.validate(), Err(ServerConfigError::Invalid { field, .. }) if field == "session_idle_timeout_s"),
+                "{bad}"
+            );
+        }
+        let never = ServerConfig {
+            session_idle_timeout_s: 0.0,
+            ..ServerConfig::default()
+        };
+        assert_eq!(never.session_idle_timeout(), Ok(None));
+        assert_eq!(
+            ServerConfig::default().session_idle_timeout(),
+            Ok(Some(Duration::from_secs(3600)))
+        );
     }
 }

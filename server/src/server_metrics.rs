@@ -19,6 +19,7 @@ pub struct ServerMetrics {
     uploads_applied: AtomicU64,
     uploads_duplicate: AtomicU64,
     sessions_opened: AtomicU64,
+    sessions_timed_out: AtomicU64,
     pgr_runs: AtomicU64,
     pgr_micros: AtomicU64,
     refused: Mutex<BTreeMap<&'static str, u64>>,
@@ -72,6 +73,16 @@ impl ServerMetrics {
     /// Counts a newly opened session.
     pub fn session_opened(&self) {
         self.sessions_opened.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// Counts a session the server ended because its robot fell silent.
+    pub fn session_timed_out(&self) {
+        self.sessions_timed_out.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// Sessions ended by the server because their robot fell silent, so far.
+    pub fn sessions_timed_out(&self) -> u64 {
+        self.sessions_timed_out.load(Ordering::Relaxed)
     }
 
     /// Records one run of back-end work (GLM searches and optimization of one change).
@@ -135,6 +146,11 @@ impl ServerMetrics {
             load(&self.sessions_opened),
         );
         counter(
+            "evermap_sessions_timed_out_total",
+            "Sessions the server ended because their robot was silent past the idle timeout.",
+            load(&self.sessions_timed_out),
+        );
+        counter(
             "evermap_pgr_runs_total",
             "Back-end runs (GLM searches and optimization of one change).",
             load(&self.pgr_runs),
@@ -162,7 +178,7 @@ impl ServerMetrics {
             "# HELP evermap_sites Sites served.\n# TYPE evermap_sites gauge\nevermap_sites {}\n",
             sites.len()
         );
-        let gauges: [(&str, &str, Gauge); 8] = [
+        let gauges: [(&str, &str, Gauge); 9] = [
             ("evermap_site_version", "Current map version.", |s| {
                 s.current().version
             }),
@@ -191,6 +207,11 @@ impl ServerMetrics {
                 "evermap_site_dropped_sessions",
                 "Sessions dropped because they ended without being placed in the map.",
                 |s| s.current().counts.dropped_sessions,
+            ),
+            (
+                "evermap_site_open_sessions",
+                "Sessions opened and not ended yet.",
+                |s| s.current().counts.open_sessions,
             ),
             (
                 "evermap_site_queue_depth",

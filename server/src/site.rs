@@ -15,4 +15,4 @@ pub use map_render::render_submaps;
 pub use site_error::SiteError;
 pub use site_handle::{RenderedMap, SiteHandle, UploadAck, VersionInfo};
 pub use site_map::{MapCounts, SessionOpened, SiteMap, UploadCheck};
-pub use site_task::SiteTask;
+pub use site_task::{SiteTask, SiteTaskOptions};

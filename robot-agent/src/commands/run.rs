@@ -2,6 +2,12 @@
 //! fleet map server, following the site's versions into the global submap cache. The session's start is
 //! relocalized against that cache and, once placed, the robot runs GLM against it and sends its matches.
 //!
+//! A run killed mid-session (kill -9, power loss) leaves its session unfinished in the outbox. The next
+//! run ends it — delivers what the outbox still holds of it and closes it on the server — before its own
+//! session starts relocalizing, so the interrupted trip is in the map it relocalizes against; then it
+//! maps a new session. It does not resume the old one: the LLO state that session's nodes and active
+//! submaps live in died with the process (see `robot_agent::uplink::Uploader`).
+//!
 //! ```toml
 //! server_url = "http://127.0.0.1:50051"
 //! site = "store-1"
@@ -65,7 +71,8 @@ pub struct AgentConfig {
     pub max_scans: Option<usize>,
     /// Outbox database directory. Default `./evermap-outbox`.
     pub outbox_dir: PathBuf,
-    /// Session uuid; a random one by default (reuse one only together with its outbox).
+    /// Session uuid; a random one by default. A uuid is used once: a session interrupted by a crash is
+    /// ended by the next run, which maps a new one.
     pub session_uuid: Option<String>,
     /// Nodes per upload batch. Default 10.
     pub nodes_per_batch: usize,
@@ -192,6 +199,13 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let outbox = Outbox::open(&config.outbox_dir, &config.site)
         .with_context(|| format!("cannot open the outbox at {}", config.outbox_dir.display()))?;
     let session_uuid = config.session_uuid.clone().unwrap_or_else(random_uuid);
+    let interrupted = outbox.unfinished_sessions()?;
+    anyhow::ensure!(
+        !interrupted.iter().any(|(s, _)| *s == session_uuid),
+        "session {session_uuid:?} was interrupted and cannot be resumed (its LLO state is gone): remove \
+         session_uuid from {} (or choose a new one); the next run ends the interrupted session",
+        args.config.display()
+    );
     let call_timeout = seconds("call_timeout_s", config.call_timeout_s)?;
     let retry_interval = seconds("retry_interval_s", config.retry_interval_s)?;
     let options = SessionOptions {
@@ -205,7 +219,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     };
     tracing::info!(
         site = %config.site, robot = %config.robot_id, session = %session_uuid,
-        pending = outbox.len()?, "starting session"
+        pending = outbox.len()?, interrupted = interrupted.len(), "starting session"
     );
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(1)
@@ -251,6 +265,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
             &config.robot_id,
             &session_uuid,
         )?;
+        end_interrupted(&mut uploader, call_timeout, retry_interval).await?;
         // Relocalize the session's start against the site map (and run GLM on the robot from there), once
         // the cache has caught up with the server; with no server or an empty site, map without a prior.
         let mut probe = uploader.uplink_mut().clone();
@@ -302,6 +317,45 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         );
         anyhow::Ok(())
     })
+}
+
+/// Ends the sessions an earlier run left unfinished (see the module docs), retrying for up to `patience`
+/// while the server is unreachable; after that the session's own flushes keep trying.
+async fn end_interrupted<U: robot_agent::uplink::MapUplink>(
+    uploader: &mut Uploader<U>,
+    patience: Duration,
+    retry_interval: Duration,
+) -> anyhow::Result<()> {
+    let deadline = tokio::time::Instant::now() + patience;
+    loop {
+        let interrupted = uploader.interrupted_sessions()?;
+        if interrupted.is_empty() {
+            return Ok(());
+        }
+        match uploader.flush().await {
+            Ok(stats) => {
+                // A successful flush ends every interrupted session.
+                tracing::info!(
+                    ended = stats.interrupted_ended,
+                    delivered = stats.applied,
+                    dropped = stats.dropped_after_server_end,
+                    "interrupted sessions of an earlier run ended"
+                );
+                return Ok(());
+            }
+            Err(e) if e.is_transient() => {
+                if tokio::time::Instant::now() >= deadline {
+                    tracing::warn!(
+                        sessions = interrupted.len(),
+                        "cannot end the interrupted sessions yet ({e}): retrying while mapping"
+                    );
+                    return Ok(());
+                }
+                tokio::time::sleep(retry_interval).await;
+            }
+            Err(e) => return Err(e.into()),
+        }
+    }
 }
 
 #[cfg(test)]

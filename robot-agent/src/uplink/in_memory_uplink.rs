@@ -1,5 +1,6 @@
 //! [`MapUplink`] to an in-process fake server, for tests: it enforces the server's sequence rules
-//! (duplicates acknowledged once, gaps refused), can be taken offline, and records what it applied.
+//! (duplicates acknowledged once, gaps refused, nothing new accepted into a closed session, unknown sessions
+//! not closable), can be taken offline, and records what it applied.
 
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -55,6 +56,18 @@ impl InMemoryUplink {
         self.state().applied.clone()
     }
 
+    /// Whether `session_uuid` is known and closed.
+    pub fn is_closed(&self, session_uuid: &str) -> bool {
+        self.state().sessions.get(session_uuid).is_some_and(|s| s.2)
+    }
+
+    /// Closes a session as the server does on its own (its robot silent past the idle timeout).
+    pub fn close_as_server(&self, session_uuid: &str) {
+        if let Some(session) = self.state().sessions.get_mut(session_uuid) {
+            session.2 = true;
+        }
+    }
+
     /// Batches received again after being applied.
     pub fn duplicates(&self) -> usize {
         self.state().duplicates
@@ -104,7 +117,7 @@ impl MapUplink for InMemoryUplink {
 
     async fn upload(&mut self, batch: &pb::UploadBatch) -> Result<Acked, UplinkError> {
         let mut state = self.online()?;
-        let Some(&(_, last, _)) = state.sessions.get(&batch.session_uuid) else {
+        let Some(&(_, last, closed)) = state.sessions.get(&batch.session_uuid) else {
             return Err(UplinkError::Rejected {
                 code: tonic::Code::NotFound,
                 message: "unknown session".into(),
@@ -120,6 +133,12 @@ impl MapUplink for InMemoryUplink {
         }
         if batch.seq != last + 1 {
             return Err(UplinkError::SequenceGap { expected: last + 1 });
+        }
+        if closed {
+            return Err(UplinkError::Rejected {
+                code: tonic::Code::FailedPrecondition,
+                message: format!("session {:?} is closed", batch.session_uuid),
+            });
         }
         if let Some(session) = state.sessions.get_mut(&batch.session_uuid) {
             session.1 = batch.seq;
@@ -143,10 +162,14 @@ impl MapUplink for InMemoryUplink {
             .sessions
             .get_mut(session_uuid)
             .map(|s| std::mem::replace(&mut s.2, true));
-        Ok(match closed {
-            Some(false) => self.bump(&mut state),
-            _ => state.version,
-        })
+        match closed {
+            Some(false) => Ok(self.bump(&mut state)),
+            Some(true) => Ok(state.version),
+            None => Err(UplinkError::Rejected {
+                code: tonic::Code::NotFound,
+                message: format!("unknown session {session_uuid:?}: open it first"),
+            }),
+        }
     }
 
     async fn map_version(&mut self) -> Result<u64, UplinkError> {

@@ -1,4 +1,14 @@
-//! Durable, exactly-once uploading of one robot's batches.
+//! Durable, exactly-once uploading of one robot's batches, and the end of sessions an agent restart
+//! interrupted.
+//!
+//! A restarted agent does not resume its interrupted session: it ends it and starts a new one. The
+//! session's LLO state (active submaps, the local frame, the pose extrapolator) died with the process, so
+//! a resumed session would add nodes in a fresh local frame to a trajectory whose submaps it can no
+//! longer insert into. Ending it keeps everything the server acknowledged (its nodes and finished
+//! submaps, and its place in the map); the submaps that were still active are lost with their grids.
+//! The [`Uploader`] of the new session therefore first delivers what the outbox still holds of every
+//! other unfinished session (see [`crate::outbox`]) and ends each one with `CloseSession` (unless its
+//! own `SessionEnd` was delivered), before any batch of its own session.
 
 use std::collections::BTreeSet;
 
@@ -16,8 +26,33 @@ pub struct FlushStats {
     pub duplicates: usize,
     /// Batches dropped from the outbox because re-opening the session showed the server had them.
     pub already_acked: usize,
+    /// Interrupted sessions (of an earlier run of the agent) ended on the server.
+    pub interrupted_ended: usize,
+    /// Batches of interrupted sessions the server refused because it had already ended the session
+    /// (its robot was silent past the server's idle timeout): they cannot be applied and were dropped.
+    pub dropped_after_server_end: usize,
     /// Site version after the last ack.
     pub map_version: u64,
+}
+
+/// Whether a batch carries its session's end.
+fn ends_session(batch: &pb::UploadBatch) -> bool {
+    batch
+        .items
+        .iter()
+        .any(|item| matches!(item.item, Some(pb::upload_item::Item::SessionEnd(_))))
+}
+
+/// The server refused a batch because its session is closed (`SiteError::SessionClosed`; a sequence gap,
+/// the other failed precondition, arrives as [`UplinkError::SequenceGap`]).
+fn session_closed(error: &UplinkError) -> bool {
+    matches!(
+        error,
+        UplinkError::Rejected {
+            code: tonic::Code::FailedPrecondition,
+            ..
+        }
+    )
 }
 
 /// Numbers one session's batches, keeps them in the outbox until acknowledged, and sends them in order.
@@ -110,14 +145,103 @@ impl<U: MapUplink> Uploader<U> {
         result
     }
 
+    /// Sessions of earlier runs still unfinished in the outbox (not yet ended on the server), as
+    /// (session uuid, robot id).
+    pub fn interrupted_sessions(&self) -> Result<Vec<(String, String)>, UplinkError> {
+        let mut sessions: BTreeSet<(String, String)> =
+            self.outbox.unfinished_sessions()?.into_iter().collect();
+        // Batches without a marker (an outbox written before markers existed) are interrupted too.
+        for batch in self.outbox.pending()? {
+            if !sessions.iter().any(|(s, _)| *s == batch.session_uuid) {
+                sessions.insert((batch.session_uuid, batch.robot_id));
+            }
+        }
+        Ok(sessions
+            .into_iter()
+            .filter(|(s, _)| *s != self.session_uuid)
+            .collect())
+    }
+
     async fn try_flush(&mut self) -> Result<FlushStats, UplinkError> {
         let mut stats = FlushStats {
             map_version: self.last_version,
             ..FlushStats::default()
         };
-        let pending = self.outbox.pending()?;
+        for (session, robot) in self.interrupted_sessions()? {
+            self.end_interrupted(&session, &robot, &mut stats).await?;
+        }
+        let pending: Vec<pb::UploadBatch> = self
+            .outbox
+            .pending()?
+            .into_iter()
+            .filter(|b| b.session_uuid == self.session_uuid)
+            .collect();
+        if self.deliver(pending, &mut stats).await? {
+            self.outbox.finish_session(&self.session_uuid)?;
+        }
+        Ok(stats)
+    }
+
+    /// Delivers what is left of interrupted `session` and ends it on the server.
+    async fn end_interrupted(
+        &mut self,
+        session: &str,
+        robot: &str,
+        stats: &mut FlushStats,
+    ) -> Result<(), UplinkError> {
+        let pending: Vec<pb::UploadBatch> = self
+            .outbox
+            .pending()?
+            .into_iter()
+            .filter(|b| b.session_uuid == session)
+            .collect();
+        let ended = match self.deliver(pending, stats).await {
+            Ok(ended) => ended,
+            Err(e) if session_closed(&e) => {
+                // The server ended the session itself (silent past its idle timeout): what is left
+                // can never be applied.
+                let dropped = self.outbox.finish_session(session)?;
+                tracing::warn!(
+                    session,
+                    dropped,
+                    "the server had already ended this interrupted session: dropping its undelivered batches"
+                );
+                stats.dropped_after_server_end += dropped;
+                stats.interrupted_ended += 1;
+                return Ok(());
+            }
+            Err(e) => return Err(e),
+        };
+        if !ended {
+            match self.uplink.close_session(robot, session).await {
+                Ok(version) => {
+                    self.last_version = self.last_version.max(version);
+                    stats.map_version = self.last_version;
+                }
+                // Never opened on the server (nothing of it was ever delivered): nothing to end.
+                Err(UplinkError::Rejected {
+                    code: tonic::Code::NotFound,
+                    ..
+                }) => {}
+                Err(e) => return Err(e),
+            }
+        }
+        self.outbox.finish_session(session)?;
+        stats.interrupted_ended += 1;
+        tracing::info!(session, "interrupted session ended");
+        Ok(())
+    }
+
+    /// Sends `batches` (of one session, in order), opening their session first on a new connection and
+    /// dropping what the server already has. Returns whether the session's end was among them.
+    async fn deliver(
+        &mut self,
+        batches: Vec<pb::UploadBatch>,
+        stats: &mut FlushStats,
+    ) -> Result<bool, UplinkError> {
+        let mut ended = false;
         let mut skip_through: Option<(String, u64)> = None;
-        for batch in pending {
+        for batch in batches {
             if !self.opened.contains(&batch.session_uuid) {
                 let opened = self
                     .uplink
@@ -132,6 +256,7 @@ impl<U: MapUplink> Uploader<U> {
                 }
                 self.opened.insert(batch.session_uuid.clone());
             }
+            ended |= ends_session(&batch);
             if skip_through
                 .as_ref()
                 .is_some_and(|(s, seq)| *s == batch.session_uuid && batch.seq <= *seq)
@@ -148,7 +273,7 @@ impl<U: MapUplink> Uploader<U> {
             self.last_version = self.last_version.max(ack.map_version);
             stats.map_version = self.last_version;
         }
-        Ok(stats)
+        Ok(ended)
     }
 }
 
@@ -217,5 +342,114 @@ mod tests {
         let seqs: Vec<u64> = server.applied().iter().map(|b| b.seq).collect();
         assert_eq!(seqs, [1, 2, 3, 4]);
         assert_eq!(server.duplicates(), 0);
+    }
+
+    fn end_batch(i: i64) -> Vec<UploadItem> {
+        let mut items = items(i);
+        items.push(UploadItem::SessionEnd);
+        items
+    }
+
+    #[tokio::test]
+    async fn a_restarted_agent_ends_its_interrupted_session_and_starts_a_new_one() {
+        let server = InMemoryUplink::new("s");
+        let outbox = Outbox::in_memory("s");
+        {
+            let mut first = Uploader::new(server.clone(), outbox.clone(), "s", "r", "old").unwrap();
+            first.enqueue(&items(1)).unwrap();
+            first.flush().await.unwrap();
+            // Killed with one batch not yet delivered.
+            first.enqueue(&items(2)).unwrap();
+        }
+        let mut second = Uploader::new(server.clone(), outbox.clone(), "s", "r", "new").unwrap();
+        assert_eq!(second.next_seq(), 1, "a new session numbers from 1");
+        assert_eq!(
+            second.interrupted_sessions().unwrap(),
+            [("old".to_owned(), "r".to_owned())]
+        );
+        // The link is down at first: nothing is ended, nothing lost.
+        server.set_online(false);
+        assert!(second.flush().await.unwrap_err().is_transient());
+        assert!(!server.is_closed("old"));
+        server.set_online(true);
+        let stats = second.flush().await.unwrap();
+        assert_eq!((stats.applied, stats.interrupted_ended), (1, 1));
+        assert!(server.is_closed("old"));
+        assert!(second.interrupted_sessions().unwrap().is_empty());
+        assert!(outbox.is_empty().unwrap());
+
+        second.enqueue(&items(3)).unwrap();
+        second.enqueue(&end_batch(4)).unwrap();
+        let stats = second.flush().await.unwrap();
+        assert_eq!((stats.applied, stats.interrupted_ended), (2, 0));
+        assert!(
+            outbox.unfinished_sessions().unwrap().is_empty(),
+            "the new session's end was delivered: nothing is unfinished"
+        );
+        let sent: Vec<(String, u64)> = server
+            .applied()
+            .iter()
+            .map(|b| (b.session_uuid.clone(), b.seq))
+            .collect();
+        assert_eq!(
+            sent,
+            [("old", 1), ("old", 2), ("new", 1), ("new", 2)].map(|(s, n)| (s.to_owned(), n))
+        );
+        assert_eq!(server.duplicates(), 0);
+    }
+
+    #[tokio::test]
+    async fn an_interrupted_session_with_everything_delivered_is_ended_too() {
+        let server = InMemoryUplink::new("s");
+        let outbox = Outbox::in_memory("s");
+        {
+            let mut first = Uploader::new(server.clone(), outbox.clone(), "s", "r", "old").unwrap();
+            first.enqueue(&items(1)).unwrap();
+            first.flush().await.unwrap();
+            assert!(outbox.is_empty().unwrap());
+        }
+        let mut second = Uploader::new(server.clone(), outbox.clone(), "s", "r", "new").unwrap();
+        assert!(!server.is_closed("old"));
+        let stats = second.flush().await.unwrap();
+        assert_eq!((stats.applied, stats.interrupted_ended), (0, 1));
+        assert!(server.is_closed("old"));
+
+        // A session whose end was delivered before the kill is finished: nothing to end.
+        let mut third = Uploader::new(server.clone(), outbox.clone(), "s", "r", "third").unwrap();
+        second.enqueue(&end_batch(2)).unwrap();
+        second.flush().await.unwrap();
+        assert!(third.interrupted_sessions().unwrap().is_empty());
+        assert_eq!(third.flush().await.unwrap().interrupted_ended, 0);
+    }
+
+    #[tokio::test]
+    async fn batches_of_a_session_the_server_ended_are_dropped_not_retried_for_ever() {
+        let server = InMemoryUplink::new("s");
+        let outbox = Outbox::in_memory("s");
+        {
+            let mut first = Uploader::new(server.clone(), outbox.clone(), "s", "r", "old").unwrap();
+            first.enqueue(&items(1)).unwrap();
+            first.flush().await.unwrap();
+            first.enqueue(&items(2)).unwrap();
+            first.enqueue(&items(3)).unwrap();
+        }
+        server.close_as_server("old");
+        let mut second = Uploader::new(server.clone(), outbox.clone(), "s", "r", "new").unwrap();
+        let stats = second.flush().await.unwrap();
+        assert_eq!(
+            (
+                stats.applied,
+                stats.dropped_after_server_end,
+                stats.interrupted_ended
+            ),
+            (0, 2, 1)
+        );
+        assert!(outbox.is_empty().unwrap());
+        assert!(outbox.unfinished_sessions().unwrap().is_empty());
+        // The current session is not excused: a refusal of its own batch is an error.
+        second.enqueue(&items(4)).unwrap();
+        server.clone().open_session("r", "new").await.unwrap();
+        server.close_as_server("new");
+        assert!(!second.flush().await.unwrap_err().is_transient());
     }
 }

@@ -40,6 +40,7 @@ pub fn version_to_pb(site: &str, info: &VersionInfo) -> pb::MapVersion {
             trimmed_submaps: c.trimmed_submaps,
             dropped_sessions: c.dropped_sessions,
             loop_closures: c.loop_closures,
+            open_sessions: c.open_sessions,
         }),
     }
 }

@@ -90,6 +90,8 @@ pub struct MapCounts {
     pub dropped_sessions: u64,
     /// Accepted loop closures.
     pub loop_closures: u64,
+    /// Sessions opened and not ended yet.
+    pub open_sessions: u64,
 }
 
 #[derive(Clone, Debug)]
@@ -236,6 +238,12 @@ impl SiteMap {
         }
         if session.closed {
             return Err(SiteError::SessionClosed(batch.session_uuid.clone()));
+        }
+        // The wire conversion refuses empty batches, so a stored one could never be replayed.
+        if batch.items.is_empty() {
+            return Err(SiteError::InvalidBatch(
+                "a batch needs at least one item".into(),
+            ));
         }
         let mut nodes = session.nodes;
         let mut last_insertion: &[(u32, Rigid2)] = &[];
@@ -547,6 +555,15 @@ impl SiteMap {
         self.sessions.get(session_uuid).map(|s| s.robot_id.as_str())
     }
 
+    /// Every session not ended yet, as (session uuid, robot id), ordered by session uuid.
+    pub fn open_sessions(&self) -> Vec<(String, String)> {
+        self.sessions
+            .iter()
+            .filter(|(_, s)| !s.closed)
+            .map(|(uuid, s)| (uuid.clone(), s.robot_id.clone()))
+            .collect()
+    }
+
     /// Whether the session is known and closed.
     pub fn is_closed(&self, session_uuid: &str) -> bool {
         self.sessions.get(session_uuid).is_some_and(|s| s.closed)
@@ -604,6 +621,7 @@ impl SiteMap {
             trimmed_submaps: self.trimmed.len() as u64,
             dropped_sessions: self.dropped_sessions,
             loop_closures: self.map.global().accepted_loop_closures().len() as u64,
+            open_sessions: self.sessions.values().filter(|s| !s.closed).count() as u64,
         }
     }
 

@@ -7,9 +7,19 @@
 //! task replays the log in order, which rebuilds the same map (the core is deterministic), and continues
 //! the version sequence. Heavy work (replay, GLM searches and optimization, rendering) and blocking
 //! storage calls run on tokio's blocking pool, never on the async workers.
+//!
+//! A session whose robot falls silent (no open, upload or close of it) for longer than
+//! [`SiteTaskOptions::session_idle_timeout`] is ended by the task itself, exactly as if its robot had
+//! closed it (a `SessionClosed` log entry: final optimization, trimming, dropped if never placed), so a
+//! robot that never comes back does not hold its session open for ever. Silence is counted from the
+//! last request or, after a restart, from the task's start (the server's own downtime is not the
+//! robot's silence). A robot that comes back later finds its session closed: its remaining batches are
+//! refused (`SessionClosed`), so the timeout must be longer than the link outages robots are expected
+//! to ride out with their outbox.
 
+use std::collections::BTreeMap;
 use std::sync::Arc;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use mapping::lifelong::LifelongOptions;
 use prost::Message as _;
@@ -29,12 +39,37 @@ use crate::ServerMetrics;
 /// of its sessions' trajectories, so it lives under `Trajectory`.)
 pub const SITE_LOG_KIND: RecordKind = RecordKind::Trajectory;
 
+/// How a [`SiteTask`] runs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SiteTaskOptions {
+    /// Commands queued before callers wait (backpressure), count; at least 1 is used.
+    pub queue_depth: usize,
+    /// End a session whose robot has been silent this long; `None`: never.
+    pub session_idle_timeout: Option<Duration>,
+}
+
+impl Default for SiteTaskOptions {
+    /// 64 queued commands; sessions ended after one hour of silence.
+    fn default() -> Self {
+        Self {
+            queue_depth: 64,
+            session_idle_timeout: Some(Duration::from_secs(3600)),
+        }
+    }
+}
+
+/// How often, at most, silent sessions are looked for (and at least 4 times per timeout).
+const IDLE_CHECK_INTERVAL: Duration = Duration::from_secs(1);
+
 /// Owns one site's [`SiteMap`]; see the module docs.
 pub struct SiteTask {
     map: Option<Box<SiteMap>>,
     store: Arc<dyn MapStore>,
     versions: watch::Sender<VersionInfo>,
     metrics: Arc<ServerMetrics>,
+    session_idle_timeout: Option<Duration>,
+    /// When each open session was last heard of.
+    last_heard: BTreeMap<String, tokio::time::Instant>,
 }
 
 fn internal(e: impl std::fmt::Display) -> SiteError {
@@ -49,7 +84,7 @@ impl SiteTask {
         options: LifelongOptions,
         store: Arc<dyn MapStore>,
         metrics: Arc<ServerMetrics>,
-        queue_depth: usize,
+        task_options: SiteTaskOptions,
     ) -> Result<(SiteHandle, JoinHandle<()>), SiteError> {
         let started = Instant::now();
         let map = {
@@ -69,19 +104,41 @@ impl SiteTask {
             counts: map.counts(),
         };
         let (versions, versions_rx) = watch::channel(info);
-        let (commands, commands_rx) = mpsc::channel(queue_depth.max(1));
+        let (commands, commands_rx) = mpsc::channel(task_options.queue_depth.max(1));
+        let now = tokio::time::Instant::now();
+        let last_heard = map
+            .open_sessions()
+            .into_iter()
+            .map(|(session, _)| (session, now))
+            .collect();
         let task = Self {
             map: Some(Box::new(map)),
             store,
             versions,
             metrics,
+            session_idle_timeout: task_options.session_idle_timeout,
+            last_heard,
         };
         let join = tokio::spawn(task.run(commands_rx));
         Ok((SiteHandle::new(site, commands, versions_rx), join))
     }
 
     async fn run(mut self, mut commands: mpsc::Receiver<Command>) {
-        while let Some(command) = commands.recv().await {
+        let check_every = self
+            .session_idle_timeout
+            .map_or(IDLE_CHECK_INTERVAL, |t| (t / 4).min(IDLE_CHECK_INTERVAL))
+            .max(Duration::from_millis(1));
+        let mut idle_check = tokio::time::interval(check_every);
+        idle_check.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        loop {
+            let command = tokio::select! {
+                command = commands.recv() => command,
+                _ = idle_check.tick(), if self.session_idle_timeout.is_some() => {
+                    self.end_silent_sessions().await;
+                    continue;
+                }
+            };
+            let Some(command) = command else { break };
             match command {
                 Command::OpenSession {
                     robot_id,
@@ -89,9 +146,12 @@ impl SiteTask {
                     reply,
                 } => {
                     let _ = reply.send(self.open_session(&robot_id, &session_uuid).await);
+                    self.heard(&session_uuid);
                 }
                 Command::Upload { batch, reply } => {
+                    let session = batch.session_uuid.clone();
                     let _ = reply.send(self.upload(*batch).await);
+                    self.heard(&session);
                 }
                 Command::CloseSession {
                     robot_id,
@@ -131,6 +191,54 @@ impl SiteTask {
                     let _ = reply.send(self.map().map(SiteMap::node_poses).unwrap_or_default());
                 }
                 Command::Shutdown => break,
+            }
+        }
+    }
+
+    /// Notes a request of `session`'s robot (only sessions the map knows and has not closed are kept).
+    fn heard(&mut self, session: &str) {
+        let open = self
+            .map
+            .as_ref()
+            .is_some_and(|m| m.session_robot(session).is_some() && !m.is_closed(session));
+        if open {
+            self.last_heard
+                .insert(session.to_owned(), tokio::time::Instant::now());
+        }
+    }
+
+    /// Ends every open session silent for longer than the idle timeout.
+    async fn end_silent_sessions(&mut self) {
+        let Some(timeout) = self.session_idle_timeout else {
+            return;
+        };
+        let Ok(open) = self.map().map(SiteMap::open_sessions) else {
+            return;
+        };
+        let now = tokio::time::Instant::now();
+        // Every open session is heard of at the task's start and at its open; one that somehow was
+        // not counts as silent from now on.
+        let silent: Vec<(String, String)> = open
+            .into_iter()
+            .filter(|(session, _)| {
+                let heard = *self.last_heard.entry(session.clone()).or_insert(now);
+                now.duration_since(heard) > timeout
+            })
+            .collect();
+        for (session, robot) in silent {
+            match self.close_session(&robot, &session).await {
+                Ok(version) => {
+                    self.metrics.session_timed_out();
+                    tracing::info!(
+                        site = %self.site(), robot, session, version,
+                        silent_s = timeout.as_secs_f64(),
+                        "session ended: its robot was silent past the idle timeout"
+                    );
+                }
+                Err(e) => tracing::warn!(
+                    site = %self.site(), robot, session,
+                    "cannot end a silent session: {e}"
+                ),
             }
         }
     }
@@ -245,13 +353,21 @@ impl SiteTask {
             });
         }
         let version = map.version() + 1;
+        // The map applies exactly what replay will: the batch decoded from its stored form (a pose's
+        // angle goes through `atan2` and `sin`/`cos` once more, which can move its last bit), so a
+        // restart rebuilds this map bit for bit. A batch whose stored form does not decode is refused
+        // before anything is stored.
+        let entry = pb::UploadBatch::from(&batch);
+        let batch = UploadBatch::try_from(&entry).map_err(|e| {
+            SiteError::InvalidBatch(format!("its stored form would not decode: {e}"))
+        })?;
         self.persist(
             version,
-            pb::site_log_entry::Entry::Upload(pb::UploadBatch::from(&batch)),
+            pb::site_log_entry::Entry::Upload(entry),
             Some((batch.session_uuid.clone(), batch.seq)),
         )
         .await?;
-        let seq = batch.seq;
+        let (seq, session) = (batch.seq, batch.session_uuid.clone());
         let started = Instant::now();
         let applied = self
             .with_map_blocking(move |map| map.apply_upload(&batch, version))
@@ -263,6 +379,9 @@ impl SiteTask {
             return Err(e);
         }
         self.metrics.upload_applied();
+        if self.map()?.is_closed(&session) {
+            self.last_heard.remove(&session);
+        }
         self.publish();
         Ok(UploadAck {
             seq,
@@ -297,6 +416,7 @@ impl SiteTask {
         let started = Instant::now();
         self.with_map_blocking(move |map| map.close_session(&robot, &session, version))
             .await??;
+        self.last_heard.remove(session_uuid);
         self.metrics.record_pgr(started.elapsed());
         self.publish();
         Ok(version)
@@ -362,14 +482,105 @@ mod tests {
     use super::*;
 
     async fn spawn(store: &Arc<dyn MapStore>) -> Result<(SiteHandle, JoinHandle<()>), SiteError> {
+        spawn_with(store, None).await
+    }
+
+    async fn spawn_with(
+        store: &Arc<dyn MapStore>,
+        session_idle_timeout: Option<Duration>,
+    ) -> Result<(SiteHandle, JoinHandle<()>), SiteError> {
         SiteTask::spawn(
             "s",
             LifelongOptions::default(),
             Arc::clone(store),
             Arc::new(ServerMetrics::default()),
-            4,
+            SiteTaskOptions {
+                queue_depth: 4,
+                session_idle_timeout,
+            },
         )
         .await
+    }
+
+    /// A batch of one node.
+    fn node_batch(session: &str, seq: u64) -> UploadBatch {
+        UploadBatch {
+            site: "s".into(),
+            robot_id: "r".into(),
+            session_uuid: session.into(),
+            seq,
+            items: vec![proto::UploadItem::NodeAdded(proto::NodeAdded {
+                time: mapping::sensor::Timestamp(seq as i64 * 1_000_000_000),
+                local_pose: mapping::geometry::rigid2(0.1 * seq as f64, 0.0, 0.0),
+                points: vec![
+                    nalgebra::Point2::new(1.0, 0.5),
+                    nalgebra::Point2::new(2.0, 0.0),
+                ],
+                insertion_submaps: vec![(0, mapping::geometry::rigid2(0.0, 0.0, 0.0))],
+            })],
+        }
+    }
+
+    /// Sleeps `seconds` of (paused, virtual) time in steps, letting the site task run between them.
+    async fn let_time_pass(seconds: u64) {
+        for _ in 0..seconds {
+            tokio::time::sleep(Duration::from_secs(1)).await;
+        }
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_session_whose_robot_falls_silent_is_ended_by_the_server() {
+        let store: Arc<dyn MapStore> = Arc::new(MemStore::new());
+        let (site, task) = spawn_with(&store, Some(Duration::from_secs(60)))
+            .await
+            .unwrap();
+        site.open_session("r", "silent").await.unwrap();
+        site.open_session("r", "talking").await.unwrap();
+        site.upload(node_batch("silent", 1)).await.unwrap();
+        assert_eq!(site.current().counts.open_sessions, 2);
+        let mut empty = node_batch("silent", 2);
+        empty.items.clear();
+        assert!(
+            matches!(site.upload(empty).await, Err(SiteError::InvalidBatch(_))),
+            "an empty batch could not be replayed: it is refused"
+        );
+        for seq in 1..=4 {
+            let_time_pass(20).await;
+            site.upload(node_batch("talking", seq)).await.unwrap();
+        }
+        // 80 s after its last upload "silent" is ended; "talking" spoke 0 s ago.
+        assert_eq!(site.current().counts.open_sessions, 1);
+        assert!(matches!(
+            site.upload(node_batch("silent", 2)).await,
+            Err(SiteError::SessionClosed(_))
+        ));
+        let closed_at = site.current().version;
+        // Ending it was logged like a robot's close: a restart replays it.
+        site.shutdown().await;
+        task.await.unwrap();
+        let (site, task) = spawn_with(&store, Some(Duration::from_secs(60)))
+            .await
+            .unwrap();
+        assert_eq!(site.current().version, closed_at);
+        assert_eq!(site.current().counts.open_sessions, 1);
+        // After a restart silence counts from the start: 40 s is not enough, 70 s is.
+        let_time_pass(40).await;
+        assert_eq!(site.current().counts.open_sessions, 1);
+        let_time_pass(30).await;
+        assert_eq!(site.current().counts.open_sessions, 0);
+        assert_eq!(site.current().version, closed_at + 1);
+        site.shutdown().await;
+        task.await.unwrap();
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn without_a_timeout_sessions_stay_open() {
+        let store: Arc<dyn MapStore> = Arc::new(MemStore::new());
+        let (site, _task) = spawn(&store).await.unwrap();
+        site.open_session("r", "a").await.unwrap();
+        let_time_pass(100).await;
+        tokio::time::sleep(Duration::from_secs(1_000_000)).await;
+        assert_eq!(site.current().counts.open_sessions, 1);
     }
 
     #[tokio::test]
