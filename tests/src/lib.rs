@@ -16,3 +16,5 @@ pub fn datasets_dir() -> PathBuf {
         .find(|dir| dir.is_dir())
         .unwrap_or_else(|| manifest.join("../../shared/datasets"))
 }
+
+pub mod fuzz;
