@@ -18,6 +18,6 @@ mod fuzz_target;
 pub mod mutation;
 mod targets;
 
-pub use fuzz_driver::{Finding, FindingKind, FuzzOptions, FuzzReport, fuzz};
+pub use fuzz_driver::{Finding, FindingKind, FuzzOptions, FuzzOptionsError, FuzzReport, fuzz};
 pub use fuzz_target::{FixupFn, FuzzTarget, RunFn, Verdict};
 pub use targets::{SetupError, TARGET_NAMES, target};

@@ -10,7 +10,8 @@ use tests::fuzz::{FuzzOptions, fuzz, target};
 static HEAP: PeakAlloc = PeakAlloc;
 
 fn slice(name: &str, inputs: u64) {
-    let mut target = target(name, &tests::datasets_dir()).unwrap();
+    let mut target = target(name, &tests::datasets_dir())
+        .unwrap_or_else(|e| panic!("cannot set up the {name} target: {e}"));
     assert!(
         !target.seeds.is_empty(),
         "{name}: no seeds, the test would prove nothing"

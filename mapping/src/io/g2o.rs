@@ -406,6 +406,8 @@ pub fn write_pose_graph(graph: &PoseGraph, mut writer: impl Write) -> Result<(),
 
 #[cfg(test)]
 mod tests {
+    use std::fmt::Write as _;
+
     use approx::assert_relative_eq;
 
     use super::*;
@@ -450,7 +452,7 @@ mod tests {
     fn components_without_vertices_are_anchored_one_by_one() {
         let mut text = String::new();
         for k in 0..2000_u32 {
-            text.push_str(&format!("EDGE_SE2 {} {} 2 {EDGE_TAIL}\n", 3 * k, 3 * k + 2));
+            writeln!(text, "EDGE_SE2 {} {} 2 {EDGE_TAIL}", 3 * k, 3 * k + 2).unwrap();
         }
         let parsed = read(&text).unwrap();
         assert_eq!(parsed.initialized_from_edges, 4000);

@@ -52,7 +52,7 @@ fn main() -> anyhow::Result<()> {
         slow_input_s: Some(args.slow_input_s),
         ..FuzzOptions::default()
     };
-    options.validate().map_err(anyhow::Error::msg)?;
+    options.validate()?;
     let names: Vec<String> = if args.target.is_empty() {
         TARGET_NAMES.iter().map(|s| (*s).to_owned()).collect()
     } else {
@@ -74,7 +74,7 @@ fn main() -> anyhow::Result<()> {
             report.inputs_per_s(),
             report.accepted,
             report.rejected,
-            report.max_heap_bytes as f64 / (1 << 20) as f64,
+            report.max_heap_bytes as f64 / f64::from(1_u32 << 20),
             report.slowest_input_s,
             report.findings.len()
         );
@@ -98,7 +98,12 @@ fn main() -> anyhow::Result<()> {
         reports.push(report);
     }
     if let Some(path) = &args.json {
-        let json = serde_json::Value::Array(reports.iter().map(|r| r.to_json()).collect());
+        let json = serde_json::Value::Array(
+            reports
+                .iter()
+                .map(tests::fuzz::FuzzReport::to_json)
+                .collect(),
+        );
         std::fs::write(path, serde_json::to_string_pretty(&json)?)
             .with_context(|| format!("cannot write {}", path.display()))?;
     }

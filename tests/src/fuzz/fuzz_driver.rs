@@ -46,19 +46,29 @@ impl Default for FuzzOptions {
     }
 }
 
+/// An invalid [`FuzzOptions`] field.
+#[derive(Debug, thiserror::Error)]
+#[error("fuzz options: {field} must be positive and finite, got {value}")]
+pub struct FuzzOptionsError {
+    /// The field.
+    pub field: &'static str,
+    /// Its value.
+    pub value: f64,
+}
+
 impl FuzzOptions {
     /// Checks the options.
-    pub fn validate(&self) -> Result<(), String> {
-        if !(self.max_seconds.is_finite() && self.max_seconds > 0.0) {
-            return Err(format!(
-                "max_seconds must be positive and finite, got {}",
-                self.max_seconds
-            ));
-        }
-        if let Some(s) = self.slow_input_s
-            && !(s.is_finite() && s > 0.0)
-        {
-            return Err(format!("slow_input_s must be positive and finite, got {s}"));
+    pub fn validate(&self) -> Result<(), FuzzOptionsError> {
+        let positive = |field, value: f64| {
+            if value.is_finite() && value > 0.0 {
+                Ok(())
+            } else {
+                Err(FuzzOptionsError { field, value })
+            }
+        };
+        positive("max_seconds", self.max_seconds)?;
+        if let Some(s) = self.slow_input_s {
+            positive("slow_input_s", s)?;
         }
         Ok(())
     }

@@ -24,7 +24,7 @@ impl Verdict {
 pub type RunFn = Box<dyn FnMut(&[u8]) -> Verdict>;
 
 /// Repairs an input after mutation (e.g. recomputes checksums so the mutation reaches past them).
-pub type FixupFn = fn(&mut Vec<u8>);
+pub type FixupFn = fn(&mut [u8]);
 
 /// A decoder, its seed inputs and its limits.
 pub struct FuzzTarget {

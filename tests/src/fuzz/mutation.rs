@@ -104,6 +104,13 @@ pub enum Mutation {
         /// Which of [`HOSTILE_U32`].
         value: Index,
     },
+    /// Overwrite four bytes near the start (file and record headers live there) with a hostile u32.
+    BlowHeaderU32 {
+        /// Offset from the start, bytes.
+        at: usize,
+        /// Which of [`HOSTILE_U32`].
+        value: Index,
+    },
     /// Overwrite bytes with a protobuf varint of a huge value (a length-delimited field blown up).
     BlowVarint {
         /// Where.
@@ -133,6 +140,8 @@ pub struct MutatedInput {
 const MAX_RANGE: usize = 4096;
 /// Largest random insertion, bytes.
 const MAX_INSERT: usize = 64;
+/// How far from the start [`Mutation::BlowHeaderU32`] reaches, bytes.
+const HEADER_BYTES: usize = 128;
 /// Most mutations per input (few, so that many inputs stay close enough to valid to get deep).
 const MAX_MUTATIONS: usize = 4;
 
@@ -149,6 +158,8 @@ fn mutation(text: bool) -> BoxedStrategy<Mutation> {
         1 => (any::<Index>(), any::<Index>(), 1..MAX_RANGE, any::<Index>())
             .prop_map(|(seed, from, len, to)| Mutation::Splice { seed, from, len, to }),
         3 => (any::<Index>(), any::<Index>()).prop_map(|(at, value)| Mutation::BlowU32 { at, value }),
+        2 => (0..HEADER_BYTES, any::<Index>())
+            .prop_map(|(at, value)| Mutation::BlowHeaderU32 { at, value }),
         2 => (any::<Index>(), prop_oneof![Just(u64::MAX), Just(1 << 32), Just(1 << 31), 1u64 << 20..1u64 << 40])
             .prop_map(|(at, value)| Mutation::BlowVarint { at, value }),
     ];
@@ -171,7 +182,7 @@ pub fn mutated_inputs(seed_count: usize, text: bool) -> BoxedStrategy<MutatedInp
 }
 
 /// A position in `0..=len` (`len` itself is the end).
-fn position(at: &Index, len: usize) -> usize {
+fn position(at: Index, len: usize) -> usize {
     at.index(len + 1)
 }
 
@@ -214,20 +225,20 @@ fn apply_one(bytes: &mut Vec<u8>, m: &Mutation, seeds: &[Vec<u8>]) {
                 bytes[at.index(len)] = *value;
             }
         }
-        Mutation::Truncate { at } => bytes.truncate(position(at, len)),
+        Mutation::Truncate { at } => bytes.truncate(position(*at, len)),
         Mutation::Delete { at, len: n } => {
-            let start = position(at, len);
+            let start = position(*at, len);
             bytes.drain(start..(start + n).min(len));
         }
         Mutation::Insert { at, bytes: new } => {
-            let at = position(at, len);
+            let at = position(*at, len);
             bytes.splice(at..at, new.iter().copied());
         }
         Mutation::Duplicate { from, len: n, to } => {
             if len > 0 {
                 let start = from.index(len);
                 let range = bytes[start..(start + n).min(len)].to_vec();
-                let to = position(to, len);
+                let to = position(*to, len);
                 bytes.splice(to..to, range);
             }
         }
@@ -246,19 +257,23 @@ fn apply_one(bytes: &mut Vec<u8>, m: &Mutation, seeds: &[Vec<u8>]) {
             }
             let start = from.index(other.len());
             let range = &other[start..(start + n).min(other.len())];
-            let to = position(to, len);
+            let to = position(*to, len);
             bytes.splice(to..to, range.iter().copied());
         }
         Mutation::BlowU32 { at, value } => {
             let value = HOSTILE_U32[value.index(HOSTILE_U32.len())];
-            overwrite(bytes, position(at, len), &value.to_le_bytes());
+            overwrite(bytes, position(*at, len), &value.to_le_bytes());
+        }
+        Mutation::BlowHeaderU32 { at, value } => {
+            let value = HOSTILE_U32[value.index(HOSTILE_U32.len())];
+            overwrite(bytes, (*at).min(len), &value.to_le_bytes());
         }
         Mutation::BlowVarint { at, value } => {
-            overwrite(bytes, position(at, len), &varint(*value));
+            overwrite(bytes, position(*at, len), &varint(*value));
         }
         Mutation::Token { at, token } => {
             let token = HOSTILE_TOKENS[token.index(HOSTILE_TOKENS.len())];
-            let at = position(at, len);
+            let at = position(*at, len);
             bytes.splice(at..at, token.bytes());
         }
     }

@@ -29,10 +29,10 @@ const SESSION: &str = "4f1c2a9e-0000-4000-8000-000000000001";
 /// Inputs answered by one site before it is rebuilt (bounds what accepted uploads accumulate).
 const INPUTS_PER_SITE: u32 = 200;
 
-fn setup_error(reason: impl ToString) -> SetupError {
+fn setup_error(reason: String) -> SetupError {
     SetupError::Seed {
         path: "<in-memory site>".into(),
-        reason: reason.to_string(),
+        reason,
     }
 }
 
@@ -40,7 +40,7 @@ fn runtime() -> Result<Runtime, SetupError> {
     tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
-        .map_err(setup_error)
+        .map_err(|e| setup_error(e.to_string()))
 }
 
 /// One site served by the real handlers over a `MemStore`.
@@ -210,14 +210,16 @@ fn session_archive(runtime: &Runtime) -> Result<Vec<u8>, SetupError> {
         }
         site.stop().await;
         let mut archive = Vec::new();
-        store.export_site(SITE, &mut archive).map_err(setup_error)?;
+        store
+            .export_site(SITE, &mut archive)
+            .map_err(|e| setup_error(e.to_string()))?;
         Ok(archive)
     })
 }
 
 /// Recomputes the CRC of every chunk whose length still fits, so mutations reach the chunk bodies (record
 /// framing and the stored `SiteLogEntry` payloads) instead of stopping at the checksum.
-fn fix_archive_crcs(bytes: &mut Vec<u8>) {
+fn fix_archive_crcs(bytes: &mut [u8]) {
     let mut pos = 10; // magic (8) + version (2)
     while pos + 8 <= bytes.len() {
         let len = u32::from_le_bytes([bytes[pos], bytes[pos + 1], bytes[pos + 2], bytes[pos + 3]])
