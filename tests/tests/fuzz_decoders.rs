@@ -95,6 +95,11 @@ fn fuzz_zenoh_request() {
 }
 
 #[test]
+fn fuzz_zenoh_upload() {
+    slice("zenoh_upload", 600);
+}
+
+#[test]
 fn fuzz_site_archive() {
     slice("site_archive", 1500);
 }

@@ -182,9 +182,14 @@ fn run_one(target: &mut FuzzTarget, input: &[u8]) -> Run {
     let seconds = started.elapsed().as_secs_f64();
     let heap = PeakAlloc.peak_usage().saturating_sub(base);
     match result {
+        // A panic on another thread during the input (a server worker, a blocking task) is a finding too.
         Ok(verdict) => Run {
             verdict: Some(verdict),
-            panic: None,
+            panic: LAST_PANIC
+                .lock()
+                .ok()
+                .and_then(|mut last| last.take())
+                .map(|(location, message)| (location, format!("on another thread: {message}"))),
             heap,
             seconds,
         },
@@ -267,8 +272,10 @@ fn materialize(target: &FuzzTarget, input: &MutatedInput) -> Vec<u8> {
 /// Fuzzes `target` as `options` say. Installs a quiet panic hook for the duration (panics become
 /// findings, not noise) and restores the previous one.
 pub fn fuzz(target: &mut FuzzTarget, options: &FuzzOptions) -> FuzzReport {
+    // `EVERMAP_FUZZ_PRINT_PANICS=1`: print every panic as it happens (any thread), to debug a finding.
+    let print_panics = std::env::var_os("EVERMAP_FUZZ_PRINT_PANICS").is_some();
     let previous_hook = std::panic::take_hook();
-    std::panic::set_hook(Box::new(|info| {
+    std::panic::set_hook(Box::new(move |info| {
         let location = info
             .location()
             .map_or_else(|| "unknown location".to_owned(), ToString::to_string);
@@ -278,6 +285,12 @@ pub fn fuzz(target: &mut FuzzTarget, options: &FuzzOptions) -> FuzzReport {
             .map(|s| (*s).to_owned())
             .or_else(|| info.payload().downcast_ref::<String>().cloned())
             .unwrap_or_else(|| "non-string panic payload".to_owned());
+        if print_panics {
+            eprintln!(
+                "panic at {location}: {message}\n{}",
+                std::backtrace::Backtrace::force_capture()
+            );
+        }
         if let Ok(mut last) = LAST_PANIC.lock() {
             *last = Some((location, message));
         }

@@ -28,7 +28,7 @@ pub enum SetupError {
 }
 
 /// Every target's name, in the order they run.
-pub const TARGET_NAMES: [&str; 11] = [
+pub const TARGET_NAMES: [&str; 12] = [
     "ros1_bag",
     "ros1_messages",
     "carmen",
@@ -39,6 +39,7 @@ pub const TARGET_NAMES: [&str; 11] = [
     "sessions_config",
     "protobuf",
     "zenoh_request",
+    "zenoh_upload",
     "site_archive",
 ];
 
@@ -62,6 +63,7 @@ pub fn target(name: &str, datasets: &Path) -> Result<FuzzTarget, SetupError> {
         "sessions_config" => configs::sessions_config(),
         "protobuf" => Ok(protobuf::protobuf()),
         "zenoh_request" => fleet_site::zenoh_requests(),
+        "zenoh_upload" => fleet_site::zenoh_uploads(),
         "site_archive" => fleet_site::site_archive(),
         other => Err(SetupError::UnknownTarget(other.to_owned())),
     }
