@@ -4,7 +4,7 @@
 mod carmen;
 mod recording;
 mod ros_definitions;
-mod ros_messages;
+pub mod ros_messages;
 mod rosbag1;
 mod rosbag1_writer;
 
@@ -87,4 +87,10 @@ pub fn read_recording(path: &Path) -> Result<Recording, SourceError> {
         let file = std::fs::File::open(path).map_err(io_error)?;
         carmen::read(std::io::BufReader::new(file), path)
     }
+}
+
+/// Reads a CARMEN log from `input` (already decompressed); `path` names it in errors. What
+/// [`read_recording`] does for a CARMEN file, for callers that hold the text in memory (the fuzz harness).
+pub fn read_carmen(input: impl std::io::BufRead, path: &Path) -> Result<Recording, SourceError> {
+    carmen::read(input, path)
 }

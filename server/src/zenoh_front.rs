@@ -146,8 +146,9 @@ fn reply(reply: Reply) -> pb::ZenohReply {
     }
 }
 
-/// Decodes one query, runs it through the gRPC handler with the request's token, and gives the replies.
-async fn answer(agent: &AgentApi, map: &MapApi, payload: Option<&[u8]>) -> Vec<pb::ZenohReply> {
+/// Decodes one query, runs it through the gRPC handler with the request's token, and gives the replies
+/// (public for the fuzz harness, which feeds it hostile payloads without a zenoh session).
+pub async fn answer(agent: &AgentApi, map: &MapApi, payload: Option<&[u8]>) -> Vec<pb::ZenohReply> {
     let request = match payload.map(pb::ZenohRequest::decode) {
         None => {
             return vec![refusal(&tonic::Status::invalid_argument(

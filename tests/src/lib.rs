@@ -1,8 +1,11 @@
 //! # tests — evermap's end-to-end tests
 //!
-//! Shared helpers for the integration tests under `tests/tests/`.
+//! Shared helpers for the integration tests under `tests/tests/`, and the decoder fuzz harness ([`fuzz`],
+//! run by the `evermap-fuzz` binary and by `tests/tests/fuzz_decoders.rs`).
 
 use std::path::PathBuf;
+
+pub mod fuzz;
 
 /// The shared data sets folder, `../shared/datasets` next to the repository root. Found by walking up from
 /// this crate, so that it works from the main checkout (`/work/main`) and from worktrees one level deeper

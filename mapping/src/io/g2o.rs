@@ -215,6 +215,18 @@ pub fn read_pose_graph(reader: impl BufRead) -> Result<ParsedGraph, G2oError> {
     let before = poses.len();
     initialize_missing(&mut poses, &edges);
     let initialized_from_edges = poses.len() - before;
+    // Finite edges can still compose to infinite poses (translations near f64::MAX).
+    if let Some((id, _)) = poses.iter().find(|(_, pose)| {
+        !(pose.x().is_finite() && pose.y().is_finite() && pose.theta().is_finite())
+    }) {
+        let line = vertices.get(id).map_or(0, |(line, _)| *line);
+        return Err(G2oError::Parse {
+            line,
+            message: format!(
+                "the initial pose of vertex {id}, composed from the edges, is not finite"
+            ),
+        });
+    }
 
     let mut graph = PoseGraph::new();
     for (&id, pose) in &poses {
@@ -290,32 +302,56 @@ fn initialize_missing(poses: &mut BTreeMap<u32, Rigid2>, edges: &[Edge]) {
             .or_default()
             .push((e.from, e.from_from_to.inverse()));
     }
-    loop {
-        for (&i, z) in &odometry {
-            if let (Some(&xi), false) = (poses.get(&i), poses.contains_key(&(i + 1))) {
-                poses.insert(i + 1, xi * z);
-            }
+    for (&i, z) in &odometry {
+        let next = i.wrapping_add(1);
+        if let (Some(&xi), false) = (poses.get(&i), poses.contains_key(&next)) {
+            poses.insert(next, xi * z);
         }
-        for (&i, z) in odometry.iter().rev() {
-            if let (Some(&xj), false) = (poses.get(&(i + 1)), poses.contains_key(&i)) {
-                poses.insert(i, xj * z.inverse());
-            }
+    }
+    for (&i, z) in odometry.iter().rev() {
+        if let (Some(&xj), false) = (poses.get(&i.wrapping_add(1)), poses.contains_key(&i)) {
+            poses.insert(i, xj * z.inverse());
         }
-        let mut queue: VecDeque<u32> = poses.keys().copied().collect();
-        while let Some(i) = queue.pop_front() {
-            let Some(&xi) = poses.get(&i) else { continue };
-            for &(j, z) in adjacency.get(&i).map_or(&[][..], Vec::as_slice) {
-                if let std::collections::btree_map::Entry::Vacant(slot) = poses.entry(j) {
-                    slot.insert(xi * z);
-                    queue.push_back(j);
-                }
-            }
+    }
+    let known: Vec<u32> = poses.keys().copied().collect();
+    grow(poses, &adjacency, known);
+    // Each component still without a pose is anchored at its smallest id, at the origin, and grown the same
+    // way from that node only (odometry chain forwards, then any edge): a file of many small components
+    // costs O(nodes + edges), not O(components × edges).
+    for &seed in &needed {
+        if poses.contains_key(&seed) {
+            continue;
         }
-        match needed.iter().find(|id| !poses.contains_key(id)) {
-            Some(&seed) => {
-                poses.insert(seed, Rigid2::identity());
+        poses.insert(seed, Rigid2::identity());
+        let mut added = vec![seed];
+        let mut i = seed;
+        while let (Some(z), Some(&xi)) = (odometry.get(&i), poses.get(&i)) {
+            let next = i.wrapping_add(1);
+            if poses.contains_key(&next) {
+                break;
             }
-            None => return,
+            poses.insert(next, xi * z);
+            added.push(next);
+            i = next;
+        }
+        grow(poses, &adjacency, added);
+    }
+}
+
+/// Breadth-first search from `start` over any edge, posing every node it reaches that has no pose yet.
+fn grow(
+    poses: &mut BTreeMap<u32, Rigid2>,
+    adjacency: &BTreeMap<u32, Vec<(u32, Rigid2)>>,
+    start: Vec<u32>,
+) {
+    let mut queue: VecDeque<u32> = start.into();
+    while let Some(i) = queue.pop_front() {
+        let Some(&xi) = poses.get(&i) else { continue };
+        for &(j, z) in adjacency.get(&i).map_or(&[][..], Vec::as_slice) {
+            if let std::collections::btree_map::Entry::Vacant(slot) = poses.entry(j) {
+                slot.insert(xi * z);
+                queue.push_back(j);
+            }
         }
     }
 }
@@ -370,6 +406,8 @@ pub fn write_pose_graph(graph: &PoseGraph, mut writer: impl Write) -> Result<(),
 
 #[cfg(test)]
 mod tests {
+    use std::fmt::Write as _;
+
     use approx::assert_relative_eq;
 
     use super::*;
@@ -380,6 +418,48 @@ mod tests {
 
     fn pose(graph: &PoseGraph, index: u32) -> Rigid2 {
         graph.pose(node(index)).unwrap()
+    }
+
+    const EDGE_TAIL: &str = "0 0 1 0 0 1 0 1";
+
+    /// Fuzz finding (regression): an odometry edge from id 4294967295 to 0 (`j = i + 1` wrapping)
+    /// overflowed `i + 1` while initialising the chain.
+    #[test]
+    fn an_odometry_edge_from_the_largest_id_initializes() {
+        let parsed = read(&format!("EDGE_SE2 4294967295 0 1 {EDGE_TAIL}\n")).unwrap();
+        assert_eq!(parsed.graph.num_variables(), 2);
+        // Anchored at its smallest id, 0; the edge says 0 is 1 m ahead of 4294967295.
+        assert_relative_eq!(pose(&parsed.graph, 0).x(), 0.0);
+        assert_relative_eq!(pose(&parsed.graph, u32::MAX).x(), -1.0);
+    }
+
+    /// Fuzz finding (regression): finite edges composed into infinite initial poses.
+    #[test]
+    fn initial_poses_that_overflow_are_refused() {
+        let text = format!(
+            "VERTEX_SE2 0 0 0 0\nEDGE_SE2 0 1 1e308 {EDGE_TAIL}\nEDGE_SE2 1 2 1e308 {EDGE_TAIL}\n"
+        );
+        let err = read(&text).unwrap_err().to_string();
+        assert!(
+            err.contains("vertex 2") && err.contains("not finite"),
+            "{err}"
+        );
+    }
+
+    /// Every component without a vertex is anchored at its smallest id, each grown from its own seed
+    /// (many components once cost a breadth-first search over the whole graph each).
+    #[test]
+    fn components_without_vertices_are_anchored_one_by_one() {
+        let mut text = String::new();
+        for k in 0..2000_u32 {
+            writeln!(text, "EDGE_SE2 {} {} 2 {EDGE_TAIL}", 3 * k, 3 * k + 2).unwrap();
+        }
+        let parsed = read(&text).unwrap();
+        assert_eq!(parsed.initialized_from_edges, 4000);
+        for k in [0, 1234, 1999] {
+            assert_relative_eq!(pose(&parsed.graph, 3 * k).x(), 0.0);
+            assert_relative_eq!(pose(&parsed.graph, 3 * k + 2).x(), 2.0);
+        }
     }
 
     #[test]

@@ -34,6 +34,10 @@ pub enum RelationsError {
     },
 }
 
+/// Latest time accepted, seconds (ROS1's u32 seconds since the epoch): stamps and their differences then
+/// fit `Timestamp`'s i64 nanoseconds.
+const MAX_TIME_S: f64 = 4_294_967_296.0;
+
 /// Reads every relation.
 pub fn read_relations(input: impl BufRead) -> Result<Vec<Relation>, RelationsError> {
     let mut out = Vec::new();
@@ -55,6 +59,12 @@ pub fn read_relations(input: impl BufRead) -> Result<Vec<Relation>, RelationsErr
                     "expected 8 finite numbers `t1 t2 x y z roll pitch yaw`, got {}",
                     values.len()
                 ),
+            });
+        }
+        if let Some(t) = values[..2].iter().find(|t| !(0.0..MAX_TIME_S).contains(*t)) {
+            return Err(RelationsError::Parse {
+                line: i + 1,
+                what: format!("time {t} s is outside 0..{MAX_TIME_S} s"),
             });
         }
         out.push(Relation {
@@ -82,5 +92,15 @@ mod tests {
             .to_string();
         assert!(err.contains("line 1"), "{err}");
         assert!(read_relations("1 2 3 4 5 6 7 x\n".as_bytes()).is_err());
+    }
+
+    /// Fuzz finding (regression): times beyond i64 nanoseconds saturated silently, and differences of
+    /// such stamps overflow.
+    #[test]
+    fn times_outside_the_ros1_range_are_refused() {
+        for line in ["1e300 11 1 2 0 0 0 0.5\n", "10 -1 1 2 0 0 0 0.5\n"] {
+            let err = read_relations(line.as_bytes()).unwrap_err().to_string();
+            assert!(err.contains("outside"), "{err}");
+        }
     }
 }

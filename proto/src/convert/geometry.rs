@@ -60,6 +60,11 @@ pub(crate) fn points_to_pb(points: &[Point2<f32>]) -> Vec<f32> {
 }
 
 /// Points from interleaved `x, y` floats: an even count of finite numbers.
+/// Largest coordinate of a scan point accepted from the wire, metres from the robot. 2D LiDARs reach
+/// tens of metres; a point 10¹⁰ m away makes the matchers' angular step zero and their search unbounded
+/// (a fuzz finding: one such point in an upload killed the site map's worker with "capacity overflow").
+pub(crate) const MAX_POINT_COORDINATE_M: f32 = 1.0e4;
+
 pub(crate) fn points_from_pb(
     xy: &[f32],
     message: &'static str,
@@ -76,6 +81,13 @@ pub(crate) fn points_from_pb(
     if xy.iter().any(|v| !v.is_finite()) {
         return Err(ConversionError::NotFinite { message, field });
     }
+    if let Some(v) = xy.iter().find(|v| v.abs() > MAX_POINT_COORDINATE_M) {
+        return Err(ConversionError::OutOfRange {
+            message,
+            field,
+            value: format!("{v} m (at most {MAX_POINT_COORDINATE_M} m from the robot)"),
+        });
+    }
     Ok(xy
         .chunks_exact(2)
         .map(|c| Point2::new(c[0], c[1]))
@@ -88,6 +100,15 @@ mod tests {
     use proptest::prelude::*;
 
     use super::*;
+
+    /// Fuzz finding (regression): a finite point 10¹⁰ m away was accepted and made the server's
+    /// branch-and-bound search allocate without bound ("capacity overflow" in the site map's worker).
+    #[test]
+    fn points_too_far_away_are_refused() {
+        assert!(points_from_pb(&[1.0, 2.0, 9_999.0, -9_999.0], "Node", "points_xy").is_ok());
+        let err = points_from_pb(&[1.0, 2.0, 1.0e10, 0.0], "Node", "points_xy").unwrap_err();
+        assert!(matches!(err, ConversionError::OutOfRange { .. }), "{err}");
+    }
 
     proptest! {
         #[test]

@@ -48,6 +48,15 @@ pub fn grid_to_pb_with(grid: &ProbabilityGrid, encoding: pb::GridEncoding) -> pb
     }
 }
 
+/// zlib's best compression ratio (a stream of one repeated byte): no valid stream inflates further.
+const ZLIB_MAX_RATIO: usize = 1032;
+
+/// What to reserve for inflating `compressed` bytes that should give `expected` bytes: never more than
+/// they can inflate to, so a tiny message claiming a huge grid does not reserve 128 MiB.
+fn zlib_capacity(expected: usize, compressed: usize) -> usize {
+    expected.min(compressed.saturating_mul(ZLIB_MAX_RATIO))
+}
+
 /// A grid from the wire: checks the version, the geometry (positive finite resolution, finite origin, at
 /// most [`MAX_GRID_CELLS`] cells), that the values are exactly `width × height` u16s and that every value
 /// is a valid cell value.
@@ -81,7 +90,7 @@ pub fn grid_from_pb(grid: &pb::Grid) -> Result<ProbabilityGrid, ConversionError>
     let raw: &[u8] = match pb::GridEncoding::try_from(grid.encoding) {
         Ok(pb::GridEncoding::U16Le) => &grid.values,
         Ok(pb::GridEncoding::U16LeZlib) => {
-            let mut out = Vec::with_capacity(expected_bytes);
+            let mut out = Vec::with_capacity(zlib_capacity(expected_bytes, grid.values.len()));
             // Read at most one byte more than expected, so a bomb cannot exhaust memory.
             flate2::read::ZlibDecoder::new(grid.values.as_slice())
                 .take(expected_bytes as u64 + 1)
@@ -136,6 +145,25 @@ mod tests {
     use proptest::prelude::*;
 
     use super::*;
+
+    /// Fuzz finding (regression): a zlib grid reserved its declared size (up to 128 MiB) before
+    /// inflating, whatever the size of the message.
+    #[test]
+    fn zlib_reservation_is_bounded_by_the_compressed_size() {
+        assert_eq!(zlib_capacity(MAX_GRID_CELLS * 2, 12), 12 * ZLIB_MAX_RATIO);
+        assert_eq!(zlib_capacity(100, 1 << 20), 100);
+        let claimed = pb::Grid {
+            format_version: FORMAT_VERSION,
+            resolution: 0.05,
+            width: 8192,
+            height: 8192,
+            encoding: pb::GridEncoding::U16LeZlib.into(),
+            values: vec![0x78, 0x9c, 0x03, 0x00, 0x00, 0x00, 0x00, 0x01],
+            ..Default::default()
+        };
+        let err = grid_from_pb(&claimed).unwrap_err().to_string();
+        assert!(err.contains("values"), "{err}");
+    }
 
     fn sample_grid(width: i32, height: i32, seed: u32) -> ProbabilityGrid {
         let mut grid = ProbabilityGrid::new(MapLimits::new(

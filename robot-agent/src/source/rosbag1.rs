@@ -54,9 +54,14 @@ fn header_fields(header: &[u8]) -> Vec<(&[u8], &[u8])> {
     fields
 }
 
+/// Largest uncompressed chunk accepted, bytes. `rosbag` reserves a chunk's declared `size` before
+/// decompressing it, so without a cap a 4-byte field makes it allocate up to 4 GiB. ROS1 writes chunks of
+/// about 768 KiB (`rosbag record --chunksize`) plus at most one message.
+pub const MAX_CHUNK_BYTES: u32 = 256 << 20;
+
 /// Walks the top-level records before handing the file to `rosbag` (which trusts lengths and offsets),
-/// so that truncated bags and bags with non-standard index records get a clear error instead of a
-/// panic or a confusing one.
+/// so that truncated bags, bags with non-standard index records, offsets outside the chunk section and
+/// chunk sizes that cannot be true get a clear error instead of a panic or a huge allocation.
 fn prescan(path: &Path, bytes: &[u8]) -> Result<(), SourceError> {
     let malformed = |what: String| SourceError::Malformed {
         path: path.display().to_string(),
@@ -65,6 +70,8 @@ fn prescan(path: &Path, bytes: &[u8]) -> Result<(), SourceError> {
     };
     let mut pos = 13;
     let mut index_pos = None;
+    // Where the chunk section starts: after the bag header record, the first record.
+    let mut chunk_section = None;
     while pos < bytes.len() {
         let header_len = u32_at(bytes, pos)
             .ok_or_else(|| malformed(format!("file ends inside a record header at byte {pos}")))?;
@@ -90,6 +97,17 @@ fn prescan(path: &Path, bytes: &[u8]) -> Result<(), SourceError> {
                 index_pos = field(b"index_pos")
                     .and_then(|v| v.try_into().ok())
                     .map(u64::from_le_bytes);
+                chunk_section.get_or_insert(data_at + 4 + data_len as usize);
+            }
+            Some([0x05]) => {
+                let size = field(b"size").and_then(|v| u32_at(v, 0)).unwrap_or(0);
+                let uncompressed = field(b"compression") == Some(b"none".as_slice());
+                if size > MAX_CHUNK_BYTES || (uncompressed && size != data_len) {
+                    return Err(malformed(format!(
+                        "chunk at byte {pos} declares {size} uncompressed bytes for {data_len} stored \
+                         bytes (at most {MAX_CHUNK_BYTES}, and exactly the stored size when uncompressed)"
+                    )));
+                }
             }
             Some([0x04]) => {
                 let ver = field(b"ver").and_then(|v| u32_at(v, 0));
@@ -109,13 +127,14 @@ fn prescan(path: &Path, bytes: &[u8]) -> Result<(), SourceError> {
         }
         pos = data_at + 4 + data_len as usize;
     }
-    match index_pos {
-        Some(p) if p > 0 && p <= bytes.len() as u64 => Ok(()),
-        Some(p) => Err(malformed(format!(
-            "index_pos {p} is outside the file ({} bytes): the bag was not closed properly (try `rosbag reindex`)",
+    match (index_pos, chunk_section) {
+        (Some(p), Some(start)) if p >= start as u64 && p <= bytes.len() as u64 => Ok(()),
+        (Some(p), Some(start)) => Err(malformed(format!(
+            "index_pos {p} is outside the chunk section (bytes {start}..={}): the bag was not closed \
+             properly (try `rosbag reindex`)",
             bytes.len()
         ))),
-        None => Err(malformed("no bag header record".into())),
+        _ => Err(malformed("no bag header record".into())),
     }
 }
 
@@ -196,4 +215,87 @@ pub fn read(path: &Path) -> Result<Recording, SourceError> {
         Rigid2::identity()
     };
     Ok(Recording::from_unsorted(events, base_from_laser, report))
+}
+
+#[cfg(test)]
+mod tests {
+    use mapping::geometry::rigid2;
+    use mapping::sensor::{LaserScan, OdometryReading, Timestamp};
+
+    use super::*;
+
+    fn small_bag() -> Vec<u8> {
+        let time = Timestamp(1_000_000_000);
+        let events = vec![
+            SensorEvent::Odometry(OdometryReading {
+                time,
+                pose: rigid2(0.0, 0.0, 0.0),
+            }),
+            SensorEvent::Scan(LaserScan {
+                time,
+                angle_min: -1.0,
+                angle_increment: 0.5,
+                time_increment: 0.0,
+                range_min: 0.1,
+                range_max: 30.0,
+                ranges: vec![1.0, 2.0, 3.0, 4.0, 5.0],
+            }),
+        ];
+        let mut out = std::io::Cursor::new(Vec::new());
+        super::super::write_bag(&mut out, &events, &Rigid2::identity()).unwrap();
+        out.into_inner()
+    }
+
+    /// Overwrites the value of the first header field `name=` (`value.len()` bytes).
+    fn patch_field(bag: &mut [u8], name: &[u8], value: &[u8]) {
+        let needle: Vec<u8> = [name, b"="].concat();
+        let at = bag
+            .windows(needle.len())
+            .position(|w| w == needle.as_slice())
+            .unwrap()
+            + needle.len();
+        bag[at..at + value.len()].copy_from_slice(value);
+    }
+
+    fn read_bytes(bytes: &[u8]) -> Result<Recording, SourceError> {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("test.bag");
+        std::fs::write(&path, bytes).unwrap();
+        read(&path)
+    }
+
+    #[test]
+    fn a_written_bag_reads_back() {
+        let recording = read_bytes(&small_bag()).unwrap();
+        assert_eq!(recording.report.scans, 1);
+        assert_eq!(recording.report.odometry, 1);
+    }
+
+    /// Fuzz finding (regression): an `index_pos` before the chunk section made `rosbag` slice
+    /// `data[start..index_pos]` backwards, a panic.
+    #[test]
+    fn index_pos_before_the_chunk_section_is_malformed() {
+        let mut bag = small_bag();
+        patch_field(&mut bag, b"index_pos", &5_u64.to_le_bytes());
+        let err = read_bytes(&bag).unwrap_err().to_string();
+        assert!(
+            err.contains("index_pos 5 is outside the chunk section"),
+            "{err}"
+        );
+    }
+
+    /// Fuzz finding (regression): a chunk's `size` field is reserved by `rosbag` before decompressing,
+    /// so 4 bytes made it allocate 4 GiB.
+    #[test]
+    fn impossible_chunk_sizes_are_malformed() {
+        for size in [u32::MAX, MAX_CHUNK_BYTES + 1, 7] {
+            let mut bag = small_bag();
+            patch_field(&mut bag, b"size", &size.to_le_bytes());
+            let err = read_bytes(&bag).unwrap_err().to_string();
+            assert!(
+                err.contains(&format!("declares {size} uncompressed bytes")),
+                "{err}"
+            );
+        }
+    }
 }

@@ -1,0 +1,217 @@
+//! TOML configurations: the server's (`evermap-server serve`), the offline SLAM one (`offline`,
+//! `relocalize`) and the multi-session one (`sessions`, `lifelong`). Each is parsed and validated as its
+//! command does, and an accepted one builds what it configures (LLO fed two scans of a small room, global
+//! SLAM, the lifelong map), so a value that validates but makes the core allocate gigabytes or panic is
+//! found too. (`evermap-agent run`'s `AgentConfig` lives in the agent binary, out of reach here; its `[local]`
+//! section is the same `LocalTrajectoryBuilderOptions` as the offline configuration's.)
+
+use std::path::Path;
+
+use mapping::geometry::rigid2;
+use mapping::global_slam::GlobalSlam;
+use mapping::lifelong::LifelongMap;
+use mapping::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
+use mapping::sensor::{LaserScan, OdometryReading, Timestamp};
+use robot_agent::lifelong_run::SessionsConfig;
+use robot_agent::offline_slam::SlamConfig;
+use server::ServerConfig;
+
+use super::super::fuzz_target::{FuzzTarget, Verdict};
+use super::{SetupError, read_file};
+
+/// A 10 m × 6 m room seen from its middle: 181 beams over 180°.
+fn room_scan(time: Timestamp) -> LaserScan {
+    let n = 181;
+    let increment = std::f32::consts::PI / (n - 1) as f32;
+    let ranges = (0..n)
+        .map(|i| {
+            let angle = -std::f32::consts::FRAC_PI_2 + i as f32 * increment;
+            let (s, c) = angle.sin_cos();
+            let to_x = if c.abs() > 1e-6 {
+                5.0 / c.abs()
+            } else {
+                f32::MAX
+            };
+            let to_y = if s.abs() > 1e-6 {
+                3.0 / s.abs()
+            } else {
+                f32::MAX
+            };
+            to_x.min(to_y)
+        })
+        .collect();
+    LaserScan {
+        time,
+        angle_min: -std::f32::consts::FRAC_PI_2,
+        angle_increment: increment,
+        time_increment: 0.0,
+        range_min: 0.1,
+        range_max: 30.0,
+        ranges,
+    }
+}
+
+/// LLO with `options`, fed odometry and two scans.
+fn drive_llo(options: &LocalTrajectoryBuilderOptions) {
+    let mut llo = LocalTrajectoryBuilder::new(options.clone());
+    for k in 0..2_i64 {
+        let time = Timestamp(1_000_000_000 + k * 100_000_000);
+        llo.add_odometry(&OdometryReading {
+            time,
+            pose: rigid2(0.01 * k as f64, 0.0, 0.0),
+        });
+        let (range_data, _) = room_scan(time).to_range_data(&options.range_conversion);
+        let _ = llo.add_range_data(time, &range_data);
+    }
+}
+
+fn deploy_file(name: &str) -> Result<Vec<u8>, SetupError> {
+    read_file(
+        &Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../deploy")
+            .join(name),
+    )
+}
+
+fn local_section() -> Result<String, SetupError> {
+    let mut table = toml::Table::new();
+    table.insert(
+        "local".into(),
+        toml::Value::try_from(LocalTrajectoryBuilderOptions::default()).map_err(|e| {
+            SetupError::Seed {
+                path: "<default local options>".into(),
+                reason: e.to_string(),
+            }
+        })?,
+    );
+    toml::to_string(&table).map_err(|e| SetupError::Seed {
+        path: "<default local options>".into(),
+        reason: e.to_string(),
+    })
+}
+
+const GLOBAL_SECTION: &str = "[global]\noptimize_every_n_nodes = 90\nodometry_translation_sigma = 0.05\n\
+    odometry_rotation_sigma = 0.01\nloop_closure_retraction_chi2 = 30.0\n";
+
+const LIFELONG_SECTION: &str = "[lifelong]\npolicy = \"clt\"\noptimize_every_n_sparsifications = 5\n\
+    sparsification_max_iterations = 10\n[lifelong.session_start]\nhold_back_nodes = 10\nretry_every_n_nodes = 20\n\
+    max_search_nodes = 80\nprobation_matches = 3\nprobation_min_separation_m = 3.0\nagreement_translation_m = 1.0\n\
+    [lifelong.global]\noptimize_every_n_nodes = 90\n";
+
+/// `evermap-server serve`'s configuration.
+pub fn server_config() -> Result<FuzzTarget, SetupError> {
+    let deploy = deploy_file("server.toml")?;
+    let mut with_map = deploy.clone();
+    with_map.extend_from_slice(
+        b"\n[map]\npolicy = \"delete\"\n[map.session_start]\nhold_back_nodes = 5\n[map.global]\noptimize_every_n_nodes = 30\n",
+    );
+    let seeds = vec![
+        deploy,
+        with_map,
+        b"[[sites]]\nid = \"s\"\nrobots = [{ id = \"r\", token = \"t\" }]\n".to_vec(),
+    ];
+    Ok(FuzzTarget::new(
+        "server_config",
+        "evermap-server TOML configuration (parse, validate, build the site map)",
+        seeds,
+        true,
+        Box::new(|input| {
+            let text = match std::str::from_utf8(input) {
+                Ok(text) => text,
+                Err(e) => return Verdict::Rejected(e.to_string()),
+            };
+            let config = match ServerConfig::from_toml(text) {
+                Ok(config) => config,
+                Err(e) => return Verdict::Rejected(e.to_string()),
+            };
+            if let Err(e) = config.validate() {
+                return Verdict::Rejected(e.to_string());
+            }
+            if let Some(zenoh) = &config.zenoh
+                && let Err(e) = zenoh.to_zenoh_config()
+            {
+                return Verdict::Rejected(e.to_string());
+            }
+            Verdict::of(&LifelongMap::new(config.map))
+        }),
+    ))
+}
+
+/// `offline` / `relocalize`'s SLAM configuration.
+pub fn slam_config() -> Result<FuzzTarget, SetupError> {
+    let local = local_section()?;
+    let seeds = vec![
+        local.clone().into_bytes(),
+        format!("{local}\n{GLOBAL_SECTION}").into_bytes(),
+        GLOBAL_SECTION.as_bytes().to_vec(),
+    ];
+    let mut target = FuzzTarget::new(
+        "slam_config",
+        "offline SLAM TOML configuration (parse, validate, run LLO on two scans, build global SLAM)",
+        seeds,
+        true,
+        Box::new(|input| {
+            let text = match std::str::from_utf8(input) {
+                Ok(text) => text,
+                Err(e) => return Verdict::Rejected(e.to_string()),
+            };
+            let config: SlamConfig = match toml::from_str(text) {
+                Ok(config) => config,
+                Err(e) => return Verdict::Rejected(e.to_string()),
+            };
+            if let Err(e) = config.local.validate() {
+                return Verdict::Rejected(e.to_string());
+            }
+            if let Err(e) = config.relocalization.validate() {
+                return Verdict::Rejected(e.to_string());
+            }
+            if let Err(e) = GlobalSlam::new(config.global.clone()) {
+                return Verdict::Rejected(e.to_string());
+            }
+            drive_llo(&config.local);
+            Verdict::Accepted
+        }),
+    );
+    // LLO's submaps and search windows: a fixed budget, whatever the file's size.
+    target.base_heap_bytes = 256 << 20;
+    Ok(target)
+}
+
+/// `sessions` / `lifelong`'s multi-session configuration.
+pub fn sessions_config() -> Result<FuzzTarget, SetupError> {
+    let local = local_section()?;
+    let seeds = vec![
+        format!("{local}\n{LIFELONG_SECTION}").into_bytes(),
+        LIFELONG_SECTION.as_bytes().to_vec(),
+        b"[scoring]\ninitialization_window_s = 30.0\n".to_vec(),
+    ];
+    let mut target = FuzzTarget::new(
+        "sessions_config",
+        "multi-session TOML configuration (parse, validate, run LLO on two scans, build the lifelong map)",
+        seeds,
+        true,
+        Box::new(|input| {
+            let text = match std::str::from_utf8(input) {
+                Ok(text) => text,
+                Err(e) => return Verdict::Rejected(e.to_string()),
+            };
+            let config: SessionsConfig = match toml::from_str(text) {
+                Ok(config) => config,
+                Err(e) => return Verdict::Rejected(e.to_string()),
+            };
+            if let Err(e) = config.local.validate() {
+                return Verdict::Rejected(e.to_string());
+            }
+            if let Err(e) = config.scoring.validate() {
+                return Verdict::Rejected(e.to_string());
+            }
+            if let Err(e) = LifelongMap::new(config.lifelong.clone()) {
+                return Verdict::Rejected(e.to_string());
+            }
+            drive_llo(&config.local);
+            Verdict::Accepted
+        }),
+    );
+    target.base_heap_bytes = 256 << 20;
+    Ok(target)
+}
