@@ -28,12 +28,8 @@ fn main() -> anyhow::Result<()> {
             let recording = read_recording(std::path::Path::new(path))?;
             best = best.min(start.elapsed().as_secs_f64());
             let r = &recording.report;
-            messages = r.scans
-                + r.odometry
-                + r.imu
-                + r.tf
-                + r.duplicates_dropped
-                + r.same_stamp_dropped;
+            messages =
+                r.scans + r.odometry + r.imu + r.tf + r.duplicates_dropped + r.same_stamp_dropped;
         }
         println!(
             "{}",

@@ -63,7 +63,8 @@ impl RosCollector {
         };
         if let Err(e) = decoded {
             self.report.skipped_malformed += 1;
-            self.report.problem(format!("{kind:?} message at {at}: {}", e.0));
+            self.report
+                .problem(format!("{kind:?} message at {at}: {}", e.0));
         }
     }
 

@@ -94,8 +94,8 @@ mod tests {
         );
         assert!(!m.is_compressed());
 
-        let error = Rosbag2Metadata::parse("rosbag2_bagfile_information:\n  version: 9\n")
-            .unwrap_err();
+        let error =
+            Rosbag2Metadata::parse("rosbag2_bagfile_information:\n  version: 9\n").unwrap_err();
         assert!(error.contains("storage_identifier"), "{error}");
         assert!(Rosbag2Metadata::parse("not: [yaml").is_err());
     }

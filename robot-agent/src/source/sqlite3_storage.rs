@@ -30,8 +30,9 @@ fn immutable_uri(path: &Path) -> String {
     uri
 }
 
-/// Streams every message of a rosbag2 sqlite3 file into `visitor`, in (timestamp, insertion) order as
-/// `ros2 bag play` does.
+/// Streams every message of a rosbag2 sqlite3 file into `visitor` in the order it was written (row id),
+/// as the MCAP and ROS1 readers stream theirs in file order; the recording is sorted by header stamp
+/// afterwards, so only messages with equal stamps keep this order.
 pub fn read(path: &Path, visitor: &mut dyn Visitor) -> Result<(), SourceError> {
     let malformed = |what: String| SourceError::Malformed {
         path: path.display().to_string(),
@@ -59,7 +60,9 @@ pub fn read(path: &Path, visitor: &mut dyn Visitor) -> Result<(), SourceError> {
     }
     let db = Connection::open_with_flags(
         immutable_uri(path),
-        OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_URI | OpenFlags::SQLITE_OPEN_NO_MUTEX,
+        OpenFlags::SQLITE_OPEN_READ_ONLY
+            | OpenFlags::SQLITE_OPEN_URI
+            | OpenFlags::SQLITE_OPEN_NO_MUTEX,
     )
     .map_err(|e| malformed(format!("cannot open: {e}")))?;
     let sql = |e: rusqlite::Error| malformed(format!("{e} (is it a rosbag2 recording?)"));
@@ -84,7 +87,7 @@ pub fn read(path: &Path, visitor: &mut dyn Visitor) -> Result<(), SourceError> {
         }
     }
     let mut statement = db
-        .prepare("SELECT topic_id, timestamp, data FROM messages ORDER BY timestamp, id")
+        .prepare("SELECT topic_id, timestamp, data FROM messages ORDER BY id")
         .map_err(sql)?;
     let mut rows = statement.query([]).map_err(sql)?;
     while let Some(row) = rows.next().map_err(sql)? {

@@ -37,7 +37,8 @@ impl Visitor for Raw {
         Ok(RosKind::Other)
     }
     fn message(&mut self, _kind: RosKind, topic: &str, _log_time_ns: u64, data: &[u8]) {
-        self.messages.push((self.types[topic].clone(), data.to_vec()));
+        self.messages
+            .push((self.types[topic].clone(), data.to_vec()));
     }
     fn unknown_topic(&mut self, topic_id: i64, _log_time_ns: i64) {
         panic!("unknown topic id {topic_id}");
@@ -130,7 +131,10 @@ fn check_default_arrays(r: &mut CdrReader<'_>) -> Result<(), DecodeError> {
 fn check_arrays(payload: &[u8]) -> Result<(), DecodeError> {
     let mut r = CdrReader::new(payload)?;
     assert!(r.is_little_endian());
-    assert_eq!(three(&mut r, |r| r.bool("bool_values"))?, [true, false, true]);
+    assert_eq!(
+        three(&mut r, |r| r.bool("bool_values"))?,
+        [true, false, true]
+    );
     // byte .. uint64 arrays: zero in these recordings; read with their alignment.
     for (size, what) in [
         (1, "byte"),
