@@ -248,7 +248,7 @@ mod tests {
         assert!(r.is_little_endian());
         assert_eq!(r.u8("a").unwrap(), 1);
         assert_eq!(r.u32("b").unwrap(), 0x0102_0304);
-        assert_eq!(r.f64("c").unwrap(), 1.5);
+        assert_eq!(r.f64("c").unwrap().to_bits(), 1.5f64.to_bits());
         assert_eq!(r.remaining(), 0);
 
         let mut be = vec![0x00, 0x00, 0x00, 0x00, 1, 0, 0, 0];
@@ -258,7 +258,7 @@ mod tests {
         assert!(!r.is_little_endian());
         assert_eq!(r.u8("a").unwrap(), 1);
         assert_eq!(r.u32("b").unwrap(), 0x0102_0304);
-        assert_eq!(r.f64("c").unwrap(), 1.5);
+        assert_eq!(r.f64("c").unwrap().to_bits(), 1.5f64.to_bits());
     }
 
     #[test]

@@ -169,12 +169,12 @@ mod tests {
             let (scan, frame) = laser_scan(&b).unwrap();
             assert_eq!(frame, "laser");
             assert_eq!(scan.time, Timestamp::from_sec_nsec(10, 500));
-            assert_eq!(scan.angle_min, -1.5);
-            assert_eq!(scan.angle_increment, 0.5);
-            assert_eq!(scan.range_max, 80.0);
+            assert_eq!(scan.angle_min.to_bits(), (-1.5f32).to_bits());
+            assert_eq!(scan.angle_increment.to_bits(), 0.5f32.to_bits());
+            assert_eq!(scan.range_max.to_bits(), 80.0f32.to_bits());
             assert_eq!(scan.ranges.len(), 3);
             assert!(scan.ranges[1].is_nan());
-            assert_eq!(scan.ranges[2], 81.9);
+            assert_eq!(scan.ranges[2].to_bits(), 81.9f32.to_bits());
             for cut in [0, 3, 5, 20, b.len() - 9] {
                 assert!(laser_scan(&b[..cut]).is_err(), "cut at {cut}");
             }
@@ -234,7 +234,7 @@ mod tests {
             w.f64(v);
         }
         let imu = imu(&w.bytes).unwrap();
-        assert_eq!(imu.yaw_rate, 0.3);
+        assert_eq!(imu.yaw_rate.to_bits(), 0.3f64.to_bits());
         assert_eq!(imu.time, Timestamp::from_sec_nsec(1, 0));
     }
 }
