@@ -3,6 +3,11 @@
 //! originals; MCAP chunks uncompressed, zstd or lz4 read the same; bad input gets an error that says
 //! what is wrong, never a panic.
 
+#![allow(
+    clippy::unwrap_used,
+    reason = "test helpers: a failure to read or write is the test's failure"
+)]
+
 use std::path::{Path, PathBuf};
 
 use mapping::sensor::SensorEvent;

@@ -94,10 +94,13 @@ impl RosCollector {
     }
 }
 
+/// A scan and its frame id, or why the message does not decode.
+pub type ScanResult = Result<(mapping::sensor::LaserScan, String), DecodeError>;
+
 /// The decoders of one serialization (ROS1 or CDR).
 pub struct Decoders {
     /// `sensor_msgs/LaserScan` and its frame id.
-    pub laser_scan: fn(&[u8]) -> Result<(mapping::sensor::LaserScan, String), DecodeError>,
+    pub laser_scan: fn(&[u8]) -> ScanResult,
     /// `nav_msgs/Odometry`.
     pub odometry: fn(&[u8]) -> Result<mapping::sensor::OdometryReading, DecodeError>,
     /// `sensor_msgs/Imu`.

@@ -4,6 +4,7 @@
 //! a journal, a lock or a `-shm` file next to a recording (which may sit on a read-only share).
 
 use std::collections::BTreeMap;
+use std::fmt::Write as _;
 use std::path::Path;
 
 use rusqlite::{Connection, OpenFlags};
@@ -21,7 +22,7 @@ fn immutable_uri(path: &Path) -> String {
     for byte in path.as_os_str().as_encoded_bytes() {
         match byte {
             b'?' | b'#' | b'%' | 0x00..=0x1f | 0x7f..=0xff => {
-                uri.push_str(&format!("%{byte:02X}"));
+                let _ = write!(uri, "%{byte:02X}");
             }
             _ => uri.push(char::from(*byte)),
         }

@@ -47,6 +47,10 @@ impl Visitor for Raw {
 
 /// `test_msgs/msg/BasicTypes` (and `Defaults`, the same fields), as the values' bit patterns.
 #[derive(Debug, PartialEq)]
+#[allow(
+    clippy::struct_field_names,
+    reason = "the field names of test_msgs/msg/BasicTypes"
+)]
 struct Basic {
     bool_value: bool,
     byte_value: u8,
@@ -111,7 +115,12 @@ fn check_default_arrays(r: &mut CdrReader<'_>) -> Result<(), DecodeError> {
     assert_eq!(three(r, |r| r.u8("byte"))?, [0, 1, 255]);
     assert_eq!(three(r, |r| r.u8("char"))?, [0, 1, 127]);
     assert_eq!(three(r, |r| r.f32("f32"))?, [1.125, 0.0, -1.125]);
-    assert_eq!(three(r, |r| r.f64("f64"))?, [3.1415, 0.0, -3.1415]);
+    #[allow(
+        clippy::approx_constant,
+        reason = "the value test_msgs/msg/Arrays declares, not pi"
+    )]
+    let declared = [3.1415, 0.0, -3.1415];
+    assert_eq!(three(r, |r| r.f64("f64"))?, declared);
     assert_eq!(three(r, |r| r.i8("i8"))?, [0, 127, -128]);
     assert_eq!(three(r, |r| r.u8("u8"))?, [0, 1, 255]);
     assert_eq!(three(r, |r| r.i16("i16"))?, [0, i16::MAX, i16::MIN]);
