@@ -1,7 +1,7 @@
 //! # robot-agent — the robot side of evermap
 //!
-//! Data sources (ROS1 bags, CARMEN logs), the offline tools built on the `mapping` core, and the uplink to
-//! the fleet map server (durable outbox, gRPC, the global submap cache).
+//! Data sources (ROS1 bags, ROS 2 recordings, CARMEN logs), the offline tools built on the `mapping`
+//! core, and the uplink to the fleet map server (durable outbox, gRPC, the global submap cache).
 
 pub mod lifelong_run;
 pub mod line_chart;

@@ -1,16 +1,25 @@
-//! Recordings in: ROS1 bags and CARMEN logs become one time-ordered list of [`SensorEvent`]s plus the
-//! laser's mounting pose.
+//! Recordings in: ROS1 bags, ROS 2 recordings (rosbag2: MCAP or sqlite3, CDR) and CARMEN logs become one
+//! time-ordered list of [`SensorEvent`]s plus the laser's mounting pose.
 
 mod carmen;
+mod cdr_reader;
+mod mcap_storage;
 mod recording;
+mod ros2_messages;
+mod ros_collector;
 mod ros_definitions;
 pub mod ros_messages;
 mod rosbag1;
 mod rosbag1_writer;
+mod rosbag2;
+mod rosbag2_metadata;
+mod sqlite3_storage;
 
 use std::path::Path;
 
+pub use cdr_reader::CdrReader;
 pub use recording::{ReadReport, Recording};
+pub use ros_messages::DecodeError;
 pub use rosbag1_writer::{BagWriteError, write_bag};
 
 /// Why a recording could not be read.
@@ -37,20 +46,40 @@ pub enum SourceError {
     Malformed {
         /// The file.
         path: String,
-        /// `ROS1 bag` or `CARMEN log`.
+        /// `ROS1 bag`, `CARMEN log`, `MCAP`, `rosbag2 sqlite3`, `rosbag2`, ...
         format: &'static str,
         /// What is wrong, and where.
         what: String,
     },
+    /// A topic evermap reads by its conventional name (`/scan`, `/odom`, `/imu`, `/tf`, `/tf_static`)
+    /// carries another type than the one evermap reads there.
+    #[error(
+        "{path}: topic {topic} has type `{found}`, but evermap reads {topic} as `{expected}` \
+         (record the expected type there, or rename the topic when converting)"
+    )]
+    TopicType {
+        /// The file.
+        path: String,
+        /// The topic.
+        topic: String,
+        /// Its type in the file.
+        found: String,
+        /// The type evermap reads on that topic.
+        expected: &'static str,
+    },
 }
 
-/// Reads a ROS1 bag (`#ROSBAG V2.0`) or a CARMEN log (`.clf`, `.log`, optionally gzip-compressed),
-/// recognised by content.
+/// Reads a ROS1 bag (`#ROSBAG V2.0`), a ROS 2 recording (a rosbag2 folder, its `metadata.yaml`, or one
+/// `.mcap` or `.db3` file) or a CARMEN log (`.clf`, `.log`, optionally gzip-compressed), recognised by
+/// content (and, for rosbag2, by being a folder or a `metadata.yaml`).
 pub fn read_recording(path: &Path) -> Result<Recording, SourceError> {
     let io_error = |source| SourceError::Io {
         path: path.display().to_string(),
         source,
     };
+    if path.is_dir() {
+        return rosbag2::read(path);
+    }
     let mut head = [0u8; 32];
     let n = {
         use std::io::Read as _;
@@ -66,7 +95,9 @@ pub fn read_recording(path: &Path) -> Result<Recording, SourceError> {
         filled
     };
     let head = &head[..n];
-    if head.starts_with(b"#ROSBAG V2.0") {
+    if rosbag2::is_rosbag2(path, head) {
+        rosbag2::read(path)
+    } else if head.starts_with(b"#ROSBAG V2.0") {
         rosbag1::read(path)
     } else if head.starts_with(b"#ROSRECORD") || head.starts_with(b"#ROSBAG") {
         let first_line = head.split(|&b| b == b'\n').next().unwrap_or_default();

@@ -19,7 +19,8 @@ use serde_json::json;
 /// Arguments of `offline`.
 #[derive(Args)]
 pub struct OfflineArgs {
-    /// The recording: a ROS1 bag or a CARMEN log (`.clf`, `.log`, `.log.gz`).
+    /// The recording: a ROS1 bag, a ROS 2 recording (rosbag2 folder, its `metadata.yaml`, or one `.mcap`
+    /// or `.db3` file) or a CARMEN log (`.clf`, `.log`, `.log.gz`).
     #[arg(long)]
     input: PathBuf,
     /// Ground-truth relations (`t1 t2 x y z roll pitch yaw`) to score the trajectory with.
@@ -63,6 +64,7 @@ pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
     let start = Instant::now();
     eprintln!("reading {}", args.input.display());
     let recording = source::read_recording(&args.input)?;
+    let read_time_s = start.elapsed().as_secs_f64();
     let scans = recording.report.scans;
     let bar = ProgressBar::new(scans as u64);
     bar.set_style(
@@ -113,6 +115,7 @@ pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
         "scans_dropped": run.scans_dropped,
         "data_duration_s": run.data_duration_s,
         "wall_time_s": wall_time_s,
+        "read_time_s": read_time_s,
         "realtime_factor": if wall_time_s > 0.0 { run.data_duration_s / wall_time_s } else { 0.0 },
         "nodes": run.global.nodes().len(),
         "submaps": run.global.submaps().len(),

@@ -46,7 +46,8 @@ type Stack = Vec<(Rigid2, Vec<Point2<f32>>)>;
 /// Arguments of `relocalize`.
 #[derive(Args)]
 pub struct RelocalizeArgs {
-    /// The recording: a ROS1 bag or a CARMEN log.
+    /// The recording: a ROS1 bag, a ROS 2 recording (rosbag2 folder, `metadata.yaml`, `.mcap` or `.db3`)
+    /// or a CARMEN log.
     #[arg(long)]
     input: PathBuf,
     /// How many scans of the last 40 % to relocalize.

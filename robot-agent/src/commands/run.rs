@@ -63,7 +63,8 @@ pub struct AgentConfig {
     pub robot_id: String,
     /// This robot's bearer token for the site. Required.
     pub token: String,
-    /// The recording to replay: a ROS1 bag or a CARMEN log. Required.
+    /// The recording to replay: a ROS1 bag, a ROS 2 recording (rosbag2 folder, `metadata.yaml`, `.mcap`
+    /// or `.db3`) or a CARMEN log. Required.
     pub source: PathBuf,
     /// Replay pace as a multiple of real time; 0 = as fast as possible. Default 1.
     pub replay_speed: f64,

@@ -25,7 +25,8 @@ use serde_json::json;
 /// Arguments of `sessions`.
 #[derive(Args)]
 pub struct SessionsArgs {
-    /// The recording: a ROS1 bag or a CARMEN log.
+    /// The recording: a ROS1 bag, a ROS 2 recording (rosbag2 folder, `metadata.yaml`, `.mcap` or `.db3`)
+    /// or a CARMEN log.
     #[arg(long)]
     input: PathBuf,
     /// Into how many equal time spans (sessions) to cut the recording.

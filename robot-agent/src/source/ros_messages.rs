@@ -5,8 +5,9 @@
 use mapping::geometry::{Rigid2, rigid2};
 use mapping::sensor::{ImuReading, LaserScan, OdometryReading, Timestamp};
 
-/// A decoding failure: what was being read and at which byte.
-#[derive(Debug, Clone, PartialEq, Eq)]
+/// A message decoding failure (ROS1 or CDR): what was being read and at which byte.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("{0}")]
 pub struct DecodeError(pub String);
 
 struct Cursor<'a> {
@@ -81,12 +82,57 @@ impl<'a> Cursor<'a> {
             self.f64(what)?,
             self.f64(what)?,
         );
-        let yaw = (2.0 * (qw * qz + qx * qy)).atan2(1.0 - 2.0 * (qy * qy + qz * qz));
-        if !(x.is_finite() && y.is_finite() && yaw.is_finite()) {
-            return Err(DecodeError(format!("non-finite {what}")));
-        }
-        Ok(rigid2(x, y, yaw))
+        planar_pose(x, y, [qx, qy, qz, qw], what)
     }
+}
+
+/// A 3-D position and quaternion `[x, y, z, w]` projected to the plane (yaw about z); ROS1 and ROS 2
+/// readers share it so both give the same pose from the same values.
+pub(super) fn planar_pose(x: f64, y: f64, q: [f64; 4], what: &str) -> Result<Rigid2, DecodeError> {
+    let [qx, qy, qz, qw] = q;
+    let yaw = (2.0 * (qw * qz + qx * qy)).atan2(1.0 - 2.0 * (qy * qy + qz * qz));
+    if !(x.is_finite() && y.is_finite() && yaw.is_finite()) {
+        return Err(DecodeError(format!("non-finite {what}")));
+    }
+    Ok(rigid2(x, y, yaw))
+}
+
+/// The raw fields of a `sensor_msgs/LaserScan` (ROS1 or ROS 2) that evermap uses.
+pub(super) struct ScanFields {
+    pub time: Timestamp,
+    pub angle_min: f32,
+    pub angle_increment: f32,
+    pub time_increment: f32,
+    pub range_min: f32,
+    pub range_max: f32,
+    pub ranges: Vec<f32>,
+}
+
+/// Checks the scan geometry and replaces a non-finite `time_increment` or `range_min` by 0; ROS1 and
+/// ROS 2 readers share it so both give the same scan from the same values.
+pub(super) fn laser_scan_from(f: ScanFields) -> Result<LaserScan, DecodeError> {
+    if !(f.angle_min.is_finite() && f.angle_increment.is_finite() && f.range_max.is_finite()) {
+        return Err(DecodeError(
+            "non-finite scan geometry (angle_min, angle_increment or range_max)".into(),
+        ));
+    }
+    Ok(LaserScan {
+        time: f.time,
+        angle_min: f.angle_min,
+        angle_increment: f.angle_increment,
+        time_increment: if f.time_increment.is_finite() {
+            f.time_increment
+        } else {
+            0.0
+        },
+        range_min: if f.range_min.is_finite() {
+            f.range_min
+        } else {
+            0.0
+        },
+        range_max: f.range_max,
+        ranges: f.ranges,
+    })
 }
 
 /// `sensor_msgs/LaserScan` and its frame id.
@@ -102,35 +148,20 @@ pub fn laser_scan(data: &[u8]) -> Result<(LaserScan, String), DecodeError> {
     let range_max = c.f32("range_max")?;
     let n = c.u32("ranges length")? as usize;
     let bytes = c.take(4 * n, "ranges")?;
-    let ranges = bytes
+    let ranges: Vec<f32> = bytes
         .chunks_exact(4)
         .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
         .collect();
-    if !(angle_min.is_finite() && angle_increment.is_finite() && range_max.is_finite()) {
-        return Err(DecodeError(
-            "non-finite scan geometry (angle_min, angle_increment or range_max)".into(),
-        ));
-    }
-    Ok((
-        LaserScan {
-            time,
-            angle_min,
-            angle_increment,
-            time_increment: if time_increment.is_finite() {
-                time_increment
-            } else {
-                0.0
-            },
-            range_min: if range_min.is_finite() {
-                range_min
-            } else {
-                0.0
-            },
-            range_max,
-            ranges,
-        },
-        frame,
-    ))
+    let scan = laser_scan_from(ScanFields {
+        time,
+        angle_min,
+        angle_increment,
+        time_increment,
+        range_min,
+        range_max,
+        ranges,
+    })?;
+    Ok((scan, frame))
 }
 
 /// `nav_msgs/Odometry`.

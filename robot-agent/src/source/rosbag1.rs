@@ -5,32 +5,30 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 
-use mapping::geometry::Rigid2;
-use mapping::sensor::SensorEvent;
 use rosbag::{ChunkRecord, MessageRecord, RosBag};
 
 use super::SourceError;
-use super::recording::{ReadReport, Recording};
-use super::ros_messages::{self, PlanarTransform};
+use super::recording::Recording;
+use super::ros_collector::{Decoders, RosCollector, RosKind};
+use super::ros_messages;
 
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-enum Kind {
-    Scan,
-    Odometry,
-    Imu,
-    Tf,
-    Other,
-}
-
-fn kind_of(datatype: &str) -> Kind {
+fn kind_of(datatype: &str) -> RosKind {
     match datatype {
-        "sensor_msgs/LaserScan" => Kind::Scan,
-        "nav_msgs/Odometry" => Kind::Odometry,
-        "sensor_msgs/Imu" => Kind::Imu,
-        "tf2_msgs/TFMessage" | "tf/tfMessage" => Kind::Tf,
-        _ => Kind::Other,
+        "sensor_msgs/LaserScan" => RosKind::Scan,
+        "nav_msgs/Odometry" => RosKind::Odometry,
+        "sensor_msgs/Imu" => RosKind::Imu,
+        "tf2_msgs/TFMessage" | "tf/tfMessage" => RosKind::Tf,
+        _ => RosKind::Other,
     }
 }
+
+/// ROS1 serialization's decoders.
+const ROS1_DECODERS: Decoders = Decoders {
+    laser_scan: ros_messages::laser_scan,
+    odometry: ros_messages::odometry,
+    imu: ros_messages::imu,
+    tf_message: ros_messages::tf_message,
+};
 
 fn u32_at(bytes: &[u8], at: usize) -> Option<u32> {
     bytes
@@ -153,11 +151,8 @@ pub fn read(path: &Path) -> Result<Recording, SourceError> {
     };
     let bag = RosBag::new(path).map_err(|e| malformed(e.to_string()))?;
 
-    let mut connections: BTreeMap<u32, Kind> = BTreeMap::new();
-    let mut report = ReadReport::default();
-    let mut events = Vec::new();
-    let mut transforms: Vec<PlanarTransform> = Vec::new();
-    let mut laser_frame: Option<String> = None;
+    let mut connections: BTreeMap<u32, RosKind> = BTreeMap::new();
+    let mut collector = RosCollector::default();
     for record in bag.chunk_records() {
         let record = record.map_err(|e| malformed(format!("chunk section: {e}")))?;
         let ChunkRecord::Chunk(chunk) = record else {
@@ -170,51 +165,18 @@ pub fn read(path: &Path) -> Result<Recording, SourceError> {
                 }
                 MessageRecord::MessageData(m) => {
                     let Some(&kind) = connections.get(&m.conn_id) else {
-                        report.skipped_malformed += 1;
-                        report.problem(format!("message on unknown connection {}", m.conn_id));
+                        collector.report.skipped_malformed += 1;
+                        collector
+                            .report
+                            .problem(format!("message on unknown connection {}", m.conn_id));
                         continue;
                     };
-                    let decoded = match kind {
-                        Kind::Scan => ros_messages::laser_scan(m.data).map(|(scan, frame)| {
-                            laser_frame.get_or_insert(frame);
-                            events.push(SensorEvent::Scan(scan));
-                        }),
-                        Kind::Odometry => ros_messages::odometry(m.data)
-                            .map(|o| events.push(SensorEvent::Odometry(o))),
-                        Kind::Imu => {
-                            ros_messages::imu(m.data).map(|i| events.push(SensorEvent::Imu(i)))
-                        }
-                        Kind::Tf => ros_messages::tf_message(m.data).map(|t| {
-                            report.tf += 1;
-                            transforms.extend(t);
-                        }),
-                        Kind::Other => {
-                            report.skipped_other += 1;
-                            Ok(())
-                        }
-                    };
-                    if let Err(e) = decoded {
-                        report.skipped_malformed += 1;
-                        report.problem(format!("{kind:?} message at {}: {}", m.time, e.0));
-                    }
+                    collector.add(kind, m.data, &m.time, &ROS1_DECODERS);
                 }
             }
         }
     }
-    let transform = laser_frame
-        .as_ref()
-        .and_then(|frame| transforms.iter().find(|t| &t.child == frame));
-    let base_from_laser = if let Some(t) = transform {
-        report.extrinsic_source = format!("tf {} -> {}", t.parent, t.child);
-        t.parent_from_child
-    } else {
-        report.extrinsic_source = match &laser_frame {
-            Some(frame) => format!("no tf to frame {frame:?}: identity"),
-            None => "no laser scans: identity".into(),
-        };
-        Rigid2::identity()
-    };
-    Ok(Recording::from_unsorted(events, base_from_laser, report))
+    Ok(collector.finish())
 }
 
 #[cfg(test)]
