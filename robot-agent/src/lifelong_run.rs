@@ -651,7 +651,9 @@ fn worker(
                 // placement as re-anchored by its matches (a session the map placed by other means
                 // starts from the map's pose of the node).
                 let online = if session == 0 || start.is_none() {
-                    map.global().node_pose(id).filter(|_| map.is_placed(session))
+                    map.global()
+                        .node_pose(id)
+                        .filter(|_| map.is_placed(session))
                 } else {
                     if anchor.is_none() && map.is_placed(session) {
                         anchor = map

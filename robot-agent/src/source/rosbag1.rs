@@ -181,8 +181,8 @@ pub fn read(path: &Path) -> Result<Recording, SourceError> {
 
 #[cfg(test)]
 mod tests {
-    use mapping::geometry::rigid2;
-    use mapping::sensor::{LaserScan, OdometryReading, Timestamp};
+    use mapping::geometry::{Rigid2, rigid2};
+    use mapping::sensor::{LaserScan, OdometryReading, SensorEvent, Timestamp};
 
     use super::*;
 

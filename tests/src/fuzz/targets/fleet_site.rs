@@ -13,7 +13,7 @@ use mapping::lifelong::LifelongOptions;
 use prost::Message as _;
 use proto::{FORMAT_VERSION, pb};
 use server::grpc::{AgentApi, ApiContext, Auth, MapApi};
-use server::site::{SiteHandle, SiteTask};
+use server::site::{SiteHandle, SiteTask, SiteTaskOptions};
 use server::{RobotConfig, ServerMetrics, SiteConfig};
 use storage::{MapStore, MemStore, RecordKind};
 use tokio::runtime::Runtime;
@@ -60,7 +60,10 @@ impl Site {
             LifelongOptions::default(),
             Arc::clone(&store),
             Arc::clone(&metrics),
-            4,
+            SiteTaskOptions {
+                queue_depth: 4,
+                session_idle_timeout: None,
+            },
         )
         .await
         .map_err(|e| e.to_string())?;
