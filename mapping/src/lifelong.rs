@@ -38,7 +38,7 @@ pub use lifelong_map::{GraphCounts, LifelongError, LifelongEvent, LifelongMap};
 pub use map_change::{
     CellChange, MAP_CHANGE_TOLERANCE_M, MapChange, OCCUPIED_PROBABILITY, map_change_rate,
 };
-pub use map_matcher::{GlobalSubmap, MapMatch, MapMatcher, re_anchored};
+pub use map_matcher::{GlobalSubmap, MapMatch, MapMatcher};
 pub use options::{
     LifelongOptions, LifelongOptionsError, ParseTrimPolicyError, SubmapTrimmerOptions, TrimPolicy,
 };

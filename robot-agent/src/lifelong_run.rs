@@ -19,7 +19,7 @@ use mapping::geometry::{Rigid2, Rigid2Ext as _};
 use mapping::grid::ProbabilityGrid;
 use mapping::lifelong::{
     GraphCounts, LifelongError, LifelongEvent, LifelongMap, LifelongOptions, RelocalizationOutcome,
-    RevokeReason, SessionStart, SessionStartEvent, StartSearch, re_anchored, render_submaps,
+    RevokeReason, SessionStart, SessionStartEvent, StartSearch, render_submaps,
 };
 use mapping::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
 use mapping::metrics::{MatchScorer, Placement, ScoringOptions, SessionTrack};
@@ -156,10 +156,9 @@ pub struct SessionRecord {
     pub session: u32,
     /// Time of the session's first event.
     pub start_time: Timestamp,
-    /// `map_from_base` of each matched scan as the robot estimated it at that scan: for a later session,
-    /// its `global_from_local` — its placement, re-anchored on each node's best accepted match against
-    /// another session's submap ([`re_anchored`], as GLM on the fleet robot does) — composed with LLO's
-    /// pose; for the mapping session, its node's pose right after the map took it in. Only scans while the session was placed (on probation — the robot navigates
+    /// `map_from_base` of each matched scan as the robot estimated it at that scan: its node's global
+    /// pose right after the map took the node in (its matches and any placement included), composed with
+    /// LLO's motion since. Only scans while the session was placed (on probation — the robot navigates
     /// with a tentative placement too — or committed) have one (session 0: every scan).
     pub online: Vec<(Timestamp, Rigid2)>,
     /// `map_from_base` of each matched scan when the session ended (after its final optimization).
@@ -508,9 +507,6 @@ fn worker(
     // and the map of the finished sessions as it was at its start (for the match scores).
     let mut node_local: BTreeMap<NodeId, Rigid2> = BTreeMap::new();
     let mut online_nodes: BTreeMap<NodeId, Rigid2> = BTreeMap::new();
-    // The current session's `global_from_local` as the robot has it: its placement, re-anchored on each
-    // node's best accepted match against the placed map (`re_anchored`, as GLM on the fleet robot does).
-    let mut anchor: Option<Rigid2> = None;
     let mut map_at_start: Option<MatchScorer> = None;
     let mut priors: BTreeMap<u32, (Rigid2, Rigid2)> = BTreeMap::new();
     let mut scores: Vec<f32> = Vec::new();
@@ -526,7 +522,6 @@ fn worker(
                 scores.clear();
                 node_local.clear();
                 online_nodes.clear();
-                anchor = None;
                 node_times.clear();
                 map_at_start = None;
                 start = None;
@@ -605,7 +600,6 @@ fn worker(
                     records.last_mut(),
                     &mut priors,
                 )?;
-                follow_placement(&mut anchor, &decisions);
                 let jobs = map.take_search_jobs();
                 let results = run_searches(map.constraint_builder(), &jobs);
                 let mut events_after = map.add_search_results(results);
@@ -637,34 +631,17 @@ fn worker(
                         records.last_mut(),
                         &mut priors,
                     )?;
-                    follow_placement(&mut anchor, &decisions);
-                    if anchor.is_some() {
-                        anchor = best_anchor(&map, session, &events_after, &node_local).or(anchor);
-                    }
                 }
                 if let Some(summary) = sessions.last_mut() {
                     summary.nodes_added += 1;
                     count_closures(summary, &events_after, &mut scores);
                 }
                 // What the robot has now, at this scan: placed (on probation or committed) or not, and
-                // where. The mapping session's estimate is its own map's; a later session's is its
-                // placement as re-anchored by its matches (a session the map placed by other means
-                // starts from the map's pose of the node).
-                let online = if session == 0 || start.is_none() {
-                    map.global()
-                        .node_pose(id)
-                        .filter(|_| map.is_placed(session))
-                } else {
-                    if anchor.is_none() && map.is_placed(session) {
-                        anchor = map
-                            .global()
-                            .node_pose(id)
-                            .map(|pose| pose * local_pose.inverse());
-                    }
-                    anchor
-                        .filter(|_| map.is_placed(session))
-                        .map(|a| a * local_pose)
-                };
+                // where.
+                let online = map
+                    .global()
+                    .node_pose(id)
+                    .filter(|_| map.is_placed(session));
                 if let Some(pose) = online {
                     online_nodes.insert(id, pose);
                 }
@@ -878,50 +855,6 @@ fn act_on_start(
         }
     }
     Ok(())
-}
-
-/// Follows the session start's decisions: a placement sets the robot's `global_from_local`, a revocation
-/// takes it away.
-fn follow_placement(anchor: &mut Option<Rigid2>, decisions: &[SessionStartEvent]) {
-    for decision in decisions {
-        match decision {
-            SessionStartEvent::Placed(placement) => *anchor = Some(placement.global_from_local),
-            SessionStartEvent::Revoked { .. } => *anchor = None,
-            _ => {}
-        }
-    }
-}
-
-/// `global_from_local` re-anchored on the best (highest-scoring) match among `events` of one of
-/// `session`'s nodes against another session's submap, the latest node's first; `None` without one.
-fn best_anchor(
-    map: &LifelongMap,
-    session: u32,
-    events: &[LifelongEvent],
-    node_local: &BTreeMap<NodeId, Rigid2>,
-) -> Option<Rigid2> {
-    events
-        .iter()
-        .filter_map(|event| match event {
-            LifelongEvent::LoopClosureAdded(closure)
-                if closure.node.trajectory == session && closure.submap.trajectory != session =>
-            {
-                Some(closure)
-            }
-            _ => None,
-        })
-        .max_by(|a, b| {
-            (a.node.index, a.score)
-                .partial_cmp(&(b.node.index, b.score))
-                .unwrap_or(std::cmp::Ordering::Equal)
-        })
-        .and_then(|closure| {
-            Some(re_anchored(
-                &map.global().submap_pose(closure.submap)?,
-                &closure.submap_from_node,
-                node_local.get(&closure.node)?,
-            ))
-        })
 }
 
 fn count_closures(summary: &mut SessionSummary, events: &[LifelongEvent], scores: &mut Vec<f32>) {

@@ -174,23 +174,10 @@ impl MapMatcher {
             && let Some(known) = self.submaps.get(&best.submap)
         {
             self.global_from_local =
-                re_anchored(&known.global_pose, &best.submap_from_node, local_pose);
+                known.global_pose * best.submap_from_node * local_pose.inverse();
         }
         matches
     }
-}
-
-/// A session's `global_from_local` re-anchored on one accepted match of its node (`local_from_node`,
-/// LLO's pose of the node) against a submap at `global_from_submap`: the frame in which the node sits
-/// exactly where the match puts it. What the robot navigates with after each match — on the fleet robot
-/// ([`MapMatcher::match_node`], its best match) and in the offline lifelong shells (the best accepted
-/// match of the node against the placed map) alike.
-pub fn re_anchored(
-    global_from_submap: &Rigid2,
-    submap_from_node: &Rigid2,
-    local_from_node: &Rigid2,
-) -> Rigid2 {
-    global_from_submap * submap_from_node * local_from_node.inverse()
 }
 
 #[cfg(test)]
