@@ -11,9 +11,8 @@
 //!    and searched over the whole map ([`StartSearch::search`]: a near-tie with a clearly different pose
 //!    is refused as ambiguous).
 //! 2. **Retries.** While unplaced, the whole map is searched again with every node since the start (at
-//!    most the latest [`SessionStartOptions::max_search_nodes`]) every `retry_every_n_nodes` nodes while
-//!    the cloud grows, then after twice, four times ... as many ([`StartSearch::search_again`]: placed
-//!    when the best pose beats every
+//!    most the latest [`SessionStartOptions::max_search_nodes`]) after `retry_every_n_nodes` nodes, then
+//!    twice, four times ... as many ([`StartSearch::search_again`]: placed when the best pose beats every
 //!    other candidate in the paired per-point test). After [`SessionStartOptions::give_up_after_nodes`]
 //!    the session stops searching.
 //! 3. **Probation.** A placement is tentative: the shell places the session so that GLM can match its
@@ -52,13 +51,12 @@ pub struct SessionStartOptions {
     /// Nodes held back and merged into the cloud of the first whole-map search (count ≥ 1). Default 10
     /// (about 2 m of driving).
     pub hold_back_nodes: usize,
-    /// While unplaced, search the whole map again with every node since the start every this many nodes
-    /// (counted from the start, or from the last revocation) while the cloud grows (up to
-    /// `max_search_nodes`), then after twice, four times ... as many (count; 0 = never retry). Each retry
-    /// sees more of the route, and the robot navigates with nothing until one places it (on the
-    /// simulated store, sessions refused as ambiguous at first were placed by the retries at 20, 40, 80
-    /// and 160 nodes when the retries doubled from the start); once the cloud stops growing, the doubling
-    /// keeps a session that cannot be placed from spending its time searching. Default 20 (about 4 m).
+    /// While unplaced, search the whole map again with every node since the start after this many nodes
+    /// (counted from the start, or from the last revocation), then after twice, four times ... as many
+    /// (count; 0 = never retry). The doubling keeps a session that cannot be placed from spending its
+    /// time searching, and bounds how often the paired test is tried on look-alike aisles: retrying
+    /// every 10 nodes (with 5 held back) placed a session of the `aisles` store 49 m off, and probation
+    /// committed it (seed 1, session 10; BENCHMARKS.md, session 12). Default 20.
     pub retry_every_n_nodes: usize,
     /// Most nodes (the latest) a retry's cloud holds (count ≥ `hold_back_nodes`). Default 400 (about
     /// 80 m of driving): beyond that LLO's drift across the cloud outgrows the match tolerance.
@@ -452,8 +450,7 @@ impl SessionStart {
         self.cloud.push_back((local_pose, points));
     }
 
-    /// The first search at `hold_back_nodes`, retries (every `retry_every_n_nodes` while the cloud grows,
-    /// then doubling), giving up.
+    /// The first search at `hold_back_nodes`, retries on the doubling schedule, giving up.
     fn search_if_due(&mut self, node: usize) -> Vec<SessionStartEvent> {
         let count = node + 1;
         let since = count - self.schedule_start;
@@ -468,7 +465,7 @@ impl SessionStart {
         let retry = self.searches > 0
             && every > 0
             && since.is_multiple_of(every)
-            && (since <= self.options.max_search_nodes || (since / every).is_power_of_two());
+            && (since / every).is_power_of_two();
         if !(first || retry) {
             return Vec::new();
         }
