@@ -1103,9 +1103,11 @@ async fn glm_on_the_robot_places_a_session_where_glm_on_the_server_does() {
         let robot = served[&id];
         worst = worst.max((robot.translation.vector - pose.translation.vector).norm());
     }
-    // Measured 0.114 m with session 10's grids (0.7 / 0.45): the two paths search in different orders
-    // and batches, so their graphs differ by a few matches.
-    assert!(worst < 0.15, "largest node disagreement {worst} m");
+    // Measured 0.114 m with session 10's grids (0.7 / 0.45) and 0.172 m since loop closures are retracted
+    // at χ² 6 (session 12; 0.114 m again with this test at χ² 9): the two paths search in different
+    // orders and batches, so their graphs differ by a few matches, and the stricter retraction takes out
+    // different closures in each.
+    assert!(worst < 0.22, "largest node disagreement {worst} m");
     // Every match the robot sent became a constraint (plus the session's own loop closures, which the
     // server still searches).
     let counts = site.current().counts;
