@@ -128,8 +128,14 @@ pub struct SessionSummary {
     pub cross_session_ams: Option<f64>,
     /// Graph size after the session ended.
     pub counts: GraphCounts,
-    /// Wall time of `finish_session` (final optimization, trimming, sparsification), milliseconds.
+    /// Wall time of pose graph refinement at the session's end (the final optimization, then
+    /// `finish_session`: optimization, trimming, sparsification), milliseconds.
     pub finish_ms: f64,
+    /// Of [`Self::finish_ms`], the final optimization before `finish_session`, milliseconds.
+    pub finish_optimize_ms: f64,
+    /// Levenberg-Marquardt steps tried at the session's end (each one numeric factorization), over every
+    /// optimization `finish_ms` covers.
+    pub finish_iterations: usize,
     /// Time of the session's first node (the one relocalization places).
     pub first_node_time: Option<Timestamp>,
     /// Global pose `[x, y, θ]` (m, m, rad) relocalization gave the session's first node.
@@ -663,7 +669,8 @@ fn worker(
                 let results = run_searches(map.constraint_builder(), &jobs);
                 let events = map.add_search_results(results);
                 let start_ms = Instant::now();
-                map.optimize();
+                let final_optimization = map.optimize();
+                let optimize_ms = start_ms.elapsed().as_secs_f64() * 1e3;
                 let mut at_session_end = BTreeMap::new();
                 for (id, _, pose) in map.node_poses() {
                     retired.insert(id, pose);
@@ -714,6 +721,15 @@ fn worker(
                     summary.ended_on_probation = on_probation;
                     summary.counts = counts;
                     summary.finish_ms = finish_ms;
+                    summary.finish_optimize_ms = optimize_ms;
+                    summary.finish_iterations = final_optimization.iterations
+                        + events_finish
+                            .iter()
+                            .filter_map(|e| match e {
+                                LifelongEvent::Optimized(o) => Some(o.iterations),
+                                _ => None,
+                            })
+                            .sum::<usize>();
                     summary.relocalization_offset_m = offset;
                     summary.peak_rss_mb = crate::process_stats::peak_rss_mb();
                 }

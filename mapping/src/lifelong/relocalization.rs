@@ -45,6 +45,11 @@ pub struct RelocalizationOptions {
     pub min_score: f32,
     /// Depth of the branch-and-bound precomputation. Default 7.
     pub branch_and_bound_depth: u32,
+    /// Map cells per cell of the coarse grid the whole map is first searched on, along each axis
+    /// ([`RelocalizerOptions::coarse_factor`], 1..=16): the coarse search tries `coarse_factor²` fewer
+    /// positions and `coarse_factor` fewer rotations, and its candidates are searched again at full
+    /// resolution. Default 2.
+    pub coarse_factor: u32,
     /// Refuse a match whose runner-up (a clearly different pose, see
     /// [`crate::scan_matching::Relocalization::runner_up_score`]) scores within this much of it: in a
     /// store of look-alike aisles a near-tie is a guess, and a session placed in the wrong aisle corrupts
@@ -104,6 +109,7 @@ impl Default for RelocalizationOptions {
             max_search_points: 200,
             min_score: 0.6,
             branch_and_bound_depth: 7,
+            coarse_factor: 2,
             max_candidates: 8,
             min_score_margin: 0.03,
             match_tolerance: 0.15,
@@ -129,6 +135,12 @@ impl RelocalizationOptions {
             return Err(LifelongOptionsError::OutOfRange {
                 field: "voxel_size",
                 reason: "must be a non-negative number of metres",
+            });
+        }
+        if !(1..=16).contains(&self.coarse_factor) {
+            return Err(LifelongOptionsError::OutOfRange {
+                field: "coarse_factor",
+                reason: "must be in 1..=16",
             });
         }
         if self.max_search_points == 0 {
@@ -419,6 +431,7 @@ impl StartSearch {
         let relocalizer = Relocalizer::new(
             tolerant.as_ref().unwrap_or(grid),
             RelocalizerOptions {
+                coarse_factor: options.coarse_factor,
                 coarse_branch_and_bound_depth: options.branch_and_bound_depth,
                 min_score: options.min_score,
                 max_candidates: options.max_candidates.max(1),
