@@ -128,11 +128,9 @@ pub struct SessionSummary {
     pub cross_session_ams: Option<f64>,
     /// Graph size after the session ended.
     pub counts: GraphCounts,
-    /// Wall time of pose graph refinement at the session's end (the final optimization, then
-    /// `finish_session`: optimization, trimming, sparsification), milliseconds.
+    /// Wall time of pose graph refinement at the session's end (`finish_session`: the final
+    /// optimization, trimming, sparsification, as the server runs it), milliseconds.
     pub finish_ms: f64,
-    /// Of [`Self::finish_ms`], the final optimization before `finish_session`, milliseconds.
-    pub finish_optimize_ms: f64,
     /// Levenberg-Marquardt steps tried at the session's end (each one numeric factorization), over every
     /// optimization `finish_ms` covers.
     pub finish_iterations: usize,
@@ -668,9 +666,8 @@ fn worker(
                 let jobs = map.take_search_jobs();
                 let results = run_searches(map.constraint_builder(), &jobs);
                 let events = map.add_search_results(results);
-                let start_ms = Instant::now();
-                let final_optimization = map.optimize();
-                let optimize_ms = start_ms.elapsed().as_secs_f64() * 1e3;
+                // Every node's pose before pose graph refinement: what a node `finish_session` removes
+                // (trimmed, or its session dropped) keeps; the rest are updated after it.
                 let mut at_session_end = BTreeMap::new();
                 for (id, _, pose) in map.node_poses() {
                     retired.insert(id, pose);
@@ -679,8 +676,15 @@ fn worker(
                     }
                 }
                 let on_probation = map.is_on_probation(session);
+                let start_ms = Instant::now();
                 let events_finish = map.finish_session(session)?;
                 let finish_ms = start_ms.elapsed().as_secs_f64() * 1e3;
+                for (id, _, pose) in map.node_poses() {
+                    retired.insert(id, pose);
+                    if id.trajectory == session {
+                        at_session_end.insert(id, pose);
+                    }
+                }
                 let placed = map.is_placed(session) && !on_probation;
                 let counts = map.counts();
                 let first_node = NodeId {
@@ -721,15 +725,13 @@ fn worker(
                     summary.ended_on_probation = on_probation;
                     summary.counts = counts;
                     summary.finish_ms = finish_ms;
-                    summary.finish_optimize_ms = optimize_ms;
-                    summary.finish_iterations = final_optimization.iterations
-                        + events_finish
-                            .iter()
-                            .filter_map(|e| match e {
-                                LifelongEvent::Optimized(o) => Some(o.iterations),
-                                _ => None,
-                            })
-                            .sum::<usize>();
+                    summary.finish_iterations = events_finish
+                        .iter()
+                        .filter_map(|e| match e {
+                            LifelongEvent::Optimized(o) => Some(o.iterations),
+                            _ => None,
+                        })
+                        .sum::<usize>();
                     summary.relocalization_offset_m = offset;
                     summary.peak_rss_mb = crate::process_stats::peak_rss_mb();
                 }

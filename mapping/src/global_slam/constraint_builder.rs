@@ -442,9 +442,11 @@ impl ConstraintBuilder {
                 window.angular_rad.min(std::f64::consts::PI),
                 count,
             ),
-            None => entry
-                .matcher
-                .match_full_candidates(&job.points, min_score, count),
+            None => {
+                entry
+                    .matcher
+                    .match_full_candidates(&job.points, min_score, count, f32::INFINITY)
+            }
         };
         let min_score = if job.submap_from_node_estimate.is_some() {
             self.options.min_score

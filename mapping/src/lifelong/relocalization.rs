@@ -50,6 +50,11 @@ pub struct RelocalizationOptions {
     /// positions and `coarse_factor` fewer rotations, and its candidates are searched again at full
     /// resolution. Default 2.
     pub coarse_factor: u32,
+    /// Whole-map candidates scoring more than this below the best on the coarse grid are not looked
+    /// for ([`RelocalizerOptions::coarse_score_window`]; score units ≥ 0, `inf` for no bound): a rival
+    /// that far behind cannot make a search ambiguous, and looking for it explores most of a store of
+    /// look-alike shelves. Default infinite.
+    pub candidate_score_window: f32,
     /// Refuse a match whose runner-up (a clearly different pose, see
     /// [`crate::scan_matching::Relocalization::runner_up_score`]) scores within this much of it: in a
     /// store of look-alike aisles a near-tie is a guess, and a session placed in the wrong aisle corrupts
@@ -110,6 +115,7 @@ impl Default for RelocalizationOptions {
             min_score: 0.6,
             branch_and_bound_depth: 7,
             coarse_factor: 2,
+            candidate_score_window: f32::INFINITY,
             max_candidates: 8,
             min_score_margin: 0.03,
             match_tolerance: 0.15,
@@ -141,6 +147,12 @@ impl RelocalizationOptions {
             return Err(LifelongOptionsError::OutOfRange {
                 field: "coarse_factor",
                 reason: "must be in 1..=16",
+            });
+        }
+        if self.candidate_score_window.is_nan() || self.candidate_score_window < 0.0 {
+            return Err(LifelongOptionsError::OutOfRange {
+                field: "candidate_score_window",
+                reason: "must be a non-negative score (or inf)",
             });
         }
         if self.max_search_points == 0 {
@@ -432,6 +444,7 @@ impl StartSearch {
             tolerant.as_ref().unwrap_or(grid),
             RelocalizerOptions {
                 coarse_factor: options.coarse_factor,
+                coarse_score_window: options.candidate_score_window,
                 coarse_branch_and_bound_depth: options.branch_and_bound_depth,
                 min_score: options.min_score,
                 max_candidates: options.max_candidates.max(1),

@@ -197,16 +197,29 @@ impl FastCorrelativeScanMatcher {
         self.search(&self.full_space(points), min_score)
     }
 
-    /// Up to `count` distinct poses anywhere on the grid, best first, each reaching `min_score`. Leaves
+    /// Up to `count` distinct poses anywhere on the grid, best first, each reaching `min_score` and
+    /// scoring within `score_window` of the best (score units; `f32::INFINITY`: no such bound). Leaves
     /// within [`DISTINCT_TRANSLATION_CELLS`] cells and [`DISTINCT_ROTATION_RAD`] of a better one belong to
     /// the same peak and are not returned separately. The first result equals [`Self::match_full`]'s.
+    ///
+    /// The window is what makes a whole-map search for rivals affordable on a large map: without it
+    /// every branch that might hold the `count`-th best peak is explored, and on a store of look-alike
+    /// shelves that is most of the map; with it, branches that cannot come within `score_window` of the
+    /// best leaf found so far are cut. The result equals the unbounded search's, less the candidates
+    /// below the best by more than the window.
     pub fn match_full_candidates(
         &self,
         points: &[Point2<f32>],
         min_score: f32,
         count: usize,
+        score_window: f32,
     ) -> Vec<Match> {
-        self.search_many(&self.full_space(points), min_score, count.max(1))
+        self.search_bounded(
+            &self.full_space(points),
+            min_score,
+            count.max(1),
+            score_window,
+        )
     }
 
     /// The candidate set of [`Self::match_near`].
@@ -247,18 +260,37 @@ impl FastCorrelativeScanMatcher {
     }
 
     fn search_many(&self, space: &SearchSpace, min_score: f32, count: usize) -> Vec<Match> {
+        self.search_bounded(space, min_score, count, f32::INFINITY)
+    }
+
+    fn search_bounded(
+        &self,
+        space: &SearchSpace,
+        min_score: f32,
+        count: usize,
+        score_window: f32,
+    ) -> Vec<Match> {
         let n = space.num_points();
         if n == 0 {
             return Vec::new();
         }
-        let threshold =
-            f64::from((min_score - MIN_PROBABILITY) / (MAX_PROBABILITY - MIN_PROBABILITY))
+        let units_of = |score: f64| {
+            score / f64::from(MAX_PROBABILITY - MIN_PROBABILITY)
                 * UNITS_PER_PROBABILITY_RANGE
-                * n as f64;
+                * n as f64
+        };
+        let threshold = units_of(f64::from(min_score - MIN_PROBABILITY));
+        // Rounded down: the bound never cuts a leaf the window admits.
+        let window_units = if score_window.is_finite() && score_window >= 0.0 {
+            units_of(f64::from(score_window)).floor() as u64
+        } else {
+            u64::MAX
+        };
         let mut search = Search {
             matcher: self,
             space,
             min_units: threshold.ceil().max(0.0) as u64,
+            window_units,
             best: Vec::with_capacity(count + 1),
             count,
         };
@@ -285,9 +317,15 @@ impl FastCorrelativeScanMatcher {
         }
         top.sort_unstable_by_key(|c| std::cmp::Reverse(c.units));
         search.descend(&top, depth);
+        // Leaves offered before a better best was found may lie below its window.
+        let floor = search
+            .best
+            .first()
+            .map_or(0, |top| top.units.saturating_sub(window_units));
         search
             .best
             .iter()
+            .filter(|leaf| leaf.units >= floor)
             .map(|best| Match {
                 pose: space.pose(best.scan, best.dx, best.dy),
                 score: (f64::from(MIN_PROBABILITY)
@@ -334,6 +372,8 @@ struct Search<'a> {
     space: &'a SearchSpace,
     /// `min_score` in score units, rounded up.
     min_units: u64,
+    /// How far below the best leaf so far another may score (units; `u64::MAX`: unbounded).
+    window_units: u64,
     /// The best leaves of distinct peaks so far, best first (at most `count`).
     best: Vec<Candidate>,
     count: usize,
@@ -342,13 +382,18 @@ struct Search<'a> {
 impl Search<'_> {
     /// The smallest score (units) that would improve on the best leaf so far and reach `min_score`.
     fn need(&self) -> u64 {
-        if self.best.len() < self.count {
+        let within = self
+            .best
+            .first()
+            .map_or(0, |top| top.units.saturating_sub(self.window_units));
+        let need = if self.best.len() < self.count {
             self.min_units
         } else {
             self.best
                 .last()
                 .map_or(self.min_units, |worst| self.min_units.max(worst.units + 1))
-        }
+        };
+        need.max(within)
     }
 
     /// Whether two leaves belong to the same peak.

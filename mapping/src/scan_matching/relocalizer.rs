@@ -39,6 +39,10 @@ pub struct RelocalizerOptions {
     pub coarse_min_score: f32,
     /// How many distinct coarse candidates are refined at most. Default 3.
     pub max_candidates: usize,
+    /// Coarse candidates scoring more than this below the best coarse candidate are not looked for
+    /// (score units, ≥ 0; infinite: every candidate reaching `coarse_min_score` competes for the
+    /// `max_candidates` places). Default infinite.
+    pub coarse_score_window: f32,
     /// Half-width (metres) of the full-resolution search around each coarse candidate; covers the coarse
     /// grid's ambiguity along corridors. Default 0.5 m.
     pub refine_linear_window: f64,
@@ -55,6 +59,7 @@ impl Default for RelocalizerOptions {
             coarse_branch_and_bound_depth: 7,
             coarse_min_score: 0.55,
             max_candidates: 3,
+            coarse_score_window: f32::INFINITY,
             refine_linear_window: 0.5,
             min_score: 0.6,
             least_squares: LeastSquaresScanMatcherOptions::default(),
@@ -78,6 +83,12 @@ impl RelocalizerOptions {
             });
         }
         check_non_negative("refine_linear_window", self.refine_linear_window)?;
+        if self.coarse_score_window.is_nan() || self.coarse_score_window < 0.0 {
+            return Err(MatchError::InvalidOption {
+                field: "coarse_score_window",
+                reason: "must be a non-negative score (or infinite)",
+            });
+        }
         for (field, score) in [
             ("coarse_min_score", self.coarse_min_score),
             ("min_score", self.min_score),
@@ -238,9 +249,12 @@ impl Relocalizer {
     /// Where `points` (in the tracking frame) fit the map best, if anywhere well enough.
     pub fn relocalize(&self, points: &[Point2<f32>]) -> Option<Relocalization> {
         let o = &self.options;
-        let candidates =
-            self.coarse
-                .match_full_candidates(points, o.coarse_min_score, o.max_candidates);
+        let candidates = self.coarse.match_full_candidates(
+            points,
+            o.coarse_min_score,
+            o.max_candidates,
+            o.coarse_score_window,
+        );
         if candidates.is_empty() {
             return None;
         }

@@ -87,8 +87,6 @@ struct SessionRow {
     /// Submaps of sessions that did not update the map (never placed; `frozen`), dropped so far.
     dropped_total: usize,
     pgr_ms: f64,
-    /// Of `pgr_ms`, the final optimization before trimming.
-    pgr_optimize_ms: f64,
     /// Levenberg-Marquardt steps of every optimization `pgr_ms` covers.
     pgr_iterations: usize,
     peak_rss_mb: Option<f64>,
@@ -193,7 +191,6 @@ impl Reporter<'_> {
             trimmed_total: counts.trimmed_total,
             dropped_total: counts.dropped_total,
             pgr_ms: s.finish_ms,
-            pgr_optimize_ms: s.finish_optimize_ms,
             pgr_iterations: s.finish_iterations,
             peak_rss_mb: s.peak_rss_mb,
             scans: end.record.smoothed.len(),
@@ -220,7 +217,7 @@ impl Reporter<'_> {
         self.details.push(s.clone());
         self.last_change = change;
         eprintln!(
-            "session {k:>2}: init {:<5} placed {} committed {} placement {} mrcl {:.3} (smoothed {:.3}) ams {} ate {:.3} m | mcr {} world {:.3} | nodes {} submaps {} constraints {} | pgr {:.0} ms ({:.0} ms optimizing, {} LM steps)",
+            "session {k:>2}: init {:<5} placed {} committed {} placement {} mrcl {:.3} (smoothed {:.3}) ams {} ate {:.3} m | mcr {} world {:.3} | nodes {} submaps {} constraints {} | pgr {:.0} ms ({} LM steps)",
             if k == 0 {
                 "-".to_string()
             } else {
@@ -248,7 +245,6 @@ impl Reporter<'_> {
             counts.submaps,
             counts.constraints,
             s.finish_ms,
-            s.finish_optimize_ms,
             s.finish_iterations
         );
         self.write_report(false, None)

@@ -343,7 +343,7 @@ fn full_candidates_are_distinct_peaks_led_by_the_global_best() {
             },
         );
         let best = matcher.match_full(&points, 0.0).expect("matches");
-        let candidates = matcher.match_full_candidates(&points, 0.0, 4);
+        let candidates = matcher.match_full_candidates(&points, 0.0, 4, f32::INFINITY);
         assert_eq!(candidates.len(), 4, "seed {seed}");
         assert!((candidates[0].score - best.score).abs() < 1e-6);
         for pair in candidates.windows(2) {
@@ -363,7 +363,57 @@ fn full_candidates_are_distinct_peaks_led_by_the_global_best() {
             }
         }
         // A threshold above the fourth keeps only the better ones.
-        let fewer = matcher.match_full_candidates(&points, candidates[3].score + 1e-4, 4);
+        let fewer =
+            matcher.match_full_candidates(&points, candidates[3].score + 1e-4, 4, f32::INFINITY);
         assert!(fewer.len() < 4 && !fewer.is_empty());
+    }
+}
+
+#[test]
+fn a_score_window_returns_the_unbounded_candidates_within_it() {
+    for (seed, depth) in [(40, 2), (41, 3), (42, 0), (43, 4)] {
+        let mut rng = Pcg64::seed_from_u64(seed);
+        let grid = random_grid(&mut rng);
+        let points = random_points(&mut rng, 10, 0.4);
+        let matcher = FastCorrelativeScanMatcher::new(
+            &grid,
+            FastCorrelativeScanMatcherOptions {
+                branch_and_bound_depth: depth,
+                ..Default::default()
+            },
+        );
+        let all = matcher.match_full_candidates(&points, 0.0, 12, f32::INFINITY);
+        assert!(all.len() >= 4, "seed {seed}: {} candidates", all.len());
+        for window in [0.0, 0.02, 0.05, 0.1] {
+            let bounded = matcher.match_full_candidates(&points, 0.0, 12, window);
+            let expected: Vec<_> = all
+                .iter()
+                .filter(|m| m.score >= all[0].score - window - 1e-4)
+                .collect();
+            assert!(!bounded.is_empty());
+            assert!(
+                (bounded[0].score - all[0].score).abs() < 1e-6,
+                "seed {seed}"
+            );
+            // Rounding of the window to score units may keep or cut a leaf right at its edge.
+            let clear: Vec<_> = all
+                .iter()
+                .filter(|m| m.score >= all[0].score - window + 1e-4)
+                .collect();
+            assert!(
+                bounded.len() >= clear.len() && bounded.len() <= expected.len(),
+                "seed {seed}, window {window}: {} bounded, {}..={} expected",
+                bounded.len(),
+                clear.len(),
+                expected.len()
+            );
+            for m in &bounded {
+                assert!(
+                    all.iter()
+                        .any(|a| a.pose == m.pose && (a.score - m.score).abs() < 1e-6),
+                    "seed {seed}, window {window}: a candidate the unbounded search did not return"
+                );
+            }
+        }
     }
 }
