@@ -3,7 +3,7 @@
 //! certificate paths and listen endpoint are replaced), the server's zenoh front end and two robots of
 //! two sites, every participant with a certificate from a test CA made by `rcgen`.
 //!
-//! A robot of store-1 tries everything against store-2: querying it with its own token and with a
+//! Robots of store-1 try everything against store-2: querying it with their own token and with a
 //! stolen store-2 token, forging a version publication, and declaring a queryable that answers for the
 //! server. With the deploy config nothing of it reaches store-2; the same scenario against the same
 //! router with access control switched off shows every attack landing, so the test fails if the rules
@@ -190,8 +190,19 @@ async fn attack(access_control: bool) -> Attempts {
     answering(&mut a_home).await;
     answering(&mut b_home).await;
 
-    // Robot A answers store-2's queries in the server's place, if the router lets it declare that.
-    let impostor = robot_a
+    // Robot A asks store-2 directly, with a stolen store-2 token and with its own.
+    let mut stolen = ZenohUplink::with_session(robot_a.clone(), "store-2", TOKEN_2, REFUSED_WAIT);
+    let stolen_token = stolen
+        .open_session("robot-1", "stolen")
+        .await
+        .map(|o| o.map_version);
+    let mut own = ZenohUplink::with_session(robot_a.clone(), "store-2", TOKEN_1, REFUSED_WAIT);
+    let own_token = own.map_version().await;
+
+    // Another store-1 robot answers store-2's queries in the server's place, if the router lets it
+    // declare that (its own session: a session's queries also reach its own queryables, router or not).
+    let robot_a2 = open("store-1/robot-2").await;
+    let impostor = robot_a2
         .declare_queryable(zenoh_api_key("store-2"))
         .await
         .unwrap();
@@ -220,46 +231,70 @@ async fn attack(access_control: bool) -> Attempts {
         .unwrap();
     let is_forged = |bytes: &[u8]| pb::MapVersion::decode(bytes).is_err();
     let mut forged_version_delivered = false;
-    let await_version = async |at_least: u64, forged: &mut bool| {
-        let deadline = Instant::now() + WAIT;
+    // Whether a publication of version `at_least` or later arrives within `wait` (noting forgeries).
+    let await_version = async |at_least: u64, wait: Duration, forged: &mut bool| {
+        let deadline = Instant::now() + wait;
         loop {
             let left = deadline.saturating_duration_since(Instant::now());
-            let sample = tokio::time::timeout(left, versions.recv_async())
-                .await
-                .expect("store-2's publication did not arrive")
-                .unwrap();
+            let Ok(sample) = tokio::time::timeout(left, versions.recv_async()).await else {
+                return false;
+            };
+            let sample = sample.unwrap();
             let bytes = sample.payload().to_bytes();
             if is_forged(&bytes[..]) {
                 *forged = true;
             } else if pb::MapVersion::decode(&*bytes).unwrap().version >= at_least {
-                return;
+                return true;
             }
         }
     };
-    let warmup = b_home.open_session("robot-1", "warm-up").await.unwrap();
-    await_version(warmup.map_version, &mut forged_version_delivered).await;
+    // New versions are made in process, so that making them does not depend on what the attack does to
+    // the robots' queries. The subscription reaches the server asynchronously: make versions until one
+    // arrives.
+    let store_2 = server.site("store-2").unwrap().clone();
+    let mut live = false;
+    for i in 0..40 {
+        let (_, version) = store_2
+            .open_session("robot-1", &format!("warm-up-{i}"))
+            .await
+            .unwrap();
+        if await_version(
+            version,
+            Duration::from_millis(500),
+            &mut forged_version_delivered,
+        )
+        .await
+        {
+            live = true;
+            break;
+        }
+    }
+    assert!(live, "store-2's publications never reached its robot");
 
-    // Robot A forges a version of store-2, then makes a round trip through the router: the router has
-    // handled the forgery (and queued it to B, if allowed) before it forwards anything later.
+    // Robot A2 makes a round trip through the router, so its queryable declaration is handled before
+    // anything later. Robot A forges a version of store-2, then makes a round trip through the router:
+    // the router has handled the forgery (and queued it to B, if allowed) before it forwards anything
+    // later.
+    ZenohUplink::with_session(robot_a2.clone(), "store-1", TOKEN_1, WAIT)
+        .map_version()
+        .await
+        .unwrap();
     robot_a
         .put(zenoh_version_key("store-2"), b"forged".to_vec())
         .await
         .unwrap();
     a_home.map_version().await.unwrap();
-    let mut stolen = ZenohUplink::with_session(robot_a.clone(), "store-2", TOKEN_2, REFUSED_WAIT);
-    let stolen_token = stolen
-        .open_session("robot-1", "stolen")
-        .await
-        .map(|o| o.map_version);
-    let mut own = ZenohUplink::with_session(robot_a.clone(), "store-2", TOKEN_1, REFUSED_WAIT);
-    let own_token = own.map_version().await;
-    let later = b_home.open_session("robot-1", "later").await.unwrap();
-    await_version(later.map_version, &mut forged_version_delivered).await;
+    let (_, later) = store_2.open_session("robot-1", "later").await.unwrap();
+    assert!(
+        await_version(later, WAIT, &mut forged_version_delivered).await,
+        "store-2's publication did not arrive"
+    );
 
     let store_2_read = b_home.map_version().await;
-    let store_2_version = server.site("store-2").unwrap().current().version;
+    let store_2_version = store_2.current().version;
+    drop(store_2);
     impostor_task.abort();
-    for session in [robot_a, robot_b] {
+    for session in [robot_a, robot_a2, robot_b] {
         session.close().await.unwrap();
     }
     server.shutdown().await.unwrap();
