@@ -1,7 +1,12 @@
 //! Disk full on a real size-limited filesystem (issue 16 §1): a tmpfs of a few MiB mounted for the test,
 //! filled by a filler file, under a [`SledStore`]. What sled does when its disk fills, checked rather
 //! than assumed: the failing write is reported as out of space, every batch acknowledged before is
-//! intact after reopening, and once space returns the store takes writes again.
+//! intact after reopening, and once space returns a reopened store takes writes again.
+//!
+//! Measured (2026-11-24, sled 0.34): the open store does NOT recover in place — after one failed flush
+//! sled refuses every later write with the same error even once space is back, until the database is
+//! reopened (the test prints which). The server and the agent therefore need a restart after a real
+//! disk fills; what they acknowledged before is intact.
 //!
 //! Mounting needs root (`CAP_SYS_ADMIN`), which CI containers may lack, so the test runs only with
 //! `EVERMAP_TMPFS_TESTS=1` (and then fails if it cannot mount); CI covers the same paths through

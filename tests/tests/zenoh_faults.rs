@@ -132,6 +132,10 @@ async fn the_robots_link_and_the_router_drop_mid_session_and_nothing_is_lost_or_
     robot_link.set_up(false);
     tokio::time::sleep(Duration::from_secs(2)).await;
     robot_link.set_up(true);
+    let link_back = std::time::Instant::now();
+    let at_link_back = server.site(SITE).unwrap().current().counts.nodes;
+    nodes_at_least(&server, at_link_back + 1).await;
+    let link_resumed_s = link_back.elapsed().as_secs_f64();
 
     // Later the router dies: its host vanishes from the network (both links cut at once), the process
     // is gone, and a new one with empty routing tables starts on the same port.
@@ -148,11 +152,15 @@ async fn the_robots_link_and_the_router_drop_mid_session_and_nothing_is_lost_or_
     zenohd = router(router_port).await;
     robot_link.set_up(true);
     server_link.set_up(true);
+    let router_back = std::time::Instant::now();
+    let at_router_back = server.site(SITE).unwrap().current().counts.nodes;
     assert!(
         !streaming.is_finished(),
         "the session ended during the router drop: pace it slower"
     );
 
+    nodes_at_least(&server, at_router_back + 1).await;
+    let router_resumed_s = router_back.elapsed().as_secs_f64();
     let (report, uploader) = bounded("streaming", streaming).await.unwrap();
     let report = report.unwrap();
     assert_eq!(report.left_in_outbox, 0, "the outbox drains: {report:?}");
@@ -185,7 +193,9 @@ async fn the_robots_link_and_the_router_drop_mid_session_and_nothing_is_lost_or_
     .await;
     assert_eq!(read, final_version);
     eprintln!(
-        "zenoh faults: {} nodes, {} batches, {} failed flushes, final version {final_version}",
+        "zenoh faults: {} nodes, {} batches, {} failed flushes, final version {final_version}; \
+         uploads resumed {link_resumed_s:.2} s after the link came back, {router_resumed_s:.2} s \
+         after the new router started",
         report.llo.nodes, report.batches, report.failed_flushes
     );
     server.shutdown().await.unwrap();
