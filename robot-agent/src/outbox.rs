@@ -36,6 +36,14 @@ pub enum OutboxError {
     },
 }
 
+impl OutboxError {
+    /// Whether the disk is full: the write failed, nothing of it was stored, and it may succeed once
+    /// space returns.
+    pub fn is_out_of_space(&self) -> bool {
+        matches!(self, Self::Storage(e) if e.is_out_of_space())
+    }
+}
+
 /// Batches not yet acknowledged by the server, for one site.
 #[derive(Clone)]
 pub struct Outbox {
@@ -72,6 +80,14 @@ impl Outbox {
             store: Arc::new(store),
             site: site.to_owned(),
         })
+    }
+
+    /// An outbox in `store` (e.g. a `storage::DiskFullStore` in tests) for `site`.
+    pub fn with_store(store: Arc<dyn MapStore>, site: &str) -> Self {
+        Self {
+            store,
+            site: site.to_owned(),
+        }
     }
 
     /// An outbox in memory (tests).

@@ -17,6 +17,7 @@ mod llo_stream;
 mod robot_glm;
 mod uploader;
 mod zenoh_link_options;
+mod zenoh_tls_options;
 mod zenoh_uplink;
 
 use std::future::Future;
@@ -39,6 +40,7 @@ pub use zenoh_link_options::{
     ZenohLinkOptions, ZenohLinkOptionsError, api_key as zenoh_api_key,
     version_key as zenoh_version_key,
 };
+pub use zenoh_tls_options::ZenohTlsOptions;
 pub use zenoh_uplink::ZenohUplink;
 
 /// Why an uplink call failed.
@@ -71,9 +73,13 @@ pub enum UplinkError {
 }
 
 impl UplinkError {
-    /// Whether retrying later can help.
+    /// Whether retrying later can help (a full outbox disk too: space may return).
     pub fn is_transient(&self) -> bool {
-        matches!(self, Self::Unavailable(_) | Self::SequenceGap { .. })
+        match self {
+            Self::Unavailable(_) | Self::SequenceGap { .. } => true,
+            Self::Outbox(e) => e.is_out_of_space(),
+            Self::Rejected { .. } | Self::Malformed(_) => false,
+        }
     }
 }
 

@@ -105,7 +105,7 @@ impl RunningServer {
         let sites = Arc::new(sites);
         let context = ApiContext {
             sites: Arc::clone(&sites),
-            auth: Arc::new(Auth::from_sites(&config.sites)),
+            auth: Arc::new(Auth::with_limits(&config.sites, &config.auth)),
             metrics: Arc::clone(&metrics),
             delta_chunk_bytes: config.delta_chunk_bytes,
         };

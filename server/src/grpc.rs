@@ -3,11 +3,13 @@
 
 mod agent_api;
 mod auth;
+mod auth_limiter;
 mod map_api;
 pub mod status;
 
 pub use agent_api::AgentApi;
 pub use auth::{Auth, Grant};
+pub use auth_limiter::{AuthLimitOptions, AuthLimitOptionsError, AuthLimiter};
 pub use map_api::{MapApi, version_to_pb};
 
 use std::collections::BTreeMap;
@@ -30,7 +32,8 @@ pub struct ApiContext {
 }
 
 impl ApiContext {
-    /// Checks the request's token against `site` and finds the site's task.
+    /// Checks the request's token against `site` (a peer failing too often is refused unchecked, see
+    /// [`AuthLimiter`]) and finds the site's task.
     pub fn site<T>(
         &self,
         request: &tonic::Request<T>,
@@ -38,7 +41,7 @@ impl ApiContext {
     ) -> Result<(&Grant, &SiteHandle), tonic::Status> {
         let grant = self
             .auth
-            .authorize(request.metadata(), site)
+            .authorize_from(request.metadata(), peer_ip(request), site, now())
             .map_err(|s| status::counted(&self.metrics, s))?;
         let handle = self.sites.get(site).ok_or_else(|| {
             status::counted(
@@ -48,4 +51,14 @@ impl ApiContext {
         })?;
         Ok((grant, handle))
     }
+}
+
+/// The request's TCP peer address (`None` through zenoh, whose requests are built in process).
+pub fn peer_ip<T>(request: &tonic::Request<T>) -> Option<std::net::IpAddr> {
+    request.remote_addr().map(|a| a.ip())
+}
+
+/// The clock of the failure counters (tokio's, so paused-time tests can move it).
+pub fn now() -> std::time::Instant {
+    tokio::time::Instant::now().into_std()
 }

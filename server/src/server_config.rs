@@ -13,6 +13,10 @@
 //! cert_pem = "/etc/evermap/server.pem"
 //! key_pem = "/etc/evermap/server.key"
 //!
+//! [auth]                             # optional: failed authentications per peer and site
+//! max_failures = 10                  # per window; then RESOURCE_EXHAUSTED unchecked; 0 = no limit
+//! window_s = 60.0
+//!
 //! [zenoh]                            # optional: the zenoh front end (agents' uplink, version pushes)
 //! listen = ["tcp/127.0.0.1:7447"]
 //!
@@ -33,6 +37,8 @@ use mapping::lifelong::LifelongOptions;
 use robot_agent::uplink::ZenohLinkOptions;
 use serde::Deserialize;
 use storage::SledStoreOptions;
+
+use crate::grpc::AuthLimitOptions;
 
 /// Invalid [`ServerConfig`].
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -117,9 +123,13 @@ pub struct ServerConfig {
     pub map: LifelongOptions,
     /// gRPC over TLS (rustls) with these certificates (TOML section `[tls]`: `cert_pem`, `key_pem`).
     /// Default none: plaintext gRPC, for loopback and private networks only. (The zenoh front end's links
-    /// are plain TCP; secure them with zenoh's own TLS in the routers.)
+    /// take mutual TLS from `[zenoh.tls]`.)
     pub tls: Option<TlsConfig>,
-    /// The zenoh front end (TOML section `[zenoh]`: `mode`, `listen`, `connect`, `multicast_scouting`; see
+    /// Limits on failed authentications per peer and site (TOML section `[auth]`: `max_failures`,
+    /// `window_s`, `max_tracked`; see `grpc::AuthLimitOptions`). Default 10 failures per 60 s.
+    pub auth: AuthLimitOptions,
+    /// The zenoh front end (TOML section `[zenoh]`: `mode`, `listen`, `connect`, `multicast_scouting`,
+    /// `[zenoh.tls]` for mutual TLS; see
     /// `robot_agent::uplink::ZenohLinkOptions`). Default none: gRPC only.
     pub zenoh: Option<ZenohLinkOptions>,
     /// The sites and their robots.
@@ -138,6 +148,7 @@ impl Default for ServerConfig {
             storage: SledStoreOptions::default(),
             map: LifelongOptions::default(),
             tls: None,
+            auth: AuthLimitOptions::default(),
             zenoh: None,
             sites: Vec::new(),
         }
@@ -187,6 +198,9 @@ impl ServerConfig {
         }
         if let Err(e) = self.storage.validate() {
             return invalid("storage", &e.to_string());
+        }
+        if let Err(e) = self.auth.validate() {
+            return invalid("auth", &e.to_string());
         }
         if let Some(Err(e)) = self.zenoh.as_ref().map(ZenohLinkOptions::validate) {
             return invalid("zenoh", &e.to_string());

@@ -13,6 +13,7 @@
 //!
 //! Implementations: [`SledStore`] (the server's, on disk) and [`MemStore`] (tests), which share one
 //! implementation of these semantics over a small private key-value interface and pass one conformance suite.
+//! [`DiskFullStore`] wraps either and runs out of space on demand (the disk-full tests).
 //!
 //! ```
 //! use storage::{BatchOutcome, MapStore as _, MemStore, RecordId, RecordKind, WriteBatch};
@@ -29,6 +30,7 @@
 
 #[cfg(test)]
 mod conformance;
+mod disk_full_store;
 mod envelope;
 mod key;
 mod map_store;
@@ -41,6 +43,7 @@ mod sled_store_options;
 mod storage_error;
 mod write_batch;
 
+pub use disk_full_store::{DiskFullStore, FailAt, out_of_space};
 pub use envelope::RECORD_FORMAT_VERSION;
 pub use map_store::{MapStore, RecordIter};
 pub use mem_store::MemStore;

@@ -116,3 +116,35 @@ pub enum StorageError {
     #[error("I/O error: {0}")]
     Io(#[from] std::io::Error),
 }
+
+impl StorageError {
+    /// Whether the disk is full (`ENOSPC`, also as sled reports it): a write failed for lack of space,
+    /// and may succeed once space returns. Nothing of a failed batch was stored.
+    pub fn is_out_of_space(&self) -> bool {
+        let (Self::Io(io) | Self::Sled(sled::Error::Io(io))) = self else {
+            return false;
+        };
+        io.kind() == std::io::ErrorKind::StorageFull || io.raw_os_error() == Some(ENOSPC)
+    }
+}
+
+/// Linux's "No space left on device".
+const ENOSPC: i32 = 28;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_full_disk_is_recognized_however_it_is_reported() {
+        let full = std::io::Error::from_raw_os_error(ENOSPC);
+        assert!(
+            StorageError::Io(std::io::Error::from(std::io::ErrorKind::StorageFull))
+                .is_out_of_space()
+        );
+        assert!(StorageError::Sled(sled::Error::Io(full)).is_out_of_space());
+        let denied = std::io::Error::from(std::io::ErrorKind::PermissionDenied);
+        assert!(!StorageError::Io(denied).is_out_of_space());
+        assert!(!StorageError::SiteNotFound { site: "a".into() }.is_out_of_space());
+    }
+}

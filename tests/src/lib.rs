@@ -1,11 +1,14 @@
 //! # tests — evermap's end-to-end tests
 //!
-//! Shared helpers for the integration tests under `tests/tests/`, and the decoder fuzz harness ([`fuzz`],
+//! Shared helpers for the integration tests under `tests/tests/` ([`CuttableLink`], [`free_port`]), and the decoder fuzz harness ([`fuzz`],
 //! run by the `evermap-fuzz` binary and by `tests/tests/fuzz_decoders.rs`).
 
 use std::path::PathBuf;
 
+mod cuttable_link;
 pub mod fuzz;
+
+pub use cuttable_link::CuttableLink;
 
 /// The shared data sets folder, `../shared/datasets` next to the repository root. Found by walking up from
 /// this crate, so that it works from the main checkout (`/work/main`) and from worktrees one level deeper
@@ -18,4 +21,13 @@ pub fn datasets_dir() -> PathBuf {
         .map(|dir| dir.join("shared/datasets"))
         .find(|dir| dir.is_dir())
         .unwrap_or_else(|| manifest.join("../../shared/datasets"))
+}
+
+/// A loopback TCP port free right now (bound, then released), for zenoh endpoints that cannot take
+/// port 0. Another process could take it in between; tests on a shared machine prefer that small risk
+/// to fixed ports that collide.
+pub fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .map_or(0, |a| a.port())
 }

@@ -716,44 +716,6 @@ async fn reflection_lists_the_fleet_services() {
     server.shutdown().await.unwrap();
 }
 
-/// A loopback TCP forwarder in front of the server whose link can be cut (open connections dropped, new
-/// ones refused) and restored: a robot losing Wi-Fi between aisles.
-struct CuttableLink {
-    addr: std::net::SocketAddr,
-    up: tokio::sync::watch::Sender<bool>,
-    task: tokio::task::JoinHandle<()>,
-}
-
-impl CuttableLink {
-    async fn start(upstream: std::net::SocketAddr) -> Self {
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-        let addr = listener.local_addr().unwrap();
-        let (up, state) = tokio::sync::watch::channel(true);
-        let task = tokio::spawn(async move {
-            while let Ok((mut inbound, _)) = listener.accept().await {
-                if !*state.borrow() {
-                    continue; // dropped: the connection is refused
-                }
-                let mut state = state.clone();
-                tokio::spawn(async move {
-                    let Ok(mut outbound) = tokio::net::TcpStream::connect(upstream).await else {
-                        return;
-                    };
-                    tokio::select! {
-                        _ = tokio::io::copy_bidirectional(&mut inbound, &mut outbound) => {}
-                        _ = state.wait_for(|up| !*up) => {} // the cut drops open connections
-                    }
-                });
-            }
-        });
-        Self { addr, up, task }
-    }
-
-    fn set_up(&self, up: bool) {
-        self.up.send_replace(up);
-    }
-}
-
 // Reference: issue 4 §7 "an agent loses the link for a while and keeps mapping, then reconnects: every
 // submap and constraint arrives exactly once; it catches up by delta".
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -763,9 +725,11 @@ async fn an_agent_that_loses_the_link_keeps_mapping_and_everything_arrives_once(
     let server = RunningServer::start(&config(), Arc::new(MemStore::new()))
         .await
         .unwrap();
-    let link = CuttableLink::start(server.grpc_addr()).await;
+    let link = tests::CuttableLink::start(server.grpc_addr())
+        .await
+        .unwrap();
     let uplink = GrpcUplink::new(
-        &format!("http://{}", link.addr),
+        &format!("http://{}", link.addr()),
         SITE,
         TOKEN,
         16 << 20,
@@ -840,7 +804,7 @@ async fn an_agent_that_loses_the_link_keeps_mapping_and_everything_arrives_once(
         cached,
         site.delta_since(0).await.unwrap().submaps_added.len()
     );
-    link.task.abort();
+    drop(link);
     server.shutdown().await.unwrap();
 }
 

@@ -93,7 +93,8 @@ pub struct AgentConfig {
     /// The server name in its certificate, when it differs from `server_url`'s host. Default none.
     pub tls_domain: Option<String>,
     /// Reach the server through zenoh with these settings (`[zenoh]`: `mode`, `listen`, `connect`,
-    /// `multicast_scouting`) instead of gRPC at `server_url`. Default none: gRPC.
+    /// `multicast_scouting`, and `[zenoh.tls]` for mutual TLS) instead of gRPC at `server_url`.
+    /// Default none: gRPC.
     pub zenoh: Option<ZenohLinkOptions>,
 }
 

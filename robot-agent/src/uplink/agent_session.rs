@@ -73,7 +73,8 @@ pub struct SessionReport {
     pub applied: usize,
     /// Site version after the last acknowledgement.
     pub map_version: u64,
-    /// Batches still in the outbox at the end (0 unless the final flush timed out).
+    /// Batches still in the outbox (or held in memory while its disk was full) at the end (0 unless
+    /// the final flush timed out).
     pub left_in_outbox: usize,
 }
 
@@ -380,7 +381,8 @@ pub async fn stream_session<U: MapUplink>(
             Ok(stats) => {
                 report.applied += stats.applied;
                 report.map_version = stats.map_version;
-                Ok(false)
+                // Batches the full outbox disk could not take yet are a backlog too.
+                Ok(uploader.unstored() > 0)
             }
             Err(e) if e.is_transient() => {
                 report.failed_flushes += 1;
@@ -554,7 +556,8 @@ pub async fn stream_session<U: MapUplink>(
         }
         tokio::time::sleep(options.retry_interval).await;
     }
-    report.left_in_outbox = uploader.outbox().len().map_err(UplinkError::from)?;
+    report.left_in_outbox =
+        uploader.outbox().len().map_err(UplinkError::from)? + uploader.unstored();
     Ok((report, trace))
 }
 

@@ -9,13 +9,22 @@
 //! The [`Uploader`] of the new session therefore first delivers what the outbox still holds of every
 //! other unfinished session (see [`crate::outbox`]) and ends each one with `CloseSession` (unless its
 //! own `SessionEnd` was delivered), before any batch of its own session.
+//!
+//! A full disk does not end the session: a batch the outbox cannot store (`ENOSPC`) is kept in memory,
+//! numbered, and stored — then sent — once the disk has room again (at most
+//! [`MAX_UNSTORED_BATCHES`]; past that the session fails with the storage error). Such a batch is not
+//! durable: it would die with the process, which is all a full disk leaves.
 
-use std::collections::BTreeSet;
+use std::collections::{BTreeSet, VecDeque};
 
 use proto::{FORMAT_VERSION, UploadItem, pb};
 
 use super::{MapUplink, UplinkError};
 use crate::outbox::Outbox;
+
+/// Batches kept in memory while the outbox's disk is full, at most (about as many minutes of mapping
+/// at the default batch size and scan rate).
+pub const MAX_UNSTORED_BATCHES: usize = 1024;
 
 /// What one [`Uploader::flush`] did.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -67,6 +76,10 @@ pub struct Uploader<U> {
     opened: BTreeSet<String>,
     last_version: u64,
     trajectory: Option<u32>,
+    /// Batches made while the outbox's disk was full, in sequence order, not yet stored.
+    unstored: VecDeque<pb::UploadBatch>,
+    /// The last outbox write failed for lack of space.
+    outbox_full: bool,
 }
 
 impl<U: MapUplink> Uploader<U> {
@@ -90,6 +103,8 @@ impl<U: MapUplink> Uploader<U> {
             opened: BTreeSet::new(),
             last_version: 0,
             trajectory: None,
+            unstored: VecDeque::new(),
+            outbox_full: false,
         })
     }
 
@@ -118,7 +133,42 @@ impl<U: MapUplink> Uploader<U> {
         self.last_version
     }
 
-    /// Makes a batch of `items` with the next sequence number and stores it in the outbox (durably).
+    /// Batches kept in memory because the outbox's disk was full.
+    pub fn unstored(&self) -> usize {
+        self.unstored.len()
+    }
+
+    /// Stores the batches kept in memory, in order, as far as the disk allows. `Err` on any other
+    /// storage failure, or when more than [`MAX_UNSTORED_BATCHES`] are waiting.
+    fn store_unstored(&mut self) -> Result<(), UplinkError> {
+        while let Some(batch) = self.unstored.front() {
+            match self.outbox.push(batch) {
+                Ok(()) => {
+                    self.unstored.pop_front();
+                }
+                Err(e) if e.is_out_of_space() && self.unstored.len() <= MAX_UNSTORED_BATCHES => {
+                    if !self.outbox_full {
+                        self.outbox_full = true;
+                        tracing::warn!(
+                            session = %self.session_uuid, seq = batch.seq,
+                            "the outbox cannot store a batch ({e}): keeping batches in memory (at \
+                             most {MAX_UNSTORED_BATCHES}) until the disk has room"
+                        );
+                    }
+                    return Ok(());
+                }
+                Err(e) => return Err(e.into()),
+            }
+        }
+        if self.outbox_full {
+            self.outbox_full = false;
+            tracing::info!(session = %self.session_uuid, "the outbox has room again");
+        }
+        Ok(())
+    }
+
+    /// Makes a batch of `items` with the next sequence number and stores it in the outbox (durably) —
+    /// or, while the outbox's disk is full, keeps it in memory (see the module docs).
     pub fn enqueue(&mut self, items: &[UploadItem]) -> Result<u64, UplinkError> {
         let seq = self.next_seq;
         let batch = pb::UploadBatch {
@@ -129,8 +179,9 @@ impl<U: MapUplink> Uploader<U> {
             seq,
             items: items.iter().map(pb::UploadItem::from).collect(),
         };
-        self.outbox.push(&batch)?;
+        self.unstored.push_back(batch);
         self.next_seq += 1;
+        self.store_unstored()?;
         Ok(seq)
     }
 
@@ -138,6 +189,7 @@ impl<U: MapUplink> Uploader<U> {
     /// what the server already has). Stops at the first failure; a transient one ([`UplinkError::is_transient`])
     /// leaves everything in the outbox for the next flush.
     pub async fn flush(&mut self) -> Result<FlushStats, UplinkError> {
+        self.store_unstored()?;
         let result = self.try_flush().await;
         if result.is_err() {
             self.opened.clear();
@@ -451,5 +503,74 @@ mod tests {
         server.clone().open_session("r", "new").await.unwrap();
         server.close_as_server("new");
         assert!(!second.flush().await.unwrap_err().is_transient());
+    }
+
+    /// Issue 16 §1, disk full on the agent: batches made while the outbox cannot store them are kept
+    /// in memory, the session goes on, and once space returns every batch reaches the server exactly
+    /// once, in order — whether the full disk fails the write or only its flush.
+    #[tokio::test]
+    async fn a_full_outbox_disk_keeps_the_session_going_and_loses_nothing() {
+        use std::sync::Arc;
+
+        use storage::{DiskFullStore, FailAt, MemStore};
+
+        for fail_at in [FailAt::Apply, FailAt::Flush] {
+            let server = InMemoryUplink::new("s");
+            let disk = Arc::new(DiskFullStore::new(Arc::new(MemStore::new()), fail_at));
+            let outbox = Outbox::with_store(Arc::clone(&disk) as Arc<dyn storage::MapStore>, "s");
+            let mut uploader = Uploader::new(server.clone(), outbox, "s", "r", "sess").unwrap();
+            uploader.enqueue(&items(1)).unwrap();
+            uploader.flush().await.unwrap();
+            disk.fill();
+            for i in 2..=4 {
+                uploader.enqueue(&items(i)).unwrap();
+                assert_eq!(uploader.unstored(), (i - 1) as usize, "{fail_at:?}");
+                // Whatever reaches the server meanwhile is acknowledged; nothing is lost.
+                if let Err(e) = uploader.flush().await {
+                    assert!(e.is_transient(), "{fail_at:?}: {e}");
+                }
+            }
+            uploader.enqueue(&end_batch(5)).unwrap();
+            assert!(disk.failures() > 0, "{fail_at:?}: the full disk was felt");
+            disk.free();
+            let mut rounds = 0;
+            while uploader.unstored() > 0 || !uploader.outbox().is_empty().unwrap() {
+                rounds += 1;
+                assert!(rounds <= 5, "{fail_at:?}: the outbox does not drain");
+                uploader.flush().await.unwrap();
+            }
+            let seqs: Vec<u64> = server.applied().iter().map(|b| b.seq).collect();
+            assert_eq!(
+                seqs,
+                [1, 2, 3, 4, 5],
+                "{fail_at:?}: each batch once, in order"
+            );
+            assert!(
+                uploader.outbox().unfinished_sessions().unwrap().is_empty(),
+                "{fail_at:?}: the session's end was delivered"
+            );
+        }
+    }
+
+    #[tokio::test]
+    async fn another_outbox_failure_still_ends_the_session() {
+        use std::sync::Arc;
+
+        use storage::{DiskFullStore, FailAt, MemStore};
+
+        // More than MAX_UNSTORED_BATCHES waiting: the storage error is returned, not swallowed.
+        let server = InMemoryUplink::new("s");
+        let disk = Arc::new(DiskFullStore::new(Arc::new(MemStore::new()), FailAt::Apply));
+        let outbox = Outbox::with_store(Arc::clone(&disk) as Arc<dyn storage::MapStore>, "s");
+        let mut uploader = Uploader::new(server, outbox, "s", "r", "sess").unwrap();
+        disk.fill();
+        for i in 0..MAX_UNSTORED_BATCHES {
+            uploader.enqueue(&items(i as i64)).unwrap();
+        }
+        let error = uploader.enqueue(&items(-1)).unwrap_err();
+        assert!(
+            matches!(&error, UplinkError::Outbox(e) if e.is_out_of_space()),
+            "{error}"
+        );
     }
 }

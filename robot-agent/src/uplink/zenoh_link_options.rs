@@ -3,6 +3,8 @@
 
 use serde::Deserialize;
 
+use super::ZenohTlsOptions;
+
 /// Key expression of a site's request/reply queryable (the uplink and map reads).
 pub fn api_key(site: &str) -> String {
     format!("evermap/{site}/api")
@@ -27,6 +29,9 @@ pub struct ZenohLinkOptions {
     /// Discover peers and routers by UDP multicast on the LAN. Default false: endpoints are explicit, which
     /// is what a store network with several fleets (and a CI machine) needs.
     pub multicast_scouting: bool,
+    /// Mutual TLS on `tls/...` endpoints (TOML section `[zenoh.tls]`: `root_ca_pem`, `cert_pem`,
+    /// `key_pem`). Default none: `tcp/...` endpoints only.
+    pub tls: Option<ZenohTlsOptions>,
 }
 
 impl Default for ZenohLinkOptions {
@@ -36,6 +41,7 @@ impl Default for ZenohLinkOptions {
             listen: Vec::new(),
             connect: Vec::new(),
             multicast_scouting: false,
+            tls: None,
         }
     }
 }
@@ -72,6 +78,17 @@ impl ZenohLinkOptions {
                     .into(),
             });
         }
+        let tls_endpoint = self
+            .listen
+            .iter()
+            .chain(&self.connect)
+            .find(|e| e.starts_with("tls/"));
+        if let (Some(endpoint), None) = (tls_endpoint, &self.tls) {
+            return Err(ZenohLinkOptionsError {
+                field: "tls",
+                reason: format!("endpoint {endpoint:?} needs the certificates of [zenoh.tls]"),
+            });
+        }
         Ok(())
     }
 
@@ -81,7 +98,7 @@ impl ZenohLinkOptions {
         self.validate()?;
         let mut config = zenoh::Config::default();
         let json = |v: serde_json::Result<String>| v.unwrap_or_default();
-        let entries: [(&'static str, String); 5] = [
+        let mut entries: Vec<(&'static str, String)> = vec![
             ("mode", json(serde_json::to_string(&self.mode))),
             (
                 "listen/endpoints",
@@ -100,6 +117,9 @@ impl ZenohLinkOptions {
                 self.multicast_scouting.to_string(),
             ),
         ];
+        if let Some(tls) = &self.tls {
+            entries.extend(tls.entries()?);
+        }
         for (key, value) in entries {
             config
                 .insert_json5(key, &value)
@@ -130,6 +150,23 @@ mod tests {
             ..options.clone()
         };
         assert_eq!(bad_mode.validate().unwrap_err().field, "mode");
+        let tls_without_certificates = ZenohLinkOptions {
+            connect: vec!["tls/127.0.0.1:7447".into()],
+            ..ZenohLinkOptions::default()
+        };
+        assert_eq!(
+            tls_without_certificates.validate().unwrap_err().field,
+            "tls"
+        );
+        let with_certificates = ZenohLinkOptions {
+            tls: Some(ZenohTlsOptions {
+                root_ca_pem: "ca.pem".into(),
+                cert_pem: "robot.pem".into(),
+                key_pem: "robot.key".into(),
+            }),
+            ..tls_without_certificates
+        };
+        assert!(with_certificates.to_zenoh_config().is_ok());
         let bad_endpoint = ZenohLinkOptions {
             connect: vec!["not an endpoint".into()],
             ..options

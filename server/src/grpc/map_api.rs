@@ -54,12 +54,10 @@ impl pb::map_service_server::MapService for MapApi {
         request: Request<pb::ListSitesRequest>,
     ) -> Result<Response<pb::ListSitesResponse>, Status> {
         let c = &self.context;
-        let grant = c.auth.grant(request.metadata()).ok_or_else(|| {
-            status::counted(
-                &c.metrics,
-                Status::unauthenticated("missing or unknown token"),
-            )
-        })?;
+        let grant = c
+            .auth
+            .grant_from(request.metadata(), super::peer_ip(&request), super::now())
+            .map_err(|s| status::counted(&c.metrics, s))?;
         let sites = c
             .sites
             .get(&grant.site)

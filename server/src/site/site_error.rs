@@ -37,7 +37,9 @@ pub enum SiteError {
     /// A requested version or revision does not exist.
     #[error("{0}")]
     NotFound(String),
-    /// Storage failed; nothing was applied.
+    /// Storage failed (a full disk included): the request was not acknowledged; retry it. Either
+    /// nothing was applied, or the change is applied but not yet durable and a retry acknowledges it
+    /// once a flush succeeds (it is never applied twice).
     #[error("storage: {0}")]
     Storage(#[from] storage::StorageError),
     /// A stored log entry cannot be decoded or replayed.

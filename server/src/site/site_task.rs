@@ -16,6 +16,12 @@
 //! robot's silence). A robot that comes back later finds its session closed: its remaining batches are
 //! refused (`SessionClosed`), so the timeout must be longer than the link outages robots are expected
 //! to ride out with their outbox.
+//!
+//! A full disk (or any storage failure) is a refusal, never a half-applied change: a write that fails
+//! stores nothing and leaves the map as it was. A write the store applied but could not flush (a
+//! log-structured store whose flush hits the full disk) is applied to the map too — the map always
+//! equals the stored log — but neither acknowledged nor published until a later flush succeeds: the
+//! robot's retry is then a duplicate, acknowledged once the task has flushed.
 
 use std::collections::BTreeMap;
 use std::sync::Arc;
@@ -70,6 +76,8 @@ pub struct SiteTask {
     session_idle_timeout: Option<Duration>,
     /// When each open session was last heard of.
     last_heard: BTreeMap<String, tokio::time::Instant>,
+    /// A stored change could not be flushed yet: nothing is acknowledged or published until one is.
+    unflushed: bool,
 }
 
 fn internal(e: impl std::fmt::Display) -> SiteError {
@@ -118,6 +126,7 @@ impl SiteTask {
             metrics,
             session_idle_timeout: task_options.session_idle_timeout,
             last_heard,
+            unflushed: false,
         };
         let join = tokio::spawn(task.run(commands_rx));
         Ok((SiteHandle::new(site, commands, versions_rx), join))
@@ -255,9 +264,12 @@ impl SiteTask {
             .map_or_else(String::new, |m| m.site().to_owned())
     }
 
-    /// Writes log entry `version` durably, with the version bump and the session's sequence number.
+    /// Writes log entry `version` with the version bump and the session's sequence number, and flushes
+    /// it. A failed write stores nothing (`Err`); a write applied but not flushed is `Ok` with
+    /// [`Self::unflushed`] set: the caller applies it to the map, and [`Self::durable`] refuses to
+    /// acknowledge it until a flush succeeds.
     async fn persist(
-        &self,
+        &mut self,
         version: u64,
         entry: pb::site_log_entry::Entry,
         session_seq: Option<(String, u64)>,
@@ -274,15 +286,42 @@ impl SiteTask {
             batch.for_session(session, seq);
         }
         let store = Arc::clone(&self.store);
-        let outcome = tokio::task::spawn_blocking(move || store.apply_durable(&batch))
+        let (outcome, flushed) =
+            tokio::task::spawn_blocking(move || store.apply(&batch).map(|o| (o, store.flush())))
+                .await
+                .map_err(internal)??;
+        match outcome {
+            BatchOutcome::Applied { map_version } if map_version == version => {}
+            other => {
+                return Err(SiteError::Internal(format!(
+                    "store disagrees on the site version: expected to write {version}, got {other:?}"
+                )));
+            }
+        }
+        if let Err(e) = flushed {
+            tracing::warn!(
+                site = %self.site(), version,
+                "change stored but not durable ({e}): not acknowledged until a flush succeeds"
+            );
+            self.unflushed = true;
+        }
+        Ok(())
+    }
+
+    /// Flushes a change [`Self::persist`] could not; `Err` while the store still cannot (nothing may
+    /// be acknowledged or published before), and publishes the version once it can.
+    async fn durable(&mut self) -> Result<(), SiteError> {
+        if !self.unflushed {
+            return Ok(());
+        }
+        let store = Arc::clone(&self.store);
+        tokio::task::spawn_blocking(move || store.flush())
             .await
             .map_err(internal)??;
-        match outcome {
-            BatchOutcome::Applied { map_version } if map_version == version => Ok(()),
-            other => Err(SiteError::Internal(format!(
-                "store disagrees on the site version: expected to write {version}, got {other:?}"
-            ))),
-        }
+        self.unflushed = false;
+        tracing::info!(site = %self.site(), "stored changes are durable again");
+        self.publish();
+        Ok(())
     }
 
     /// Runs `f` on the map on the blocking pool and puts the map back.
@@ -321,6 +360,7 @@ impl SiteTask {
         storage::validate_session_id(session_uuid)?;
         let opened = self.map()?.check_open(robot_id, session_uuid)?;
         if !opened.created {
+            self.durable().await?;
             return Ok((opened, self.map()?.version()));
         }
         let version = self.map()?.version() + 1;
@@ -338,6 +378,7 @@ impl SiteTask {
             map.open_session(robot_id, session_uuid, opened.trajectory, version)?;
         }
         self.metrics.session_opened();
+        self.durable().await?;
         self.publish();
         Ok((opened, version))
     }
@@ -345,10 +386,11 @@ impl SiteTask {
     async fn upload(&mut self, batch: UploadBatch) -> Result<UploadAck, SiteError> {
         let map = self.map()?;
         if let UploadCheck::Duplicate { .. } = map.check_upload(&batch)? {
+            self.durable().await?;
             self.metrics.upload_duplicate();
             return Ok(UploadAck {
                 seq: batch.seq,
-                map_version: map.version(),
+                map_version: self.map()?.version(),
                 duplicate: true,
             });
         }
@@ -382,6 +424,7 @@ impl SiteTask {
         if self.map()?.is_closed(&session) {
             self.last_heard.remove(&session);
         }
+        self.durable().await?;
         self.publish();
         Ok(UploadAck {
             seq,
@@ -398,7 +441,8 @@ impl SiteTask {
         let map = self.map()?;
         map.check_open(robot_id, session_uuid)?;
         if map.is_closed(session_uuid) {
-            return Ok(map.version());
+            self.durable().await?;
+            return Ok(self.map()?.version());
         }
         if map.check_open(robot_id, session_uuid)?.created {
             return Err(SiteError::UnknownSession(session_uuid.to_owned()));
@@ -418,6 +462,7 @@ impl SiteTask {
             .await??;
         self.last_heard.remove(session_uuid);
         self.metrics.record_pgr(started.elapsed());
+        self.durable().await?;
         self.publish();
         Ok(version)
     }
