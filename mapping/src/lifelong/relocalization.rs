@@ -468,16 +468,23 @@ impl StartSearch {
         let Some(found) = self.relocalize(&cloud) else {
             return RelocalizationOutcome::NotFound;
         };
-        if let (Some(runner_up_score), Some(runner_up_pose)) =
-            (found.runner_up_score, found.runner_up_pose)
-            && runner_up_score >= found.score - self.options.min_score_margin
-        {
-            let offset = found.pose.inverse() * runner_up_pose;
-            return RelocalizationOutcome::Ambiguous {
-                score: found.score,
-                runner_up_score,
-                runner_up_from_best: [offset.translation.x, offset.translation.y, offset.theta()],
-            };
+        let rivals = [
+            found.runner_up_pose.zip(found.runner_up_score),
+            found.unrefined_bound,
+        ];
+        for (runner_up_pose, runner_up_score) in rivals.into_iter().flatten() {
+            if runner_up_score >= found.score - self.options.min_score_margin {
+                let offset = found.pose.inverse() * runner_up_pose;
+                return RelocalizationOutcome::Ambiguous {
+                    score: found.score,
+                    runner_up_score,
+                    runner_up_from_best: [
+                        offset.translation.x,
+                        offset.translation.y,
+                        offset.theta(),
+                    ],
+                };
+            }
         }
         RelocalizationOutcome::Found(SessionRelocalization {
             global_from_local: self.sharpen(&cloud, &found.pose) * first_from_local,
@@ -496,6 +503,7 @@ impl StartSearch {
         let Some(found) = self.relocalize(&cloud) else {
             return RelocalizationOutcome::NotFound;
         };
+        let unrefined_bound = found.unrefined_bound;
         // Candidates found on the max-filtered map are only known to within the tolerance; compare them
         // refined on the unfiltered map, where a pillar's or an aisle end's points tell most.
         let candidates: Vec<(Rigid2, f32)> = distinct(found.candidates)
@@ -505,6 +513,17 @@ impl StartSearch {
         let Some(&(best_pose, best_score)) = candidates.first() else {
             return RelocalizationOutcome::NotFound;
         };
+        // Peaks the coarse search left out cannot be tested pairwise: they must trail by the margin.
+        if let Some((pose, bound)) = unrefined_bound
+            && bound >= best_score - self.options.min_score_margin
+        {
+            let offset = best_pose.inverse() * pose;
+            return RelocalizationOutcome::Ambiguous {
+                score: best_score,
+                runner_up_score: bound,
+                runner_up_from_best: [offset.translation.x, offset.translation.y, offset.theta()],
+            };
+        }
         let grid = self.sharp.as_ref().unwrap_or(self.relocalizer.fine_grid());
         let weakest = candidates[1..]
             .iter()

@@ -127,6 +127,12 @@ pub struct Relocalization {
     /// Every refined candidate reaching `min_score`, `(pose before least squares, fine score)`, best
     /// first (several may belong to one peak; see [`clearly_different`]).
     pub candidates: Vec<(Rigid2, f32)>,
+    /// When the coarse search returned `max_candidates` peaks (the list was full, so peaks may have been
+    /// left out): the lowest coarse score among them and its pose. A coarse cell holds the most probable
+    /// of its fine cells, so no peak left out can score above this at full resolution either (up to the
+    /// rotation step): a rival no search refined is bounded by it. `None` when every coarse peak reaching
+    /// `coarse_min_score` was refined.
+    pub unrefined_bound: Option<(Rigid2, f32)>,
 }
 
 /// A map prepared for relocalization: coarse and fine branch-and-bound matchers over it. Immutable and
@@ -258,6 +264,9 @@ impl Relocalizer {
         if candidates.is_empty() {
             return None;
         }
+        let unrefined_bound = (candidates.len() >= o.max_candidates)
+            .then(|| candidates.last().map(|c| (c.pose, c.score)))
+            .flatten();
         // One coarse cell (plus a fine cell) and one coarse rotation step around each candidate.
         let max_range = points
             .iter()
@@ -296,6 +305,7 @@ impl Relocalizer {
             runner_up_score: runner_up.map(|r| r.1),
             runner_up_pose: runner_up.map(|r| r.0),
             candidates: found_all,
+            unrefined_bound,
         })
     }
 }
