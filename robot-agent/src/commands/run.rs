@@ -23,6 +23,16 @@
 //! # Optional: reach the server through zenoh (routers or its zenoh endpoint) instead of gRPC.
 //! [zenoh]
 //! connect = ["tcp/127.0.0.1:7447"]
+//!
+//! # Optional, instead of `source`: a live ROS 2 robot over zenoh (rmw_zenoh, no ROS install); the
+//! # session ends `until_idle_s` after the last scan. Each new site map version is published back on
+//! # /map (`[ros2.publish]`). See `robot_agent::source::Ros2LiveOptions` for every field.
+//! [ros2]
+//! domain_id = 0
+//! scan_topic = "/scan"
+//! odom_topic = "/odom"
+//! [ros2.zenoh]
+//! connect = ["tcp/127.0.0.1:7447"]   # the robot's rmw_zenoh router
 //! ```
 
 use std::fmt::Write as _;
@@ -36,10 +46,12 @@ use mapping::lifelong::RelocalizationOptions;
 use mapping::local_slam::LocalTrajectoryBuilderOptions;
 use rand::RngCore as _;
 use robot_agent::outbox::Outbox;
-use robot_agent::source;
+use robot_agent::ros2_publisher::Ros2Publisher;
+use robot_agent::source::{self, LiveRos2Source, Ros2LiveOptions};
 use robot_agent::uplink::{
-    ClientTls, FleetUplink, GlobalSubmapCache, GrpcUplink, MapUplink as _, SessionOptions,
-    SessionStart, Uploader, ZenohLinkOptions, ZenohUplink, follow_site, stream_session,
+    ClientTls, FleetUplink, GlobalSubmapCache, GrpcUplink, MapUplink as _, SessionInput,
+    SessionOptions, SessionStart, Uploader, ZenohLinkOptions, ZenohUplink, follow_site,
+    stream_session_from,
 };
 use serde::Deserialize;
 
@@ -64,8 +76,10 @@ pub struct AgentConfig {
     /// This robot's bearer token for the site. Required.
     pub token: String,
     /// The recording to replay: a ROS1 bag, a ROS 2 recording (rosbag2 folder, `metadata.yaml`, `.mcap`
-    /// or `.db3`) or a CARMEN log. Required.
+    /// or `.db3`) or a CARMEN log. Required unless `[ros2]` is given.
     pub source: PathBuf,
+    /// A live ROS 2 robot over zenoh instead of `source` (`[ros2]`). Default none.
+    pub ros2: Option<Ros2LiveOptions>,
     /// Replay pace as a multiple of real time; 0 = as fast as possible. Default 1.
     pub replay_speed: f64,
     /// Stop after this many scans (all by default).
@@ -118,6 +132,7 @@ impl Default for AgentConfig {
             tls_ca_pem: None,
             tls_domain: None,
             zenoh: None,
+            ros2: None,
         }
     }
 }
@@ -139,7 +154,19 @@ impl AgentConfig {
         ] {
             anyhow::ensure!(!value.is_empty(), "{name} is required");
         }
-        anyhow::ensure!(!self.source.as_os_str().is_empty(), "source is required");
+        match &self.ros2 {
+            Some(ros2) => {
+                anyhow::ensure!(
+                    self.source.as_os_str().is_empty(),
+                    "give either source (a recording) or [ros2] (a live robot), not both"
+                );
+                ros2.validate()?;
+            }
+            None => anyhow::ensure!(
+                !self.source.as_os_str().is_empty(),
+                "source is required (or a [ros2] section for a live robot)"
+            ),
+        }
         anyhow::ensure!(
             self.replay_speed.is_finite() && self.replay_speed >= 0.0,
             "replay_speed must be ≥ 0"
@@ -193,10 +220,21 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let config: AgentConfig =
         toml::from_str(&text).with_context(|| format!("in {}", args.config.display()))?;
     config.validate()?;
-    let recording = Arc::new(
-        source::read_recording(&config.source)
-            .with_context(|| format!("cannot read {}", config.source.display()))?,
-    );
+    let (input, live_session) = match &config.ros2 {
+        Some(ros2) => {
+            let live = LiveRos2Source::open(ros2, ros2.stream_end())?;
+            let session = live.session().clone();
+            let input = SessionInput::Live(Box::new(live));
+            (input, Some((session, ros2.clone())))
+        }
+        None => (
+            SessionInput::Recording(Arc::new(
+                source::read_recording(&config.source)
+                    .with_context(|| format!("cannot read {}", config.source.display()))?,
+            )),
+            None,
+        ),
+    };
     let outbox = Outbox::open(&config.outbox_dir, &config.site)
         .with_context(|| format!("cannot open the outbox at {}", config.outbox_dir.display()))?;
     let session_uuid = config.session_uuid.clone().unwrap_or_else(random_uuid);
@@ -283,8 +321,15 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
             relocalization: RelocalizationOptions::default(),
             session_start: mapping::lifelong::SessionStartOptions::default(),
         };
+        let map_publisher =
+            match live_session {
+                Some((session, ros2)) if ros2.publish.enabled => Some(tokio::spawn(
+                    publish_site_maps(session, ros2, Arc::clone(&cache), stop.subscribe()),
+                )),
+                _ => None,
+            };
         let (report, trace) =
-            stream_session(recording, &options, &mut uploader, Some(start)).await?;
+            stream_session_from(input, &options, &mut uploader, Some(start)).await?;
         tracing::info!(
             relocalized = trace.prior.is_some(),
             score = trace.score,
@@ -294,6 +339,13 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         );
         let _ = stop.send(true);
         let _ = follower.await;
+        if let Some(task) = map_publisher {
+            match task.await {
+                Ok(Ok(maps)) => tracing::info!(maps, "site map versions published on ROS 2"),
+                Ok(Err(e)) => tracing::warn!("ROS 2 map publisher: {e:#}"),
+                Err(e) => tracing::warn!("ROS 2 map publisher task: {e}"),
+            }
+        }
         let (version, submaps) = cache
             .lock()
             .map(|c| (c.version(), c.submaps().len()))
@@ -318,6 +370,79 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         );
         anyhow::Ok(())
     })
+}
+
+/// With `[ros2]`: publishes the site map on ROS 2 (`nav_msgs/msg/OccupancyGrid`, see
+/// `robot_agent::ros2_publisher`) each time the cache reaches a new version, until `stop`. Returns the
+/// number of versions published.
+async fn publish_site_maps(
+    session: zenoh::Session,
+    ros2: Ros2LiveOptions,
+    cache: Arc<Mutex<GlobalSubmapCache>>,
+    mut stop: tokio::sync::watch::Receiver<bool>,
+) -> anyhow::Result<u64> {
+    let publisher = {
+        let (session, ros2) = (session.clone(), ros2.clone());
+        tokio::task::spawn_blocking(move || {
+            Ros2Publisher::open(&session, ros2.domain_id, &ros2.publish)
+        })
+        .await??
+    };
+    let publisher = Arc::new(Mutex::new(publisher));
+    let mut published_version = 0;
+    let mut maps = 0;
+    let mut tick = tokio::time::interval(Duration::from_millis(500));
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tokio::select! {
+            _ = tick.tick() => {}
+            _ = stop.changed() => return Ok(maps),
+        }
+        let version = cache.lock().map_or(0, |c| c.version());
+        let (cache, publisher) = (Arc::clone(&cache), Arc::clone(&publisher));
+        let resolution = ros2.publish.map_resolution_m;
+        let stamp = mapping::sensor::Timestamp(
+            std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX)),
+        );
+        let fresh = version > published_version;
+        tokio::task::spawn_blocking(move || {
+            let Ok(mut publisher) = publisher.lock() else {
+                return;
+            };
+            if fresh {
+                let grids: Vec<_> = cache
+                    .lock()
+                    .map(|c| {
+                        c.submaps()
+                            .values()
+                            .map(|s| (s.global_pose * s.local_pose.inverse(), Arc::clone(&s.grid)))
+                            .collect()
+                    })
+                    .unwrap_or_default();
+                let map = mapping::lifelong::render_submaps(
+                    grids
+                        .iter()
+                        .map(|(global_from_grid, grid)| mapping::lifelong::PlacedGrid {
+                            global_from_grid: *global_from_grid,
+                            grid,
+                        }),
+                    resolution,
+                );
+                if let Some(map) = map {
+                    publisher.publish_map(&map, stamp);
+                }
+            } else {
+                publisher.republish_map_if_due();
+            }
+        })
+        .await?;
+        if fresh {
+            published_version = version;
+            maps += 1;
+        }
+    }
 }
 
 /// Ends the sessions an earlier run left unfinished (see the module docs), retrying for up to `patience`
@@ -374,6 +499,34 @@ mod tests {
         assert_eq!(uuid.len(), 36);
         assert_eq!(&uuid[14..15], "4");
         assert_ne!(uuid, random_uuid());
+    }
+
+    #[test]
+    fn a_ros2_section_replaces_the_source() {
+        let identity = "site = \"s\"\nrobot_id = \"r\"\ntoken = \"t0k3n-t0k3n\"\n";
+        let live = format!(
+            "{identity}[ros2]\ndomain_id = 7\nscan_topic = \"/base/scan\"\n[ros2.publish]\npose_topic = \"/amcl_pose\"\n"
+        );
+        let config: AgentConfig = toml::from_str(&live).unwrap();
+        config.validate().unwrap();
+        let ros2 = config.ros2.unwrap();
+        assert_eq!(
+            (ros2.domain_id, ros2.scan_topic.as_str()),
+            (7, "/base/scan")
+        );
+        assert_eq!(ros2.publish.pose_topic, "/amcl_pose");
+        let both = format!("{identity}source = \"x.bag\"\n[ros2]\n");
+        let config: AgentConfig = toml::from_str(&both).unwrap();
+        assert!(
+            config
+                .validate()
+                .unwrap_err()
+                .to_string()
+                .contains("not both")
+        );
+        let bad_topic = format!("{identity}[ros2]\nodom_topic = \"odom\"\n");
+        let config: AgentConfig = toml::from_str(&bad_topic).unwrap();
+        assert!(config.validate().is_err());
     }
 
     #[test]

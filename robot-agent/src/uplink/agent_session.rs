@@ -19,8 +19,10 @@ use tokio::sync::{mpsc, watch};
 use tokio_stream::StreamExt as _;
 
 use super::robot_glm::RobotGlm;
-use super::{GlobalSubmapCache, LloStats, MapUplink, UplinkError, Uploader, run_llo};
-use crate::source::Recording;
+use super::{
+    GlobalSubmapCache, LloStats, MapUplink, UplinkError, Uploader, run_llo, run_llo_stream,
+};
+use crate::source::{Recording, SensorStream};
 
 /// How a session streams.
 #[derive(Clone, Debug)]
@@ -337,10 +339,28 @@ pub async fn relocalize_nodes<'a>(
     Some(found.map(|f| (f.global_from_local, f.score)))
 }
 
+/// What a session maps.
+pub enum SessionInput {
+    /// A recording, replayed at `SessionOptions::replay_speed`.
+    Recording(Arc<Recording>),
+    /// A live robot (`source::LiveRos2Source`), taken as it comes.
+    Live(Box<dyn SensorStream + Send>),
+}
+
 /// [`stream_recording`] with an optional session-start relocalization (see [`SessionStart`]); also
 /// returns the session's [`SessionTrace`].
 pub async fn stream_session<U: MapUplink>(
     recording: Arc<Recording>,
+    options: &SessionOptions,
+    uploader: &mut Uploader<U>,
+    start: Option<SessionStart<'_>>,
+) -> Result<(SessionReport, SessionTrace), SessionError> {
+    stream_session_from(SessionInput::Recording(recording), options, uploader, start).await
+}
+
+/// [`stream_session`] from a recording or a live robot: the same LLO, upload and GLM either way.
+pub async fn stream_session_from<U: MapUplink>(
+    input: SessionInput,
     options: &SessionOptions,
     uploader: &mut Uploader<U>,
     start: Option<SessionStart<'_>>,
@@ -351,9 +371,15 @@ pub async fn stream_session<U: MapUplink>(
     let llo = std::thread::Builder::new()
         .name("llo".into())
         .spawn(move || {
-            run_llo(&recording, &llo_options, speed, max_scans, &mut |items| {
-                sender.blocking_send(items).is_ok()
-            })
+            let mut sink = |items| sender.blocking_send(items).is_ok();
+            match input {
+                SessionInput::Recording(recording) => {
+                    run_llo(&recording, &llo_options, speed, max_scans, &mut sink)
+                }
+                SessionInput::Live(mut stream) => {
+                    run_llo_stream(stream.as_mut(), &llo_options, None, max_scans, &mut sink)
+                }
+            }
         })
         .map_err(|e| SessionError::Llo(e.to_string()))?;
 
