@@ -12,16 +12,17 @@ speed="${2:-5}"
 out="${3:-out/live-$rec}"
 port="${EVERMAP_BENCH_PORT:-17447}"
 py="$(bash scripts/ros2_venv.sh)"
+bin="${EVERMAP_BIN:-target/release}"  # the directory of evermap-agent
 relations="../shared/datasets/relations/$rec.relations"
 mkdir -p "$out/live" "$out/file"
-target/release/evermap-agent offline --ros2 --zenoh-listen "tcp/127.0.0.1:$port" --until-idle-s 5 \
+"$bin"/evermap-agent offline --ros2 --zenoh-listen "tcp/127.0.0.1:$port" --until-idle-s 5 \
   --relations "$relations" --out "$out/live" &
 agent=$!
 "$py" scripts/ros2_live_robot.py --bag "../shared/datasets/rosbag2-derived/$rec" \
   --connect "tcp/127.0.0.1:$port" --speed "$speed" --wait-s 3 --linger-s 120 --quiet-s 8 \
   --summary "$out/robot.json"
 wait "$agent"
-target/release/evermap-agent offline --input "../shared/datasets/rosbag2-derived/$rec" \
+"$bin"/evermap-agent offline --input "../shared/datasets/rosbag2-derived/$rec" \
   --relations "$relations" --out "$out/file" > /dev/null
 "$py" - "$out" <<'PY'
 import json, sys

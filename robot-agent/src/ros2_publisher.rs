@@ -393,20 +393,22 @@ impl Ros2Publisher {
         }
     }
 
-    /// Publishes the robot's global pose at `stamp`: `map_from_base` on the pose topic and
-    /// `map_from_odom` on `/tf`.
+    /// Publishes the robot's global pose at `stamp`: `map_from_base` on the pose topic and, when
+    /// known, `map_from_odom` on `/tf`.
     pub fn publish_pose(
         &mut self,
         stamp: Timestamp,
         map_from_base: &Rigid2,
-        map_from_odom: &Rigid2,
+        map_from_odom: Option<&Rigid2>,
     ) {
-        let tf = ros2_nav_messages::tf_message(&[StampedTransform {
-            stamp,
-            parent: self.options.map_frame.clone(),
-            child: self.options.odom_frame.clone(),
-            parent_from_child: *map_from_odom,
-        }]);
+        let tf = map_from_odom.map(|map_from_odom| {
+            ros2_nav_messages::tf_message(&[StampedTransform {
+                stamp,
+                parent: self.options.map_frame.clone(),
+                child: self.options.odom_frame.clone(),
+                parent_from_child: *map_from_odom,
+            }])
+        });
         let pose = ros2_nav_messages::pose_with_covariance_stamped(
             stamp,
             &self.options.map_frame,
@@ -414,7 +416,7 @@ impl Ros2Publisher {
             self.options.pose_sigma_xy_m,
             self.options.pose_sigma_yaw_rad,
         );
-        if self.tf.put(tf) && self.pose.put(pose) {
+        if tf.is_none_or(|tf| self.tf.put(tf)) && self.pose.put(pose) {
             self.stats.poses += 1;
         } else {
             self.stats.failed += 1;
@@ -440,6 +442,21 @@ fn odom_at(previous: Option<&OdometryReading>, last: &OdometryReading, time: Tim
         Some(p) if time <= p.time => p.pose,
         _ => last.pose,
     }
+}
+
+/// `odom_from_base` at `time` from `history` (readings in stamp order): interpolated between the
+/// readings on either side, `None` outside them.
+pub fn odom_from_base_at(
+    history: &std::collections::VecDeque<OdometryReading>,
+    time: Timestamp,
+) -> Option<Rigid2> {
+    let after = history.iter().position(|r| r.time >= time)?;
+    let next = &history[after];
+    if next.time == time {
+        return Some(next.pose);
+    }
+    let previous = history.get(after.checked_sub(1)?)?;
+    Some(odom_at(Some(previous), next, time))
 }
 
 /// A [`SlamObserver`] that publishes SLAM's map and pose live (see the module docs).
@@ -481,7 +498,7 @@ impl SlamObserver for Ros2SlamPublisher {
         };
         self.last_stamp = Some(time);
         self.publisher
-            .publish_pose(time, &map_from_base, &map_from_odom);
+            .publish_pose(time, &map_from_base, Some(&map_from_odom));
         self.publisher.republish_map_if_due();
     }
 
@@ -524,6 +541,20 @@ mod tests {
         assert_eq!(odom_at(Some(&a), &b, Timestamp::from_secs_f64(0.5)), a.pose);
         assert_eq!(odom_at(Some(&a), &b, Timestamp::from_secs_f64(2.5)), b.pose);
         assert_eq!(odom_at(None, &b, Timestamp::from_secs_f64(0.5)), b.pose);
+    }
+
+    #[test]
+    fn odometry_history_is_interpolated_inside_and_refused_outside() {
+        let history: std::collections::VecDeque<OdometryReading> = (0..3)
+            .map(|i| OdometryReading {
+                time: Timestamp::from_secs_f64(f64::from(i)),
+                pose: rigid2(f64::from(i), 0.0, 0.0),
+            })
+            .collect();
+        let at = |t| odom_from_base_at(&history, Timestamp::from_secs_f64(t));
+        assert!((at(1.25).unwrap().translation.x - 1.25).abs() < 1e-12);
+        assert_eq!(at(2.0).unwrap(), history[2].pose);
+        assert!(at(-0.5).is_none() && at(2.5).is_none());
     }
 
     #[test]

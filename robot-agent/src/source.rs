@@ -29,8 +29,8 @@ pub use cdr_writer::CdrWriter;
 pub use recording::{ReadReport, Recording};
 pub use ros_messages::DecodeError;
 pub use ros2_live::{
-    LiveRos2Source, LiveStats, Ros2LiveError, Ros2LiveOptions, StreamEnd, TopicCounts,
-    own_gid_prefix,
+    LiveRos2Source, LiveStats, OdometryHistory, Ros2LiveError, Ros2LiveOptions, StreamEnd,
+    TopicCounts, own_gid_prefix,
 };
 pub use rosbag1_writer::{BagWriteError, write_bag};
 pub use sensor_stream::{RecordingStream, SensorStream};

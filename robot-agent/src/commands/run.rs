@@ -46,8 +46,8 @@ use mapping::lifelong::RelocalizationOptions;
 use mapping::local_slam::LocalTrajectoryBuilderOptions;
 use rand::RngCore as _;
 use robot_agent::outbox::Outbox;
-use robot_agent::ros2_publisher::Ros2Publisher;
-use robot_agent::source::{self, LiveRos2Source, Ros2LiveOptions};
+use robot_agent::ros2_publisher::{PublishStats, Ros2Publisher, odom_from_base_at};
+use robot_agent::source::{self, LiveRos2Source, OdometryHistory, Ros2LiveOptions};
 use robot_agent::uplink::{
     ClientTls, FleetUplink, GlobalSubmapCache, GrpcUplink, MapUplink as _, SessionInput,
     SessionOptions, SessionStart, Uploader, ZenohLinkOptions, ZenohUplink, follow_site,
@@ -224,8 +224,9 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         Some(ros2) => {
             let live = LiveRos2Source::open(ros2, ros2.stream_end())?;
             let session = live.session().clone();
+            let odometry = live.odometry_history();
             let input = SessionInput::Live(Box::new(live));
-            (input, Some((session, ros2.clone())))
+            (input, Some((session, ros2.clone(), odometry)))
         }
         None => (
             SessionInput::Recording(Arc::new(
@@ -247,7 +248,12 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     );
     let call_timeout = seconds("call_timeout_s", config.call_timeout_s)?;
     let retry_interval = seconds("retry_interval_s", config.retry_interval_s)?;
+    let (node_poses, node_pose_receiver) = tokio::sync::mpsc::channel(64);
     let options = SessionOptions {
+        node_poses: live_session
+            .as_ref()
+            .filter(|(_, ros2, _)| ros2.publish.enabled)
+            .map(|_| node_poses),
         nodes_per_batch: config.nodes_per_batch,
         replay_speed: config.replay_speed,
         max_scans: config.max_scans,
@@ -321,13 +327,18 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
             relocalization: RelocalizationOptions::default(),
             session_start: mapping::lifelong::SessionStartOptions::default(),
         };
-        let map_publisher =
-            match live_session {
-                Some((session, ros2)) if ros2.publish.enabled => Some(tokio::spawn(
-                    publish_site_maps(session, ros2, Arc::clone(&cache), stop.subscribe()),
-                )),
-                _ => None,
-            };
+        let map_publisher = match live_session {
+            Some((session, ros2, odometry)) if ros2.publish.enabled => {
+                Some(tokio::spawn(publish_to_ros2(
+                    session,
+                    ros2,
+                    Arc::clone(&cache),
+                    (node_pose_receiver, odometry),
+                    stop.subscribe(),
+                )))
+            }
+            _ => None,
+        };
         let (report, trace) =
             stream_session_from(input, &options, &mut uploader, Some(start)).await?;
         tracing::info!(
@@ -341,7 +352,12 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         let _ = follower.await;
         if let Some(task) = map_publisher {
             match task.await {
-                Ok(Ok(maps)) => tracing::info!(maps, "site map versions published on ROS 2"),
+                Ok(Ok(stats)) => tracing::info!(
+                    maps = stats.map_versions,
+                    poses = stats.poses,
+                    failed = stats.failed,
+                    "published on ROS 2"
+                ),
                 Ok(Err(e)) => tracing::warn!("ROS 2 map publisher: {e:#}"),
                 Err(e) => tracing::warn!("ROS 2 map publisher task: {e}"),
             }
@@ -372,15 +388,20 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     })
 }
 
-/// With `[ros2]`: publishes the site map on ROS 2 (`nav_msgs/msg/OccupancyGrid`, see
-/// `robot_agent::ros2_publisher`) each time the cache reaches a new version, until `stop`. Returns the
-/// number of versions published.
-async fn publish_site_maps(
+/// With `[ros2]`: publishes on ROS 2 (see `robot_agent::ros2_publisher`) the site map
+/// (`nav_msgs/msg/OccupancyGrid`) each time the cache reaches a new version, and each node's global pose
+/// as the robot estimates it (`PoseWithCovarianceStamped`, and `map -> odom` on `/tf` from the odometry
+/// at the node's stamp), until `stop`.
+async fn publish_to_ros2(
     session: zenoh::Session,
     ros2: Ros2LiveOptions,
     cache: Arc<Mutex<GlobalSubmapCache>>,
+    (mut poses, odometry): (
+        tokio::sync::mpsc::Receiver<(mapping::sensor::Timestamp, mapping::geometry::Rigid2)>,
+        OdometryHistory,
+    ),
     mut stop: tokio::sync::watch::Receiver<bool>,
-) -> anyhow::Result<u64> {
+) -> anyhow::Result<PublishStats> {
     let publisher = {
         let (session, ros2) = (session.clone(), ros2.clone());
         tokio::task::spawn_blocking(move || {
@@ -390,16 +411,34 @@ async fn publish_site_maps(
     };
     let publisher = Arc::new(Mutex::new(publisher));
     let mut published_version = 0;
-    let mut maps = 0;
     let mut tick = tokio::time::interval(Duration::from_millis(500));
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let stats = |publisher: &Arc<Mutex<Ros2Publisher>>| {
+        publisher.lock().map(|p| p.stats()).unwrap_or_default()
+    };
     loop {
-        tokio::select! {
-            _ = tick.tick() => {}
-            _ = stop.changed() => return Ok(maps),
+        let pose = tokio::select! {
+            _ = tick.tick() => None,
+            Some(pose) = poses.recv() => Some(pose),
+            _ = stop.changed() => return Ok(stats(&publisher)),
+        };
+        let (cache, publisher) = (Arc::clone(&cache), Arc::clone(&publisher));
+        if let Some((stamp, map_from_base)) = pose {
+            let odometry = Arc::clone(&odometry);
+            tokio::task::spawn_blocking(move || {
+                let map_from_odom = odometry
+                    .lock()
+                    .ok()
+                    .and_then(|h| odom_from_base_at(&h, stamp))
+                    .map(|odom_from_base| map_from_base * odom_from_base.inverse());
+                if let Ok(mut publisher) = publisher.lock() {
+                    publisher.publish_pose(stamp, &map_from_base, map_from_odom.as_ref());
+                }
+            })
+            .await?;
+            continue;
         }
         let version = cache.lock().map_or(0, |c| c.version());
-        let (cache, publisher) = (Arc::clone(&cache), Arc::clone(&publisher));
         let resolution = ros2.publish.map_resolution_m;
         let stamp = mapping::sensor::Timestamp(
             std::time::SystemTime::now()
@@ -440,7 +479,6 @@ async fn publish_site_maps(
         .await?;
         if fresh {
             published_version = version;
-            maps += 1;
         }
     }
 }

@@ -308,7 +308,15 @@ pub struct LiveRos2Source {
     events_out: u64,
     scans_out: u64,
     newest_out: Option<Timestamp>,
+    odometry: OdometryHistory,
 }
+
+/// The latest odometry readings handed on (at most [`ODOMETRY_HISTORY`]), shared with whoever needs
+/// `odom_from_base` at a past stamp (the `map -> odom` publisher).
+pub type OdometryHistory = Arc<Mutex<std::collections::VecDeque<mapping::sensor::OdometryReading>>>;
+
+/// Readings kept in an [`OdometryHistory`].
+const ODOMETRY_HISTORY: usize = 512;
 
 fn stream_of(event: &SensorEvent) -> usize {
     match event {
@@ -438,12 +446,18 @@ impl LiveRos2Source {
             events_out: 0,
             scans_out: 0,
             newest_out: None,
+            odometry: Arc::default(),
         })
     }
 
     /// The zenoh session (cheap to clone): the agent publishes its map and pose back on it.
     pub fn session(&self) -> &zenoh::Session {
         &self.session
+    }
+
+    /// The odometry readings handed on lately (see [`OdometryHistory`]).
+    pub fn odometry_history(&self) -> OdometryHistory {
+        Arc::clone(&self.odometry)
     }
 
     /// What was received, decoded and dropped so far.
@@ -556,6 +570,14 @@ impl LiveRos2Source {
             self.events_out += 1;
             let time = event.time();
             self.newest_out = Some(self.newest_out.map_or(time, |n| n.max(time)));
+            if let SensorEvent::Odometry(reading) = &event
+                && let Ok(mut history) = self.odometry.lock()
+            {
+                if history.len() >= ODOMETRY_HISTORY {
+                    history.pop_front();
+                }
+                history.push_back(reading.clone());
+            }
             if matches!(event, SensorEvent::Scan(_)) {
                 self.scans_out += 1;
             }

@@ -45,6 +45,10 @@ pub struct SessionOptions {
     pub glm_on_robot: bool,
     /// The robot's GLM settings. Default: the server's (`GlobalSlamOptions::default().constraint_builder`).
     pub glm: ConstraintBuilderOptions,
+    /// Where to send each node's global pose as the robot estimates it when the node is made
+    /// (`(stamp, map_from_base)`; the live ROS 2 publisher): sent without waiting, dropped when the
+    /// receiver lags. Default none.
+    pub node_poses: Option<tokio::sync::mpsc::Sender<(mapping::sensor::Timestamp, Rigid2)>>,
 }
 
 impl Default for SessionOptions {
@@ -58,6 +62,7 @@ impl Default for SessionOptions {
             local: LocalTrajectoryBuilderOptions::default(),
             glm_on_robot: true,
             glm: GlobalSlamOptions::default().constraint_builder,
+            node_poses: None,
         }
     }
 }
@@ -466,11 +471,17 @@ pub async fn stream_session_from<U: MapUplink>(
                     }
                     let local = node_local_pose(&items);
                     held_local.push(local);
-                    trace.node_estimates.push(if trace.revoked {
+                    let estimate = if trace.revoked {
                         None
                     } else {
                         estimate.or_else(|| Some(trace.prior? * local?))
-                    });
+                    };
+                    if let (Some(sink), Some(pose), Some(time)) =
+                        (&options.node_poses, estimate, trace.node_times.last())
+                    {
+                        let _ = sink.try_send((*time, pose));
+                    }
+                    trace.node_estimates.push(estimate);
                     nodes_in_batch += 1;
                     batch.extend(items);
                 } else {
