@@ -19,7 +19,7 @@ mkdir -p "$out/live" "$out/file"
   --relations "$relations" --out "$out/live" &
 agent=$!
 "$py" scripts/ros2_live_robot.py --bag "../shared/datasets/rosbag2-derived/$rec" \
-  --connect "tcp/127.0.0.1:$port" --speed "$speed" --wait-s 3 --linger-s 120 --quiet-s 8 \
+  --connect "tcp/127.0.0.1:$port" --speed "$speed" --wait-s 30 --linger-s 120 --quiet-s 8 \
   --summary "$out/robot.json"
 wait "$agent"
 "$bin"/evermap-agent offline --input "../shared/datasets/rosbag2-derived/$rec" \

@@ -74,7 +74,8 @@ def main():
     parser.add_argument("--speed", type=float, default=1.0, help="multiple of real time")
     parser.add_argument("--start-s", type=float, default=0.0, help="skip this much of the recording")
     parser.add_argument("--duration-s", type=float, default=None, help="replay only this much")
-    parser.add_argument("--wait-s", type=float, default=1.0, help="pause before the first message")
+    parser.add_argument("--wait-s", type=float, default=10.0,
+                        help="longest wait for a subscriber of every topic before the first message")
     parser.add_argument("--linger-s", type=float, default=30.0, help="longest wait for the final map")
     parser.add_argument("--quiet-s", type=float, default=4.0,
                         help="the final map is the last one after this long without a new one")
@@ -177,7 +178,13 @@ def main():
                 key = key_for(args.domain_id, c.topic, c.msgtype, typestore)
                 publishers[c.topic] = (session.declare_publisher(key), os.urandom(12) + struct.pack("<I", i))
                 sequences[c.topic] = 0
-        time.sleep(args.wait_s)
+        # Start once every topic has a subscriber (zenoh does not keep what nobody listens to), or after
+        # --wait-s at most.
+        deadline = time.monotonic() + args.wait_s
+        while time.monotonic() < deadline and not all(
+                p.matching_status.matching for p, _ in publishers.values()):
+            time.sleep(0.05)
+        time.sleep(0.2)
         t0 = reader.start_time + int(args.start_s * 1e9)
         t1 = None if args.duration_s is None else t0 + int(args.duration_s * 1e9)
         for connection, log_time, raw in reader.messages(connections=connections):

@@ -114,7 +114,7 @@ fn a_live_ros2_robot_is_mapped_as_its_recording_and_gets_its_map_and_pose() {
             "--duration-s",
             &EXCERPT_S.to_string(),
         ])
-        .args(["--wait-s", "1", "--linger-s", "40", "--quiet-s", "5"])
+        .args(["--wait-s", "30", "--linger-s", "40", "--quiet-s", "5"])
         .args(["--summary", summary_path.to_str().unwrap()])
         .spawn()
         .unwrap();

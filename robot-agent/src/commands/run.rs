@@ -25,8 +25,9 @@
 //! connect = ["tcp/127.0.0.1:7447"]
 //!
 //! # Optional, instead of `source`: a live ROS 2 robot over zenoh (rmw_zenoh, no ROS install); the
-//! # session ends `until_idle_s` after the last scan. Each new site map version is published back on
-//! # /map (`[ros2.publish]`). See `robot_agent::source::Ros2LiveOptions` for every field.
+//! # session ends `until_idle_s` after the last scan (and `run` with it). Each new site map version is
+//! # published back on /map, and, once the session is placed on the site map, each node's global pose
+//! # (`[ros2.publish]`: pose topic, frames). See `robot_agent::source::Ros2LiveOptions` for every field.
 //! [ros2]
 //! domain_id = 0
 //! scan_topic = "/scan"
