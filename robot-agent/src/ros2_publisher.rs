@@ -6,8 +6,9 @@
 //!
 //! **`/map` as a latched topic.** Nav2's map server publishes `/map` with durability `TRANSIENT_LOCAL`,
 //! depth 1: a subscriber that starts later still gets the current map. rmw_zenoh implements that with
-//! zenoh-ext's advanced publisher cache, which this agent does not link (it would add zenoh-ext and
-//! zenoh's `unstable` API to the build). The agent approximates it in two ways any zenoh subscriber
+//! zenoh-ext (a publication cache answering the queries of querying subscribers; an advanced publisher's
+//! cache in later releases), which this agent does not link (it would add zenoh-ext and zenoh's
+//! `unstable` API to the build). The agent approximates it in two ways any zenoh subscriber
 //! sees: (1) a queryable on the map's key answers every query with the latest map (a late joiner that
 //! queries the key on start — as a querying subscriber does — gets it at once), and (2) the latest map
 //! is published again every `map_republish_s` seconds, so a plain late subscriber has it within that
@@ -257,8 +258,17 @@ impl Ros2Publisher {
                            durability: Durability|
          -> Result<Topic, Ros2PublishError> {
             let key = rmw_zenoh::topic_key(domain_id, topic, ros_type.name, ros_type.hash)?;
+            // The map waits for a congested link (it is sent rarely and must arrive, as a reliable
+            // depth-1 topic); the pose and `/tf` are dropped under congestion, the newer one supersedes
+            // them (zenoh's default, and rmw_zenoh's for keep-last topics).
+            let congestion = if durability == Durability::TransientLocal {
+                zenoh::qos::CongestionControl::Block
+            } else {
+                zenoh::qos::CongestionControl::Drop
+            };
             let publisher = session
                 .declare_publisher(key.clone())
+                .congestion_control(congestion)
                 .wait()
                 .map_err(|e| zenoh_error(&format!("publisher on {key}"), e))?;
             let token = rmw_zenoh::publisher_token(
