@@ -260,6 +260,14 @@ fn map_live(
         stats.decoded(),
         stats.dropped()
     );
+    anyhow::ensure!(
+        stats.scans_out > 0,
+        "no scan arrived on {} within {} s (received {} messages in all): is the robot publishing, and are \
+         --zenoh-connect / --zenoh-listen, --domain-id and --scan-topic right?",
+        options.scan_topic,
+        args.start_timeout_s,
+        stats.received()
+    );
     let run = run?;
     Ok((
         run,
