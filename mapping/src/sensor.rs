@@ -11,6 +11,6 @@ mod timestamp;
 pub use laser_scan::{LaserScan, RangeConversionOptions, RangeStats};
 pub use range_data::RangeData;
 pub use readings::{ImuReading, OdometryReading};
-pub use sensor_collator::{MAX_ODOMETRY_WAIT_S, collate_for_llo};
+pub use sensor_collator::{LloCollator, MAX_ODOMETRY_WAIT_S, collate_for_llo};
 pub use sensor_event::SensorEvent;
 pub use timestamp::Timestamp;

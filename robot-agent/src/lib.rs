@@ -9,6 +9,7 @@ pub mod map_image;
 pub mod offline_slam;
 pub mod outbox;
 pub mod process_stats;
+pub mod ros2_publisher;
 pub mod source;
 pub mod uplink;
 pub mod world;

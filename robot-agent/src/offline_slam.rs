@@ -1,7 +1,11 @@
-//! The offline SLAM pipeline: one recording in, an optimized trajectory and map out.
+//! The SLAM pipeline: one sensor stream in (a recording, or a live ROS 2 robot), an optimized trajectory
+//! and map out. One driver, [`run_slam`], for both: a file and a live robot are mapped by the same code.
 //!
 //! LLO runs on the calling thread; global SLAM (GLM searches and optimization) runs on a named worker
-//! thread fed through a bounded channel, so both cores of a small robot computer are busy.
+//! thread fed through a bounded channel, so both cores of a small robot computer are busy. A
+//! [`SlamObserver`] (the live shell's ROS 2 publisher) hears each matched scan, each odometry reading and,
+//! after each optimization, the global frame and (if asked for) the map rendered from the finished
+//! submaps.
 
 use std::collections::BTreeMap;
 use std::sync::mpsc;
@@ -12,14 +16,14 @@ use mapping::global_slam::{
     LoopClosure, SearchJob,
 };
 use mapping::grid::{MapLimits, ProbabilityGrid, RangeDataInserter, RangeDataInserterOptions};
-use mapping::lifelong::RelocalizationOptions;
+use mapping::lifelong::{PlacedGrid, RelocalizationOptions, render_submaps};
 use mapping::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
 use mapping::pose_graph::{NodeId, OptimizationSummary};
-use mapping::sensor::{RangeData, RangeStats, SensorEvent, Timestamp};
+use mapping::sensor::{OdometryReading, RangeData, RangeStats, SensorEvent, Timestamp};
 use nalgebra::Point2;
 use serde::Deserialize;
 
-use crate::source::Recording;
+use crate::source::{Recording, RecordingStream, SensorStream};
 
 /// Everything the agent's SLAM can be configured with; one TOML file, every field optional.
 #[derive(Clone, Debug, Default, PartialEq, Deserialize)]
@@ -90,6 +94,45 @@ enum WorkerMessage {
     },
 }
 
+/// What the worker tells the LLO thread after an optimization.
+struct WorkerUpdate {
+    global_from_local: Rigid2,
+    map: Option<ProbabilityGrid>,
+    optimizations: usize,
+}
+
+/// Hears what SLAM does while it runs (all calls on the thread that called [`run_slam`]).
+pub trait SlamObserver {
+    /// An odometry reading was handed to LLO.
+    fn odometry(&mut self, _reading: &OdometryReading) {}
+
+    /// LLO matched a scan at `time`: `local_from_base` in LLO's frame, and the latest `map_from_local`
+    /// global SLAM has given (identity before its first optimization).
+    fn scan_matched(
+        &mut self,
+        _time: Timestamp,
+        _local_from_base: &Rigid2,
+        _map_from_local: &Rigid2,
+    ) {
+    }
+
+    /// Global SLAM optimized (its `optimizations`-th time); `map` is the finished submaps rendered at
+    /// their optimized poses when [`SlamObserver::map_resolution`] asked for it (`None` before the first
+    /// submap is finished). Called once more at the end of the stream with the final map: every node's
+    /// scan at its optimized pose.
+    fn optimized(&mut self, _optimizations: usize, _map: Option<&ProbabilityGrid>) {}
+
+    /// Cell size (metres) of the map [`SlamObserver::optimized`] receives; `None` (default): no map.
+    fn map_resolution(&self) -> Option<f64> {
+        None
+    }
+}
+
+/// An observer that hears nothing.
+struct NoObserver;
+
+impl SlamObserver for NoObserver {}
+
 /// Runs LLO + GLM + PGR over a recording, as trajectory 0 of a new map. `progress` is called with the
 /// number of scans processed so far.
 pub fn run_offline(
@@ -97,52 +140,80 @@ pub fn run_offline(
     config: &SlamConfig,
     progress: &mut dyn FnMut(usize),
 ) -> Result<SlamRun, OfflineError> {
+    if !recording
+        .events
+        .iter()
+        .any(|e| matches!(e, SensorEvent::Scan(_)))
+    {
+        return Err(OfflineError::NoScans);
+    }
+    run_slam(
+        &mut RecordingStream::new(recording),
+        config,
+        progress,
+        &mut NoObserver,
+    )
+}
+
+/// Runs LLO + GLM + PGR over a sensor stream (a recording or a live robot), as trajectory 0 of a new
+/// map, until the stream ends. `progress` is called with the number of scans processed so far.
+pub fn run_slam(
+    stream: &mut dyn SensorStream,
+    config: &SlamConfig,
+    progress: &mut dyn FnMut(usize),
+    observer: &mut dyn SlamObserver,
+) -> Result<SlamRun, OfflineError> {
     config
         .local
         .validate()
         .map_err(|e| OfflineError::LocalOptions(e.to_string()))?;
     let global = GlobalSlam::new(config.global.clone())?;
-    let scans = recording
-        .events
-        .iter()
-        .filter(|e| matches!(e, SensorEvent::Scan(_)))
-        .count();
-    if scans == 0 {
-        return Err(OfflineError::NoScans);
-    }
-    let data_duration_s = match (recording.events.first(), recording.events.last()) {
-        (Some(a), Some(b)) => b.time().seconds_since(a.time()),
-        _ => 0.0,
-    };
+    let render_resolution = observer.map_resolution();
 
     let (sender, receiver) = mpsc::sync_channel::<WorkerMessage>(256);
+    let (update_sender, updates) = mpsc::sync_channel::<WorkerUpdate>(4);
     std::thread::scope(|scope| {
         let worker = std::thread::Builder::new()
             .name("global-slam".into())
-            .spawn_scoped(scope, move || global_worker(global, &receiver))
+            .spawn_scoped(scope, move || {
+                global_worker(global, &receiver, &update_sender, render_resolution)
+            })
             .map_err(|e| OfflineError::Worker(e.to_string()))?;
 
         let mut llo = LocalTrajectoryBuilder::new(config.local.clone());
-        let mut anchors = Vec::with_capacity(scans);
+        let mut anchors = Vec::new();
         let mut node_range_data = BTreeMap::new();
         let mut range_stats = RangeStats::default();
         let mut scans_done = 0;
         let mut scans_dropped = 0;
         let mut last_node: Option<NodeId> = None;
         let mut next_node_index = 0u32;
-        for event in mapping::sensor::collate_for_llo(&recording.events) {
+        let mut first_time: Option<Timestamp> = None;
+        let mut last_time: Option<Timestamp> = None;
+        let mut map_from_local = Rigid2::identity();
+        while let Some(event) = stream.next_event() {
+            first_time.get_or_insert(event.time());
+            last_time = Some(event.time());
+            while let Ok(update) = updates.try_recv() {
+                map_from_local = update.global_from_local;
+                observer.optimized(update.optimizations, update.map.as_ref());
+            }
             match event {
-                SensorEvent::Odometry(o) => llo.add_odometry(o),
-                SensorEvent::Imu(i) => llo.add_imu(i),
+                SensorEvent::Odometry(o) => {
+                    observer.odometry(&o);
+                    llo.add_odometry(&o);
+                }
+                SensorEvent::Imu(i) => llo.add_imu(&i),
                 SensorEvent::Scan(scan) => {
                     scans_done += 1;
                     let (range_data, stats) = scan.to_range_data(&config.local.range_conversion);
                     range_stats += stats;
-                    let range_data = range_data.transformed(&recording.base_from_laser);
+                    let range_data = range_data.transformed(&stream.base_from_laser());
                     let Some(result) = llo.add_range_data(scan.time, &range_data) else {
                         scans_dropped += 1;
                         continue;
                     };
+                    observer.scan_matched(result.time, &result.local_pose, &map_from_local);
                     if let Some(insertion) = result.insertion {
                         let id = NodeId {
                             trajectory: 0,
@@ -183,9 +254,35 @@ pub fn run_offline(
         }
         progress(scans_done);
         drop(sender);
-        let (global, optimizations, final_optimization) = worker
-            .join()
-            .map_err(|_| OfflineError::Worker("the global SLAM thread panicked".into()))??;
+        // Keep hearing the worker while it finishes (it may wait on the update channel).
+        let (global, optimizations, final_optimization) = loop {
+            while let Ok(update) = updates.try_recv() {
+                observer.optimized(update.optimizations, update.map.as_ref());
+            }
+            if worker.is_finished() {
+                break worker.join().map_err(|_| {
+                    OfflineError::Worker("the global SLAM thread panicked".into())
+                })??;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(5));
+        };
+        if scans_done == 0 {
+            return Err(OfflineError::NoScans);
+        }
+        // The final map, every node's scan at its optimized pose (as `render_map` draws it).
+        if let Some(resolution) = render_resolution {
+            let map = render_range_data(
+                node_range_data
+                    .iter()
+                    .filter_map(|(id, data)| Some((global.node_pose(*id)?, data))),
+                resolution,
+            );
+            observer.optimized(optimizations + 1, Some(&map));
+        }
+        let data_duration_s = match (first_time, last_time) {
+            (Some(a), Some(b)) => b.seconds_since(a),
+            _ => 0.0,
+        };
 
         let scan_poses = anchors
             .iter()
@@ -207,13 +304,28 @@ pub fn run_offline(
             global,
             node_range_data,
             range_stats,
-            scans,
+            scans: scans_done,
             scans_dropped,
             data_duration_s,
             final_optimization,
             optimizations,
         })
     })
+}
+
+/// The finished submaps of `global` rendered at their optimized poses (`None` before the first one).
+pub fn render_finished_submaps(global: &GlobalSlam, resolution: f64) -> Option<ProbabilityGrid> {
+    render_submaps(
+        global.submaps().iter().filter_map(|(id, record)| {
+            let grid = record.grid.as_deref()?;
+            let global_from_submap = global.submap_pose(*id)?;
+            Some(PlacedGrid {
+                global_from_grid: global_from_submap * record.local_pose.inverse(),
+                grid,
+            })
+        }),
+        resolution,
+    )
 }
 
 /// Loop-closure searches worth splitting across threads; below this, one thread is cheaper.
@@ -245,6 +357,8 @@ pub fn run_searches(builder: &ConstraintBuilder, jobs: &[SearchJob]) -> Vec<Loop
 fn global_worker(
     mut global: GlobalSlam,
     receiver: &mpsc::Receiver<WorkerMessage>,
+    updates: &mpsc::SyncSender<WorkerUpdate>,
+    render_resolution: Option<f64>,
 ) -> Result<(GlobalSlam, usize, OptimizationSummary), GlobalSlamError> {
     let mut optimizations = 0;
     for message in receiver {
@@ -267,14 +381,31 @@ fn global_worker(
                 let jobs = global.take_search_jobs();
                 let results = run_searches(global.constraint_builder(), &jobs);
                 let events = global.add_search_results(results);
-                optimizations += events
+                let optimized = events
                     .iter()
                     .filter(|e| matches!(e, GlobalSlamEvent::Optimized(_)))
                     .count();
+                optimizations += optimized;
+                if optimized > 0 {
+                    // Never blocks (the LLO thread may be waiting on this worker): when the LLO thread
+                    // is four updates behind, this one is skipped; the next supersedes it.
+                    let _ = updates.try_send(WorkerUpdate {
+                        global_from_local: global.global_from_local(0),
+                        map: render_resolution.and_then(|r| render_finished_submaps(&global, r)),
+                        optimizations,
+                    });
+                }
             }
         }
     }
     let summary = global.optimize();
+    // The LLO thread keeps taking updates until this thread ends, so this send cannot block for good.
+    // (The final map is drawn by the LLO thread from every node's scan.)
+    let _ = updates.send(WorkerUpdate {
+        global_from_local: global.global_from_local(0),
+        map: None,
+        optimizations: optimizations + 1,
+    });
     Ok((global, optimizations, summary))
 }
 

@@ -1,11 +1,17 @@
 //! Recordings in: ROS1 bags, ROS 2 recordings (rosbag2: MCAP or sqlite3, CDR) and CARMEN logs become one
-//! time-ordered list of [`SensorEvent`]s plus the laser's mounting pose.
+//! time-ordered list of [`SensorEvent`]s plus the laser's mounting pose; a live ROS 2 robot over zenoh
+//! ([`LiveRos2Source`]) gives the same events one at a time, and both are read by SLAM as a
+//! [`SensorStream`].
 
 mod carmen;
 mod cdr_reader;
+mod cdr_writer;
 mod mcap_storage;
 mod recording;
+pub mod rmw_zenoh;
+mod ros2_live;
 mod ros2_messages;
+pub mod ros2_nav_messages;
 mod ros_collector;
 mod ros_definitions;
 pub mod ros_messages;
@@ -13,14 +19,21 @@ mod rosbag1;
 mod rosbag1_writer;
 mod rosbag2;
 mod rosbag2_metadata;
+mod sensor_stream;
 mod sqlite3_storage;
 
 use std::path::Path;
 
 pub use cdr_reader::CdrReader;
+pub use cdr_writer::CdrWriter;
 pub use recording::{ReadReport, Recording};
 pub use ros_messages::DecodeError;
+pub use ros2_live::{
+    LiveRos2Source, LiveStats, OdometryHistory, Ros2LiveError, Ros2LiveOptions, StreamEnd,
+    TopicCounts, own_gid_prefix,
+};
 pub use rosbag1_writer::{BagWriteError, write_bag};
+pub use sensor_stream::{RecordingStream, SensorStream};
 
 /// Why a recording could not be read.
 #[derive(Debug, thiserror::Error)]

@@ -24,14 +24,14 @@ use std::future::Future;
 use std::pin::Pin;
 
 pub use agent_session::{
-    SessionOptions, SessionReport, SessionStart, SessionTrace, follow_site, follow_site_with,
-    relocalize_nodes, stream_recording, stream_session,
+    SessionInput, SessionOptions, SessionReport, SessionStart, SessionTrace, follow_site,
+    follow_site_with, relocalize_nodes, stream_recording, stream_session, stream_session_from,
 };
 pub use fleet_uplink::FleetUplink;
 pub use global_submap_cache::{CacheError, GlobalSubmapCache};
 pub use grpc_uplink::{ClientTls, GrpcUplink};
 pub use in_memory_uplink::InMemoryUplink;
-pub use llo_stream::{LloStats, run_llo};
+pub use llo_stream::{LloStats, run_llo, run_llo_stream};
 pub use proto::MapDelta;
 use proto::pb;
 pub use robot_glm::{cached_submaps, match_node, sync_matcher};

@@ -26,29 +26,58 @@ pub fn collate_for_llo(events: &[SensorEvent]) -> Vec<&SensorEvent> {
     if !events.iter().any(|e| matches!(e, SensorEvent::Odometry(_))) {
         return events.iter().collect();
     }
+    let mut collator = LloCollator::default();
     let mut out = Vec::with_capacity(events.len());
-    let mut waiting: VecDeque<&SensorEvent> = VecDeque::new();
     for event in events {
-        while let Some(front) = waiting.front()
-            && event.time().seconds_since(front.time()) > MAX_ODOMETRY_WAIT_S
-        {
-            out.extend(waiting.pop_front());
+        collator.push(event, &mut out);
+    }
+    collator.finish(&mut out);
+    out
+}
+
+/// [`collate_for_llo`] one event at a time, for a live stream: events pushed in stamp order come out
+/// (into `out`) in the order LLO should take them. `E` is a [`SensorEvent`] or a reference to one.
+/// Holds at most the scans of [`MAX_ODOMETRY_WAIT_S`] of stream time.
+pub struct LloCollator<E> {
+    waiting: VecDeque<E>,
+}
+
+impl<E> Default for LloCollator<E> {
+    fn default() -> Self {
+        Self {
+            waiting: VecDeque::new(),
         }
-        match event {
-            SensorEvent::Scan(_) => waiting.push_back(event),
+    }
+}
+
+impl<E: std::borrow::Borrow<SensorEvent>> LloCollator<E> {
+    /// Takes the next event (in stamp order) and appends to `out` what LLO can take now.
+    pub fn push(&mut self, event: E, out: &mut Vec<E>) {
+        let time = event.borrow().time();
+        while let Some(front) = self.waiting.front()
+            && time.seconds_since(front.borrow().time()) > MAX_ODOMETRY_WAIT_S
+        {
+            out.extend(self.waiting.pop_front());
+        }
+        match event.borrow() {
+            SensorEvent::Scan(_) => self.waiting.push_back(event),
             SensorEvent::Odometry(reading) => {
+                let reading_time = reading.time;
                 out.push(event);
-                while let Some(front) = waiting.front()
-                    && front.time() <= reading.time
+                while let Some(front) = self.waiting.front()
+                    && front.borrow().time() <= reading_time
                 {
-                    out.extend(waiting.pop_front());
+                    out.extend(self.waiting.pop_front());
                 }
             }
             SensorEvent::Imu(_) => out.push(event),
         }
     }
-    out.extend(waiting);
-    out
+
+    /// The end of the stream: appends the scans still waiting.
+    pub fn finish(&mut self, out: &mut Vec<E>) {
+        out.extend(self.waiting.drain(..));
+    }
 }
 
 #[cfg(test)]
@@ -117,5 +146,32 @@ mod tests {
         assert_eq!(kinds(&collated), "ossos");
         let no_odometry = vec![scan(0.1), scan(0.2)];
         assert_eq!(kinds(&collate_for_llo(&no_odometry)), "ss");
+    }
+
+    #[test]
+    fn the_streaming_collator_gives_the_same_order_as_the_whole_recording() {
+        let events = vec![
+            odom(0.0),
+            scan(0.1),
+            odom(0.2),
+            scan(0.3),
+            scan(0.35),
+            scan(1.2),
+            odom(1.25),
+            scan(1.3),
+        ];
+        let whole = collate_for_llo(&events);
+        let mut collator = LloCollator::default();
+        let mut streamed = Vec::new();
+        for e in events.clone() {
+            collator.push(e, &mut streamed);
+        }
+        // Before the end, the last scan is still held (no odometry after it yet).
+        assert_eq!(streamed.len(), events.len() - 1);
+        collator.finish(&mut streamed);
+        assert_eq!(streamed.len(), whole.len());
+        for (a, b) in streamed.iter().zip(&whole) {
+            assert_eq!(a, *b);
+        }
     }
 }

@@ -1,4 +1,6 @@
-//! `evermap-agent offline`: one recording in, trajectory + map + report out.
+//! `evermap-agent offline`: one recording in, trajectory + map + report out; or, with `--ros2`, a live
+//! ROS 2 robot over zenoh (rmw_zenoh's keys, no ROS install) mapped as it drives, its map and pose
+//! published back to ROS 2, until no scan has come for `--until-idle-s` seconds: the same outputs.
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -12,7 +14,8 @@ use mapping::global_slam::{GlobalSlam, LoopClosureCheck, loop_closure_precision}
 use mapping::io::relations::Relation;
 use mapping::sensor::Timestamp;
 use robot_agent::line_chart::{LineChart, Series};
-use robot_agent::offline_slam::{SlamConfig, render_map, run_offline};
+use robot_agent::offline_slam::{SlamConfig, render_map, run_offline, run_slam};
+use robot_agent::ros2_publisher::{Ros2Publisher, Ros2SlamPublisher};
 use robot_agent::{map_image, process_stats, source};
 use serde_json::json;
 
@@ -21,8 +24,36 @@ use serde_json::json;
 pub struct OfflineArgs {
     /// The recording: a ROS1 bag, a ROS 2 recording (rosbag2 folder, its `metadata.yaml`, or one `.mcap`
     /// or `.db3` file) or a CARMEN log (`.clf`, `.log`, `.log.gz`).
-    #[arg(long)]
-    input: PathBuf,
+    #[arg(long, required_unless_present = "ros2", conflicts_with = "ros2")]
+    input: Option<PathBuf>,
+    /// Map a live ROS 2 robot over zenoh (rmw_zenoh) instead of a recording.
+    #[arg(long, requires = "until_idle_s")]
+    ros2: bool,
+    /// With `--ros2`: zenoh endpoint to connect to (repeatable). Default `tcp/127.0.0.1:7447`, the rmw_zenoh
+    /// router's.
+    #[arg(long, requires = "ros2")]
+    zenoh_connect: Vec<String>,
+    /// With `--ros2`: zenoh endpoint to listen on (repeatable). Default none.
+    #[arg(long, requires = "ros2")]
+    zenoh_listen: Vec<String>,
+    /// With `--ros2`: the ROS domain id. Default 0.
+    #[arg(long, requires = "ros2")]
+    domain_id: Option<u32>,
+    /// With `--ros2`: the laser scan topic. Default `/scan`.
+    #[arg(long, requires = "ros2")]
+    scan_topic: Option<String>,
+    /// With `--ros2`: the odometry topic. Default `/odom`.
+    #[arg(long, requires = "ros2")]
+    odom_topic: Option<String>,
+    /// With `--ros2`: stop after this many seconds without a scan.
+    #[arg(long, requires = "ros2")]
+    until_idle_s: Option<f64>,
+    /// With `--ros2`: give up if no scan comes within this many seconds.
+    #[arg(long, requires = "ros2", default_value_t = 60.0)]
+    start_timeout_s: f64,
+    /// With `--ros2`: do not publish the map and pose back to ROS 2.
+    #[arg(long, requires = "ros2")]
+    no_publish: bool,
     /// Ground-truth relations (`t1 t2 x y z roll pitch yaw`) to score the trajectory with.
     #[arg(long)]
     relations: Option<PathBuf>,
@@ -62,21 +93,43 @@ pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
     };
 
     let start = Instant::now();
-    eprintln!("reading {}", args.input.display());
-    let recording = source::read_recording(&args.input)?;
-    let read_time_s = start.elapsed().as_secs_f64();
-    let scans = recording.report.scans;
-    let bar = ProgressBar::new(scans as u64);
-    bar.set_style(
-        ProgressStyle::with_template(
-            "{elapsed_precise} [{bar:40}] {pos}/{len} scans ({per_sec}, eta {eta})",
+    let (run, input, read_report, read_time_s, live) = if args.ros2 {
+        let (run, live) = map_live(args, &config)?;
+        (
+            run,
+            "ros2 (live)".to_owned(),
+            String::new(),
+            0.0,
+            Some(live),
         )
-        .unwrap_or_else(|_| ProgressStyle::default_bar()),
-    );
-    let run = run_offline(&recording, &config, &mut |done| {
-        bar.set_position(done as u64);
-    })?;
-    bar.finish_and_clear();
+    } else {
+        let input = args
+            .input
+            .as_ref()
+            .context("give --input (a recording) or --ros2 (a live robot)")?;
+        eprintln!("reading {}", input.display());
+        let recording = source::read_recording(input)?;
+        let read_time_s = start.elapsed().as_secs_f64();
+        let scans = recording.report.scans;
+        let bar = ProgressBar::new(scans as u64);
+        bar.set_style(
+            ProgressStyle::with_template(
+                "{elapsed_precise} [{bar:40}] {pos}/{len} scans ({per_sec}, eta {eta})",
+            )
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        );
+        let run = run_offline(&recording, &config, &mut |done| {
+            bar.set_position(done as u64);
+        })?;
+        bar.finish_and_clear();
+        (
+            run,
+            input.display().to_string(),
+            format!("{:?}", recording.report),
+            read_time_s,
+            None,
+        )
+    };
     let wall_time_s = start.elapsed().as_secs_f64();
 
     let tum_path = args.out.join("trajectory.tum");
@@ -110,7 +163,7 @@ pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
     let precision = loop_closure_precision(&checks);
     let graph = run.global.graph();
     let report = json!({
-        "input": args.input.display().to_string(),
+        "input": input,
         "scans": run.scans,
         "scans_dropped": run.scans_dropped,
         "data_duration_s": run.data_duration_s,
@@ -133,7 +186,8 @@ pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
         "optimizations": run.optimizations,
         "final_optimization": format!("{:?}", run.final_optimization),
         "range_stats": run.range_stats,
-        "read_report": format!("{:?}", recording.report),
+        "read_report": read_report,
+        "live": live,
         "peak_rss_mb": process_stats::peak_rss_mb(),
         "relations": relations_json,
     });
@@ -143,6 +197,94 @@ pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
     println!("{}", serde_json::to_string(&report)?);
     Ok(())
 }
+
+/// `--ros2`: maps the live robot until it has been idle `--until-idle-s` seconds, publishing the map and
+/// pose back; returns the run and what the live source and the publisher counted (for `report.json`).
+fn map_live(
+    args: &OfflineArgs,
+    config: &robot_agent::offline_slam::SlamConfig,
+) -> anyhow::Result<(robot_agent::offline_slam::SlamRun, serde_json::Value)> {
+    let mut options = source::Ros2LiveOptions::default();
+    if !args.zenoh_connect.is_empty() || !args.zenoh_listen.is_empty() {
+        options.zenoh.connect.clone_from(&args.zenoh_connect);
+        options.zenoh.listen.clone_from(&args.zenoh_listen);
+    }
+    if let Some(d) = args.domain_id {
+        options.domain_id = d;
+    }
+    if let Some(t) = &args.scan_topic {
+        options.scan_topic.clone_from(t);
+    }
+    if let Some(t) = &args.odom_topic {
+        options.odom_topic.clone_from(t);
+    }
+    let end = source::StreamEnd {
+        until_idle_s: args.until_idle_s.unwrap_or(0.0),
+        start_timeout_s: args.start_timeout_s,
+    };
+    let mut live = source::LiveRos2Source::open(&options, end)?;
+    let publisher = if args.no_publish {
+        None
+    } else {
+        Some(Ros2SlamPublisher::new(Ros2Publisher::open(
+            live.session(),
+            options.domain_id,
+            &options.publish,
+        )?))
+    };
+    eprintln!(
+        "listening to {} and {} in ROS domain {} (stops {} s after the last scan)",
+        options.scan_topic, options.odom_topic, options.domain_id, end.until_idle_s
+    );
+    let bar = ProgressBar::new_spinner();
+    bar.set_style(
+        ProgressStyle::with_template("{elapsed_precise} {pos} scans ({per_sec})")
+            .unwrap_or_else(|_| ProgressStyle::default_spinner()),
+    );
+    let mut progress = |done: usize| bar.set_position(done as u64);
+    let (run, published) = match publisher {
+        Some(mut observer) => {
+            let run = run_slam(&mut live, config, &mut progress, &mut observer);
+            (run, Some(observer.publisher_mut().stats()))
+        }
+        None => (
+            run_slam(&mut live, config, &mut progress, &mut NoopObserver),
+            None,
+        ),
+    };
+    bar.finish_and_clear();
+    let stats = live.stats();
+    eprintln!(
+        "live: received {}, decoded {}, dropped {}",
+        stats.received(),
+        stats.decoded(),
+        stats.dropped()
+    );
+    anyhow::ensure!(
+        stats.scans_out > 0,
+        "no scan arrived on {} within {} s (received {} messages in all): is the robot publishing, and are \
+         --zenoh-connect / --zenoh-listen, --domain-id and --scan-topic right?",
+        options.scan_topic,
+        args.start_timeout_s,
+        stats.received()
+    );
+    let run = run?;
+    Ok((
+        run,
+        json!({
+            "received": stats.received(),
+            "decoded": stats.decoded(),
+            "dropped": stats.dropped(),
+            "stats": stats,
+            "published": published,
+        }),
+    ))
+}
+
+/// Publishes nothing (`--no-publish`).
+struct NoopObserver;
+
+impl robot_agent::offline_slam::SlamObserver for NoopObserver {}
 
 /// Writes `relations.csv` (every relation's error, by time) and `relations_error.png` (translational error
 /// against the time of the relation's first stamp: where the trajectory tears).

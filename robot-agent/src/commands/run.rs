@@ -23,6 +23,17 @@
 //! # Optional: reach the server through zenoh (routers or its zenoh endpoint) instead of gRPC.
 //! [zenoh]
 //! connect = ["tcp/127.0.0.1:7447"]
+//!
+//! # Optional, instead of `source`: a live ROS 2 robot over zenoh (rmw_zenoh, no ROS install); the
+//! # session ends `until_idle_s` after the last scan (and `run` with it). Each new site map version is
+//! # published back on /map, and, once the session is placed on the site map, each node's global pose
+//! # (`[ros2.publish]`: pose topic, frames). See `robot_agent::source::Ros2LiveOptions` for every field.
+//! [ros2]
+//! domain_id = 0
+//! scan_topic = "/scan"
+//! odom_topic = "/odom"
+//! [ros2.zenoh]
+//! connect = ["tcp/127.0.0.1:7447"]   # the robot's rmw_zenoh router
 //! ```
 
 use std::fmt::Write as _;
@@ -36,10 +47,12 @@ use mapping::lifelong::RelocalizationOptions;
 use mapping::local_slam::LocalTrajectoryBuilderOptions;
 use rand::RngCore as _;
 use robot_agent::outbox::Outbox;
-use robot_agent::source;
+use robot_agent::ros2_publisher::{PublishStats, Ros2Publisher, odom_from_base_at};
+use robot_agent::source::{self, LiveRos2Source, OdometryHistory, Ros2LiveOptions};
 use robot_agent::uplink::{
-    ClientTls, FleetUplink, GlobalSubmapCache, GrpcUplink, MapUplink as _, SessionOptions,
-    SessionStart, Uploader, ZenohLinkOptions, ZenohUplink, follow_site, stream_session,
+    ClientTls, FleetUplink, GlobalSubmapCache, GrpcUplink, MapUplink as _, SessionInput,
+    SessionOptions, SessionStart, Uploader, ZenohLinkOptions, ZenohUplink, follow_site,
+    stream_session_from,
 };
 use serde::Deserialize;
 
@@ -64,8 +77,10 @@ pub struct AgentConfig {
     /// This robot's bearer token for the site. Required.
     pub token: String,
     /// The recording to replay: a ROS1 bag, a ROS 2 recording (rosbag2 folder, `metadata.yaml`, `.mcap`
-    /// or `.db3`) or a CARMEN log. Required.
+    /// or `.db3`) or a CARMEN log. Required unless `[ros2]` is given.
     pub source: PathBuf,
+    /// A live ROS 2 robot over zenoh instead of `source` (`[ros2]`). Default none.
+    pub ros2: Option<Ros2LiveOptions>,
     /// Replay pace as a multiple of real time; 0 = as fast as possible. Default 1.
     pub replay_speed: f64,
     /// Stop after this many scans (all by default).
@@ -119,6 +134,7 @@ impl Default for AgentConfig {
             tls_ca_pem: None,
             tls_domain: None,
             zenoh: None,
+            ros2: None,
         }
     }
 }
@@ -140,7 +156,19 @@ impl AgentConfig {
         ] {
             anyhow::ensure!(!value.is_empty(), "{name} is required");
         }
-        anyhow::ensure!(!self.source.as_os_str().is_empty(), "source is required");
+        match &self.ros2 {
+            Some(ros2) => {
+                anyhow::ensure!(
+                    self.source.as_os_str().is_empty(),
+                    "give either source (a recording) or [ros2] (a live robot), not both"
+                );
+                ros2.validate()?;
+            }
+            None => anyhow::ensure!(
+                !self.source.as_os_str().is_empty(),
+                "source is required (or a [ros2] section for a live robot)"
+            ),
+        }
         anyhow::ensure!(
             self.replay_speed.is_finite() && self.replay_speed >= 0.0,
             "replay_speed must be ≥ 0"
@@ -194,10 +222,22 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let config: AgentConfig =
         toml::from_str(&text).with_context(|| format!("in {}", args.config.display()))?;
     config.validate()?;
-    let recording = Arc::new(
-        source::read_recording(&config.source)
-            .with_context(|| format!("cannot read {}", config.source.display()))?,
-    );
+    let (input, live_session) = match &config.ros2 {
+        Some(ros2) => {
+            let live = LiveRos2Source::open(ros2, ros2.stream_end())?;
+            let session = live.session().clone();
+            let odometry = live.odometry_history();
+            let input = SessionInput::Live(Box::new(live));
+            (input, Some((session, ros2.clone(), odometry)))
+        }
+        None => (
+            SessionInput::Recording(Arc::new(
+                source::read_recording(&config.source)
+                    .with_context(|| format!("cannot read {}", config.source.display()))?,
+            )),
+            None,
+        ),
+    };
     let outbox = Outbox::open(&config.outbox_dir, &config.site)
         .with_context(|| format!("cannot open the outbox at {}", config.outbox_dir.display()))?;
     let session_uuid = config.session_uuid.clone().unwrap_or_else(random_uuid);
@@ -210,7 +250,12 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     );
     let call_timeout = seconds("call_timeout_s", config.call_timeout_s)?;
     let retry_interval = seconds("retry_interval_s", config.retry_interval_s)?;
+    let (node_poses, node_pose_receiver) = tokio::sync::mpsc::channel(64);
     let options = SessionOptions {
+        node_poses: live_session
+            .as_ref()
+            .filter(|(_, ros2, _)| ros2.publish.enabled)
+            .map(|_| node_poses),
         nodes_per_batch: config.nodes_per_batch,
         replay_speed: config.replay_speed,
         max_scans: config.max_scans,
@@ -284,8 +329,20 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
             relocalization: RelocalizationOptions::default(),
             session_start: mapping::lifelong::SessionStartOptions::default(),
         };
+        let map_publisher = match live_session {
+            Some((session, ros2, odometry)) if ros2.publish.enabled => {
+                Some(tokio::spawn(publish_to_ros2(
+                    session,
+                    ros2,
+                    Arc::clone(&cache),
+                    (node_pose_receiver, odometry),
+                    stop.subscribe(),
+                )))
+            }
+            _ => None,
+        };
         let (report, trace) =
-            stream_session(recording, &options, &mut uploader, Some(start)).await?;
+            stream_session_from(input, &options, &mut uploader, Some(start)).await?;
         tracing::info!(
             relocalized = trace.prior.is_some(),
             score = trace.score,
@@ -295,6 +352,18 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         );
         let _ = stop.send(true);
         let _ = follower.await;
+        if let Some(task) = map_publisher {
+            match task.await {
+                Ok(Ok(stats)) => tracing::info!(
+                    maps = stats.map_versions,
+                    poses = stats.poses,
+                    failed = stats.failed,
+                    "published on ROS 2"
+                ),
+                Ok(Err(e)) => tracing::warn!("ROS 2 map publisher: {e:#}"),
+                Err(e) => tracing::warn!("ROS 2 map publisher task: {e}"),
+            }
+        }
         let (version, submaps) = cache
             .lock()
             .map(|c| (c.version(), c.submaps().len()))
@@ -319,6 +388,101 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         );
         anyhow::Ok(())
     })
+}
+
+/// With `[ros2]`: publishes on ROS 2 (see `robot_agent::ros2_publisher`) the site map
+/// (`nav_msgs/msg/OccupancyGrid`) each time the cache reaches a new version, and each node's global pose
+/// as the robot estimates it (`PoseWithCovarianceStamped`, and `map -> odom` on `/tf` from the odometry
+/// at the node's stamp), until `stop`.
+async fn publish_to_ros2(
+    session: zenoh::Session,
+    ros2: Ros2LiveOptions,
+    cache: Arc<Mutex<GlobalSubmapCache>>,
+    (mut poses, odometry): (
+        tokio::sync::mpsc::Receiver<(mapping::sensor::Timestamp, mapping::geometry::Rigid2)>,
+        OdometryHistory,
+    ),
+    mut stop: tokio::sync::watch::Receiver<bool>,
+) -> anyhow::Result<PublishStats> {
+    let publisher = {
+        let (session, ros2) = (session.clone(), ros2.clone());
+        tokio::task::spawn_blocking(move || {
+            Ros2Publisher::open(&session, ros2.domain_id, &ros2.publish)
+        })
+        .await??
+    };
+    let publisher = Arc::new(Mutex::new(publisher));
+    let mut published_version = 0;
+    let mut tick = tokio::time::interval(Duration::from_millis(500));
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let stats = |publisher: &Arc<Mutex<Ros2Publisher>>| {
+        publisher.lock().map(|p| p.stats()).unwrap_or_default()
+    };
+    loop {
+        let pose = tokio::select! {
+            _ = tick.tick() => None,
+            Some(pose) = poses.recv() => Some(pose),
+            _ = stop.changed() => return Ok(stats(&publisher)),
+        };
+        let (cache, publisher) = (Arc::clone(&cache), Arc::clone(&publisher));
+        if let Some((stamp, map_from_base)) = pose {
+            let odometry = Arc::clone(&odometry);
+            tokio::task::spawn_blocking(move || {
+                let map_from_odom = odometry
+                    .lock()
+                    .ok()
+                    .and_then(|h| odom_from_base_at(&h, stamp))
+                    .map(|odom_from_base| map_from_base * odom_from_base.inverse());
+                if let Ok(mut publisher) = publisher.lock() {
+                    publisher.publish_pose(stamp, &map_from_base, map_from_odom.as_ref());
+                }
+            })
+            .await?;
+            continue;
+        }
+        let version = cache.lock().map_or(0, |c| c.version());
+        let resolution = ros2.publish.map_resolution_m;
+        let stamp = mapping::sensor::Timestamp(
+            std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX)),
+        );
+        let fresh = version > published_version;
+        tokio::task::spawn_blocking(move || {
+            let Ok(mut publisher) = publisher.lock() else {
+                return;
+            };
+            if fresh {
+                let grids: Vec<_> = cache
+                    .lock()
+                    .map(|c| {
+                        c.submaps()
+                            .values()
+                            .map(|s| (s.global_pose * s.local_pose.inverse(), Arc::clone(&s.grid)))
+                            .collect()
+                    })
+                    .unwrap_or_default();
+                let map = mapping::lifelong::render_submaps(
+                    grids
+                        .iter()
+                        .map(|(global_from_grid, grid)| mapping::lifelong::PlacedGrid {
+                            global_from_grid: *global_from_grid,
+                            grid,
+                        }),
+                    resolution,
+                );
+                if let Some(map) = map {
+                    publisher.publish_map(&map, stamp);
+                }
+            } else {
+                publisher.republish_map_if_due();
+            }
+        })
+        .await?;
+        if fresh {
+            published_version = version;
+        }
+    }
 }
 
 /// Ends the sessions an earlier run left unfinished (see the module docs), retrying for up to `patience`
@@ -375,6 +539,34 @@ mod tests {
         assert_eq!(uuid.len(), 36);
         assert_eq!(&uuid[14..15], "4");
         assert_ne!(uuid, random_uuid());
+    }
+
+    #[test]
+    fn a_ros2_section_replaces_the_source() {
+        let identity = "site = \"s\"\nrobot_id = \"r\"\ntoken = \"t0k3n-t0k3n\"\n";
+        let live = format!(
+            "{identity}[ros2]\ndomain_id = 7\nscan_topic = \"/base/scan\"\n[ros2.publish]\npose_topic = \"/amcl_pose\"\n"
+        );
+        let config: AgentConfig = toml::from_str(&live).unwrap();
+        config.validate().unwrap();
+        let ros2 = config.ros2.unwrap();
+        assert_eq!(
+            (ros2.domain_id, ros2.scan_topic.as_str()),
+            (7, "/base/scan")
+        );
+        assert_eq!(ros2.publish.pose_topic, "/amcl_pose");
+        let both = format!("{identity}source = \"x.bag\"\n[ros2]\n");
+        let config: AgentConfig = toml::from_str(&both).unwrap();
+        assert!(
+            config
+                .validate()
+                .unwrap_err()
+                .to_string()
+                .contains("not both")
+        );
+        let bad_topic = format!("{identity}[ros2]\nodom_topic = \"odom\"\n");
+        let config: AgentConfig = toml::from_str(&bad_topic).unwrap();
+        assert!(config.validate().is_err());
     }
 
     #[test]

@@ -68,28 +68,43 @@ impl RosCollector {
         }
     }
 
-    /// The recording: events in time order and `base_from_laser` from the first transform whose child
-    /// is the first scan's frame (identity, said in the report, when there is none).
-    pub fn finish(self) -> Recording {
-        let Self {
-            events,
-            transforms,
-            laser_frame,
-            mut report,
-        } = self;
-        let transform = laser_frame
-            .as_ref()
-            .and_then(|frame| transforms.iter().find(|t| &t.child == frame));
-        let base_from_laser = if let Some(t) = transform {
-            report.extrinsic_source = format!("tf {} -> {}", t.parent, t.child);
-            t.parent_from_child
-        } else {
-            report.extrinsic_source = match &laser_frame {
+    /// Takes the events decoded since the last call, in arrival order (a live source's way of draining
+    /// the collector as messages come; [`Self::finish`] is the recording's).
+    pub fn take_events(&mut self) -> Vec<SensorEvent> {
+        std::mem::take(&mut self.events)
+    }
+
+    /// `base_from_laser` and where it came from, once both the first scan's frame and a transform to it
+    /// have been seen (`None` before).
+    pub fn laser_mount(&self) -> Option<(Rigid2, String)> {
+        let frame = self.laser_frame.as_ref()?;
+        let t = self.transforms.iter().find(|t| &t.child == frame)?;
+        Some((
+            t.parent_from_child,
+            format!("tf {} -> {}", t.parent, t.child),
+        ))
+    }
+
+    /// `base_from_laser` as [`Self::finish`] chooses it: the transform to the first scan's frame, or
+    /// identity (said in the returned source).
+    pub fn laser_mount_or_identity(&self) -> (Rigid2, String) {
+        self.laser_mount().unwrap_or_else(|| {
+            let why = match &self.laser_frame {
                 Some(frame) => format!("no tf to frame {frame:?}: identity"),
                 None => "no laser scans: identity".into(),
             };
-            Rigid2::identity()
-        };
+            (Rigid2::identity(), why)
+        })
+    }
+
+    /// The recording: events in time order and `base_from_laser` from the first transform whose child
+    /// is the first scan's frame (identity, said in the report, when there is none).
+    pub fn finish(self) -> Recording {
+        let (base_from_laser, source) = self.laser_mount_or_identity();
+        let Self {
+            events, mut report, ..
+        } = self;
+        report.extrinsic_source = source;
         Recording::from_unsorted(events, base_from_laser, report)
     }
 }

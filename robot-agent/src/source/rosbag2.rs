@@ -42,7 +42,7 @@ pub trait Visitor {
 }
 
 /// CDR's decoders.
-const CDR_DECODERS: Decoders = Decoders {
+pub(super) const CDR_DECODERS: Decoders = Decoders {
     laser_scan: ros2_messages::laser_scan,
     odometry: ros2_messages::odometry,
     imu: ros2_messages::imu,

@@ -19,8 +19,10 @@ use tokio::sync::{mpsc, watch};
 use tokio_stream::StreamExt as _;
 
 use super::robot_glm::RobotGlm;
-use super::{GlobalSubmapCache, LloStats, MapUplink, UplinkError, Uploader, run_llo};
-use crate::source::Recording;
+use super::{
+    GlobalSubmapCache, LloStats, MapUplink, UplinkError, Uploader, run_llo, run_llo_stream,
+};
+use crate::source::{Recording, SensorStream};
 
 /// How a session streams.
 #[derive(Clone, Debug)]
@@ -43,6 +45,10 @@ pub struct SessionOptions {
     pub glm_on_robot: bool,
     /// The robot's GLM settings. Default: the server's (`GlobalSlamOptions::default().constraint_builder`).
     pub glm: ConstraintBuilderOptions,
+    /// Where to send each node's global pose as the robot estimates it when the node is made
+    /// (`(stamp, map_from_base)`; the live ROS 2 publisher): sent without waiting, dropped when the
+    /// receiver lags. Default none.
+    pub node_poses: Option<tokio::sync::mpsc::Sender<(mapping::sensor::Timestamp, Rigid2)>>,
 }
 
 impl Default for SessionOptions {
@@ -56,6 +62,7 @@ impl Default for SessionOptions {
             local: LocalTrajectoryBuilderOptions::default(),
             glm_on_robot: true,
             glm: GlobalSlamOptions::default().constraint_builder,
+            node_poses: None,
         }
     }
 }
@@ -338,10 +345,28 @@ pub async fn relocalize_nodes<'a>(
     Some(found.map(|f| (f.global_from_local, f.score)))
 }
 
+/// What a session maps.
+pub enum SessionInput {
+    /// A recording, replayed at `SessionOptions::replay_speed`.
+    Recording(Arc<Recording>),
+    /// A live robot (`source::LiveRos2Source`), taken as it comes.
+    Live(Box<dyn SensorStream + Send>),
+}
+
 /// [`stream_recording`] with an optional session-start relocalization (see [`SessionStart`]); also
 /// returns the session's [`SessionTrace`].
 pub async fn stream_session<U: MapUplink>(
     recording: Arc<Recording>,
+    options: &SessionOptions,
+    uploader: &mut Uploader<U>,
+    start: Option<SessionStart<'_>>,
+) -> Result<(SessionReport, SessionTrace), SessionError> {
+    stream_session_from(SessionInput::Recording(recording), options, uploader, start).await
+}
+
+/// [`stream_session`] from a recording or a live robot: the same LLO, upload and GLM either way.
+pub async fn stream_session_from<U: MapUplink>(
+    input: SessionInput,
     options: &SessionOptions,
     uploader: &mut Uploader<U>,
     start: Option<SessionStart<'_>>,
@@ -352,9 +377,15 @@ pub async fn stream_session<U: MapUplink>(
     let llo = std::thread::Builder::new()
         .name("llo".into())
         .spawn(move || {
-            run_llo(&recording, &llo_options, speed, max_scans, &mut |items| {
-                sender.blocking_send(items).is_ok()
-            })
+            let mut sink = |items| sender.blocking_send(items).is_ok();
+            match input {
+                SessionInput::Recording(recording) => {
+                    run_llo(&recording, &llo_options, speed, max_scans, &mut sink)
+                }
+                SessionInput::Live(mut stream) => {
+                    run_llo_stream(stream.as_mut(), &llo_options, None, max_scans, &mut sink)
+                }
+            }
         })
         .map_err(|e| SessionError::Llo(e.to_string()))?;
 
@@ -442,11 +473,17 @@ pub async fn stream_session<U: MapUplink>(
                     }
                     let local = node_local_pose(&items);
                     held_local.push(local);
-                    trace.node_estimates.push(if trace.revoked {
+                    let estimate = if trace.revoked {
                         None
                     } else {
                         estimate.or_else(|| Some(trace.prior? * local?))
-                    });
+                    };
+                    if let (Some(sink), Some(pose), Some(time)) =
+                        (&options.node_poses, estimate, trace.node_times.last())
+                    {
+                        let _ = sink.try_send((*time, pose));
+                    }
+                    trace.node_estimates.push(estimate);
                     nodes_in_batch += 1;
                     batch.extend(items);
                 } else {

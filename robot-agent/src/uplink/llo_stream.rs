@@ -4,10 +4,10 @@
 use std::time::{Duration, Instant};
 
 use mapping::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
-use mapping::sensor::SensorEvent;
+use mapping::sensor::{SensorEvent, Timestamp};
 use proto::{NodeAdded, UploadItem};
 
-use crate::source::Recording;
+use crate::source::{Recording, RecordingStream, SensorStream};
 
 /// What [`run_llo`] did.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -34,16 +34,34 @@ pub fn run_llo(
     max_scans: Option<usize>,
     sink: &mut dyn FnMut(Vec<UploadItem>) -> bool,
 ) -> LloStats {
+    let first_time = recording.events.first().map(SensorEvent::time);
+    run_llo_stream(
+        &mut RecordingStream::new(recording),
+        options,
+        first_time
+            .filter(|_| replay_speed > 0.0)
+            .map(|t| (t, replay_speed)),
+        max_scans,
+        sink,
+    )
+}
+
+/// [`run_llo`] over any [`SensorStream`] (a live robot: `pace` `None`, events are taken as they come);
+/// with `pace` `Some((t0, speed))`, the event stamped `t` is taken `(t - t0) / speed` after the start.
+pub fn run_llo_stream(
+    stream: &mut dyn SensorStream,
+    options: &LocalTrajectoryBuilderOptions,
+    pace: Option<(Timestamp, f64)>,
+    max_scans: Option<usize>,
+    sink: &mut dyn FnMut(Vec<UploadItem>) -> bool,
+) -> LloStats {
     let mut llo = LocalTrajectoryBuilder::new(options.clone());
     let mut stats = LloStats::default();
     let mut held: Option<Vec<UploadItem>> = None;
     let started = Instant::now();
-    let first_time = recording.events.first().map(SensorEvent::time);
-    for event in mapping::sensor::collate_for_llo(&recording.events) {
-        if replay_speed > 0.0
-            && let Some(t0) = first_time
-        {
-            let due = event.time().seconds_since(t0) / replay_speed;
+    while let Some(event) = stream.next_event() {
+        if let Some((t0, speed)) = pace {
+            let due = event.time().seconds_since(t0) / speed;
             if let Ok(due) = Duration::try_from_secs_f64(due)
                 && let Some(wait) = due.checked_sub(started.elapsed())
             {
@@ -51,15 +69,15 @@ pub fn run_llo(
             }
         }
         match event {
-            SensorEvent::Odometry(o) => llo.add_odometry(o),
-            SensorEvent::Imu(i) => llo.add_imu(i),
+            SensorEvent::Odometry(o) => llo.add_odometry(&o),
+            SensorEvent::Imu(i) => llo.add_imu(&i),
             SensorEvent::Scan(scan) => {
                 if max_scans.is_some_and(|m| stats.scans >= m) {
                     break;
                 }
                 stats.scans += 1;
                 let (range_data, _) = scan.to_range_data(&options.range_conversion);
-                let range_data = range_data.transformed(&recording.base_from_laser);
+                let range_data = range_data.transformed(&stream.base_from_laser());
                 let Some(result) = llo.add_range_data(scan.time, &range_data) else {
                     stats.scans_dropped += 1;
                     continue;

@@ -1,0 +1,673 @@
+//! Live ROS 2 input over zenoh, with no ROS installed: the robot's `/scan`, `/odom` (and optionally an IMU),
+//! `/tf` and `/tf_static` as rmw_zenoh publishes them (see [`super::rmw_zenoh`] for the wire format),
+//! decoded by the same CDR decoders and the same [`RosCollector`] as a rosbag2 recording, and handed on
+//! as the same [`SensorEvent`]s, in the order LLO takes them ([`LloCollator`]), through
+//! [`SensorStream`]: the SLAM driver (`offline_slam::run_slam`) runs on a live robot exactly as on a file.
+//!
+//! What a live stream adds, and how it is handled:
+//! - **Arrival order is not stamp order** across topics (and a laser driver may stamp late). Events wait
+//!   in a reorder buffer until the newest stamp seen is `reorder_window_s` past theirs, then leave in
+//!   stamp order, so within that window the stream is sorted as a recording is. An event that arrives
+//!   later than that, or repeats its stream's last stamp, is dropped and counted (a recording's reader
+//!   re-sorts or drops the same ones).
+//! - **The laser's mounting pose** comes from `/tf_static` (or `/tf`), which may arrive after the first
+//!   scans: nothing leaves the buffer until a transform to the first scan's frame is known, or
+//!   `mount_wait_s` of stream time has passed (then identity, said in the stats).
+//! - **Back-pressure**: zenoh's receive threads only push raw samples into a bounded queue
+//!   (`queue_capacity`); when SLAM falls that far behind, new samples are dropped and counted, never
+//!   blocking zenoh. Gaps in a publisher's sequence numbers (rmw_zenoh's attachment) are counted too:
+//!   messages lost before they reached the agent.
+//! - **The end**: the stream ends `until_idle_s` seconds (wall time) after the last scan arrived, or if no
+//!   scan arrives within `start_timeout_s`; everything still buffered is then handed on.
+
+use std::collections::{BTreeMap, HashMap};
+use std::sync::mpsc;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use mapping::geometry::Rigid2;
+use mapping::sensor::{LloCollator, SensorEvent, Timestamp};
+use serde::{Deserialize, Serialize};
+use zenoh::Wait as _;
+
+use super::rmw_zenoh::{self, Attachment};
+use super::ros_collector::{RosCollector, RosKind};
+use super::rosbag2::CDR_DECODERS;
+use super::sensor_stream::SensorStream;
+use crate::uplink::ZenohLinkOptions;
+
+/// Where and how the agent listens to a live ROS 2 robot (the agent config's `[ros2]` section).
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Ros2LiveOptions {
+    /// ROS domain id (`ROS_DOMAIN_ID`), 0..=232. Default 0.
+    pub domain_id: u32,
+    /// Laser scans (`sensor_msgs/msg/LaserScan`), fully qualified. Default `/scan`.
+    pub scan_topic: String,
+    /// Wheel odometry (`nav_msgs/msg/Odometry`). Default `/odom`.
+    pub odom_topic: String,
+    /// An IMU (`sensor_msgs/msg/Imu`), if LLO should use one. Default none.
+    pub imu_topic: Option<String>,
+    /// Transforms (`tf2_msgs/msg/TFMessage`). Default `/tf`.
+    pub tf_topic: String,
+    /// Static transforms. Default `/tf_static`.
+    pub tf_static_topic: String,
+    /// How to join the robot's zenoh network. Default: a peer connecting to the rmw_zenoh router on this
+    /// machine, `tcp/127.0.0.1:7447`, multicast scouting off.
+    pub zenoh: ZenohLinkOptions,
+    /// Raw messages held between zenoh and SLAM before new ones are dropped (counted). Default 4096.
+    pub queue_capacity: usize,
+    /// Seconds of stream time an event waits for earlier-stamped ones (see the module docs). Default 0.5.
+    pub reorder_window_s: f64,
+    /// Seconds of stream time the first scans wait for the laser's transform. Default 2.
+    pub mount_wait_s: f64,
+    /// `evermap-agent run`: the session ends this many seconds (wall time) after the last scan. Default 30.
+    pub until_idle_s: f64,
+    /// `evermap-agent run`: give up if no scan comes within this many seconds. Default 600.
+    pub start_timeout_s: f64,
+    /// What the agent publishes back (`[ros2.publish]`).
+    pub publish: crate::ros2_publisher::Ros2PublisherOptions,
+}
+
+impl Default for Ros2LiveOptions {
+    fn default() -> Self {
+        Self {
+            domain_id: 0,
+            scan_topic: "/scan".into(),
+            odom_topic: "/odom".into(),
+            imu_topic: None,
+            tf_topic: "/tf".into(),
+            tf_static_topic: "/tf_static".into(),
+            zenoh: ZenohLinkOptions {
+                connect: vec!["tcp/127.0.0.1:7447".into()],
+                ..ZenohLinkOptions::default()
+            },
+            queue_capacity: 4096,
+            reorder_window_s: 0.5,
+            mount_wait_s: 2.0,
+            until_idle_s: 30.0,
+            start_timeout_s: 600.0,
+            publish: crate::ros2_publisher::Ros2PublisherOptions::default(),
+        }
+    }
+}
+
+/// Why a live ROS 2 source cannot start.
+#[derive(Debug, thiserror::Error)]
+pub enum Ros2LiveError {
+    /// An option is out of range.
+    #[error("invalid [ros2] option {field}: {reason}")]
+    Invalid {
+        /// The option.
+        field: &'static str,
+        /// Why.
+        reason: String,
+    },
+    /// A topic name cannot be subscribed to.
+    #[error(transparent)]
+    Name(#[from] rmw_zenoh::RosNameError),
+    /// Zenoh refused the configuration, the session or a subscription.
+    #[error("zenoh: {0}")]
+    Zenoh(String),
+}
+
+fn invalid(field: &'static str, reason: impl Into<String>) -> Ros2LiveError {
+    Ros2LiveError::Invalid {
+        field,
+        reason: reason.into(),
+    }
+}
+
+impl Ros2LiveOptions {
+    /// Checks every field (topic names against ROS's rules, the zenoh link, the numbers).
+    pub fn validate(&self) -> Result<(), Ros2LiveError> {
+        if self.domain_id > 232 {
+            return Err(invalid(
+                "domain_id",
+                format!("{} is above 232, the largest ROS domain id", self.domain_id),
+            ));
+        }
+        for (topic, ros_type) in self.topics() {
+            rmw_zenoh::topic_key(self.domain_id, &topic, ros_type, "*")?;
+        }
+        self.zenoh
+            .validate()
+            .map_err(|e| invalid("zenoh", e.to_string()))?;
+        if self.queue_capacity == 0 || self.queue_capacity > 1 << 20 {
+            return Err(invalid("queue_capacity", "must be in 1..=1048576 messages"));
+        }
+        for (field, value, max) in [
+            ("reorder_window_s", self.reorder_window_s, 10.0),
+            ("mount_wait_s", self.mount_wait_s, 60.0),
+        ] {
+            if !(0.0..=max).contains(&value) {
+                return Err(invalid(
+                    field,
+                    format!("must be in 0..={max} seconds, got {value}"),
+                ));
+            }
+        }
+        self.stream_end().validate()?;
+        self.publish
+            .validate()
+            .map_err(|e| invalid("publish", e.to_string()))?;
+        Ok(())
+    }
+
+    /// When `evermap-agent run` ends a live session (`until_idle_s`, `start_timeout_s`).
+    pub fn stream_end(&self) -> StreamEnd {
+        StreamEnd {
+            until_idle_s: self.until_idle_s,
+            start_timeout_s: self.start_timeout_s,
+        }
+    }
+
+    /// The topics subscribed to, with their types.
+    fn topics(&self) -> Vec<(String, &'static str)> {
+        let mut topics = vec![
+            (self.scan_topic.clone(), rmw_zenoh::LASER_SCAN.name),
+            (self.odom_topic.clone(), rmw_zenoh::ODOMETRY.name),
+            (self.tf_topic.clone(), rmw_zenoh::TF_MESSAGE.name),
+            (self.tf_static_topic.clone(), rmw_zenoh::TF_MESSAGE.name),
+        ];
+        if let Some(imu) = &self.imu_topic {
+            topics.push((imu.clone(), rmw_zenoh::IMU.name));
+        }
+        topics
+    }
+}
+
+/// When a live stream ends.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StreamEnd {
+    /// Seconds (wall time) without a scan after the last one, to end the stream.
+    pub until_idle_s: f64,
+    /// Seconds (wall time) to wait for the first scan before giving up.
+    pub start_timeout_s: f64,
+}
+
+impl StreamEnd {
+    /// Checks both durations are in (0, 86400] seconds.
+    pub fn validate(&self) -> Result<(), Ros2LiveError> {
+        for (field, value) in [
+            ("until_idle_s", self.until_idle_s),
+            ("start_timeout_s", self.start_timeout_s),
+        ] {
+            if !(value.is_finite() && value > 0.0 && value <= 86_400.0) {
+                return Err(invalid(
+                    field,
+                    format!("must be in (0, 86400] seconds, got {value}"),
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Counts of one topic.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize)]
+pub struct TopicCounts {
+    /// Samples zenoh delivered.
+    pub received: u64,
+    /// Decoded into events or transforms.
+    pub decoded: u64,
+    /// Did not decode (see `problems`).
+    pub malformed: u64,
+    /// Dropped because the queue to SLAM was full.
+    pub dropped_queue_full: u64,
+    /// Messages the publishers' sequence numbers say were sent but never arrived.
+    pub missed_by_sequence: u64,
+    /// Samples without a readable rmw_zenoh attachment (still decoded).
+    pub attachment_invalid: u64,
+}
+
+/// What a live source received, decoded and dropped.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct LiveStats {
+    /// Per topic.
+    pub topics: BTreeMap<String, TopicCounts>,
+    /// Events dropped for arriving after the reorder window (stamped before their stream's last one).
+    pub dropped_late: u64,
+    /// Events dropped for repeating their stream's last stamp (a recording's reader drops them too).
+    pub repeated_stamp: u64,
+    /// Events handed on to SLAM.
+    pub events_out: u64,
+    /// Scans handed on to SLAM.
+    pub scans_out: u64,
+    /// The newest stamp (nanoseconds) handed on to SLAM.
+    pub newest_stamp_ns: Option<i64>,
+    /// Where the laser's mounting pose came from.
+    pub extrinsic_source: String,
+    /// The first few decoding problems.
+    pub problems: Vec<String>,
+}
+
+impl LiveStats {
+    /// Samples received over every topic.
+    pub fn received(&self) -> u64 {
+        self.topics.values().map(|t| t.received).sum()
+    }
+
+    /// Samples decoded over every topic.
+    pub fn decoded(&self) -> u64 {
+        self.topics.values().map(|t| t.decoded).sum()
+    }
+
+    /// Samples lost on the way in (queue full, sequence gaps, too late to re-sort) or undecodable.
+    pub fn dropped(&self) -> u64 {
+        self.topics
+            .values()
+            .map(|t| t.dropped_queue_full + t.missed_by_sequence + t.malformed)
+            .sum::<u64>()
+            + self.dropped_late
+    }
+}
+
+/// One raw sample, as zenoh's threads hand it over.
+struct Incoming {
+    topic: usize,
+    payload: Vec<u8>,
+}
+
+/// Counters the zenoh callbacks update.
+#[derive(Default)]
+struct Shared {
+    received: Vec<u64>,
+    dropped_queue_full: Vec<u64>,
+    last_sequence: HashMap<(usize, [u8; 16]), i64>,
+    missed_by_sequence: Vec<u64>,
+    attachment_invalid: Vec<u64>,
+}
+
+/// A live ROS 2 robot as a [`SensorStream`] (see the module docs).
+pub struct LiveRos2Source {
+    session: zenoh::Session,
+    _subscribers: Vec<zenoh::pubsub::Subscriber<()>>,
+    receiver: mpsc::Receiver<Incoming>,
+    shared: Arc<Mutex<Shared>>,
+    topics: Vec<(String, RosKind)>,
+    decoded: Vec<u64>,
+    malformed: Vec<u64>,
+    collector: RosCollector,
+    options: Ros2LiveOptions,
+    end: StreamEnd,
+    started: Instant,
+    last_scan_at: Option<Instant>,
+    /// Events by (stamp, arrival), waiting for the reorder window.
+    buffer: BTreeMap<(Timestamp, u64), SensorEvent>,
+    arrivals: u64,
+    newest: Option<Timestamp>,
+    first_scan: Option<Timestamp>,
+    mount: Option<(Rigid2, String)>,
+    last_out: [Option<Timestamp>; 3],
+    collator: LloCollator<SensorEvent>,
+    ready: std::collections::VecDeque<SensorEvent>,
+    finished: bool,
+    dropped_late: u64,
+    repeated_stamp: u64,
+    events_out: u64,
+    scans_out: u64,
+    newest_out: Option<Timestamp>,
+    odometry: OdometryHistory,
+}
+
+/// The latest odometry readings handed on (at most [`ODOMETRY_HISTORY`]), shared with whoever needs
+/// `odom_from_base` at a past stamp (the `map -> odom` publisher).
+pub type OdometryHistory = Arc<Mutex<std::collections::VecDeque<mapping::sensor::OdometryReading>>>;
+
+/// Readings kept in an [`OdometryHistory`].
+const ODOMETRY_HISTORY: usize = 512;
+
+fn stream_of(event: &SensorEvent) -> usize {
+    match event {
+        SensorEvent::Scan(_) => 0,
+        SensorEvent::Odometry(_) => 1,
+        SensorEvent::Imu(_) => 2,
+    }
+}
+
+/// The first 12 bytes of every GID this session's publishers use (`ros2_publisher` builds them so).
+pub fn own_gid_prefix(zid: &zenoh::session::ZenohId) -> [u8; 12] {
+    let mut prefix = [0u8; 12];
+    prefix.copy_from_slice(&zid.to_le_bytes()[..12]);
+    prefix
+}
+
+/// How long one wait on the queue lasts at most (so the idle timeout is checked).
+const POLL: Duration = Duration::from_millis(100);
+
+impl LiveRos2Source {
+    /// Joins the zenoh network and subscribes to the robot's topics. Blocks until the subscriptions are
+    /// declared (not until data arrives). Do not call from inside an async runtime.
+    pub fn open(options: &Ros2LiveOptions, end: StreamEnd) -> Result<Self, Ros2LiveError> {
+        options.validate()?;
+        end.validate()?;
+        let config = options
+            .zenoh
+            .to_zenoh_config()
+            .map_err(|e| invalid("zenoh", e.to_string()))?;
+        let session = zenoh::open(config)
+            .wait()
+            .map_err(|e| Ros2LiveError::Zenoh(format!("cannot open a session: {e}")))?;
+        let (sender, receiver) = mpsc::sync_channel(options.queue_capacity);
+        let topics = options.topics();
+        let shared = Arc::new(Mutex::new(Shared {
+            received: vec![0; topics.len()],
+            dropped_queue_full: vec![0; topics.len()],
+            missed_by_sequence: vec![0; topics.len()],
+            attachment_invalid: vec![0; topics.len()],
+            last_sequence: HashMap::new(),
+        }));
+        let mut subscribers = Vec::with_capacity(topics.len());
+        for (index, (topic, ros_type)) in topics.iter().enumerate() {
+            let key = rmw_zenoh::topic_key(options.domain_id, topic, ros_type, "*")?;
+            let sender = sender.clone();
+            let shared = Arc::clone(&shared);
+            let own = own_gid_prefix(&session.zid());
+            let subscriber = session
+                .declare_subscriber(key.clone())
+                .callback(move |sample| {
+                    let attachment = sample
+                        .attachment()
+                        .map(|a| Attachment::decode(&a.to_bytes()));
+                    // The agent's own publications (its `map -> odom` on /tf) are not input.
+                    if let Some(Ok(a)) = &attachment
+                        && a.source_gid[..12] == own
+                    {
+                        return;
+                    }
+                    let Ok(mut shared) = shared.lock() else {
+                        return;
+                    };
+                    let shared = &mut *shared;
+                    shared.received[index] += 1;
+                    match attachment {
+                        Some(Ok(a)) => {
+                            let last = shared
+                                .last_sequence
+                                .insert((index, a.source_gid), a.sequence_number);
+                            if let Some(last) = last
+                                && a.sequence_number > last.saturating_add(1)
+                            {
+                                shared.missed_by_sequence[index] +=
+                                    u64::try_from(a.sequence_number - last - 1).unwrap_or(0);
+                            }
+                        }
+                        _ => shared.attachment_invalid[index] += 1,
+                    }
+                    let incoming = Incoming {
+                        topic: index,
+                        payload: sample.payload().to_bytes().into_owned(),
+                    };
+                    if let Err(mpsc::TrySendError::Full(_)) = sender.try_send(incoming) {
+                        shared.dropped_queue_full[index] += 1;
+                    }
+                })
+                .wait()
+                .map_err(|e| Ros2LiveError::Zenoh(format!("cannot subscribe to {key}: {e}")))?;
+            subscribers.push(subscriber);
+        }
+        let kinds = topics
+            .iter()
+            .map(|(topic, ros_type)| {
+                let kind = match *ros_type {
+                    t if t == rmw_zenoh::LASER_SCAN.name => RosKind::Scan,
+                    t if t == rmw_zenoh::ODOMETRY.name => RosKind::Odometry,
+                    t if t == rmw_zenoh::IMU.name => RosKind::Imu,
+                    _ => RosKind::Tf,
+                };
+                (topic.clone(), kind)
+            })
+            .collect::<Vec<_>>();
+        Ok(Self {
+            session,
+            _subscribers: subscribers,
+            receiver,
+            shared,
+            decoded: vec![0; kinds.len()],
+            malformed: vec![0; kinds.len()],
+            topics: kinds,
+            collector: RosCollector::default(),
+            options: options.clone(),
+            end,
+            started: Instant::now(),
+            last_scan_at: None,
+            buffer: BTreeMap::new(),
+            arrivals: 0,
+            newest: None,
+            first_scan: None,
+            mount: None,
+            last_out: [None; 3],
+            collator: LloCollator::default(),
+            ready: std::collections::VecDeque::new(),
+            finished: false,
+            dropped_late: 0,
+            repeated_stamp: 0,
+            events_out: 0,
+            scans_out: 0,
+            newest_out: None,
+            odometry: Arc::default(),
+        })
+    }
+
+    /// The zenoh session (cheap to clone): the agent publishes its map and pose back on it.
+    pub fn session(&self) -> &zenoh::Session {
+        &self.session
+    }
+
+    /// The odometry readings handed on lately (see [`OdometryHistory`]).
+    pub fn odometry_history(&self) -> OdometryHistory {
+        Arc::clone(&self.odometry)
+    }
+
+    /// What was received, decoded and dropped so far.
+    pub fn stats(&self) -> LiveStats {
+        let mut stats = LiveStats {
+            dropped_late: self.dropped_late,
+            repeated_stamp: self.repeated_stamp,
+            events_out: self.events_out,
+            scans_out: self.scans_out,
+            newest_stamp_ns: self.newest_out.map(|t| t.0),
+            extrinsic_source: self
+                .mount
+                .as_ref()
+                .map_or_else(|| "not decided yet".into(), |(_, s)| s.clone()),
+            problems: self.collector.report.problems.clone(),
+            ..LiveStats::default()
+        };
+        let shared = self.shared.lock().ok();
+        for (i, (topic, _)) in self.topics.iter().enumerate() {
+            let counts = stats.topics.entry(topic.clone()).or_default();
+            counts.decoded += self.decoded[i];
+            counts.malformed += self.malformed[i];
+            if let Some(shared) = &shared {
+                counts.received += shared.received[i];
+                counts.dropped_queue_full += shared.dropped_queue_full[i];
+                counts.missed_by_sequence += shared.missed_by_sequence[i];
+                counts.attachment_invalid += shared.attachment_invalid[i];
+            }
+        }
+        stats
+    }
+
+    /// Decodes one sample and buffers what it gives.
+    fn ingest(&mut self, incoming: &Incoming) {
+        let Some((topic, kind)) = self.topics.get(incoming.topic).cloned() else {
+            return;
+        };
+        let malformed_before = self.collector.report.skipped_malformed;
+        let malformed = if kind == RosKind::Tf && self.mount.is_some() {
+            // The mount is decided: transforms are only counted, not kept (a robot's /tf never ends).
+            (CDR_DECODERS.tf_message)(&incoming.payload).is_err()
+        } else {
+            self.collector
+                .add(kind, &incoming.payload, &topic, &CDR_DECODERS);
+            self.collector.report.skipped_malformed > malformed_before
+        };
+        if malformed {
+            self.malformed[incoming.topic] += 1;
+        } else {
+            self.decoded[incoming.topic] += 1;
+        }
+        if kind == RosKind::Scan {
+            self.last_scan_at = Some(Instant::now());
+        }
+        for event in self.collector.take_events() {
+            let time = event.time();
+            if matches!(event, SensorEvent::Scan(_)) && self.first_scan.is_none() {
+                self.first_scan = Some(time);
+            }
+            self.newest = Some(self.newest.map_or(time, |n| n.max(time)));
+            self.arrivals += 1;
+            self.buffer.insert((time, self.arrivals), event);
+        }
+        if self.mount.is_none() {
+            self.mount = self.collector.laser_mount();
+        }
+        self.release(false);
+    }
+
+    /// Hands on the buffered events the reorder window (or the end of the stream) lets go.
+    fn release(&mut self, all: bool) {
+        if self.mount.is_none() {
+            let waited = match (self.first_scan, self.newest) {
+                (Some(first), Some(newest)) => {
+                    newest.seconds_since(first) > self.options.mount_wait_s
+                }
+                _ => false,
+            };
+            if !(waited || all) {
+                return;
+            }
+            self.mount = Some(self.collector.laser_mount_or_identity());
+        }
+        let window = Timestamp::from_secs_f64(self.options.reorder_window_s);
+        let mut out = Vec::new();
+        while let Some(entry) = self.buffer.first_entry() {
+            let (time, _) = *entry.key();
+            if !all && self.newest.is_none_or(|n| time.0 > n.0 - window.0) {
+                break;
+            }
+            let event = entry.remove();
+            let stream = stream_of(&event);
+            if let Some(last) = self.last_out[stream]
+                && time <= last
+            {
+                if time == last {
+                    self.repeated_stamp += 1;
+                } else {
+                    self.dropped_late += 1;
+                }
+                continue;
+            }
+            self.last_out[stream] = Some(time);
+            self.collator.push(event, &mut out);
+        }
+        if all {
+            self.collator.finish(&mut out);
+        }
+        for event in out {
+            self.events_out += 1;
+            let time = event.time();
+            self.newest_out = Some(self.newest_out.map_or(time, |n| n.max(time)));
+            if let SensorEvent::Odometry(reading) = &event
+                && let Ok(mut history) = self.odometry.lock()
+            {
+                if history.len() >= ODOMETRY_HISTORY {
+                    history.pop_front();
+                }
+                history.push_back(reading.clone());
+            }
+            if matches!(event, SensorEvent::Scan(_)) {
+                self.scans_out += 1;
+            }
+            self.ready.push_back(event);
+        }
+    }
+
+    /// Whether the stream is over: idle since the last scan, or no first scan in time.
+    fn timed_out(&self) -> bool {
+        match self.last_scan_at {
+            Some(at) => at.elapsed().as_secs_f64() >= self.end.until_idle_s,
+            None => self.started.elapsed().as_secs_f64() >= self.end.start_timeout_s,
+        }
+    }
+}
+
+impl SensorStream for LiveRos2Source {
+    fn next_event(&mut self) -> Option<SensorEvent> {
+        loop {
+            if let Some(event) = self.ready.pop_front() {
+                return Some(event);
+            }
+            if self.finished {
+                return None;
+            }
+            match self.receiver.recv_timeout(POLL) {
+                Ok(incoming) => self.ingest(&incoming),
+                Err(mpsc::RecvTimeoutError::Timeout) => {
+                    if self.timed_out() {
+                        self.finished = true;
+                        self.release(true);
+                    }
+                }
+                Err(mpsc::RecvTimeoutError::Disconnected) => {
+                    self.finished = true;
+                    self.release(true);
+                }
+            }
+        }
+    }
+
+    fn base_from_laser(&self) -> Rigid2 {
+        self.mount
+            .as_ref()
+            .map_or_else(Rigid2::identity, |(m, _)| *m)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn options_are_checked() {
+        let options = Ros2LiveOptions::default();
+        options.validate().unwrap();
+        let bad = |o: Ros2LiveOptions| o.validate().unwrap_err().to_string();
+        assert!(
+            bad(Ros2LiveOptions {
+                domain_id: 233,
+                ..options.clone()
+            })
+            .contains("domain_id")
+        );
+        assert!(
+            bad(Ros2LiveOptions {
+                scan_topic: "scan".into(),
+                ..options.clone()
+            })
+            .contains("fully qualified")
+        );
+        assert!(
+            bad(Ros2LiveOptions {
+                queue_capacity: 0,
+                ..options.clone()
+            })
+            .contains("queue_capacity")
+        );
+        assert!(
+            bad(Ros2LiveOptions {
+                reorder_window_s: f64::NAN,
+                ..options
+            })
+            .contains("reorder_window_s")
+        );
+        let parsed: Ros2LiveOptions =
+            toml::from_str("domain_id = 3\nscan_topic = \"/robot/scan\"\n[zenoh]\nconnect = [\"tcp/127.0.0.1:7448\"]\n")
+                .unwrap();
+        parsed.validate().unwrap();
+        assert_eq!(parsed.domain_id, 3);
+        assert!(toml::from_str::<Ros2LiveOptions>("scan = \"/x\"").is_err());
+    }
+}
