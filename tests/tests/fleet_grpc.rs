@@ -895,12 +895,12 @@ impl Robot {
         });
         let (report, trace) = bounded(
             "a session",
-            robot_agent::uplink::stream_session(
+            Box::pin(robot_agent::uplink::stream_session(
                 Arc::new(recording),
                 &options,
                 &mut uploader,
                 start,
-            ),
+            )),
         )
         .await
         .unwrap();
