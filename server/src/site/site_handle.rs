@@ -9,7 +9,7 @@ use mapping::pose_graph::{NodeId, SubmapId};
 use proto::{MapDelta, SubmapSnapshot, UploadBatch};
 use tokio::sync::{mpsc, oneshot, watch};
 
-use super::{MapCounts, SessionOpened, SiteError};
+use super::{HistoryEntry, MapCounts, SessionOpened, SessionView, SiteError};
 
 /// A published version of a site map.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -71,6 +71,16 @@ pub(crate) enum Command {
     },
     NodePoses {
         reply: oneshot::Sender<BTreeMap<NodeId, Rigid2>>,
+    },
+    Sessions {
+        reply: oneshot::Sender<Vec<SessionView>>,
+    },
+    History {
+        reply: oneshot::Sender<Vec<(u64, MapCounts)>>,
+    },
+    MapAt {
+        version: u64,
+        reply: oneshot::Sender<Option<HistoryEntry>>,
     },
     Shutdown,
 }
@@ -176,6 +186,23 @@ impl SiteHandle {
     /// Current global pose of every node (diagnostics and tests).
     pub async fn node_poses(&self) -> Result<BTreeMap<NodeId, Rigid2>, SiteError> {
         self.ask(|reply| Command::NodePoses { reply }).await
+    }
+
+    /// Every session with its placement state and trajectory (the console).
+    pub async fn sessions(&self) -> Result<Vec<SessionView>, SiteError> {
+        self.ask(|reply| Command::Sessions { reply }).await
+    }
+
+    /// The versions of the map's history (each with its counts), oldest first (see
+    /// [`super::MapHistory`]).
+    pub async fn history(&self) -> Result<Vec<(u64, MapCounts)>, SiteError> {
+        self.ask(|reply| Command::History { reply }).await
+    }
+
+    /// The published map at `version` (`u64::MAX`: the newest): the newest history entry at or before
+    /// it, `None` before the site's first map.
+    pub async fn map_at(&self, version: u64) -> Result<Option<HistoryEntry>, SiteError> {
+        self.ask(|reply| Command::MapAt { version, reply }).await
     }
 
     /// The latest published version.

@@ -190,6 +190,25 @@ impl SiteTask {
                 Command::NodePoses { reply } => {
                     let _ = reply.send(self.map().map(SiteMap::node_poses).unwrap_or_default());
                 }
+                Command::Sessions { reply } => {
+                    let _ = reply.send(self.map().map(SiteMap::session_views).unwrap_or_default());
+                }
+                Command::History { reply } => {
+                    let history = self.map().map(|m| {
+                        m.history()
+                            .entries()
+                            .map(|e| (e.version, e.counts))
+                            .collect::<Vec<_>>()
+                    });
+                    let _ = reply.send(history.unwrap_or_default());
+                }
+                Command::MapAt { version, reply } => {
+                    let entry = self
+                        .map()
+                        .ok()
+                        .and_then(|m| m.history().at(version).cloned());
+                    let _ = reply.send(entry);
+                }
                 Command::Shutdown => break,
             }
         }
