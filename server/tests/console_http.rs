@@ -43,7 +43,7 @@ async fn get(addr: SocketAddr, path: &str, token: Option<&str>) -> (u16, String)
 
 fn config(http: Option<HttpConfig>) -> ServerConfig {
     ServerConfig {
-        listen: "127.0.0.1:0".parse().unwrap(),
+        listen: "127.0.0.1:0".parse().expect("address"),
         metrics_listen: None,
         http,
         sites: vec![SiteConfig {
@@ -60,7 +60,7 @@ fn config(http: Option<HttpConfig>) -> ServerConfig {
 #[tokio::test]
 async fn serve_runs_the_console_behind_the_operator_token() {
     let http = HttpConfig {
-        listen: "127.0.0.1:0".parse().unwrap(),
+        listen: "127.0.0.1:0".parse().expect("address"),
         operator_token: Some(OPERATOR.into()),
         ..HttpConfig::default()
     };
