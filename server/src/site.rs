@@ -12,6 +12,7 @@ mod site_error;
 mod site_handle;
 mod site_map;
 mod site_task;
+mod site_view;
 
 pub use map_history::{DEFAULT_HISTORY_CAPACITY, HistoryEntry, MapHistory, PlacedGrids};
 pub use map_render::render_submaps;
@@ -20,3 +21,4 @@ pub use site_error::SiteError;
 pub use site_handle::{RenderedMap, SiteHandle, UploadAck, VersionInfo};
 pub use site_map::{MapCounts, SessionOpened, SiteMap, UploadCheck};
 pub use site_task::{SiteTask, SiteTaskOptions};
+pub use site_view::SiteView;

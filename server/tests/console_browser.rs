@@ -13,7 +13,9 @@
 //! sessions on screen, `performance.now()`), and for each version that landed while the page was open
 //! the time from its landing on the server to the page showing it (or a newer one). The demo binary is
 //! the test's own build unless `EVERMAP_CONSOLE_DEMO_BIN` names another (the release one, for the
-//! figures). Every wait is bounded.
+//! figures); `EVERMAP_CONSOLE_DEMO_ARGS` replaces the small demo's arguments and
+//! `EVERMAP_CONSOLE_OPEN_AT_VERSION` opens the page only once the site reaches that version. Every wait
+//! is bounded.
 
 #[path = "console_browser/cdp_pipe.rs"]
 mod cdp_pipe;
@@ -52,9 +54,19 @@ fn start_demo(out: &std::path::Path) -> (Demo, Receiver<String>) {
         || PathBuf::from(env!("CARGO_BIN_EXE_evermap-server")),
         PathBuf::from,
     );
+    // The small demo unless `EVERMAP_CONSOLE_DEMO_ARGS` gives others (e.g. "" for the README's).
+    let demo_args: Vec<String> = std::env::var("EVERMAP_CONSOLE_DEMO_ARGS").map_or_else(
+        |_| {
+            "--agents 2 --sessions-per-agent 1 --session-duration-s 30 --mapping-duration-s 90"
+                .split(' ')
+                .map(str::to_owned)
+                .collect()
+        },
+        |a| a.split_whitespace().map(str::to_owned).collect(),
+    );
     let mut child = Command::new(binary)
-        .args(["demo", "--agents", "2", "--sessions-per-agent", "1"])
-        .args(["--session-duration-s", "30", "--mapping-duration-s", "90"])
+        .arg("demo")
+        .args(demo_args)
         .args(["--http", "127.0.0.1:0", "--linger-s", "60"])
         .arg("--out")
         .arg(out)
@@ -163,11 +175,22 @@ fn the_console_shows_the_demo_site_live_in_a_real_browser() {
 
     // With it (the link the demo prints): the console, opened once the site has a map (its history is
     // not empty; asking that renders nothing, so the page's first load renders the map itself).
+    // `EVERMAP_CONSOLE_OPEN_AT_VERSION`: wait for that site version first (a bigger map).
+    let open_at: u64 = std::env::var("EVERMAP_CONSOLE_OPEN_AT_VERSION")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(0);
     let (_, token) = url.split_once("?token=").expect("token");
     let deadline = Instant::now() + PAGE_WAIT;
     loop {
         let history = http_get(base, "/api/sites/store-1/versions", token);
-        if history.contains("\"counts\"") {
+        let at = history
+            .split("\"current_version\":")
+            .nth(1)
+            .and_then(|rest| rest.split([',', '}']).next())
+            .and_then(|v| v.parse::<u64>().ok())
+            .unwrap_or(0);
+        if history.contains("\"counts\"") && at >= open_at {
             break;
         }
         assert!(

@@ -168,7 +168,7 @@ async fn versions(
     State(state): State<Shared>,
     Path(site): Path<String>,
 ) -> Result<Response, ConsoleError> {
-    let history = state.site(&site)?.history().await?;
+    let history = state.site(&site)?.history();
     let list: Vec<Value> = history
         .iter()
         .map(|(version, counts)| {
@@ -220,7 +220,7 @@ async fn sessions(
     Path(site): Path<String>,
 ) -> Result<Response, ConsoleError> {
     let handle = state.site(&site)?;
-    let views = handle.sessions().await?;
+    let views = handle.sessions();
     Ok(json_response(&json!({
         "site": site,
         "version": handle.current().version,
@@ -232,11 +232,11 @@ async fn robots(
     State(state): State<Shared>,
     Path(site): Path<String>,
 ) -> Result<Response, ConsoleError> {
-    let views = state.site(&site)?.sessions().await?;
+    let views = state.site(&site)?.sessions();
     // Sessions come in the order they were opened: a robot's last one is its latest.
     let mut latest: std::collections::BTreeMap<&str, &SessionView> =
         std::collections::BTreeMap::new();
-    for view in &views {
+    for view in views.iter() {
         latest.insert(view.robot_id.as_str(), view);
     }
     let list: Vec<Value> = latest
@@ -266,13 +266,10 @@ fn version_param(uri: &Uri, name: &str) -> Result<Option<u64>, ConsoleError> {
 
 async fn entry_at(handle: &SiteHandle, version: Option<u64>) -> Result<HistoryEntry, ConsoleError> {
     let asked = version.unwrap_or(u64::MAX);
-    handle
-        .map_at(asked)
-        .await?
-        .ok_or_else(|| ConsoleError::NoMap {
-            site: handle.site().to_owned(),
-            version: version.unwrap_or_else(|| handle.current().version),
-        })
+    handle.map_at(asked).ok_or_else(|| ConsoleError::NoMap {
+        site: handle.site().to_owned(),
+        version: version.unwrap_or_else(|| handle.current().version),
+    })
 }
 
 async fn map_image(
@@ -314,7 +311,7 @@ async fn map_info(
     Ok(json_response(&json!({
         "site": site,
         "map_version": image.map_version,
-        "counts": state.site(&site)?.history().await?.iter()
+        "counts": state.site(&site)?.history().iter()
             .find(|(v, _)| *v == image.map_version)
             .map(|(_, c)| counts_json(c)),
         "landed_at_ms": state.landed_at(&site, image.map_version),

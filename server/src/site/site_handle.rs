@@ -9,7 +9,7 @@ use mapping::pose_graph::{NodeId, SubmapId};
 use proto::{MapDelta, SubmapSnapshot, UploadBatch};
 use tokio::sync::{mpsc, oneshot, watch};
 
-use super::{HistoryEntry, MapCounts, SessionOpened, SessionView, SiteError};
+use super::{HistoryEntry, MapCounts, SessionOpened, SessionView, SiteError, SiteView};
 
 /// A published version of a site map.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -72,16 +72,6 @@ pub(crate) enum Command {
     NodePoses {
         reply: oneshot::Sender<BTreeMap<NodeId, Rigid2>>,
     },
-    Sessions {
-        reply: oneshot::Sender<Vec<SessionView>>,
-    },
-    History {
-        reply: oneshot::Sender<Vec<(u64, MapCounts)>>,
-    },
-    MapAt {
-        version: u64,
-        reply: oneshot::Sender<Option<HistoryEntry>>,
-    },
     Shutdown,
 }
 
@@ -92,6 +82,7 @@ pub struct SiteHandle {
     site: Arc<str>,
     commands: mpsc::Sender<Command>,
     versions: watch::Receiver<VersionInfo>,
+    views: watch::Receiver<Arc<SiteView>>,
 }
 
 impl SiteHandle {
@@ -99,11 +90,13 @@ impl SiteHandle {
         site: &str,
         commands: mpsc::Sender<Command>,
         versions: watch::Receiver<VersionInfo>,
+        views: watch::Receiver<Arc<SiteView>>,
     ) -> Self {
         Self {
             site: site.into(),
             commands,
             versions,
+            views,
         }
     }
 
@@ -188,21 +181,31 @@ impl SiteHandle {
         self.ask(|reply| Command::NodePoses { reply }).await
     }
 
+    /// The site as read-only front ends see it, as of the latest published version (read without
+    /// queueing behind the site's work).
+    pub fn view(&self) -> Arc<SiteView> {
+        Arc::clone(&self.views.borrow())
+    }
+
     /// Every session with its placement state and trajectory (the console).
-    pub async fn sessions(&self) -> Result<Vec<SessionView>, SiteError> {
-        self.ask(|reply| Command::Sessions { reply }).await
+    pub fn sessions(&self) -> Arc<Vec<SessionView>> {
+        Arc::clone(&self.view().sessions)
     }
 
     /// The versions of the map's history (each with its counts), oldest first (see
     /// [`super::MapHistory`]).
-    pub async fn history(&self) -> Result<Vec<(u64, MapCounts)>, SiteError> {
-        self.ask(|reply| Command::History { reply }).await
+    pub fn history(&self) -> Vec<(u64, MapCounts)> {
+        self.view()
+            .history
+            .iter()
+            .map(|e| (e.version, e.counts))
+            .collect()
     }
 
     /// The published map at `version` (`u64::MAX`: the newest): the newest history entry at or before
     /// it, `None` before the site's first map.
-    pub async fn map_at(&self, version: u64) -> Result<Option<HistoryEntry>, SiteError> {
-        self.ask(|reply| Command::MapAt { version, reply }).await
+    pub fn map_at(&self, version: u64) -> Option<HistoryEntry> {
+        self.view().map_at(version).cloned()
     }
 
     /// The latest published version.

@@ -30,9 +30,9 @@ use mapping::lifelong::{
 use mapping::pose_graph::{NodeId, SubmapId};
 use proto::{MapDelta, NodeAdded, SubmapSnapshot, UploadBatch, UploadItem};
 
-use super::SiteError;
 use super::map_history::{HistoryEntry, MapHistory};
 use super::session_view::{PlacementState, SessionView, thin_poses};
+use super::{SiteError, SiteView};
 
 /// Two poses closer than this (m, rad) are the same pose for delta purposes.
 const POSE_EPSILON: f64 = 1e-9;
@@ -638,6 +638,15 @@ impl SiteMap {
     /// The published map at past versions.
     pub fn history(&self) -> &MapHistory {
         &self.history
+    }
+
+    /// The site as read-only front ends see it now.
+    pub fn view(&self) -> SiteView {
+        SiteView {
+            version: self.version,
+            sessions: Arc::new(self.session_views()),
+            history: Arc::new(self.history.entries().cloned().collect()),
+        }
     }
 
     /// Every session, in the order they were opened, with its placement state and (while placed) its
