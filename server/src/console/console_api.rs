@@ -264,7 +264,7 @@ fn version_param(uri: &Uri, name: &str) -> Result<Option<u64>, ConsoleError> {
     }
 }
 
-async fn entry_at(handle: &SiteHandle, version: Option<u64>) -> Result<HistoryEntry, ConsoleError> {
+fn entry_at(handle: &SiteHandle, version: Option<u64>) -> Result<HistoryEntry, ConsoleError> {
     let asked = version.unwrap_or(u64::MAX);
     handle.map_at(asked).ok_or_else(|| ConsoleError::NoMap {
         site: handle.site().to_owned(),
@@ -278,7 +278,7 @@ async fn map_image(
     version: Option<u64>,
 ) -> Result<Arc<MapImage>, ConsoleError> {
     let handle = state.site(site)?;
-    let entry = entry_at(handle, version).await?;
+    let entry = entry_at(handle, version)?;
     if let Some(image) = state.cached_map(site, entry.version) {
         return Ok(image);
     }
@@ -342,8 +342,8 @@ async fn change_image(
     if to.is_some_and(|to| to < from) {
         return Err(ConsoleError::BadRequest("from must not be after to".into()));
     }
-    let before = entry_at(handle, Some(from)).await?;
-    let after = entry_at(handle, to).await?;
+    let before = entry_at(handle, Some(from))?;
+    let after = entry_at(handle, to)?;
     if let Some(image) = state.cached_change(site, before.version, after.version) {
         return Ok(image);
     }
