@@ -20,7 +20,7 @@ use tokio_stream::wrappers::BroadcastStream;
 
 use super::console_auth::{Authenticated, query_param};
 use super::console_state::ConsoleState;
-use super::map_images::{ImagePlacement, render_change_image, render_map_image};
+use super::map_images::{ImagePlacement, render_change_image};
 use super::{ChangeImage, ConsoleError, MapImage};
 use crate::site::{HistoryEntry, MapCounts, SessionView, SiteHandle};
 
@@ -279,17 +279,10 @@ async fn map_image(
 ) -> Result<Arc<MapImage>, ConsoleError> {
     let handle = state.site(site)?;
     let entry = entry_at(handle, version)?;
-    if let Some(image) = state.cached_map(site, entry.version) {
-        return Ok(image);
-    }
-    let resolution = state.resolution;
-    let image = tokio::task::spawn_blocking(move || render_map_image(&entry, resolution))
+    state
+        .map_image(site, entry)
         .await
-        .map_err(|e| ConsoleError::Internal(e.to_string()))?
-        .ok_or_else(|| ConsoleError::Internal("the map could not be rendered".into()))?;
-    let image = Arc::new(image);
-    state.cache_map(site, Arc::clone(&image));
-    Ok(image)
+        .ok_or_else(|| ConsoleError::Internal("the map could not be rendered".into()))
 }
 
 fn placement_json(p: &ImagePlacement) -> Value {

@@ -11,9 +11,12 @@ use tokio::task::JoinHandle;
 
 use super::console_auth::ConsoleAuth;
 use super::http_config::HttpConfig;
-use super::map_images::{ChangeImage, MapImage};
+use super::map_images::{ChangeImage, MapImage, render_map_image};
 use crate::ServerMetrics;
-use crate::site::{MapCounts, SiteHandle};
+use crate::site::{HistoryEntry, MapCounts, SiteHandle};
+
+/// A map image being rendered or rendered (`None`: nothing to draw), shared by every request for it.
+type MapSlot = tokio::sync::OnceCell<Option<Arc<MapImage>>>;
 
 /// Versions whose landing time is remembered per site, count.
 const LANDED_KEPT: usize = 4096;
@@ -70,7 +73,7 @@ pub struct ConsoleState {
     pub resolution: f64,
     events: broadcast::Sender<VersionEvent>,
     landed: Mutex<BTreeMap<String, VecDeque<(u64, u64)>>>,
-    maps: Mutex<ImageCache<(String, u64), MapImage>>,
+    maps: Mutex<ImageCache<(String, u64), MapSlot>>,
     changes: Mutex<ImageCache<(String, u64, u64), ChangeImage>>,
 }
 
@@ -105,24 +108,61 @@ impl ConsoleState {
         }
     }
 
-    /// Starts one task per site that notes when each new version lands and broadcasts it. The tasks end
-    /// when their site stops.
+    /// Starts, per site, a task that notes when each new version lands and broadcasts it, and one that
+    /// renders the newest map as soon as it lands while a page follows the events (one render at a time
+    /// per site, always of the newest map; requests for it share that render). The tasks end when
+    /// their site stops.
     pub fn watch_versions(self: &Arc<Self>) -> Vec<JoinHandle<()>> {
-        self.sites
-            .values()
-            .map(|site| {
-                let (state, mut versions) = (Arc::clone(self), site.subscribe());
-                let id = site.site().to_owned();
-                tokio::spawn(async move {
+        let mut tasks = Vec::new();
+        for site in self.sites.values() {
+            let (state, mut versions) = (Arc::clone(self), site.subscribe());
+            let id = site.site().to_owned();
+            tasks.push(tokio::spawn(async move {
+                versions.borrow_and_update();
+                // Ends when the site's task stops (the sender is dropped).
+                while versions.changed().await.is_ok() {
+                    let info = *versions.borrow_and_update();
+                    state.landed(&id, info.version, info.counts);
+                }
+            }));
+            let (state, mut versions, handle) = (Arc::clone(self), site.subscribe(), site.clone());
+            tasks.push(tokio::spawn(async move {
+                while versions.changed().await.is_ok() {
                     versions.borrow_and_update();
-                    // Ends when the site's task stops (the sender is dropped).
-                    while versions.changed().await.is_ok() {
-                        let info = *versions.borrow_and_update();
-                        state.landed(&id, info.version, info.counts);
+                    if state.events.receiver_count() == 0 {
+                        continue;
                     }
-                })
+                    if let Some(entry) = handle.map_at(u64::MAX) {
+                        let _ = state.map_image(handle.site(), entry).await;
+                    }
+                }
+            }));
+        }
+        tasks
+    }
+
+    /// The map image of `entry` (a history entry of `site`): rendered on the blocking pool once, then
+    /// cached; concurrent requests share one render. `None` when there is nothing to draw.
+    pub async fn map_image(&self, site: &str, entry: HistoryEntry) -> Option<Arc<MapImage>> {
+        let slot = {
+            let mut maps = self.maps.lock().ok()?;
+            let key = (site.to_owned(), entry.version);
+            maps.get(&key).unwrap_or_else(|| {
+                let slot = Arc::new(MapSlot::new());
+                maps.put(key, Arc::clone(&slot));
+                slot
             })
-            .collect()
+        };
+        let resolution = self.resolution;
+        slot.get_or_init(|| async move {
+            tokio::task::spawn_blocking(move || render_map_image(&entry, resolution))
+                .await
+                .ok()
+                .flatten()
+                .map(Arc::new)
+        })
+        .await
+        .clone()
     }
 
     /// Notes that `site` published `version` now and tells the event streams.
@@ -165,18 +205,6 @@ impl ConsoleState {
         self.sites
             .get(site)
             .ok_or_else(|| super::ConsoleError::UnknownSite(site.to_owned()))
-    }
-
-    /// A cached map image of `site` at map version `version`.
-    pub fn cached_map(&self, site: &str, version: u64) -> Option<Arc<MapImage>> {
-        self.maps.lock().ok()?.get(&(site.to_owned(), version))
-    }
-
-    /// Caches a map image.
-    pub fn cache_map(&self, site: &str, image: Arc<MapImage>) {
-        if let Ok(mut maps) = self.maps.lock() {
-            maps.put((site.to_owned(), image.map_version), image);
-        }
     }
 
     /// A cached change image of `site` between map versions `from` and `to`.
