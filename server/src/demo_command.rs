@@ -42,7 +42,7 @@ use robot_agent::uplink::{
 use robot_agent::world::World;
 use serde_json::json;
 use server::site::SiteHandle;
-use server::{RobotConfig, RunningServer, ServerConfig, SiteConfig};
+use server::{HttpConfig, RobotConfig, RunningServer, ServerConfig, SiteConfig};
 use storage::{SledStore, SledStoreOptions};
 use tokio::sync::watch;
 
@@ -81,6 +81,13 @@ pub struct DemoArgs {
     /// How the agents reach the server: `zenoh` (loopback TCP, peer mode) or `grpc`.
     #[arg(long, default_value = "zenoh", value_parser = ["zenoh", "grpc"])]
     transport: String,
+    /// Serve the web console on this address during the demo (e.g. `127.0.0.1:8080`; port 0 picks a
+    /// free one). The URL, with a fresh operator token, is printed when the server starts.
+    #[arg(long)]
+    http: Option<std::net::SocketAddr>,
+    /// With `--http`: keep serving the console this long after the demo ends, seconds.
+    #[arg(long, default_value_t = 0.0, requires = "http")]
+    linger_s: f64,
 }
 
 /// One session as run by one agent.
@@ -131,6 +138,8 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         args.session_duration_s.is_finite() && args.session_duration_s >= 10.0,
         "--session-duration-s must be at least 10"
     );
+    Duration::try_from_secs_f64(args.linger_s)
+        .map_err(|e| anyhow::anyhow!("--linger-s must be a number of seconds ≥ 0: {e}"))?;
     block_on(demo(args))
 }
 
@@ -169,9 +178,20 @@ async fn demo(args: &DemoArgs) -> anyhow::Result<()> {
             id: SITE.into(),
             robots: robots.clone(),
         }],
+        http: args.http.map(|listen| HttpConfig {
+            listen,
+            operator_token: Some(format!("demo-operator-{:016x}", rand::random::<u64>())),
+            ..HttpConfig::default()
+        }),
         ..ServerConfig::default()
     };
     let server = RunningServer::start(&config, Arc::new(store)).await?;
+    if let (Some(addr), Some(token)) = (
+        server.console_addr(),
+        config.http.as_ref().and_then(|h| h.operator_token.as_ref()),
+    ) {
+        eprintln!("evermap demo: web console at http://{addr}/?token={token}");
+    }
     let url = format!("http://{}", server.grpc_addr());
     let site = server
         .site(SITE)
@@ -368,6 +388,15 @@ async fn demo(args: &DemoArgs) -> anyhow::Result<()> {
     let report_path = args.out.join("report.json");
     std::fs::write(&report_path, serde_json::to_string_pretty(&summary)? + "\n")
         .with_context(|| format!("cannot write {}", report_path.display()))?;
+    if let Some(addr) = server.console_addr()
+        && args.linger_s > 0.0
+    {
+        eprintln!(
+            "evermap demo: done; the web console at http://{addr}/ stays up for {} s",
+            args.linger_s
+        );
+        tokio::time::sleep(Duration::try_from_secs_f64(args.linger_s)?).await;
+    }
     server.shutdown().await?;
     println!(
         "demo done in {wall_time_s:.0} s: version {} ({} sessions, {} nodes, {} submaps, {} trimmed); every robot at version {:?}; CRI {}, MRCL {:.3} (smoothed {:.3}), {} wrong placements, MCR {}; maps in {}",

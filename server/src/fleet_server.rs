@@ -12,6 +12,7 @@ use storage::MapStore;
 use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
 
+use crate::console::RunningConsole;
 use crate::grpc::{AgentApi, ApiContext, Auth, MapApi};
 use crate::metrics_endpoint::serve_metrics;
 use crate::site::{SiteError, SiteHandle, SiteTask, SiteTaskOptions};
@@ -69,6 +70,7 @@ pub struct RunningServer {
     metrics_task: Option<JoinHandle<()>>,
     metrics: Arc<ServerMetrics>,
     zenoh: Option<ZenohFront>,
+    console: Option<RunningConsole>,
 }
 
 impl RunningServer {
@@ -191,6 +193,17 @@ impl RunningServer {
             }
             None => (None, None),
         };
+        let console = match &config.http {
+            Some(http) => Some(
+                RunningConsole::start(http, Arc::clone(&sites), Arc::clone(&metrics))
+                    .await
+                    .map_err(|source| ServeError::Bind {
+                        addr: http.listen,
+                        source,
+                    })?,
+            ),
+            None => None,
+        };
         Ok(Self {
             grpc_addr,
             metrics_addr,
@@ -201,6 +214,7 @@ impl RunningServer {
             metrics_task,
             metrics,
             zenoh,
+            console,
         })
     }
 
@@ -214,6 +228,11 @@ impl RunningServer {
         self.metrics_addr
     }
 
+    /// The bound address of the web console, if enabled.
+    pub fn console_addr(&self) -> Option<SocketAddr> {
+        self.console.as_ref().map(RunningConsole::addr)
+    }
+
     /// A site's handle (for in-process front ends and tests).
     pub fn site(&self, id: &str) -> Option<&SiteHandle> {
         self.sites.get(id)
@@ -224,9 +243,12 @@ impl RunningServer {
         &self.metrics
     }
 
-    /// Stops the site tasks (ending watch streams), then the zenoh front end, then the gRPC server (waiting up to 5 s for open
+    /// Stops the web console, then the site tasks (ending watch streams), then the zenoh front end, then the gRPC server (waiting up to 5 s for open
     /// calls), then the metrics endpoint. Everything acknowledged is already durable.
     pub async fn shutdown(self) -> Result<(), ServeError> {
+        if let Some(console) = self.console {
+            console.shutdown().await;
+        }
         for site in self.sites.values() {
             site.shutdown().await;
         }

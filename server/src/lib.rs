@@ -9,6 +9,7 @@
 //! Start everything with [`RunningServer::start`]; the `evermap-server serve` command does that with a
 //! [`ServerConfig`] read from TOML and a sled store.
 
+pub mod console;
 pub mod fleet_server;
 pub mod grpc;
 pub mod map_image_bytes;
@@ -18,6 +19,7 @@ pub mod server_metrics;
 pub mod site;
 pub mod zenoh_front;
 
+pub use console::HttpConfig;
 pub use fleet_server::{RunningServer, ServeError};
 pub use server_config::{RobotConfig, ServerConfig, ServerConfigError, SiteConfig, TlsConfig};
 pub use server_metrics::ServerMetrics;

@@ -20,6 +20,10 @@
 //! [zenoh]                            # optional: the zenoh front end (agents' uplink, version pushes)
 //! listen = ["tcp/127.0.0.1:7447"]
 //!
+//! [http]                             # optional: the web console and its JSON API (console::HttpConfig)
+//! listen = "127.0.0.1:8080"
+//! operator_token = "change-me-operator"  # read-only; required when robots have tokens
+//!
 //! [map]                              # optional: every site's lifelong map (mapping::lifelong::LifelongOptions)
 //! policy = "clt"                     # clt | delete | keep | frozen
 //!
@@ -39,6 +43,7 @@ use serde::Deserialize;
 use storage::SledStoreOptions;
 
 use crate::grpc::AuthLimitOptions;
+use crate::console::HttpConfig;
 
 /// Invalid [`ServerConfig`].
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -132,6 +137,9 @@ pub struct ServerConfig {
     /// `[zenoh.tls]` for mutual TLS; see
     /// `robot_agent::uplink::ZenohLinkOptions`). Default none: gRPC only.
     pub zenoh: Option<ZenohLinkOptions>,
+    /// The web console (TOML section `[http]`: `listen`, `operator_token`, `map_resolution_m`; see
+    /// [`HttpConfig`]). Default none: no console.
+    pub http: Option<HttpConfig>,
     /// The sites and their robots.
     pub sites: Vec<SiteConfig>,
 }
@@ -150,6 +158,7 @@ impl Default for ServerConfig {
             tls: None,
             auth: AuthLimitOptions::default(),
             zenoh: None,
+            http: None,
             sites: Vec::new(),
         }
     }
@@ -208,6 +217,18 @@ impl ServerConfig {
         if let Err(e) = self.map.validate() {
             return invalid("map", &e.to_string());
         }
+        if let Some(http) = &self.http {
+            if let Err(e) = http.validate() {
+                return invalid("http", &e);
+            }
+            let robots_have_tokens = self.sites.iter().any(|s| !s.robots.is_empty());
+            if robots_have_tokens && http.operator_token.is_none() {
+                return invalid(
+                    "http.operator_token",
+                    "required when robots have tokens: the console shows every site's map",
+                );
+            }
+        }
         let mut sites = BTreeSet::new();
         let mut tokens = BTreeSet::new();
         for site in &self.sites {
@@ -241,6 +262,14 @@ impl ServerConfig {
                     });
                 }
             }
+        }
+        if let Some(token) = self.http.as_ref().and_then(|h| h.operator_token.as_ref())
+            && tokens.contains(token.as_str())
+        {
+            return invalid(
+                "http.operator_token",
+                "must differ from every robot's token (it is read-only)",
+            );
         }
         Ok(())
     }
@@ -331,5 +360,31 @@ mod tests {
             ServerConfig::default().session_idle_timeout(),
             Ok(Some(Duration::from_secs(3600)))
         );
+    }
+
+    #[test]
+    fn the_console_needs_an_operator_token_when_robots_have_tokens() {
+        let text = "[http]\nlisten = \"127.0.0.1:0\"\n[[sites]]\nid = \"a\"\n\
+            robots = [{ id = \"r\", token = \"robot-token\" }]\n";
+        let mut config = ServerConfig::from_toml(text).unwrap();
+        assert!(matches!(
+            config.validate(),
+            Err(ServerConfigError::Invalid { field, .. }) if field == "http.operator_token"
+        ));
+        config.http.as_mut().unwrap().operator_token = Some("robot-token".into());
+        assert!(matches!(
+            config.validate(),
+            Err(ServerConfigError::Invalid { field, .. }) if field == "http.operator_token"
+        ));
+        config.http.as_mut().unwrap().operator_token = Some("operator-token".into());
+        assert_eq!(config.validate(), Ok(()));
+        config.sites[0].robots.clear();
+        config.http.as_mut().unwrap().operator_token = None;
+        assert_eq!(
+            config.validate(),
+            Ok(()),
+            "no tokens anywhere: an open console"
+        );
+        assert!(ServerConfig::from_toml("[http]\nport = 1\n").is_err());
     }
 }

@@ -5,14 +5,20 @@
 //! answering, and publishes each new version; [`SiteHandle`] is how any front end (gRPC today, zenoh
 //! later) talks to it.
 
+mod map_history;
 mod map_render;
+mod session_view;
 mod site_error;
 mod site_handle;
 mod site_map;
 mod site_task;
+mod site_view;
 
+pub use map_history::{DEFAULT_HISTORY_CAPACITY, HistoryEntry, MapHistory, PlacedGrids};
 pub use map_render::render_submaps;
+pub use session_view::{PlacementState, SessionView};
 pub use site_error::SiteError;
 pub use site_handle::{RenderedMap, SiteHandle, UploadAck, VersionInfo};
 pub use site_map::{MapCounts, SessionOpened, SiteMap, UploadCheck};
 pub use site_task::{SiteTask, SiteTaskOptions};
+pub use site_view::SiteView;

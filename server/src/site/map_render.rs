@@ -5,14 +5,28 @@
 //! adding their log-odds, clamped to the grid's probability range. Pulling from the output side leaves no
 //! holes when submaps are rotated; the cost is the sum of the submaps' footprint areas in output cells.
 
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 
 use mapping::geometry::Rigid2;
-use mapping::grid::{CellIndex, MAX_PROBABILITY, MIN_PROBABILITY, MapLimits, ProbabilityGrid};
+use mapping::grid::{
+    CellIndex, MAX_PROBABILITY, MIN_PROBABILITY, MapLimits, ProbabilityGrid, UNKNOWN_VALUE,
+    value_to_probability,
+};
 use nalgebra::{Point2, Vector2};
 
 fn logit(p: f32) -> f32 {
     (p / (1.0 - p)).ln()
+}
+
+/// `logit(value_to_probability(v))` for every stored value `v`, computed once: the logarithm per cell
+/// was most of a render's time (the console renders a map per version).
+fn logit_of_value() -> &'static [f32] {
+    static TABLE: OnceLock<Vec<f32>> = OnceLock::new();
+    TABLE.get_or_init(|| {
+        (0..=u16::MAX)
+            .map(|v| logit(value_to_probability(v)))
+            .collect()
+    })
 }
 
 /// Fuses `grids` (each with `global_from_grid`, the pose of its frame in the site frame) into one grid of
@@ -58,6 +72,7 @@ pub fn render_submaps(
     let limits = MapLimits::new(resolution, min, cells.x, cells.y);
     let mut log_odds = vec![0.0_f32; limits.num_cells()];
     let mut known = vec![false; limits.num_cells()];
+    let logits = logit_of_value();
     for g in grids {
         let (pose, grid) = g;
         let grid_from_global = pose.inverse();
@@ -72,11 +87,18 @@ pub fn render_submaps(
                 let source = grid
                     .limits()
                     .cell_index(&(grid_from_global * limits.cell_center(&cell)));
-                if !grid.is_known(&source) {
+                let Some(value) = grid
+                    .limits()
+                    .flat_index(&source)
+                    .and_then(|s| grid.values().get(s).copied())
+                    .filter(|v| *v != UNKNOWN_VALUE)
+                else {
                     continue;
-                }
-                if let Some(i) = limits.flat_index(&cell) {
-                    log_odds[i] += logit(grid.probability(&source));
+                };
+                if let (Some(i), Some(l)) =
+                    (limits.flat_index(&cell), logits.get(usize::from(value)))
+                {
+                    log_odds[i] += l;
                     known[i] = true;
                 }
             }

@@ -9,7 +9,7 @@ use mapping::pose_graph::{NodeId, SubmapId};
 use proto::{MapDelta, SubmapSnapshot, UploadBatch};
 use tokio::sync::{mpsc, oneshot, watch};
 
-use super::{MapCounts, SessionOpened, SiteError};
+use super::{HistoryEntry, MapCounts, SessionOpened, SessionView, SiteError, SiteView};
 
 /// A published version of a site map.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -82,6 +82,7 @@ pub struct SiteHandle {
     site: Arc<str>,
     commands: mpsc::Sender<Command>,
     versions: watch::Receiver<VersionInfo>,
+    views: watch::Receiver<Arc<SiteView>>,
 }
 
 impl SiteHandle {
@@ -89,11 +90,13 @@ impl SiteHandle {
         site: &str,
         commands: mpsc::Sender<Command>,
         versions: watch::Receiver<VersionInfo>,
+        views: watch::Receiver<Arc<SiteView>>,
     ) -> Self {
         Self {
             site: site.into(),
             commands,
             versions,
+            views,
         }
     }
 
@@ -176,6 +179,33 @@ impl SiteHandle {
     /// Current global pose of every node (diagnostics and tests).
     pub async fn node_poses(&self) -> Result<BTreeMap<NodeId, Rigid2>, SiteError> {
         self.ask(|reply| Command::NodePoses { reply }).await
+    }
+
+    /// The site as read-only front ends see it, as of the latest published version (read without
+    /// queueing behind the site's work).
+    pub fn view(&self) -> Arc<SiteView> {
+        Arc::clone(&self.views.borrow())
+    }
+
+    /// Every session with its placement state and trajectory (the console).
+    pub fn sessions(&self) -> Arc<Vec<SessionView>> {
+        Arc::clone(&self.view().sessions)
+    }
+
+    /// The versions of the map's history (each with its counts), oldest first (see
+    /// [`super::MapHistory`]).
+    pub fn history(&self) -> Vec<(u64, MapCounts)> {
+        self.view()
+            .history
+            .iter()
+            .map(|e| (e.version, e.counts))
+            .collect()
+    }
+
+    /// The published map at `version` (`u64::MAX`: the newest): the newest history entry at or before
+    /// it, `None` before the site's first map.
+    pub fn map_at(&self, version: u64) -> Option<HistoryEntry> {
+        self.view().map_at(version).cloned()
     }
 
     /// The latest published version.

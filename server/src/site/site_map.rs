@@ -30,7 +30,9 @@ use mapping::lifelong::{
 use mapping::pose_graph::{NodeId, SubmapId};
 use proto::{MapDelta, NodeAdded, SubmapSnapshot, UploadBatch, UploadItem};
 
-use super::SiteError;
+use super::map_history::{HistoryEntry, MapHistory};
+use super::session_view::{PlacementState, SessionView, thin_poses};
+use super::{SiteError, SiteView};
 
 /// Two poses closer than this (m, rad) are the same pose for delta purposes.
 const POSE_EPSILON: f64 = 1e-9;
@@ -46,6 +48,8 @@ struct Session {
     /// The agent matches the session's nodes against the map itself (GLM on the robot).
     glm_on_robot: bool,
     nodes: u64,
+    /// It ended unplaced or on probation and was dropped.
+    dropped: bool,
 }
 
 /// What opening a session gave.
@@ -118,6 +122,10 @@ pub struct SiteMap {
     starts: BTreeMap<u32, SessionStart>,
     /// Sessions whose robot's placement was revoked: their robot's matches are ignored.
     robot_revoked: BTreeSet<u32>,
+    /// The published map at past versions (the console's slider).
+    history: MapHistory,
+    /// The session that started the map (its frame is the site's).
+    base: Option<u32>,
 }
 
 impl SiteMap {
@@ -134,6 +142,8 @@ impl SiteMap {
             dropped_sessions: 0,
             starts: BTreeMap::new(),
             robot_revoked: BTreeSet::new(),
+            history: MapHistory::default(),
+            base: None,
         })
     }
 
@@ -200,6 +210,7 @@ impl SiteMap {
                 prior: None,
                 glm_on_robot: false,
                 nodes: 0,
+                dropped: false,
             },
         );
         self.version = version;
@@ -363,6 +374,7 @@ impl SiteMap {
             self.map.set_matched_on_robot(trajectory);
         }
         if is_first {
+            self.base = Some(trajectory);
             return Ok(());
         }
         let options = self.map.options().session_start.clone();
@@ -440,9 +452,11 @@ impl SiteMap {
         };
         let trajectory = session.trajectory;
         let mut events = Vec::new();
+        let mut dropped = false;
         self.starts.remove(&trajectory);
         if self.map.is_started(trajectory) && !self.map.is_finished(trajectory) {
             let unplaced = self.map.is_unplaced(trajectory) || self.map.is_on_probation(trajectory);
+            dropped = unplaced;
             events = self.map.finish_session(trajectory).map_err(|e| {
                 SiteError::Internal(format!("ending session {session_uuid:?}: {e}"))
             })?;
@@ -452,6 +466,7 @@ impl SiteMap {
         }
         if let Some(session) = self.sessions.get_mut(session_uuid) {
             session.closed = true;
+            session.dropped = dropped;
         }
         self.optimizations += count_optimizations(&events) as u64;
         Ok(events)
@@ -573,11 +588,13 @@ impl SiteMap {
     /// which submap poses moved.
     fn finish_change(&mut self, version: u64, events: &[LifelongEvent]) {
         self.version = version;
+        let mut changed = false;
         for event in events {
             if let LifelongEvent::SubmapTrimmed { submap, .. } = event {
                 // Only published submaps are news to a client; a dropped unplaced session's never were.
                 if self.submap_versions.remove(submap).is_some() {
                     self.trimmed.insert(*submap, version);
+                    changed = true;
                 }
             }
         }
@@ -595,6 +612,7 @@ impl SiteMap {
                             pose,
                         },
                     );
+                    changed = true;
                 }
                 Some(v) => {
                     let moved = (v.pose.translation.vector - pose.translation.vector).norm()
@@ -603,10 +621,89 @@ impl SiteMap {
                     if moved {
                         v.pose_version = version;
                         v.pose = pose;
+                        changed = true;
                     }
                 }
             }
         }
+        if changed {
+            self.history.record(HistoryEntry {
+                version,
+                counts: self.counts(),
+                grids: Arc::new(self.grids_for_render()),
+            });
+        }
+    }
+
+    /// The published map at past versions.
+    pub fn history(&self) -> &MapHistory {
+        &self.history
+    }
+
+    /// The site as read-only front ends see it now.
+    pub fn view(&self) -> SiteView {
+        SiteView {
+            version: self.version,
+            sessions: Arc::new(self.session_views()),
+            history: Arc::new(self.history.entries().cloned().collect()),
+        }
+    }
+
+    /// Every session, in the order they were opened, with its placement state and (while placed) its
+    /// trajectory in the site frame.
+    pub fn session_views(&self) -> Vec<SessionView> {
+        let mut poses: BTreeMap<u32, Vec<Rigid2>> = BTreeMap::new();
+        for (id, _, pose) in self.map.node_poses() {
+            poses.entry(id.trajectory).or_default().push(pose);
+        }
+        let mut views: Vec<SessionView> = self
+            .sessions
+            .iter()
+            .map(|(uuid, s)| {
+                let t = s.trajectory;
+                let started = self.map.is_started(t);
+                let state = if s.dropped {
+                    PlacementState::Dropped
+                } else if !started {
+                    PlacementState::Waiting
+                } else if self.base == Some(t) {
+                    PlacementState::Base
+                } else if !self.map.is_placed(t) {
+                    PlacementState::Searching
+                } else if self.map.is_on_probation(t) {
+                    PlacementState::Probation
+                } else {
+                    PlacementState::Committed
+                };
+                let placed = matches!(
+                    state,
+                    PlacementState::Base | PlacementState::Probation | PlacementState::Committed
+                );
+                let trajectory_poses = if placed {
+                    thin_poses(
+                        poses.remove(&t).unwrap_or_default(),
+                        SessionView::MAX_TRAJECTORY_POINTS,
+                    )
+                } else {
+                    Vec::new()
+                };
+                SessionView {
+                    session: uuid.clone(),
+                    robot_id: s.robot_id.clone(),
+                    trajectory: t,
+                    closed: s.closed,
+                    nodes: s.nodes,
+                    state,
+                    prior_from_robot: s.prior.is_some(),
+                    robot_prior_revoked: self.robot_revoked.contains(&t),
+                    global_from_local: placed.then(|| self.map.global_from_local(t)),
+                    latest_pose: trajectory_poses.last().copied(),
+                    trajectory_poses,
+                }
+            })
+            .collect();
+        views.sort_by_key(|v| v.trajectory);
+        views
     }
 
     /// The sizes of the map.

@@ -36,7 +36,7 @@ use tokio::task::JoinHandle;
 
 use super::site_handle::Command;
 use super::{
-    RenderedMap, SiteError, SiteHandle, SiteMap, UploadAck, UploadCheck, VersionInfo,
+    RenderedMap, SiteError, SiteHandle, SiteMap, SiteView, UploadAck, UploadCheck, VersionInfo,
     render_submaps,
 };
 use crate::ServerMetrics;
@@ -72,6 +72,7 @@ pub struct SiteTask {
     map: Option<Box<SiteMap>>,
     store: Arc<dyn MapStore>,
     versions: watch::Sender<VersionInfo>,
+    views: watch::Sender<Arc<SiteView>>,
     metrics: Arc<ServerMetrics>,
     session_idle_timeout: Option<Duration>,
     /// When each open session was last heard of.
@@ -112,6 +113,7 @@ impl SiteTask {
             counts: map.counts(),
         };
         let (versions, versions_rx) = watch::channel(info);
+        let (views, views_rx) = watch::channel(Arc::new(map.view()));
         let (commands, commands_rx) = mpsc::channel(task_options.queue_depth.max(1));
         let now = tokio::time::Instant::now();
         let last_heard = map
@@ -123,13 +125,14 @@ impl SiteTask {
             map: Some(Box::new(map)),
             store,
             versions,
+            views,
             metrics,
             session_idle_timeout: task_options.session_idle_timeout,
             last_heard,
             unflushed: false,
         };
         let join = tokio::spawn(task.run(commands_rx));
-        Ok((SiteHandle::new(site, commands, versions_rx), join))
+        Ok((SiteHandle::new(site, commands, versions_rx, views_rx), join))
     }
 
     async fn run(mut self, mut commands: mpsc::Receiver<Command>) {
@@ -348,6 +351,8 @@ impl SiteTask {
                 version: map.version(),
                 counts: map.counts(),
             };
+            // The view first: whoever hears of the version finds it.
+            self.views.send_replace(Arc::new(map.view()));
             self.versions.send_replace(info);
         }
     }

@@ -502,3 +502,60 @@ fn agreeing_robot_matches_commit_a_prior_and_publish_its_submaps() {
         "committed: b's submaps are published"
     );
 }
+
+#[test]
+fn history_and_session_views_follow_the_published_map() {
+    use crate::site::PlacementState;
+    let mut map = SiteMap::new("s", LifelongOptions::default()).unwrap();
+    open(&mut map, "a");
+    assert!(map.history().latest().is_none());
+    assert_eq!(map.session_views()[0].state, PlacementState::Waiting);
+    apply(
+        &mut map,
+        &batch(
+            "a",
+            1,
+            vec![
+                node(0, &[0]),
+                node(1, &[0]),
+                UploadItem::SubmapFinished {
+                    index: 0,
+                    grid: grid(),
+                },
+            ],
+        ),
+    );
+    let first = map.history().latest().unwrap().clone();
+    assert_eq!(first.version, map.version());
+    assert_eq!(first.grids.len(), 1);
+    assert_eq!(first.counts.finished_submaps, 1);
+    open(&mut map, "b");
+    assert_eq!(
+        map.history().latest().unwrap().version,
+        first.version,
+        "an open changes no map"
+    );
+    assert_eq!(
+        map.history().at(map.version()).unwrap().version,
+        first.version
+    );
+    apply(&mut map, &batch("b", 1, vec![node(0, &[0])]));
+    let views = map.session_views();
+    assert_eq!(views[0].state, PlacementState::Base);
+    assert_eq!(views[0].trajectory_poses.len(), 2);
+    assert_eq!(
+        views[0].latest_pose,
+        views[0].trajectory_poses.last().copied()
+    );
+    assert_eq!((views[1].robot_id.as_str(), views[1].trajectory), ("r", 1));
+    assert_eq!(
+        views[1].state,
+        PlacementState::Searching,
+        "no prior: the server searches"
+    );
+    assert!(views[1].trajectory_poses.is_empty() && views[1].latest_pose.is_none());
+    apply(&mut map, &batch("b", 2, vec![UploadItem::SessionEnd]));
+    let views = map.session_views();
+    assert_eq!(views[1].state, PlacementState::Dropped);
+    assert!(views[1].closed);
+}
