@@ -4,13 +4,14 @@
 //! highest probability any submap gives it, so that every wall any submap saw can be matched); the first
 //! few scans of the session are merged into one cloud in the first scan's frame (LLO is accurate over a
 //! few metres, and a wider cloud is far more distinctive than one scan); the coarse-to-fine
-//! [`Relocalizer`] searches it over the whole grid and every rotation (branch and bound on a 2× coarser
-//! max-grid, then on the full grid around the best few candidates), scoring against the map max-filtered
+//! [`Relocalizer`] searches it over the whole grid and every rotation (branch and bound on a 4× coarser
+//! max-grid, then on the full grid around the best few candidates; again on a 2× coarser one when the
+//! first could not rank its candidates, see [`RelocalizationOptions::coarse_factors`]), scoring against the map max-filtered
 //! by [`RelocalizationOptions::match_tolerance`] so that goods that moved a little still count, and the
 //! winner is refined on the unfiltered map. A near-tie with a clearly different pose is refused
 //! ([`RelocalizationOutcome::Ambiguous`]); [`StartSearch::search_again`] then searches again with every
 //! scan since the start until one pose wins a paired per-point test. Cost: one precomputation over the
-//! rendered map plus one coarse and a few local searches per attempt.
+//! rendered map per coarse factor plus one coarse and a few local searches per attempt.
 
 use nalgebra::{Point2, Vector2};
 use serde::Deserialize;
@@ -45,11 +46,18 @@ pub struct RelocalizationOptions {
     pub min_score: f32,
     /// Depth of the branch-and-bound precomputation. Default 7.
     pub branch_and_bound_depth: u32,
-    /// Map cells per cell of the coarse grid the whole map is first searched on, along each axis
-    /// ([`RelocalizerOptions::coarse_factor`], 1..=16): the coarse search tries `coarse_factor²` fewer
-    /// positions and `coarse_factor` fewer rotations, and its candidates are searched again at full
-    /// resolution. Default 2.
-    pub coarse_factor: u32,
+    /// The whole-map searches tried in turn, each on a coarse grid of this many map cells per cell along
+    /// each axis ([`RelocalizerOptions::coarse_factor`], each 1..=16; at least one): a coarser grid tries
+    /// `factor²` fewer positions and `factor` fewer rotations, and its candidates are searched again at full
+    /// resolution, but it ranks the peaks of look-alike shelves less sharply, so its candidate list fills
+    /// with peaks that cannot be told apart. When a search's list was full and its bound on every peak it
+    /// left out ([`crate::scan_matching::Relocalization::unrefined_bound`]) comes within
+    /// `min_score_margin` of its best, the next factor searches again; the last one's answer stands (and
+    /// such a bound makes it ambiguous). Default `[4, 2]`: on the simulated store (seed 1, sessions 1–12)
+    /// the factor 4 search alone took 1.0–1.2 s of CPU per first search against 3.2–4.9 s for factor 2
+    /// alone, and refused two sessions factor 2 placed; factor 4 without the bound placed a session of
+    /// the `aisles` store 42.8 m off (BENCHMARKS.md, session 13).
+    pub coarse_factors: Vec<u32>,
     /// Whole-map candidates scoring more than this below the best on the coarse grid are not looked
     /// for ([`RelocalizerOptions::coarse_score_window`]; score units ≥ 0, `inf` for no bound): a rival
     /// that far behind cannot make a search ambiguous, and looking for it explores most of a store of
@@ -114,7 +122,7 @@ impl Default for RelocalizationOptions {
             max_search_points: 200,
             min_score: 0.6,
             branch_and_bound_depth: 7,
-            coarse_factor: 2,
+            coarse_factors: vec![4, 2],
             candidate_score_window: f32::INFINITY,
             max_candidates: 8,
             min_score_margin: 0.03,
@@ -143,10 +151,12 @@ impl RelocalizationOptions {
                 reason: "must be a non-negative number of metres",
             });
         }
-        if !(1..=16).contains(&self.coarse_factor) {
+        if self.coarse_factors.is_empty()
+            || self.coarse_factors.iter().any(|f| !(1..=16).contains(f))
+        {
             return Err(LifelongOptionsError::OutOfRange {
-                field: "coarse_factor",
-                reason: "must be in 1..=16",
+                field: "coarse_factors",
+                reason: "must list at least one factor, each in 1..=16",
             });
         }
         if self.candidate_score_window.is_nan() || self.candidate_score_window < 0.0 {
@@ -429,7 +439,8 @@ pub struct CloudFit {
 /// tracking only the first search's few candidates instead placed sessions in wrong aisles whenever the
 /// truth was not among them.
 pub struct StartSearch {
-    relocalizer: Relocalizer,
+    /// One per [`RelocalizationOptions::coarse_factors`], in order (never empty).
+    relocalizers: Vec<Relocalizer>,
     /// The unfiltered map, when the search runs on a max-filtered copy.
     sharp: Option<ProbabilityGrid>,
     options: RelocalizationOptions,
@@ -440,20 +451,27 @@ impl StartSearch {
     pub fn new(grid: &ProbabilityGrid, options: &RelocalizationOptions) -> Self {
         let tolerance_cells = (options.match_tolerance / grid.limits().resolution).round() as u32;
         let tolerant = (tolerance_cells > 0).then(|| max_filtered(grid, tolerance_cells));
-        let relocalizer = Relocalizer::new(
-            tolerant.as_ref().unwrap_or(grid),
-            RelocalizerOptions {
-                coarse_factor: options.coarse_factor,
-                coarse_score_window: options.candidate_score_window,
-                coarse_branch_and_bound_depth: options.branch_and_bound_depth,
-                min_score: options.min_score,
-                max_candidates: options.max_candidates.max(1),
-                least_squares: options.least_squares.clone(),
-                ..RelocalizerOptions::default()
-            },
-        );
+        let relocalizers = options
+            .coarse_factors
+            .iter()
+            .chain(options.coarse_factors.is_empty().then_some(&2))
+            .map(|&coarse_factor| {
+                Relocalizer::new(
+                    tolerant.as_ref().unwrap_or(grid),
+                    RelocalizerOptions {
+                        coarse_factor,
+                        coarse_score_window: options.candidate_score_window,
+                        coarse_branch_and_bound_depth: options.branch_and_bound_depth,
+                        min_score: options.min_score,
+                        max_candidates: options.max_candidates.max(1),
+                        least_squares: options.least_squares.clone(),
+                        ..RelocalizerOptions::default()
+                    },
+                )
+            })
+            .collect();
         Self {
-            relocalizer,
+            relocalizers,
             sharp: tolerant.is_some().then(|| grid.clone()),
             options: options.clone(),
         }
@@ -524,7 +542,7 @@ impl StartSearch {
                 runner_up_from_best: [offset.translation.x, offset.translation.y, offset.theta()],
             };
         }
-        let grid = self.sharp.as_ref().unwrap_or(self.relocalizer.fine_grid());
+        let grid = self.sharp.as_ref().unwrap_or(self.relocalizers[0].fine_grid());
         let weakest = candidates[1..]
             .iter()
             .map(|(other, score)| (paired_z(grid, &cloud, &best_pose, other), *other, *score))
@@ -552,7 +570,7 @@ impl StartSearch {
     pub fn evidence(&self, scans: &[(Rigid2, Vec<Point2<f32>>)]) -> Option<SearchEvidence> {
         let (first_from_local, cloud) = merge_scans(scans, self.options.voxel_size)?;
         let found = self.relocalize(&cloud)?;
-        let grid = self.sharp.as_ref().unwrap_or(self.relocalizer.fine_grid());
+        let grid = self.sharp.as_ref().unwrap_or(self.relocalizers[0].fine_grid());
         // Candidates found on the max-filtered map are only known to within the tolerance, and many score
         // alike there: refine each on the unfiltered map and rank them by how well they fit it.
         let mut sharpened: Vec<(Rigid2, f32, f64)> = distinct(found.candidates)
@@ -664,8 +682,8 @@ impl StartSearch {
     ) -> Option<CloudFit> {
         let (first_from_local, cloud) = merge_scans(scans, self.options.voxel_size)?;
         let pose = global_from_local * first_from_local.inverse();
-        let sharp = self.sharp.as_ref().unwrap_or(self.relocalizer.fine_grid());
-        let tolerant = self.relocalizer.fine_grid();
+        let sharp = self.sharp.as_ref().unwrap_or(self.relocalizers[0].fine_grid());
+        let tolerant = self.relocalizers[0].fine_grid();
         let share = |keep: &dyn Fn(Point2<f64>) -> bool| {
             let kept = cloud
                 .iter()
@@ -688,7 +706,18 @@ impl StartSearch {
             self.options.max_search_points,
             self.options.voxel_size,
         );
-        self.relocalizer.relocalize(&thinned)
+        let mut found = None;
+        for relocalizer in &self.relocalizers {
+            found = relocalizer.relocalize(&thinned);
+            let inconclusive = found.as_ref().is_some_and(|f| {
+                f.unrefined_bound
+                    .is_some_and(|(_, bound)| bound >= f.score - self.options.min_score_margin)
+            });
+            if !inconclusive {
+                break;
+            }
+        }
+        found
     }
 
     /// `pose` found on the max-filtered map, refined on the unfiltered one (without a filtered copy the
