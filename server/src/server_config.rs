@@ -42,8 +42,8 @@ use robot_agent::uplink::ZenohLinkOptions;
 use serde::Deserialize;
 use storage::SledStoreOptions;
 
-use crate::grpc::AuthLimitOptions;
 use crate::console::HttpConfig;
+use crate::grpc::AuthLimitOptions;
 
 /// Invalid [`ServerConfig`].
 #[derive(Debug, thiserror::Error, PartialEq)]

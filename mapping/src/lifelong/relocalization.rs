@@ -50,13 +50,13 @@ pub struct RelocalizationOptions {
     /// each axis ([`RelocalizerOptions::coarse_factor`], each 1..=16; at least one): a coarser grid tries
     /// `factor²` fewer positions and `factor` fewer rotations, and its candidates are searched again at full
     /// resolution, but it ranks the peaks of look-alike shelves less sharply, so its candidate list fills
-    /// with peaks that cannot be told apart. When a search's list was full and its bound on every peak it
-    /// left out ([`crate::scan_matching::Relocalization::unrefined_bound`]) comes within
-    /// `min_score_margin` of its best, the next factor searches again; the last one's answer stands (and
-    /// such a bound makes it ambiguous). Default `[4, 2]`: on the simulated store (seed 1, sessions 1–12)
-    /// the factor 4 search alone took 1.0–1.2 s of CPU per first search against 3.2–4.9 s for factor 2
-    /// alone, and refused two sessions factor 2 placed; factor 4 without the bound placed a session of
-    /// the `aisles` store 42.8 m off (BENCHMARKS.md, session 13).
+    /// with peaks that cannot be told apart, and the true rival of the best may be left out. When a
+    /// search's list was full and its bound on every peak it left out
+    /// ([`crate::scan_matching::Relocalization::unrefined_bound`]) comes within `min_score_margin` of its
+    /// best, it could not rank its candidates, and the next factor searches again; the last one's answer
+    /// stands. Default `[4, 2]`: on the simulated store (seed 1, sessions 1–12) factor 4 took 1.0–1.2 s of
+    /// CPU per first search against 3.2–4.9 s for factor 2, and factor 4 alone placed a session of the
+    /// `aisles` store 42.8 m off where factor 2 refused it (BENCHMARKS.md, session 13).
     pub coarse_factors: Vec<u32>,
     /// Whole-map candidates scoring more than this below the best on the coarse grid are not looked
     /// for ([`RelocalizerOptions::coarse_score_window`]; score units ≥ 0, `inf` for no bound): a rival
@@ -486,23 +486,16 @@ impl StartSearch {
         let Some(found) = self.relocalize(&cloud) else {
             return RelocalizationOutcome::NotFound;
         };
-        let rivals = [
-            found.runner_up_pose.zip(found.runner_up_score),
-            found.unrefined_bound,
-        ];
-        for (runner_up_pose, runner_up_score) in rivals.into_iter().flatten() {
-            if runner_up_score >= found.score - self.options.min_score_margin {
-                let offset = found.pose.inverse() * runner_up_pose;
-                return RelocalizationOutcome::Ambiguous {
-                    score: found.score,
-                    runner_up_score,
-                    runner_up_from_best: [
-                        offset.translation.x,
-                        offset.translation.y,
-                        offset.theta(),
-                    ],
-                };
-            }
+        if let (Some(runner_up_score), Some(runner_up_pose)) =
+            (found.runner_up_score, found.runner_up_pose)
+            && runner_up_score >= found.score - self.options.min_score_margin
+        {
+            let offset = found.pose.inverse() * runner_up_pose;
+            return RelocalizationOutcome::Ambiguous {
+                score: found.score,
+                runner_up_score,
+                runner_up_from_best: [offset.translation.x, offset.translation.y, offset.theta()],
+            };
         }
         RelocalizationOutcome::Found(SessionRelocalization {
             global_from_local: self.sharpen(&cloud, &found.pose) * first_from_local,
@@ -521,7 +514,6 @@ impl StartSearch {
         let Some(found) = self.relocalize(&cloud) else {
             return RelocalizationOutcome::NotFound;
         };
-        let unrefined_bound = found.unrefined_bound;
         // Candidates found on the max-filtered map are only known to within the tolerance; compare them
         // refined on the unfiltered map, where a pillar's or an aisle end's points tell most.
         let candidates: Vec<(Rigid2, f32)> = distinct(found.candidates)
@@ -531,18 +523,10 @@ impl StartSearch {
         let Some(&(best_pose, best_score)) = candidates.first() else {
             return RelocalizationOutcome::NotFound;
         };
-        // Peaks the coarse search left out cannot be tested pairwise: they must trail by the margin.
-        if let Some((pose, bound)) = unrefined_bound
-            && bound >= best_score - self.options.min_score_margin
-        {
-            let offset = best_pose.inverse() * pose;
-            return RelocalizationOutcome::Ambiguous {
-                score: best_score,
-                runner_up_score: bound,
-                runner_up_from_best: [offset.translation.x, offset.translation.y, offset.theta()],
-            };
-        }
-        let grid = self.sharp.as_ref().unwrap_or(self.relocalizers[0].fine_grid());
+        let grid = self
+            .sharp
+            .as_ref()
+            .unwrap_or(self.relocalizers[0].fine_grid());
         let weakest = candidates[1..]
             .iter()
             .map(|(other, score)| (paired_z(grid, &cloud, &best_pose, other), *other, *score))
@@ -570,7 +554,10 @@ impl StartSearch {
     pub fn evidence(&self, scans: &[(Rigid2, Vec<Point2<f32>>)]) -> Option<SearchEvidence> {
         let (first_from_local, cloud) = merge_scans(scans, self.options.voxel_size)?;
         let found = self.relocalize(&cloud)?;
-        let grid = self.sharp.as_ref().unwrap_or(self.relocalizers[0].fine_grid());
+        let grid = self
+            .sharp
+            .as_ref()
+            .unwrap_or(self.relocalizers[0].fine_grid());
         // Candidates found on the max-filtered map are only known to within the tolerance, and many score
         // alike there: refine each on the unfiltered map and rank them by how well they fit it.
         let mut sharpened: Vec<(Rigid2, f32, f64)> = distinct(found.candidates)
@@ -682,7 +669,10 @@ impl StartSearch {
     ) -> Option<CloudFit> {
         let (first_from_local, cloud) = merge_scans(scans, self.options.voxel_size)?;
         let pose = global_from_local * first_from_local.inverse();
-        let sharp = self.sharp.as_ref().unwrap_or(self.relocalizers[0].fine_grid());
+        let sharp = self
+            .sharp
+            .as_ref()
+            .unwrap_or(self.relocalizers[0].fine_grid());
         let tolerant = self.relocalizers[0].fine_grid();
         let share = |keep: &dyn Fn(Point2<f64>) -> bool| {
             let kept = cloud
