@@ -117,8 +117,10 @@ impl ConsoleState {
         for site in self.sites.values() {
             let (state, mut versions) = (Arc::clone(self), site.subscribe());
             let id = site.site().to_owned();
+            // The current version is marked seen here, not in the task: there it would swallow a version
+            // that landed before the task first ran.
+            versions.borrow_and_update();
             tasks.push(tokio::spawn(async move {
-                versions.borrow_and_update();
                 // Ends when the site's task stops (the sender is dropped).
                 while versions.changed().await.is_ok() {
                     let info = *versions.borrow_and_update();
