@@ -12,7 +12,7 @@ pub use relations_metric::{RelationError, RelationsErrorStats, relation_errors, 
 pub use run_score::{RunScore, score_run};
 pub use scoring_options::{ScoringOptions, ScoringOptionsError};
 pub use session_score::{
-    Placement, SessionScore, SessionTrack, average_match_score, score_session,
+    Placement, SessionScore, SessionTrack, average_match_score, score_session, truth_at,
 };
 pub use trajectory_metric::{
     PoseTolerance, TrajectoryAccuracy, align_to_truth, pose_error, rigid_alignment,

@@ -24,7 +24,7 @@ use clap::Parser;
 use mapping::geometry::Rigid2;
 use mapping::lifelong::{SessionStart, SessionStartEvent, StartSearch};
 use mapping::local_slam::LocalTrajectoryBuilder;
-use mapping::metrics::pose_error;
+use mapping::metrics::{pose_error, truth_at};
 use mapping::sensor::{SensorEvent, Timestamp};
 use mapping::simulation::{SessionOptions, Store};
 use robot_agent::lifelong_run::SessionsConfig;
@@ -56,20 +56,6 @@ fn thread_cpu_ms() -> Option<f64> {
     let text = std::fs::read_to_string("/proc/thread-self/schedstat").ok()?;
     let ns: f64 = text.split_whitespace().next()?.parse().ok()?;
     Some(ns * 1e-6)
-}
-
-/// The truth pose at `time` (truth is sampled at every scan: the nearest sample).
-fn truth_at(truth: &[(Timestamp, Rigid2)], time: Timestamp) -> Option<Rigid2> {
-    let i = truth.partition_point(|(t, _)| *t < time);
-    match (i.checked_sub(1).and_then(|j| truth.get(j)), truth.get(i)) {
-        (Some(b), Some(a)) => Some(if time.seconds_since(b.0) <= a.0.seconds_since(time) {
-            b.1
-        } else {
-            a.1
-        }),
-        (Some(p), None) | (None, Some(p)) => Some(p.1),
-        (None, None) => None,
-    }
 }
 
 fn main() -> anyhow::Result<()> {

@@ -669,22 +669,20 @@ fn worker(
                 // Every node's pose before pose graph refinement: what a node `finish_session` removes
                 // (trimmed, or its session dropped) keeps; the rest are updated after it.
                 let mut at_session_end = BTreeMap::new();
-                for (id, _, pose) in map.node_poses() {
-                    retired.insert(id, pose);
-                    if id.trajectory == session {
-                        at_session_end.insert(id, pose);
+                let mut note_poses = |map: &LifelongMap| {
+                    for (id, _, pose) in map.node_poses() {
+                        retired.insert(id, pose);
+                        if id.trajectory == session {
+                            at_session_end.insert(id, pose);
+                        }
                     }
-                }
+                };
+                note_poses(&map);
                 let on_probation = map.is_on_probation(session);
                 let start_ms = Instant::now();
                 let events_finish = map.finish_session(session)?;
                 let finish_ms = start_ms.elapsed().as_secs_f64() * 1e3;
-                for (id, _, pose) in map.node_poses() {
-                    retired.insert(id, pose);
-                    if id.trajectory == session {
-                        at_session_end.insert(id, pose);
-                    }
-                }
+                note_poses(&map);
                 let placed = map.is_placed(session) && !on_probation;
                 let counts = map.counts();
                 let first_node = NodeId {

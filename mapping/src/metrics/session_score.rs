@@ -129,7 +129,7 @@ impl SessionScore {
 
 /// The truth pose at `time`, or the nearest in time (truth is sampled at every scan, so this is exact
 /// for scan times).
-fn truth_at(truth: &[(Timestamp, Rigid2)], time: Timestamp) -> Option<Rigid2> {
+pub fn truth_at(truth: &[(Timestamp, Rigid2)], time: Timestamp) -> Option<Rigid2> {
     let i = truth.partition_point(|(t, _)| *t < time);
     let after = truth.get(i);
     let before = i.checked_sub(1).and_then(|j| truth.get(j));
