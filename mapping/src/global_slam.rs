@@ -12,6 +12,7 @@ mod fixed_ratio_sampler;
 mod global_slam_core;
 mod global_slam_options;
 mod loop_closure_check;
+mod optimization_region;
 
 pub use constraint_builder::{
     ConstraintBuilder, ConstraintBuilderOptions, LoopClosure, SearchJob, SearchWindow,
@@ -25,3 +26,4 @@ pub use loop_closure_check::{
     LoopClosureCheck, LoopClosurePrecision, TRUE_CLOSURE_ROTATION_RAD, TRUE_CLOSURE_TRANSLATION_M,
     loop_closure_precision,
 };
+pub use optimization_region::optimization_region;

@@ -45,12 +45,13 @@ mod divergence;
 mod linearization;
 mod marginalization;
 mod options;
+mod symmetric_eigen;
 #[cfg(test)]
 mod tests;
 
 use std::collections::BTreeSet;
 
-use nalgebra::{DMatrix, DVector, Matrix3, Matrix3x6, Matrix6, SymmetricEigen};
+use nalgebra::{DMatrix, DVector, Matrix3, Matrix3x6, Matrix6};
 use thiserror::Error;
 
 pub use divergence::kl_divergence;
@@ -58,6 +59,7 @@ pub use marginalization::{DenseMarginal, marginalize};
 pub use options::{
     EdgeModel, RobustWeighting, SparsificationOptions, SparsificationOptionsError, TreeMean,
 };
+use symmetric_eigen::{scale_columns, symmetric_eigen};
 
 use self::chow_liu::maximum_spanning_tree;
 use self::divergence::gaussian_kl_divergence;
@@ -380,7 +382,7 @@ impl GaugeFixed {
                 .rows_mut(3 * r, 3)
                 .copy_from(&marginal.gradient.rows(3 * br, 3));
         }
-        let eigen = SymmetricEigen::new(0.5 * (&information + information.transpose()));
+        let eigen = symmetric_eigen(&information);
         let max = eigen.eigenvalues.max();
         if max.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
             return None;
@@ -389,12 +391,12 @@ impl GaugeFixed {
         let rank = eigen.eigenvalues.iter().filter(|&&l| l > floor).count();
         let clamped = eigen.eigenvalues.map(|l| l.max(floor));
         let v = &eigen.eigenvectors;
-        let covariance = v * DMatrix::from_diagonal(&clamped.map(|l| 1.0 / l)) * v.transpose();
+        let covariance = scale_columns(v, &clamped.map(|l| 1.0 / l)) * v.transpose();
         let covariance = 0.5 * (&covariance + covariance.transpose());
         let pseudo = eigen
             .eigenvalues
             .map(|l| if l > floor { 1.0 / l } else { 0.0 });
-        let delta = -(v * DMatrix::from_diagonal(&pseudo) * (v.transpose() * &gradient));
+        let delta = -(v * (v.transpose() * &gradient).component_mul(&pseudo));
         Some(Self {
             covariance,
             log_det_information: clamped.iter().map(|l| l.ln()).sum(),

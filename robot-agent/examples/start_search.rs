@@ -28,6 +28,7 @@ use mapping::metrics::{pose_error, truth_at};
 use mapping::sensor::{SensorEvent, Timestamp};
 use mapping::simulation::{SessionOptions, Store};
 use robot_agent::lifelong_run::SessionsConfig;
+use robot_agent::process_stats::thread_cpu_ms;
 use robot_agent::world::World;
 use serde_json::json;
 
@@ -48,14 +49,6 @@ struct Args {
     /// A `lifelong` configuration file.
     #[arg(long)]
     config: Option<PathBuf>,
-}
-
-/// CPU time this thread has run, milliseconds (Linux `/proc/thread-self/schedstat`; `None` elsewhere):
-/// the searches run on the calling thread, so this is their cost whatever else the machine runs.
-fn thread_cpu_ms() -> Option<f64> {
-    let text = std::fs::read_to_string("/proc/thread-self/schedstat").ok()?;
-    let ns: f64 = text.split_whitespace().next()?.parse().ok()?;
-    Some(ns * 1e-6)
 }
 
 fn main() -> anyhow::Result<()> {

@@ -29,6 +29,7 @@ use nalgebra::Point2;
 use serde::{Deserialize, Serialize};
 
 use crate::offline_slam::run_searches;
+use crate::process_stats::thread_cpu_ms;
 use crate::source::Recording;
 
 /// Configuration of a multi-session run; one TOML file, every field optional.
@@ -131,6 +132,9 @@ pub struct SessionSummary {
     /// Wall time of pose graph refinement at the session's end (`finish_session`: the final
     /// optimization, trimming, sparsification, as the server runs it), milliseconds.
     pub finish_ms: f64,
+    /// CPU time of that refinement on the thread that ran it, milliseconds (what it costs, however
+    /// loaded the machine is; `None` where the platform does not report it).
+    pub finish_cpu_ms: Option<f64>,
     /// Levenberg-Marquardt steps tried at the session's end (each one numeric factorization), over every
     /// optimization `finish_ms` covers.
     pub finish_iterations: usize,
@@ -680,8 +684,12 @@ fn worker(
                 note_poses(&map);
                 let on_probation = map.is_on_probation(session);
                 let start_ms = Instant::now();
+                let start_cpu_ms = thread_cpu_ms();
                 let events_finish = map.finish_session(session)?;
                 let finish_ms = start_ms.elapsed().as_secs_f64() * 1e3;
+                let finish_cpu_ms = thread_cpu_ms()
+                    .zip(start_cpu_ms)
+                    .map(|(end, start)| end - start);
                 note_poses(&map);
                 let placed = map.is_placed(session) && !on_probation;
                 let counts = map.counts();
@@ -723,6 +731,7 @@ fn worker(
                     summary.ended_on_probation = on_probation;
                     summary.counts = counts;
                     summary.finish_ms = finish_ms;
+                    summary.finish_cpu_ms = finish_cpu_ms;
                     summary.finish_iterations = events_finish
                         .iter()
                         .filter_map(|e| match e {

@@ -22,12 +22,39 @@ pub fn cpu_seconds() -> Option<f64> {
     Some((user + system) / 100.0)
 }
 
+/// CPU time the calling thread has run so far, milliseconds (`/proc/thread-self/schedstat`, in
+/// nanoseconds), if the platform reports it: the cost of work done on this thread whatever else the
+/// machine runs (wall time on a loaded machine measures the machine).
+pub fn thread_cpu_ms() -> Option<f64> {
+    let text = std::fs::read_to_string("/proc/thread-self/schedstat").ok()?;
+    let ns: f64 = text.split_whitespace().next()?.parse().ok()?;
+    Some(ns * 1e-6)
+}
+
 #[cfg(test)]
 mod tests {
     #[test]
     fn peak_rss_is_positive_on_linux() {
         if cfg!(target_os = "linux") {
             assert!(super::peak_rss_mb().is_some_and(|mb| mb > 0.0));
+        }
+    }
+
+    #[test]
+    fn thread_cpu_time_grows_with_work() {
+        if cfg!(target_os = "linux") {
+            let before = super::thread_cpu_ms().expect("thread cpu time");
+            let started = std::time::Instant::now();
+            let mut x = 0u64;
+            let mut after = before;
+            while after - before <= 50.0 && started.elapsed() < std::time::Duration::from_secs(20) {
+                for _ in 0..1_000_000 {
+                    x = x.wrapping_mul(6364136223846793005).wrapping_add(1);
+                }
+                std::hint::black_box(x);
+                after = super::thread_cpu_ms().expect("thread cpu time");
+            }
+            assert!(after - before > 50.0, "{before} -> {after}");
         }
     }
 

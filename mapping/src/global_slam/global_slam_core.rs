@@ -7,7 +7,7 @@ use nalgebra::{Matrix3, Point2};
 
 use super::{
     ConstraintBuilder, FixedRatioSampler, GlobalSlamOptions, GlobalSlamOptionsError, LoopClosure,
-    LoopClosureCheck, SearchJob, SearchWindow,
+    LoopClosureCheck, SearchJob, SearchWindow, optimization_region,
 };
 use crate::geometry::Rigid2;
 use crate::grid::ProbabilityGrid;
@@ -138,6 +138,14 @@ pub struct GlobalSlam {
     closures_outvoted: usize,
     /// Matches that would move their node far from its estimate, waiting for another to agree with them.
     pending_unconfirmed: Vec<(LoopClosure, Acceptance)>,
+    /// Trajectories an optimization holds still away from what is new (see
+    /// [`GlobalSlam::set_trajectory_settled`]).
+    settled: BTreeSet<u32>,
+    /// The first constraint added after the last optimization: those from here on are new to it.
+    new_constraints_from: ConstraintId,
+    /// Variables whose constraints changed since the last optimization other than by an addition (a
+    /// retracted closure, a deleted neighbour): optimizations move them and their neighbourhood.
+    changed: BTreeSet<VariableId>,
 }
 
 /// `agreeing` pending matches and the `closure` that confirmed them, all marked confirmed by agreement.
@@ -198,6 +206,9 @@ impl GlobalSlam {
             pending_unconfirmed: Vec::new(),
             closures_beyond_drift: 0,
             pending_beyond_drift: Vec::new(),
+            settled: BTreeSet::new(),
+            new_constraints_from: ConstraintId(0),
+            changed: BTreeSet::new(),
             closures_outvoted: 0,
         })
     }
@@ -896,8 +907,9 @@ impl GlobalSlam {
             .map(|(id, _)| id)
             .collect();
         for id in crossing {
-            // Cannot fail: the id came from the graph.
-            let _ = self.graph.remove_constraint(id);
+            if let Ok(c) = self.graph.remove_constraint(id) {
+                self.changed.extend([c.from, c.to]);
+            }
         }
         let crosses = |node: NodeId, submap: SubmapId| {
             node.trajectory != submap.trajectory
@@ -975,14 +987,86 @@ impl GlobalSlam {
 
     /// Optimizes the whole graph now and updates each trajectory's `global_from_local`.
     pub fn optimize(&mut self) -> OptimizationSummary {
+        let held = self.hold_settled();
         let mut summary = self.optimizer.optimize(&mut self.graph);
+        self.release(held);
         if self.retract_refused_loop_closures() > 0 {
             // Without the refused closures' pull.
+            let held = self.hold_settled();
             summary = self.optimizer.optimize(&mut self.graph);
+            self.release(held);
         }
+        self.optimized();
         self.nodes_since_optimization = 0;
         self.update_global_from_local();
         summary
+    }
+
+    /// Marks a trajectory settled (or not): once any is, optimizations move only the unsettled
+    /// trajectories' variables, the endpoints of constraints added or changed since the last
+    /// optimization, and what lies within `settled_region_hops` constraints of them (see
+    /// [`optimization_region`]); the rest holds still. A lifelong map settles a session when it ends.
+    pub fn set_trajectory_settled(&mut self, trajectory: u32, settled: bool) {
+        if settled {
+            self.settled.insert(trajectory);
+        } else {
+            self.settled.remove(&trajectory);
+        }
+    }
+
+    /// Notes that these variables' constraints changed other than by an addition (the caller deleted
+    /// some through [`Self::graph_mut`]): the next optimization moves them even if they are settled.
+    pub fn mark_changed(&mut self, ids: impl IntoIterator<Item = VariableId>) {
+        self.changed.extend(ids);
+    }
+
+    /// Fixes, for one optimization, every free variable outside the optimization region (nothing when no
+    /// trajectory is settled); returns them for [`Self::release`].
+    fn hold_settled(&mut self) -> Vec<VariableId> {
+        if self.settled.is_empty() {
+            return Vec::new();
+        }
+        let trajectory = |id: &VariableId| match id {
+            VariableId::Node(n) => n.trajectory,
+            VariableId::Submap(s) => s.trajectory,
+        };
+        let seeds: Vec<VariableId> = self
+            .graph
+            .variables()
+            .map(|(id, _, _)| id)
+            .filter(|id| !self.settled.contains(&trajectory(id)))
+            .chain(
+                self.graph
+                    .constraints_since(self.new_constraints_from)
+                    .flat_map(|(_, c)| [c.from, c.to]),
+            )
+            .chain(self.changed.iter().copied())
+            .collect();
+        let region = optimization_region(&self.graph, seeds, self.options.settled_region_hops);
+        let held: Vec<VariableId> = self
+            .graph
+            .variables()
+            .filter(|(id, _, fixed)| !fixed && !region.contains(id))
+            .map(|(id, _, _)| id)
+            .collect();
+        for &id in &held {
+            // Cannot fail: the id came from the graph.
+            let _ = self.graph.set_fixed(id, true);
+        }
+        held
+    }
+
+    /// Frees what [`Self::hold_settled`] fixed.
+    fn release(&mut self, held: Vec<VariableId>) {
+        for id in held {
+            let _ = self.graph.set_fixed(id, false);
+        }
+    }
+
+    /// Everything added or changed so far is now optimized.
+    fn optimized(&mut self) {
+        self.new_constraints_from = self.graph.next_constraint_id();
+        self.changed.clear();
     }
 
     /// Takes out of the graph every accepted loop closure that the optimized graph refuses — its χ² (with
@@ -1019,6 +1103,7 @@ impl GlobalSlam {
             let fits = constraint.chi2(&from, &to) <= max_chi2;
             match state {
                 ClosureState::InGraph(id) if !fits && self.graph.remove_constraint(*id).is_ok() => {
+                    self.changed.extend([constraint.from, constraint.to]);
                     *state = ClosureState::Retracted(constraint);
                     changed += 1;
                 }
@@ -1071,10 +1156,13 @@ impl GlobalSlam {
             // The options were validated at construction and max_iterations is not checked.
             self.capped_optimizer = Optimizer::new(options).ok();
         }
+        let held = self.hold_settled();
         let summary = match self.capped_optimizer.as_mut() {
             Some(optimizer) => optimizer.optimize(&mut self.graph),
             None => self.optimizer.optimize(&mut self.graph),
         };
+        self.release(held);
+        self.optimized();
         self.update_global_from_local();
         summary
     }

@@ -12,7 +12,9 @@ use crate::global_slam::{
     ConstraintBuilder, GlobalSlam, GlobalSlamError, GlobalSlamEvent, LoopClosure, SearchJob,
 };
 use crate::grid::ProbabilityGrid;
-use crate::pose_graph::{NodeId, OptimizationSummary, SubmapId, VariableId};
+use crate::pose_graph::{
+    Constraint, ConstraintId, NodeId, OptimizationSummary, SubmapId, VariableId,
+};
 use crate::sensor::Timestamp;
 use crate::sparsification::{self, SparsificationError};
 
@@ -374,7 +376,24 @@ impl LifelongMap {
         if let Some(s) = self.sessions.get_mut(&session) {
             s.finished = true;
         }
+        // Optimized as it ended: from now on what is new moves, and it holds still (see
+        // `GlobalSlamOptions::settled_region_hops`).
+        self.global.set_trajectory_settled(session, true);
         Ok(events)
+    }
+
+    /// Tells the optimizer that the variables which shared a deleted constraint with `eliminated` lost it.
+    fn mark_blanket_changed(
+        &mut self,
+        eliminated: &[VariableId],
+        removed: &[(ConstraintId, Constraint)],
+    ) {
+        let blanket: Vec<VariableId> = removed
+            .iter()
+            .flat_map(|(_, c)| [c.from, c.to])
+            .filter(|id| !eliminated.contains(id))
+            .collect();
+        self.global.mark_changed(blanket);
     }
 
     /// `global_from_grid` of every finished submap.
@@ -537,7 +556,9 @@ impl LifelongMap {
             } else {
                 None
             };
-            sparsification::delete(self.global.graph_mut(), &eliminate).map_err(error)?;
+            let removed =
+                sparsification::delete(self.global.graph_mut(), &eliminate).map_err(error)?;
+            self.mark_blanket_changed(&eliminate, &removed);
             (0, kld)
         };
         self.global.forget(&[submap], &nodes);
@@ -576,8 +597,9 @@ impl LifelongMap {
             let eliminate: Vec<VariableId> = std::iter::once(VariableId::Submap(submap))
                 .chain(nodes.iter().map(|n| VariableId::Node(*n)))
                 .collect();
-            sparsification::delete(self.global.graph_mut(), &eliminate)
+            let removed = sparsification::delete(self.global.graph_mut(), &eliminate)
                 .map_err(|source| LifelongError::Sparsification { submap, source })?;
+            self.mark_blanket_changed(&eliminate, &removed);
             self.global.forget(&[submap], &nodes);
             self.dropped_total += 1;
             events.push(LifelongEvent::SubmapTrimmed {
@@ -598,15 +620,17 @@ impl LifelongMap {
             .collect();
         if !orphans.is_empty() {
             let eliminate: Vec<VariableId> = orphans.iter().map(|n| VariableId::Node(*n)).collect();
-            sparsification::delete(self.global.graph_mut(), &eliminate).map_err(|source| {
-                LifelongError::Sparsification {
-                    submap: SubmapId {
-                        trajectory: session,
-                        index: u32::MAX,
-                    },
-                    source,
-                }
-            })?;
+            let removed =
+                sparsification::delete(self.global.graph_mut(), &eliminate).map_err(|source| {
+                    LifelongError::Sparsification {
+                        submap: SubmapId {
+                            trajectory: session,
+                            index: u32::MAX,
+                        },
+                        source,
+                    }
+                })?;
+            self.mark_blanket_changed(&eliminate, &removed);
             self.global.forget(&[], &orphans);
         }
         Ok(events)

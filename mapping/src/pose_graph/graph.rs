@@ -212,6 +212,20 @@ impl PoseGraph {
         self.constraints.iter().map(|(id, c)| (*id, c))
     }
 
+    /// Constraints added at or after `first` (ids increase with insertion), in id order.
+    pub fn constraints_since(
+        &self,
+        first: ConstraintId,
+    ) -> impl Iterator<Item = (ConstraintId, &Constraint)> + '_ {
+        self.constraints.range(first..).map(|(id, c)| (*id, c))
+    }
+
+    /// The id the next added constraint will get: with [`Self::constraints_since`], what was added after
+    /// this moment.
+    pub fn next_constraint_id(&self) -> ConstraintId {
+        ConstraintId(self.next_constraint)
+    }
+
     /// Ids of the constraints touching a variable, in id order (empty if the variable is unknown).
     pub fn constraints_of(&self, id: VariableId) -> &[ConstraintId] {
         self.variables

@@ -83,13 +83,13 @@ pub(crate) fn pseudo_inverse(m: &DMatrix<f64>, threshold: f64) -> DMatrix<f64> {
     if n == 0 {
         return DMatrix::zeros(0, 0);
     }
-    let eigen = (0.5 * (m + m.transpose())).symmetric_eigen();
+    let eigen = super::symmetric_eigen(m);
     let max = eigen.eigenvalues.max().max(0.0);
     let floor = threshold * max;
     let inverted = eigen
         .eigenvalues
         .map(|l| if l > floor && l > 0.0 { 1.0 / l } else { 0.0 });
-    &eigen.eigenvectors * DMatrix::from_diagonal(&inverted) * eigen.eigenvectors.transpose()
+    super::scale_columns(&eigen.eigenvectors, &inverted) * eigen.eigenvectors.transpose()
 }
 
 /// Marginalizes `eliminate` (see the module docs): the oracle every sparsified result is measured

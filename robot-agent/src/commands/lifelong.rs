@@ -87,6 +87,8 @@ struct SessionRow {
     /// Submaps of sessions that did not update the map (never placed; `frozen`), dropped so far.
     dropped_total: usize,
     pgr_ms: f64,
+    /// CPU time of that refinement on its thread, milliseconds (the cost on a loaded machine).
+    pgr_cpu_ms: Option<f64>,
     /// Levenberg-Marquardt steps of every optimization `pgr_ms` covers.
     pgr_iterations: usize,
     peak_rss_mb: Option<f64>,
@@ -191,6 +193,7 @@ impl Reporter<'_> {
             trimmed_total: counts.trimmed_total,
             dropped_total: counts.dropped_total,
             pgr_ms: s.finish_ms,
+            pgr_cpu_ms: s.finish_cpu_ms,
             pgr_iterations: s.finish_iterations,
             peak_rss_mb: s.peak_rss_mb,
             scans: end.record.smoothed.len(),
@@ -217,7 +220,7 @@ impl Reporter<'_> {
         self.details.push(s.clone());
         self.last_change = change;
         eprintln!(
-            "session {k:>2}: init {:<5} placed {} committed {} placement {} mrcl {:.3} (smoothed {:.3}) ams {} ate {:.3} m | mcr {} world {:.3} | nodes {} submaps {} constraints {} | pgr {:.0} ms ({} LM steps)",
+            "session {k:>2}: init {:<5} placed {} committed {} placement {} mrcl {:.3} (smoothed {:.3}) ams {} ate {:.3} m | mcr {} world {:.3} | nodes {} submaps {} constraints {} | pgr {:.0} ms, {} ms cpu ({} LM steps)",
             if k == 0 {
                 "-".to_string()
             } else {
@@ -245,6 +248,8 @@ impl Reporter<'_> {
             counts.submaps,
             counts.constraints,
             s.finish_ms,
+            s.finish_cpu_ms
+                .map_or("-".to_string(), |ms| format!("{ms:.0}")),
             s.finish_iterations
         );
         self.write_report(false, None)
