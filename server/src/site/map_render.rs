@@ -4,7 +4,7 @@
 //! (nearest neighbour, after mapping the centre through `grid_from_global`), and fuses the known ones by
 //! adding their log-odds, clamped to the grid's probability range. Pulling from the output side leaves no
 //! holes when submaps are rotated. The source cell is affine in the output cell's index, so each output
-//! row is walked only where it crosses a submap, with one multiply-add per coordinate and cell: the cost is
+//! row is walked only where it crosses a submap, with one fixed-point add per coordinate and cell: the cost is
 //! the sum of the submaps' areas in output cells, a few nanoseconds each (the web console renders a map
 //! per version).
 
@@ -91,6 +91,15 @@ pub fn render_submaps(
     Some(out)
 }
 
+/// Fraction bits of the fixed-point source indices: steps exact to 2^-40 cells, so a 2000-cell row drifts
+/// by less than 1e-9 cells, and indices up to 2^23 cells fit an `i64`.
+const FRACTION_BITS: u32 = 40;
+
+/// `x` in fixed point with [`FRACTION_BITS`] (saturating far outside any grid).
+fn to_fixed(x: f64) -> i64 {
+    (x * (1_u64 << FRACTION_BITS) as f64).round() as i64
+}
+
 /// The real `ix` for which `start + ix * step` lies in `[0, size)`, as `(lowest, highest)` (either may
 /// be infinite); `None` when there is none.
 fn span(start: f64, step: f64, size: f64) -> Option<(f64, f64)> {
@@ -108,7 +117,7 @@ fn span(start: f64, step: f64, size: f64) -> Option<(f64, f64)> {
 ///
 /// The (continuous) source cell under an output cell's centre is affine in the output cell's index, so
 /// each output row is one straight line through the source grid: the stretch of the row inside the
-/// source grid is solved for, then walked with one multiply-add per coordinate. (The direct lookup — an
+/// source grid is solved for, then walked with one fixed-point add per coordinate. (The direct lookup — an
 /// isometry, two `floor`s and two bounds checks per cell over the grid's whole bounding box — was nearly
 /// all of a render's time: 0.5 s for the README demo's 40 submaps.)
 fn add_grid(
@@ -168,19 +177,20 @@ fn add_grid(
         ) else {
             continue;
         };
-        for ((ix, l), k) in (first..=last).zip(row_log_odds).zip(row_known) {
-            let u = row_start.x + ix as f64 * step_x.x;
-            let v = row_start.y + ix as f64 * step_x.y;
-            // Also false for NaN.
-            if !(u >= 0.0 && v >= 0.0) {
+        // Fixed point from here: the walk is integer adds and shifts, no float-to-integer conversions.
+        let (mut u, mut v) = (
+            to_fixed(row_start.x + first as f64 * step_x.x),
+            to_fixed(row_start.y + first as f64 * step_x.y),
+        );
+        let (du, dv) = (to_fixed(step_x.x), to_fixed(step_x.y));
+        for (l, k) in row_log_odds.iter_mut().zip(row_known) {
+            // An arithmetic shift floors; a negative index becomes huge as u64 and fails the test.
+            let (iu, iv) = ((u >> FRACTION_BITS) as u64, (v >> FRACTION_BITS) as u64);
+            (u, v) = (u.wrapping_add(du), v.wrapping_add(dv));
+            if iu >= source_width as u64 || iv >= source_height as u64 {
                 continue;
             }
-            // Truncation is `floor` for non-negative values.
-            let (iu, iv) = (u as usize, v as usize);
-            if iu >= source_width || iv >= source_height {
-                continue;
-            }
-            let Some(&value) = values.get(iv * source_width + iu) else {
+            let Some(&value) = values.get(iv as usize * source_width + iu as usize) else {
                 continue;
             };
             if value == UNKNOWN_VALUE {
