@@ -166,7 +166,7 @@ fn add_grid(
         // One cell of margin each side: the exact test is per cell below.
         let first = (u_lo.max(v_lo).floor() - 1.0).max(f64::from(a.x.max(0)));
         let last = (u_hi.min(v_hi).ceil() + 1.0).min(f64::from(b.x.min(last_column)));
-        if !(first <= last) {
+        if first.is_nan() || last.is_nan() || first > last {
             continue;
         }
         let (first, last) = (first as usize, last as usize);
@@ -299,7 +299,7 @@ mod tests {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(7);
         let mut compared = 0;
         for case in 0..12 {
-            let grids: Vec<(Rigid2, Arc<ProbabilityGrid>)> = (0..1 + case % 4)
+            let grids: Vec<(Rigid2, Arc<ProbabilityGrid>)> = (0..=(case % 4))
                 .map(|_| {
                     let (w, h) = (rng.random_range(1..30), rng.random_range(1..30));
                     let origin =
