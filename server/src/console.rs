@@ -29,7 +29,7 @@
 //! | `GET /api/sites/{site}/sessions` | sessions: robot, placement state, trajectory, latest pose |
 //! | `GET /api/sites/{site}/robots` | each robot's latest session and pose |
 //! | `GET /api/sites/{site}/map[?version=V]` | where the map image lies in the site frame |
-//! | `GET /api/sites/{site}/map.png[?version=V]` | the map at version V (default: now) |
+//! | `GET /api/sites/{site}/map.png[?version=V]` | the map at version V (default: now); `ETag`, 304 when held |
 //! | `GET /api/sites/{site}/change?from=A[&to=B]` | map change between two versions: rate, counts, placement |
 //! | `GET /api/sites/{site}/change.png?from=A[&to=B]` | the change as an image (blue unchanged, green removed, red added) |
 //! | `GET /api/events` | server-sent events: `version` on every new site version |

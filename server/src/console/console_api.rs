@@ -8,7 +8,7 @@ use std::sync::Arc;
 use axum::Router;
 use axum::body::Body;
 use axum::extract::{Path, Request, State};
-use axum::http::{HeaderValue, StatusCode, Uri, header};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, Uri, header};
 use axum::middleware::{self, Next};
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{Html, IntoResponse, Response};
@@ -94,20 +94,64 @@ fn json_response(value: &Value) -> Response {
         .into_response()
 }
 
-fn png_response(png: Vec<u8>, version: u64) -> Response {
-    let mut response = (
-        [
-            (header::CONTENT_TYPE, "image/png"),
+/// The entity tag of an image: what it shows (kind, versions) and at which cell size, so a restart with
+/// another `map_resolution_m` does not pass for the same image.
+fn image_etag(kind: &str, from: u64, to: u64, resolution: f64) -> String {
+    let micrometres = (resolution * 1e6).round() as u64;
+    format!("\"{kind}-{from}-{to}-{micrometres}um\"")
+}
+
+/// Whether the request's `If-None-Match` names `etag` (or `*`).
+fn not_modified(headers: &HeaderMap, etag: &str) -> bool {
+    headers
+        .get_all(header::IF_NONE_MATCH)
+        .iter()
+        .filter_map(|v| v.to_str().ok())
+        .flat_map(|v| v.split(','))
+        .map(|tag| tag.trim().trim_start_matches("W/"))
+        .any(|tag| tag == etag || tag == "*")
+}
+
+/// How a PNG is answered: with its entity tag; one asked by version never changes and may be cached, one
+/// asked as "now" (no version) must be revalidated (`If-None-Match`: 304 while the map is the same).
+struct PngAnswer {
+    etag: String,
+    versioned: bool,
+    map_version: u64,
+}
+
+impl PngAnswer {
+    fn headers(&self, response: &mut Response) {
+        let cache = if self.versioned {
             // A version's image never changes.
-            (header::CACHE_CONTROL, "private, max-age=3600"),
-        ],
-        Body::from(png),
-    )
-        .into_response();
-    if let Ok(v) = HeaderValue::from_str(&version.to_string()) {
-        response.headers_mut().insert("x-evermap-map-version", v);
+            "private, max-age=3600, immutable"
+        } else {
+            "private, no-cache"
+        };
+        let headers = response.headers_mut();
+        headers.insert(header::CACHE_CONTROL, HeaderValue::from_static(cache));
+        if let Ok(v) = HeaderValue::from_str(&self.etag) {
+            headers.insert(header::ETAG, v);
+        }
+        if let Ok(v) = HeaderValue::from_str(&self.map_version.to_string()) {
+            headers.insert("x-evermap-map-version", v);
+        }
     }
-    response
+
+    /// 304 Not Modified when the request already holds this image.
+    fn not_modified(&self, request: &HeaderMap) -> Option<Response> {
+        not_modified(request, &self.etag).then(|| {
+            let mut response = StatusCode::NOT_MODIFIED.into_response();
+            self.headers(&mut response);
+            response
+        })
+    }
+
+    fn png(&self, png: Vec<u8>) -> Response {
+        let mut response = ([(header::CONTENT_TYPE, "image/png")], Body::from(png)).into_response();
+        self.headers(&mut response);
+        response
+    }
 }
 
 async fn page() -> Html<&'static str> {
@@ -317,10 +361,24 @@ async fn map_png(
     State(state): State<Shared>,
     Path(site): Path<String>,
     uri: Uri,
+    headers: HeaderMap,
 ) -> Result<Response, ConsoleError> {
     let version = version_param(&uri, "version")?;
-    let image = map_image(&state, &site, version).await?;
-    Ok(png_response(image.png.clone(), image.map_version))
+    let entry = entry_at(state.site(&site)?, version)?;
+    let answer = PngAnswer {
+        etag: image_etag("map", entry.version, entry.version, state.resolution),
+        versioned: version.is_some(),
+        map_version: entry.version,
+    };
+    // Answered before rendering: the tag names the map without drawing it.
+    if let Some(response) = answer.not_modified(&headers) {
+        return Ok(response);
+    }
+    let image = state
+        .map_image(&site, entry)
+        .await
+        .ok_or_else(|| ConsoleError::Internal("the map could not be rendered".into()))?;
+    Ok(answer.png(image.png.clone()))
 }
 
 async fn change_image(
@@ -377,9 +435,23 @@ async fn change_png(
     State(state): State<Shared>,
     Path(site): Path<String>,
     uri: Uri,
+    headers: HeaderMap,
 ) -> Result<Response, ConsoleError> {
     let image = change_image(&state, &site, &uri).await?;
-    Ok(png_response(image.png.clone(), image.to_map_version))
+    let answer = PngAnswer {
+        etag: image_etag(
+            "change",
+            image.from_map_version,
+            image.to_map_version,
+            state.resolution,
+        ),
+        versioned: version_param(&uri, "to")?.is_some(),
+        map_version: image.to_map_version,
+    };
+    if let Some(response) = answer.not_modified(&headers) {
+        return Ok(response);
+    }
+    Ok(answer.png(image.png.clone()))
 }
 
 /// Server-sent events: `version` (a [`super::VersionEvent`]) whenever a site publishes a new version.

@@ -1,7 +1,8 @@
 //! The console's images: a site's map at one version, and the map change between two versions.
 //!
-//! The map is rendered as `GetMapImage` renders it ([`crate::site::render_submaps`], gray PNG by
-//! [`crate::map_image_bytes::encode_map`]). The change compares the two versions' maps as the lifelong
+//! The map is rendered as `GetMapImage` renders it ([`crate::site::render_submaps`], gray pixels by
+//! `robot_agent::map_image::grid_to_gray`), encoded with the PNG encoder's fast setting (fdeflate:
+//! a few milliseconds for the README demo's 1000 × 700 map, about as small as the default's). The change compares the two versions' maps as the lifelong
 //! reports do: each rendered newest-observation-wins (`mapping::lifelong::render_submaps_newest`, the
 //! site as its latest sessions saw it), classified cell by cell by `mapping::lifelong::map_change_rate`
 //! with the reports' 0.05 m registration tolerance, coloured like `map_change.png` (blue unchanged, green
@@ -13,7 +14,6 @@ use mapping::lifelong::{
 };
 use serde::Serialize;
 
-use crate::map_image_bytes::encode_map;
 use crate::site::{HistoryEntry, render_submaps};
 
 /// Where an image lies in the site frame: its bottom-left corner, cell size and size in cells (the
@@ -76,12 +76,28 @@ pub struct ChangeImage {
 /// Renders the map of `entry` at `resolution` (m). `None` when it has nothing to draw.
 pub fn render_map_image(entry: &HistoryEntry, resolution: f64) -> Option<MapImage> {
     let grid = render_submaps(&entry.grids, resolution)?;
-    let encoded = encode_map(&grid)?;
+    let (width, height, pixels) = robot_agent::map_image::grid_to_gray(&grid);
     Some(MapImage {
         map_version: entry.version,
         placement: ImagePlacement::of(grid.limits()),
-        png: encoded.png,
+        png: encode_png(width, height, png::ColorType::Grayscale, &pixels)?,
     })
+}
+
+/// `pixels` (8 bits per channel, top row first) as a PNG; `None` when empty or on an encoder error.
+fn encode_png(width: u32, height: u32, color: png::ColorType, pixels: &[u8]) -> Option<Vec<u8>> {
+    if width == 0 || height == 0 {
+        return None;
+    }
+    let mut png = Vec::new();
+    let mut encoder = png::Encoder::new(&mut png, width, height);
+    encoder.set_color(color);
+    encoder.set_depth(png::BitDepth::Eight);
+    encoder.set_compression(png::Compression::Fast);
+    let mut writer = encoder.write_header().ok()?;
+    writer.write_image_data(pixels).ok()?;
+    writer.finish().ok()?;
+    Some(png)
 }
 
 fn render_newest(entry: &HistoryEntry, resolution: f64) -> Option<ProbabilityGrid> {
@@ -110,18 +126,7 @@ pub fn render_change_image(
     );
     let change = map_change_rate(&old, &new, MAP_CHANGE_TOLERANCE_M);
     let (width, height, pixels) = robot_agent::map_image::map_change_to_rgb(&change);
-    if width == 0 || height == 0 {
-        return None;
-    }
-    let mut png = Vec::new();
-    {
-        let mut encoder = png::Encoder::new(&mut png, width, height);
-        encoder.set_color(png::ColorType::Rgb);
-        encoder.set_depth(png::BitDepth::Eight);
-        let mut writer = encoder.write_header().ok()?;
-        writer.write_image_data(&pixels).ok()?;
-        writer.finish().ok()?;
-    }
+    let png = encode_png(width, height, png::ColorType::Rgb, &pixels)?;
     Some(ChangeImage {
         from_map_version: before.version,
         to_map_version: after.version,
@@ -175,6 +180,25 @@ mod tests {
         assert!((image.placement.origin[0] - 3.0).abs() < 1e-9);
         assert!((image.placement.origin[1] + 1.0).abs() < 1e-9);
         assert!(render_map_image(&entry(1, Vec::new()), 0.05).is_none());
+    }
+
+    #[test]
+    fn the_fast_png_decodes_to_the_map_pixels() {
+        let grids = vec![(rigid2(0.3, 0.2, 0.4), room(10))];
+        let image = render_map_image(&entry(2, grids.clone()), 0.05).unwrap();
+        let decoder = png::Decoder::new(std::io::Cursor::new(&image.png));
+        let mut reader = decoder.read_info().unwrap();
+        let mut pixels = vec![0; reader.output_buffer_size().unwrap()];
+        let info = reader.next_frame(&mut pixels).unwrap();
+        let grid = render_submaps(&grids, 0.05).unwrap();
+        let (width, height, expected) = robot_agent::map_image::grid_to_gray(&grid);
+        assert_eq!((info.width, info.height), (width, height));
+        assert_eq!(info.color_type, png::ColorType::Grayscale);
+        assert_eq!(&pixels[..info.buffer_size()], &expected[..]);
+        // Occupied, free and unknown (205) pixels all there.
+        assert!(expected.iter().any(|p| *p < 50));
+        assert!(expected.iter().any(|p| *p > 220));
+        assert!(expected.contains(&205));
     }
 
     #[test]

@@ -316,3 +316,62 @@ async fn a_new_version_reaches_the_event_stream() {
         w.abort();
     }
 }
+
+#[tokio::test]
+async fn images_carry_an_entity_tag_and_a_held_one_is_not_sent_again() {
+    let (app, _) = console(false, true).await;
+    let request = |uri: &str, tag: Option<&str>| {
+        let mut request = HttpRequest::builder()
+            .uri(uri)
+            .header(header::AUTHORIZATION, format!("Bearer {TOKEN}"));
+        if let Some(tag) = tag {
+            request = request.header(header::IF_NONE_MATCH, tag);
+        }
+        app.clone().oneshot(request.body(Body::empty()).unwrap())
+    };
+    // Asked by version: cacheable for good.
+    let response = request("/api/sites/s/map.png?version=2", None)
+        .await
+        .unwrap();
+    assert_eq!(response.status(), StatusCode::OK);
+    let tag = response.headers()[header::ETAG]
+        .to_str()
+        .unwrap()
+        .to_owned();
+    assert!(tag.starts_with("\"map-2-2-") && tag.ends_with('"'), "{tag}");
+    let cache = response.headers()[header::CACHE_CONTROL].to_str().unwrap();
+    assert!(cache.contains("max-age"), "{cache}");
+    // Asked as "now": revalidated every time, with the same tag while the map is the same.
+    let response = request("/api/sites/s/map.png", None).await.unwrap();
+    assert_eq!(response.headers()[header::ETAG], tag.as_str());
+    assert_eq!(
+        response.headers()[header::CACHE_CONTROL],
+        "private, no-cache"
+    );
+    let png = body(response).await;
+    assert_eq!(&png[1..4], b"PNG");
+    for uri in ["/api/sites/s/map.png", "/api/sites/s/map.png?version=2"] {
+        let held = format!("\"other\", W/{tag}");
+        let response = request(uri, Some(&held)).await.unwrap();
+        assert_eq!(response.status(), StatusCode::NOT_MODIFIED, "{uri}");
+        assert_eq!(response.headers()[header::ETAG], tag.as_str());
+        assert!(body(response).await.is_empty());
+        let response = request(uri, Some("\"map-1-1-50000um\"")).await.unwrap();
+        assert_eq!(response.status(), StatusCode::OK, "{uri} with a stale tag");
+        assert_eq!(body(response).await, png);
+    }
+    // The change image the same way.
+    let response = request("/api/sites/s/change.png?from=2&to=2", None)
+        .await
+        .unwrap();
+    assert_eq!(response.status(), StatusCode::OK);
+    let tag = response.headers()[header::ETAG]
+        .to_str()
+        .unwrap()
+        .to_owned();
+    assert!(tag.starts_with("\"change-2-2-"), "{tag}");
+    let response = request("/api/sites/s/change.png?from=2&to=2", Some(&tag))
+        .await
+        .unwrap();
+    assert_eq!(response.status(), StatusCode::NOT_MODIFIED);
+}
