@@ -460,6 +460,16 @@ impl LifelongMap {
             return Vec::new();
         };
         let order = |trajectory: u32| self.sessions.get(&trajectory).map(|s| s.order);
+        // Only what this session's submaps overlap can have become covered since the last session ended
+        // (without them the fresher submaps are the same or fewer): the rest need no coverage count.
+        let fresh: Vec<PlacedGrid<'_>> = placed
+            .iter()
+            .filter(|(id, _, _)| id.trajectory == session)
+            .map(|(_, p, g)| PlacedGrid {
+                global_from_grid: *p,
+                grid: g,
+            })
+            .collect();
         let mut doomed = Vec::new();
         for (id, pose, grid) in &placed {
             let Some(stale_order) = order(id.trajectory) else {
@@ -473,6 +483,13 @@ impl LifelongMap {
             {
                 continue;
             }
+            let stale = PlacedGrid {
+                global_from_grid: *pose,
+                grid,
+            };
+            if !fresh.iter().any(|f| f.overlaps(&stale)) {
+                continue;
+            }
             let fresher: Vec<PlacedGrid<'_>> = placed
                 .iter()
                 .filter(|(other, _, _)| order(other.trajectory).is_some_and(|o| o > stale_order))
@@ -482,10 +499,7 @@ impl LifelongMap {
                 })
                 .collect();
             let fraction = covered_fraction(
-                &PlacedGrid {
-                    global_from_grid: *pose,
-                    grid,
-                },
+                &stale,
                 &fresher,
                 trimmer.min_fresher_submaps,
                 trimmer.cell_stride,

@@ -42,6 +42,12 @@ impl PlacedGrid<'_> {
         (min, max)
     }
 
+    /// Whether the two grids' map-frame bounding boxes overlap (a necessary condition for either to
+    /// cover a cell of the other).
+    pub fn overlaps(&self, other: &PlacedGrid<'_>) -> bool {
+        overlaps(&self.global_bounds(), &other.global_bounds())
+    }
+
     /// Whether the grid has observed the map-frame point `p`.
     pub fn knows(&self, p: &Point2<f64>) -> bool {
         let local = self.global_from_grid.inverse_transform_point(p);
