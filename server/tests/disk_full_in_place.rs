@@ -102,10 +102,7 @@ fn logged_seqs(store: &dyn MapStore) -> Vec<u64> {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_store_wedged_by_a_full_disk_recovers_in_place_and_nothing_is_lost_or_doubled() {
     let expected = uninterrupted().await;
-    let disk = Arc::new(DiskFullStore::new(
-        Arc::new(MemStore::new()),
-        FailAt::Wedge,
-    ));
+    let disk = Arc::new(DiskFullStore::new(Arc::new(MemStore::new()), FailAt::Wedge));
     let store = Arc::clone(&disk) as Arc<dyn MapStore>;
     let server = RunningServer::start(&config(), Arc::clone(&store))
         .await
@@ -142,7 +139,11 @@ async fn a_store_wedged_by_a_full_disk_recovers_in_place_and_nothing_is_lost_or_
         }
     }
     assert!(disk.is_wedged(), "a failed flush wedges the store");
-    assert_eq!(site.current(), before, "nothing published that is not durable");
+    assert_eq!(
+        site.current(),
+        before,
+        "nothing published that is not durable"
+    );
 
     // Space returns: the same server recovers (bounded retries, as the robot's would be).
     disk.free();
@@ -187,6 +188,10 @@ async fn a_store_wedged_by_a_full_disk_recovers_in_place_and_nothing_is_lost_or_
         .expect("restart");
     let site = server.site(SITE).expect("site");
     assert_eq!(site.current().version, version);
-    assert_eq!(site.node_poses().await.expect("poses"), expected, "replayed");
+    assert_eq!(
+        site.node_poses().await.expect("poses"),
+        expected,
+        "replayed"
+    );
     server.shutdown().await.expect("shutdown");
 }

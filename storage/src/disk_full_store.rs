@@ -142,7 +142,8 @@ impl DiskFullStore {
     }
 
     fn check(&self, at: FailAt) -> Result<()> {
-        let fails_here = self.fail_at == at || (self.fail_at == FailAt::Wedge && at == FailAt::Flush);
+        let fails_here =
+            self.fail_at == at || (self.fail_at == FailAt::Wedge && at == FailAt::Flush);
         if fails_here && self.full.load(Ordering::SeqCst) {
             if self.fail_at == FailAt::Wedge {
                 self.wedged.store(true, Ordering::SeqCst);
@@ -293,7 +294,13 @@ mod tests {
         assert_eq!(store.map_version("s").unwrap(), 2, "visible, not durable");
         let error = store.apply(&batch(3)).unwrap_err();
         assert!(
-            matches!(error, StorageError::Wedged { out_of_space: true, .. }),
+            matches!(
+                error,
+                StorageError::Wedged {
+                    out_of_space: true,
+                    ..
+                }
+            ),
             "{error}"
         );
         assert_eq!(store.generation(), 0);

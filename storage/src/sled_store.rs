@@ -99,7 +99,12 @@ impl SledStore {
     /// The current database, for a read (reads work on a wedged database; after a failed reopen the
     /// next attempt is made).
     fn db_for_read(&self) -> Result<sled::Db> {
-        if let Some(db) = self.db.read().unwrap_or_else(PoisonError::into_inner).as_ref() {
+        if let Some(db) = self
+            .db
+            .read()
+            .unwrap_or_else(PoisonError::into_inner)
+            .as_ref()
+        {
             return Ok(db.clone());
         }
         self.db_for_write()

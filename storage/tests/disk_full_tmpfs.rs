@@ -146,7 +146,9 @@ fn sled_on_a_full_tmpfs_reports_it_keeps_what_it_acknowledged_and_recovers() {
     let after = after.unwrap();
     assert!(store.generation() > 0, "the store was reopened");
     assert!(!store.is_wedged());
-    eprintln!("the batch that failed, sent again: {after:?} (Applied: the reopen lost it; Duplicate: it survived)");
+    eprintln!(
+        "the batch that failed, sent again: {after:?} (Applied: the reopen lost it; Duplicate: it survived)"
+    );
     let next = acked + 2;
     assert_eq!(
         store.apply_durable(&batch(next)).unwrap(),
@@ -161,10 +163,7 @@ fn sled_on_a_full_tmpfs_reports_it_keeps_what_it_acknowledged_and_recovers() {
             assert_eq!(value, vec![(seq % 251) as u8; VALUE_BYTES]);
         }
         assert_eq!(store.map_version(SITE).unwrap(), next);
-        assert_eq!(
-            store.last_applied_seq(SITE, "robot-1").unwrap(),
-            Some(next)
-        );
+        assert_eq!(store.last_applied_seq(SITE, "robot-1").unwrap(), Some(next));
     };
     check(&store);
     drop(store);

@@ -212,7 +212,10 @@ async fn server_and_outbox_on_a_full_tmpfs_recover_in_place_and_nothing_is_lost_
         }
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
-    assert!(server_store.generation() >= 1, "the server's store reopened");
+    assert!(
+        server_store.generation() >= 1,
+        "the server's store reopened"
+    );
     let expected: Vec<u64> = (1..=nodes as u64).collect();
     assert_eq!(
         logged_seqs(server_store.as_ref()),

@@ -40,9 +40,7 @@ use nalgebra::Point2;
 use prost::Message as _;
 use proto::{NodeAdded, UploadItem, pb};
 use robot_agent::outbox::Outbox;
-use robot_agent::uplink::{
-    MapUplink as _, UplinkError, Uploader, ZenohLinkOptions, ZenohUplink,
-};
+use robot_agent::uplink::{MapUplink as _, UplinkError, Uploader, ZenohLinkOptions, ZenohUplink};
 use server::site::SITE_LOG_KIND;
 use server::{RobotConfig, RunningServer, ServerConfig, SiteConfig};
 use storage::{MapStore, SledStore, SledStoreOptions};
