@@ -90,6 +90,12 @@ impl SledStore {
             .is_some()
     }
 
+    /// Test hook: wedges the store as a failed write would (a real one needs a full disk).
+    #[cfg(test)]
+    pub(crate) fn wedge_as_if(&self, error: &StorageError) {
+        self.note_failure(error);
+    }
+
     /// Test hook: the raw sled database, to corrupt stored bytes behind the store's back.
     #[cfg(test)]
     pub(crate) fn raw_db(&self) -> sled::Db {
@@ -450,6 +456,72 @@ mod tests {
         let reopened = SledStore::open(&patient);
         release.join().unwrap();
         assert!(reopened.is_ok(), "{:?}", reopened.err());
+    }
+
+    #[test]
+    fn a_wedged_store_refuses_writes_then_reopens_itself_and_keeps_what_was_flushed() {
+        let dir = tempfile::tempdir().unwrap();
+        let options = SledStoreOptions {
+            reopen_interval_ms: 200,
+            background_flush_ms: 0,
+            ..SledStoreOptions::at(dir.path().join("db"))
+        };
+        let store = SledStore::open(&options).unwrap();
+        let batch = |seq: u64| {
+            let mut batch = WriteBatch::new("depot");
+            batch
+                .put(RecordKind::Node, seq, vec![seq as u8; 100])
+                .bump_map_version()
+                .for_session("robot-1", seq);
+            batch
+        };
+        store.apply_durable(&batch(1)).unwrap();
+        // A non-I/O failure (a refused batch) does not wedge it.
+        store.wedge_as_if(&StorageError::SiteNotFound {
+            site: "depot".into(),
+        });
+        assert!(!store.is_wedged());
+        store.wedge_as_if(&StorageError::Io(std::io::Error::from_raw_os_error(28)));
+        assert!(store.is_wedged());
+        // Within the interval: writes refused at once, as out of space; reads work.
+        let error = store.apply_durable(&batch(2)).unwrap_err();
+        assert!(
+            matches!(error, StorageError::Wedged { .. }) && error.is_out_of_space(),
+            "{error}"
+        );
+        assert!(store.flush().unwrap_err().is_out_of_space());
+        assert_eq!(store.map_version("depot").unwrap(), 1);
+        assert_eq!(crate::MapStore::generation(&store), 0);
+        // A scan another thread holds on the old database delays the reopen (sled's lock), not forever.
+        let scanning = {
+            let db = store.raw_db();
+            thread::Builder::new()
+                .name("scan".to_owned())
+                .spawn(move || {
+                    let iter = db.iter();
+                    thread::sleep(Duration::from_millis(300));
+                    iter.count()
+                })
+                .unwrap()
+        };
+        thread::sleep(Duration::from_millis(250));
+        // Past the interval: the write reopens the database and lands.
+        assert_eq!(
+            store.apply_durable(&batch(2)).unwrap(),
+            crate::BatchOutcome::Applied { map_version: 2 }
+        );
+        assert!(scanning.join().unwrap() > 0);
+        assert_eq!(crate::MapStore::generation(&store), 1);
+        assert!(!store.is_wedged());
+        assert_eq!(store.last_applied_seq("depot", "robot-1").unwrap(), Some(2));
+        drop(store);
+        let store = SledStore::open(&options).unwrap();
+        assert_eq!(store.map_version("depot").unwrap(), 2);
+        assert_eq!(
+            crate::MapStore::generation(&store),
+            0,
+            "counted per open store"
+        );
     }
 
     #[test]

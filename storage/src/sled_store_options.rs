@@ -111,6 +111,10 @@ mod tests {
                 open_retry_interval_ms: 120_000,
                 ..SledStoreOptions::default()
             },
+            SledStoreOptions {
+                reopen_interval_ms: 120_000,
+                ..SledStoreOptions::default()
+            },
         ] {
             assert!(
                 matches!(bad.validate(), Err(StorageError::InvalidOptions { .. })),
