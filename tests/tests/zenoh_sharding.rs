@@ -15,7 +15,10 @@
 //! and imported into B's, B is restarted with a configuration that lists it, and A's copy is deleted.
 //! The site's table is configuration, read at start, so a configuration change is a restart of the
 //! instance (its other sites are replayed from its store: the robots of those sites ride it out on
-//! their outboxes too). At no moment do both instances serve the site. Meanwhile every robot keeps
+//! their outboxes too). At no moment do both instances serve the site: each instance claims its sites
+//! (`server::zenoh_front::ensure_no_other_owner`: it asks the routers whether anyone answers for each
+//! of its sites before it serves them), and a third instance
+//! configured with the moved site while B serves it refuses to start. Meanwhile every robot keeps
 //! making batches into its outbox every `BATCH_INTERVAL`; the moved site's robot gets no answer while
 //! nobody owns it (zenoh finds no queryable) and keeps its batches.
 //!
@@ -315,6 +318,22 @@ async fn sites_sharded_over_two_instances_and_one_moved_lose_nothing_and_keep_th
     );
     store_a.delete_site(MOVED).unwrap();
     assert!(!store_a.list_sites().unwrap().contains(&MOVED.to_owned()));
+    // A third instance configured with the site (a move done wrong: the new owner started while the
+    // old one still serves it) refuses to start rather than split the site in two.
+    let refused = RunningServer::start(
+        &config(router_port, &[MOVED]),
+        Arc::new(storage::MemStore::new()),
+    )
+    .await;
+    assert!(
+        matches!(
+            refused,
+            Err(server::ServeError::Zenoh(
+                server::zenoh_front::ZenohFrontError::SiteServedElsewhere { .. }
+            ))
+        ),
+        "a second owner of {MOVED} must be refused"
+    );
 
     // The moved site's robot resumes uploading to B, and every other robot goes on.
     version_at_least(&b, MOVED, version_on_a + 5).await;
