@@ -20,5 +20,5 @@ pub use session_view::{PlacementState, SessionView};
 pub use site_error::SiteError;
 pub use site_handle::{RenderedMap, SiteHandle, UploadAck, VersionInfo};
 pub use site_map::{MapCounts, SessionOpened, SiteMap, UploadCheck};
-pub use site_task::{SiteTask, SiteTaskOptions};
+pub use site_task::{SITE_LOG_KIND, SiteTask, SiteTaskOptions};
 pub use site_view::SiteView;

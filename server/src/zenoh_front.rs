@@ -3,7 +3,13 @@
 //! `ZenohRequest`, answered by one `ZenohReply`, a delta by one reply per chunk) and publishes every new
 //! version on `evermap/<site>/version`. Requests go through the gRPC handlers themselves ([`AgentApi`],
 //! [`MapApi`]), token included, so both transports end in the same site task with the same checks,
-//! errors and metrics.
+//! errors and metrics. Before serving its sites it looks for another owner of each
+//! ([`ensure_no_other_owner`]): an instance refuses to start while another one behind the same routers
+//! serves one of its sites.
+
+mod site_ownership;
+
+pub use site_ownership::{OWNER_WAIT, ensure_no_other_owner};
 
 use std::sync::Arc;
 
@@ -31,6 +37,16 @@ pub enum ZenohFrontError {
     /// zenoh refused (bad endpoint, port taken, ...).
     #[error("zenoh: {0}")]
     Zenoh(String),
+    /// Another server instance behind the same routers serves the site.
+    #[error(
+        "site {site:?} is already served by another server instance behind the zenoh routers (it answers \
+         on evermap/{site}/api): a site has one owner at a time; take it off the \
+         other instance's [[sites]] (and restart that one) or off this one's"
+    )]
+    SiteServedElsewhere {
+        /// The site.
+        site: String,
+    },
 }
 
 /// A running zenoh front end; stop it with [`ZenohFront::shutdown`].
@@ -48,6 +64,7 @@ impl ZenohFront {
         max_in_flight: usize,
     ) -> Result<Self, ZenohFrontError> {
         let zenoh_error = |e: zenoh::Error| ZenohFrontError::Zenoh(e.to_string());
+        ensure_no_other_owner(options, context.sites.keys(), OWNER_WAIT).await?;
         let session = zenoh::open(options.to_zenoh_config()?)
             .await
             .map_err(zenoh_error)?;

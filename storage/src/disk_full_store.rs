@@ -8,15 +8,24 @@
 //! - [`FailAt::Flush`]: the write is applied (visible to reads) but cannot be made durable — what a
 //!   log-structured store with a write buffer (sled) does when its flush hits the full disk. Callers must
 //!   not acknowledge such a write, and must not apply it twice when the client retries.
+//! - [`FailAt::Wedge`]: what sled 0.34 does on a real full disk (measured in
+//!   `tests/disk_full_tmpfs.rs`): as `Flush`, and the failed flush *wedges* the store — every later
+//!   write fails ([`StorageError::Wedged`]), room or not, until the store is reopened. It reopens itself
+//!   on the first write once the disk has room, as [`crate::SledStore`] does, and the reopened store
+//!   holds only what the last successful flush made durable (what was applied after it is gone, as on
+//!   the tmpfs); [`MapStore::generation`] counts the reopens. The flushed state is kept as site archives
+//!   taken at every successful flush, and a reopen imports them into a fresh [`crate::MemStore`]: for
+//!   small test stores only.
 //!
-//! Reads never fail. [`DiskFullStore::free`] gives the space back.
+//! Reads never fail (scans are read whole before they are returned). [`DiskFullStore::free`] gives the
+//! space back.
 
 use std::io::{Read, Write};
-use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, PoisonError, RwLock};
 
 use crate::{BatchOutcome, MapStore, RecordId, RecordIter, RecordKind, Result, StorageError};
-use crate::{TransferSummary, WriteBatch};
+use crate::{MemStore, TransferSummary, WriteBatch};
 
 /// Where a full disk makes writes fail.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -25,14 +34,22 @@ pub enum FailAt {
     Apply,
     /// Writes are applied but flushes fail (the write is visible, not durable).
     Flush,
+    /// As `Flush`, and the store then refuses every write until it reopens itself, losing what was
+    /// not flushed (sled on a real full disk; see the module docs).
+    Wedge,
 }
 
 /// A store whose disk can be filled and freed (see the module docs).
 pub struct DiskFullStore {
-    inner: Arc<dyn MapStore>,
+    inner: RwLock<Arc<dyn MapStore>>,
     fail_at: FailAt,
     full: AtomicBool,
     failures: AtomicU64,
+    /// [`FailAt::Wedge`]: a flush failed and the store was not reopened since.
+    wedged: AtomicBool,
+    /// [`FailAt::Wedge`]: every site's archive as of the last successful flush.
+    flushed: Mutex<Vec<(String, Vec<u8>)>>,
+    generation: AtomicU64,
 }
 
 /// The error a full disk gives.
@@ -44,12 +61,69 @@ pub fn out_of_space() -> StorageError {
 impl DiskFullStore {
     /// Wraps `inner`; the disk starts with room.
     pub fn new(inner: Arc<dyn MapStore>, fail_at: FailAt) -> Self {
-        Self {
-            inner,
+        let store = Self {
+            inner: RwLock::new(inner),
             fail_at,
             full: AtomicBool::new(false),
             failures: AtomicU64::new(0),
+            wedged: AtomicBool::new(false),
+            flushed: Mutex::new(Vec::new()),
+            generation: AtomicU64::new(0),
+        };
+        if fail_at == FailAt::Wedge {
+            // Whatever the inner store holds counts as flushed.
+            let _ = store.note_flushed();
         }
+        store
+    }
+
+    /// Whether the store refuses writes until it reopens ([`FailAt::Wedge`]).
+    pub fn is_wedged(&self) -> bool {
+        self.wedged.load(Ordering::SeqCst)
+    }
+
+    fn inner(&self) -> Arc<dyn MapStore> {
+        Arc::clone(&self.inner.read().unwrap_or_else(PoisonError::into_inner))
+    }
+
+    /// [`FailAt::Wedge`]: before a write, reopens a wedged store if the disk has room, else refuses.
+    fn unwedge(&self) -> Result<()> {
+        if !self.wedged.load(Ordering::SeqCst) {
+            return Ok(());
+        }
+        if self.full.load(Ordering::SeqCst) {
+            self.failures.fetch_add(1, Ordering::SeqCst);
+            return Err(StorageError::Wedged {
+                cause: out_of_space().to_string(),
+                out_of_space: true,
+            });
+        }
+        let reopened = MemStore::new();
+        for (site, archive) in self
+            .flushed
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .iter()
+        {
+            reopened.import_site(site, &mut archive.as_slice())?;
+        }
+        *self.inner.write().unwrap_or_else(PoisonError::into_inner) = Arc::new(reopened);
+        self.wedged.store(false, Ordering::SeqCst);
+        self.generation.fetch_add(1, Ordering::SeqCst);
+        Ok(())
+    }
+
+    /// [`FailAt::Wedge`]: keeps what is now durable (every site's archive).
+    fn note_flushed(&self) -> Result<()> {
+        let inner = self.inner();
+        let mut archives = Vec::new();
+        for site in inner.list_sites()? {
+            let mut archive = Vec::new();
+            inner.export_site(&site, &mut archive)?;
+            archives.push((site, archive));
+        }
+        *self.flushed.lock().unwrap_or_else(PoisonError::into_inner) = archives;
+        Ok(())
     }
 
     /// From now on writes fail as on a full disk.
@@ -68,7 +142,12 @@ impl DiskFullStore {
     }
 
     fn check(&self, at: FailAt) -> Result<()> {
-        if self.fail_at == at && self.full.load(Ordering::SeqCst) {
+        let fails_here =
+            self.fail_at == at || (self.fail_at == FailAt::Wedge && at == FailAt::Flush);
+        if fails_here && self.full.load(Ordering::SeqCst) {
+            if self.fail_at == FailAt::Wedge {
+                self.wedged.store(true, Ordering::SeqCst);
+            }
             self.failures.fetch_add(1, Ordering::SeqCst);
             Err(out_of_space())
         } else {
@@ -78,7 +157,11 @@ impl DiskFullStore {
 
     /// Writes that are not batches (deletion, import) fail whichever [`FailAt`] is chosen.
     fn check_any(&self) -> Result<()> {
+        self.unwedge()?;
         if self.full.load(Ordering::SeqCst) {
+            if self.fail_at == FailAt::Wedge {
+                self.wedged.store(true, Ordering::SeqCst);
+            }
             self.failures.fetch_add(1, Ordering::SeqCst);
             Err(out_of_space())
         } else {
@@ -89,47 +172,66 @@ impl DiskFullStore {
 
 impl MapStore for DiskFullStore {
     fn apply(&self, batch: &WriteBatch) -> Result<BatchOutcome> {
+        self.unwedge()?;
         self.check(FailAt::Apply)?;
-        self.inner.apply(batch)
+        self.inner().apply(batch)
     }
 
     fn flush(&self) -> Result<()> {
+        self.unwedge()?;
         self.check(FailAt::Flush)?;
-        self.inner.flush()
+        self.inner().flush()?;
+        if self.fail_at == FailAt::Wedge {
+            self.note_flushed()?;
+        }
+        Ok(())
+    }
+
+    fn generation(&self) -> u64 {
+        self.generation.load(Ordering::SeqCst) + self.inner().generation()
     }
 
     fn get(&self, site: &str, kind: RecordKind, id: &RecordId) -> Result<Option<Vec<u8>>> {
-        self.inner.get(site, kind, id)
+        self.inner().get(site, kind, id)
     }
 
     fn scan(&self, site: &str, kind: RecordKind) -> Result<RecordIter<'_>> {
-        self.inner.scan(site, kind)
+        let records: Vec<_> = self.inner().scan(site, kind)?.collect();
+        Ok(Box::new(records.into_iter()))
     }
 
     fn list_sites(&self) -> Result<Vec<String>> {
-        self.inner.list_sites()
+        self.inner().list_sites()
     }
 
     fn map_version(&self, site: &str) -> Result<u64> {
-        self.inner.map_version(site)
+        self.inner().map_version(site)
     }
 
     fn last_applied_seq(&self, site: &str, session: &str) -> Result<Option<u64>> {
-        self.inner.last_applied_seq(site, session)
+        self.inner().last_applied_seq(site, session)
     }
 
     fn delete_site(&self, site: &str) -> Result<()> {
         self.check_any()?;
-        self.inner.delete_site(site)
+        self.inner().delete_site(site)?;
+        if self.fail_at == FailAt::Wedge {
+            self.note_flushed()?;
+        }
+        Ok(())
     }
 
     fn export_site(&self, site: &str, out: &mut dyn Write) -> Result<TransferSummary> {
-        self.inner.export_site(site, out)
+        self.inner().export_site(site, out)
     }
 
     fn import_site(&self, site: &str, input: &mut dyn Read) -> Result<TransferSummary> {
         self.check_any()?;
-        self.inner.import_site(site, input)
+        let summary = self.inner().import_site(site, input)?;
+        if self.fail_at == FailAt::Wedge {
+            self.note_flushed()?;
+        }
+        Ok(summary)
     }
 }
 
@@ -175,5 +277,42 @@ mod tests {
         assert_eq!(at_flush.failures(), 1);
         at_flush.free();
         at_flush.flush().unwrap();
+    }
+
+    #[test]
+    fn a_wedged_store_refuses_writes_until_it_reopens_with_what_was_flushed() {
+        let store = DiskFullStore::new(Arc::new(MemStore::new()), FailAt::Wedge);
+        store.apply_durable(&batch(1)).unwrap();
+        store.fill();
+        assert_eq!(
+            store.apply(&batch(2)).unwrap(),
+            BatchOutcome::Applied { map_version: 2 },
+            "applied while full"
+        );
+        assert!(store.flush().unwrap_err().is_out_of_space());
+        assert!(store.is_wedged());
+        assert_eq!(store.map_version("s").unwrap(), 2, "visible, not durable");
+        let error = store.apply(&batch(3)).unwrap_err();
+        assert!(
+            matches!(
+                error,
+                StorageError::Wedged {
+                    out_of_space: true,
+                    ..
+                }
+            ),
+            "{error}"
+        );
+        assert_eq!(store.generation(), 0);
+        store.free();
+        // The first write with room reopens it: batch 2 was never flushed, so it is gone.
+        assert_eq!(
+            store.apply_durable(&batch(2)).unwrap(),
+            BatchOutcome::Applied { map_version: 2 }
+        );
+        assert_eq!(store.generation(), 1);
+        assert!(!store.is_wedged());
+        assert_eq!(store.last_applied_seq("s", "robot-1").unwrap(), Some(2));
+        assert_eq!(store.scan("s", RecordKind::Trajectory).unwrap().count(), 2);
     }
 }

@@ -35,6 +35,17 @@ pub trait MapStore: Send + Sync {
     /// Makes every batch applied so far durable (on disk, fsynced). A no-op for in-memory stores.
     fn flush(&self) -> Result<()>;
 
+    /// How many times the store has been reopened in place since it was opened (0 for backends that never
+    /// are). A backend that a failed write leaves refusing writes (sled after a full disk) reopens itself
+    /// on a later write (see [`crate::SledStore`]); writes applied but not flushed before that may be gone
+    /// afterwards, or may have survived. Everything readable after a reopen is durable. A caller that
+    /// applied writes it has not seen flushed under an unchanged generation must rebuild what it derived
+    /// from them from the store, and acknowledge nothing before (read the generation before a write and
+    /// after its flush: only an unchanged one proves the flush covered the write).
+    fn generation(&self) -> u64 {
+        0
+    }
+
     /// [`MapStore::apply`] then [`MapStore::flush`]: returns only after the batch is on disk.
     fn apply_durable(&self, batch: &WriteBatch) -> Result<BatchOutcome> {
         let outcome = self.apply(batch)?;

@@ -29,6 +29,10 @@ pub(crate) trait RawKv: Send + Sync {
     /// `body` may be run more than once (optimistic retries), so it must have no other side effects.
     fn transact<T>(&self, body: &dyn Fn(&mut dyn RawTxn) -> Result<T>) -> Result<T>;
     fn raw_flush(&self) -> Result<()>;
+    /// See [`crate::MapStore::generation`].
+    fn generation(&self) -> u64 {
+        0
+    }
 }
 
 /// State of a site in the registry (the payload of its registry entry).
@@ -369,6 +373,10 @@ macro_rules! impl_map_store_via_raw_kv {
 
             fn flush(&self) -> $crate::Result<()> {
                 $crate::raw_kv::RawKv::raw_flush(self)
+            }
+
+            fn generation(&self) -> u64 {
+                $crate::raw_kv::RawKv::generation(self)
             }
 
             fn get(

@@ -6,10 +6,24 @@
 //!
 //! sled 0.34 is a beta with open reports of corruption after abrupt stops; `tests/kill_nine.rs` SIGKILLs a
 //! writer at random moments and checks that every acknowledged batch survives whole.
+//!
+//! **Reopened in place after a failed write.** Once a write or flush has failed with an I/O error (a full
+//! disk), sled refuses every later write with the same error, even once space is back, until the database
+//! is reopened (measured on a real tmpfs: `tests/disk_full_tmpfs.rs`). The store does that itself: after
+//! such a failure it is *wedged* — writes fail at once with [`StorageError::Wedged`] (out of space when
+//! the cause was) — and the first write or flush at least [`SledStoreOptions::reopen_interval_ms`] after
+//! the failure (or the last attempt) drops the database, opens it again (waiting, bounded, for operations
+//! still holding the old one to finish: sled locks its directory), fsyncs the files recovery found, and
+//! bumps [`crate::MapStore::generation`]. What was applied but never flushed before the failure may be gone
+//! after that (or may have survived): callers that acknowledge only flushed writes lose nothing, and
+//! callers that derived state from unflushed writes rebuild it from the store when the generation changes.
+//! Reads keep working on the wedged database.
 
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Mutex, PoisonError, RwLock};
 use std::thread;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use sled::transaction::{
     ConflictableTransactionError, TransactionError, TransactionalTree, UnabortableTransactionError,
@@ -21,8 +35,22 @@ use crate::{Result, SledStoreOptions, StorageError};
 /// A [`crate::MapStore`] persisted in a sled database directory (one process at a time: sled locks it).
 #[derive(Debug)]
 pub struct SledStore {
-    db: sled::Db,
-    path: PathBuf,
+    /// The open database; `None` after a reopen failed (the next attempt opens it).
+    db: RwLock<Option<sled::Db>>,
+    options: SledStoreOptions,
+    /// Set while the database refuses writes after a failed one.
+    wedge: Mutex<Option<Wedge>>,
+    /// Reopens so far.
+    generation: AtomicU64,
+}
+
+/// Why and since when the database refuses writes.
+#[derive(Debug)]
+struct Wedge {
+    cause: String,
+    out_of_space: bool,
+    /// The failure, or the last reopen attempt.
+    since: Instant,
 }
 
 impl SledStore {
@@ -31,33 +59,11 @@ impl SledStore {
     /// [`StorageError::Locked`].
     pub fn open(options: &SledStoreOptions) -> Result<Self> {
         options.validate()?;
-        let config = sled::Config::new()
-            .path(&options.path)
-            .cache_capacity(options.cache_capacity_bytes)
-            .flush_every_ms(
-                (options.background_flush_ms > 0).then_some(options.background_flush_ms),
-            );
-        let interval = Duration::from_millis(options.open_retry_interval_ms);
-        for attempt in 1..=options.open_attempts {
-            match config.open() {
-                Ok(db) => {
-                    return Ok(Self {
-                        db,
-                        path: options.path.clone(),
-                    });
-                }
-                Err(error) if is_lock_error(&error) => {
-                    if attempt < options.open_attempts {
-                        thread::sleep(interval);
-                    }
-                }
-                Err(error) => return Err(error.into()),
-            }
-        }
-        Err(StorageError::Locked {
-            path: options.path.clone(),
-            attempts: options.open_attempts,
-            waited_ms: u64::from(options.open_attempts - 1) * options.open_retry_interval_ms,
+        Ok(Self {
+            db: RwLock::new(Some(open_db(options)?)),
+            options: options.clone(),
+            wedge: Mutex::new(None),
+            generation: AtomicU64::new(0),
         })
     }
 
@@ -68,19 +74,147 @@ impl SledStore {
 
     /// The database directory.
     pub fn path(&self) -> &Path {
-        &self.path
+        &self.options.path
     }
 
     /// Bytes the database occupies on disk, as sled reports it.
     pub fn size_on_disk(&self) -> Result<u64> {
-        Ok(self.db.size_on_disk()?)
+        Ok(self.db_for_read()?.size_on_disk()?)
+    }
+
+    /// Whether the database refuses writes after a failed one (until it is reopened).
+    pub fn is_wedged(&self) -> bool {
+        self.wedge
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .is_some()
+    }
+
+    /// Test hook: wedges the store as a failed write would (a real one needs a full disk).
+    #[cfg(test)]
+    pub(crate) fn wedge_as_if(&self, error: &StorageError) {
+        self.note_failure(error);
     }
 
     /// Test hook: the raw sled database, to corrupt stored bytes behind the store's back.
     #[cfg(test)]
-    pub(crate) fn raw_db(&self) -> &sled::Db {
-        &self.db
+    pub(crate) fn raw_db(&self) -> sled::Db {
+        self.db_for_read().unwrap()
     }
+
+    /// The current database, for a read (reads work on a wedged database; after a failed reopen the
+    /// next attempt is made).
+    fn db_for_read(&self) -> Result<sled::Db> {
+        if let Some(db) = self
+            .db
+            .read()
+            .unwrap_or_else(PoisonError::into_inner)
+            .as_ref()
+        {
+            return Ok(db.clone());
+        }
+        self.db_for_write()
+    }
+
+    /// The current database, for a write: reopened first when wedged and due, refused while wedged.
+    fn db_for_write(&self) -> Result<sled::Db> {
+        let mut wedge = self.wedge.lock().unwrap_or_else(PoisonError::into_inner);
+        if let Some(w) = wedge.as_mut() {
+            let interval = Duration::from_millis(self.options.reopen_interval_ms);
+            if w.since.elapsed() < interval {
+                return Err(StorageError::Wedged {
+                    cause: w.cause.clone(),
+                    out_of_space: w.out_of_space,
+                });
+            }
+            w.since = Instant::now();
+            self.reopen()?;
+            *wedge = None;
+        }
+        drop(wedge);
+        self.db
+            .read()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone()
+            .ok_or_else(|| StorageError::Wedged {
+                cause: "the database is not open".to_owned(),
+                out_of_space: false,
+            })
+    }
+
+    /// Drops the database and opens it again (see the module docs). The caller holds the wedge lock.
+    fn reopen(&self) -> Result<()> {
+        let mut slot = self.db.write().unwrap_or_else(PoisonError::into_inner);
+        // Dropping it flushes what it can; operations still holding a clone keep the old database (and
+        // its lock) alive until they end: `open_db` waits for them, bounded.
+        drop(slot.take());
+        let db = open_db(&self.options)?;
+        // What recovery found may have been written but never fsynced: make it durable before anyone
+        // builds on it.
+        sync_files(&self.options.path)?;
+        *slot = Some(db);
+        self.generation.fetch_add(1, Ordering::SeqCst);
+        Ok(())
+    }
+
+    /// Notes a failed write: an I/O failure wedges the database (see the module docs).
+    fn note_failure(&self, error: &StorageError) {
+        let (StorageError::Io(_) | StorageError::Sled(sled::Error::Io(_))) = error else {
+            return;
+        };
+        let mut wedge = self.wedge.lock().unwrap_or_else(PoisonError::into_inner);
+        if wedge.is_none() {
+            *wedge = Some(Wedge {
+                cause: error.to_string(),
+                out_of_space: error.is_out_of_space(),
+                since: Instant::now(),
+            });
+        }
+    }
+}
+
+/// Opens the database, retrying while its lock is held (see [`SledStore::open`]).
+fn open_db(options: &SledStoreOptions) -> Result<sled::Db> {
+    let config = sled::Config::new()
+        .path(&options.path)
+        .cache_capacity(options.cache_capacity_bytes)
+        .flush_every_ms((options.background_flush_ms > 0).then_some(options.background_flush_ms));
+    let interval = Duration::from_millis(options.open_retry_interval_ms);
+    for attempt in 1..=options.open_attempts {
+        match config.open() {
+            Ok(db) => return Ok(db),
+            Err(error) if is_lock_error(&error) => {
+                if attempt < options.open_attempts {
+                    thread::sleep(interval);
+                }
+            }
+            Err(error) => return Err(error.into()),
+        }
+    }
+    Err(StorageError::Locked {
+        path: options.path.clone(),
+        attempts: options.open_attempts,
+        waited_ms: u64::from(options.open_attempts - 1) * options.open_retry_interval_ms,
+    })
+}
+
+/// fsyncs every file of the database directory and of its subdirectories (sled keeps large values in
+/// `blobs/`), and the directories themselves.
+fn sync_files(dir: &Path) -> Result<()> {
+    let mut dirs = vec![dir.to_path_buf()];
+    while let Some(dir) = dirs.pop() {
+        for entry in std::fs::read_dir(&dir)? {
+            let entry = entry?;
+            let kind = entry.file_type()?;
+            if kind.is_dir() {
+                dirs.push(entry.path());
+            } else if kind.is_file() {
+                std::fs::File::open(entry.path())?.sync_all()?;
+            }
+        }
+        std::fs::File::open(&dir)?.sync_all()?;
+    }
+    Ok(())
 }
 
 /// sled 0.34 reports a held lock only as an `Io` error of kind `Other` with this message.
@@ -125,18 +259,22 @@ impl RawTxn for SledTxn<'_> {
 
 impl RawKv for SledStore {
     fn raw_get(&self, key: &[u8]) -> Result<Option<Vec<u8>>> {
-        Ok(self.db.get(key)?.map(|value| value.to_vec()))
+        Ok(self.db_for_read()?.get(key)?.map(|value| value.to_vec()))
     }
 
     fn raw_scan(&self, prefix: &[u8]) -> RawIter<'_> {
-        Box::new(self.db.scan_prefix(prefix).map(|item| {
-            item.map(|(key, value)| (key.to_vec(), value.to_vec()))
-                .map_err(StorageError::from)
-        }))
+        match self.db_for_read() {
+            Ok(db) => Box::new(db.scan_prefix(prefix).map(|item| {
+                item.map(|(key, value)| (key.to_vec(), value.to_vec()))
+                    .map_err(StorageError::from)
+            })),
+            Err(error) => Box::new(std::iter::once(Err(error))),
+        }
     }
 
     fn transact<T>(&self, body: &dyn Fn(&mut dyn RawTxn) -> Result<T>) -> Result<T> {
-        let outcome = self.db.transaction(|tree| {
+        let db = self.db_for_write()?;
+        let outcome = db.transaction(|tree| {
             let mut txn = SledTxn {
                 tree,
                 interrupted: None,
@@ -152,13 +290,26 @@ impl RawKv for SledStore {
         match outcome {
             Ok(value) => Ok(value),
             Err(TransactionError::Abort(error)) => Err(error),
-            Err(TransactionError::Storage(error)) => Err(error.into()),
+            Err(TransactionError::Storage(error)) => {
+                let error = StorageError::from(error);
+                self.note_failure(&error);
+                Err(error)
+            }
         }
     }
 
     fn raw_flush(&self) -> Result<()> {
-        self.db.flush()?;
+        let db = self.db_for_write()?;
+        if let Err(error) = db.flush() {
+            let error = StorageError::from(error);
+            self.note_failure(&error);
+            return Err(error);
+        }
         Ok(())
+    }
+
+    fn generation(&self) -> u64 {
+        self.generation.load(Ordering::SeqCst)
     }
 }
 
@@ -305,6 +456,72 @@ mod tests {
         let reopened = SledStore::open(&patient);
         release.join().unwrap();
         assert!(reopened.is_ok(), "{:?}", reopened.err());
+    }
+
+    #[test]
+    fn a_wedged_store_refuses_writes_then_reopens_itself_and_keeps_what_was_flushed() {
+        let dir = tempfile::tempdir().unwrap();
+        let options = SledStoreOptions {
+            reopen_interval_ms: 200,
+            background_flush_ms: 0,
+            ..SledStoreOptions::at(dir.path().join("db"))
+        };
+        let store = SledStore::open(&options).unwrap();
+        let batch = |seq: u64| {
+            let mut batch = WriteBatch::new("depot");
+            batch
+                .put(RecordKind::Node, seq, vec![seq as u8; 100])
+                .bump_map_version()
+                .for_session("robot-1", seq);
+            batch
+        };
+        store.apply_durable(&batch(1)).unwrap();
+        // A non-I/O failure (a refused batch) does not wedge it.
+        store.wedge_as_if(&StorageError::SiteNotFound {
+            site: "depot".into(),
+        });
+        assert!(!store.is_wedged());
+        store.wedge_as_if(&StorageError::Io(std::io::Error::from_raw_os_error(28)));
+        assert!(store.is_wedged());
+        // Within the interval: writes refused at once, as out of space; reads work.
+        let error = store.apply_durable(&batch(2)).unwrap_err();
+        assert!(
+            matches!(error, StorageError::Wedged { .. }) && error.is_out_of_space(),
+            "{error}"
+        );
+        assert!(store.flush().unwrap_err().is_out_of_space());
+        assert_eq!(store.map_version("depot").unwrap(), 1);
+        assert_eq!(crate::MapStore::generation(&store), 0);
+        // A scan another thread holds on the old database delays the reopen (sled's lock), not forever.
+        let scanning = {
+            let db = store.raw_db();
+            thread::Builder::new()
+                .name("scan".to_owned())
+                .spawn(move || {
+                    let iter = db.iter();
+                    thread::sleep(Duration::from_millis(300));
+                    iter.count()
+                })
+                .unwrap()
+        };
+        thread::sleep(Duration::from_millis(250));
+        // Past the interval: the write reopens the database and lands.
+        assert_eq!(
+            store.apply_durable(&batch(2)).unwrap(),
+            crate::BatchOutcome::Applied { map_version: 2 }
+        );
+        assert!(scanning.join().unwrap() > 0);
+        assert_eq!(crate::MapStore::generation(&store), 1);
+        assert!(!store.is_wedged());
+        assert_eq!(store.last_applied_seq("depot", "robot-1").unwrap(), Some(2));
+        drop(store);
+        let store = SledStore::open(&options).unwrap();
+        assert_eq!(store.map_version("depot").unwrap(), 2);
+        assert_eq!(
+            crate::MapStore::generation(&store),
+            0,
+            "counted per open store"
+        );
     }
 
     #[test]

@@ -22,6 +22,10 @@ pub struct SledStoreOptions {
     /// Period of sled's background flush, in milliseconds; 0 disables it (then only
     /// [`crate::MapStore::flush`] and [`crate::MapStore::apply_durable`] make data durable). Default 500.
     pub background_flush_ms: u64,
+    /// After a write failed (a full disk), sled refuses writes until the database is reopened: the store
+    /// reopens it on the first write at least this long after the failure or the last attempt, in
+    /// milliseconds (writes before fail at once); at most 60000. Default 1000.
+    pub reopen_interval_ms: u64,
 }
 
 impl SledStoreOptions {
@@ -53,6 +57,9 @@ impl SledStoreOptions {
         if self.open_retry_interval_ms > 60_000 {
             return invalid("open_retry_interval_ms", "must be at most 60000 ms");
         }
+        if self.reopen_interval_ms > 60_000 {
+            return invalid("reopen_interval_ms", "must be at most 60000 ms");
+        }
         if self.cache_capacity_bytes < 1 << 20 {
             return invalid(
                 "cache_capacity_bytes",
@@ -71,6 +78,7 @@ impl Default for SledStoreOptions {
             open_retry_interval_ms: 100,
             cache_capacity_bytes: 256 << 20,
             background_flush_ms: 500,
+            reopen_interval_ms: 1000,
         }
     }
 }
@@ -101,6 +109,10 @@ mod tests {
             },
             SledStoreOptions {
                 open_retry_interval_ms: 120_000,
+                ..SledStoreOptions::default()
+            },
+            SledStoreOptions {
+                reopen_interval_ms: 120_000,
                 ..SledStoreOptions::default()
             },
         ] {

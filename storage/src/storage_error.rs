@@ -112,6 +112,17 @@ pub enum StorageError {
     /// The sled database reported an error (its own corruption detection included).
     #[error("sled database error: {0}")]
     Sled(#[from] sled::Error),
+    /// The database refuses writes since one failed (sled after a full disk) and will be reopened by a
+    /// later write (see [`crate::SledStore`]); retry.
+    #[error(
+        "the store refuses writes since one failed ({cause}); it is reopened on a later write, retry"
+    )]
+    Wedged {
+        /// The failure that wedged it.
+        cause: String,
+        /// The failure was a full disk.
+        out_of_space: bool,
+    },
     /// Reading or writing a stream or file failed.
     #[error("I/O error: {0}")]
     Io(#[from] std::io::Error),
@@ -121,6 +132,9 @@ impl StorageError {
     /// Whether the disk is full (`ENOSPC`, also as sled reports it): a write failed for lack of space,
     /// and may succeed once space returns. Nothing of a failed batch was stored.
     pub fn is_out_of_space(&self) -> bool {
+        if let Self::Wedged { out_of_space, .. } = self {
+            return *out_of_space;
+        }
         let (Self::Io(io) | Self::Sled(sled::Error::Io(io))) = self else {
             return false;
         };

@@ -22,6 +22,15 @@
 //! log-structured store whose flush hits the full disk) is applied to the map too — the map always
 //! equals the stored log — but neither acknowledged nor published until a later flush succeeds: the
 //! robot's retry is then a duplicate, acknowledged once the task has flushed.
+//!
+//! A store that a failed write left refusing writes (sled after a full disk) reopens itself in place
+//! (see [`storage::MapStore::generation`]); changes applied but never flushed may be gone after that, or
+//! may have survived. The task notes the store's generation its map was built under; when it has
+//! changed and the map may differ from the store (a change stored but not proven durable under that
+//! generation, or another version), the task rebuilds its map by replaying the store's log — so the map
+//! again equals the stored log — before it takes any other change, and answers the pending request
+//! with a retryable refusal: the robot's retry is applied once, or acknowledged as a duplicate. The
+//! rebuilt version is never below the published one (what was published was durable).
 
 use std::collections::BTreeMap;
 use std::sync::Arc;
@@ -70,6 +79,10 @@ const IDLE_CHECK_INTERVAL: Duration = Duration::from_secs(1);
 /// Owns one site's [`SiteMap`]; see the module docs.
 pub struct SiteTask {
     map: Option<Box<SiteMap>>,
+    /// The map's options (a rebuild replays with them).
+    options: LifelongOptions,
+    /// The store's generation the map is known to agree with (see the module docs).
+    generation: u64,
     store: Arc<dyn MapStore>,
     versions: watch::Sender<VersionInfo>,
     views: watch::Sender<Arc<SiteView>>,
@@ -96,8 +109,9 @@ impl SiteTask {
         task_options: SiteTaskOptions,
     ) -> Result<(SiteHandle, JoinHandle<()>), SiteError> {
         let started = Instant::now();
+        let generation = store.generation();
         let map = {
-            let (site, store) = (site.to_owned(), Arc::clone(&store));
+            let (site, store, options) = (site.to_owned(), Arc::clone(&store), options.clone());
             tokio::task::spawn_blocking(move || replay(&site, options, store.as_ref()))
                 .await
                 .map_err(internal)??
@@ -123,6 +137,8 @@ impl SiteTask {
             .collect();
         let task = Self {
             map: Some(Box::new(map)),
+            options,
+            generation,
             store,
             versions,
             views,
@@ -307,7 +323,70 @@ impl SiteTask {
                 "change stored but not durable ({e}): not acknowledged until a flush succeeds"
             );
             self.unflushed = true;
+        } else if self.store.generation() != self.generation {
+            // Reopened between the write and the flush: the flush may not have covered the write.
+            self.unflushed = true;
         }
+        Ok(())
+    }
+
+    /// Before any change: if the store was reopened since the map was built and the map may differ
+    /// from it, rebuilds the map from the store (see the module docs). `Err` while that fails (nothing
+    /// may be changed on a map that may not equal the store).
+    async fn check_store(&mut self) -> Result<(), SiteError> {
+        let generation = self.store.generation();
+        if generation == self.generation {
+            return Ok(());
+        }
+        let stored = {
+            let (store, site) = (Arc::clone(&self.store), self.site());
+            tokio::task::spawn_blocking(move || store.map_version(&site))
+                .await
+                .map_err(internal)??
+        };
+        if !self.unflushed && stored == self.map()?.version() {
+            self.generation = generation;
+            return Ok(());
+        }
+        self.rebuild(generation).await
+    }
+
+    /// Replays the store's log into a new map, which replaces the current one.
+    async fn rebuild(&mut self, generation: u64) -> Result<(), SiteError> {
+        let published = self.versions.borrow().version;
+        let before = self.map()?.version();
+        let started = Instant::now();
+        let map = {
+            let (site, store, options) =
+                (self.site(), Arc::clone(&self.store), self.options.clone());
+            tokio::task::spawn_blocking(move || replay(&site, options, store.as_ref()))
+                .await
+                .map_err(internal)??
+        };
+        if map.version() < published {
+            return Err(SiteError::CorruptLog {
+                index: map.version() + 1,
+                reason: format!(
+                    "after the store was reopened its log ends at version {}, below the published {published}",
+                    map.version()
+                ),
+            });
+        }
+        tracing::warn!(
+            site = %self.site(), from_version = before, to_version = map.version(),
+            seconds = started.elapsed().as_secs_f64(),
+            "the store was reopened after a failed write: site map rebuilt from its log"
+        );
+        let now = tokio::time::Instant::now();
+        let open: Vec<String> = map.open_sessions().into_iter().map(|(s, _)| s).collect();
+        self.last_heard.retain(|session, _| open.contains(session));
+        for session in open {
+            self.last_heard.entry(session).or_insert(now);
+        }
+        self.map = Some(Box::new(map));
+        self.generation = generation;
+        self.unflushed = false;
+        self.publish();
         Ok(())
     }
 
@@ -321,6 +400,16 @@ impl SiteTask {
         tokio::task::spawn_blocking(move || store.flush())
             .await
             .map_err(internal)??;
+        if self.store.generation() != self.generation {
+            // The store was reopened: the unflushed change may be gone. Rebuild, and let the robot
+            // retry (its batch is then applied once, or acknowledged as a duplicate).
+            let generation = self.store.generation();
+            self.rebuild(generation).await?;
+            return Err(SiteError::Storage(storage::StorageError::Wedged {
+                cause: "the store was reopened before the change was durable".into(),
+                out_of_space: false,
+            }));
+        }
         self.unflushed = false;
         tracing::info!(site = %self.site(), "stored changes are durable again");
         self.publish();
@@ -363,6 +452,7 @@ impl SiteTask {
         session_uuid: &str,
     ) -> Result<(super::SessionOpened, u64), SiteError> {
         storage::validate_session_id(session_uuid)?;
+        self.check_store().await?;
         let opened = self.map()?.check_open(robot_id, session_uuid)?;
         if !opened.created {
             self.durable().await?;
@@ -389,6 +479,7 @@ impl SiteTask {
     }
 
     async fn upload(&mut self, batch: UploadBatch) -> Result<UploadAck, SiteError> {
+        self.check_store().await?;
         let map = self.map()?;
         if let UploadCheck::Duplicate { .. } = map.check_upload(&batch)? {
             self.durable().await?;
@@ -443,6 +534,7 @@ impl SiteTask {
         robot_id: &str,
         session_uuid: &str,
     ) -> Result<u64, SiteError> {
+        self.check_store().await?;
         let map = self.map()?;
         map.check_open(robot_id, session_uuid)?;
         if map.is_closed(session_uuid) {
