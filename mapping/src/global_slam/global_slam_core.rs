@@ -1004,7 +1004,7 @@ impl GlobalSlam {
 
     /// Marks a trajectory settled (or not): once any is, optimizations move only the unsettled
     /// trajectories' variables, the endpoints of constraints added or changed since the last
-    /// optimization, and what lies within `settled_region_hops` constraints of them (see
+    /// optimization, and what lies within `settled_region_hops` constraints of them, when that is set (see
     /// [`optimization_region`]); the rest holds still. A lifelong map settles a session when it ends.
     pub fn set_trajectory_settled(&mut self, trajectory: u32, settled: bool) {
         if settled {
@@ -1023,6 +1023,9 @@ impl GlobalSlam {
     /// Fixes, for one optimization, every free variable outside the optimization region (nothing when no
     /// trajectory is settled); returns them for [`Self::release`].
     fn hold_settled(&mut self) -> Vec<VariableId> {
+        let Some(hops) = self.options.settled_region_hops else {
+            return Vec::new();
+        };
         if self.settled.is_empty() {
             return Vec::new();
         }
@@ -1042,7 +1045,7 @@ impl GlobalSlam {
             )
             .chain(self.changed.iter().copied())
             .collect();
-        let region = optimization_region(&self.graph, seeds, self.options.settled_region_hops);
+        let region = optimization_region(&self.graph, seeds, hops);
         let held: Vec<VariableId> = self
             .graph
             .variables()

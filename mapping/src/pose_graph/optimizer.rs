@@ -495,12 +495,19 @@ impl Problem {
             })
             .collect();
         let index = |id: &VariableId| ids.binary_search(id).ok().map(|k| k as u32);
+        let free_index: Vec<u32> = free_index;
         let edges = graph
             .constraints()
             .filter_map(|(_, c)| {
+                let (from, to) = (index(&c.from)?, index(&c.to)?);
+                if free_index[from as usize] == u32::MAX && free_index[to as usize] == u32::MAX {
+                    // Between two fixed variables: a constant of the cost, left out so that the
+                    // convergence tests compare the decrease with the cost that can change.
+                    return None;
+                }
                 Some(Edge {
-                    from: index(&c.from)?,
-                    to: index(&c.to)?,
+                    from,
+                    to,
                     measurement: PreparedMeasurement {
                         loss: loss_of(c),
                         ..PreparedMeasurement::new(c)
