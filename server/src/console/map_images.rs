@@ -109,7 +109,7 @@ pub fn render_change_image(
         render_newest(after, resolution)?,
     );
     let change = map_change_rate(&old, &new, MAP_CHANGE_TOLERANCE_M);
-    let (width, height, pixels) = robot_agent::map_image::map_change_to_rgb(&change);
+    let (width, height, pixels) = mapping::map_image::map_change_to_rgb(&change);
     if width == 0 || height == 0 {
         return None;
     }

@@ -1,4 +1,4 @@
-//! `evermap-server load` on a tiny budget: one site, two robots, 15 s at real time. Checks that the
+//! `evermap-demo load` on a tiny budget: one site, two robots, 15 s at real time. Checks that the
 //! benchmark runs end to end and that its report is consistent (everything acknowledged, the offline
 //! robot's catch-up smaller than the whole map); the figures themselves are measured in BENCHMARKS.md.
 
@@ -8,7 +8,7 @@ use std::process::Command;
 fn the_load_benchmark_streams_everything_and_reports_it() {
     let dir = tempfile::tempdir().expect("tempdir");
     let out = dir.path().join("load");
-    let status = Command::new(env!("CARGO_BIN_EXE_evermap-server"))
+    let status = Command::new(env!("CARGO_BIN_EXE_evermap-demo"))
         .args([
             "load",
             "--agents",

@@ -1,4 +1,4 @@
-//! `evermap-server load`: the fleet load benchmark. N simulated robots stream cleaning sessions at real
+//! `evermap-demo load`: the fleet load benchmark. N simulated robots stream cleaning sessions at real
 //! time into one map server (sled, loopback gRPC) spread over several sites, while every robot follows
 //! its site's versions; measures what the fleet issue asks for: server CPU and memory, uplink bytes per
 //! robot-second, the latency from a submap being finished on a robot to its version reaching every robot
