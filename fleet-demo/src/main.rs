@@ -5,6 +5,7 @@
 mod command_runtime;
 mod demo_command;
 mod load_command;
+mod minute_figures;
 
 use clap::{Parser, Subcommand};
 
@@ -25,8 +26,10 @@ enum Command {
     /// mapping and cleaning a changing store over loopback zenoh or gRPC; prints map versions, writes
     /// map pictures and a report.
     Demo(demo_command::DemoArgs),
-    /// Fleet load benchmark: N simulated robots on several sites stream at real time into one server;
-    /// reports server CPU and memory, uplink bytes per robot-second and submap-to-fleet latency.
+    /// Fleet load benchmark: N simulated robots on several sites stream at real time (or `--speed` times
+    /// faster) into one server; reports server CPU and memory, uplink bytes per robot-second and
+    /// submap-to-fleet latency, and per minute of robot time memory, latency and throughput (a soak:
+    /// `--duration-s 1800 --session-s 300`) with a chart, `minutes.png`.
     Load(load_command::LoadArgs),
 }
 
