@@ -332,7 +332,7 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
 
     // 2. LLO and start relocalization of every cleaning session, ahead of time.
     eprintln!(
-        "phase 2/3: LLO of {} cleaning sessions ahead of time",
+        "phase 2/3: LLO of the cleaning sessions of {} robots ahead of time",
         robots.len()
     );
     let prepare_started = Instant::now();
