@@ -1,12 +1,12 @@
 #!/usr/bin/env bash
 # How many sites one server instance holds, and how many robots per site, at the fleet load benchmark's
 # latency goal (submap finished on a robot -> its version in every cache of the site, p50 < 2 s), and
-# the memory per site (issue 16 §4). Runs `evermap-server load` once per point and prints one line per run.
+# the memory per site (issue 16 §4). Runs `evermap-demo load` once per point and prints one line per run.
 #
 #   scripts/shard_capacity.sh                      # the default points
 #   POINTS="10x2 20x2" DURATION=60 scripts/shard_capacity.sh
 #
-# A point is SITESxROBOTS_PER_SITE. Environment: BIN (default target/release/evermap-server; build it
+# A point is SITESxROBOTS_PER_SITE. Environment: BIN (default target/release/evermap-demo; build it
 # with `cargo build --release --workspace`), DURATION (seconds of cleaning streamed per robot, default
 # 60), OUT (default out/shard_capacity; each run writes OUT/POINT/report.json and OUT/POINT.log).
 # Memory per site: the difference of peak RSS between two points with the same robots per site, divided
@@ -14,7 +14,7 @@
 # same process: an upper bound for the server's share).
 set -euo pipefail
 
-BIN=${BIN:-target/release/evermap-server}
+BIN=${BIN:-target/release/evermap-demo}
 DURATION=${DURATION:-60}
 OUT=${OUT:-out/shard_capacity}
 POINTS=${POINTS:-"10x2 20x2 5x5"}

@@ -14,6 +14,7 @@ pub mod grid;
 pub mod io;
 pub mod lifelong;
 pub mod local_slam;
+pub mod map_image;
 pub mod metrics;
 pub mod pose_graph;
 pub mod scan_matching;

@@ -2,7 +2,9 @@
 //!
 //! The fleet protocol (`evermap/fleet/v1/*.proto`, compiled at build time with protox, no system `protoc`):
 //! the generated prost messages and tonic services in [`pb`], the reflection descriptor set
-//! [`FILE_DESCRIPTOR_SET`], and conversions between wire messages and the `mapping` crate's types.
+//! [`FILE_DESCRIPTOR_SET`], and conversions between wire messages and the `mapping` crate's types; and
+//! the zenoh side of the protocol, its key expressions ([`zenoh_api_key`], [`zenoh_version_key`]) and
+//! link settings ([`ZenohLinkOptions`], [`ZenohTlsOptions`]), shared by the agent and the server.
 //!
 //! Conversions from the wire are `TryFrom` and check everything a peer could get wrong (missing fields,
 //! NaN or infinite numbers, sizes that do not match, unknown `format_version`), returning a
@@ -24,6 +26,8 @@ mod conversion_error;
 mod convert;
 mod map_delta;
 mod upload_batch;
+mod zenoh_link_options;
+mod zenoh_tls_options;
 
 pub use conversion_error::ConversionError;
 pub use convert::{
@@ -32,6 +36,10 @@ pub use convert::{
 };
 pub use map_delta::{MapDelta, SubmapSnapshot};
 pub use upload_batch::{NodeAdded, UploadBatch, UploadItem};
+pub use zenoh_link_options::{
+    ZenohLinkOptions, ZenohLinkOptionsError, zenoh_api_key, zenoh_version_key,
+};
+pub use zenoh_tls_options::ZenohTlsOptions;
 
 /// The `format_version` every record written by this build carries, and the only one it reads.
 pub const FORMAT_VERSION: u32 = 1;

@@ -9,6 +9,15 @@ pub fn peak_rss_mb() -> Option<f64> {
     Some(kib / 1024.0)
 }
 
+/// Resident set size of this process now, in MiB (`VmRSS` from `/proc/self/status`), if the platform
+/// reports it.
+pub fn current_rss_mb() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmRSS:"))?;
+    let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib / 1024.0)
+}
+
 /// CPU time (user + system) this process has used so far, seconds (`/proc/self/stat`, in clock ticks of
 /// 1/100 s, the value of `CLK_TCK` on Linux), if the platform reports it.
 pub fn cpu_seconds() -> Option<f64> {
@@ -55,6 +64,18 @@ mod tests {
                 after = super::thread_cpu_ms().expect("thread cpu time");
             }
             assert!(after - before > 50.0, "{before} -> {after}");
+        }
+    }
+
+    #[test]
+    fn current_rss_is_positive_and_at_most_the_peak_on_linux() {
+        if cfg!(target_os = "linux") {
+            let now = super::current_rss_mb().expect("VmRSS");
+            let peak = super::peak_rss_mb().expect("VmHWM");
+            assert!(
+                now > 0.0 && now <= peak + 1e-9,
+                "{now} MiB now, {peak} MiB peak"
+            );
         }
     }
 

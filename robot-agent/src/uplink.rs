@@ -16,8 +16,6 @@ mod in_memory_uplink;
 mod llo_stream;
 mod robot_glm;
 mod uploader;
-mod zenoh_link_options;
-mod zenoh_tls_options;
 mod zenoh_uplink;
 
 use std::future::Future;
@@ -34,13 +32,11 @@ pub use in_memory_uplink::InMemoryUplink;
 pub use llo_stream::{LloStats, run_llo, run_llo_stream};
 pub use proto::MapDelta;
 use proto::pb;
+pub use proto::{
+    ZenohLinkOptions, ZenohLinkOptionsError, ZenohTlsOptions, zenoh_api_key, zenoh_version_key,
+};
 pub use robot_glm::{cached_submaps, match_node, sync_matcher};
 pub use uploader::{FlushStats, Uploader};
-pub use zenoh_link_options::{
-    ZenohLinkOptions, ZenohLinkOptionsError, api_key as zenoh_api_key,
-    version_key as zenoh_version_key,
-};
-pub use zenoh_tls_options::ZenohTlsOptions;
 pub use zenoh_uplink::ZenohUplink;
 
 /// Why an uplink call failed.

@@ -1,8 +1,8 @@
 //! In-memory PNG and Nav2 (pgm + yaml) encodings of a grid, for `GetMapImage`. Pixels follow
-//! `robot_agent::map_image` (free white, occupied black, unknown gray 205, top row first).
+//! `mapping::map_image` (free white, occupied black, unknown gray 205, top row first).
 
 use mapping::grid::ProbabilityGrid;
-use robot_agent::map_image::grid_to_gray;
+use mapping::map_image::grid_to_gray;
 
 /// The encoded images of one grid.
 #[derive(Clone, Debug, PartialEq)]

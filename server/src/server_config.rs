@@ -38,7 +38,7 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use mapping::lifelong::LifelongOptions;
-use robot_agent::uplink::ZenohLinkOptions;
+use proto::ZenohLinkOptions;
 use serde::Deserialize;
 use storage::SledStoreOptions;
 
@@ -135,7 +135,7 @@ pub struct ServerConfig {
     pub auth: AuthLimitOptions,
     /// The zenoh front end (TOML section `[zenoh]`: `mode`, `listen`, `connect`, `multicast_scouting`,
     /// `[zenoh.tls]` for mutual TLS; see
-    /// `robot_agent::uplink::ZenohLinkOptions`). Default none: gRPC only.
+    /// `proto::ZenohLinkOptions`). Default none: gRPC only.
     pub zenoh: Option<ZenohLinkOptions>,
     /// The web console (TOML section `[http]`: `listen`, `operator_token`, `map_resolution_m`; see
     /// [`HttpConfig`]). Default none: no console.

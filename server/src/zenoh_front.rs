@@ -19,7 +19,7 @@ use proto::pb::map_service_server::MapService as _;
 use proto::pb::zenoh_reply::Reply;
 use proto::pb::zenoh_request::Request;
 use proto::{FORMAT_VERSION, pb};
-use robot_agent::uplink::{ZenohLinkOptions, zenoh_api_key, zenoh_version_key};
+use proto::{ZenohLinkOptions, zenoh_api_key, zenoh_version_key};
 use tokio::sync::Semaphore;
 use tokio::task::JoinHandle;
 use tokio_stream::StreamExt as _;
@@ -33,7 +33,7 @@ use crate::grpc::{AgentApi, ApiContext, MapApi, version_to_pb};
 pub enum ZenohFrontError {
     /// The options are invalid.
     #[error(transparent)]
-    Options(#[from] robot_agent::uplink::ZenohLinkOptionsError),
+    Options(#[from] proto::ZenohLinkOptionsError),
     /// zenoh refused (bad endpoint, port taken, ...).
     #[error("zenoh: {0}")]
     Zenoh(String),

@@ -12,7 +12,7 @@
 //!
 //! Mounting needs root (`CAP_SYS_ADMIN`), which CI containers may lack, so the test runs only with
 //! `EVERMAP_TMPFS_TESTS=1` (and then fails if it cannot mount); CI covers the same paths through
-//! `storage::DiskFullStore` (`server/tests/disk_full.rs`, the agent's uploader tests).
+//! `storage::DiskFullStore` (`tests/tests/disk_full.rs`, the agent's uploader tests).
 //! `EVERMAP_TMPFS_TESTS=1 cargo nextest run -p storage -E 'test(tmpfs)'`
 
 #![allow(

@@ -70,7 +70,10 @@ pub struct GlobalSlamOptions {
     /// For a trajectory started with no prior on a map that already holds others (see
     /// `GlobalSlam::start_trajectory`): every this many nodes (count; 0 = never), match the node
     /// against every finished submap of the placed trajectories with no prior, until a match places the
-    /// trajectory. Default 10.
+    /// trajectory. Default 0: sessions of a lifelong map are placed by `lifelong::SessionStart` (a
+    /// whole-map search with an ambiguity test, then probation), not by a single scan's full-submap match.
+    /// (It was 10, and a lifelong configuration that set any other `[lifelong.global]` field silently
+    /// turned this on again: the 25-session store then placed session 6 51 m off from one scan.)
     pub unanchored_search_every_n_nodes: usize,
     /// Once some trajectories are settled (a lifelong map's ended sessions; see
     /// `GlobalSlam::set_trajectory_settled`), an optimization moves only the unsettled trajectories, the
@@ -97,7 +100,7 @@ impl Default for GlobalSlamOptions {
             odometry_rotation_sigma: 0.01,
             odometry_huber_scale: 3.0,
             loop_closure_retraction_chi2: 6.0,
-            unanchored_search_every_n_nodes: 10,
+            unanchored_search_every_n_nodes: 0,
             settled_region_hops: None,
             constraint_builder: ConstraintBuilderOptions::default(),
             optimizer: OptimizerOptions::default(),

@@ -145,10 +145,9 @@ impl SubmapTrimmerOptions {
 #[derive(Clone, Debug, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct LifelongOptions {
-    /// The pose graph, GLM and optimizer of the map. Its default here differs from
-    /// `GlobalSlamOptions::default()` in one field: `unanchored_search_every_n_nodes` is 0, because an
-    /// unplaced session is placed by retrying relocalization over the whole map (one coarse-to-fine
-    /// search) rather than by a full search of every submap (hundreds on a store-sized map).
+    /// The pose graph, GLM and optimizer of the map (`GlobalSlamOptions::default()`, whose
+    /// `unanchored_search_every_n_nodes` is 0: an unplaced session is placed by retrying relocalization
+    /// over the whole map, not by a full search of every submap from one scan).
     pub global: GlobalSlamOptions,
     /// The whole-map search of a session's start ([`super::StartSearch`]).
     pub relocalization: super::RelocalizationOptions,
@@ -174,10 +173,7 @@ pub struct LifelongOptions {
 impl Default for LifelongOptions {
     fn default() -> Self {
         Self {
-            global: GlobalSlamOptions {
-                unanchored_search_every_n_nodes: 0,
-                ..GlobalSlamOptions::default()
-            },
+            global: GlobalSlamOptions::default(),
             relocalization: super::RelocalizationOptions::default(),
             session_start: super::SessionStartOptions::default(),
             trimmer: SubmapTrimmerOptions::default(),
@@ -217,6 +213,29 @@ impl LifelongOptions {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn setting_one_field_of_the_global_section_keeps_every_other_default() {
+        let options: LifelongOptions =
+            toml::from_str("[global]\noptimize_every_n_nodes = 45\n").unwrap();
+        assert_eq!(options.global.optimize_every_n_nodes, 45);
+        assert_eq!(
+            options.global.unanchored_search_every_n_nodes, 0,
+            "sessions are placed by SessionStart, never by a single scan"
+        );
+        assert_eq!(
+            LifelongOptions {
+                global: GlobalSlamOptions {
+                    optimize_every_n_nodes: LifelongOptions::default()
+                        .global
+                        .optimize_every_n_nodes,
+                    ..options.global
+                },
+                ..options
+            },
+            LifelongOptions::default()
+        );
+    }
 
     #[test]
     fn defaults_are_valid_and_bad_values_are_named() {

@@ -9,8 +9,8 @@ use proto::{FORMAT_VERSION, MapDelta, pb};
 use zenoh::query::ConsolidationMode;
 
 use super::grpc_uplink::from_status;
-use super::zenoh_link_options::{api_key, version_key};
 use super::{Acked, MapUplink, OpenedSession, UplinkError, VersionStream, ZenohLinkOptions};
+use proto::{zenoh_api_key as api_key, zenoh_version_key as version_key};
 
 /// Publications buffered between the zenoh subscriber and a slow watcher (older ones are dropped: a
 /// watcher only needs the newest version).

@@ -1,7 +1,7 @@
 //! The console's images: a site's map at one version, and the map change between two versions.
 //!
 //! The map is rendered as `GetMapImage` renders it ([`crate::site::render_submaps`], gray pixels by
-//! `robot_agent::map_image::grid_to_gray`), encoded with the PNG encoder's fast setting (fdeflate:
+//! `mapping::map_image::grid_to_gray`), encoded with the PNG encoder's fast setting (fdeflate:
 //! a few milliseconds for the README demo's 1000 × 700 map, about as small as the default's). The change compares the two versions' maps as the lifelong
 //! reports do: each rendered newest-observation-wins (`mapping::lifelong::render_submaps_newest`, the
 //! site as its latest sessions saw it), classified cell by cell by `mapping::lifelong::map_change_rate`
@@ -76,7 +76,7 @@ pub struct ChangeImage {
 /// Renders the map of `entry` at `resolution` (m). `None` when it has nothing to draw.
 pub fn render_map_image(entry: &HistoryEntry, resolution: f64) -> Option<MapImage> {
     let grid = render_submaps(&entry.grids, resolution)?;
-    let (width, height, pixels) = robot_agent::map_image::grid_to_gray(&grid);
+    let (width, height, pixels) = mapping::map_image::grid_to_gray(&grid);
     Some(MapImage {
         map_version: entry.version,
         placement: ImagePlacement::of(grid.limits()),
@@ -125,7 +125,7 @@ pub fn render_change_image(
         render_newest(after, resolution)?,
     );
     let change = map_change_rate(&old, &new, MAP_CHANGE_TOLERANCE_M);
-    let (width, height, pixels) = robot_agent::map_image::map_change_to_rgb(&change);
+    let (width, height, pixels) = mapping::map_image::map_change_to_rgb(&change);
     let png = encode_png(width, height, png::ColorType::Rgb, &pixels)?;
     Some(ChangeImage {
         from_map_version: before.version,
@@ -191,7 +191,7 @@ mod tests {
         let mut pixels = vec![0; reader.output_buffer_size().unwrap()];
         let info = reader.next_frame(&mut pixels).unwrap();
         let grid = render_submaps(&grids, 0.05).unwrap();
-        let (width, height, expected) = robot_agent::map_image::grid_to_gray(&grid);
+        let (width, height, expected) = mapping::map_image::grid_to_gray(&grid);
         assert_eq!((info.width, info.height), (width, height));
         assert_eq!(info.color_type, png::ColorType::Grayscale);
         assert_eq!(&pixels[..info.buffer_size()], &expected[..]);

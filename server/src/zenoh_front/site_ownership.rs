@@ -22,7 +22,7 @@ use std::time::Duration;
 
 use prost::Message as _;
 use proto::{FORMAT_VERSION, pb};
-use robot_agent::uplink::{ZenohLinkOptions, zenoh_api_key};
+use proto::{ZenohLinkOptions, zenoh_api_key};
 
 use super::ZenohFrontError;
 

@@ -1,17 +1,18 @@
-//! How a process joins the zenoh network: the few settings evermap exposes, turned into a `zenoh::Config`.
-//! Shared by the agent's [`super::ZenohUplink`] and the server's zenoh front end.
+//! How a process joins the zenoh network: the key expressions of the fleet protocol and the few settings
+//! evermap exposes, turned into a `zenoh::Config`. Shared by the agent's `ZenohUplink` and the server's
+//! zenoh front end, so it lives here beside the wire types both speak (neither side links the other).
 
 use serde::Deserialize;
 
-use super::ZenohTlsOptions;
+use crate::ZenohTlsOptions;
 
 /// Key expression of a site's request/reply queryable (the uplink and map reads).
-pub fn api_key(site: &str) -> String {
+pub fn zenoh_api_key(site: &str) -> String {
     format!("evermap/{site}/api")
 }
 
 /// Key expression on which the server publishes a site's new versions.
-pub fn version_key(site: &str) -> String {
+pub fn zenoh_version_key(site: &str) -> String {
     format!("evermap/{site}/version")
 }
 

@@ -10,7 +10,7 @@ use std::path::PathBuf;
 
 use serde::Deserialize;
 
-use super::ZenohLinkOptionsError;
+use crate::ZenohLinkOptionsError;
 
 /// The PEM files of one zenoh participant (TOML section `[zenoh.tls]`). Used on `tls/host:port`
 /// endpoints, both to listen and to connect.

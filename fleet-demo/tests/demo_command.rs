@@ -1,4 +1,4 @@
-//! `evermap-server demo` end to end on a small budget: the server on sled, two robots over loopback zenoh
+//! `evermap-demo demo` end to end on a small budget: the server on sled, two robots over loopback zenoh
 //! (the default) or gRPC, a short mapping session and one cleaning session each. Bounded by the demo's own timeouts (every wait
 //! in it is capped) and by nextest's slow-test timeout.
 
@@ -17,7 +17,7 @@ fn the_demo_maps_relocalizes_and_reaches_every_robot_over_grpc() {
 fn demo_reaches_every_robot(transport: &str) {
     let dir = tempfile::tempdir().expect("tempdir");
     let out = dir.path().join("demo");
-    let status = Command::new(env!("CARGO_BIN_EXE_evermap-server"))
+    let status = Command::new(env!("CARGO_BIN_EXE_evermap-demo"))
         .args(["demo", "--agents", "2", "--sessions-per-agent", "1"])
         .args(["--transport", transport])
         .args(["--session-duration-s", "20", "--mapping-duration-s", "120"])

@@ -1,4 +1,4 @@
-//! The web console in a real browser (issue 15 §3): `evermap-server demo --http 127.0.0.1:0` (two
+//! The web console in a real browser (issue 15 §3): `evermap-demo --http 127.0.0.1:0` (two
 //! robots, a short mapping session and one cleaning session each) and a headless Chromium (Debian's
 //! `chromium`, installed by `.ci/run` when missing) opening the console the demo prints.
 //!
@@ -52,7 +52,7 @@ fn start_demo(out: &std::path::Path) -> (Demo, Receiver<String>) {
     // The figures in BENCHMARKS.md come from the release binary (`EVERMAP_CONSOLE_DEMO_BIN`); the
     // test's own debug build renders maps unoptimized.
     let binary = std::env::var_os("EVERMAP_CONSOLE_DEMO_BIN").map_or_else(
-        || PathBuf::from(env!("CARGO_BIN_EXE_evermap-server")),
+        || PathBuf::from(env!("CARGO_BIN_EXE_evermap-demo")),
         PathBuf::from,
     );
     // The small demo unless `EVERMAP_CONSOLE_DEMO_ARGS` gives others (e.g. "" for the README's).

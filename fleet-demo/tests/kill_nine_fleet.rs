@@ -24,8 +24,9 @@
 //! reconnection). Server kills: `EVERMAP_CHAOS_SERVER_KILLS` (default 4 over gRPC and 2 over zenoh, CI;
 //! the 20 in the benchmark of BENCHMARKS.md); seed: `EVERMAP_CHAOS_SEED` (default 16); scans
 //! each robot replays: `EVERMAP_CHAOS_SCANS` (default 600), robot 2's slice starting 45 % of that later
-//! than robot 1's. Needs `evermap-agent` built beside
-//! `evermap-server`, as `cargo nextest run --workspace` does. Every wait is bounded.
+//! than robot 1's. Needs `evermap-server` and `evermap-agent` built beside
+//! `evermap-demo` (this crate depends on both crates, not on their binaries), as `cargo nextest run
+//! --workspace` does. Every wait is bounded.
 
 use std::collections::BTreeMap;
 use std::fs::File;
@@ -76,15 +77,21 @@ fn datasets_dir() -> PathBuf {
         .unwrap_or_else(|| manifest.join("../../shared/datasets"))
 }
 
-fn agent_binary() -> PathBuf {
-    let server = PathBuf::from(env!("CARGO_BIN_EXE_evermap-server"));
-    let agent = server.with_file_name(format!("evermap-agent{}", std::env::consts::EXE_SUFFIX));
+/// A binary of another crate of the workspace (`evermap-server`, `evermap-agent`), built beside this
+/// crate's `evermap-demo`.
+fn sibling_binary(name: &str) -> PathBuf {
+    let demo = PathBuf::from(env!("CARGO_BIN_EXE_evermap-demo"));
+    let binary = demo.with_file_name(format!("{name}{}", std::env::consts::EXE_SUFFIX));
     assert!(
-        agent.is_file(),
+        binary.is_file(),
         "{} is missing: build the workspace (cargo nextest run --workspace builds it)",
-        agent.display()
+        binary.display()
     );
-    agent
+    binary
+}
+
+fn agent_binary() -> PathBuf {
+    sibling_binary("evermap-agent")
 }
 
 /// `s` seconds (finite and non-negative here).
@@ -374,7 +381,7 @@ async fn chaos(transport: &str, default_kills: usize) {
     )
     .expect("server config");
     let server_log = dir.path().join("server.log");
-    let server_binary = PathBuf::from(env!("CARGO_BIN_EXE_evermap-server"));
+    let server_binary = sibling_binary("evermap-server");
     let start_server = || {
         spawn_logged(
             &server_binary,

@@ -1,4 +1,4 @@
-//! `evermap-server demo`: the fleet in one process, on one machine, with no set-up.
+//! `evermap-demo` (or `evermap-demo demo`): the fleet in one process, on one machine, with no set-up.
 //!
 //! A map server on embedded sled (in `<out>/data`) serves one site, `store-1`, over gRPC on 127.0.0.1; N
 //! robot agents (the real agent code: LLO, sled outbox, exactly-once uploader, site follower with its

@@ -1,20 +1,27 @@
-//! `evermap-server load`: the fleet load benchmark. N simulated robots stream cleaning sessions at real
-//! time into one map server (sled, loopback gRPC) spread over several sites, while every robot follows
-//! its site's versions; measures what the fleet issue asks for: server CPU and memory, uplink bytes per
-//! robot-second, the latency from a submap being finished on a robot to its version reaching every robot
-//! of the site, and the catch-up (time and bytes) of a robot that was offline for the whole run.
+//! `evermap-demo load`: the fleet load benchmark. N simulated robots stream cleaning sessions at real
+//! time (or `--speed` times faster) into one map server (sled, loopback gRPC) spread over several sites,
+//! while every robot follows its site's versions; measures what the fleet issue asks for: server CPU and
+//! memory, uplink bytes per robot-second, the latency from a submap being finished on a robot to its
+//! version reaching every robot of the site, and the catch-up (time and bytes) of a robot that was
+//! offline for the whole run. A soak (`--duration-s 1800 --session-s 300`): each robot streams sessions
+//! back to back, and the report gets the figures of every minute of robot time ([`crate::minute_figures`]:
+//! memory, median and p95 latency, throughput; the slopes after the warm-up) and `minutes.png`.
 //!
 //! Phases:
 //! 1. *Mapping* (not measured): robot 0 of every site maps its store (session 0: the whole sweep of the
 //!    demo's 48 × 30 m store unless capped by `--mapping-duration-s`), streamed as fast as the server
 //!    takes it.
-//! 2. *Preparation* (not measured): every robot's cleaning session is simulated and run through LLO
-//!    ahead of time, and its first nodes are relocalized against the robot's cache of the site map (the
-//!    prior it opens with, as in `demo`). Robots run LLO on their own CPUs; doing it ahead keeps the 50
-//!    robots' LLO off the server's two cores, so the figures are the server's.
-//! 3. *Streaming* (measured): every robot replays its LLO output on the recording's clock (10 nodes per
-//!    batch, and a batch is sent at once when it holds a finished submap), starts staggered over 2 s.
-//!    If the server falls behind, uploads wait and the delay shows up in the latency.
+//! 2. *Preparation* (not measured): every robot's cleaning sessions (one, or `--duration-s` over
+//!    `--session-s` of them, each on a later simulated day) are simulated and run through LLO ahead of
+//!    time, and their first nodes are relocalized against the robot's cache of the site map (the prior a
+//!    session opens with, as in `demo`). Robots run LLO on their own CPUs; doing it ahead keeps the 50
+//!    robots' LLO off the server's two cores, so the figures are the server's. The prepared sessions stay
+//!    in memory until the end, so memory growth during the measured phase is the server's (and its
+//!    clients').
+//! 3. *Streaming* (measured): every robot replays its LLO output on the recording's clock, divided by
+//!    `--speed` (10 nodes per batch, and a batch is sent at once when it holds a finished submap), its
+//!    sessions back to back, starts staggered over 2 s. If the server falls behind, uploads wait and the
+//!    delay shows up in the latency.
 //!
 //! The robots' outboxes are in memory here (one sled per robot would put 50 databases' I/O on the
 //! server's disk, which a real robot keeps on its own); the server's store is sled, as deployed.
@@ -32,8 +39,9 @@ use mapping::lifelong::{MapMatcher, RelocalizationOptions};
 use mapping::local_slam::LocalTrajectoryBuilderOptions;
 use mapping::simulation::{SessionOptions as SimSessionOptions, Store};
 use proto::{SubmapSnapshot, UploadItem};
+use robot_agent::map_image;
 use robot_agent::outbox::Outbox;
-use robot_agent::process_stats::{cpu_seconds, peak_rss_mb};
+use robot_agent::process_stats::{cpu_seconds, current_rss_mb, peak_rss_mb};
 use robot_agent::source::{ReadReport, Recording};
 use robot_agent::uplink::{
     GlobalSubmapCache, GrpcUplink, MapUplink as _, SessionOptions, Uploader, cached_submaps,
@@ -47,6 +55,7 @@ use tokio::sync::watch;
 
 use crate::command_runtime::{block_on, recreate_dir};
 use crate::demo_command::MAX_MESSAGE_BYTES;
+use crate::minute_figures::{self, MinuteInputs};
 
 /// Nodes per upload batch (a batch holding a finished submap goes at once).
 const NODES_PER_BATCH: usize = 10;
@@ -65,9 +74,18 @@ pub struct LoadArgs {
     /// Sites (stores), each with its own simulated store and map.
     #[arg(long, default_value_t = 10)]
     sites: usize,
-    /// Seconds of cleaning session each robot streams at real time (the measured window).
+    /// Seconds of robot time each robot streams (the measured window), 10..=3600.
     #[arg(long, default_value_t = 120.0)]
     duration_s: f64,
+    /// Length of each cleaning session, seconds of robot time (30..=300): a robot streams
+    /// ceil(duration / session) sessions back to back, each on a later simulated day. Default: one
+    /// session of `--duration-s` (at most 300 s).
+    #[arg(long)]
+    session_s: Option<f64>,
+    /// Robot time per wall-clock time (0.1..=20): 1 streams at real time, 10 replays ten minutes of robot
+    /// time in one minute (the server then gets ten times the load of the same fleet).
+    #[arg(long, default_value_t = 1.0)]
+    speed: f64,
     /// Cap on each site's mapping session 0, seconds of simulated time (default: the whole sweep of the
     /// store, as in `demo`).
     #[arg(long)]
@@ -123,6 +141,20 @@ struct StreamOutcome {
     left_in_outbox: usize,
     /// Largest lag behind the recording's clock when a batch was sent, seconds.
     max_lag_s: f64,
+    /// When the server acknowledged each batch.
+    acks: Vec<Instant>,
+}
+
+impl StreamOutcome {
+    /// Adds the outcome of the robot's next session.
+    fn add(&mut self, other: Self) {
+        self.submaps.extend(other.submaps);
+        self.batches += other.batches;
+        self.failed_flushes += other.failed_flushes;
+        self.left_in_outbox += other.left_in_outbox;
+        self.max_lag_s = self.max_lag_s.max(other.max_lag_s);
+        self.acks.extend(other.acks);
+    }
 }
 
 fn site_id(s: usize) -> String {
@@ -139,6 +171,15 @@ pub fn run(args: &LoadArgs) -> anyhow::Result<()> {
     anyhow::ensure!(
         args.duration_s.is_finite() && (10.0..=3600.0).contains(&args.duration_s),
         "--duration-s must be in 10..=3600"
+    );
+    anyhow::ensure!(
+        args.session_s
+            .is_none_or(|s| s.is_finite() && (30.0..=300.0).contains(&s)),
+        "--session-s must be in 30..=300"
+    );
+    anyhow::ensure!(
+        args.speed.is_finite() && (0.1..=20.0).contains(&args.speed),
+        "--speed must be in 0.1..=20"
     );
     anyhow::ensure!(
         args.mapping_duration_s
@@ -186,11 +227,12 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
     let server = RunningServer::start(&config, Arc::new(store)).await?;
     let url = format!("http://{}", server.grpc_addr());
     eprintln!(
-        "evermap load: server on {url} (sled in {}), {} robots on {} sites, {} s each at real time",
+        "evermap load: server on {url} (sled in {}), {} robots on {} sites, {} s of robot time each at {}x real time",
         args.out.join("data").display(),
         args.agents,
         args.sites,
-        args.duration_s
+        args.duration_s,
+        args.speed
     );
 
     let (stop, stopped) = watch::channel(false);
@@ -290,45 +332,53 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
 
     // 2. LLO and start relocalization of every cleaning session, ahead of time.
     eprintln!(
-        "phase 2/3: LLO of {} cleaning sessions ahead of time",
+        "phase 2/3: LLO of the cleaning sessions of {} robots ahead of time",
         robots.len()
     );
     let prepare_started = Instant::now();
-    let clean_sim = SimSessionOptions {
-        max_duration_s: args.duration_s,
-        ..SimSessionOptions::default()
-    };
+    let session_plan = session_lengths(args.duration_s, args.session_s);
+    let robots_per_site = args.agents.div_ceil(args.sites);
     let mut preparing = Vec::new();
     for (r, robot) in robots.iter().enumerate() {
-        let world = worlds[robot.site].clone();
-        let sim = clean_sim.clone();
-        let session = u32::try_from(1 + r / args.sites)?;
-        preparing.push(tokio::task::spawn_blocking(
-            move || -> anyhow::Result<(Vec<Vec<UploadItem>>, f64)> {
-                let simulated = world.session(session, &sim)?;
-                let recording = Recording::from_unsorted(
-                    simulated.events,
-                    simulated.base_from_laser,
-                    ReadReport::default(),
-                );
-                let mut steps = Vec::new();
-                run_llo(
-                    &recording,
-                    &LocalTrajectoryBuilderOptions::default(),
-                    0.0,
-                    None,
-                    &mut |items| {
-                        steps.push(items);
-                        true
+        for (j, &length) in session_plan.iter().enumerate() {
+            let world = worlds[robot.site].clone();
+            let sim = SimSessionOptions {
+                max_duration_s: length,
+                ..SimSessionOptions::default()
+            };
+            // Robot k of a site cleans on day 1 + k, then every robots_per_site days.
+            let session = u32::try_from(1 + r / args.sites + j * robots_per_site)?;
+            preparing.push((
+                r,
+                tokio::task::spawn_blocking(
+                    move || -> anyhow::Result<(Vec<Vec<UploadItem>>, f64)> {
+                        let simulated = world.session(session, &sim)?;
+                        let recording = Recording::from_unsorted(
+                            simulated.events,
+                            simulated.base_from_laser,
+                            ReadReport::default(),
+                        );
+                        let mut steps = Vec::new();
+                        run_llo(
+                            &recording,
+                            &LocalTrajectoryBuilderOptions::default(),
+                            0.0,
+                            None,
+                            &mut |items| {
+                                steps.push(items);
+                                true
+                            },
+                        );
+                        Ok((steps, simulated.duration_s))
                     },
-                );
-                Ok((steps, simulated.duration_s))
-            },
-        ));
+                ),
+            ));
+        }
     }
-    let mut prepared = Vec::new();
+    let mut prepared: Vec<Vec<PreparedSession>> = robots.iter().map(|_| Vec::new()).collect();
     let mut glm_matches = 0;
-    for (robot, task) in robots.iter().zip(preparing) {
+    for (r, task) in preparing {
+        let robot = &robots[r];
         let (mut steps, duration_s) = task.await.context("LLO thread")??;
         let held = steps.iter().take(RELOCALIZATION_NODES).flatten();
         let prior = relocalize_nodes(&robot.cache, &RelocalizationOptions::default(), held)
@@ -352,19 +402,20 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
             steps = matched;
             glm_matches += count;
         }
-        prepared.push(PreparedSession {
+        prepared[r].push(PreparedSession {
             steps,
             prior,
             duration_s,
         });
     }
-    let relocalized = prepared.iter().filter(|p| p.prior.is_some()).count();
-    let data_seconds: f64 = prepared.iter().map(|p| p.duration_s).sum();
+    let sessions = || prepared.iter().flatten();
+    let relocalized = sessions().filter(|p| p.prior.is_some()).count();
+    let data_seconds: f64 = sessions().map(|p| p.duration_s).sum();
     eprintln!(
         "  prepared in {:.0} s: {} nodes, {relocalized}/{} sessions relocalized at their start, {}",
         prepare_started.elapsed().as_secs_f64(),
-        prepared.iter().map(|p| p.steps.len()).sum::<usize>(),
-        prepared.len(),
+        sessions().map(|p| p.steps.len()).sum::<usize>(),
+        sessions().count(),
         if args.glm_on_server {
             "GLM on the server".to_owned()
         } else {
@@ -374,9 +425,11 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
 
     // 3. Measured: everyone streams at real time.
     eprintln!(
-        "phase 3/3: {} robots stream for {} s at real time",
+        "phase 3/3: {} robots stream {} s of robot time each ({} session(s)) at {}x real time",
         robots.len(),
-        args.duration_s
+        args.duration_s,
+        session_plan.len(),
+        args.speed
     );
     let metrics = Arc::clone(server.metrics());
     let (bytes_in_0, bytes_out_0) = (metrics.bytes_in(), metrics.bytes_out());
@@ -386,19 +439,39 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
     let offline_version = server.site(&site_id(0)).map_or(0, |h| h.current().version);
     let stream_started = Instant::now();
     let max_queue = Arc::new(Mutex::new(0usize));
+    // (minute of robot time, RSS, uplink bytes since the start) at the end of every minute.
+    let minute_samples = Arc::new(Mutex::new(Vec::<(f64, Option<f64>, u64)>::new()));
+    let speed = args.speed;
     let sampler = {
         let handles: Vec<_> = (0..args.sites)
             .filter_map(|s| server.site(&site_id(s)).cloned())
             .collect();
         let max_queue = Arc::clone(&max_queue);
+        let minute_samples = Arc::clone(&minute_samples);
+        let metrics = Arc::clone(&metrics);
         let mut stop = stopped.clone();
         tokio::spawn(async move {
             let mut tick = tokio::time::interval(Duration::from_millis(100));
             let mut last_line = Instant::now();
+            let mut next_minute = 1u32;
             loop {
                 tokio::select! {
                     _ = tick.tick() => {}
                     _ = stop.changed() => return,
+                }
+                let robot_minutes = stream_started.elapsed().as_secs_f64() * speed / 60.0;
+                if robot_minutes >= f64::from(next_minute) {
+                    let rss = current_rss_mb();
+                    let bytes = metrics.bytes_in() - bytes_in_0;
+                    eprintln!(
+                        "  minute {next_minute:>3} of robot time: RSS {} MiB, {:.1} MB uplink so far",
+                        rss.map_or("?".into(), |m| format!("{m:.0}")),
+                        bytes as f64 / 1e6
+                    );
+                    if let Ok(mut samples) = minute_samples.lock() {
+                        samples.push((robot_minutes, rss, bytes));
+                    }
+                    next_minute += 1;
                 }
                 let depth = handles
                     .iter()
@@ -419,21 +492,33 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
             }
         })
     };
+    // Kept until the end (see the module's documentation); the robots stream shared references.
+    let prepared: Vec<Arc<Vec<PreparedSession>>> = prepared.into_iter().map(Arc::new).collect();
     let mut streams = Vec::new();
-    for (r, (robot, session)) in robots.iter().zip(prepared).enumerate() {
-        let stagger = seconds(2.0 * r as f64 / args.agents as f64);
-        let uploader = Uploader::new(
-            robot.uplink.clone(),
-            Outbox::in_memory(&site_id(robot.site)),
-            &site_id(robot.site),
-            &robot.id,
-            &format!("load-{}-cleaning", robot.id),
-        )?;
-        let site = robot.site;
+    for (r, (robot, sessions)) in robots.iter().zip(&prepared).enumerate() {
+        let robot_start = stream_started + seconds(2.0 * r as f64 / args.agents as f64);
+        let (uplink, site, id) = (robot.uplink.clone(), robot.site, robot.id.clone());
+        let sessions = Arc::clone(sessions);
         let glm_on_server = args.glm_on_server;
         streams.push(tokio::spawn(async move {
-            tokio::time::sleep(stagger).await;
-            stream_prepared(uploader, session, site, glm_on_server).await
+            let mut outcome = StreamOutcome::default();
+            // Sessions back to back on the robot's clock.
+            let mut session_start = robot_start;
+            for (j, session) in sessions.iter().enumerate() {
+                let uploader = Uploader::new(
+                    uplink.clone(),
+                    Outbox::in_memory(&site_id(site)),
+                    &site_id(site),
+                    &id,
+                    &format!("load-{id}-cleaning-{j}"),
+                )?;
+                outcome.add(
+                    stream_prepared(uploader, session, site, glm_on_server, session_start, speed)
+                        .await?,
+                );
+                session_start += seconds(session.duration_s / speed);
+            }
+            anyhow::Ok(outcome)
         }));
     }
     let mut outcomes = Vec::new();
@@ -495,6 +580,8 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
     let mut to_all = Vec::new();
     let mut to_ack = Vec::new();
     let mut undelivered = 0usize;
+    // (when the submap was finished, its latency to every robot of the site).
+    let mut latencies_by_finish: Vec<(Instant, f64)> = Vec::new();
     for timing in outcomes.iter().flat_map(|o| &o.submaps) {
         to_ack.push(timing.acked.duration_since(timing.finished).as_secs_f64());
         let reached: Option<Vec<Instant>> = robots
@@ -508,12 +595,45 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
             })
             .collect();
         match reached.and_then(|r| r.into_iter().max()) {
-            Some(last) => to_all.push(
-                last.saturating_duration_since(timing.finished)
-                    .as_secs_f64(),
-            ),
+            Some(last) => {
+                let latency = last
+                    .saturating_duration_since(timing.finished)
+                    .as_secs_f64();
+                to_all.push(latency);
+                latencies_by_finish.push((timing.finished, latency));
+            }
             None => undelivered += 1,
         }
+    }
+    // Figures per minute of robot time.
+    let robot_minute = |at: Instant| {
+        at.saturating_duration_since(stream_started).as_secs_f64() * args.speed / 60.0
+    };
+    let minute_inputs = MinuteInputs {
+        samples: minute_samples.lock().map(|s| s.clone()).unwrap_or_default(),
+        submap_latencies: latencies_by_finish
+            .iter()
+            .map(|&(finished, latency)| (robot_minute(finished), latency))
+            .collect(),
+        batch_acks: outcomes
+            .iter()
+            .flat_map(|o| &o.acks)
+            .map(|&at| robot_minute(at))
+            .collect(),
+    };
+    let minutes = (args.duration_s / 60.0).floor() as usize;
+    let figures = minute_figures::minute_figures(&minute_inputs, minutes);
+    let per_minute = minute_figures::report(&figures);
+    if figures.len() >= 2 {
+        let (w, h, pixels) = minute_figures::chart(
+            &figures,
+            &format!(
+                "{} robots, {} sites, {}x",
+                args.agents, args.sites, args.speed
+            ),
+            720,
+        );
+        map_image::write_rgb_png(&args.out.join("minutes.png"), w, h, &pixels)?;
     }
     let sites: BTreeMap<String, serde_json::Value> = (0..args.sites)
         .filter_map(|s| {
@@ -538,6 +658,9 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
         "robot_glm_matches": glm_matches,
         "sites": args.sites,
         "duration_s": args.duration_s,
+        "session_s": session_plan.first(),
+        "sessions_per_robot": session_plan.len(),
+        "speed": args.speed,
         "streaming_wall_s": streaming_s,
         "measured_wall_s": measured_s,
         "sessions_relocalized": relocalized,
@@ -545,7 +668,8 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
             "cpu_s": cpu_s,
             "cores_busy": cpu_s.map(|c| c / measured_s),
             "peak_rss_mb": peak_rss_mb(),
-            "note": "one process: server, the robots' replay and gRPC clients, and the followers",
+            "final_rss_mb": current_rss_mb(),
+            "note": "one process: server, the robots' replay and gRPC clients, the followers, and the prepared sessions (allocated before the measured phase)",
         },
         "uplink_bytes": bytes_in,
         "uplink_bytes_per_robot_second": bytes_in as f64 / data_seconds.max(1e-9),
@@ -565,6 +689,7 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
             "to_every_robot_of_the_site": quantiles(&mut to_all),
         },
         "resync_after_offline": resync,
+        "per_minute_of_robot_time": per_minute,
         "sites_final": sites,
         "robot_data_s": data_seconds,
         "wall_time_s": started.elapsed().as_secs_f64(),
@@ -574,6 +699,17 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
         .with_context(|| format!("cannot write {}", path.display()))?;
     server.shutdown().await?;
     let latency = &report["submap_latency_s"]["to_every_robot_of_the_site"];
+    let soak = &per_minute["after_warm_up"];
+    if let Some(slope) = soak["rss_slope_mb_per_minute"].as_f64() {
+        println!(
+            "after minute {}: RSS {:.0} -> {:.0} MiB, slope {slope:+.2} MiB per minute; p95 slope {:+.3} s per minute (chart: {})",
+            minute_figures::WARM_UP_MINUTES,
+            soak["rss_first_mb"].as_f64().unwrap_or(f64::NAN),
+            soak["rss_last_mb"].as_f64().unwrap_or(f64::NAN),
+            soak["p95_slope_s_per_minute"].as_f64().unwrap_or(f64::NAN),
+            args.out.join("minutes.png").display()
+        );
+    }
     println!(
         "load done: {} robots on {} sites for {} s; submap to every robot of the site p50 {:.2} s, p95 {:.2} s ({} submaps, {undelivered} undelivered); uplink {:.0} B per robot-second; server process {} cores busy, peak RSS {} MB; report in {}",
         args.agents,
@@ -595,6 +731,22 @@ fn seconds(s: f64) -> Duration {
     Duration::try_from_secs_f64(s).unwrap_or(Duration::ZERO)
 }
 
+/// Lengths of a robot's consecutive sessions, seconds of robot time: `duration_s` cut into sessions
+/// of `session_s` (the last one shorter), or one session of `duration_s`.
+fn session_lengths(duration_s: f64, session_s: Option<f64>) -> Vec<f64> {
+    let Some(session_s) = session_s.filter(|s| *s > 0.0) else {
+        return vec![duration_s];
+    };
+    let mut lengths = Vec::new();
+    let mut left = duration_s;
+    // Bounded: at most 3600 / 30 sessions with validated arguments.
+    while left > 1e-6 && lengths.len() < 10_000 {
+        lengths.push(left.min(session_s));
+        left -= session_s;
+    }
+    lengths
+}
+
 /// p50, p95 and max of `values` (sorted in place), `null` when empty.
 fn quantiles(values: &mut [f64]) -> serde_json::Value {
     if values.is_empty() {
@@ -605,15 +757,17 @@ fn quantiles(values: &mut [f64]) -> serde_json::Value {
     json!({ "p50": at(0.5), "p95": at(0.95), "max": values[values.len() - 1], "count": values.len() })
 }
 
-/// Streams a prepared session on its recording's clock.
+/// Streams a prepared session on its recording's clock divided by `speed`, starting at `start`.
 async fn stream_prepared(
     mut uploader: Uploader<GrpcUplink>,
-    session: PreparedSession,
+    session: &PreparedSession,
     site: usize,
     glm_on_server: bool,
+    start: Instant,
+    speed: f64,
 ) -> anyhow::Result<StreamOutcome> {
     let mut outcome = StreamOutcome::default();
-    let start = Instant::now();
+    tokio::time::sleep_until(start.into()).await;
     let first_time = session.steps.iter().flatten().find_map(|item| match item {
         UploadItem::NodeAdded(node) => Some(node.time),
         _ => None,
@@ -639,6 +793,7 @@ async fn stream_prepared(
         match uploader.flush().await {
             Ok(stats) => {
                 let acked = Instant::now();
+                outcome.acks.push(acked);
                 for at in finished.drain(..) {
                     outcome.submaps.push(SubmapTiming {
                         site,
@@ -663,7 +818,7 @@ async fn stream_prepared(
             _ => None,
         });
         let due = match (time, first_time) {
-            (Some(t), Some(t0)) => start + seconds(t.seconds_since(t0)),
+            (Some(t), Some(t0)) => start + seconds(t.seconds_since(t0) / speed),
             _ => Instant::now(),
         };
         tokio::time::sleep_until(due.into()).await;
@@ -689,7 +844,7 @@ async fn stream_prepared(
         }
     }
     // Until the recording's end, then the session ends.
-    tokio::time::sleep_until((start + seconds(session.duration_s)).into()).await;
+    tokio::time::sleep_until((start + seconds(session.duration_s / speed)).into()).await;
     batch.push(UploadItem::SessionEnd);
     send(
         &mut uploader,
@@ -749,5 +904,21 @@ async fn wait_caught_up(server: &RunningServer, robots: &[Robot], sites: usize) 
             return;
         }
         tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::session_lengths;
+
+    #[test]
+    fn a_duration_is_cut_into_back_to_back_sessions() {
+        assert_eq!(session_lengths(120.0, None), vec![120.0]);
+        assert_eq!(session_lengths(1800.0, Some(300.0)), vec![300.0; 6]);
+        assert_eq!(
+            session_lengths(700.0, Some(300.0)),
+            vec![300.0, 300.0, 100.0]
+        );
+        assert_eq!(session_lengths(100.0, Some(300.0)), vec![100.0]);
     }
 }

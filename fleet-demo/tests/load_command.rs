@@ -1,6 +1,8 @@
-//! `evermap-server load` on a tiny budget: one site, two robots, 15 s at real time. Checks that the
+//! `evermap-demo load` on a tiny budget: one site, two robots, 2 minutes of robot time each as two
+//! 60 s sessions back to back, replayed 8× faster than real time (15 s of streaming). Checks that the
 //! benchmark runs end to end and that its report is consistent (everything acknowledged, the offline
-//! robot's catch-up smaller than the whole map); the figures themselves are measured in BENCHMARKS.md.
+//! robot's catch-up smaller than the whole map, a row per minute of robot time with its memory and
+//! latency, and the chart); the figures themselves are measured in BENCHMARKS.md.
 
 use std::process::Command;
 
@@ -8,7 +10,7 @@ use std::process::Command;
 fn the_load_benchmark_streams_everything_and_reports_it() {
     let dir = tempfile::tempdir().expect("tempdir");
     let out = dir.path().join("load");
-    let status = Command::new(env!("CARGO_BIN_EXE_evermap-server"))
+    let status = Command::new(env!("CARGO_BIN_EXE_evermap-demo"))
         .args([
             "load",
             "--agents",
@@ -16,7 +18,11 @@ fn the_load_benchmark_streams_everything_and_reports_it() {
             "--sites",
             "1",
             "--duration-s",
-            "15",
+            "120",
+            "--session-s",
+            "60",
+            "--speed",
+            "8",
         ])
         .args(["--mapping-duration-s", "60"])
         .arg("--out")
@@ -35,11 +41,32 @@ fn the_load_benchmark_streams_everything_and_reports_it() {
         .as_f64()
         .expect("bytes");
     assert!(per_second > 100.0, "{per_second}");
-    // Mapping session and the two cleaning sessions.
+    // The mapping session and each robot's two cleaning sessions.
+    assert_eq!(report["sessions_per_robot"].as_u64(), Some(2));
     assert_eq!(
         report["sites_final"]["store-1"]["sessions"].as_u64(),
-        Some(3)
+        Some(5)
     );
+    // A row per minute of robot time, each with the memory at its end and the batches of that minute.
+    let minutes = report["per_minute_of_robot_time"]["minutes"]
+        .as_array()
+        .expect("minutes");
+    assert_eq!(minutes.len(), 2, "{minutes:?}");
+    for minute in minutes {
+        assert!(minute["rss_mb"].as_f64().expect("rss") > 10.0, "{minute}");
+        assert!(
+            minute["batches"].as_u64().expect("batches") >= 1,
+            "{minute}"
+        );
+        assert!(
+            minute["uplink_bytes"].as_u64().expect("bytes") > 0,
+            "{minute}"
+        );
+    }
+    let batches: u64 = minutes.iter().filter_map(|m| m["batches"].as_u64()).sum();
+    assert!(batches <= report["batches"].as_u64().expect("batches"));
+    let chart = std::fs::read(out.join("minutes.png")).expect("chart");
+    assert_eq!(&chart[1..4], b"PNG");
     let resync = &report["resync_after_offline"];
     assert!(
         resync["bytes"].as_u64().expect("bytes") < resync["whole_map_bytes"].as_u64().expect("all"),

@@ -1,0 +1,268 @@
+//! The load benchmark's figures per minute of robot time, what a soak is judged by: the process's
+//! resident memory at the end of each minute, the latency of the submaps finished in it (median and
+//! p95), and the throughput (batches acknowledged, uplink bytes); the least-squares slope of memory and
+//! p95 over the minutes after a warm-up, and a chart of both against time.
+
+use robot_agent::line_chart::{LineChart, Series};
+use serde_json::json;
+
+/// Minutes of robot time left out of the slopes (the map of every site is still growing into its
+/// steady state: robots start, submaps accumulate until the first trims).
+pub const WARM_UP_MINUTES: usize = 5;
+
+/// What was measured during one run, in robot time (minutes since the measured phase began).
+#[derive(Clone, Debug, Default)]
+pub struct MinuteInputs {
+    /// At the end of each minute: (minute of robot time, resident set size in MiB, uplink bytes the
+    /// server had received since the measured phase began).
+    pub samples: Vec<(f64, Option<f64>, u64)>,
+    /// Every finished submap: (minute of robot time it was finished, seconds until its version was in
+    /// every cache of its site).
+    pub submap_latencies: Vec<(f64, f64)>,
+    /// Minute of robot time of every acknowledged batch.
+    pub batch_acks: Vec<f64>,
+}
+
+/// The figures of one minute of robot time, `[minute, minute + 1)`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MinuteFigures {
+    /// Index of the minute, from 0.
+    pub minute: usize,
+    /// Resident set size of the process at the minute's end, MiB.
+    pub rss_mb: Option<f64>,
+    /// Median latency (finished on a robot → in every cache of the site) of the submaps finished in
+    /// the minute, seconds; `None` when none was.
+    pub latency_p50_s: Option<f64>,
+    /// The same, 95th percentile (nearest rank).
+    pub latency_p95_s: Option<f64>,
+    /// Submaps finished in the minute (delivered ones; the latencies' count).
+    pub submaps: usize,
+    /// Batches the server acknowledged in the minute.
+    pub batches: usize,
+    /// Uplink bytes the server received in the minute.
+    pub uplink_bytes: u64,
+}
+
+/// The per-minute table of `minutes` whole minutes.
+pub fn minute_figures(inputs: &MinuteInputs, minutes: usize) -> Vec<MinuteFigures> {
+    let in_minute = |t: f64, m: usize| t >= m as f64 && t < (m + 1) as f64;
+    let mut previous_bytes = 0;
+    (0..minutes)
+        .map(|m| {
+            let sample = inputs
+                .samples
+                .iter()
+                .filter(|(t, _, _)| (t - (m + 1) as f64).abs() < 0.5)
+                .min_by(|a, b| {
+                    (a.0 - (m + 1) as f64)
+                        .abs()
+                        .total_cmp(&(b.0 - (m + 1) as f64).abs())
+                });
+            let uplink_bytes = sample.map_or(0, |s| s.2.saturating_sub(previous_bytes));
+            if let Some(s) = sample {
+                previous_bytes = s.2;
+            }
+            let mut latencies: Vec<f64> = inputs
+                .submap_latencies
+                .iter()
+                .filter(|(t, _)| in_minute(*t, m))
+                .map(|(_, l)| *l)
+                .collect();
+            latencies.sort_by(f64::total_cmp);
+            MinuteFigures {
+                minute: m,
+                rss_mb: sample.and_then(|s| s.1),
+                latency_p50_s: quantile(&latencies, 0.5),
+                latency_p95_s: quantile(&latencies, 0.95),
+                submaps: latencies.len(),
+                batches: inputs
+                    .batch_acks
+                    .iter()
+                    .filter(|t| in_minute(**t, m))
+                    .count(),
+                uplink_bytes,
+            }
+        })
+        .collect()
+}
+
+/// Nearest-rank quantile of sorted values.
+fn quantile(sorted: &[f64], q: f64) -> Option<f64> {
+    if sorted.is_empty() {
+        return None;
+    }
+    Some(sorted[((sorted.len() - 1) as f64 * q).round() as usize])
+}
+
+/// Least-squares slope of `(x, y)` points, `None` with fewer than 2 distinct x.
+pub fn slope(points: &[(f64, f64)]) -> Option<f64> {
+    let n = points.len() as f64;
+    if points.len() < 2 {
+        return None;
+    }
+    let mean_x = points.iter().map(|p| p.0).sum::<f64>() / n;
+    let mean_y = points.iter().map(|p| p.1).sum::<f64>() / n;
+    let sxx: f64 = points.iter().map(|p| (p.0 - mean_x).powi(2)).sum();
+    let sxy: f64 = points.iter().map(|p| (p.0 - mean_x) * (p.1 - mean_y)).sum();
+    (sxx > 0.0).then(|| sxy / sxx)
+}
+
+/// The minutes after the warm-up as `(minute, value)` points (the minute's end, so minute 5 is the
+/// first full minute after it).
+fn after_warm_up(
+    figures: &[MinuteFigures],
+    value: impl Fn(&MinuteFigures) -> Option<f64>,
+) -> Vec<(f64, f64)> {
+    figures
+        .iter()
+        .filter(|f| f.minute >= WARM_UP_MINUTES)
+        .filter_map(|f| Some(((f.minute + 1) as f64, value(f)?)))
+        .collect()
+}
+
+/// The report's `minutes` array and its `after_warm_up` summary: slopes of RSS (MiB per minute) and of
+/// p95 latency (s per minute) over the minutes after the warm-up, with their first and last values.
+pub fn report(figures: &[MinuteFigures]) -> serde_json::Value {
+    let rss = after_warm_up(figures, |f| f.rss_mb);
+    let p95 = after_warm_up(figures, |f| f.latency_p95_s);
+    let rows: Vec<serde_json::Value> = figures
+        .iter()
+        .map(|f| {
+            json!({
+                "minute": f.minute,
+                "rss_mb": f.rss_mb,
+                "latency_p50_s": f.latency_p50_s,
+                "latency_p95_s": f.latency_p95_s,
+                "submaps": f.submaps,
+                "batches": f.batches,
+                "uplink_bytes": f.uplink_bytes,
+            })
+        })
+        .collect();
+    json!({
+        "minutes": rows,
+        "after_warm_up": {
+            "warm_up_minutes": WARM_UP_MINUTES,
+            "rss_slope_mb_per_minute": slope(&rss),
+            "rss_first_mb": rss.first().map(|p| p.1),
+            "rss_last_mb": rss.last().map(|p| p.1),
+            "rss_max_mb": rss.iter().map(|p| p.1).reduce(f64::max),
+            "p95_slope_s_per_minute": slope(&p95),
+            "p95_first_s": p95.first().map(|p| p.1),
+            "p95_last_s": p95.last().map(|p| p.1),
+            "p95_max_s": p95.iter().map(|p| p.1).reduce(f64::max),
+        },
+    })
+}
+
+/// Two charts stacked, `width` wide: resident memory per minute on top, median and p95 latency below.
+/// Returns `(width, height, rgb pixels)`.
+pub fn chart(figures: &[MinuteFigures], title: &str, width: u32) -> (u32, u32, Vec<u8>) {
+    let points = |value: &dyn Fn(&MinuteFigures) -> Option<f64>| -> Vec<(f64, f64)> {
+        figures
+            .iter()
+            .filter_map(|f| Some(((f.minute + 1) as f64, value(f)?)))
+            .collect()
+    };
+    let memory = LineChart {
+        title: format!("{title}: process RSS at the end of each minute"),
+        x_label: "minute of robot time".into(),
+        y_label: "MiB".into(),
+        series: vec![Series {
+            name: "RSS".into(),
+            color: [30, 90, 200],
+            points: points(&|f| f.rss_mb),
+        }],
+        y_min: Some(0.0),
+    };
+    let latency = LineChart {
+        title: "submap finished -> in every cache of its site, by the minute it was finished"
+            .into(),
+        x_label: "minute of robot time".into(),
+        y_label: "seconds".into(),
+        series: vec![
+            Series {
+                name: "p95".into(),
+                color: [200, 40, 40],
+                points: points(&|f| f.latency_p95_s),
+            },
+            Series {
+                name: "median".into(),
+                color: [0, 150, 0],
+                points: points(&|f| f.latency_p50_s),
+            },
+        ],
+        y_min: Some(0.0),
+    };
+    let (w, h_top, mut pixels) = memory.render(width, 360);
+    let (_, h_bottom, bottom) = latency.render(width, 360);
+    pixels.extend_from_slice(&bottom);
+    (w, h_top + h_bottom, pixels)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn minutes_bucket_latencies_batches_and_bytes() {
+        let inputs = MinuteInputs {
+            samples: vec![(1.0, Some(100.0), 1000), (2.01, Some(110.0), 2500)],
+            submap_latencies: vec![(0.2, 1.0), (0.9, 3.0), (0.5, 2.0), (1.5, 10.0)],
+            batch_acks: vec![0.1, 0.2, 1.9],
+        };
+        let figures = minute_figures(&inputs, 3);
+        assert_eq!(figures.len(), 3);
+        assert_eq!(figures[0].rss_mb, Some(100.0));
+        assert_eq!(figures[0].latency_p50_s, Some(2.0));
+        assert_eq!(figures[0].latency_p95_s, Some(3.0));
+        assert_eq!((figures[0].submaps, figures[0].batches), (3, 2));
+        assert_eq!(figures[0].uplink_bytes, 1000);
+        assert_eq!(figures[1].rss_mb, Some(110.0));
+        assert_eq!(figures[1].latency_p95_s, Some(10.0));
+        assert_eq!((figures[1].batches, figures[1].uplink_bytes), (1, 1500));
+        // No sample and no submap in the third minute.
+        assert_eq!(figures[2].rss_mb, None);
+        assert_eq!(figures[2].latency_p95_s, None);
+        assert_eq!(figures[2].uplink_bytes, 0);
+    }
+
+    #[test]
+    fn slope_is_least_squares_and_needs_two_points() {
+        let line: Vec<(f64, f64)> = (0..10)
+            .map(|x| (f64::from(x), 3.0 + 0.5 * f64::from(x)))
+            .collect();
+        assert!((slope(&line).expect("slope") - 0.5).abs() < 1e-12);
+        assert_eq!(slope(&line[..1]), None);
+        assert_eq!(slope(&[(1.0, 1.0), (1.0, 2.0)]), None);
+    }
+
+    #[test]
+    fn the_summary_ignores_the_warm_up() {
+        // Memory grows 50 MiB a minute during the warm-up, then stays flat.
+        let figures: Vec<MinuteFigures> = (0..12)
+            .map(|m| MinuteFigures {
+                minute: m,
+                rss_mb: Some(if m < WARM_UP_MINUTES {
+                    50.0 * m as f64
+                } else {
+                    300.0
+                }),
+                latency_p50_s: Some(1.0),
+                latency_p95_s: Some(2.0 + m as f64),
+                submaps: 1,
+                batches: 1,
+                uplink_bytes: 1,
+            })
+            .collect();
+        let summary = &report(&figures)["after_warm_up"];
+        assert_eq!(summary["rss_slope_mb_per_minute"].as_f64(), Some(0.0));
+        assert_eq!(summary["rss_first_mb"].as_f64(), Some(300.0));
+        assert!((summary["p95_slope_s_per_minute"].as_f64().expect("p95") - 1.0).abs() < 1e-12);
+        let (w, h, pixels) = chart(&figures, "test", 400);
+        assert_eq!((w, h), (400, 720));
+        assert_eq!(pixels.len(), 3 * 400 * 720);
+        // Something other than the white background was drawn.
+        assert!(pixels.iter().any(|&p| p != 255));
+    }
+}
