@@ -65,7 +65,7 @@ mod tests {
         let mut graph = PoseGraph::new();
         for i in 0..n {
             graph
-                .add_variable(node(i), rigid2(i as f64, 0.0, 0.0))
+                .add_variable(node(i), rigid2(f64::from(i), 0.0, 0.0))
                 .unwrap();
         }
         for i in 1..n {

@@ -20,22 +20,18 @@ pub(crate) fn symmetric_eigen(m: &DMatrix<f64>) -> SymmetricEigen {
     let n = m.nrows();
     let symmetric = 0.5 * (m + m.transpose());
     let view = MatRef::from_column_major_slice(symmetric.as_slice(), n, n);
-    match view.self_adjoint_eigen(Side::Lower) {
-        Ok(eigen) => {
-            let u = eigen.U();
-            let s = eigen.S().column_vector();
-            SymmetricEigen {
-                eigenvalues: DVector::from_fn(n, |i, _| s[i]),
-                eigenvectors: DMatrix::from_fn(n, n, |i, j| u[(i, j)]),
-            }
-        }
-        Err(_) => {
-            let eigen = symmetric.symmetric_eigen();
-            SymmetricEigen {
-                eigenvalues: eigen.eigenvalues,
-                eigenvectors: eigen.eigenvectors,
-            }
-        }
+    if let Ok(eigen) = view.self_adjoint_eigen(Side::Lower) {
+        let u = eigen.U();
+        let s = eigen.S().column_vector();
+        return SymmetricEigen {
+            eigenvalues: DVector::from_fn(n, |i, _| s[i]),
+            eigenvectors: DMatrix::from_fn(n, n, |i, j| u[(i, j)]),
+        };
+    }
+    let eigen = symmetric.symmetric_eigen();
+    SymmetricEigen {
+        eigenvalues: eigen.eigenvalues,
+        eigenvectors: eigen.eigenvectors,
     }
 }
 
