@@ -1,14 +1,16 @@
 //! # tests — evermap's end-to-end tests
 //!
-//! Shared helpers for the integration tests under `tests/tests/` ([`CuttableLink`], [`free_port`]), and the decoder fuzz harness ([`fuzz`],
+//! Shared helpers for the integration tests under `tests/tests/` ([`CuttableLink`], [`free_port`], [`OneRobotSite`]), and the decoder fuzz harness ([`fuzz`],
 //! run by the `evermap-fuzz` binary and by `tests/tests/fuzz_decoders.rs`).
 
 use std::path::PathBuf;
 
 mod cuttable_link;
 pub mod fuzz;
+mod one_robot_site;
 
 pub use cuttable_link::CuttableLink;
+pub use one_robot_site::{NodePoses, OneRobotSite};
 
 /// The shared data sets folder, `../shared/datasets` next to the repository root. Found by walking up from
 /// this crate, so that it works from the main checkout (`/work/main`) and from worktrees one level deeper

@@ -9,75 +9,22 @@
 //! The same on a real tmpfs: `tests/tests/disk_full_tmpfs_fleet.rs` (needs root). Every wait is bounded.
 
 use std::sync::{Arc, Mutex};
-use std::time::Duration;
 
-use mapping::geometry::{Rigid2, rigid2};
-use mapping::pose_graph::NodeId;
-use mapping::sensor::Timestamp;
-use nalgebra::Point2;
 use prost::Message as _;
-use proto::{NodeAdded, UploadItem, pb};
-use robot_agent::outbox::Outbox;
-use robot_agent::uplink::{GrpcUplink, UplinkError, Uploader};
+use proto::pb;
+use robot_agent::uplink::UplinkError;
+use server::RunningServer;
 use server::site::SITE_LOG_KIND;
-use server::{RobotConfig, RunningServer, ServerConfig, SiteConfig};
 use storage::{DiskFullStore, FailAt, MapStore, MemStore};
+use tests::OneRobotSite;
 
 const SITE: &str = "store-wedged";
 const TOKEN: &str = "token-wedged-r1";
 
-fn node(i: i64) -> Vec<UploadItem> {
-    vec![UploadItem::NodeAdded(NodeAdded {
-        time: Timestamp(i * 100_000_000),
-        local_pose: rigid2(0.1 * i as f64, 0.0, 0.0),
-        points: vec![Point2::new(1.0, 0.5), Point2::new(2.0, 0.0)],
-        insertion_submaps: vec![(0, rigid2(0.0, 0.0, 0.0))],
-    })]
-}
-
-fn config() -> ServerConfig {
-    ServerConfig {
-        listen: "127.0.0.1:0".parse().expect("addr"),
-        metrics_listen: None,
-        sites: vec![SiteConfig {
-            id: SITE.into(),
-            robots: vec![RobotConfig {
-                id: "r1".into(),
-                token: TOKEN.into(),
-            }],
-        }],
-        ..ServerConfig::default()
-    }
-}
-
-fn uploader(server: &RunningServer) -> Uploader<GrpcUplink> {
-    let url = format!("http://{}", server.grpc_addr());
-    let uplink =
-        GrpcUplink::new(&url, SITE, TOKEN, 4 << 20, Duration::from_secs(10)).expect("uplink");
-    Uploader::new(uplink, Outbox::in_memory(SITE), SITE, "r1", "s-1").expect("uploader")
-}
-
-type NodePoses = std::collections::BTreeMap<NodeId, Rigid2>;
-
-/// The node poses of a server fed nodes 1..=5 of one session without faults.
-async fn uninterrupted() -> NodePoses {
-    let server = RunningServer::start(&config(), Arc::new(MemStore::new()))
-        .await
-        .expect("server");
-    let mut robot = uploader(&server);
-    for i in 1..=5 {
-        robot.enqueue(&node(i)).expect("enqueue");
-    }
-    robot.flush().await.expect("flush");
-    let poses = server
-        .site(SITE)
-        .expect("site")
-        .node_poses()
-        .await
-        .expect("poses");
-    server.shutdown().await.expect("shutdown");
-    poses
-}
+const FIXTURE: OneRobotSite = OneRobotSite {
+    site: SITE,
+    token: TOKEN,
+};
 
 /// The sequence numbers of the uploads in the site's log, in log order.
 fn logged_seqs(store: &dyn MapStore) -> Vec<u64> {
@@ -101,10 +48,10 @@ fn logged_seqs(store: &dyn MapStore) -> Vec<u64> {
 // in place (no restart) with sled's wedged-until-reopened store.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_store_wedged_by_a_full_disk_recovers_in_place_and_nothing_is_lost_or_doubled() {
-    let expected = uninterrupted().await;
+    let expected = FIXTURE.uninterrupted().await;
     let disk = Arc::new(DiskFullStore::new(Arc::new(MemStore::new()), FailAt::Wedge));
     let store = Arc::clone(&disk) as Arc<dyn MapStore>;
-    let server = RunningServer::start(&config(), Arc::clone(&store))
+    let server = RunningServer::start(&FIXTURE.config(), Arc::clone(&store))
         .await
         .expect("server");
     let site = server.site(SITE).expect("site").clone();
@@ -120,15 +67,15 @@ async fn a_store_wedged_by_a_full_disk_recovers_in_place_and_nothing_is_lost_or_
             }
         })
     };
-    let mut robot = uploader(&server);
-    robot.enqueue(&node(1)).expect("enqueue");
-    robot.enqueue(&node(2)).expect("enqueue");
+    let mut robot = FIXTURE.uploader(&server, "s-1");
+    robot.enqueue(&OneRobotSite::node(1)).expect("enqueue");
+    robot.enqueue(&OneRobotSite::node(2)).expect("enqueue");
     assert_eq!(robot.flush().await.expect("flush").applied, 2);
     let before = site.current();
 
     disk.fill();
-    robot.enqueue(&node(3)).expect("enqueue");
-    robot.enqueue(&node(4)).expect("enqueue");
+    robot.enqueue(&OneRobotSite::node(3)).expect("enqueue");
+    robot.enqueue(&OneRobotSite::node(4)).expect("enqueue");
     for _ in 0..3 {
         match robot.flush().await {
             Err(UplinkError::Unavailable(message)) => assert!(
@@ -147,7 +94,7 @@ async fn a_store_wedged_by_a_full_disk_recovers_in_place_and_nothing_is_lost_or_
 
     // Space returns: the same server recovers (bounded retries, as the robot's would be).
     disk.free();
-    robot.enqueue(&node(5)).expect("enqueue");
+    robot.enqueue(&OneRobotSite::node(5)).expect("enqueue");
     let mut refusals = 0;
     for attempt in 1..=5 {
         match robot.flush().await {
@@ -183,7 +130,7 @@ async fn a_store_wedged_by_a_full_disk_recovers_in_place_and_nothing_is_lost_or_
     );
 
     // A restart replays the store's log to the same map.
-    let server = RunningServer::start(&config(), store)
+    let server = RunningServer::start(&FIXTURE.config(), store)
         .await
         .expect("restart");
     let site = server.site(SITE).expect("site");
