@@ -893,15 +893,11 @@ impl GlobalSlam {
         if self.unanchored.contains(&trajectory) || !self.last_node.contains_key(&trajectory) {
             return false;
         }
-        let of = |id: VariableId| match id {
-            VariableId::Node(n) => n.trajectory,
-            VariableId::Submap(s) => s.trajectory,
-        };
         let crossing: Vec<_> = self
             .graph
             .constraints()
             .filter(|(_, c)| {
-                let (a, b) = (of(c.from), of(c.to));
+                let (a, b) = (c.from.trajectory(), c.to.trajectory());
                 a != b && (a == trajectory || b == trajectory)
             })
             .map(|(id, _)| id)
@@ -947,10 +943,7 @@ impl GlobalSlam {
         let variables: Vec<(VariableId, Rigid2)> = self
             .graph
             .variables()
-            .filter(|(id, _, _)| match id {
-                VariableId::Node(n) => n.trajectory == trajectory,
-                VariableId::Submap(s) => s.trajectory == trajectory,
-            })
+            .filter(|(id, _, _)| id.trajectory() == trajectory)
             .map(|(id, pose, _)| (id, pose))
             .collect();
         for (id, pose) in variables {
@@ -1029,15 +1022,11 @@ impl GlobalSlam {
         if self.settled.is_empty() {
             return Vec::new();
         }
-        let trajectory = |id: &VariableId| match id {
-            VariableId::Node(n) => n.trajectory,
-            VariableId::Submap(s) => s.trajectory,
-        };
         let seeds: Vec<VariableId> = self
             .graph
             .variables()
             .map(|(id, _, _)| id)
-            .filter(|id| !self.settled.contains(&trajectory(id)))
+            .filter(|id| !self.settled.contains(&id.trajectory()))
             .chain(
                 self.graph
                     .constraints_since(self.new_constraints_from)
@@ -1175,10 +1164,7 @@ impl GlobalSlam {
         let ids: Vec<VariableId> = self
             .graph
             .variables()
-            .filter(|(id, _, _)| match id {
-                VariableId::Node(n) => n.trajectory == trajectory,
-                VariableId::Submap(s) => s.trajectory == trajectory,
-            })
+            .filter(|(id, _, _)| id.trajectory() == trajectory)
             .map(|(id, _, _)| id)
             .collect();
         for id in ids {

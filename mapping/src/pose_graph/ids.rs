@@ -29,6 +29,16 @@ pub enum VariableId {
     Submap(SubmapId),
 }
 
+impl VariableId {
+    /// The trajectory the node or submap belongs to.
+    pub fn trajectory(&self) -> u32 {
+        match self {
+            Self::Node(n) => n.trajectory,
+            Self::Submap(s) => s.trajectory,
+        }
+    }
+}
+
 impl From<NodeId> for VariableId {
     fn from(id: NodeId) -> Self {
         Self::Node(id)
