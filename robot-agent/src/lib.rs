@@ -3,6 +3,7 @@
 //! Data sources (ROS1 bags, ROS 2 recordings, CARMEN logs), the offline tools built on the `mapping`
 //! core, and the uplink to the fleet map server (durable outbox, gRPC, the global submap cache).
 
+pub mod agent_config;
 pub mod lifelong_run;
 pub mod line_chart;
 pub mod map_image;

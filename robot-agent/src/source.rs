@@ -10,7 +10,7 @@ mod mcap_storage;
 mod recording;
 pub mod rmw_zenoh;
 mod ros2_live;
-mod ros2_messages;
+pub mod ros2_messages;
 pub mod ros2_nav_messages;
 mod ros_collector;
 mod ros_definitions;
@@ -29,8 +29,9 @@ pub use cdr_writer::CdrWriter;
 pub use recording::{ReadReport, Recording};
 pub use ros_messages::DecodeError;
 pub use ros2_live::{
-    LiveRos2Source, LiveStats, OdometryHistory, Ros2LiveError, Ros2LiveOptions, StreamEnd,
-    TopicCounts, own_gid_prefix,
+    ArrivalCounters, LiveDecoder, LiveRos2Source, LiveStats, MAX_TRACKED_PUBLISHERS,
+    OdometryHistory, Ros2LiveError, Ros2LiveOptions, StreamEnd, TopicCounts, decode_samples,
+    own_gid_prefix,
 };
 pub use rosbag1_writer::{BagWriteError, write_bag};
 pub use sensor_stream::{RecordingStream, SensorStream};

@@ -8,33 +8,7 @@
 //! maps a new session. It does not resume the old one: the LLO state that session's nodes and active
 //! submaps live in died with the process (see `robot_agent::uplink::Uploader`).
 //!
-//! ```toml
-//! server_url = "http://127.0.0.1:50051"
-//! site = "store-1"
-//! robot_id = "robot-1"
-//! token = "change-me"
-//! source = "../shared/datasets/rosbag1/mit-csail.orig.bag"
-//! replay_speed = 1.0        # multiple of real time; 0 = as fast as possible
-//! outbox_dir = "./evermap-outbox"
-//!
-//! # Optional, gRPC over TLS: server_url = "https://..." and the CA that signed the server's certificate.
-//! # tls_ca_pem = "/etc/evermap/ca.pem"
-//!
-//! # Optional: reach the server through zenoh (routers or its zenoh endpoint) instead of gRPC.
-//! [zenoh]
-//! connect = ["tcp/127.0.0.1:7447"]
-//!
-//! # Optional, instead of `source`: a live ROS 2 robot over zenoh (rmw_zenoh, no ROS install); the
-//! # session ends `until_idle_s` after the last scan (and `run` with it). Each new site map version is
-//! # published back on /map, and, once the session is placed on the site map, each node's global pose
-//! # (`[ros2.publish]`: pose topic, frames). See `robot_agent::source::Ros2LiveOptions` for every field.
-//! [ros2]
-//! domain_id = 0
-//! scan_topic = "/scan"
-//! odom_topic = "/odom"
-//! [ros2.zenoh]
-//! connect = ["tcp/127.0.0.1:7447"]   # the robot's rmw_zenoh router
-//! ```
+//! The configuration file: [`robot_agent::agent_config::AgentConfig`] (its module docs show one).
 
 use std::fmt::Write as _;
 use std::path::PathBuf;
@@ -44,152 +18,23 @@ use std::time::Duration;
 use anyhow::Context as _;
 use clap::Args;
 use mapping::lifelong::RelocalizationOptions;
-use mapping::local_slam::LocalTrajectoryBuilderOptions;
 use rand::RngCore as _;
+use robot_agent::agent_config::AgentConfig;
 use robot_agent::outbox::Outbox;
 use robot_agent::ros2_publisher::{PublishStats, Ros2Publisher, odom_from_base_at};
 use robot_agent::source::{self, LiveRos2Source, OdometryHistory, Ros2LiveOptions};
 use robot_agent::uplink::{
     ClientTls, FleetUplink, GlobalSubmapCache, GrpcUplink, MapUplink as _, SessionInput,
-    SessionOptions, SessionStart, Uploader, ZenohLinkOptions, ZenohUplink, follow_site,
+    SessionOptions, SessionStart, Uploader, ZenohUplink, follow_site,
     stream_session_from,
 };
-use serde::Deserialize;
 
 /// Arguments of `run`.
 #[derive(Args)]
 pub struct RunArgs {
-    /// The agent's TOML configuration (see [`AgentConfig`]).
+    /// The agent's TOML configuration (see `robot_agent::agent_config::AgentConfig`).
     #[arg(long)]
     config: PathBuf,
-}
-
-/// Everything `evermap-agent run` reads from its TOML file.
-#[derive(Clone, Debug, PartialEq, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct AgentConfig {
-    /// The map server's gRPC URL. Default `http://127.0.0.1:50051`.
-    pub server_url: String,
-    /// The site (store) this robot maps. Required.
-    pub site: String,
-    /// This robot's id. Required.
-    pub robot_id: String,
-    /// This robot's bearer token for the site. Required.
-    pub token: String,
-    /// The recording to replay: a ROS1 bag, a ROS 2 recording (rosbag2 folder, `metadata.yaml`, `.mcap`
-    /// or `.db3`) or a CARMEN log. Required unless `[ros2]` is given.
-    pub source: PathBuf,
-    /// A live ROS 2 robot over zenoh instead of `source` (`[ros2]`). Default none.
-    pub ros2: Option<Ros2LiveOptions>,
-    /// Replay pace as a multiple of real time; 0 = as fast as possible. Default 1.
-    pub replay_speed: f64,
-    /// Stop after this many scans (all by default).
-    pub max_scans: Option<usize>,
-    /// Outbox database directory. Default `./evermap-outbox`.
-    pub outbox_dir: PathBuf,
-    /// Session uuid; a random one by default. A uuid is used once: a session interrupted by a crash is
-    /// ended by the next run, which maps a new one.
-    pub session_uuid: Option<String>,
-    /// Nodes per upload batch. Default 10.
-    pub nodes_per_batch: usize,
-    /// Largest gRPC message, bytes (match the server's). Default 64 MiB.
-    pub max_message_bytes: usize,
-    /// Timeout of one gRPC call, seconds. Default 30.
-    pub call_timeout_s: f64,
-    /// Pause between retries while the server is unreachable, seconds. Default 1.
-    pub retry_interval_s: f64,
-    /// After the recording, how long to keep trying to deliver the outbox, seconds. Default 300.
-    pub final_flush_timeout_s: f64,
-    /// LLO settings.
-    pub local: LocalTrajectoryBuilderOptions,
-    /// The CA certificate (PEM file) that signed the server's TLS certificate: gRPC over TLS (use an
-    /// `https://` `server_url`). Default none: plaintext.
-    pub tls_ca_pem: Option<PathBuf>,
-    /// The server name in its certificate, when it differs from `server_url`'s host. Default none.
-    pub tls_domain: Option<String>,
-    /// Reach the server through zenoh with these settings (`[zenoh]`: `mode`, `listen`, `connect`,
-    /// `multicast_scouting`, and `[zenoh.tls]` for mutual TLS) instead of gRPC at `server_url`.
-    /// Default none: gRPC.
-    pub zenoh: Option<ZenohLinkOptions>,
-}
-
-impl Default for AgentConfig {
-    fn default() -> Self {
-        Self {
-            server_url: "http://127.0.0.1:50051".into(),
-            site: String::new(),
-            robot_id: String::new(),
-            token: String::new(),
-            source: PathBuf::new(),
-            replay_speed: 1.0,
-            max_scans: None,
-            outbox_dir: PathBuf::from("./evermap-outbox"),
-            session_uuid: None,
-            nodes_per_batch: 10,
-            max_message_bytes: 64 << 20,
-            call_timeout_s: 30.0,
-            retry_interval_s: 1.0,
-            final_flush_timeout_s: 300.0,
-            local: LocalTrajectoryBuilderOptions::default(),
-            tls_ca_pem: None,
-            tls_domain: None,
-            zenoh: None,
-            ros2: None,
-        }
-    }
-}
-
-fn seconds(name: &str, value: f64) -> anyhow::Result<Duration> {
-    Duration::try_from_secs_f64(value)
-        .ok()
-        .filter(|d| !d.is_zero())
-        .with_context(|| format!("{name} must be a positive number of seconds, got {value}"))
-}
-
-impl AgentConfig {
-    /// Checks every field.
-    pub fn validate(&self) -> anyhow::Result<()> {
-        for (name, value) in [
-            ("site", &self.site),
-            ("robot_id", &self.robot_id),
-            ("token", &self.token),
-        ] {
-            anyhow::ensure!(!value.is_empty(), "{name} is required");
-        }
-        match &self.ros2 {
-            Some(ros2) => {
-                anyhow::ensure!(
-                    self.source.as_os_str().is_empty(),
-                    "give either source (a recording) or [ros2] (a live robot), not both"
-                );
-                ros2.validate()?;
-            }
-            None => anyhow::ensure!(
-                !self.source.as_os_str().is_empty(),
-                "source is required (or a [ros2] section for a live robot)"
-            ),
-        }
-        anyhow::ensure!(
-            self.replay_speed.is_finite() && self.replay_speed >= 0.0,
-            "replay_speed must be ≥ 0"
-        );
-        anyhow::ensure!(
-            self.nodes_per_batch > 0,
-            "nodes_per_batch must be at least 1"
-        );
-        anyhow::ensure!(
-            self.max_message_bytes >= 1 << 20,
-            "max_message_bytes must be at least 1 MiB"
-        );
-        seconds("call_timeout_s", self.call_timeout_s)?;
-        seconds("retry_interval_s", self.retry_interval_s)?;
-        seconds("final_flush_timeout_s", self.final_flush_timeout_s)?;
-        self.local.validate()?;
-        if let Some(zenoh) = &self.zenoh {
-            zenoh.validate()?;
-        }
-        Ok(())
-    }
 }
 
 /// A random (version 4) UUID.
@@ -219,9 +64,9 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         .init();
     let text = std::fs::read_to_string(&args.config)
         .with_context(|| format!("cannot read {}", args.config.display()))?;
-    let config: AgentConfig =
-        toml::from_str(&text).with_context(|| format!("in {}", args.config.display()))?;
-    config.validate()?;
+    let config = AgentConfig::from_toml(&text)
+        .and_then(|config| config.validate().map(|()| config))
+        .with_context(|| format!("in {}", args.config.display()))?;
     let (input, live_session) = match &config.ros2 {
         Some(ros2) => {
             let live = LiveRos2Source::open(ros2, ros2.stream_end())?;
@@ -248,8 +93,8 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
          session_uuid from {} (or choose a new one); the next run ends the interrupted session",
         args.config.display()
     );
-    let call_timeout = seconds("call_timeout_s", config.call_timeout_s)?;
-    let retry_interval = seconds("retry_interval_s", config.retry_interval_s)?;
+    let call_timeout = config.call_timeout()?;
+    let retry_interval = config.retry_interval()?;
     let (node_poses, node_pose_receiver) = tokio::sync::mpsc::channel(64);
     let options = SessionOptions {
         node_poses: live_session
@@ -260,7 +105,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         replay_speed: config.replay_speed,
         max_scans: config.max_scans,
         retry_interval,
-        final_flush_timeout: seconds("final_flush_timeout_s", config.final_flush_timeout_s)?,
+        final_flush_timeout: config.final_flush_timeout()?,
         local: config.local.clone(),
         ..SessionOptions::default()
     };
@@ -529,58 +374,10 @@ mod tests {
     use super::*;
 
     #[test]
-    fn configs_need_their_identity_and_parse_strictly() {
-        let text = "site = \"s\"\nrobot_id = \"r\"\ntoken = \"t0k3n-t0k3n\"\nsource = \"x.bag\"\n";
-        let config: AgentConfig = toml::from_str(text).unwrap();
-        config.validate().unwrap();
-        assert!(AgentConfig::default().validate().is_err());
-        assert!(toml::from_str::<AgentConfig>("sight = \"s\"").is_err());
+    fn random_uuids_are_version_4_and_differ() {
         let uuid = random_uuid();
         assert_eq!(uuid.len(), 36);
         assert_eq!(&uuid[14..15], "4");
         assert_ne!(uuid, random_uuid());
-    }
-
-    #[test]
-    fn a_ros2_section_replaces_the_source() {
-        let identity = "site = \"s\"\nrobot_id = \"r\"\ntoken = \"t0k3n-t0k3n\"\n";
-        let live = format!(
-            "{identity}[ros2]\ndomain_id = 7\nscan_topic = \"/base/scan\"\n[ros2.publish]\npose_topic = \"/amcl_pose\"\n"
-        );
-        let config: AgentConfig = toml::from_str(&live).unwrap();
-        config.validate().unwrap();
-        let ros2 = config.ros2.unwrap();
-        assert_eq!(
-            (ros2.domain_id, ros2.scan_topic.as_str()),
-            (7, "/base/scan")
-        );
-        assert_eq!(ros2.publish.pose_topic, "/amcl_pose");
-        let both = format!("{identity}source = \"x.bag\"\n[ros2]\n");
-        let config: AgentConfig = toml::from_str(&both).unwrap();
-        assert!(
-            config
-                .validate()
-                .unwrap_err()
-                .to_string()
-                .contains("not both")
-        );
-        let bad_topic = format!("{identity}[ros2]\nodom_topic = \"odom\"\n");
-        let config: AgentConfig = toml::from_str(&bad_topic).unwrap();
-        assert!(config.validate().is_err());
-    }
-
-    #[test]
-    fn deploy_agent_configs_are_valid() {
-        for n in 1..=2 {
-            let path = format!("{}/../deploy/agent-{n}.toml", env!("CARGO_MANIFEST_DIR"));
-            let text = std::fs::read_to_string(&path).unwrap();
-            let config: AgentConfig = toml::from_str(&text).unwrap();
-            config.validate().unwrap();
-            assert_eq!(config.robot_id, format!("robot-{n}"));
-            assert!(
-                config.zenoh.is_some(),
-                "the deployed agents go through zenohd"
-            );
-        }
     }
 }

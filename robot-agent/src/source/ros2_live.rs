@@ -20,19 +20,23 @@
 //! - **The end**: the stream ends `until_idle_s` seconds (wall time) after the last scan arrived, or if no
 //!   scan arrives within `start_timeout_s`; everything still buffered is then handed on.
 
-use std::collections::{BTreeMap, HashMap};
+mod arrival_counters;
+mod live_decoder;
+
+use std::collections::BTreeMap;
 use std::sync::mpsc;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use mapping::geometry::Rigid2;
-use mapping::sensor::{LloCollator, SensorEvent, Timestamp};
+use mapping::sensor::SensorEvent;
 use serde::{Deserialize, Serialize};
 use zenoh::Wait as _;
 
-use super::rmw_zenoh::{self, Attachment};
-use super::ros_collector::{RosCollector, RosKind};
-use super::rosbag2::CDR_DECODERS;
+pub use arrival_counters::{ArrivalCounters, MAX_TRACKED_PUBLISHERS};
+pub use live_decoder::{LiveDecoder, decode_samples};
+
+use super::rmw_zenoh;
 use super::sensor_stream::SensorStream;
 use crate::uplink::ZenohLinkOptions;
 
@@ -162,8 +166,9 @@ impl Ros2LiveOptions {
         }
     }
 
-    /// The topics subscribed to, with their types.
-    fn topics(&self) -> Vec<(String, &'static str)> {
+    /// The topics subscribed to, with their types, in the order of their indices (scan, odometry, tf,
+    /// tf_static, then the IMU if any).
+    pub fn topics(&self) -> Vec<(String, &'static str)> {
         let mut topics = vec![
             (self.scan_topic.clone(), rmw_zenoh::LASER_SCAN.name),
             (self.odom_topic.clone(), rmw_zenoh::ODOMETRY.name),
@@ -269,62 +274,23 @@ struct Incoming {
     payload: Vec<u8>,
 }
 
-/// Counters the zenoh callbacks update.
-#[derive(Default)]
-struct Shared {
-    received: Vec<u64>,
-    dropped_queue_full: Vec<u64>,
-    last_sequence: HashMap<(usize, [u8; 16]), i64>,
-    missed_by_sequence: Vec<u64>,
-    attachment_invalid: Vec<u64>,
-}
-
-/// A live ROS 2 robot as a [`SensorStream`] (see the module docs).
+/// A live ROS 2 robot as a [`SensorStream`] (see the module docs): zenoh's callbacks count each sample
+/// ([`ArrivalCounters`]) and queue it; [`LiveDecoder`] decodes and re-sorts them on the caller's thread.
 pub struct LiveRos2Source {
     session: zenoh::Session,
     _subscribers: Vec<zenoh::pubsub::Subscriber<()>>,
     receiver: mpsc::Receiver<Incoming>,
-    shared: Arc<Mutex<Shared>>,
-    topics: Vec<(String, RosKind)>,
-    decoded: Vec<u64>,
-    malformed: Vec<u64>,
-    collector: RosCollector,
-    options: Ros2LiveOptions,
+    arrivals: Arc<Mutex<ArrivalCounters>>,
+    decoder: LiveDecoder,
     end: StreamEnd,
     started: Instant,
     last_scan_at: Option<Instant>,
-    /// Events by (stamp, arrival), waiting for the reorder window.
-    buffer: BTreeMap<(Timestamp, u64), SensorEvent>,
-    arrivals: u64,
-    newest: Option<Timestamp>,
-    first_scan: Option<Timestamp>,
-    mount: Option<(Rigid2, String)>,
-    last_out: [Option<Timestamp>; 3],
-    collator: LloCollator<SensorEvent>,
-    ready: std::collections::VecDeque<SensorEvent>,
     finished: bool,
-    dropped_late: u64,
-    repeated_stamp: u64,
-    events_out: u64,
-    scans_out: u64,
-    newest_out: Option<Timestamp>,
-    odometry: OdometryHistory,
 }
 
-/// The latest odometry readings handed on (at most [`ODOMETRY_HISTORY`]), shared with whoever needs
-/// `odom_from_base` at a past stamp (the `map -> odom` publisher).
+/// The latest odometry readings handed on (at most 512), shared with whoever needs `odom_from_base` at a
+/// past stamp (the `map -> odom` publisher).
 pub type OdometryHistory = Arc<Mutex<std::collections::VecDeque<mapping::sensor::OdometryReading>>>;
-
-/// Readings kept in an [`OdometryHistory`].
-const ODOMETRY_HISTORY: usize = 512;
-
-fn stream_of(event: &SensorEvent) -> usize {
-    match event {
-        SensorEvent::Scan(_) => 0,
-        SensorEvent::Odometry(_) => 1,
-        SensorEvent::Imu(_) => 2,
-    }
-}
 
 /// The first 12 bytes of every GID this session's publishers use (`ros2_publisher` builds them so).
 pub fn own_gid_prefix(zid: &zenoh::session::ZenohId) -> [u8; 12] {
@@ -351,102 +317,45 @@ impl LiveRos2Source {
             .map_err(|e| Ros2LiveError::Zenoh(format!("cannot open a session: {e}")))?;
         let (sender, receiver) = mpsc::sync_channel(options.queue_capacity);
         let topics = options.topics();
-        let shared = Arc::new(Mutex::new(Shared {
-            received: vec![0; topics.len()],
-            dropped_queue_full: vec![0; topics.len()],
-            missed_by_sequence: vec![0; topics.len()],
-            attachment_invalid: vec![0; topics.len()],
-            last_sequence: HashMap::new(),
-        }));
+        let arrivals = Arc::new(Mutex::new(ArrivalCounters::new(topics.len())));
         let mut subscribers = Vec::with_capacity(topics.len());
         for (index, (topic, ros_type)) in topics.iter().enumerate() {
             let key = rmw_zenoh::topic_key(options.domain_id, topic, ros_type, "*")?;
             let sender = sender.clone();
-            let shared = Arc::clone(&shared);
+            let arrivals = Arc::clone(&arrivals);
             let own = own_gid_prefix(&session.zid());
             let subscriber = session
                 .declare_subscriber(key.clone())
                 .callback(move |sample| {
-                    let attachment = sample
-                        .attachment()
-                        .map(|a| Attachment::decode(&a.to_bytes()));
-                    // The agent's own publications (its `map -> odom` on /tf) are not input.
-                    if let Some(Ok(a)) = &attachment
-                        && a.source_gid[..12] == own
-                    {
-                        return;
-                    }
-                    let Ok(mut shared) = shared.lock() else {
+                    let attachment = sample.attachment().map(|a| a.to_bytes());
+                    let Ok(mut arrivals) = arrivals.lock() else {
                         return;
                     };
-                    let shared = &mut *shared;
-                    shared.received[index] += 1;
-                    match attachment {
-                        Some(Ok(a)) => {
-                            let last = shared
-                                .last_sequence
-                                .insert((index, a.source_gid), a.sequence_number);
-                            if let Some(last) = last
-                                && a.sequence_number > last.saturating_add(1)
-                            {
-                                shared.missed_by_sequence[index] +=
-                                    u64::try_from(a.sequence_number - last - 1).unwrap_or(0);
-                            }
-                        }
-                        _ => shared.attachment_invalid[index] += 1,
+                    if !arrivals.arrive(index, attachment.as_deref(), &own) {
+                        return;
                     }
                     let incoming = Incoming {
                         topic: index,
                         payload: sample.payload().to_bytes().into_owned(),
                     };
                     if let Err(mpsc::TrySendError::Full(_)) = sender.try_send(incoming) {
-                        shared.dropped_queue_full[index] += 1;
+                        arrivals.dropped_queue_full(index);
                     }
                 })
                 .wait()
                 .map_err(|e| Ros2LiveError::Zenoh(format!("cannot subscribe to {key}: {e}")))?;
             subscribers.push(subscriber);
         }
-        let kinds = topics
-            .iter()
-            .map(|(topic, ros_type)| {
-                let kind = match *ros_type {
-                    t if t == rmw_zenoh::LASER_SCAN.name => RosKind::Scan,
-                    t if t == rmw_zenoh::ODOMETRY.name => RosKind::Odometry,
-                    t if t == rmw_zenoh::IMU.name => RosKind::Imu,
-                    _ => RosKind::Tf,
-                };
-                (topic.clone(), kind)
-            })
-            .collect::<Vec<_>>();
         Ok(Self {
             session,
             _subscribers: subscribers,
             receiver,
-            shared,
-            decoded: vec![0; kinds.len()],
-            malformed: vec![0; kinds.len()],
-            topics: kinds,
-            collector: RosCollector::default(),
-            options: options.clone(),
+            arrivals,
+            decoder: LiveDecoder::new(options),
             end,
             started: Instant::now(),
             last_scan_at: None,
-            buffer: BTreeMap::new(),
-            arrivals: 0,
-            newest: None,
-            first_scan: None,
-            mount: None,
-            last_out: [None; 3],
-            collator: LloCollator::default(),
-            ready: std::collections::VecDeque::new(),
             finished: false,
-            dropped_late: 0,
-            repeated_stamp: 0,
-            events_out: 0,
-            scans_out: 0,
-            newest_out: None,
-            odometry: Arc::default(),
         })
     }
 
@@ -457,132 +366,13 @@ impl LiveRos2Source {
 
     /// The odometry readings handed on lately (see [`OdometryHistory`]).
     pub fn odometry_history(&self) -> OdometryHistory {
-        Arc::clone(&self.odometry)
+        self.decoder.odometry_history()
     }
 
     /// What was received, decoded and dropped so far.
     pub fn stats(&self) -> LiveStats {
-        let mut stats = LiveStats {
-            dropped_late: self.dropped_late,
-            repeated_stamp: self.repeated_stamp,
-            events_out: self.events_out,
-            scans_out: self.scans_out,
-            newest_stamp_ns: self.newest_out.map(|t| t.0),
-            extrinsic_source: self
-                .mount
-                .as_ref()
-                .map_or_else(|| "not decided yet".into(), |(_, s)| s.clone()),
-            problems: self.collector.report.problems.clone(),
-            ..LiveStats::default()
-        };
-        let shared = self.shared.lock().ok();
-        for (i, (topic, _)) in self.topics.iter().enumerate() {
-            let counts = stats.topics.entry(topic.clone()).or_default();
-            counts.decoded += self.decoded[i];
-            counts.malformed += self.malformed[i];
-            if let Some(shared) = &shared {
-                counts.received += shared.received[i];
-                counts.dropped_queue_full += shared.dropped_queue_full[i];
-                counts.missed_by_sequence += shared.missed_by_sequence[i];
-                counts.attachment_invalid += shared.attachment_invalid[i];
-            }
-        }
-        stats
-    }
-
-    /// Decodes one sample and buffers what it gives.
-    fn ingest(&mut self, incoming: &Incoming) {
-        let Some((topic, kind)) = self.topics.get(incoming.topic).cloned() else {
-            return;
-        };
-        let malformed_before = self.collector.report.skipped_malformed;
-        let malformed = if kind == RosKind::Tf && self.mount.is_some() {
-            // The mount is decided: transforms are only counted, not kept (a robot's /tf never ends).
-            (CDR_DECODERS.tf_message)(&incoming.payload).is_err()
-        } else {
-            self.collector
-                .add(kind, &incoming.payload, &topic, &CDR_DECODERS);
-            self.collector.report.skipped_malformed > malformed_before
-        };
-        if malformed {
-            self.malformed[incoming.topic] += 1;
-        } else {
-            self.decoded[incoming.topic] += 1;
-        }
-        if kind == RosKind::Scan {
-            self.last_scan_at = Some(Instant::now());
-        }
-        for event in self.collector.take_events() {
-            let time = event.time();
-            if matches!(event, SensorEvent::Scan(_)) && self.first_scan.is_none() {
-                self.first_scan = Some(time);
-            }
-            self.newest = Some(self.newest.map_or(time, |n| n.max(time)));
-            self.arrivals += 1;
-            self.buffer.insert((time, self.arrivals), event);
-        }
-        if self.mount.is_none() {
-            self.mount = self.collector.laser_mount();
-        }
-        self.release(false);
-    }
-
-    /// Hands on the buffered events the reorder window (or the end of the stream) lets go.
-    fn release(&mut self, all: bool) {
-        if self.mount.is_none() {
-            let waited = match (self.first_scan, self.newest) {
-                (Some(first), Some(newest)) => {
-                    newest.seconds_since(first) > self.options.mount_wait_s
-                }
-                _ => false,
-            };
-            if !(waited || all) {
-                return;
-            }
-            self.mount = Some(self.collector.laser_mount_or_identity());
-        }
-        let window = Timestamp::from_secs_f64(self.options.reorder_window_s);
-        let mut out = Vec::new();
-        while let Some(entry) = self.buffer.first_entry() {
-            let (time, _) = *entry.key();
-            if !all && self.newest.is_none_or(|n| time.0 > n.0 - window.0) {
-                break;
-            }
-            let event = entry.remove();
-            let stream = stream_of(&event);
-            if let Some(last) = self.last_out[stream]
-                && time <= last
-            {
-                if time == last {
-                    self.repeated_stamp += 1;
-                } else {
-                    self.dropped_late += 1;
-                }
-                continue;
-            }
-            self.last_out[stream] = Some(time);
-            self.collator.push(event, &mut out);
-        }
-        if all {
-            self.collator.finish(&mut out);
-        }
-        for event in out {
-            self.events_out += 1;
-            let time = event.time();
-            self.newest_out = Some(self.newest_out.map_or(time, |n| n.max(time)));
-            if let SensorEvent::Odometry(reading) = &event
-                && let Ok(mut history) = self.odometry.lock()
-            {
-                if history.len() >= ODOMETRY_HISTORY {
-                    history.pop_front();
-                }
-                history.push_back(reading.clone());
-            }
-            if matches!(event, SensorEvent::Scan(_)) {
-                self.scans_out += 1;
-            }
-            self.ready.push_back(event);
-        }
+        let arrivals = self.arrivals.lock().ok();
+        self.decoder.stats(arrivals.as_deref())
     }
 
     /// Whether the stream is over: idle since the last scan, or no first scan in time.
@@ -597,32 +387,34 @@ impl LiveRos2Source {
 impl SensorStream for LiveRos2Source {
     fn next_event(&mut self) -> Option<SensorEvent> {
         loop {
-            if let Some(event) = self.ready.pop_front() {
+            if let Some(event) = self.decoder.pop() {
                 return Some(event);
             }
             if self.finished {
                 return None;
             }
             match self.receiver.recv_timeout(POLL) {
-                Ok(incoming) => self.ingest(&incoming),
+                Ok(incoming) => {
+                    if self.decoder.ingest(incoming.topic, &incoming.payload) {
+                        self.last_scan_at = Some(Instant::now());
+                    }
+                }
                 Err(mpsc::RecvTimeoutError::Timeout) => {
                     if self.timed_out() {
                         self.finished = true;
-                        self.release(true);
+                        self.decoder.finish();
                     }
                 }
                 Err(mpsc::RecvTimeoutError::Disconnected) => {
                     self.finished = true;
-                    self.release(true);
+                    self.decoder.finish();
                 }
             }
         }
     }
 
     fn base_from_laser(&self) -> Rigid2 {
-        self.mount
-            .as_ref()
-            .map_or_else(Rigid2::identity, |(m, _)| *m)
+        self.decoder.base_from_laser()
     }
 }
 
