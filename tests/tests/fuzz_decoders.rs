@@ -55,6 +55,36 @@ fn fuzz_ros1_messages() {
 }
 
 #[test]
+fn fuzz_rosbag2_mcap() {
+    slice("rosbag2_mcap", 600);
+}
+
+#[test]
+fn fuzz_rosbag2_sqlite3() {
+    slice("rosbag2_sqlite3", 300);
+}
+
+#[test]
+fn fuzz_rosbag2_sqlite3_rows() {
+    slice("rosbag2_sqlite3_rows", 300);
+}
+
+#[test]
+fn fuzz_rosbag2_metadata() {
+    slice("rosbag2_metadata", 600);
+}
+
+#[test]
+fn fuzz_ros2_messages() {
+    slice("ros2_messages", 3000);
+}
+
+#[test]
+fn fuzz_ros2_live() {
+    slice("ros2_live", 1000);
+}
+
+#[test]
 fn fuzz_carmen() {
     slice("carmen", 2000);
 }
@@ -82,6 +112,11 @@ fn fuzz_slam_config() {
 #[test]
 fn fuzz_sessions_config() {
     slice("sessions_config", 600);
+}
+
+#[test]
+fn fuzz_agent_config() {
+    slice("agent_config", 600);
 }
 
 #[test]

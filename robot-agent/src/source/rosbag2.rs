@@ -293,6 +293,22 @@ fn read_folder(metadata_path: &Path) -> Result<Recording, SourceError> {
     };
     for relative in &metadata.relative_file_paths {
         let file = folder.join(relative);
+        // A storage file named by a hostile metadata.yaml may be a device or a pipe (`/dev/zero`,
+        // absolute paths are allowed as in rosbag2): reading one would never end.
+        let kind = std::fs::metadata(&file).map_err(|source| SourceError::Io {
+            path: file.display().to_string(),
+            source,
+        })?;
+        if !kind.is_file() {
+            return Err(SourceError::Malformed {
+                path: shown,
+                format: "rosbag2 metadata.yaml",
+                what: format!(
+                    "relative_file_paths names {}, which is not a regular file",
+                    file.display()
+                ),
+            });
+        }
         reader.file.clone_from(&file);
         read_file(storage, &file, &mut reader)?;
     }

@@ -6,6 +6,8 @@ mod fleet_site;
 mod mapping_io;
 mod protobuf;
 mod recordings;
+mod ros2_live;
+mod rosbag2;
 
 use std::path::{Path, PathBuf};
 
@@ -28,15 +30,22 @@ pub enum SetupError {
 }
 
 /// Every target's name, in the order they run.
-pub const TARGET_NAMES: [&str; 12] = [
+pub const TARGET_NAMES: [&str; 19] = [
     "ros1_bag",
     "ros1_messages",
+    "rosbag2_mcap",
+    "rosbag2_sqlite3",
+    "rosbag2_sqlite3_rows",
+    "rosbag2_metadata",
+    "ros2_messages",
+    "ros2_live",
     "carmen",
     "g2o",
     "relations",
     "server_config",
     "slam_config",
     "sessions_config",
+    "agent_config",
     "protobuf",
     "zenoh_request",
     "zenoh_upload",
@@ -55,12 +64,19 @@ pub fn target(name: &str, datasets: &Path) -> Result<FuzzTarget, SetupError> {
     match name {
         "ros1_bag" => recordings::ros1_bag(datasets),
         "ros1_messages" => recordings::ros1_messages(datasets),
+        "rosbag2_mcap" => rosbag2::mcap_files(datasets),
+        "rosbag2_sqlite3" => rosbag2::sqlite3_files(datasets),
+        "rosbag2_sqlite3_rows" => rosbag2::sqlite3_rows(datasets),
+        "rosbag2_metadata" => rosbag2::metadata_files(datasets),
+        "ros2_messages" => rosbag2::ros2_messages(datasets),
+        "ros2_live" => ros2_live::ros2_live(datasets),
         "carmen" => recordings::carmen(datasets),
         "g2o" => mapping_io::pose_graphs(datasets),
         "relations" => mapping_io::relation_files(datasets),
         "server_config" => configs::server_config(),
         "slam_config" => configs::slam_config(),
         "sessions_config" => configs::sessions_config(),
+        "agent_config" => configs::agent_config(),
         "protobuf" => Ok(protobuf::protobuf()),
         "zenoh_request" => fleet_site::zenoh_requests(),
         "zenoh_upload" => fleet_site::zenoh_uploads(),

@@ -253,3 +253,20 @@ fn talker_recordings_hold_std_msgs_strings() {
     assert_eq!(r.report.scans, 0);
     assert!(r.report.skipped_other > 0);
 }
+
+/// Regression (found reading the reader for the fuzz harness's `rosbag2_metadata` target): a
+/// metadata.yaml naming `/dev/zero` as its storage file made the MCAP reader read it until memory ran
+/// out; a storage file must be a regular file.
+#[test]
+fn storage_files_must_be_regular_files() {
+    let dir = tempfile::tempdir().unwrap();
+    for (storage, file) in [("mcap", "/dev/zero"), ("sqlite3", "/dev/null"), ("mcap", ".")] {
+        let text = format!(
+            "rosbag2_bagfile_information:\n  version: 9\n  storage_identifier: {storage}\n  \
+             relative_file_paths:\n  - {file}\n"
+        );
+        std::fs::write(dir.path().join("metadata.yaml"), text).unwrap();
+        let error = read(dir.path()).unwrap_err().to_string();
+        assert!(error.contains("not a regular file"), "{file}: {error}");
+    }
+}

@@ -2,8 +2,9 @@
 //! `relocalize`) and the multi-session one (`sessions`, `lifelong`). Each is parsed and validated as its
 //! command does, and an accepted one builds what it configures (LLO fed two scans of a small room, global
 //! SLAM, the lifelong map), so a value that validates but makes the core allocate gigabytes or panic is
-//! found too. (`evermap-agent run`'s `AgentConfig` lives in the agent binary, out of reach here; its `[local]`
-//! section is the same `LocalTrajectoryBuilderOptions` as the offline configuration's.)
+//! found too. `evermap-agent run`'s `AgentConfig` is parsed and validated by the library
+//! (`robot_agent::agent_config`), as the binary does, and builds its zenoh configurations, the live
+//! decoder of its `[ros2]` section and LLO.
 
 use std::path::Path;
 
@@ -12,8 +13,10 @@ use mapping::global_slam::GlobalSlam;
 use mapping::lifelong::LifelongMap;
 use mapping::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
 use mapping::sensor::{LaserScan, OdometryReading, Timestamp};
+use robot_agent::agent_config::AgentConfig;
 use robot_agent::lifelong_run::SessionsConfig;
 use robot_agent::offline_slam::SlamConfig;
+use robot_agent::source::LiveDecoder;
 use server::ServerConfig;
 
 use super::super::fuzz_target::{FuzzTarget, Verdict};
@@ -208,6 +211,71 @@ pub fn sessions_config() -> Result<FuzzTarget, SetupError> {
             if let Err(e) = LifelongMap::new(config.lifelong.clone()) {
                 return Verdict::Rejected(e.to_string());
             }
+            drive_llo(&config.local);
+            Verdict::Accepted
+        }),
+    );
+    target.base_heap_bytes = 256 << 20;
+    Ok(target)
+}
+
+/// A live robot's agent configuration, with `[ros2.publish]` and mutual TLS left out (its files must exist).
+const LIVE_AGENT: &str = "site = \"store-1\"\nrobot_id = \"robot-1\"\ntoken = \"change-me\"\nreplay_speed = 0.0\n\
+    nodes_per_batch = 5\ncall_timeout_s = 10.0\n[ros2]\ndomain_id = 7\nscan_topic = \"/base/scan\"\n\
+    imu_topic = \"/imu\"\nreorder_window_s = 0.3\nqueue_capacity = 128\n[ros2.zenoh]\n\
+    connect = [\"tcp/127.0.0.1:7447\"]\n[ros2.publish]\npose_topic = \"/amcl_pose\"\n";
+
+/// `evermap-agent run`'s configuration.
+pub fn agent_config() -> Result<FuzzTarget, SetupError> {
+    let local = local_section()?;
+    let mut with_local = deploy_file("agent-1.toml")?;
+    with_local.push(b'\n');
+    with_local.extend_from_slice(local.as_bytes());
+    let seeds = vec![
+        deploy_file("agent-1.toml")?,
+        deploy_file("agent-2.toml")?,
+        with_local,
+        LIVE_AGENT.as_bytes().to_vec(),
+    ];
+    let mut target = FuzzTarget::new(
+        "agent_config",
+        "evermap-agent run TOML configuration (parse, validate, zenoh configs, live decoder, LLO on two scans)",
+        seeds,
+        true,
+        Box::new(|input| {
+            let text = match std::str::from_utf8(input) {
+                Ok(text) => text,
+                Err(e) => return Verdict::Rejected(e.to_string()),
+            };
+            let config = match AgentConfig::from_toml(text) {
+                Ok(config) => config,
+                Err(e) => return Verdict::Rejected(e.to_string()),
+            };
+            if let Err(e) = config.validate() {
+                return Verdict::Rejected(e.to_string());
+            }
+            if let Some(zenoh) = &config.zenoh
+                && let Err(e) = zenoh.to_zenoh_config()
+            {
+                return Verdict::Rejected(e.to_string());
+            }
+            if let Some(ros2) = &config.ros2 {
+                if let Err(e) = ros2.zenoh.to_zenoh_config() {
+                    return Verdict::Rejected(e.to_string());
+                }
+                let decoder = LiveDecoder::new(ros2);
+                assert_eq!(
+                    decoder.topic_count(),
+                    4 + usize::from(ros2.imu_topic.is_some()),
+                    "invariant: one topic index per subscription"
+                );
+            }
+            assert!(
+                config.call_timeout().is_ok()
+                    && config.retry_interval().is_ok()
+                    && config.final_flush_timeout().is_ok(),
+                "invariant: a validated configuration's durations convert"
+            );
             drive_llo(&config.local);
             Verdict::Accepted
         }),

@@ -53,12 +53,16 @@ fn written_bag(recording: &Recording) -> Result<Vec<u8>, SetupError> {
     Ok(out.into_inner())
 }
 
-fn finite(pose: &Rigid2) -> bool {
+pub(super) fn finite(pose: &Rigid2) -> bool {
     pose.x().is_finite() && pose.y().is_finite() && pose.theta().is_finite()
 }
 
-/// What every accepted recording must satisfy: time order, finite poses and scan geometry.
-fn check_recording(recording: &Recording) {
+/// The stamps a ROS1 header (and a CARMEN time) can give, seconds.
+pub(super) const ROS1_STAMPS_S: (f64, f64) = (0.0, 4_294_967_296.0);
+
+/// What every accepted recording must satisfy: time order, stamps within `stamps_s` (seconds, the
+/// format's range), finite poses and scan geometry.
+pub(super) fn check_recording(recording: &Recording, stamps_s: (f64, f64)) {
     assert!(
         finite(&recording.base_from_laser),
         "invariant: non-finite base_from_laser {:?}",
@@ -73,8 +77,8 @@ fn check_recording(recording: &Recording) {
     for event in &recording.events {
         let t = event.time().as_secs_f64();
         assert!(
-            (0.0..=4_294_967_296.0).contains(&t),
-            "invariant: stamp {t} s outside ROS1's time range"
+            (stamps_s.0..=stamps_s.1).contains(&t),
+            "invariant: stamp {t} s outside the format's time range"
         );
         match event {
             SensorEvent::Scan(scan) => assert!(
@@ -133,7 +137,7 @@ pub fn ros1_bag(datasets: &Path) -> Result<FuzzTarget, SetupError> {
             }
             let result = source::read_recording(&path);
             if let Ok(recording) = &result {
-                check_recording(recording);
+                check_recording(recording, ROS1_STAMPS_S);
             }
             Verdict::of(&result)
         }),
@@ -311,7 +315,7 @@ pub fn carmen(datasets: &Path) -> Result<FuzzTarget, SetupError> {
         Box::new(|input| {
             let result = source::read_carmen(input, Path::new("fuzz.clf"));
             if let Ok(recording) = &result {
-                check_recording(recording);
+                check_recording(recording, ROS1_STAMPS_S);
             }
             Verdict::of(&result)
         }),
