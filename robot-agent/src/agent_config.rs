@@ -141,7 +141,12 @@ fn seconds(field: &'static str, value: f64) -> Result<Duration, AgentConfigError
     Duration::try_from_secs_f64(value)
         .ok()
         .filter(|d| !d.is_zero())
-        .ok_or_else(|| invalid(field, format!("must be a positive number of seconds, got {value}")))
+        .ok_or_else(|| {
+            invalid(
+                field,
+                format!("must be a positive number of seconds, got {value}"),
+            )
+        })
 }
 
 impl AgentConfig {
@@ -169,7 +174,8 @@ impl AgentConfig {
                         "give either source (a recording) or [ros2] (a live robot), not both",
                     ));
                 }
-                ros2.validate().map_err(|e| invalid("ros2", e.to_string()))?;
+                ros2.validate()
+                    .map_err(|e| invalid("ros2", e.to_string()))?;
             }
             None => {
                 if self.source.as_os_str().is_empty() {

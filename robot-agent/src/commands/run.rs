@@ -25,8 +25,7 @@ use robot_agent::ros2_publisher::{PublishStats, Ros2Publisher, odom_from_base_at
 use robot_agent::source::{self, LiveRos2Source, OdometryHistory, Ros2LiveOptions};
 use robot_agent::uplink::{
     ClientTls, FleetUplink, GlobalSubmapCache, GrpcUplink, MapUplink as _, SessionInput,
-    SessionOptions, SessionStart, Uploader, ZenohUplink, follow_site,
-    stream_session_from,
+    SessionOptions, SessionStart, Uploader, ZenohUplink, follow_site, stream_session_from,
 };
 
 /// Arguments of `run`.

@@ -101,7 +101,9 @@ pub fn read(path: &Path, visitor: &mut dyn Visitor) -> Result<(), SourceError> {
             op::SCHEMA => {
                 let (id, name) = parse_schema(data).map_err(malformed)?;
                 if id == 0 {
-                    return Err(malformed("a schema record has id 0, which is invalid".into()));
+                    return Err(malformed(
+                        "a schema record has id 0, which is invalid".into(),
+                    ));
                 }
                 if let Some(earlier) = schemas.insert(id, name.clone())
                     && earlier != name
@@ -272,8 +274,9 @@ fn check_uncompressed_chunks(file: &[u8]) -> Result<(), String> {
     let mut pos = MCAP_MAGIC.len();
     while let Some(head) = file.get(pos..pos + 9) {
         let opcode = head[0];
-        let Ok(len) = usize::try_from(u64::from_le_bytes(head[1..9].try_into().unwrap_or_default()))
-        else {
+        let Ok(len) = usize::try_from(u64::from_le_bytes(
+            head[1..9].try_into().unwrap_or_default(),
+        )) else {
             return Ok(());
         };
         let Some(body) = file.get(pos + 9..).and_then(|rest| rest.get(..len)) else {
@@ -411,7 +414,10 @@ mod tests {
     /// `"zstd"`), its record's length field `extra` bytes longer than the record.
     fn file(topic_len: u32, chunk: Option<&str>, extra: u64) -> Vec<u8> {
         let mut out = MCAP_MAGIC.to_vec();
-        out.extend(record(op::HEADER, &[string(b"ros2", 4), string(b"", 0)].concat()));
+        out.extend(record(
+            op::HEADER,
+            &[string(b"ros2", 4), string(b"", 0)].concat(),
+        ));
         let schema = [
             &1u16.to_le_bytes()[..],
             &string(b"std_msgs/msg/String", 19),
@@ -475,7 +481,10 @@ mod tests {
     #[test]
     fn a_string_longer_than_its_record_is_refused_before_allocating() {
         let error = read_bytes(&file(u32::MAX, None, 0)).unwrap_err();
-        assert!(error.contains("channel record") && error.contains("cut off"), "{error}");
+        assert!(
+            error.contains("channel record") && error.contains("cut off"),
+            "{error}"
+        );
     }
 
     /// Regression (found by the fuzz harness, `rosbag2_mcap`): a record overrunning its uncompressed

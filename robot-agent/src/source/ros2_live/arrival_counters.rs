@@ -122,7 +122,10 @@ mod tests {
         assert!(c.arrive(1, None, &own));
         assert_eq!(c.received, vec![2, 2]);
         assert_eq!(c.attachment_invalid, vec![0, 2]);
-        assert!(c.arrive(5, None, &own), "an unknown topic is the decoder's to refuse");
+        assert!(
+            c.arrive(5, None, &own),
+            "an unknown topic is the decoder's to refuse"
+        );
     }
 
     /// Regression (found while writing the `ros2_live` fuzz target): a publisher jumping from a negative

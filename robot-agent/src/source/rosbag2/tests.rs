@@ -260,7 +260,11 @@ fn talker_recordings_hold_std_msgs_strings() {
 #[test]
 fn storage_files_must_be_regular_files() {
     let dir = tempfile::tempdir().unwrap();
-    for (storage, file) in [("mcap", "/dev/zero"), ("sqlite3", "/dev/null"), ("mcap", ".")] {
+    for (storage, file) in [
+        ("mcap", "/dev/zero"),
+        ("sqlite3", "/dev/null"),
+        ("mcap", "."),
+    ] {
         let text = format!(
             "rosbag2_bagfile_information:\n  version: 9\n  storage_identifier: {storage}\n  \
              relative_file_paths:\n  - {file}\n"

@@ -34,10 +34,13 @@ struct Sample<'a> {
     payload: &'a [u8],
 }
 
+/// A sample as the seeds hold it: topic index, attachment, payload.
+type OwnedSample = (usize, Option<Vec<u8>>, Vec<u8>);
+
 /// Samples in the form mutations work on: per sample a topic byte, a flags byte (bit 0: has an
 /// attachment), the attachment as a u16 little-endian length and its bytes, the payload as a u32
 /// little-endian length and its bytes; a length past the end takes what is left.
-fn encode(samples: &[(usize, Option<Vec<u8>>, Vec<u8>)]) -> Vec<u8> {
+fn encode(samples: &[OwnedSample]) -> Vec<u8> {
     let mut out = Vec::new();
     for (topic, attachment, payload) in samples {
         out.push(u8::try_from(*topic).unwrap_or(u8::MAX));
@@ -216,10 +219,7 @@ fn check_live(
             ingested[i],
             "invariant: {topic}: every sample decoded or counted malformed"
         );
-        assert_eq!(
-            counts.received, ingested[i],
-            "invariant: {topic}: received"
-        );
+        assert_eq!(counts.received, ingested[i], "invariant: {topic}: received");
         malformed += counts.malformed;
     }
     if malformed == 0 {

@@ -22,7 +22,7 @@ use super::recordings::{check_recording, finite};
 const ROS2_STAMPS_S: (f64, f64) = (-2_147_483_648.0, 2_147_483_647.0 + 4.294_967_295);
 use super::{SetupError, read_file};
 
-fn seed_error(path: impl Into<PathBuf>, reason: impl ToString) -> SetupError {
+fn seed_error(path: impl Into<PathBuf>, reason: impl std::fmt::Display) -> SetupError {
     SetupError::Seed {
         path: path.into(),
         reason: reason.to_string(),
@@ -190,7 +190,11 @@ fn encode_value(out: &mut Vec<u8>, value: &Value) {
             out.extend_from_slice(&v.to_le_bytes());
         }
         Value::Text(v) | Value::Blob(v) => {
-            out.push(if matches!(value, Value::Text(_)) { 3 } else { 4 });
+            out.push(if matches!(value, Value::Text(_)) {
+                3
+            } else {
+                4
+            });
             out.extend_from_slice(&u32::try_from(v.len()).unwrap_or(u32::MAX).to_le_bytes());
             out.extend_from_slice(v);
         }
@@ -202,11 +206,15 @@ impl Rows {
         let mut out = Vec::new();
         for row in &self.topics {
             out.push(0);
-            row.iter().for_each(|v| encode_value(&mut out, v));
+            for v in row {
+                encode_value(&mut out, v);
+            }
         }
         for row in &self.messages {
             out.push(1);
-            row.iter().for_each(|v| encode_value(&mut out, v));
+            for v in row {
+                encode_value(&mut out, v);
+            }
         }
         out
     }
@@ -254,7 +262,8 @@ impl Rows {
             if table % 2 == 0 {
                 rows.topics.push(std::array::from_fn(|_| value(&mut input)));
             } else {
-                rows.messages.push(std::array::from_fn(|_| value(&mut input)));
+                rows.messages
+                    .push(std::array::from_fn(|_| value(&mut input)));
             }
         }
         rows
@@ -276,9 +285,8 @@ impl Rows {
             for row in &self.topics {
                 topic.execute(rusqlite::params_from_iter(row.iter()))?;
             }
-            let mut message = transaction.prepare(
-                "INSERT INTO messages (topic_id, timestamp, data) VALUES (?1, ?2, ?3)",
-            )?;
+            let mut message = transaction
+                .prepare("INSERT INTO messages (topic_id, timestamp, data) VALUES (?1, ?2, ?3)")?;
             for row in &self.messages {
                 message.execute(rusqlite::params_from_iter(row.iter()))?;
             }
@@ -303,7 +311,9 @@ fn aces_rows(datasets: &Path, messages: usize) -> Result<Rows, SetupError> {
     let mut query = topics.query([]).map_err(error)?;
     while let Some(row) = query.next().map_err(error)? {
         let text = |i| -> Result<Value, SetupError> {
-            Ok(Value::Text(row.get::<_, String>(i).map_err(error)?.into_bytes()))
+            Ok(Value::Text(
+                row.get::<_, String>(i).map_err(error)?.into_bytes(),
+            ))
         };
         rows.topics.push([
             Value::Integer(row.get(0).map_err(error)?),
@@ -420,7 +430,10 @@ pub fn sqlite3_files(datasets: &Path) -> Result<FuzzTarget, SetupError> {
 pub fn sqlite3_rows(datasets: &Path) -> Result<FuzzTarget, SetupError> {
     let dir = temp_dir()?;
     let path = dir.path().join("input.db3");
-    let seeds = vec![aces_rows(datasets, 12)?.encode(), aces_rows(datasets, 3)?.encode()];
+    let seeds = vec![
+        aces_rows(datasets, 12)?.encode(),
+        aces_rows(datasets, 3)?.encode(),
+    ];
     Ok(FuzzTarget::new(
         "rosbag2_sqlite3_rows",
         "rosbag2 sqlite3 rows and blobs of any type and value (written with rusqlite, then read)",
@@ -447,7 +460,10 @@ pub fn metadata_files(datasets: &Path) -> Result<FuzzTarget, SetupError> {
         let path = dir.path().join(name);
         std::fs::write(&path, bytes).map_err(|e| seed_error(path, e))
     };
-    write("mit-csail.mcap", &write_mcap(&csail_cut(datasets, 2)?, None)?)?;
+    write(
+        "mit-csail.mcap",
+        &write_mcap(&csail_cut(datasets, 2)?, None)?,
+    )?;
     let aces = dir.path().join("aces.db3");
     aces_rows(datasets, 6)?
         .write(&aces)
