@@ -9,7 +9,9 @@
 //!   in a reorder buffer until the newest stamp seen is `reorder_window_s` past theirs, then leave in
 //!   stamp order, so within that window the stream is sorted as a recording is. An event that arrives
 //!   later than that, or repeats its stream's last stamp, is dropped and counted (a recording's reader
-//!   re-sorts or drops the same ones).
+//!   re-sorts or drops the same ones). The buffer holds at most `queue_capacity` events: past that the
+//!   oldest leave early (deciding the mount if need be), so a robot whose clock stands still, or that sends
+//!   odometry and no scan, cannot grow it without bound.
 //! - **The laser's mounting pose** comes from `/tf_static` (or `/tf`), which may arrive after the first
 //!   scans: nothing leaves the buffer until a transform to the first scan's frame is known, or
 //!   `mount_wait_s` of stream time has passed (then identity, said in the stats).
@@ -59,7 +61,8 @@ pub struct Ros2LiveOptions {
     /// How to join the robot's zenoh network. Default: a peer connecting to the rmw_zenoh router on this
     /// machine, `tcp/127.0.0.1:7447`, multicast scouting off.
     pub zenoh: ZenohLinkOptions,
-    /// Raw messages held between zenoh and SLAM before new ones are dropped (counted). Default 4096.
+    /// Raw messages held between zenoh and SLAM before new ones are dropped (counted); also the most
+    /// events the reorder buffer holds (past it the oldest leave, whatever the window). Default 4096.
     pub queue_capacity: usize,
     /// Seconds of stream time an event waits for earlier-stamped ones (see the module docs). Default 0.5.
     pub reorder_window_s: f64,
