@@ -73,8 +73,7 @@ impl MemoryAttribution {
                 let map_grids = view
                     .history
                     .last()
-                    .map(|entry| grid_mb(entry.grids.iter().map(|(_, g)| g)))
-                    .unwrap_or(0.0);
+                    .map_or(0.0, |entry| grid_mb(entry.grids.iter().map(|(_, g)| g)));
                 SiteMemory {
                     nodes: counts.nodes,
                     submaps: counts.submaps,

@@ -113,18 +113,14 @@ impl MapHistory {
 
     /// Cells' bytes of the distinct grids the entries hold that the newest map does not.
     pub fn past_grid_bytes(&self) -> usize {
-        let newest: usize = self
-            .entries
-            .back()
-            .map(|e| {
-                let mut seen: Vec<usize> = e.grids.iter().map(|(_, g)| grid_key(g)).collect();
-                seen.sort_unstable();
-                seen.dedup();
-                seen.iter()
-                    .filter_map(|key| self.held.get(key).map(|(_, bytes)| bytes))
-                    .sum()
-            })
-            .unwrap_or(0);
+        let newest: usize = self.entries.back().map_or(0, |e| {
+            let mut seen: Vec<usize> = e.grids.iter().map(|(_, g)| grid_key(g)).collect();
+            seen.sort_unstable();
+            seen.dedup();
+            seen.iter()
+                .filter_map(|key| self.held.get(key).map(|(_, bytes)| bytes))
+                .sum()
+        });
         self.held_bytes.saturating_sub(newest)
     }
 
@@ -165,15 +161,13 @@ impl MapHistory {
 
     /// Drops every second kept entry, keeping the first, and doubles the stride.
     fn thin(&mut self) {
-        let mut index = 0;
         let mut dropped = Vec::new();
-        for entry in std::mem::take(&mut self.entries) {
+        for (index, entry) in std::mem::take(&mut self.entries).into_iter().enumerate() {
             if index % 2 == 0 {
                 self.entries.push_back(entry);
             } else {
                 dropped.push(entry);
             }
-            index += 1;
         }
         for entry in &dropped {
             self.release(entry);
@@ -327,7 +321,11 @@ mod tests {
         let alive = made.iter().filter(|g| g.upgrade().is_some()).count();
         assert!(alive <= 6 + 12, "{alive} grids alive");
         assert_eq!(h.grid_bytes(), alive * grid_bytes);
-        assert!(h.past_grid_bytes() <= 12 * grid_bytes, "{}", h.past_grid_bytes());
+        assert!(
+            h.past_grid_bytes() <= 12 * grid_bytes,
+            "{}",
+            h.past_grid_bytes()
+        );
         // The slider still reaches from the first map to the newest, in a few steps.
         let kept = versions(&h);
         assert_eq!(kept.first(), Some(&1), "{kept:?}");
