@@ -55,7 +55,8 @@ use tokio::sync::watch;
 
 use crate::command_runtime::{block_on, recreate_dir};
 use crate::demo_command::MAX_MESSAGE_BYTES;
-use crate::minute_figures::{self, MinuteInputs};
+use crate::memory_attribution::MemoryAttribution;
+use crate::minute_figures::{self, MinuteInputs, MinuteSample};
 
 /// Nodes per upload batch (a batch holding a finished submap goes at once).
 const NODES_PER_BATCH: usize = 10;
@@ -97,6 +98,10 @@ pub struct LoadArgs {
     /// or `aisles` (identical shelf rows, adversarial).
     #[arg(long, value_enum, default_value_t = World::Store)]
     world: World,
+    /// The server's sled page cache, MiB, 1..=65536 (the server's `[storage] cache_capacity_bytes`;
+    /// default its default, 256 MiB).
+    #[arg(long, default_value_t = 256)]
+    store_cache_mib: u64,
     /// Let the server run GLM for every node (the design before GLM moved onto the robots) instead of
     /// the robots sending their own matches.
     #[arg(long)]
@@ -165,6 +170,10 @@ fn site_id(s: usize) -> String {
 pub fn run(args: &LoadArgs) -> anyhow::Result<()> {
     anyhow::ensure!(args.sites >= 1, "--sites must be at least 1");
     anyhow::ensure!(
+        (1..=65_536).contains(&args.store_cache_mib),
+        "--store-cache-mib must be in 1..=65536"
+    );
+    anyhow::ensure!(
         args.agents >= args.sites && args.agents <= 500,
         "--agents must be between --sites and 500"
     );
@@ -194,8 +203,10 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
     recreate_dir(&args.out)?;
     let store_options = SledStoreOptions {
         path: args.out.join("data"),
+        cache_capacity_bytes: args.store_cache_mib << 20,
         ..SledStoreOptions::default()
     };
+    store_options.validate()?;
     let store = tokio::task::spawn_blocking(move || SledStore::open(&store_options))
         .await
         .context("storage thread")??;
@@ -439,8 +450,8 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
     let offline_version = server.site(&site_id(0)).map_or(0, |h| h.current().version);
     let stream_started = Instant::now();
     let max_queue = Arc::new(Mutex::new(0usize));
-    // (minute of robot time, RSS, uplink bytes since the start) at the end of every minute.
-    let minute_samples = Arc::new(Mutex::new(Vec::<(f64, Option<f64>, u64)>::new()));
+    // What the end of every minute of robot time held.
+    let minute_samples = Arc::new(Mutex::new(Vec::<MinuteSample>::new()));
     let speed = args.speed;
     let sampler = {
         let handles: Vec<_> = (0..args.sites)
@@ -449,6 +460,8 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
         let max_queue = Arc::clone(&max_queue);
         let minute_samples = Arc::clone(&minute_samples);
         let metrics = Arc::clone(&metrics);
+        let caches: Vec<_> = robots.iter().map(|r| Arc::clone(&r.cache)).collect();
+        let store_dir = args.out.join("data");
         let mut stop = stopped.clone();
         tokio::spawn(async move {
             let mut tick = tokio::time::interval(Duration::from_millis(100));
@@ -463,13 +476,25 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
                 if robot_minutes >= f64::from(next_minute) {
                     let rss = current_rss_mb();
                     let bytes = metrics.bytes_in() - bytes_in_0;
+                    let memory = MemoryAttribution::measure(&handles, &store_dir, &caches);
                     eprintln!(
-                        "  minute {next_minute:>3} of robot time: RSS {} MiB, {:.1} MB uplink so far",
+                        "  minute {next_minute:>3} of robot time: RSS {} MiB, live heap {} MiB (history grids {:.0}, robot caches {:.0}, sled on disk {:.0}), {:.1} MB uplink so far",
                         rss.map_or("?".into(), |m| format!("{m:.0}")),
+                        memory
+                            .live_heap_mb
+                            .map_or("?".into(), |m| format!("{m:.0}")),
+                        memory.history_grids_mb(),
+                        memory.robot_cache_grids_mb,
+                        memory.store_disk_mb,
                         bytes as f64 / 1e6
                     );
                     if let Ok(mut samples) = minute_samples.lock() {
-                        samples.push((robot_minutes, rss, bytes));
+                        samples.push(MinuteSample {
+                            minute: robot_minutes,
+                            rss_mb: rss,
+                            uplink_bytes: bytes,
+                            memory,
+                        });
                     }
                     next_minute += 1;
                 }

@@ -5,9 +5,16 @@
 mod command_runtime;
 mod demo_command;
 mod load_command;
+mod memory_attribution;
 mod minute_figures;
 
 use clap::{Parser, Subcommand};
+use peak_alloc::PeakAlloc;
+
+/// Counts live heap bytes (the load benchmark's per-minute memory attribution), then allocates with
+/// the system allocator.
+#[global_allocator]
+static HEAP: PeakAlloc = PeakAlloc;
 
 /// evermap fleet simulations: the demo (the default) and the load benchmark.
 #[derive(Parser)]

@@ -1,21 +1,36 @@
 //! The load benchmark's figures per minute of robot time, what a soak is judged by: the process's
-//! resident memory at the end of each minute, the latency of the submaps finished in it (median and
-//! p95), and the throughput (batches acknowledged, uplink bytes); the least-squares slope of memory and
-//! p95 over the minutes after a warm-up, and a chart of both against time.
+//! resident memory and the allocator's live heap at the end of each minute with what holds it
+//! ([`MemoryAttribution`]), the latency of the submaps finished in it (median and p95), and the
+//! throughput (batches acknowledged, uplink bytes); the least-squares slopes of memory, heap and p95
+//! over the minutes after a warm-up, and a chart of them against time.
 
 use robot_agent::line_chart::{LineChart, Series};
 use serde_json::json;
+
+use crate::memory_attribution::MemoryAttribution;
 
 /// Minutes of robot time left out of the slopes (the map of every site is still growing into its
 /// steady state: robots start, submaps accumulate until the first trims).
 pub const WARM_UP_MINUTES: usize = 5;
 
+/// What was sampled at the end of a minute of robot time.
+#[derive(Clone, Debug, Default)]
+pub struct MinuteSample {
+    /// Minute of robot time since the measured phase began.
+    pub minute: f64,
+    /// Resident set size of the process, MiB.
+    pub rss_mb: Option<f64>,
+    /// Uplink bytes the server had received since the measured phase began.
+    pub uplink_bytes: u64,
+    /// The live heap and what holds it.
+    pub memory: MemoryAttribution,
+}
+
 /// What was measured during one run, in robot time (minutes since the measured phase began).
 #[derive(Clone, Debug, Default)]
 pub struct MinuteInputs {
-    /// At the end of each minute: (minute of robot time, resident set size in MiB, uplink bytes the
-    /// server had received since the measured phase began).
-    pub samples: Vec<(f64, Option<f64>, u64)>,
+    /// At the end of each minute.
+    pub samples: Vec<MinuteSample>,
     /// Every finished submap: (minute of robot time it was finished, seconds until its version was in
     /// every cache of its site).
     pub submap_latencies: Vec<(f64, f64)>,
@@ -30,6 +45,8 @@ pub struct MinuteFigures {
     pub minute: usize,
     /// Resident set size of the process at the minute's end, MiB.
     pub rss_mb: Option<f64>,
+    /// The live heap at the minute's end and what holds it (`None`: no sample).
+    pub memory: Option<MemoryAttribution>,
     /// Median latency (finished on a robot → in every cache of the site) of the submaps finished in
     /// the minute, seconds; `None` when none was.
     pub latency_p50_s: Option<f64>,
@@ -52,15 +69,15 @@ pub fn minute_figures(inputs: &MinuteInputs, minutes: usize) -> Vec<MinuteFigure
             let sample = inputs
                 .samples
                 .iter()
-                .filter(|(t, _, _)| (t - (m + 1) as f64).abs() < 0.5)
+                .filter(|s| (s.minute - (m + 1) as f64).abs() < 0.5)
                 .min_by(|a, b| {
-                    (a.0 - (m + 1) as f64)
+                    (a.minute - (m + 1) as f64)
                         .abs()
-                        .total_cmp(&(b.0 - (m + 1) as f64).abs())
+                        .total_cmp(&(b.minute - (m + 1) as f64).abs())
                 });
-            let uplink_bytes = sample.map_or(0, |s| s.2.saturating_sub(previous_bytes));
+            let uplink_bytes = sample.map_or(0, |s| s.uplink_bytes.saturating_sub(previous_bytes));
             if let Some(s) = sample {
-                previous_bytes = s.2;
+                previous_bytes = s.uplink_bytes;
             }
             let mut latencies: Vec<f64> = inputs
                 .submap_latencies
@@ -71,7 +88,8 @@ pub fn minute_figures(inputs: &MinuteInputs, minutes: usize) -> Vec<MinuteFigure
             latencies.sort_by(f64::total_cmp);
             MinuteFigures {
                 minute: m,
-                rss_mb: sample.and_then(|s| s.1),
+                rss_mb: sample.and_then(|s| s.rss_mb),
+                memory: sample.map(|s| s.memory.clone()),
                 latency_p50_s: quantile(&latencies, 0.5),
                 latency_p95_s: quantile(&latencies, 0.95),
                 submaps: latencies.len(),
@@ -124,6 +142,9 @@ fn after_warm_up(
 /// p95 latency (s per minute) over the minutes after the warm-up, with their first and last values.
 pub fn report(figures: &[MinuteFigures]) -> serde_json::Value {
     let rss = after_warm_up(figures, |f| f.rss_mb);
+    let heap = after_warm_up(figures, |f| f.memory.as_ref()?.live_heap_mb);
+    let history = after_warm_up(figures, |f| Some(f.memory.as_ref()?.history_grids_mb()));
+    let store = after_warm_up(figures, |f| Some(f.memory.as_ref()?.store_disk_mb));
     let p95 = after_warm_up(figures, |f| f.latency_p95_s);
     let rows: Vec<serde_json::Value> = figures
         .iter()
@@ -131,6 +152,7 @@ pub fn report(figures: &[MinuteFigures]) -> serde_json::Value {
             json!({
                 "minute": f.minute,
                 "rss_mb": f.rss_mb,
+                "memory": f.memory.as_ref().map(MemoryAttribution::to_json),
                 "latency_p50_s": f.latency_p50_s,
                 "latency_p95_s": f.latency_p95_s,
                 "submaps": f.submaps,
@@ -147,6 +169,11 @@ pub fn report(figures: &[MinuteFigures]) -> serde_json::Value {
             "rss_first_mb": rss.first().map(|p| p.1),
             "rss_last_mb": rss.last().map(|p| p.1),
             "rss_max_mb": rss.iter().map(|p| p.1).reduce(f64::max),
+            "live_heap_slope_mb_per_minute": slope(&heap),
+            "live_heap_first_mb": heap.first().map(|p| p.1),
+            "live_heap_last_mb": heap.last().map(|p| p.1),
+            "history_grids_slope_mb_per_minute": slope(&history),
+            "store_disk_slope_mb_per_minute": slope(&store),
             "p95_slope_s_per_minute": slope(&p95),
             "p95_first_s": p95.first().map(|p| p.1),
             "p95_last_s": p95.last().map(|p| p.1),
@@ -165,14 +192,21 @@ pub fn chart(figures: &[MinuteFigures], title: &str, width: u32) -> (u32, u32, V
             .collect()
     };
     let memory = LineChart {
-        title: format!("{title}: process RSS at the end of each minute"),
+        title: format!("{title}: process RSS and live heap at the end of each minute"),
         x_label: "minute of robot time".into(),
         y_label: "MiB".into(),
-        series: vec![Series {
-            name: "RSS".into(),
-            color: [30, 90, 200],
-            points: points(&|f| f.rss_mb),
-        }],
+        series: vec![
+            Series {
+                name: "RSS".into(),
+                color: [30, 90, 200],
+                points: points(&|f| f.rss_mb),
+            },
+            Series {
+                name: "live heap".into(),
+                color: [230, 140, 0],
+                points: points(&|f| f.memory.as_ref()?.live_heap_mb),
+            },
+        ],
         y_min: Some(0.0),
     };
     let latency = LineChart {
@@ -207,13 +241,33 @@ mod tests {
     #[test]
     fn minutes_bucket_latencies_batches_and_bytes() {
         let inputs = MinuteInputs {
-            samples: vec![(1.0, Some(100.0), 1000), (2.01, Some(110.0), 2500)],
+            samples: vec![
+                MinuteSample {
+                    minute: 1.0,
+                    rss_mb: Some(100.0),
+                    uplink_bytes: 1000,
+                    memory: MemoryAttribution {
+                        live_heap_mb: Some(80.0),
+                        ..MemoryAttribution::default()
+                    },
+                },
+                MinuteSample {
+                    minute: 2.01,
+                    rss_mb: Some(110.0),
+                    uplink_bytes: 2500,
+                    memory: MemoryAttribution::default(),
+                },
+            ],
             submap_latencies: vec![(0.2, 1.0), (0.9, 3.0), (0.5, 2.0), (1.5, 10.0)],
             batch_acks: vec![0.1, 0.2, 1.9],
         };
         let figures = minute_figures(&inputs, 3);
         assert_eq!(figures.len(), 3);
         assert_eq!(figures[0].rss_mb, Some(100.0));
+        assert_eq!(
+            figures[0].memory.as_ref().and_then(|m| m.live_heap_mb),
+            Some(80.0)
+        );
         assert_eq!(figures[0].latency_p50_s, Some(2.0));
         assert_eq!(figures[0].latency_p95_s, Some(3.0));
         assert_eq!((figures[0].submaps, figures[0].batches), (3, 2));
@@ -223,6 +277,7 @@ mod tests {
         assert_eq!((figures[1].batches, figures[1].uplink_bytes), (1, 1500));
         // No sample and no submap in the third minute.
         assert_eq!(figures[2].rss_mb, None);
+        assert_eq!(figures[2].memory, None);
         assert_eq!(figures[2].latency_p95_s, None);
         assert_eq!(figures[2].uplink_bytes, 0);
     }
@@ -248,6 +303,11 @@ mod tests {
                 } else {
                     300.0
                 }),
+                // The heap grows 2 MiB a minute throughout.
+                memory: Some(MemoryAttribution {
+                    live_heap_mb: Some(100.0 + 2.0 * m as f64),
+                    ..MemoryAttribution::default()
+                }),
                 latency_p50_s: Some(1.0),
                 latency_p95_s: Some(2.0 + m as f64),
                 submaps: 1,
@@ -258,6 +318,10 @@ mod tests {
         let summary = &report(&figures)["after_warm_up"];
         assert_eq!(summary["rss_slope_mb_per_minute"].as_f64(), Some(0.0));
         assert_eq!(summary["rss_first_mb"].as_f64(), Some(300.0));
+        let heap = summary["live_heap_slope_mb_per_minute"]
+            .as_f64()
+            .expect("heap");
+        assert!((heap - 2.0).abs() < 1e-12, "{heap}");
         assert!((summary["p95_slope_s_per_minute"].as_f64().expect("p95") - 1.0).abs() < 1e-12);
         let (w, h, pixels) = chart(&figures, "test", 400);
         assert_eq!((w, h), (400, 720));

@@ -1,8 +1,8 @@
 //! `evermap-demo load` on a tiny budget: one site, two robots, 2 minutes of robot time each as two
 //! 60 s sessions back to back, replayed 8× faster than real time (15 s of streaming). Checks that the
 //! benchmark runs end to end and that its report is consistent (everything acknowledged, the offline
-//! robot's catch-up smaller than the whole map, a row per minute of robot time with its memory and
-//! latency, and the chart); the figures themselves are measured in BENCHMARKS.md.
+//! robot's catch-up smaller than the whole map, a row per minute of robot time with its memory — the
+//! resident set, the live heap and what holds it — and latency, and the chart); the figures themselves are measured in BENCHMARKS.md.
 
 use std::process::Command;
 
@@ -54,6 +54,31 @@ fn the_load_benchmark_streams_everything_and_reports_it() {
     assert_eq!(minutes.len(), 2, "{minutes:?}");
     for minute in minutes {
         assert!(minute["rss_mb"].as_f64().expect("rss") > 10.0, "{minute}");
+        // The live heap is counted, and below the resident set; the site's graph and map are sized.
+        let memory = &minute["memory"];
+        let heap = memory["live_heap_mb"].as_f64().expect("live heap");
+        assert!(
+            heap > 10.0 && heap < minute["rss_mb"].as_f64().expect("rss"),
+            "{minute}"
+        );
+        let site = &memory["sites"][0];
+        assert!(site["nodes"].as_u64().expect("nodes") > 0, "{minute}");
+        assert!(
+            site["map_grids_mb"].as_f64().expect("map grids") > 0.0,
+            "{minute}"
+        );
+        assert!(
+            site["history_grids_mb"].as_f64() >= site["map_grids_mb"].as_f64(),
+            "{minute}"
+        );
+        assert!(
+            memory["store_disk_mb"].as_f64().expect("store") > 0.0,
+            "{minute}"
+        );
+        assert!(
+            memory["robot_cache_submaps"].as_u64().expect("cache") > 0,
+            "{minute}"
+        );
         assert!(
             minute["batches"].as_u64().expect("batches") >= 1,
             "{minute}"

@@ -14,7 +14,10 @@ mod site_map;
 mod site_task;
 mod site_view;
 
-pub use map_history::{DEFAULT_HISTORY_CAPACITY, HistoryEntry, MapHistory, PlacedGrids};
+pub use map_history::{
+    DEFAULT_HISTORY_CAPACITY, DEFAULT_HISTORY_PAST_GRID_BUDGET_BYTES, HistoryEntry, MapHistory,
+    PlacedGrids,
+};
 pub use map_render::render_submaps;
 pub use session_view::{PlacementState, SessionView};
 pub use site_error::SiteError;
