@@ -128,7 +128,7 @@ impl Default for ConstraintBuilderOptions {
                 ..FastCorrelativeScanMatcherOptions::default()
             },
             // Cartographer's constraint-builder weights: the scan, not the branch-and-bound pose it starts
-            // from, decides the refined pose (LLO's 1 / 10 / 40 anchor it to the search's discrete angle).
+            // from, decides the refined pose (Cartographer's LLO weights 1 / 10 / 40 anchor it to the search's discrete angle).
             least_squares: LeastSquaresScanMatcherOptions {
                 occupied_space_weight: 20.0,
                 translation_weight: 10.0,
