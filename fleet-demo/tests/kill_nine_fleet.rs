@@ -239,9 +239,12 @@ struct Agent {
     outbox: PathBuf,
     log: PathBuf,
     child: Child,
-    /// How long after its first session is known to the server the agent is killed.
+    /// How long after it announced its first session the agent is killed (once the server knows it).
     kill_after: Duration,
-    /// When the first run's session was first seen in the server's log.
+    /// When the first run's session was first seen in the agent's own log. Counted from the agent's
+    /// side, not from when the server first logged it: a server killed and restarting for a while under
+    /// load learns of the session late, and a kill timed from then could fall after the robot had
+    /// already ended its session.
     streaming_since: Option<Instant>,
     /// At the kill: each unfinished session and the highest sequence number still in the outbox
     /// (0: none pending, everything the session made was acknowledged).
@@ -258,19 +261,18 @@ impl Agent {
         );
     }
 
-    /// Whether it is time to kill the first run: its session has been on the server for `kill_after`.
+    /// Whether it is time to kill the first run: it announced its session `kill_after` ago and the
+    /// server knows the session.
     fn due(&mut self, server_log: &Path) -> bool {
         if self.at_kill.is_some() {
             return false;
         }
-        if self.streaming_since.is_none()
-            && let Some(session) = announced_session(&self.log)
+        let Some(session) = announced_session(&self.log) else {
+            return false;
+        };
+        let since = *self.streaming_since.get_or_insert_with(Instant::now);
+        since.elapsed() >= self.kill_after
             && std::fs::read_to_string(server_log).is_ok_and(|log| log.contains(&session))
-        {
-            self.streaming_since = Some(Instant::now());
-        }
-        self.streaming_since
-            .is_some_and(|since| since.elapsed() >= self.kill_after)
     }
 
     fn kill_and_inspect(&mut self) {
