@@ -5,7 +5,8 @@ use std::io::{BufRead as _, BufReader, Cursor};
 use std::path::{Path, PathBuf};
 
 use mapping::geometry::{Rigid2, Rigid2Ext as _};
-use mapping::sensor::{ImuReading, SensorEvent};
+use mapping::sensor::{ImuReading, LaserScan, OdometryReading, SensorEvent};
+use robot_agent::source::ros_messages::{DecodeError, PlanarTransform};
 use robot_agent::source::{self, Recording, ros_messages};
 
 use super::super::fuzz_target::{FuzzTarget, Verdict};
@@ -51,6 +52,77 @@ fn written_bag(recording: &Recording) -> Result<Vec<u8>, SetupError> {
         }
     })?;
     Ok(out.into_inner())
+}
+
+/// A message decoder: payload bytes to one message.
+pub(super) type Decoder<T> = fn(&[u8]) -> Result<T, DecodeError>;
+
+/// One encoding's message decoders (ROS1 or ROS 2 CDR), as the message targets run them.
+pub(super) struct MessageDecoders {
+    pub laser_scan: Decoder<(LaserScan, String)>,
+    pub odometry: Decoder<OdometryReading>,
+    pub imu: Decoder<ImuReading>,
+    pub tf_message: Decoder<Vec<PlanarTransform>>,
+    /// The fewest bytes one transform takes in this encoding, if fixed: an accepted message cannot
+    /// hold more transforms than its bytes allow.
+    pub transform_bytes: Option<usize>,
+}
+
+/// Decodes a message payload (`input`'s first byte picks the type) and checks what an accepted one
+/// holds: finite geometry, poses and rates, no more elements than bytes.
+pub(super) fn checked_message(decoders: &MessageDecoders, input: &[u8]) -> Verdict {
+    let Some((&kind, data)) = input.split_first() else {
+        return Verdict::Rejected("empty".into());
+    };
+    match kind % 4 {
+        0 => {
+            let result = (decoders.laser_scan)(data);
+            if let Ok((scan, _)) = &result {
+                assert!(
+                    scan.angle_min.is_finite()
+                        && scan.angle_increment.is_finite()
+                        && scan.range_max.is_finite()
+                        && scan.range_min.is_finite(),
+                    "invariant: non-finite scan geometry"
+                );
+                assert!(
+                    scan.ranges.len() * 4 <= data.len(),
+                    "invariant: more ranges than bytes"
+                );
+            }
+            Verdict::of(&result.map_err(|e| e.0))
+        }
+        1 => {
+            let result = (decoders.odometry)(data);
+            if let Ok(o) = &result {
+                assert!(finite(&o.pose), "invariant: non-finite odometry");
+            }
+            Verdict::of(&result.map_err(|e| e.0))
+        }
+        2 => {
+            let result = (decoders.imu)(data);
+            if let Ok(i) = &result {
+                assert!(i.yaw_rate.is_finite(), "invariant: non-finite yaw rate");
+            }
+            Verdict::of(&result.map_err(|e| e.0))
+        }
+        _ => {
+            let result = (decoders.tf_message)(data);
+            if let Ok(transforms) = &result {
+                assert!(
+                    transforms.iter().all(|t| finite(&t.parent_from_child)),
+                    "invariant: non-finite transform"
+                );
+                if let Some(bytes) = decoders.transform_bytes {
+                    assert!(
+                        transforms.len() * bytes <= data.len(),
+                        "invariant: more transforms than bytes"
+                    );
+                }
+            }
+            Verdict::of(&result.map_err(|e| e.0))
+        }
+    }
 }
 
 pub(super) fn finite(pose: &Rigid2) -> bool {
@@ -220,51 +292,16 @@ pub fn ros1_messages(datasets: &Path) -> Result<FuzzTarget, SetupError> {
         seeds,
         false,
         Box::new(|input| {
-            let Some((&kind, data)) = input.split_first() else {
-                return Verdict::Rejected("empty".into());
-            };
-            match kind % 4 {
-                0 => {
-                    let result = ros_messages::laser_scan(data);
-                    if let Ok((scan, _)) = &result {
-                        assert!(
-                            scan.angle_min.is_finite()
-                                && scan.angle_increment.is_finite()
-                                && scan.range_max.is_finite(),
-                            "invariant: non-finite scan geometry"
-                        );
-                        assert!(
-                            scan.ranges.len() * 4 <= data.len(),
-                            "invariant: more ranges than bytes"
-                        );
-                    }
-                    Verdict::of(&result.map_err(|e| e.0))
-                }
-                1 => {
-                    let result = ros_messages::odometry(data);
-                    if let Ok(o) = &result {
-                        assert!(finite(&o.pose), "invariant: non-finite odometry");
-                    }
-                    Verdict::of(&result.map_err(|e| e.0))
-                }
-                2 => {
-                    let result = ros_messages::imu(data);
-                    if let Ok(i) = &result {
-                        assert!(i.yaw_rate.is_finite(), "invariant: non-finite yaw rate");
-                    }
-                    Verdict::of(&result.map_err(|e| e.0))
-                }
-                _ => {
-                    let result = ros_messages::tf_message(data);
-                    if let Ok(transforms) = &result {
-                        assert!(
-                            transforms.iter().all(|t| finite(&t.parent_from_child)),
-                            "invariant: non-finite transform"
-                        );
-                    }
-                    Verdict::of(&result.map_err(|e| e.0))
-                }
-            }
+            checked_message(
+                &MessageDecoders {
+                    laser_scan: ros_messages::laser_scan,
+                    odometry: ros_messages::odometry,
+                    imu: ros_messages::imu,
+                    tf_message: ros_messages::tf_message,
+                    transform_bytes: None,
+                },
+                input,
+            )
         }),
     ))
 }

@@ -16,7 +16,7 @@ use mapping::sensor::SensorEvent;
 use robot_agent::source::{self, CdrWriter, Recording, ros2_messages};
 
 use super::super::fuzz_target::{FuzzTarget, Verdict};
-use super::recordings::{check_recording, finite};
+use super::recordings::{MessageDecoders, check_recording, checked_message};
 
 /// The stamps a ROS 2 header can give, seconds: `int32 sec` plus a `uint32 nanosec`.
 const ROS2_STAMPS_S: (f64, f64) = (-2_147_483_648.0, 2_147_483_647.0 + 4.294_967_295);
@@ -535,56 +535,16 @@ pub fn ros2_messages(datasets: &Path) -> Result<FuzzTarget, SetupError> {
         seeds,
         false,
         Box::new(|input| {
-            let Some((&kind, data)) = input.split_first() else {
-                return Verdict::Rejected("empty".into());
-            };
-            match kind % 4 {
-                0 => {
-                    let result = ros2_messages::laser_scan(data);
-                    if let Ok((scan, _)) = &result {
-                        assert!(
-                            scan.angle_min.is_finite()
-                                && scan.angle_increment.is_finite()
-                                && scan.range_max.is_finite()
-                                && scan.range_min.is_finite(),
-                            "invariant: non-finite scan geometry"
-                        );
-                        assert!(
-                            scan.ranges.len() * 4 <= data.len(),
-                            "invariant: more ranges than bytes"
-                        );
-                    }
-                    Verdict::of(&result.map_err(|e| e.0))
-                }
-                1 => {
-                    let result = ros2_messages::odometry(data);
-                    if let Ok(o) = &result {
-                        assert!(finite(&o.pose), "invariant: non-finite odometry");
-                    }
-                    Verdict::of(&result.map_err(|e| e.0))
-                }
-                2 => {
-                    let result = ros2_messages::imu(data);
-                    if let Ok(i) = &result {
-                        assert!(i.yaw_rate.is_finite(), "invariant: non-finite yaw rate");
-                    }
-                    Verdict::of(&result.map_err(|e| e.0))
-                }
-                _ => {
-                    let result = ros2_messages::tf_message(data);
-                    if let Ok(transforms) = &result {
-                        assert!(
-                            transforms.iter().all(|t| finite(&t.parent_from_child)),
-                            "invariant: non-finite transform"
-                        );
-                        assert!(
-                            transforms.len() * 72 <= data.len(),
-                            "invariant: more transforms than bytes"
-                        );
-                    }
-                    Verdict::of(&result.map_err(|e| e.0))
-                }
-            }
+            checked_message(
+                &MessageDecoders {
+                    laser_scan: ros2_messages::laser_scan,
+                    odometry: ros2_messages::odometry,
+                    imu: ros2_messages::imu,
+                    tf_message: ros2_messages::tf_message,
+                    transform_bytes: Some(72),
+                },
+                input,
+            )
         }),
     ))
 }
