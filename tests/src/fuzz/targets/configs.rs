@@ -68,6 +68,21 @@ fn drive_llo(options: &LocalTrajectoryBuilderOptions) {
     }
 }
 
+/// A configuration target's input as text (a refusal if it is not UTF-8).
+fn text(input: &[u8]) -> Result<&str, Verdict> {
+    refused(std::str::from_utf8(input))
+}
+
+/// A step's error as the input's refusal, so that a target's steps chain with `?`.
+fn refused<T, E: std::fmt::Display>(result: Result<T, E>) -> Result<T, Verdict> {
+    result.map_err(|e| Verdict::Rejected(e.to_string()))
+}
+
+/// Runs a target's steps: their verdict, or the first step's refusal.
+fn verdict(steps: impl FnOnce() -> Result<Verdict, Verdict>) -> Verdict {
+    steps().unwrap_or_else(|refusal| refusal)
+}
+
 fn deploy_file(name: &str) -> Result<Vec<u8>, SetupError> {
     read_file(
         &Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -119,23 +134,14 @@ pub fn server_config() -> Result<FuzzTarget, SetupError> {
         seeds,
         true,
         Box::new(|input| {
-            let text = match std::str::from_utf8(input) {
-                Ok(text) => text,
-                Err(e) => return Verdict::Rejected(e.to_string()),
-            };
-            let config = match ServerConfig::from_toml(text) {
-                Ok(config) => config,
-                Err(e) => return Verdict::Rejected(e.to_string()),
-            };
-            if let Err(e) = config.validate() {
-                return Verdict::Rejected(e.to_string());
-            }
-            if let Some(zenoh) = &config.zenoh
-                && let Err(e) = zenoh.to_zenoh_config()
-            {
-                return Verdict::Rejected(e.to_string());
-            }
-            Verdict::of(&LifelongMap::new(config.map))
+            verdict(|| {
+                let config = refused(ServerConfig::from_toml(text(input)?))?;
+                refused(config.validate())?;
+                if let Some(zenoh) = &config.zenoh {
+                    refused(zenoh.to_zenoh_config())?;
+                }
+                Ok(Verdict::of(&LifelongMap::new(config.map)))
+            })
         }),
     ))
 }
@@ -154,25 +160,14 @@ pub fn slam_config() -> Result<FuzzTarget, SetupError> {
         seeds,
         true,
         Box::new(|input| {
-            let text = match std::str::from_utf8(input) {
-                Ok(text) => text,
-                Err(e) => return Verdict::Rejected(e.to_string()),
-            };
-            let config: SlamConfig = match toml::from_str(text) {
-                Ok(config) => config,
-                Err(e) => return Verdict::Rejected(e.to_string()),
-            };
-            if let Err(e) = config.local.validate() {
-                return Verdict::Rejected(e.to_string());
-            }
-            if let Err(e) = config.relocalization.validate() {
-                return Verdict::Rejected(e.to_string());
-            }
-            if let Err(e) = GlobalSlam::new(config.global.clone()) {
-                return Verdict::Rejected(e.to_string());
-            }
-            drive_llo(&config.local);
-            Verdict::Accepted
+            verdict(|| {
+                let config: SlamConfig = refused(toml::from_str(text(input)?))?;
+                refused(config.local.validate())?;
+                refused(config.relocalization.validate())?;
+                refused(GlobalSlam::new(config.global.clone()))?;
+                drive_llo(&config.local);
+                Ok(Verdict::Accepted)
+            })
         }),
     );
     // LLO's submaps and search windows: a fixed budget, whatever the file's size.
@@ -194,25 +189,14 @@ pub fn sessions_config() -> Result<FuzzTarget, SetupError> {
         seeds,
         true,
         Box::new(|input| {
-            let text = match std::str::from_utf8(input) {
-                Ok(text) => text,
-                Err(e) => return Verdict::Rejected(e.to_string()),
-            };
-            let config: SessionsConfig = match toml::from_str(text) {
-                Ok(config) => config,
-                Err(e) => return Verdict::Rejected(e.to_string()),
-            };
-            if let Err(e) = config.local.validate() {
-                return Verdict::Rejected(e.to_string());
-            }
-            if let Err(e) = config.scoring.validate() {
-                return Verdict::Rejected(e.to_string());
-            }
-            if let Err(e) = LifelongMap::new(config.lifelong.clone()) {
-                return Verdict::Rejected(e.to_string());
-            }
-            drive_llo(&config.local);
-            Verdict::Accepted
+            verdict(|| {
+                let config: SessionsConfig = refused(toml::from_str(text(input)?))?;
+                refused(config.local.validate())?;
+                refused(config.scoring.validate())?;
+                refused(LifelongMap::new(config.lifelong.clone()))?;
+                drive_llo(&config.local);
+                Ok(Verdict::Accepted)
+            })
         }),
     );
     target.base_heap_bytes = 256 << 20;
@@ -243,41 +227,30 @@ pub fn agent_config() -> Result<FuzzTarget, SetupError> {
         seeds,
         true,
         Box::new(|input| {
-            let text = match std::str::from_utf8(input) {
-                Ok(text) => text,
-                Err(e) => return Verdict::Rejected(e.to_string()),
-            };
-            let config = match AgentConfig::from_toml(text) {
-                Ok(config) => config,
-                Err(e) => return Verdict::Rejected(e.to_string()),
-            };
-            if let Err(e) = config.validate() {
-                return Verdict::Rejected(e.to_string());
-            }
-            if let Some(zenoh) = &config.zenoh
-                && let Err(e) = zenoh.to_zenoh_config()
-            {
-                return Verdict::Rejected(e.to_string());
-            }
-            if let Some(ros2) = &config.ros2 {
-                if let Err(e) = ros2.zenoh.to_zenoh_config() {
-                    return Verdict::Rejected(e.to_string());
+            verdict(|| {
+                let config = refused(AgentConfig::from_toml(text(input)?))?;
+                refused(config.validate())?;
+                if let Some(zenoh) = &config.zenoh {
+                    refused(zenoh.to_zenoh_config())?;
                 }
-                let decoder = LiveDecoder::new(ros2);
-                assert_eq!(
-                    decoder.topic_count(),
-                    4 + usize::from(ros2.imu_topic.is_some()),
-                    "invariant: one topic index per subscription"
+                if let Some(ros2) = &config.ros2 {
+                    refused(ros2.zenoh.to_zenoh_config())?;
+                    let decoder = LiveDecoder::new(ros2);
+                    assert_eq!(
+                        decoder.topic_count(),
+                        4 + usize::from(ros2.imu_topic.is_some()),
+                        "invariant: one topic index per subscription"
+                    );
+                }
+                assert!(
+                    config.call_timeout().is_ok()
+                        && config.retry_interval().is_ok()
+                        && config.final_flush_timeout().is_ok(),
+                    "invariant: a validated configuration's durations convert"
                 );
-            }
-            assert!(
-                config.call_timeout().is_ok()
-                    && config.retry_interval().is_ok()
-                    && config.final_flush_timeout().is_ok(),
-                "invariant: a validated configuration's durations convert"
-            );
-            drive_llo(&config.local);
-            Verdict::Accepted
+                drive_llo(&config.local);
+                Ok(Verdict::Accepted)
+            })
         }),
     );
     target.base_heap_bytes = 256 << 20;
