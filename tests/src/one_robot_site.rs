@@ -11,7 +11,7 @@ use mapping::sensor::Timestamp;
 use nalgebra::Point2;
 use proto::{NodeAdded, UploadItem};
 use robot_agent::outbox::Outbox;
-use robot_agent::uplink::{GrpcUplink, Uploader};
+use robot_agent::uplink::{GrpcUplink, UplinkError, Uploader};
 use server::{RobotConfig, RunningServer, ServerConfig, SiteConfig};
 use storage::MemStore;
 
@@ -73,6 +73,29 @@ impl OneRobotSite {
             session,
         )
         .expect("uploader")
+    }
+
+    /// Sends nodes 1 and 2 through `robot` and checks that the server applied both.
+    pub async fn deliver_first_nodes(robot: &mut Uploader<GrpcUplink>) {
+        robot.enqueue(&Self::node(1)).expect("enqueue");
+        robot.enqueue(&Self::node(2)).expect("enqueue");
+        assert_eq!(robot.flush().await.expect("flush").applied, 2);
+    }
+
+    /// With the server's disk full: queues nodes 3 and 4 and checks that three flushes in a row are
+    /// refused as retryable with a message naming the full disk (`case` prefixes the failure messages).
+    pub async fn expect_full_disk_refusals(robot: &mut Uploader<GrpcUplink>, case: &str) {
+        robot.enqueue(&Self::node(3)).expect("enqueue");
+        robot.enqueue(&Self::node(4)).expect("enqueue");
+        for _ in 0..3 {
+            match robot.flush().await {
+                Err(UplinkError::Unavailable(message)) => assert!(
+                    message.contains("No space left on device"),
+                    "{case}: the refusal names the full disk: {message}"
+                ),
+                other => panic!("{case}: expected a retryable refusal, got {other:?}"),
+            }
+        }
     }
 
     /// The node poses of a server fed nodes 1..=5 of one session without faults.

@@ -8,7 +8,6 @@
 
 use std::sync::Arc;
 
-use robot_agent::uplink::UplinkError;
 use server::RunningServer;
 use storage::{DiskFullStore, FailAt, MapStore, SledStore, SledStoreOptions};
 use tests::OneRobotSite;
@@ -35,23 +34,11 @@ async fn a_full_disk_is_a_clear_retryable_refusal_and_nothing_is_lost_or_doubled
                 .expect("server");
         let site = server.site(SITE).expect("site").clone();
         let mut robot = FIXTURE.uploader(&server, "s-1");
-        robot.enqueue(&OneRobotSite::node(1)).expect("enqueue");
-        robot.enqueue(&OneRobotSite::node(2)).expect("enqueue");
-        assert_eq!(robot.flush().await.expect("flush").applied, 2);
+        OneRobotSite::deliver_first_nodes(&mut robot).await;
         let before = site.current();
 
         disk.fill();
-        robot.enqueue(&OneRobotSite::node(3)).expect("enqueue");
-        robot.enqueue(&OneRobotSite::node(4)).expect("enqueue");
-        for _ in 0..3 {
-            match robot.flush().await {
-                Err(UplinkError::Unavailable(message)) => assert!(
-                    message.contains("No space left on device"),
-                    "{fail_at:?}: the refusal names the full disk: {message}"
-                ),
-                other => panic!("{fail_at:?}: expected a retryable refusal, got {other:?}"),
-            }
-        }
+        OneRobotSite::expect_full_disk_refusals(&mut robot, &format!("{fail_at:?}")).await;
         assert!(disk.failures() >= 3, "{fail_at:?}");
         assert_eq!(
             site.current(),

@@ -12,7 +12,6 @@ use std::sync::{Arc, Mutex};
 
 use prost::Message as _;
 use proto::pb;
-use robot_agent::uplink::UplinkError;
 use server::RunningServer;
 use server::site::SITE_LOG_KIND;
 use storage::{DiskFullStore, FailAt, MapStore, MemStore};
@@ -68,23 +67,11 @@ async fn a_store_wedged_by_a_full_disk_recovers_in_place_and_nothing_is_lost_or_
         })
     };
     let mut robot = FIXTURE.uploader(&server, "s-1");
-    robot.enqueue(&OneRobotSite::node(1)).expect("enqueue");
-    robot.enqueue(&OneRobotSite::node(2)).expect("enqueue");
-    assert_eq!(robot.flush().await.expect("flush").applied, 2);
+    OneRobotSite::deliver_first_nodes(&mut robot).await;
     let before = site.current();
 
     disk.fill();
-    robot.enqueue(&OneRobotSite::node(3)).expect("enqueue");
-    robot.enqueue(&OneRobotSite::node(4)).expect("enqueue");
-    for _ in 0..3 {
-        match robot.flush().await {
-            Err(UplinkError::Unavailable(message)) => assert!(
-                message.contains("No space left on device"),
-                "the refusal names the full disk: {message}"
-            ),
-            other => panic!("expected a retryable refusal, got {other:?}"),
-        }
-    }
+    OneRobotSite::expect_full_disk_refusals(&mut robot, "in place").await;
     assert!(disk.is_wedged(), "a failed flush wedges the store");
     assert_eq!(
         site.current(),
