@@ -44,7 +44,7 @@ pub use options::{
 };
 pub use relocalization::{
     CloudFit, RelocalizationOptions, RelocalizationOutcome, SearchEvidence, SessionRelocalization,
-    StartSearch, relocalize_scans_in_grid, relocalize_session_start, render_submaps,
+    StartAnswer, StartSearch, relocalize_scans_in_grid, relocalize_session_start, render_submaps,
     render_submaps_newest,
 };
 pub use session_start::{

@@ -19,7 +19,7 @@ use mapping::geometry::{Rigid2, Rigid2Ext as _};
 use mapping::grid::ProbabilityGrid;
 use mapping::lifelong::{
     GraphCounts, LifelongError, LifelongEvent, LifelongMap, LifelongOptions, RelocalizationOutcome,
-    RevokeReason, SessionStart, SessionStartEvent, StartSearch, render_submaps,
+    SessionStart, SessionStartEvent, StartSearch, render_submaps,
 };
 use mapping::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
 use mapping::metrics::{MatchScorer, Placement, ScoringOptions, SessionTrack};
@@ -867,13 +867,7 @@ fn act_on_start(
                 map.revoke_placement(session)?;
                 priors.remove(&session);
                 if let Some(summary) = summary.as_deref_mut() {
-                    summary.revoked.push(
-                        match reason {
-                            RevokeReason::Disagreement => "disagreement",
-                            RevokeReason::Timeout => "timeout",
-                        }
-                        .into(),
-                    );
+                    summary.revoked.push(reason.as_str().into());
                 }
             }
             SessionStartEvent::GaveUp { .. } => {}

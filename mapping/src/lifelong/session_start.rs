@@ -12,9 +12,9 @@
 //!    is refused as ambiguous).
 //! 2. **Retries.** While unplaced, the whole map is searched again with every node since the start (at
 //!    most the latest [`SessionStartOptions::max_search_nodes`]) after `retry_every_n_nodes` nodes, then
-//!    twice, four times ... as many ([`StartSearch::search_again`]: placed when the best pose beats every
-//!    other candidate in the paired per-point test). After [`SessionStartOptions::give_up_after_nodes`]
-//!    the session stops searching.
+//!    twice, four times ... as many ([`StartSearch::search_again`]: placed when the best pose fits the
+//!    map well enough and beats every other candidate in the paired per-point test). After
+//!    [`SessionStartOptions::give_up_after_nodes`] the session stops searching.
 //! 3. **Probation.** A placement is tentative: the shell places the session so that GLM can match its
 //!    nodes near their estimates, but its submaps stay out of the map robots relocalize against and it
 //!    trims nothing. It is committed once [`SessionStartOptions::probation_matches`] *independent*
@@ -25,7 +25,11 @@
 //!    match agrees when the node pose it implies lies within `agreement_translation_m` (+
 //!    `agreement_growth` per metre of route from the placement's node, for LLO's drift) and
 //!    `agreement_rotation_rad` of the node's pose under the placement: the same place at the scale of
-//!    the look-alike places it must tell apart (an aisle pitch), while GLM refines the pose.
+//!    the look-alike places it must tell apart (an aisle pitch), while GLM refines the pose. Those matches
+//!    are searched near the placement, so in a look-alike aisle they agree with a wrong one too: before
+//!    committing, the session's route since the start must also fit the placement decisively better than
+//!    every rival the placing search ranked below it ([`StartSearch::contest`],
+//!    [`SessionStartOptions::probation_min_z`]); a rival that fits decisively better revokes it.
 //!    [`SessionStartOptions::probation_disagreements`] independent disagreeing matches, or
 //!    `probation_timeout_m` of route without a commit, revoke the placement and searching resumes (a
 //!    search that finds a revoked placement again is refused).
@@ -40,7 +44,7 @@ use std::collections::VecDeque;
 use nalgebra::Point2;
 use serde::Deserialize;
 
-use super::{LifelongOptionsError, RelocalizationOutcome, StartSearch};
+use super::{LifelongOptionsError, RelocalizationOutcome, StartAnswer, StartSearch};
 use crate::geometry::{Rigid2, Rigid2Ext as _, normalize_angle};
 use crate::pose_graph::SubmapId;
 
@@ -97,6 +101,16 @@ pub struct SessionStartOptions {
     /// A search answer within this distance (metres, at the latest node) and `agreement_rotation_rad` of
     /// a revoked placement is refused as that placement again. Metres ≥ 0. Default 1 m.
     pub revoked_radius_m: f64,
+    /// Before a placement is committed, the session's cloud since the start (at most the latest
+    /// `max_search_nodes`) must fit it better than each rival its search ranked below it by this paired
+    /// test ([`StartSearch::contest`]); a rival that fits better by as much revokes it, and in between the
+    /// test is made again `probation_min_separation_m` of route later. The matches that confirm a
+    /// placement are searched near its estimate, so in a look-alike aisle they agree with a wrong
+    /// placement as readily as with the right one; the whole route is the evidence they cannot give.
+    /// Unitless (about standard errors; 0 = no test). Default 4 (as
+    /// [`super::RelocalizationOptions::min_answer_z`]): probation committed a store session placed 19.9 m
+    /// off by the search's runner-up at 3 (seed 1, session 24; BENCHMARKS.md, session 15).
+    pub probation_min_z: f64,
 }
 
 impl Default for SessionStartOptions {
@@ -115,6 +129,7 @@ impl Default for SessionStartOptions {
             probation_disagreements: 2,
             probation_timeout_m: 0.0,
             revoked_radius_m: 1.0,
+            probation_min_z: 4.0,
         }
     }
 }
@@ -169,6 +184,9 @@ impl SessionStartOptions {
                 "must be a non-negative number of metres",
             );
         }
+        if !non_negative(self.probation_min_z) {
+            return out_of_range("probation_min_z", "must be a non-negative number");
+        }
         Ok(())
     }
 }
@@ -192,6 +210,19 @@ pub enum RevokeReason {
     Disagreement,
     /// Nothing confirmed it within `probation_timeout_m`.
     Timeout,
+    /// A rival of its search fit the session's route decisively better (`probation_min_z`).
+    Rival,
+}
+
+impl RevokeReason {
+    /// The reason's name in reports: `disagreement`, `timeout` or `rival`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Disagreement => "disagreement",
+            Self::Timeout => "timeout",
+            Self::Rival => "rival",
+        }
+    }
 }
 
 /// What [`SessionStart`] decided; the shell acts on it.
@@ -267,6 +298,10 @@ pub struct SessionStart {
     disagreeing: Vec<Counted>,
     revoked: Vec<Rigid2>,
     revocations: usize,
+    /// The rivals of the search that made the current placement (`global_from_local`).
+    rivals: Vec<Rigid2>,
+    /// Route position (metres) of the latest undecided contest of the current placement.
+    contested_at_m: Option<f64>,
 }
 
 impl SessionStart {
@@ -289,6 +324,8 @@ impl SessionStart {
             disagreeing: Vec::new(),
             revoked: Vec::new(),
             revocations: 0,
+            rivals: Vec::new(),
+            contested_at_m: None,
         })
     }
 
@@ -425,9 +462,18 @@ impl SessionStart {
                 .min(self.options.probation_matches);
             if self.agreeing.len() >= self.options.probation_matches && submaps.len() >= min_submaps
             {
-                self.state = SessionStartState::Committed(placement);
-                self.cloud.clear();
-                return vec![SessionStartEvent::Committed { placement, node }];
+                return match self.contest(placement, path_m) {
+                    Contest::Upheld => {
+                        self.state = SessionStartState::Committed(placement);
+                        self.cloud.clear();
+                        vec![SessionStartEvent::Committed { placement, node }]
+                    }
+                    Contest::Overturned => {
+                        let last = self.nodes.len().saturating_sub(1);
+                        self.revoke(placement, RevokeReason::Rival, last)
+                    }
+                    Contest::Undecided => Vec::new(),
+                };
             }
         } else if independent(&self.disagreeing, counted, separation) {
             self.disagreeing.push(counted);
@@ -437,6 +483,32 @@ impl SessionStart {
             }
         }
         Vec::new()
+    }
+
+    /// Tests `placement` against its search's rivals with the session's cloud (`probation_min_z`), at
+    /// most once per `probation_min_separation_m` of route (`path_m`: the matched node's) while
+    /// undecided.
+    fn contest(&mut self, placement: StartPlacement, path_m: f64) -> Contest {
+        let min_z = self.options.probation_min_z;
+        let (Some(search), false) = (&self.search, min_z == 0.0 || self.rivals.is_empty()) else {
+            return Contest::Upheld;
+        };
+        if self
+            .contested_at_m
+            .is_some_and(|at| path_m - at < self.options.probation_min_separation_m)
+        {
+            return Contest::Undecided;
+        }
+        let scans = self.cloud.make_contiguous();
+        match search.contest(scans, &placement.global_from_local, &self.rivals) {
+            None => Contest::Upheld,
+            Some(z) if z >= min_z => Contest::Upheld,
+            Some(z) if z <= -min_z => Contest::Overturned,
+            Some(_) => {
+                self.contested_at_m = Some(path_m);
+                Contest::Undecided
+            }
+        }
     }
 
     fn path_at(&self, node: usize) -> Option<f64> {
@@ -470,8 +542,11 @@ impl SessionStart {
             return Vec::new();
         }
         self.searches += 1;
-        let outcome = match &self.search {
-            None => RelocalizationOutcome::NotFound,
+        let answer = match &self.search {
+            None => StartAnswer {
+                outcome: RelocalizationOutcome::NotFound,
+                rivals: Vec::new(),
+            },
             Some(search) => {
                 let scans = self.cloud.make_contiguous();
                 if first {
@@ -483,7 +558,7 @@ impl SessionStart {
         };
         // The cloud's frame is its first node's local frame, which the search resolves: `found` is
         // already `global_from_local` of the session's LLO frame.
-        match outcome {
+        match answer.outcome {
             RelocalizationOutcome::Found(found)
                 if !self.repeats_revoked(&found.global_from_local) =>
             {
@@ -492,6 +567,7 @@ impl SessionStart {
                     node,
                     score: Some(found.score),
                 };
+                self.rivals = answer.rivals;
                 let mut events = vec![SessionStartEvent::Placed(placement)];
                 events.extend(self.place(placement, node));
                 events
@@ -505,6 +581,7 @@ impl SessionStart {
     fn place(&mut self, placement: StartPlacement, node: usize) -> Vec<SessionStartEvent> {
         self.agreeing.clear();
         self.disagreeing.clear();
+        self.contested_at_m = None;
         if self.options.probation_matches == 0 {
             self.state = SessionStartState::Committed(placement);
             self.cloud.clear();
@@ -522,6 +599,7 @@ impl SessionStart {
     ) -> Vec<SessionStartEvent> {
         self.revoked.push(placement.global_from_local);
         self.revocations += 1;
+        self.rivals.clear();
         self.agreeing.clear();
         self.disagreeing.clear();
         self.state = SessionStartState::Searching;
@@ -550,6 +628,16 @@ impl SessionStart {
                     <= self.options.agreement_rotation_rad
         })
     }
+}
+
+/// What [`SessionStart::contest`] decided.
+enum Contest {
+    /// The placement fits the route decisively better than every rival (or there is none to test).
+    Upheld,
+    /// A rival fits it decisively better.
+    Overturned,
+    /// Neither yet.
+    Undecided,
 }
 
 /// Whether `candidate` is at least `separation` metres along the route from every match in `counted`.

@@ -162,6 +162,54 @@ fn independent_disagreeing_matches_revoke_a_placement_and_searching_resumes() {
     );
 }
 
+/// A session that truly started at `truth` in the room, on probation at `placed` with its search's
+/// `rivals`, after 12 nodes.
+fn contested(placed: Rigid2, rivals: Vec<Rigid2>, truth: Rigid2) -> SessionStart {
+    let (mut start, _) =
+        SessionStart::with_placement(options(), Some(room_search()), placed, 0).unwrap();
+    start.rivals = rivals;
+    for k in 0..12 {
+        assert!(
+            start
+                .add_node(local(k), room_scan(&(truth * local(k))))
+                .is_empty()
+        );
+    }
+    start
+}
+
+#[test]
+fn the_route_decides_between_a_placement_and_its_rivals_before_the_commit() {
+    let truth = rigid2(2.7, 2.2, 0.4);
+    let look_alike = rigid2(1.2, 2.9, 0.4);
+    // Matches searched near a wrong estimate can agree with it: made-up agreeing matches commit the
+    // right placement, and revoke the wrong one, whose rival the route fits decisively better.
+    for (placed, rival, upheld) in [(truth, look_alike, true), (look_alike, truth, false)] {
+        let mut start = contested(placed, vec![rival], truth);
+        let agreeing = |k: usize| placed * local(k);
+        assert!(start.add_match(4, agreeing(4), submap(1)).is_empty());
+        let events = start.add_match(8, agreeing(8), submap(2));
+        if upheld {
+            assert!(
+                matches!(events[..], [SessionStartEvent::Committed { node: 8, .. }]),
+                "{events:?}"
+            );
+        } else {
+            assert!(
+                matches!(
+                    events[..],
+                    [SessionStartEvent::Revoked {
+                        reason: RevokeReason::Rival,
+                        ..
+                    }]
+                ),
+                "{events:?}"
+            );
+            assert_eq!(start.state(), SessionStartState::Searching);
+        }
+    }
+}
+
 #[test]
 fn one_disagreeing_match_among_agreeing_ones_does_not_revoke() {
     let placed = rigid2(-3.0, 1.0, -1.0);
@@ -299,6 +347,10 @@ fn invalid_options_are_refused() {
         },
         SessionStartOptions {
             probation_timeout_m: f64::NAN,
+            ..SessionStartOptions::default()
+        },
+        SessionStartOptions {
+            probation_min_z: -1.0,
             ..SessionStartOptions::default()
         },
     ];
