@@ -62,6 +62,19 @@ pub enum SessionsError {
     Worker(String),
 }
 
+/// One optimization's figures in a [`SessionSummary`].
+#[derive(Clone, Debug, Serialize)]
+pub struct OptimizationFigures {
+    /// Levenberg-Marquardt steps tried.
+    pub iterations: usize,
+    /// Steps accepted.
+    pub accepted_steps: usize,
+    /// χ² before and after (robust losses ignored).
+    pub chi2: [f64; 2],
+    /// Why it stopped.
+    pub termination: String,
+}
+
 /// What happened in one session.
 #[derive(Clone, Debug, Default, Serialize)]
 pub struct SessionSummary {
@@ -138,6 +151,9 @@ pub struct SessionSummary {
     /// Levenberg-Marquardt steps tried at the session's end (each one numeric factorization), over every
     /// optimization `finish_ms` covers.
     pub finish_iterations: usize,
+    /// Each optimization `finish_ms` covers, in order (the session's final one, then one every
+    /// `optimize_every_n_sparsifications` trims): where the steps went.
+    pub finish_optimizations: Vec<OptimizationFigures>,
     /// Time of the session's first node (the one relocalization places).
     pub first_node_time: Option<Timestamp>,
     /// Global pose `[x, y, θ]` (m, m, rad) relocalization gave the session's first node.
@@ -732,13 +748,23 @@ fn worker(
                     summary.counts = counts;
                     summary.finish_ms = finish_ms;
                     summary.finish_cpu_ms = finish_cpu_ms;
-                    summary.finish_iterations = events_finish
+                    summary.finish_optimizations = events_finish
                         .iter()
                         .filter_map(|e| match e {
-                            LifelongEvent::Optimized(o) => Some(o.iterations),
+                            LifelongEvent::Optimized(o) => Some(OptimizationFigures {
+                                iterations: o.iterations,
+                                accepted_steps: o.accepted_steps,
+                                chi2: [o.initial_chi2, o.final_chi2],
+                                termination: o.termination.to_string(),
+                            }),
                             _ => None,
                         })
-                        .sum::<usize>();
+                        .collect();
+                    summary.finish_iterations = summary
+                        .finish_optimizations
+                        .iter()
+                        .map(|o| o.iterations)
+                        .sum();
                     summary.relocalization_offset_m = offset;
                     summary.peak_rss_mb = crate::process_stats::peak_rss_mb();
                 }

@@ -6,6 +6,13 @@
 //! fits that differ by chance in a few points give a small value however many points there are; a real
 //! improvement over most of the cloud gives a large one. Neighbouring points are not independent, so
 //! thresholds on it are empirical, not probabilities.
+//!
+//! [`blocked_paired_z`] sums the differences per block of the cloud first (squares of a given size in
+//! the cloud's own frame) and takes the statistic over the blocks: points that move, vanish or fit by
+//! chance together — a shelf section's goods, a parked cart — count as one piece of evidence, so the
+//! statistic does not grow merely because a growing cloud holds more points of the same chance fit.
+
+use std::collections::HashMap;
 
 use nalgebra::Point2;
 
@@ -40,6 +47,37 @@ pub fn paired_z(
     }
 }
 
+/// [`paired_z`] over blocks: the differences `d` summed per `block_m` × `block_m` square of the cloud's
+/// frame into `D`, then `ΣD / √(ΣD²)`. `block_m` ≤ 0 gives [`paired_z`] (every point its own block).
+pub fn blocked_paired_z(
+    grid: &ProbabilityGrid,
+    cloud: &[Point2<f32>],
+    better: &Rigid2,
+    other: &Rigid2,
+    block_m: f64,
+) -> f64 {
+    if block_m <= 0.0 {
+        return paired_z(grid, cloud, better, other);
+    }
+    let mut blocks: HashMap<(i64, i64), f64> = HashMap::new();
+    for p in cloud {
+        let d = probability_at(grid, better, *p) - probability_at(grid, other, *p);
+        let key = (
+            (f64::from(p.x) / block_m).floor() as i64,
+            (f64::from(p.y) / block_m).floor() as i64,
+        );
+        *blocks.entry(key).or_default() += d;
+    }
+    let (sum, squares) = blocks
+        .values()
+        .fold((0.0, 0.0), |(sum, squares), d| (sum + d, squares + d * d));
+    if squares > 0.0 {
+        sum / squares.sqrt()
+    } else {
+        0.0
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -56,5 +94,35 @@ mod tests {
         let z = paired_z(&grid, &scan, &truth, &shifted);
         assert!(z > 5.0, "z = {z}");
         assert!((paired_z(&grid, &scan, &shifted, &truth) + z).abs() < 1e-9);
+    }
+
+    #[test]
+    fn blocks_count_a_chance_fit_once_and_tiny_blocks_are_points() {
+        let grid = room_grid();
+        let truth = rigid2(2.5, 2.0, 0.3);
+        let scan = room_scan(&truth);
+        let shifted = rigid2(2.8, 1.8, 0.45);
+        let points = paired_z(&grid, &scan, &truth, &shifted);
+        // Blocks smaller than the points' spacing hold one point each: the per-point statistic.
+        let tiny = blocked_paired_z(&grid, &scan, &truth, &shifted, 1e-3);
+        assert!((tiny - points).abs() < 1e-9, "{tiny} vs {points}");
+        assert_eq!(
+            blocked_paired_z(&grid, &scan, &truth, &shifted, 0.0),
+            points
+        );
+        // Brute force: the same statistic over 1 m blocks summed by hand.
+        let mut sums = std::collections::BTreeMap::<(i64, i64), f64>::new();
+        for p in &scan {
+            let d = probability_at(&grid, &truth, *p) - probability_at(&grid, &shifted, *p);
+            *sums
+                .entry(((p.x as f64).floor() as i64, (p.y as f64).floor() as i64))
+                .or_default() += d;
+        }
+        let expected =
+            sums.values().sum::<f64>() / sums.values().map(|d| d * d).sum::<f64>().sqrt();
+        let blocked = blocked_paired_z(&grid, &scan, &truth, &shifted, 1.0);
+        assert!((blocked - expected).abs() < 1e-9, "{blocked} vs {expected}");
+        // Fewer, larger pieces of evidence: a smaller statistic than per point.
+        assert!(blocked > 0.0 && blocked < points, "{blocked} vs {points}");
     }
 }
