@@ -289,6 +289,8 @@ impl RelocalizationOutcome {
 pub struct StartAnswer {
     /// What the search found.
     pub outcome: RelocalizationOutcome,
+    /// `global_from_local` at the best candidate (placed or not; `None` when nothing was found).
+    pub best: Option<Rigid2>,
     /// `global_from_local` at each other distinct candidate, best first (not refined).
     pub rivals: Vec<Rigid2>,
 }
@@ -517,6 +519,7 @@ impl StartSearch {
     pub fn search(&self, scans: &[(Rigid2, Vec<Point2<f32>>)]) -> StartAnswer {
         let not_found = StartAnswer {
             outcome: RelocalizationOutcome::NotFound,
+            best: None,
             rivals: Vec::new(),
         };
         let Some((first_from_local, cloud)) = merge_scans(scans, self.options.voxel_size) else {
@@ -530,6 +533,7 @@ impl StartSearch {
             .filter(|(pose, _)| clearly_different(pose, &found.pose))
             .map(|(pose, _)| pose * first_from_local)
             .collect();
+        let best = Some(found.pose * first_from_local);
         if let (Some(runner_up_score), Some(runner_up_pose)) =
             (found.runner_up_score, found.runner_up_pose)
             && runner_up_score >= found.score - self.options.min_score_margin
@@ -545,6 +549,7 @@ impl StartSearch {
                         offset.theta(),
                     ],
                 },
+                best,
                 rivals,
             };
         }
@@ -553,6 +558,7 @@ impl StartSearch {
                 global_from_local: self.sharpen(&cloud, &found.pose) * first_from_local,
                 score: found.score,
             }),
+            best,
             rivals,
         }
     }
@@ -575,8 +581,49 @@ impl StartSearch {
         );
         StartAnswer {
             outcome,
+            best: evidence.as_ref().map(|e| e.global_from_local),
             rivals: evidence.map(|e| e.rivals).unwrap_or_default(),
         }
+    }
+
+    /// Whether the route `scans` now tells `candidates` (`global_from_local`, from an earlier search)
+    /// apart: each refined with the merged cloud on the unfiltered map, the best-fitting one fits at least
+    /// `min_unfiltered_score` and beats every other clearly different one by
+    /// `min_disambiguation_z` ([`blocked_paired_z`] over `route_block_m` blocks). A cheap test between
+    /// whole-map searches — no search, a few refinements — that says when a search is worth making now:
+    /// it decides nothing itself, since the truth may not be among the candidates.
+    pub fn route_decides(
+        &self,
+        scans: &[(Rigid2, Vec<Point2<f32>>)],
+        candidates: &[Rigid2],
+    ) -> bool {
+        let Some((first_from_local, cloud)) = merge_scans(scans, self.options.voxel_size) else {
+            return false;
+        };
+        let local_from_first = first_from_local.inverse();
+        let grid = self
+            .sharp
+            .as_ref()
+            .unwrap_or(self.relocalizers[0].fine_grid());
+        let mut refined: Vec<(Rigid2, f64)> = candidates
+            .iter()
+            .map(|c| {
+                let pose = self.sharpen(&cloud, &(c * local_from_first));
+                (pose, mean_probability(grid, &cloud, &pose))
+            })
+            .collect();
+        refined.sort_by(|a, b| b.1.total_cmp(&a.1));
+        let Some(&(leader, fit)) = refined.first() else {
+            return false;
+        };
+        fit >= f64::from(self.options.min_unfiltered_score)
+            && refined[1..]
+                .iter()
+                .filter(|(other, _)| clearly_different(&leader, other))
+                .all(|(other, _)| {
+                    blocked_paired_z(grid, &cloud, &leader, other, self.options.route_block_m)
+                        >= self.options.min_disambiguation_z
+                })
     }
 
     /// The weakest paired test ([`blocked_paired_z`]) of the session placed at `global_from_local` against each
@@ -1106,6 +1153,32 @@ mod tests {
         let (per_point, blocked) = (z(0.0), z(RelocalizationOptions::default().route_block_m));
         assert!(per_point > 3.0, "per point: z {per_point}");
         assert!(blocked > 0.0 && blocked < 2.0, "per block: z {blocked}");
+    }
+
+    #[test]
+    fn the_route_decides_between_candidates_once_it_passes_what_tells_them_apart() {
+        let grid = corridors_grid();
+        // Per point, at the pillar's z ≈ 3.3 (see `one_pillar_is_one_piece_of_evidence`).
+        let options = RelocalizationOptions {
+            min_disambiguation_z: 3.0,
+            route_block_m: 0.0,
+            ..RelocalizationOptions::default()
+        };
+        let search = StartSearch::new(&grid, &options);
+        let truth = rigid2(3.0, 1.0, 0.0);
+        let candidates = [rigid2(3.0, 9.0, 0.0), truth];
+        let scans: Vec<(Rigid2, Vec<Point2<f32>>)> = (0..=31)
+            .map(|k| {
+                let world = rigid2(3.0 + 0.5 * f64::from(k), 1.0, 0.0);
+                (truth.inverse() * world, corridor_scan(&world))
+            })
+            .collect();
+        // Whichever comes first in the list: before the pillar the corridors look alike.
+        assert!(!search.route_decides(&scans[..8], &candidates));
+        assert!(search.route_decides(&scans, &candidates));
+        assert!(search.route_decides(&scans, &[truth, candidates[0]]));
+        // No candidate: nothing decided.
+        assert!(!search.route_decides(&scans, &[]));
     }
 
     #[test]

@@ -13,7 +13,10 @@
 //! 2. **Retries.** While unplaced, the whole map is searched again with every node since the start (at
 //!    most the latest [`SessionStartOptions::max_search_nodes`]) after `retry_every_n_nodes` nodes, then
 //!    twice, four times ... as many ([`StartSearch::search_again`]: placed when the best pose fits the
-//!    map well enough and beats every other candidate in the paired per-point test). After
+//!    map well enough and beats every other candidate in the paired test over the route's blocks).
+//!    Between them, every [`SessionStartOptions::recheck_every_n_nodes`] nodes, a cheap test of the last
+//!    search's candidates against the grown route ([`StartSearch::route_decides`]) brings the retry
+//!    forward when the route already tells them apart. After
 //!    [`SessionStartOptions::give_up_after_nodes`] the session stops searching.
 //! 3. **Probation.** A placement is tentative: the shell places the session so that GLM can match its
 //!    nodes near their estimates, but its submaps stay out of the map robots relocalize against and it
@@ -62,6 +65,12 @@ pub struct SessionStartOptions {
     /// every 10 nodes (with 5 held back) placed a session of the `aisles` store 49 m off, and probation
     /// committed it (seed 1, session 10; BENCHMARKS.md, session 12). Default 20.
     pub retry_every_n_nodes: usize,
+    /// While unplaced, between the scheduled retries, every this many nodes test whether the route now
+    /// tells apart the candidates of the last search ([`StartSearch::route_decides`]: a few refinements,
+    /// no search), and if so retry at once (count; 0 = never). The doubling schedule alone left sessions
+    /// that the route had told apart after 80 nodes waiting for the search at 160 (35 s; seed 1,
+    /// sessions 24 and 25). Default 10 (about 2 m).
+    pub recheck_every_n_nodes: usize,
     /// Most nodes (the latest) a retry's cloud holds (count ≥ `hold_back_nodes`). Default 400 (about
     /// 80 m of driving): beyond that LLO's drift across the cloud outgrows the match tolerance.
     pub max_search_nodes: usize,
@@ -118,6 +127,7 @@ impl Default for SessionStartOptions {
         Self {
             hold_back_nodes: 10,
             retry_every_n_nodes: 20,
+            recheck_every_n_nodes: 10,
             max_search_nodes: 400,
             give_up_after_nodes: 0,
             probation_matches: 3,
@@ -300,6 +310,8 @@ pub struct SessionStart {
     revocations: usize,
     /// The rivals of the search that made the current placement (`global_from_local`).
     rivals: Vec<Rigid2>,
+    /// While searching: the best and the other candidates of the last refused search.
+    candidates: Vec<Rigid2>,
     /// Route position (metres) of the latest undecided contest of the current placement.
     contested_at_m: Option<f64>,
 }
@@ -325,6 +337,7 @@ impl SessionStart {
             revoked: Vec::new(),
             revocations: 0,
             rivals: Vec::new(),
+            candidates: Vec::new(),
             contested_at_m: None,
         })
     }
@@ -534,10 +547,19 @@ impl SessionStart {
         }
         let first = self.searches == 0 && count == self.options.hold_back_nodes;
         let every = self.options.retry_every_n_nodes;
-        let retry = self.searches > 0
+        let scheduled = self.searches > 0
             && every > 0
             && since.is_multiple_of(every)
             && (since / every).is_power_of_two();
+        let recheck = self.options.recheck_every_n_nodes;
+        let retry = scheduled
+            || (self.searches > 0
+                && recheck > 0
+                && since.is_multiple_of(recheck)
+                && self.candidates.len() > 1
+                && self.search.as_ref().is_some_and(|search| {
+                    search.route_decides(self.cloud.make_contiguous(), &self.candidates)
+                }));
         if !(first || retry) {
             return Vec::new();
         }
@@ -545,6 +567,7 @@ impl SessionStart {
         let answer = match &self.search {
             None => StartAnswer {
                 outcome: RelocalizationOutcome::NotFound,
+                best: None,
                 rivals: Vec::new(),
             },
             Some(search) => {
@@ -568,11 +591,21 @@ impl SessionStart {
                     score: Some(found.score),
                 };
                 self.rivals = answer.rivals;
+                self.candidates.clear();
                 let mut events = vec![SessionStartEvent::Placed(placement)];
                 events.extend(self.place(placement, node));
                 events
             }
-            outcome => vec![SessionStartEvent::Refused { node, outcome }],
+            outcome => {
+                // A revoked placement is no candidate: the recheck would bring it back every time.
+                self.candidates = answer
+                    .best
+                    .into_iter()
+                    .chain(answer.rivals)
+                    .filter(|c| !self.repeats_revoked(c))
+                    .collect();
+                vec![SessionStartEvent::Refused { node, outcome }]
+            }
         }
     }
 
