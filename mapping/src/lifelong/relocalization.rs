@@ -1031,6 +1031,18 @@ mod tests {
         wall_points(&CORRIDORS[..6], world_from_robot, 0.05, 0.1, 4.0)
     }
 
+    /// The scans of a robot driving the first corridor from (3, 1) to (18.5, 1) past the pillar, 0.5 m
+    /// apart, as `(local_from_tracking, points)` with LLO's frame at its first pose.
+    fn corridor_route() -> Vec<(Rigid2, Vec<Point2<f32>>)> {
+        let start = rigid2(3.0, 1.0, 0.0);
+        (0..=31)
+            .map(|k| {
+                let world = rigid2(3.0 + 0.5 * f64::from(k), 1.0, 0.0);
+                (start.inverse() * world, corridor_scan(&world))
+            })
+            .collect()
+    }
+
     #[test]
     fn an_ambiguous_start_is_placed_once_the_robot_sees_what_tells_the_places_apart() {
         let grid = corridors_grid();
@@ -1043,12 +1055,7 @@ mod tests {
         };
         // The robot drives the first corridor from x = 3 to x = 18.5; LLO's frame is its first pose.
         let start = rigid2(3.0, 1.0, 0.0);
-        let scans: Vec<(Rigid2, Vec<Point2<f32>>)> = (0..=31)
-            .map(|k| {
-                let world = rigid2(3.0 + 0.5 * f64::from(k), 1.0, 0.0);
-                (start.inverse() * world, corridor_scan(&world))
-            })
-            .collect();
+        let scans = corridor_route();
         let search = StartSearch::new(&grid, &options);
         let first = search.search(&scans[..3]).outcome;
         let RelocalizationOutcome::Ambiguous {
@@ -1101,12 +1108,7 @@ mod tests {
         // its first pose. The look-alike placement puts it in the other corridor, 8 m over.
         let truth = rigid2(3.0, 1.0, 0.0);
         let look_alike = rigid2(3.0, 9.0, 0.0);
-        let scans: Vec<(Rigid2, Vec<Point2<f32>>)> = (0..=31)
-            .map(|k| {
-                let world = rigid2(3.0 + 0.5 * f64::from(k), 1.0, 0.0);
-                (truth.inverse() * world, corridor_scan(&world))
-            })
-            .collect();
+        let scans = corridor_route();
         // Before the pillar neither fits the route better (the one pillar gives z ≈ 3.3 past it).
         let early = search.contest(&scans[..8], &look_alike, &[truth]).unwrap();
         assert!(early.abs() < 1.0, "decided before the pillar: z {early}");
@@ -1135,12 +1137,7 @@ mod tests {
         let grid = corridors_grid();
         let truth = rigid2(3.0, 1.0, 0.0);
         let look_alike = rigid2(3.0, 9.0, 0.0);
-        let scans: Vec<(Rigid2, Vec<Point2<f32>>)> = (0..=31)
-            .map(|k| {
-                let world = rigid2(3.0 + 0.5 * f64::from(k), 1.0, 0.0);
-                (truth.inverse() * world, corridor_scan(&world))
-            })
-            .collect();
+        let scans = corridor_route();
         let z = |block_m: f64| {
             let options = RelocalizationOptions {
                 route_block_m: block_m,
@@ -1167,12 +1164,7 @@ mod tests {
         let search = StartSearch::new(&grid, &options);
         let truth = rigid2(3.0, 1.0, 0.0);
         let candidates = [rigid2(3.0, 9.0, 0.0), truth];
-        let scans: Vec<(Rigid2, Vec<Point2<f32>>)> = (0..=31)
-            .map(|k| {
-                let world = rigid2(3.0 + 0.5 * f64::from(k), 1.0, 0.0);
-                (truth.inverse() * world, corridor_scan(&world))
-            })
-            .collect();
+        let scans = corridor_route();
         // Whichever comes first in the list: before the pillar the corridors look alike.
         assert!(!search.route_decides(&scans[..8], &candidates));
         assert!(search.route_decides(&scans, &candidates));
