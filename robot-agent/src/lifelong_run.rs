@@ -75,6 +75,18 @@ pub struct OptimizationFigures {
     pub termination: String,
 }
 
+/// One whole-map search of a session start in a [`SessionSummary`].
+#[derive(Clone, Debug, Serialize)]
+pub struct SearchFigures {
+    /// The node it was made at (index in the session).
+    pub node: usize,
+    /// `placed`, `ambiguous`, `not_found` or `revoked_again` (it found a revoked placement).
+    pub outcome: &'static str,
+    /// Its paired test of the best against the weakest rival (`None` for the first search, which ranks
+    /// by score margin).
+    pub weakest_z: Option<f64>,
+}
+
 /// What happened in one session.
 #[derive(Clone, Debug, Default, Serialize)]
 pub struct SessionSummary {
@@ -154,6 +166,8 @@ pub struct SessionSummary {
     /// Each optimization `finish_ms` covers, in order (the session's final one, then one every
     /// `optimize_every_n_sparsifications` trims): where the steps went.
     pub finish_optimizations: Vec<OptimizationFigures>,
+    /// Every whole-map search of the session start, in order: what it answered and how decisively.
+    pub searches: Vec<SearchFigures>,
     /// Time of the session's first node (the one relocalization places).
     pub first_node_time: Option<Timestamp>,
     /// Global pose `[x, y, θ]` (m, m, rad) relocalization gave the session's first node.
@@ -812,8 +826,21 @@ fn act_on_start(
     };
     for decision in decisions {
         match decision {
-            SessionStartEvent::Refused { outcome, .. } => {
+            SessionStartEvent::Refused {
+                node,
+                outcome,
+                weakest_z,
+            } => {
                 if let Some(summary) = summary.as_deref_mut() {
+                    summary.searches.push(SearchFigures {
+                        node: *node,
+                        outcome: match outcome {
+                            RelocalizationOutcome::Ambiguous { .. } => "ambiguous",
+                            RelocalizationOutcome::NotFound => "not_found",
+                            RelocalizationOutcome::Found(_) => "revoked_again",
+                        },
+                        weakest_z: *weakest_z,
+                    });
                     // The first search's refusal, for the report.
                     if first_search {
                         match *outcome {
@@ -853,6 +880,11 @@ fn act_on_start(
                     });
                 }
                 if let Some(summary) = summary.as_deref_mut() {
+                    summary.searches.push(SearchFigures {
+                        node: placement.node,
+                        outcome: "placed",
+                        weakest_z: placement.weakest_z,
+                    });
                     if first_search {
                         summary.relocalized = true;
                     } else {

@@ -293,6 +293,10 @@ pub struct StartAnswer {
     pub best: Option<Rigid2>,
     /// `global_from_local` at each other distinct candidate, best first (not refined).
     pub rivals: Vec<Rigid2>,
+    /// The paired test of the best against the rival it beats least decisively, as the decision saw it
+    /// ([`StartSearch::search_again`]'s; `None` for [`StartSearch::search`], which ranks by score
+    /// margin, or without a rival).
+    pub weakest_z: Option<f64>,
 }
 
 /// Renders placed grids into one map-frame grid of cell size `resolution`: each cell takes the highest
@@ -521,6 +525,7 @@ impl StartSearch {
             outcome: RelocalizationOutcome::NotFound,
             best: None,
             rivals: Vec::new(),
+            weakest_z: None,
         };
         let Some((first_from_local, cloud)) = merge_scans(scans, self.options.voxel_size) else {
             return not_found;
@@ -551,6 +556,7 @@ impl StartSearch {
                 },
                 best,
                 rivals,
+                weakest_z: None,
             };
         }
         StartAnswer {
@@ -560,6 +566,7 @@ impl StartSearch {
             }),
             best,
             rivals,
+            weakest_z: None,
         }
     }
 
@@ -582,6 +589,7 @@ impl StartSearch {
         StartAnswer {
             outcome,
             best: evidence.as_ref().map(|e| e.global_from_local),
+            weakest_z: evidence.as_ref().and_then(|e| e.weakest).map(|(z, _, _)| z),
             rivals: evidence.map(|e| e.rivals).unwrap_or_default(),
         }
     }

@@ -211,6 +211,8 @@ pub struct StartPlacement {
     /// Branch-and-bound score of the search that found it (`None`: given by the caller, e.g. a robot's
     /// prior).
     pub score: Option<f32>,
+    /// The search's paired test against its weakest rival ([`StartAnswer::weakest_z`]).
+    pub weakest_z: Option<f64>,
 }
 
 /// Why a placement was revoked.
@@ -245,6 +247,8 @@ pub enum SessionStartEvent {
         node: usize,
         /// What the search found (`Found` only when it repeated a revoked placement).
         outcome: RelocalizationOutcome,
+        /// Its paired test against the best's weakest rival ([`StartAnswer::weakest_z`]).
+        weakest_z: Option<f64>,
     },
     /// Placed tentatively: place the session in the map, on probation (its submaps stay out of the
     /// relocalization map and it trims nothing).
@@ -355,6 +359,7 @@ impl SessionStart {
             global_from_local,
             node,
             score: None,
+            weakest_z: None,
         };
         let events = start.place(placement, node);
         Ok((start, events))
@@ -569,6 +574,7 @@ impl SessionStart {
                 outcome: RelocalizationOutcome::NotFound,
                 best: None,
                 rivals: Vec::new(),
+                weakest_z: None,
             },
             Some(search) => {
                 let scans = self.cloud.make_contiguous();
@@ -589,6 +595,7 @@ impl SessionStart {
                     global_from_local: found.global_from_local,
                     node,
                     score: Some(found.score),
+                    weakest_z: answer.weakest_z,
                 };
                 self.rivals = answer.rivals;
                 self.candidates.clear();
@@ -604,7 +611,11 @@ impl SessionStart {
                     .chain(answer.rivals)
                     .filter(|c| !self.repeats_revoked(c))
                     .collect();
-                vec![SessionStartEvent::Refused { node, outcome }]
+                vec![SessionStartEvent::Refused {
+                    node,
+                    outcome,
+                    weakest_z: answer.weakest_z,
+                }]
             }
         }
     }

@@ -93,6 +93,7 @@ fn a_refused_start_retries_on_the_doubling_schedule() {
                     SessionStartEvent::Refused {
                         node,
                         outcome: RelocalizationOutcome::NotFound,
+                        weakest_z: None,
                     },
                 ] => node == k,
                 _ => panic!("{events:?}"),
