@@ -26,9 +26,10 @@
 //!    information of root-relative poses, `Σ_c|p` mapped into the relative pose) conditions every edge
 //!    on the root as well and is implemented for comparison.
 //! 4. Every tree edge becomes a [`Constraint`] with measurement `μ_p⁻¹ μ_c` and a trivial loss. By
-//!    default ([`TreeMean::MatchGradient`]) `μ = x̂ − Λ_tree⁻¹ g_B`, so that at the linearization
-//!    point the tree pulls on `B` exactly as the removed constraints did and an optimized graph stays
-//!    at its optimum; [`TreeMean::MatchMarginalMean`] uses the marginal mean `x̂ − Λ_B⁻¹ g_B` instead.
+//!    default ([`TreeMean::MatchMarginalMean`]) `μ` is the marginal mean `x̂ − Λ_B⁻¹ g_B`;
+//!    [`TreeMean::MatchGradient`] uses `μ = x̂ − Λ_tree⁻¹ g_B` instead, so that at the linearization
+//!    point the tree pulls on `B` exactly as the removed constraints did (an optimized graph stays at
+//!    its optimum to first order, but a tree much weaker than the clique puts `μ` far from `x̂`).
 //!    Robust losses in the clique are linearised with their IRLS weight ([`RobustWeighting`]). Each
 //!    constraint's kind follows its ends ([`ConstraintKind::NodeToNode`],
 //!    [`ConstraintKind::SubmapToSubmap`], or [`ConstraintKind::NodeToSubmapInter`] oriented

@@ -303,8 +303,10 @@ fn clt_loses_less_information_than_delete() {
     let delete = sum(TrimPolicy::Delete);
     eprintln!("whole-graph KLD: clt {clt:.3}, delete {delete:.3}");
     assert!(clt.is_finite() && delete > 0.0);
-    // Measured: clt 1.29, delete 3.88 nats over 8 trims.
-    assert!(clt < 0.5 * delete, "clt {clt} vs delete {delete}");
+    // Measured: clt 3.42, delete 5.08 nats over the trims (with the trees' means matching the
+    // gradient instead, `TreeMean::MatchGradient`: 1.29 against 3.88 — it keeps an optimum's pull, and
+    // costs the store's graph its conditioning, see `TreeMean`).
+    assert!(clt < 0.8 * delete, "clt {clt} vs delete {delete}");
 }
 
 #[test]
