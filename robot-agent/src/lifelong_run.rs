@@ -85,6 +85,9 @@ pub struct SearchFigures {
     /// Its paired test of the best against the weakest rival (`None` for the first search, which ranks
     /// by score margin).
     pub weakest_z: Option<f64>,
+    /// How far its best candidate (the placement, for `placed`) put the session's latest node from the
+    /// truth, metres (filled in by the scoring shell; `None` without a candidate or truth).
+    pub best_error_m: Option<f64>,
 }
 
 /// What happened in one session.
@@ -212,6 +215,9 @@ pub struct SessionRecord {
     /// started; 0 while the session was not placed.
     /// Empty for session 0 (no map before it).
     pub match_scores: Vec<f64>,
+    /// Per whole-map search of the session start, in the order of [`SessionSummary::searches`]: where
+    /// its best candidate put the node it was made at (`None` without a candidate).
+    pub search_bests: Vec<Option<Placement>>,
 }
 
 impl SessionRecord {
@@ -830,7 +836,18 @@ fn act_on_start(
                 node,
                 outcome,
                 weakest_z,
+                best,
             } => {
+                if let Some(record) = record.as_deref_mut() {
+                    let best = best.and_then(|global_from_local| {
+                        Some(Placement {
+                            decided_at: *node_times.last()?,
+                            time: *node_times.get(*node)?,
+                            map_from_base: global_from_local * local(*node)?,
+                        })
+                    });
+                    record.search_bests.push(best);
+                }
                 if let Some(summary) = summary.as_deref_mut() {
                     summary.searches.push(SearchFigures {
                         node: *node,
@@ -840,6 +857,7 @@ fn act_on_start(
                             RelocalizationOutcome::Found(_) => "revoked_again",
                         },
                         weakest_z: *weakest_z,
+                        best_error_m: None,
                     });
                     // The first search's refusal, for the report.
                     if first_search {
@@ -867,23 +885,23 @@ fn act_on_start(
             SessionStartEvent::Placed(placement) => {
                 map.place_session(session, placement.global_from_local)?;
                 map.begin_probation(session)?;
-                if let (Some(record), Some(decided_at), Some(time), Some(placed_local)) = (
-                    record.as_deref_mut(),
-                    node_times.last(),
-                    node_times.get(placement.node),
-                    local(placement.node),
-                ) {
-                    record.placements.push(Placement {
-                        decided_at: *decided_at,
-                        time: *time,
-                        map_from_base: placement.global_from_local * placed_local,
-                    });
+                if let Some(record) = record.as_deref_mut() {
+                    let placed = (|| {
+                        Some(Placement {
+                            decided_at: *node_times.last()?,
+                            time: *node_times.get(placement.node)?,
+                            map_from_base: placement.global_from_local * local(placement.node)?,
+                        })
+                    })();
+                    record.placements.extend(placed);
+                    record.search_bests.push(placed);
                 }
                 if let Some(summary) = summary.as_deref_mut() {
                     summary.searches.push(SearchFigures {
                         node: placement.node,
                         outcome: "placed",
                         weakest_z: placement.weakest_z,
+                        best_error_m: None,
                     });
                     if first_search {
                         summary.relocalized = true;

@@ -249,6 +249,8 @@ pub enum SessionStartEvent {
         outcome: RelocalizationOutcome,
         /// Its paired test against the best's weakest rival ([`StartAnswer::weakest_z`]).
         weakest_z: Option<f64>,
+        /// `global_from_local` at its best candidate ([`StartAnswer::best`]), for reports.
+        best: Option<Rigid2>,
     },
     /// Placed tentatively: place the session in the map, on probation (its submaps stay out of the
     /// relocalization map and it trims nothing).
@@ -615,6 +617,7 @@ impl SessionStart {
                     node,
                     outcome,
                     weakest_z: answer.weakest_z,
+                    best: answer.best,
                 }]
             }
         }

@@ -23,7 +23,7 @@ use mapping::lifelong::{
     render_submaps_newest,
 };
 use mapping::metrics::{
-    ScoringOptions, SessionScore, align_to_truth, pose_error, score_run, score_session,
+    ScoringOptions, SessionScore, align_to_truth, pose_error, score_run, score_session, truth_at,
 };
 use mapping::sensor::Timestamp;
 use mapping::simulation::{SessionOptions, Store};
@@ -217,7 +217,15 @@ impl Reporter<'_> {
             ended_on_probation: s.ended_on_probation,
             placed: k == 0 || s.placed,
         });
-        self.details.push(s.clone());
+        let mut details = s.clone();
+        // Each session-start search's best candidate against the truth (for calibrating its tests).
+        for (search, best) in details.searches.iter_mut().zip(&end.record.search_bests) {
+            search.best_error_m = best.as_ref().and_then(|b| {
+                let truth = truth_at(&truth, b.time)?;
+                Some(pose_error(&world_from_map, &b.map_from_base, &truth).0)
+            });
+        }
+        self.details.push(details);
         self.last_change = change;
         eprintln!(
             "session {k:>2}: init {:<5} placed {} committed {} placement {} mrcl {:.3} (smoothed {:.3}) ams {} ate {:.3} m | mcr {} world {:.3} | nodes {} submaps {} constraints {} | pgr {:.0} ms, {} ms cpu ({} LM steps)",

@@ -94,6 +94,7 @@ fn a_refused_start_retries_on_the_doubling_schedule() {
                         node,
                         outcome: RelocalizationOutcome::NotFound,
                         weakest_z: None,
+                        best: None,
                     },
                 ] => node == k,
                 _ => panic!("{events:?}"),
