@@ -75,6 +75,14 @@ pub struct OptimizationFigures {
     pub termination: String,
 }
 
+impl SessionSummary {
+    /// Levenberg-Marquardt steps tried at the session's end (each one numeric factorization), over every
+    /// optimization `finish_ms` covers.
+    pub fn finish_iterations(&self) -> usize {
+        self.finish_optimizations.iter().map(|o| o.iterations).sum()
+    }
+}
+
 /// One whole-map search of a session start in a [`SessionSummary`].
 #[derive(Clone, Debug, Serialize)]
 pub struct SearchFigures {
@@ -163,9 +171,6 @@ pub struct SessionSummary {
     /// CPU time of that refinement on the thread that ran it, milliseconds (what it costs, however
     /// loaded the machine is; `None` where the platform does not report it).
     pub finish_cpu_ms: Option<f64>,
-    /// Levenberg-Marquardt steps tried at the session's end (each one numeric factorization), over every
-    /// optimization `finish_ms` covers.
-    pub finish_iterations: usize,
     /// Each optimization `finish_ms` covers, in order (the session's final one, then one every
     /// `optimize_every_n_sparsifications` trims): where the steps went.
     pub finish_optimizations: Vec<OptimizationFigures>,
@@ -780,11 +785,6 @@ fn worker(
                             _ => None,
                         })
                         .collect();
-                    summary.finish_iterations = summary
-                        .finish_optimizations
-                        .iter()
-                        .map(|o| o.iterations)
-                        .sum();
                     summary.relocalization_offset_m = offset;
                     summary.peak_rss_mb = crate::process_stats::peak_rss_mb();
                 }

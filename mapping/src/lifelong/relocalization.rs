@@ -609,10 +609,7 @@ impl StartSearch {
             return false;
         };
         let local_from_first = first_from_local.inverse();
-        let grid = self
-            .sharp
-            .as_ref()
-            .unwrap_or(self.relocalizers[0].fine_grid());
+        let grid = self.sharp_grid();
         let mut refined: Vec<(Rigid2, f64)> = candidates
             .iter()
             .map(|c| {
@@ -647,10 +644,7 @@ impl StartSearch {
     ) -> Option<f64> {
         let (first_from_local, cloud) = merge_scans(scans, self.options.voxel_size)?;
         let local_from_first = first_from_local.inverse();
-        let grid = self
-            .sharp
-            .as_ref()
-            .unwrap_or(self.relocalizers[0].fine_grid());
+        let grid = self.sharp_grid();
         let placed = self.sharpen(&cloud, &(global_from_local * local_from_first));
         rivals
             .iter()
@@ -678,10 +672,7 @@ impl StartSearch {
     ) -> Option<SearchEvidence> {
         let (first_from_local, cloud) = merge_scans(scans, self.options.voxel_size)?;
         let found = self.relocalize(&cloud)?;
-        let grid = self
-            .sharp
-            .as_ref()
-            .unwrap_or(self.relocalizers[0].fine_grid());
+        let grid = self.sharp_grid();
         // Candidates found on the max-filtered map are only known to within the tolerance, and many score
         // alike there: refine each on the unfiltered map and rank them by how well they fit it.
         let mut sharpened: Vec<(Rigid2, f32, f64)> = distinct(found.candidates)
@@ -816,10 +807,7 @@ impl StartSearch {
     ) -> Option<CloudFit> {
         let (first_from_local, cloud) = merge_scans(scans, self.options.voxel_size)?;
         let pose = global_from_local * first_from_local.inverse();
-        let sharp = self
-            .sharp
-            .as_ref()
-            .unwrap_or(self.relocalizers[0].fine_grid());
+        let sharp = self.sharp_grid();
         let tolerant = self.relocalizers[0].fine_grid();
         let share = |keep: &dyn Fn(Point2<f64>) -> bool| {
             let kept = cloud
@@ -855,6 +843,13 @@ impl StartSearch {
             }
         }
         found
+    }
+
+    /// The unfiltered map: the one candidates are refined and compared on.
+    fn sharp_grid(&self) -> &ProbabilityGrid {
+        self.sharp
+            .as_ref()
+            .unwrap_or(self.relocalizers[0].fine_grid())
     }
 
     /// `pose` found on the max-filtered map, refined on the unfiltered one (without a filtered copy the

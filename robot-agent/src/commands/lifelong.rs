@@ -194,7 +194,7 @@ impl Reporter<'_> {
             dropped_total: counts.dropped_total,
             pgr_ms: s.finish_ms,
             pgr_cpu_ms: s.finish_cpu_ms,
-            pgr_iterations: s.finish_iterations,
+            pgr_iterations: s.finish_iterations(),
             peak_rss_mb: s.peak_rss_mb,
             scans: end.record.smoothed.len(),
             closures: s.closures,
@@ -258,7 +258,7 @@ impl Reporter<'_> {
             s.finish_ms,
             s.finish_cpu_ms
                 .map_or("-".to_string(), |ms| format!("{ms:.0}")),
-            s.finish_iterations
+            s.finish_iterations()
         );
         self.write_report(false, None)
     }
