@@ -60,7 +60,13 @@ pub struct LocalTrajectoryBuilderOptions {
     /// scan fits nowhere near the prediction: odometry stalled or slipped by more than the window (Intel
     /// at 1 scan per second: a 25° turn in place reported as 0.2°). The search is then repeated over every
     /// rotation, and its result taken if it fits clearly better than the best match near the prediction
-    /// (`min_recovery_z`). Matched scans score 0.4–0.8 on the default grids. Default 0.35.
+    /// (`min_recovery_z`). Matched scans score 0.4–0.8 on the default grids. Also the floor of a fit in
+    /// the trusted window: where the trusted window's best match scores below it, a match of the wider
+    /// windows that scores at least this is taken without the paired test (`min_deviation_z`), which
+    /// exists to keep a fit near the prediction, not a misfit (Intel at t = 1676.9 s: odometry claimed
+    /// −72° where the scans turned about +7°; the trusted window's best scored 0.21, the wide window's
+    /// 0.35 at paired z 3.995, and LLO turned 110° the wrong way when the run's state put it there).
+    /// Default 0.35.
     pub min_recovery_score: f64,
     /// How much better (paired statistic) the search over every rotation must fit than the best match
     /// near the prediction. Higher than `min_deviation_z`: it tries about ten times as many rotations, so
@@ -305,8 +311,14 @@ impl LocalTrajectoryBuilder {
                 return (recovery.0, *predicted);
             }
         }
+        // The paired test protects a fit near the prediction from a slightly better one farther away. Where
+        // the trusted window found no fit at all, there is nothing to protect: a fit farther away wins.
+        let trusted_fits = f64::from(trusted.1) >= o.min_recovery_score;
         match best_alternative {
-            Some((alternative, center)) if clearly_better(&alternative, o.min_deviation_z) => {
+            Some((alternative, center))
+                if (!trusted_fits && f64::from(alternative.1) >= o.min_recovery_score)
+                    || clearly_better(&alternative, o.min_deviation_z) =>
+            {
                 (alternative.0, center)
             }
             _ => (trusted.0, *predicted),
@@ -481,6 +493,54 @@ mod tests {
             ..LocalTrajectoryBuilderOptions::default()
         });
         assert!(without > 10.0, "heading error without recovery {without}°");
+    }
+
+    /// The robot turns in place +10° per scan; at the last scan odometry claims it turned 70° the other
+    /// way (Intel at t = 1676.9 s: −72° claimed where the scans say about +7°). Returns the heading error
+    /// (degrees) at that scan.
+    fn wrong_way_turn_error(options: LocalTrajectoryBuilderOptions) -> f64 {
+        let room = room();
+        let mut llo = LocalTrajectoryBuilder::new(options);
+        let headings = [0.0f64, 10.0, 20.0, 30.0, 40.0];
+        let reported = [0.0f64, 10.0, 20.0, 30.0, -40.0];
+        let mut pose = Rigid2::identity();
+        for (k, (truth, odometry)) in headings.iter().zip(reported).enumerate() {
+            let time = Timestamp::from_secs_f64(k as f64);
+            let odom = rigid2(4.0, 3.0, odometry.to_radians());
+            llo.add_odometry(&OdometryReading { time, pose: odom });
+            let world_from_tracking = rigid2(4.0, 3.0, truth.to_radians());
+            let result = llo
+                .add_range_data(time, &scan(&room, &world_from_tracking))
+                .expect("scan matched");
+            pose = result.local_pose;
+        }
+        (normalize_angle(pose.theta()) - 40f64.to_radians())
+            .to_degrees()
+            .abs()
+    }
+
+    #[test]
+    fn where_the_trusted_window_fits_nowhere_a_fit_farther_away_wins_without_the_paired_test() {
+        // A paired test no match can pass: only the trusted window's failure to fit lets the wide
+        // window's match in.
+        let unpassable = LocalTrajectoryBuilderOptions {
+            min_deviation_z: 1e9,
+            ..LocalTrajectoryBuilderOptions::default()
+        };
+        let error = wrong_way_turn_error(unpassable.clone());
+        assert!(error < 1.5, "heading error {error}°");
+        // Where the trusted window fits (its floor lowered to 0), the paired test decides, and fails.
+        let trusted_always_fits = wrong_way_turn_error(LocalTrajectoryBuilderOptions {
+            min_recovery_score: 0.0,
+            ..unpassable
+        });
+        assert!(
+            trusted_always_fits > 10.0,
+            "heading error {trusted_always_fits}°"
+        );
+        // The defaults take the right rotation too.
+        let default = wrong_way_turn_error(LocalTrajectoryBuilderOptions::default());
+        assert!(default < 1.5, "heading error {default}°");
     }
 
     #[test]
