@@ -235,7 +235,8 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
             .collect(),
         ..ServerConfig::default()
     };
-    let server = RunningServer::start(&config, Arc::new(store)).await?;
+    let store = Arc::new(store);
+    let server = RunningServer::start(&config, Arc::clone(&store) as Arc<_>).await?;
     let url = format!("http://{}", server.grpc_addr());
     eprintln!(
         "evermap load: server on {url} (sled in {}), {} robots on {} sites, {} s of robot time each at {}x real time",
@@ -461,7 +462,7 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
         let minute_samples = Arc::clone(&minute_samples);
         let metrics = Arc::clone(&metrics);
         let caches: Vec<_> = robots.iter().map(|r| Arc::clone(&r.cache)).collect();
-        let store_dir = args.out.join("data");
+        let store = Arc::clone(&store);
         let mut stop = stopped.clone();
         tokio::spawn(async move {
             let mut tick = tokio::time::interval(Duration::from_millis(100));
@@ -476,9 +477,9 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
                 if robot_minutes >= f64::from(next_minute) {
                     let rss = current_rss_mb();
                     let bytes = metrics.bytes_in() - bytes_in_0;
-                    let memory = MemoryAttribution::measure(&handles, &store_dir, &caches);
+                    let memory = MemoryAttribution::measure(&handles, &store, &caches);
                     eprintln!(
-                        "  minute {next_minute:>3} of robot time: RSS {} MiB, live heap {} MiB (history grids {:.0}, robot caches {:.0}, sled on disk {:.0}), {:.1} MB uplink so far",
+                        "  minute {next_minute:>3} of robot time: RSS {} MiB, live heap {} MiB (history grids {:.0}, robot caches {:.0}, sled on disk {:.0}, held by sled {:.0}, {} reopens), {:.1} MB uplink so far",
                         rss.map_or("?".into(), |m| format!("{m:.0}")),
                         memory
                             .live_heap_mb
@@ -486,6 +487,8 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
                         memory.history_grids_mb(),
                         memory.robot_cache_grids_mb,
                         memory.store_disk_mb,
+                        memory.store_held_mb,
+                        memory.store_memory_reopens,
                         bytes as f64 / 1e6
                     );
                     if let Ok(mut samples) = minute_samples.lock() {

@@ -2,7 +2,7 @@
 //! beside the process's resident set (resident memory the heap does not explain is the allocator's
 //! free-but-kept pages: fragmentation), and the sizes of every structure that could grow with time —
 //! each site's graph (nodes, submaps, constraints), the grids its map and its console history hold,
-//! the server's sled store on disk, and the robots' submap caches.
+//! the server's sled store on disk and what it holds in memory, and the robots' submap caches.
 //!
 //! Grid sizes are the cells' bytes (2 per cell) of distinct grids, each counted once however many
 //! history entries or snapshots share it: the figure that grows if trimmed submaps stay referenced.
@@ -15,6 +15,7 @@ use mapping::grid::ProbabilityGrid;
 use robot_agent::uplink::GlobalSubmapCache;
 use serde_json::json;
 use server::site::SiteHandle;
+use storage::SledStore;
 
 /// Bytes per MiB.
 const MIB: f64 = 1024.0 * 1024.0;
@@ -52,6 +53,11 @@ pub struct MemoryAttribution {
     pub sites: Vec<SiteMemory>,
     /// The server's sled store on disk, MiB.
     pub store_disk_mb: f64,
+    /// Bytes of values the sled store has written or read since it last reopened, MiB: what sled holds
+    /// in memory (`storage::SledStore::held_bytes`).
+    pub store_held_mb: f64,
+    /// Reopens of the sled store that freed that memory so far.
+    pub store_memory_reopens: u64,
     /// Submaps in all robots' caches.
     pub robot_cache_submaps: usize,
     /// Cells of the distinct grids in all robots' caches, MiB.
@@ -59,10 +65,11 @@ pub struct MemoryAttribution {
 }
 
 impl MemoryAttribution {
-    /// Measures now: the live heap, every site (by its handle), the store's folder and the caches.
+    /// Measures now: the live heap, every site (by its handle), the store (its folder and what it holds
+    /// in memory) and the caches.
     pub fn measure(
         sites: &[SiteHandle],
-        store_dir: &Path,
+        store: &SledStore,
         caches: &[Arc<Mutex<GlobalSubmapCache>>],
     ) -> Self {
         let sites = sites
@@ -99,7 +106,9 @@ impl MemoryAttribution {
         Self {
             live_heap_mb: live_heap_bytes().map(|b| b as f64 / MIB),
             sites,
-            store_disk_mb: folder_bytes(store_dir, 4) as f64 / MIB,
+            store_disk_mb: folder_bytes(store.path(), 4) as f64 / MIB,
+            store_held_mb: store.held_bytes() as f64 / MIB,
+            store_memory_reopens: store.memory_reopens(),
             robot_cache_submaps,
             robot_cache_grids_mb: grid_mb(cached.iter()),
         }
@@ -110,6 +119,8 @@ impl MemoryAttribution {
         json!({
             "live_heap_mb": self.live_heap_mb,
             "store_disk_mb": self.store_disk_mb,
+            "store_held_mb": self.store_held_mb,
+            "store_memory_reopens": self.store_memory_reopens,
             "robot_cache_submaps": self.robot_cache_submaps,
             "robot_cache_grids_mb": self.robot_cache_grids_mb,
             "sites": self.sites.iter().map(|s| json!({

@@ -145,6 +145,7 @@ pub fn report(figures: &[MinuteFigures]) -> serde_json::Value {
     let heap = after_warm_up(figures, |f| f.memory.as_ref()?.live_heap_mb);
     let history = after_warm_up(figures, |f| Some(f.memory.as_ref()?.history_grids_mb()));
     let store = after_warm_up(figures, |f| Some(f.memory.as_ref()?.store_disk_mb));
+    let store_held = after_warm_up(figures, |f| Some(f.memory.as_ref()?.store_held_mb));
     let p95 = after_warm_up(figures, |f| f.latency_p95_s);
     let rows: Vec<serde_json::Value> = figures
         .iter()
@@ -174,6 +175,7 @@ pub fn report(figures: &[MinuteFigures]) -> serde_json::Value {
             "live_heap_last_mb": heap.last().map(|p| p.1),
             "history_grids_slope_mb_per_minute": slope(&history),
             "store_disk_slope_mb_per_minute": slope(&store),
+            "store_held_slope_mb_per_minute": slope(&store_held),
             "p95_slope_s_per_minute": slope(&p95),
             "p95_first_s": p95.first().map(|p| p.1),
             "p95_last_s": p95.last().map(|p| p.1),

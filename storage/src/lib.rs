@@ -55,6 +55,6 @@ pub use site_archive::{
     MAX_CHUNK_BYTES, SITE_ARCHIVE_MAGIC, SITE_ARCHIVE_VERSION, TransferSummary,
 };
 pub use sled_store::SledStore;
-pub use sled_store_options::SledStoreOptions;
+pub use sled_store_options::{DEFAULT_REOPEN_AFTER_BYTES, SledStoreOptions};
 pub use storage_error::{Result, StorageError};
 pub use write_batch::{BatchOp, BatchOutcome, WriteBatch};

@@ -18,10 +18,20 @@
 //! after that (or may have survived): callers that acknowledge only flushed writes lose nothing, and
 //! callers that derived state from unflushed writes rebuild it from the store when the generation changes.
 //! Reads keep working on the wedged database.
+//!
+//! **Reopened to bound its memory.** sled 0.34 keeps every value it has written or read since it was
+//! opened in memory, whatever its cache capacity: its LRU only learns of an access once 64 have queued in
+//! one of its 256 shards, so a database written at a site log's pace (a few batches a second) never
+//! evicts anything (measured: 80 MB written with an 8 MiB cache hold 73 MiB; dropping and reopening the
+//! database frees it all). The store counts the bytes of the values (and keys) it hands to sled or
+//! gets from it, and once they pass [`SledStoreOptions::reopen_after_bytes`], its next successful flush
+//! reopens the database — when no operation holds it (scans included), else a later flush does. That
+//! reopen follows a successful flush, so it loses nothing and leaves
+//! [`crate::MapStore::generation`] unchanged; it is counted by [`SledStore::memory_reopens`].
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Mutex, PoisonError, RwLock};
+use std::sync::{Arc, Mutex, PoisonError, RwLock};
 use std::thread;
 use std::time::{Duration, Instant};
 
@@ -35,13 +45,20 @@ use crate::{Result, SledStoreOptions, StorageError};
 /// A [`crate::MapStore`] persisted in a sled database directory (one process at a time: sled locks it).
 #[derive(Debug)]
 pub struct SledStore {
-    /// The open database; `None` after a reopen failed (the next attempt opens it).
-    db: RwLock<Option<sled::Db>>,
+    /// The open database; `None` after a reopen failed (the next attempt opens it). Every operation
+    /// holds a clone of the `Arc` while it uses the database (a scan for as long as its iterator
+    /// lives), so a strong count of 1 under the write lock means no operation is using it.
+    db: RwLock<Option<Arc<sled::Db>>>,
     options: SledStoreOptions,
     /// Set while the database refuses writes after a failed one.
     wedge: Mutex<Option<Wedge>>,
     /// Reopens so far.
     generation: AtomicU64,
+    /// Bytes of keys and values written to or read from the database since it was opened (see
+    /// [`SledStoreOptions::reopen_after_bytes`]); shared with scans' iterators.
+    held_bytes: Arc<AtomicU64>,
+    /// Reopens that bounded the memory (see the module docs).
+    memory_reopens: AtomicU64,
 }
 
 /// Why and since when the database refuses writes.
@@ -60,10 +77,12 @@ impl SledStore {
     pub fn open(options: &SledStoreOptions) -> Result<Self> {
         options.validate()?;
         Ok(Self {
-            db: RwLock::new(Some(open_db(options)?)),
+            db: RwLock::new(Some(Arc::new(open_db(options)?))),
             options: options.clone(),
             wedge: Mutex::new(None),
             generation: AtomicU64::new(0),
+            held_bytes: Arc::new(AtomicU64::new(0)),
+            memory_reopens: AtomicU64::new(0),
         })
     }
 
@@ -90,6 +109,63 @@ impl SledStore {
             .is_some()
     }
 
+    /// Bytes of keys and values written to or read from the database since it was last (re)opened: what
+    /// sled may be holding in memory (see the module docs).
+    pub fn held_bytes(&self) -> u64 {
+        self.held_bytes.load(Ordering::Relaxed)
+    }
+
+    /// Reopens so far that bounded the memory (after [`SledStoreOptions::reopen_after_bytes`]).
+    pub fn memory_reopens(&self) -> u64 {
+        self.memory_reopens.load(Ordering::Relaxed)
+    }
+
+    /// Counts `bytes` handed to sled or taken from it.
+    fn note_held(&self, bytes: usize) {
+        self.held_bytes
+            .fetch_add(u64::try_from(bytes).unwrap_or(u64::MAX), Ordering::Relaxed);
+    }
+
+    /// After a successful flush: reopens the database when it holds more than
+    /// [`SledStoreOptions::reopen_after_bytes`] and no operation is using it (see the module docs).
+    /// Nothing is lost: every write to it was flushed (by the caller, or by the drop, for a write made
+    /// between the caller's flush and the lock). A failed open wedges the store, as a failed write does.
+    fn bound_memory(&self) {
+        let bound = self.options.reopen_after_bytes;
+        if bound == 0 || self.held_bytes.load(Ordering::Relaxed) <= bound {
+            return;
+        }
+        let mut slot = self.db.write().unwrap_or_else(PoisonError::into_inner);
+        let Some(db) = slot.as_ref() else {
+            return;
+        };
+        if Arc::strong_count(db) > 1 {
+            return; // in use: a later flush reopens it
+        }
+        if db.flush().is_err() {
+            return; // the next write or flush meets the failure and wedges the store
+        }
+        drop(slot.take());
+        match open_db(&self.options) {
+            Ok(db) => {
+                *slot = Some(Arc::new(db));
+                self.held_bytes.store(0, Ordering::Relaxed);
+                self.memory_reopens.fetch_add(1, Ordering::Relaxed);
+            }
+            Err(error) => {
+                drop(slot);
+                let mut wedge = self.wedge.lock().unwrap_or_else(PoisonError::into_inner);
+                if wedge.is_none() {
+                    *wedge = Some(Wedge {
+                        cause: format!("reopening the database to bound its memory: {error}"),
+                        out_of_space: error.is_out_of_space(),
+                        since: Instant::now(),
+                    });
+                }
+            }
+        }
+    }
+
     /// Test hook: wedges the store as a failed write would (a real one needs a full disk).
     #[cfg(test)]
     pub(crate) fn wedge_as_if(&self, error: &StorageError) {
@@ -99,12 +175,12 @@ impl SledStore {
     /// Test hook: the raw sled database, to corrupt stored bytes behind the store's back.
     #[cfg(test)]
     pub(crate) fn raw_db(&self) -> sled::Db {
-        self.db_for_read().unwrap()
+        sled::Db::clone(&self.db_for_read().unwrap())
     }
 
     /// The current database, for a read (reads work on a wedged database; after a failed reopen the
     /// next attempt is made).
-    fn db_for_read(&self) -> Result<sled::Db> {
+    fn db_for_read(&self) -> Result<Arc<sled::Db>> {
         if let Some(db) = self
             .db
             .read()
@@ -117,7 +193,7 @@ impl SledStore {
     }
 
     /// The current database, for a write: reopened first when wedged and due, refused while wedged.
-    fn db_for_write(&self) -> Result<sled::Db> {
+    fn db_for_write(&self) -> Result<Arc<sled::Db>> {
         let mut wedge = self.wedge.lock().unwrap_or_else(PoisonError::into_inner);
         if let Some(w) = wedge.as_mut() {
             let interval = Duration::from_millis(self.options.reopen_interval_ms);
@@ -152,7 +228,8 @@ impl SledStore {
         // What recovery found may have been written but never fsynced: make it durable before anyone
         // builds on it.
         sync_files(&self.options.path)?;
-        *slot = Some(db);
+        *slot = Some(Arc::new(db));
+        self.held_bytes.store(0, Ordering::Relaxed);
         self.generation.fetch_add(1, Ordering::SeqCst);
         Ok(())
     }
@@ -224,6 +301,8 @@ fn is_lock_error(error: &sled::Error) -> bool {
 
 struct SledTxn<'a> {
     tree: &'a TransactionalTree,
+    /// The store's count of bytes sled holds (see [`SledStore::held_bytes`]).
+    held_bytes: &'a AtomicU64,
     /// A conflict or storage failure to hand back to sled (which retries on conflict).
     interrupted: Option<UnabortableTransactionError>,
 }
@@ -243,10 +322,17 @@ impl SledTxn<'_> {
 impl RawTxn for SledTxn<'_> {
     fn get(&mut self, key: &[u8]) -> Result<Option<Vec<u8>>> {
         let result = self.tree.get(key);
-        Ok(self.note(result)?.map(|value| value.to_vec()))
+        let value = self.note(result)?.map(|value| value.to_vec());
+        let bytes = key.len() + value.as_ref().map_or(0, Vec::len);
+        self.held_bytes
+            .fetch_add(u64::try_from(bytes).unwrap_or(u64::MAX), Ordering::Relaxed);
+        Ok(value)
     }
 
     fn insert(&mut self, key: &[u8], value: Vec<u8>) -> Result<()> {
+        let bytes = key.len() + value.len();
+        self.held_bytes
+            .fetch_add(u64::try_from(bytes).unwrap_or(u64::MAX), Ordering::Relaxed);
         let result = self.tree.insert(key, value);
         self.note(result).map(drop)
     }
@@ -259,15 +345,27 @@ impl RawTxn for SledTxn<'_> {
 
 impl RawKv for SledStore {
     fn raw_get(&self, key: &[u8]) -> Result<Option<Vec<u8>>> {
-        Ok(self.db_for_read()?.get(key)?.map(|value| value.to_vec()))
+        let value = self.db_for_read()?.get(key)?.map(|value| value.to_vec());
+        self.note_held(key.len() + value.as_ref().map_or(0, Vec::len));
+        Ok(value)
     }
 
     fn raw_scan(&self, prefix: &[u8]) -> RawIter<'_> {
         match self.db_for_read() {
-            Ok(db) => Box::new(db.scan_prefix(prefix).map(|item| {
-                item.map(|(key, value)| (key.to_vec(), value.to_vec()))
+            Ok(db) => {
+                let iter = db.scan_prefix(prefix);
+                // The iterator holds `db` (so no reopen happens under it) and counts what it reads.
+                let held = Arc::clone(&self.held_bytes);
+                Box::new(iter.map(move |item| {
+                    let _in_use = &db;
+                    item.map(|(key, value)| {
+                        let bytes = key.len() + value.len();
+                        held.fetch_add(u64::try_from(bytes).unwrap_or(u64::MAX), Ordering::Relaxed);
+                        (key.to_vec(), value.to_vec())
+                    })
                     .map_err(StorageError::from)
-            })),
+                }))
+            }
             Err(error) => Box::new(std::iter::once(Err(error))),
         }
     }
@@ -277,6 +375,7 @@ impl RawKv for SledStore {
         let outcome = db.transaction(|tree| {
             let mut txn = SledTxn {
                 tree,
+                held_bytes: &self.held_bytes,
                 interrupted: None,
             };
             match body(&mut txn) {
@@ -305,6 +404,8 @@ impl RawKv for SledStore {
             self.note_failure(&error);
             return Err(error);
         }
+        drop(db);
+        self.bound_memory();
         Ok(())
     }
 
@@ -390,6 +491,56 @@ mod tests {
             None
         );
         assert_eq!(store.last_applied_seq("depot", "robot").unwrap(), None);
+    }
+
+    #[test]
+    fn past_its_bound_the_store_reopens_at_a_flush_when_unused_losing_nothing() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = SledStore::open(&SledStoreOptions {
+            reopen_after_bytes: 64 << 10,
+            ..SledStoreOptions::at(dir.path().join("db"))
+        })
+        .unwrap();
+        let write = |version: u64| {
+            let mut batch = WriteBatch::new("depot");
+            batch
+                .put(RecordKind::Trajectory, version, vec![version as u8; 10_000])
+                .bump_map_version()
+                .for_session("robot", version);
+            store.apply(&batch).unwrap();
+            store.flush().unwrap();
+        };
+        for version in 1..=6 {
+            write(version);
+        }
+        assert_eq!(store.memory_reopens(), 0, "60 kB is within the bound");
+        write(7);
+        assert_eq!(store.memory_reopens(), 1);
+        assert_eq!(store.held_bytes(), 0);
+        assert_eq!(
+            crate::MapStore::generation(&store),
+            0,
+            "nothing was lost: not a recovery"
+        );
+        // A scan in progress holds the database: flushes past the bound leave it open under it.
+        let mut scan = store.scan("depot", RecordKind::Trajectory).unwrap();
+        assert!(scan.next().is_some());
+        for version in 8..=14 {
+            write(version);
+        }
+        assert_eq!(store.memory_reopens(), 1, "reopened under a scan");
+        assert!(scan.count() >= 6, "the scan reads on");
+        write(15);
+        assert_eq!(store.memory_reopens(), 2, "reopened once the scan ended");
+        assert_eq!(store.map_version("depot").unwrap(), 15);
+        assert_eq!(store.last_applied_seq("depot", "robot").unwrap(), Some(15));
+        for version in 1..=15u64 {
+            let value = store
+                .get("depot", RecordKind::Trajectory, &RecordId::from(version))
+                .unwrap()
+                .unwrap();
+            assert_eq!(value, vec![version as u8; 10_000]);
+        }
     }
 
     #[test]

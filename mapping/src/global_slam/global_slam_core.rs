@@ -111,7 +111,10 @@ pub struct GlobalSlam {
     last_node: BTreeMap<u32, NodeId>,
     pending_jobs: Vec<SearchJob>,
     nodes_since_optimization: usize,
+    /// The accepted loop closures whose node and submap are still known (see [`GlobalSlam::forget`]).
     accepted_loop_closures: Vec<LoopClosure>,
+    /// Loop closures accepted so far, forgotten ones included.
+    loop_closures_accepted: usize,
     /// How each accepted loop closure was accepted, parallel to `accepted_loop_closures`.
     acceptances: Vec<Acceptance>,
     /// Where each accepted loop closure stands, parallel to `accepted_loop_closures`.
@@ -196,6 +199,7 @@ impl GlobalSlam {
             pending_jobs: Vec::new(),
             nodes_since_optimization: 0,
             accepted_loop_closures: Vec::new(),
+            loop_closures_accepted: 0,
             acceptances: Vec::new(),
             closure_states: Vec::new(),
             searches_queued: 0,
@@ -665,6 +669,7 @@ impl GlobalSlam {
             self.note_loop(&closure);
             self.accepted_loop_closures.push(closure.clone());
             self.acceptances.push(acceptance);
+            self.loop_closures_accepted += 1;
             events.push(GlobalSlamEvent::LoopClosureAdded(closure));
         }
         let n = self.options.optimize_every_n_nodes;
@@ -1174,7 +1179,10 @@ impl GlobalSlam {
     }
 
     /// Forgets submaps and nodes whose variables the caller has removed from (or is about to remove
-    /// from) [`Self::graph_mut`]: their records, branch-and-bound matchers, samplers and queued searches.
+    /// from) [`Self::graph_mut`]: their records, branch-and-bound matchers, samplers and queued searches,
+    /// and the accepted loop closures (and matches still waiting for agreement) of either. A lifelong
+    /// map trims submaps session after session, so what it remembers of them must go with them: kept,
+    /// the record of every closure ever accepted grows with the site's life (issue 16 §5).
     pub fn forget(&mut self, submaps: &[SubmapId], nodes: &[NodeId]) {
         for sid in submaps {
             self.submaps.remove(sid);
@@ -1188,6 +1196,22 @@ impl GlobalSlam {
         let nodes: BTreeSet<NodeId> = nodes.iter().copied().collect();
         self.pending_jobs
             .retain(|j| !submaps.contains(&j.submap) && !nodes.contains(&j.node));
+        let gone = |c: &LoopClosure| submaps.contains(&c.submap) || nodes.contains(&c.node);
+        self.pending_beyond_drift.retain(|(c, _)| !gone(c));
+        self.pending_unconfirmed.retain(|(c, _)| !gone(c));
+        if self.accepted_loop_closures.iter().any(gone) {
+            let kept: Vec<_> = std::mem::take(&mut self.accepted_loop_closures)
+                .into_iter()
+                .zip(std::mem::take(&mut self.acceptances))
+                .zip(std::mem::take(&mut self.closure_states))
+                .filter(|((closure, _), _)| !gone(closure))
+                .collect();
+            for ((closure, acceptance), state) in kept {
+                self.accepted_loop_closures.push(closure);
+                self.acceptances.push(acceptance);
+                self.closure_states.push(state);
+            }
+        }
     }
 
     /// The pose graph, for editing by trimming and sparsification. Keep it consistent with the records:
@@ -1247,10 +1271,16 @@ impl GlobalSlam {
         self.searches_queued
     }
 
-    /// Every accepted loop closure, in acceptance order (the mean of their scores is the paper's AMS),
-    /// including those whose node or submap was trimmed since.
+    /// The accepted loop closures, in acceptance order (the mean of their scores is the paper's AMS),
+    /// but those whose node or submap was forgotten since ([`Self::forget`]: trimmed or dropped); a map
+    /// that forgets nothing (a single-session run) keeps every one.
     pub fn accepted_loop_closures(&self) -> &[LoopClosure] {
         &self.accepted_loop_closures
+    }
+
+    /// How many loop closures were accepted so far, those forgotten since included.
+    pub fn loop_closures_accepted(&self) -> usize {
+        self.loop_closures_accepted
     }
 
     /// Every accepted loop closure whose node and submap are still in the graph (and whose trajectory was
@@ -1381,6 +1411,43 @@ mod tests {
         global.add_search_results([wide_closure(150, rigid2(0.8, 0.6, 0.0))]);
         global.add_search_results([wide_closure(390, rigid2(0.8, 0.6, 0.0))]);
         assert!(global.accepted_loop_closures().is_empty());
+    }
+
+    #[test]
+    fn the_closures_of_forgotten_nodes_and_submaps_are_forgotten_with_them() {
+        let mut global = straight_run(200);
+        global.add_search_results([
+            wide_closure(139, rigid2(0.0, 0.01, 0.0)),
+            wide_closure(140, rigid2(0.0, 0.0, 0.0)),
+        ]);
+        // Held back: 0.6 m from its estimate, waiting for another match to agree with it.
+        global.add_search_results([wide_closure(160, rigid2(0.48, 0.36, 0.0))]);
+        assert_eq!(global.accepted_loop_closures().len(), 2);
+        assert_eq!(global.pending_unconfirmed.len(), 1);
+        let node = |index| NodeId {
+            trajectory: 0,
+            index,
+        };
+        global.forget(&[], &[node(139), node(160)]);
+        let kept: Vec<u32> = global
+            .accepted_loop_closures()
+            .iter()
+            .map(|c| c.node.index)
+            .collect();
+        assert_eq!(kept, [140]);
+        assert_eq!(global.acceptances.len(), 1);
+        assert_eq!(global.closure_states.len(), 1);
+        assert!(global.pending_unconfirmed.is_empty());
+        assert_eq!(global.loop_closures_accepted(), 2, "the count keeps them");
+        // Its submap trimmed, the last one goes too.
+        let submap = SubmapId {
+            trajectory: 0,
+            index: 0,
+        };
+        global.forget(&[submap], &[]);
+        assert!(global.accepted_loop_closures().is_empty());
+        assert!(global.closure_states.is_empty());
+        assert_eq!(global.loop_closures_accepted(), 2);
     }
 
     #[test]

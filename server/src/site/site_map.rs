@@ -92,7 +92,7 @@ pub struct MapCounts {
     pub trimmed_submaps: u64,
     /// Sessions dropped because they ended without ever being placed in the map.
     pub dropped_sessions: u64,
-    /// Accepted loop closures.
+    /// Loop closures accepted since the site began (those of trimmed submaps included).
     pub loop_closures: u64,
     /// Sessions opened and not ended yet.
     pub open_sessions: u64,
@@ -717,7 +717,7 @@ impl SiteMap {
             constraints: graph.constraints as u64,
             trimmed_submaps: self.trimmed.len() as u64,
             dropped_sessions: self.dropped_sessions,
-            loop_closures: self.map.global().accepted_loop_closures().len() as u64,
+            loop_closures: self.map.global().loop_closures_accepted() as u64,
             open_sessions: self.sessions.values().filter(|s| !s.closed).count() as u64,
         }
     }

@@ -1,0 +1,76 @@
+//! The sled store's memory stays bounded while its database grows (issue 16 §5): sled 0.34 keeps every
+//! value it has written in memory whatever its cache capacity, so without
+//! `SledStoreOptions::reopen_after_bytes` a site log written for hours stays whole in memory.
+//!
+//! One test in its own binary: it counts the live heap through the global allocator, which other tests
+//! running beside it would disturb.
+
+use peak_alloc::PeakAlloc;
+use storage::{
+    DEFAULT_REOPEN_AFTER_BYTES, MapStore as _, RecordKind, SledStore, SledStoreOptions, WriteBatch,
+};
+
+#[global_allocator]
+static HEAP: PeakAlloc = PeakAlloc;
+
+/// Bytes per MiB.
+const MIB: usize = 1 << 20;
+
+/// `len` bytes of xorshift noise (sled does not compress, but keep the values honest anyway).
+fn noise(state: &mut u64, len: usize) -> Vec<u8> {
+    (0..len)
+        .map(|_| {
+            *state ^= *state << 13;
+            *state ^= *state >> 7;
+            *state ^= *state << 17;
+            state.to_le_bytes()[0]
+        })
+        .collect()
+}
+
+#[test]
+fn a_growing_site_log_does_not_stay_in_memory() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let store = SledStore::open(&SledStoreOptions::at(dir.path().join("db"))).expect("open");
+    let before = HEAP.current_usage();
+    let mut state = 1u64;
+    let mut most = 0usize;
+    // 48 MB of site log, 20 kB per batch as the fleet's uploads are, each acknowledged after a flush
+    // as the server does.
+    for version in 1..=2400u64 {
+        let mut batch = WriteBatch::new("site");
+        batch
+            .put(RecordKind::Trajectory, version, noise(&mut state, 20_000))
+            .bump_map_version()
+            .for_session(format!("session-{}", version / 300), version);
+        store.apply(&batch).expect("apply");
+        store.flush().expect("flush");
+        most = most.max(HEAP.current_usage().saturating_sub(before));
+    }
+    let bound = usize::try_from(DEFAULT_REOPEN_AFTER_BYTES).expect("bound") + 8 * MIB;
+    assert!(
+        most < bound,
+        "the store held {:.1} MiB after 48 MB written (bound {:.1} MiB, {} reopens)",
+        most as f64 / MIB as f64,
+        bound as f64 / MIB as f64,
+        store.memory_reopens()
+    );
+    assert!(
+        store.memory_reopens() >= 2,
+        "{} reopens",
+        store.memory_reopens()
+    );
+    assert_eq!(
+        store.generation(),
+        0,
+        "a reopen that bounds memory loses nothing"
+    );
+    assert_eq!(store.map_version("site").expect("version"), 2400);
+    assert_eq!(
+        store
+            .scan("site", RecordKind::Trajectory)
+            .expect("scan")
+            .count(),
+        2400
+    );
+}
