@@ -458,14 +458,15 @@ mod tests {
         }
     }
 
-    /// The robot turns in place at 10°/s, one scan per second; odometry reports the first three turns
-    /// and then stalls while the robot turns 40° more (as Intel's bursty odometry does at one scan per
-    /// second). Returns the heading error (degrees) at the stalled scan.
-    fn stalled_turn_error(options: LocalTrajectoryBuilderOptions) -> f64 {
+    /// The robot turns in place at (4, 3), one scan per second, through `headings` (degrees) while
+    /// odometry reports `reported`. Returns the heading error (degrees) at the last scan.
+    fn turn_in_place_error(
+        options: LocalTrajectoryBuilderOptions,
+        headings: &[f64],
+        reported: &[f64],
+    ) -> f64 {
         let room = room();
         let mut llo = LocalTrajectoryBuilder::new(options);
-        let headings = [0.0f64, 10.0, 20.0, 30.0, 70.0];
-        let reported = [0.0f64, 10.0, 20.0, 30.0, 30.0];
         let mut pose = Rigid2::identity();
         for (k, (truth, odometry)) in headings.iter().zip(reported).enumerate() {
             let time = Timestamp::from_secs_f64(k as f64);
@@ -478,9 +479,20 @@ mod tests {
             pose = result.local_pose;
         }
         // The local frame starts at the first scan's pose (heading 0).
-        (normalize_angle(pose.theta()) - 70f64.to_radians())
+        let last = headings.last().copied().unwrap_or(0.0);
+        (normalize_angle(pose.theta()) - last.to_radians())
             .to_degrees()
             .abs()
+    }
+
+    /// Odometry reports the first three turns of 10° and then stalls while the robot turns 40° more (as
+    /// Intel's bursty odometry does at one scan per second).
+    fn stalled_turn_error(options: LocalTrajectoryBuilderOptions) -> f64 {
+        turn_in_place_error(
+            options,
+            &[0.0, 10.0, 20.0, 30.0, 70.0],
+            &[0.0, 10.0, 20.0, 30.0, 30.0],
+        )
     }
 
     #[test]
@@ -496,27 +508,13 @@ mod tests {
     }
 
     /// The robot turns in place +10° per scan; at the last scan odometry claims it turned 70° the other
-    /// way (Intel at t = 1676.9 s: −72° claimed where the scans say about +7°). Returns the heading error
-    /// (degrees) at that scan.
+    /// way (Intel at t = 1676.9 s: −72° claimed where the scans say about +7°).
     fn wrong_way_turn_error(options: LocalTrajectoryBuilderOptions) -> f64 {
-        let room = room();
-        let mut llo = LocalTrajectoryBuilder::new(options);
-        let headings = [0.0f64, 10.0, 20.0, 30.0, 40.0];
-        let reported = [0.0f64, 10.0, 20.0, 30.0, -40.0];
-        let mut pose = Rigid2::identity();
-        for (k, (truth, odometry)) in headings.iter().zip(reported).enumerate() {
-            let time = Timestamp::from_secs_f64(k as f64);
-            let odom = rigid2(4.0, 3.0, odometry.to_radians());
-            llo.add_odometry(&OdometryReading { time, pose: odom });
-            let world_from_tracking = rigid2(4.0, 3.0, truth.to_radians());
-            let result = llo
-                .add_range_data(time, &scan(&room, &world_from_tracking))
-                .expect("scan matched");
-            pose = result.local_pose;
-        }
-        (normalize_angle(pose.theta()) - 40f64.to_radians())
-            .to_degrees()
-            .abs()
+        turn_in_place_error(
+            options,
+            &[0.0, 10.0, 20.0, 30.0, 40.0],
+            &[0.0, 10.0, 20.0, 30.0, -40.0],
+        )
     }
 
     #[test]
