@@ -120,12 +120,6 @@ impl SledStore {
         self.memory_reopens.load(Ordering::Relaxed)
     }
 
-    /// Counts `bytes` handed to sled or taken from it.
-    fn note_held(&self, bytes: usize) {
-        self.held_bytes
-            .fetch_add(u64::try_from(bytes).unwrap_or(u64::MAX), Ordering::Relaxed);
-    }
-
     /// After a successful flush: reopens the database when it holds more than
     /// [`SledStoreOptions::reopen_after_bytes`] and no operation is using it (see the module docs).
     /// Nothing is lost: every write to it was flushed (by the caller, or by the drop, for a write made
@@ -299,6 +293,12 @@ fn is_lock_error(error: &sled::Error) -> bool {
     matches!(error, sled::Error::Io(io) if io.to_string().contains("could not acquire lock"))
 }
 
+/// Adds `bytes` handed to sled or taken from it to the store's count of what sled holds
+/// ([`SledStore::held_bytes`]).
+fn count_held(held_bytes: &AtomicU64, bytes: usize) {
+    held_bytes.fetch_add(u64::try_from(bytes).unwrap_or(u64::MAX), Ordering::Relaxed);
+}
+
 struct SledTxn<'a> {
     tree: &'a TransactionalTree,
     /// The store's count of bytes sled holds (see [`SledStore::held_bytes`]).
@@ -323,16 +323,15 @@ impl RawTxn for SledTxn<'_> {
     fn get(&mut self, key: &[u8]) -> Result<Option<Vec<u8>>> {
         let result = self.tree.get(key);
         let value = self.note(result)?.map(|value| value.to_vec());
-        let bytes = key.len() + value.as_ref().map_or(0, Vec::len);
-        self.held_bytes
-            .fetch_add(u64::try_from(bytes).unwrap_or(u64::MAX), Ordering::Relaxed);
+        count_held(
+            self.held_bytes,
+            key.len() + value.as_ref().map_or(0, Vec::len),
+        );
         Ok(value)
     }
 
     fn insert(&mut self, key: &[u8], value: Vec<u8>) -> Result<()> {
-        let bytes = key.len() + value.len();
-        self.held_bytes
-            .fetch_add(u64::try_from(bytes).unwrap_or(u64::MAX), Ordering::Relaxed);
+        count_held(self.held_bytes, key.len() + value.len());
         let result = self.tree.insert(key, value);
         self.note(result).map(drop)
     }
@@ -346,7 +345,10 @@ impl RawTxn for SledTxn<'_> {
 impl RawKv for SledStore {
     fn raw_get(&self, key: &[u8]) -> Result<Option<Vec<u8>>> {
         let value = self.db_for_read()?.get(key)?.map(|value| value.to_vec());
-        self.note_held(key.len() + value.as_ref().map_or(0, Vec::len));
+        count_held(
+            &self.held_bytes,
+            key.len() + value.as_ref().map_or(0, Vec::len),
+        );
         Ok(value)
     }
 
@@ -359,8 +361,7 @@ impl RawKv for SledStore {
                 Box::new(iter.map(move |item| {
                     let _in_use = &db;
                     item.map(|(key, value)| {
-                        let bytes = key.len() + value.len();
-                        held.fetch_add(u64::try_from(bytes).unwrap_or(u64::MAX), Ordering::Relaxed);
+                        count_held(&held, key.len() + value.len());
                         (key.to_vec(), value.to_vec())
                     })
                     .map_err(StorageError::from)
