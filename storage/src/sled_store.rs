@@ -342,6 +342,29 @@ impl RawTxn for SledTxn<'_> {
     }
 }
 
+/// A prefix scan of one database: holds that database, so no reopen happens under it, and counts what it
+/// reads towards the bytes sled holds.
+struct SledScan {
+    iter: sled::Iter,
+    _db: Arc<sled::Db>,
+    held: Arc<AtomicU64>,
+}
+
+impl Iterator for SledScan {
+    type Item = Result<(Vec<u8>, Vec<u8>)>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        let item = self.iter.next()?;
+        Some(
+            item.map(|(key, value)| {
+                count_held(&self.held, key.len() + value.len());
+                (key.to_vec(), value.to_vec())
+            })
+            .map_err(StorageError::from),
+        )
+    }
+}
+
 impl RawKv for SledStore {
     fn raw_get(&self, key: &[u8]) -> Result<Option<Vec<u8>>> {
         let value = self.db_for_read()?.get(key)?.map(|value| value.to_vec());
@@ -354,19 +377,11 @@ impl RawKv for SledStore {
 
     fn raw_scan(&self, prefix: &[u8]) -> RawIter<'_> {
         match self.db_for_read() {
-            Ok(db) => {
-                let iter = db.scan_prefix(prefix);
-                // The iterator holds `db` (so no reopen happens under it) and counts what it reads.
-                let held = Arc::clone(&self.held_bytes);
-                Box::new(iter.map(move |item| {
-                    let _in_use = &db;
-                    item.map(|(key, value)| {
-                        count_held(&held, key.len() + value.len());
-                        (key.to_vec(), value.to_vec())
-                    })
-                    .map_err(StorageError::from)
-                }))
-            }
+            Ok(db) => Box::new(SledScan {
+                iter: db.scan_prefix(prefix),
+                _db: db,
+                held: Arc::clone(&self.held_bytes),
+            }),
             Err(error) => Box::new(std::iter::once(Err(error))),
         }
     }
