@@ -272,12 +272,14 @@ fn a_session_that_cannot_be_placed_gives_up() {
     assert_eq!(start.state(), SessionStartState::GaveUp);
 }
 
-#[test]
-fn a_revoked_placement_found_again_is_refused() {
+/// A session placed where the search will find it, revoked by two made-up disagreeing matches at node 3,
+/// then driven to its next search (4 nodes later), with the re-admission bar `probation_min_z`: that
+/// search's events.
+fn found_again_after_revocation(probation_min_z: f64) -> Vec<SessionStartEvent> {
     let truth = rigid2(2.7, 2.2, 0.4);
-    // Placed where the search will find it, then revoked by made-up disagreements.
     let options = SessionStartOptions {
         probation_min_separation_m: 0.0,
+        probation_min_z,
         ..options()
     };
     let (mut start, _) =
@@ -297,20 +299,45 @@ fn a_revoked_placement_found_again_is_refused() {
         matches!(events[..], [SessionStartEvent::Revoked { .. }]),
         "{events:?}"
     );
-    // The next search (4 nodes after the revocation at node 3) finds the same pose: refused.
     let mut last = Vec::new();
     for k in 4..8 {
         let (pose, points) = scan(k);
         last = start.add_node(pose, points);
     }
+    last
+}
+
+#[test]
+fn a_revoked_placement_found_again_is_refused_below_the_commit_bar() {
+    let last = found_again_after_revocation(1e6);
     assert!(
         matches!(
             last[..],
             [SessionStartEvent::Refused {
                 outcome: RelocalizationOutcome::Found(_),
+                weakest_z: Some(_),
                 ..
             }]
         ),
+        "{last:?}"
+    );
+}
+
+#[test]
+fn a_revoked_placement_found_again_at_the_commit_bar_is_placed_again() {
+    // The same search, its paired test now at or above the bar: the route outweighs the two matches.
+    let refused = found_again_after_revocation(1e6);
+    let [
+        SessionStartEvent::Refused {
+            weakest_z: Some(z), ..
+        },
+    ] = refused[..]
+    else {
+        panic!("{refused:?}");
+    };
+    let last = found_again_after_revocation(z);
+    assert!(
+        matches!(last[..], [SessionStartEvent::Placed(_)]),
         "{last:?}"
     );
 }
