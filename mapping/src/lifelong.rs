@@ -18,8 +18,9 @@
 //!    ([`crate::sparsification`], policy `clt`), or simply deleted with every constraint touching them
 //!    (`delete`, Cartographer's behaviour). `keep` trims nothing (the graph grows without bound) and
 //!    `frozen` never changes the first session's map (later sessions only localize against it and are
-//!    dropped when they end). The graph is re-optimized every `optimize_every_n_sparsifications`
-//!    sparsifications with at most `sparsification_max_iterations` steps.
+//!    dropped when they end). The graph is re-optimized, with at most `sparsification_max_iterations`
+//!    steps, after a session's batch of trims once `optimize_every_n_sparsifications` sparsifications
+//!    have accumulated.
 //!
 //! Everything here is pure: no I/O, clocks or threads. Search jobs ([`LifelongMap::take_search_jobs`])
 //! are run by the caller, anywhere, with [`LifelongMap::constraint_builder`].

@@ -371,6 +371,7 @@ impl LifelongMap {
                 for &submap in &doomed {
                     events.extend(self.trim(submap)?);
                 }
+                events.extend(self.optimize_if_sparsified_enough());
             }
         }
         if let Some(s) = self.sessions.get_mut(&session) {
@@ -585,15 +586,25 @@ impl LifelongMap {
             kld,
         }];
         self.sparsifications_since_optimization += 1;
-        if self.sparsifications_since_optimization >= self.options.optimize_every_n_sparsifications
-        {
-            self.sparsifications_since_optimization = 0;
-            events.push(LifelongEvent::Optimized(
-                self.global
-                    .optimize_capped(self.options.sparsification_max_iterations),
-            ));
-        }
         Ok(events)
+    }
+
+    /// Re-optimizes (at most `sparsification_max_iterations` steps) once `optimize_every_n_sparsifications`
+    /// sparsifications have accumulated: after a session's whole batch of trims, not inside it. Each tree
+    /// keeps its blanket's marginal at the point it was linearized at, so the optimum hardly moves between
+    /// two trims of a batch (χ² 508 → 506 and 497 → 493 in the two optimizations inside session 10's
+    /// seven trims, store seed 1), while a step on a graph this size costs 40–90 ms of CPU: with the
+    /// optimizations inside the batch, store seed 3's session 20 spent 18 steps and 1.8 s on its 16 trims
+    /// (BENCHMARKS.md, session 18).
+    fn optimize_if_sparsified_enough(&mut self) -> Option<LifelongEvent> {
+        if self.sparsifications_since_optimization < self.options.optimize_every_n_sparsifications {
+            return None;
+        }
+        self.sparsifications_since_optimization = 0;
+        Some(LifelongEvent::Optimized(
+            self.global
+                .optimize_capped(self.options.sparsification_max_iterations),
+        ))
     }
 
     /// `frozen`: drops a later session's submaps and nodes from the map, replacing nothing.

@@ -158,7 +158,8 @@ pub struct LifelongOptions {
     pub trimmer: SubmapTrimmerOptions,
     /// What trimming does. Default `clt`.
     pub policy: TrimPolicy,
-    /// Optimize the graph after every this many sparsifications (count, ≥ 1). Default 5 (the paper's).
+    /// Optimize the graph once this many sparsifications have accumulated, after the batch of trims of
+    /// the session end that reached it (count, ≥ 1). Default 5 (the paper's).
     pub optimize_every_n_sparsifications: usize,
     /// Iteration cap of those optimizations (count, ≥ 1). Default 50 (the paper's).
     pub sparsification_max_iterations: usize,
