@@ -369,7 +369,7 @@ impl LifelongMap {
             TrimPolicy::Clt | TrimPolicy::Delete => {
                 let doomed = self.submaps_to_trim(session);
                 for &submap in &doomed {
-                    events.extend(self.trim(submap)?);
+                    events.push(self.trim(submap)?);
                 }
                 events.extend(self.optimize_if_sparsified_enough());
             }
@@ -533,7 +533,7 @@ impl LifelongMap {
     }
 
     /// Removes one submap and its own nodes per the policy (`clt` or `delete`).
-    fn trim(&mut self, submap: SubmapId) -> Result<Vec<LifelongEvent>, LifelongError> {
+    fn trim(&mut self, submap: SubmapId) -> Result<LifelongEvent, LifelongError> {
         let nodes = self.own_nodes(submap);
         let eliminate: Vec<VariableId> = std::iter::once(VariableId::Submap(submap))
             .chain(nodes.iter().map(|n| VariableId::Node(*n)))
@@ -578,15 +578,14 @@ impl LifelongMap {
         };
         self.global.forget(&[submap], &nodes);
         self.trimmed_total += 1;
-        let mut events = vec![LifelongEvent::SubmapTrimmed {
+        self.sparsifications_since_optimization += 1;
+        Ok(LifelongEvent::SubmapTrimmed {
             submap,
             dropped: false,
             nodes_removed: nodes.len(),
             tree_edges,
             kld,
-        }];
-        self.sparsifications_since_optimization += 1;
-        Ok(events)
+        })
     }
 
     /// Re-optimizes (at most `sparsification_max_iterations` steps) once `optimize_every_n_sparsifications`
