@@ -84,12 +84,12 @@ pub struct RelocalizationOptions {
     /// as often fit the other and cancel. Unitless (about standard errors). This bar holds for a cloud of
     /// at most `long_route_scans` scans, `long_route_min_disambiguation_z` beyond. Default 3, set on the
     /// statistic counted over `route_block_m` blocks and scored against the truth: of 74 retries with at
-    /// most 200 scans whose best candidate was wrong, none reached 1.6 on the store (seeds 1 and 3) and
+    /// most 200 scans whose best candidate was wrong, none reached 1.4 on the store (seeds 1 and 3) and
     /// the highest reached 2.01 on the look-alike `aisles` (seed 1), while ten retries whose best was
     /// right reached 3.3–4.0, which the earlier bar of 4 refused (BENCHMARKS.md, session 18); 3 keeps a
-    /// margin of one over the worst wrong best. Counted per point, 3 placed a store session 19.9 m off and another 1.0 m
-    /// off (seed 1, sessions 24 and 20; session 15) and probation committed both: what makes 3 safe is
-    /// the blocks.
+    /// margin of one over the worst wrong best. Counted per point, 3 placed a store session 19.9 m off
+    /// and another 1.0 m off (seed 1, sessions 24 and 20; session 15) and probation committed both: what
+    /// makes 3 safe is the blocks.
     pub min_disambiguation_z: f64,
     /// The paired test's bar (as `min_disambiguation_z`) for a cloud of more than `long_route_scans`
     /// scans. The test counts blocks as independent evidence, but LLO's drift bends a long cloud, and a

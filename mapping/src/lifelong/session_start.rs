@@ -112,7 +112,7 @@ pub struct SessionStartOptions {
     /// a revoked placement is refused as that placement again, unless the search's paired test against
     /// its weakest rival reaches `probation_min_z` (the bar a placement passes before it is committed):
     /// two false GLM matches in a changed aisle revoke a right placement as readily as a wrong one, and
-    /// without that exception two right placements (0.02 and 0.05 m off) were refused for the rest of
+    /// without that exception two right placements (0.02 and 0.07 m off) were refused for the rest of
     /// their sessions at z up to 5.1 and 5.4 (store seed 3, session 16; `aisles` seed 1, session 19;
     /// BENCHMARKS.md, session 18). Metres ≥ 0. Default 1 m.
     pub revoked_radius_m: f64,
@@ -667,8 +667,6 @@ impl SessionStart {
         }]
     }
 
-    /// Whether `global_from_local` puts the latest node within `revoked_radius_m` and
-    /// `agreement_rotation_rad` of where a revoked placement put it.
     /// Whether a search's paired test (`weakest_z`) is strong enough to place a session where a placement
     /// was revoked: it must reach `probation_min_z`, the route-wide test a placement passes before it is
     /// committed (never when that test is off or the search had no rival to test against).
@@ -677,6 +675,8 @@ impl SessionStart {
         bar > 0.0 && weakest_z.is_some_and(|z| z >= bar)
     }
 
+    /// Whether `global_from_local` puts the latest node within `revoked_radius_m` and
+    /// `agreement_rotation_rad` of where a revoked placement put it.
     fn repeats_revoked(&self, global_from_local: &Rigid2) -> bool {
         let Some(&(local, _)) = self.nodes.last() else {
             return false;
