@@ -597,7 +597,7 @@ impl StartSearch {
 
     /// The paired test's bar for a cloud of `scans` scans: `min_disambiguation_z`, or
     /// `long_route_min_disambiguation_z` past `long_route_scans`.
-    pub fn disambiguation_z(&self, scans: usize) -> f64 {
+    fn disambiguation_z(&self, scans: usize) -> f64 {
         if scans > self.options.long_route_scans {
             self.options.long_route_min_disambiguation_z
         } else {
