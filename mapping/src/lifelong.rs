@@ -30,6 +30,7 @@ mod map_change;
 mod map_matcher;
 mod options;
 mod relocalization;
+mod relocalization_map;
 mod session_start;
 mod submap_trimmer;
 #[cfg(test)]
@@ -45,8 +46,10 @@ pub use options::{
 };
 pub use relocalization::{
     CloudFit, RelocalizationOptions, RelocalizationOutcome, SearchEvidence, SessionRelocalization,
-    StartAnswer, StartSearch, relocalize_scans_in_grid, relocalize_session_start, render_submaps,
-    render_submaps_newest,
+    StartAnswer, StartSearch, relocalize_scans_in_grid, relocalize_session_start,
+};
+pub use relocalization_map::{
+    MapCells, render_relocalization_map, render_submaps, render_submaps_newest,
 };
 pub use session_start::{
     RevokeReason, SessionStart, SessionStartEvent, SessionStartOptions, SessionStartState,

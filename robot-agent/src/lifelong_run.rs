@@ -19,7 +19,7 @@ use mapping::geometry::{Rigid2, Rigid2Ext as _};
 use mapping::grid::ProbabilityGrid;
 use mapping::lifelong::{
     GraphCounts, LifelongError, LifelongEvent, LifelongMap, LifelongOptions, RelocalizationOutcome,
-    SessionStart, SessionStartEvent, StartSearch, render_submaps,
+    SessionStart, SessionStartEvent, StartSearch, render_relocalization_map,
 };
 use mapping::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
 use mapping::metrics::{MatchScorer, Placement, ScoringOptions, SessionTrack};
@@ -575,7 +575,12 @@ fn worker(
                 map_at_start = None;
                 start = None;
                 if session > 0 {
-                    let rendered = render_submaps(map.placed_submaps(), relocalization.resolution);
+                    let rendered = render_relocalization_map(
+                        map.placed_submaps_by_id()
+                            .map(|(id, grid)| (id.trajectory, grid)),
+                        relocalization.resolution,
+                        relocalization.map_cells,
+                    );
                     map_at_start = rendered
                         .as_ref()
                         .map(|grid| MatchScorer::new(grid, config.scoring.match_window));

@@ -1,7 +1,8 @@
 //! Session-start relocalization: where a new session's LLO frame sits in the map, with no prior.
 //!
-//! The finished submaps are rendered into one grid in the map frame ([`render_submaps`], each cell the
-//! highest probability any submap gives it, so that every wall any submap saw can be matched); the first
+//! The finished submaps are rendered into one grid in the map frame ([`render_relocalization_map`], each
+//! cell as [`RelocalizationOptions::map_cells`] says: by default the newest view of it, weighted by how
+//! persistently the sessions saw it occupied); the first
 //! few scans of the session are merged into one cloud in the first scan's frame (LLO is accurate over a
 //! few metres, and a wider cloud is far more distinctive than one scan); the coarse-to-fine
 //! [`Relocalizer`] searches it over the whole grid and every rotation (branch and bound on a 4× coarser
@@ -13,12 +14,12 @@
 //! scan since the start until one pose wins a paired per-point test. Cost: one precomputation over the
 //! rendered map per coarse factor plus one coarse and a few local searches per attempt.
 
-use nalgebra::{Point2, Vector2};
+use nalgebra::Point2;
 use serde::Deserialize;
 
-use super::{LifelongMap, LifelongOptionsError, PlacedGrid};
+use super::{LifelongMap, LifelongOptionsError, MapCells, render_relocalization_map};
 use crate::geometry::{Rigid2, Rigid2Ext as _};
-use crate::grid::{CellIndex, MapLimits, ProbabilityGrid, UNKNOWN_VALUE};
+use crate::grid::ProbabilityGrid;
 use crate::local_slam::voxel_filter;
 use crate::scan_matching::{
     LeastSquaresScanMatcher, LeastSquaresScanMatcherOptions, RealTimeCorrelativeScanMatcher,
@@ -32,6 +33,9 @@ use crate::scan_matching::{
 pub struct RelocalizationOptions {
     /// Cell size of the rendered map, metres. Default 0.05 m (the submaps').
     pub resolution: f64,
+    /// How the rendered map values a cell the submaps disagree on ([`MapCells`]). Default
+    /// `persistent`.
+    pub map_cells: MapCells,
     /// Voxel size the merged cloud is thinned to, metres (0: no thinning). Default 0.15 m: the search costs
     /// time in proportion to the points, and 0.15 m keeps the shape (0.05 m took 3× longer on the simulated
     /// store for the same poses).
@@ -147,6 +151,7 @@ impl Default for RelocalizationOptions {
     fn default() -> Self {
         Self {
             resolution: 0.05,
+            map_cells: MapCells::default(),
             voxel_size: 0.15,
             max_search_points: 200,
             min_score: 0.6,
@@ -324,78 +329,6 @@ pub struct StartAnswer {
     pub weakest_z: Option<f64>,
 }
 
-/// Renders placed grids into one map-frame grid of cell size `resolution`: each cell takes the highest
-/// probability among the grids that know its centre. `None` when no grid knows anything.
-pub fn render_submaps<'a>(
-    grids: impl IntoIterator<Item = PlacedGrid<'a>>,
-    resolution: f64,
-) -> Option<ProbabilityGrid> {
-    render(grids, resolution, false)
-}
-
-/// Like [`render_submaps`], but each cell takes the value of the *last* grid (in iteration order) that
-/// knows its centre: with grids ordered oldest first, the map as the newest observations describe it
-/// (what the site looks like now, for the map change rate).
-pub fn render_submaps_newest<'a>(
-    grids: impl IntoIterator<Item = PlacedGrid<'a>>,
-    resolution: f64,
-) -> Option<ProbabilityGrid> {
-    render(grids, resolution, true)
-}
-
-fn render<'a>(
-    grids: impl IntoIterator<Item = PlacedGrid<'a>>,
-    resolution: f64,
-    newest_wins: bool,
-) -> Option<ProbabilityGrid> {
-    let grids: Vec<PlacedGrid<'a>> = grids.into_iter().collect();
-    let mut min = Vector2::repeat(f64::INFINITY);
-    let mut max = Vector2::repeat(f64::NEG_INFINITY);
-    for g in &grids {
-        let (a, b) = g.global_bounds();
-        min = min.inf(&a);
-        max = max.sup(&b);
-    }
-    if grids.is_empty() || !(min.x.is_finite() && max.x.is_finite()) {
-        return None;
-    }
-    let origin = min.map(|v| (v / resolution).floor() * resolution);
-    let width = ((max.x - origin.x) / resolution).ceil() as i32 + 1;
-    let height = ((max.y - origin.y) / resolution).ceil() as i32 + 1;
-    let limits = MapLimits::new(resolution, origin, width, height);
-    let mut out = ProbabilityGrid::new(limits.clone());
-    for g in &grids {
-        let (a, b) = g.global_bounds();
-        let lo = limits.cell_index(&Point2::from(a));
-        let hi = limits.cell_index(&Point2::from(b));
-        let inverse = g.global_from_grid.inverse();
-        let source = g.grid.limits();
-        for iy in lo.y.max(0)..=hi.y.min(height - 1) {
-            for ix in lo.x.max(0)..=hi.x.min(width - 1) {
-                let index = CellIndex::new(ix, iy);
-                let local = inverse * limits.cell_center(&index);
-                let Some(from) = source.flat_index(&source.cell_index(&local)) else {
-                    continue;
-                };
-                let value = g.grid.values()[from];
-                if value == UNKNOWN_VALUE {
-                    continue;
-                }
-                if let Some(to) = limits.flat_index(&index) {
-                    let cell = &mut out.values_mut()[to];
-                    *cell = if newest_wins {
-                        value
-                    } else {
-                        (*cell).max(value)
-                    };
-                }
-            }
-        }
-    }
-    let known = out.values().iter().any(|&v| v != UNKNOWN_VALUE);
-    known.then(|| out.cropped_to_known())
-}
-
 /// Finds `global_from_local` of a new session from its first scans, with no prior, against `map`'s
 /// finished submaps (see the module docs). `scans` are `(local_from_tracking, points in the tracking
 /// frame)` in LLO's frame, first scan first. `NotFound` when the map is empty, there are no points, or
@@ -405,7 +338,12 @@ pub fn relocalize_session_start(
     scans: &[(Rigid2, Vec<Point2<f32>>)],
     options: &RelocalizationOptions,
 ) -> RelocalizationOutcome {
-    match render_submaps(map.placed_submaps(), options.resolution) {
+    match render_relocalization_map(
+        map.placed_submaps_by_id()
+            .map(|(id, grid)| (id.trajectory, grid)),
+        options.resolution,
+        options.map_cells,
+    ) {
         Some(grid) => relocalize_scans_in_grid(&grid, scans, options),
         None => RelocalizationOutcome::NotFound,
     }
@@ -966,8 +904,11 @@ fn refine_on_sharp_map(
 
 #[cfg(test)]
 mod tests {
+    use nalgebra::Vector2;
+
     use super::*;
     use crate::geometry::rigid2;
+    use crate::grid::MapLimits;
     use crate::scan_matching::test_support::{
         ROOM_WALLS, room_grid, room_scan, wall_points, walls_grid,
     };

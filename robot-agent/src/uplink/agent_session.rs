@@ -8,7 +8,7 @@ use mapping::geometry::Rigid2;
 use mapping::global_slam::{ConstraintBuilderOptions, GlobalSlamOptions};
 use mapping::lifelong::{
     PlacedGrid, RelocalizationOptions, SessionStart as StartDecision, SessionStartEvent,
-    SessionStartOptions, StartSearch, relocalize_scans_in_grid, render_submaps,
+    SessionStartOptions, StartSearch, relocalize_scans_in_grid, render_relocalization_map,
 };
 use mapping::local_slam::LocalTrajectoryBuilderOptions;
 use mapping::metrics::Placement;
@@ -214,7 +214,7 @@ async fn prepare_search(
     }
     let options = options.clone();
     tokio::task::spawn_blocking(move || {
-        let grid = render_cached(&submaps, options.resolution)?;
+        let grid = render_cached(&submaps, &options)?;
         Some(StartSearch::new(&grid, &options))
     })
     .await
@@ -222,31 +222,44 @@ async fn prepare_search(
     .flatten()
 }
 
-/// `global_from_grid` and grid of every cached submap.
-/// The cached submaps rendered into one grid at `resolution` (blocking: call off the async threads).
+/// The cached submaps (their session, `global_from_grid`, grid; oldest first) rendered into the
+/// relocalization map (blocking: call off the async threads).
 fn render_cached(
-    submaps: &[(Rigid2, Arc<mapping::grid::ProbabilityGrid>)],
-    resolution: f64,
+    submaps: &[(u32, Rigid2, Arc<mapping::grid::ProbabilityGrid>)],
+    options: &RelocalizationOptions,
 ) -> Option<mapping::grid::ProbabilityGrid> {
-    render_submaps(
-        submaps.iter().map(|(global_from_grid, grid)| PlacedGrid {
-            global_from_grid: *global_from_grid,
-            grid,
+    render_relocalization_map(
+        submaps.iter().map(|(session, global_from_grid, grid)| {
+            (
+                *session,
+                PlacedGrid {
+                    global_from_grid: *global_from_grid,
+                    grid,
+                },
+            )
         }),
-        resolution,
+        options.resolution,
+        options.map_cells,
     )
 }
 
+/// The session, `global_from_grid` and grid of every cached submap, oldest first (by id).
 fn cached_grids(
     cache: &Mutex<GlobalSubmapCache>,
-) -> Vec<(Rigid2, Arc<mapping::grid::ProbabilityGrid>)> {
+) -> Vec<(u32, Rigid2, Arc<mapping::grid::ProbabilityGrid>)> {
     cache
         .lock()
         .map(|cache| {
             cache
                 .submaps()
-                .values()
-                .map(|s| (s.global_pose * s.local_pose.inverse(), Arc::clone(&s.grid)))
+                .iter()
+                .map(|(id, s)| {
+                    (
+                        id.trajectory,
+                        s.global_pose * s.local_pose.inverse(),
+                        Arc::clone(&s.grid),
+                    )
+                })
                 .collect()
         })
         .unwrap_or_default()
@@ -336,7 +349,7 @@ pub async fn relocalize_nodes<'a>(
     }
     let options = options.clone();
     let found = tokio::task::spawn_blocking(move || {
-        let grid = render_cached(&submaps, options.resolution)?;
+        let grid = render_cached(&submaps, &options)?;
         relocalize_scans_in_grid(&grid, &scans, &options).found()
     })
     .await

@@ -463,6 +463,8 @@ impl SiteMap {
             if unplaced {
                 self.dropped_sessions += 1;
             }
+            // The trims freed the stale submaps' grids and matchers: give the pages back.
+            crate::memory_release::release_freed_memory();
         }
         if let Some(session) = self.sessions.get_mut(session_uuid) {
             session.closed = true;
