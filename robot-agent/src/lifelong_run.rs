@@ -19,7 +19,7 @@ use mapping::geometry::{Rigid2, Rigid2Ext as _};
 use mapping::grid::ProbabilityGrid;
 use mapping::lifelong::{
     GraphCounts, LifelongError, LifelongEvent, LifelongMap, LifelongOptions, RelocalizationOutcome,
-    SessionStart, SessionStartEvent, StartSearch, render_relocalization_map,
+    SessionStart, SessionStartEvent, StartSearch, render_relocalization_map, render_submaps,
 };
 use mapping::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
 use mapping::metrics::{MatchScorer, Placement, ScoringOptions, SessionTrack};
@@ -575,15 +575,17 @@ fn worker(
                 map_at_start = None;
                 start = None;
                 if session > 0 {
+                    // AMS scores every scan against everything the map holds (each cell at the
+                    // highest value any submap gives it, as the per-submap matching of GLM would find
+                    // it); the session start searches the map as `map_cells` renders it.
+                    map_at_start = render_submaps(map.placed_submaps(), relocalization.resolution)
+                        .map(|grid| MatchScorer::new(&grid, config.scoring.match_window));
                     let rendered = render_relocalization_map(
                         map.placed_submaps_by_id()
                             .map(|(id, grid)| (id.trajectory, grid)),
                         relocalization.resolution,
                         relocalization.map_cells,
                     );
-                    map_at_start = rendered
-                        .as_ref()
-                        .map(|grid| MatchScorer::new(grid, config.scoring.match_window));
                     let search = rendered
                         .as_ref()
                         .map(|grid| StartSearch::new(grid, relocalization));
