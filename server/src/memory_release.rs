@@ -5,8 +5,12 @@
 //! (one per thread that allocated, up to 8 per core) for reuse and returns it to the system only from the
 //! top of each heap, so after the blocking pool's threads have built and freed a few maps the process's
 //! RSS sat 680–900 MiB above its live heap in the 60-minute soak (BENCHMARKS.md, issue 16 §5).
-//! [`release_freed_memory`] runs glibc's `malloc_trim`, which returns every arena's free pages; the site
-//! task calls it after each session end. Elsewhere (musl, other systems) it does nothing.
+//! [`release_freed_memory`] runs glibc's `malloc_trim`, which returns every arena's free pages; a site
+//! calls it after each session end, on a thread of its own ([`release_freed_memory_in_background`]):
+//! on a freshly trimmed GiB heap it takes 0.1–0.5 s, which the site's next change should not wait for.
+//! Elsewhere (musl, other systems) it does nothing.
+
+use std::sync::atomic::{AtomicBool, Ordering};
 
 /// Returns the allocator's free pages to the operating system (glibc's `malloc_trim(0)`); a no-op on
 /// other allocators. Costs a walk of the allocator's free lists (milliseconds for a GiB heap): call it
@@ -21,7 +25,26 @@ pub fn release_freed_memory() {
     }
 }
 
-#[cfg(all(test, target_os = "linux", target_env = "gnu"))]
+/// [`release_freed_memory`] on a short-lived thread of its own, unless one is still running (a replay
+/// ends hundreds of sessions in a row: one release at a time is enough).
+pub fn release_freed_memory_in_background() {
+    static RUNNING: AtomicBool = AtomicBool::new(false);
+    if RUNNING.swap(true, Ordering::AcqRel) {
+        return;
+    }
+    let spawned = std::thread::Builder::new()
+        .name("memory-release".into())
+        .spawn(|| {
+            release_freed_memory();
+            RUNNING.store(false, Ordering::Release);
+        });
+    if spawned.is_err() {
+        RUNNING.store(false, Ordering::Release);
+    }
+}
+
+#[cfg(test)]
+#[cfg(all(target_os = "linux", target_env = "gnu"))]
 mod tests {
     use super::*;
 
@@ -37,16 +60,20 @@ mod tests {
         const BLOCK: usize = 16 * 1024;
         const BLOCKS: usize = 12_000; // ~190 MiB
         // On a thread of its own, as the blocking pool's: its own arena.
-        let kept = std::thread::spawn(|| {
-            let mut blocks: Vec<Vec<u8>> = (0..BLOCKS).map(|i| vec![i as u8; BLOCK]).collect();
-            // Keep every 16th block alive: the freed memory is between live blocks, not at the top of
-            // the arena's heap, so free() alone cannot give it back.
-            let kept: Vec<Vec<u8>> = blocks.iter_mut().step_by(16).map(std::mem::take).collect();
-            drop(blocks);
-            kept
-        })
-        .join()
-        .unwrap();
+        let kept = std::thread::Builder::new()
+            .name("allocating".into())
+            .spawn(|| {
+                let mut blocks: Vec<Vec<u8>> = (0..BLOCKS).map(|i| vec![i as u8; BLOCK]).collect();
+                // Keep every 16th block alive: the freed memory is between live blocks, not at the top of
+                // the arena's heap, so free() alone cannot give it back.
+                let kept: Vec<Vec<u8>> =
+                    blocks.iter_mut().step_by(16).map(std::mem::take).collect();
+                drop(blocks);
+                kept
+            })
+            .unwrap()
+            .join()
+            .unwrap();
         let before = rss_bytes();
         release_freed_memory();
         let after = rss_bytes();
