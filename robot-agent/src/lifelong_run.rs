@@ -19,7 +19,7 @@ use mapping::geometry::{Rigid2, Rigid2Ext as _};
 use mapping::grid::ProbabilityGrid;
 use mapping::lifelong::{
     GraphCounts, LifelongError, LifelongEvent, LifelongMap, LifelongOptions, RelocalizationOutcome,
-    SessionStart, SessionStartEvent, StartSearch, render_relocalization_map, render_submaps,
+    SessionStart, SessionStartEvent, StartSearch, render_submaps,
 };
 use mapping::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
 use mapping::metrics::{MatchScorer, Placement, ScoringOptions, SessionTrack};
@@ -580,12 +580,7 @@ fn worker(
                     // it); the session start searches the map as `map_cells` renders it.
                     map_at_start = render_submaps(map.placed_submaps(), relocalization.resolution)
                         .map(|grid| MatchScorer::new(&grid, config.scoring.match_window));
-                    let rendered = render_relocalization_map(
-                        map.placed_submaps_by_id()
-                            .map(|(id, grid)| (id.trajectory, grid)),
-                        relocalization.resolution,
-                        relocalization.map_cells,
-                    );
+                    let rendered = map.relocalization_map(relocalization);
                     let search = rendered
                         .as_ref()
                         .map(|grid| StartSearch::new(grid, relocalization));

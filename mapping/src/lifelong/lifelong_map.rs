@@ -428,6 +428,20 @@ impl LifelongMap {
         })
     }
 
+    /// The map sessions start against: [`Self::placed_submaps`] rendered at `relocalization`'s resolution
+    /// as its [`super::MapCells`] say (`None` while no placed submap knows anything).
+    pub fn relocalization_map(
+        &self,
+        relocalization: &super::RelocalizationOptions,
+    ) -> Option<ProbabilityGrid> {
+        super::render_relocalization_map(
+            self.placed_submaps_by_id()
+                .map(|(id, grid)| (id.trajectory, grid)),
+            relocalization.resolution,
+            relocalization.map_cells,
+        )
+    }
+
     /// [`Self::placed_submaps`] with their ids, in id order (oldest session first).
     pub fn placed_submaps_by_id(&self) -> impl Iterator<Item = (SubmapId, PlacedGrid<'_>)> + '_ {
         self.global.submaps().iter().filter_map(|(id, record)| {

@@ -17,7 +17,7 @@
 use nalgebra::Point2;
 use serde::Deserialize;
 
-use super::{LifelongMap, LifelongOptionsError, MapCells, render_relocalization_map};
+use super::{LifelongMap, LifelongOptionsError, MapCells};
 use crate::geometry::{Rigid2, Rigid2Ext as _};
 use crate::grid::ProbabilityGrid;
 use crate::local_slam::voxel_filter;
@@ -338,12 +338,7 @@ pub fn relocalize_session_start(
     scans: &[(Rigid2, Vec<Point2<f32>>)],
     options: &RelocalizationOptions,
 ) -> RelocalizationOutcome {
-    match render_relocalization_map(
-        map.placed_submaps_by_id()
-            .map(|(id, grid)| (id.trajectory, grid)),
-        options.resolution,
-        options.map_cells,
-    ) {
+    match map.relocalization_map(options) {
         Some(grid) => relocalize_scans_in_grid(&grid, scans, options),
         None => RelocalizationOutcome::NotFound,
     }

@@ -25,7 +25,7 @@ use mapping::global_slam::LoopClosure;
 use mapping::grid::ProbabilityGrid;
 use mapping::lifelong::{
     LifelongError, LifelongEvent, LifelongMap, LifelongOptions, SessionStart, SessionStartEvent,
-    StartSearch, render_submaps,
+    StartSearch,
 };
 use mapping::pose_graph::{NodeId, SubmapId};
 use proto::{MapDelta, NodeAdded, SubmapSnapshot, UploadBatch, UploadItem};
@@ -401,7 +401,8 @@ impl SiteMap {
     /// The committed map prepared for whole-map searches (`None` while it is empty).
     fn start_search(&self) -> Option<StartSearch> {
         let relocalization = &self.map.options().relocalization;
-        render_submaps(self.map.placed_submaps(), relocalization.resolution)
+        self.map
+            .relocalization_map(relocalization)
             .map(|grid| StartSearch::new(&grid, relocalization))
     }
 
