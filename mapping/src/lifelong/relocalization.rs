@@ -1,8 +1,7 @@
 //! Session-start relocalization: where a new session's LLO frame sits in the map, with no prior.
 //!
 //! The finished submaps are rendered into one grid in the map frame ([`render_relocalization_map`], each
-//! cell as [`RelocalizationOptions::map_cells`] says: by default the newest view of it, weighted by how
-//! persistently the sessions saw it occupied); the first
+//! cell as [`RelocalizationOptions::map_cells`] says: by default the newest view of it); the first
 //! few scans of the session are merged into one cloud in the first scan's frame (LLO is accurate over a
 //! few metres, and a wider cloud is far more distinctive than one scan); the coarse-to-fine
 //! [`Relocalizer`] searches it over the whole grid and every rotation (branch and bound on a 4× coarser
@@ -33,8 +32,8 @@ use crate::scan_matching::{
 pub struct RelocalizationOptions {
     /// Cell size of the rendered map, metres. Default 0.05 m (the submaps').
     pub resolution: f64,
-    /// How the rendered map values a cell the submaps disagree on ([`MapCells`]). Default
-    /// `persistent`.
+    /// How the rendered map values a cell the submaps disagree on ([`MapCells`]). Default `newest`:
+    /// what the site looks like now, not every goods arrangement ever seen merged.
     pub map_cells: MapCells,
     /// Voxel size the merged cloud is thinned to, metres (0: no thinning). Default 0.15 m: the search costs
     /// time in proportion to the points, and 0.15 m keeps the shape (0.05 m took 3× longer on the simulated
