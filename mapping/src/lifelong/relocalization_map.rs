@@ -189,25 +189,42 @@ fn covering_limits<'a>(
 }
 
 /// Calls `f(flat index in limits, value)` for every cell of `limits` whose centre `g` knows.
+///
+/// A map-sized render visits tens of millions of cells per session start, so each row is walked
+/// incrementally: the cell centres of a row are evenly spaced, and so are their coordinates in the
+/// source grid (in cells), which are truncated instead of floored once known non-negative (where the
+/// two agree, and without a libm call per cell; a NaN is no cell).
 fn for_each_known_cell(g: &PlacedGrid<'_>, limits: &MapLimits, mut f: impl FnMut(usize, u16)) {
     let (a, b) = g.global_bounds();
     let lo = limits.cell_index(&Point2::from(a));
     let hi = limits.cell_index(&Point2::from(b));
-    let inverse = g.global_from_grid.inverse();
+    let (x0, x1) = (lo.x.max(0), hi.x.min(limits.width - 1));
+    if x0 > x1 {
+        return;
+    }
+    let grid_from_global = g.global_from_grid.inverse();
     let source = g.grid.limits();
+    let values = g.grid.values();
+    let (source_width, source_height) = (source.width, source.height);
+    // Where a map-frame point falls in the source grid, in (fractional) cells from its origin: what
+    // `MapLimits::cell_index` floors.
+    let in_source_cells = |p: Point2<f64>| (grid_from_global * p).coords - source.origin;
+    let step = grid_from_global.rotation * Vector2::new(limits.resolution, 0.0);
     for iy in lo.y.max(0)..=hi.y.min(limits.height - 1) {
-        for ix in lo.x.max(0)..=hi.x.min(limits.width - 1) {
-            let index = CellIndex::new(ix, iy);
-            let local = inverse * limits.cell_center(&index);
-            let Some(from) = source.flat_index(&source.cell_index(&local)) else {
-                continue;
-            };
-            let value = g.grid.values()[from];
-            if value == UNKNOWN_VALUE {
+        let row_start = in_source_cells(limits.cell_center(&CellIndex::new(x0, iy)));
+        let row_offset = iy as usize * limits.width as usize;
+        for (k, ix) in (x0..=x1).enumerate() {
+            let v = (row_start + step * k as f64) / source.resolution;
+            if !(v.x >= 0.0 && v.y >= 0.0) {
                 continue;
             }
-            if let Some(to) = limits.flat_index(&index) {
-                f(to, value);
+            let (sx, sy) = (v.x as i32, v.y as i32);
+            if sx >= source_width || sy >= source_height {
+                continue;
+            }
+            let value = values[sy as usize * source_width as usize + sx as usize];
+            if value != UNKNOWN_VALUE {
+                f(row_offset + ix as usize, value);
             }
         }
     }
