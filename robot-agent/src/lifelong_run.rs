@@ -576,8 +576,8 @@ fn worker(
                 start = None;
                 if session > 0 {
                     // AMS scores every scan against everything the map holds (each cell at the
-                    // highest value any submap gives it, as the per-submap matching of GLM would find
-                    // it); the session start searches the map as `map_cells` renders it.
+                    // highest value any submap gives it: the definition every earlier figure used);
+                    // the session start searches the map as `map_cells` renders it.
                     map_at_start = render_submaps(map.placed_submaps(), relocalization.resolution)
                         .map(|grid| MatchScorer::new(&grid, config.scoring.match_window));
                     let rendered = map.relocalization_map(relocalization);
