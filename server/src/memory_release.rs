@@ -7,14 +7,14 @@
 //! RSS sat 680–900 MiB above its live heap in the 60-minute soak (BENCHMARKS.md, issue 16 §5).
 //! [`release_freed_memory`] runs glibc's `malloc_trim`, which returns every arena's free pages; a site
 //! calls it after each session end, on a thread of its own ([`release_freed_memory_in_background`]):
-//! on a freshly trimmed GiB heap it takes 0.1–0.5 s, which the site's next change should not wait for.
+//! with a GiB freed it takes 0.1–0.5 s, which the site's next change should not wait for.
 //! Elsewhere (musl, other systems) it does nothing.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 
 /// Returns the allocator's free pages to the operating system (glibc's `malloc_trim(0)`); a no-op on
-/// other allocators. Costs a walk of the allocator's free lists (milliseconds for a GiB heap): call it
-/// after large frees, not per request.
+/// other allocators. Costs a walk of the allocator's arenas and a system call per free run (0.1–0.5 s
+/// with a GiB freed between live blocks in four arenas): call it after large frees, not per request.
 pub fn release_freed_memory() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     #[allow(unsafe_code)]
