@@ -35,7 +35,7 @@ pub enum MapCells {
     /// a trimmed session's evidence goes with its submaps). Not the default: it lowers the fit of right
     /// answers too, and the session start's fit floor (`min_unfiltered_score`, set on real recordings)
     /// then refused right answers at z 3.6–6.5 on the simulated store (seeds 1 and 3, BENCHMARKS.md,
-    /// session 19), placing a session after 88 s instead of 10 s.
+    /// session 19), placing a session after 88 s instead of 11 s.
     Persistent,
 }
 
