@@ -44,8 +44,8 @@ impl MapCells {
     pub const ALL: [Self; 3] = [Self::Highest, Self::Newest, Self::Persistent];
 }
 
-/// A probability above this counts as occupied for [`MapCells::Persistent`].
-const OCCUPIED: f32 = 0.5;
+/// A probability above this counts as occupied for [`MapCells::Persistent`] (the map change rate's).
+const OCCUPIED: f32 = super::OCCUPIED_PROBABILITY;
 
 /// Renders `grids` (each with its session, oldest first) into one map-frame grid of cell size
 /// `resolution`, each cell valued as `cells` says. `None` when no grid knows anything.
@@ -113,25 +113,14 @@ pub fn render_submaps_newest<'a>(
     )
 }
 
-/// What the sessions that know one cell saw: the current session's newest value, and how many earlier
-/// sessions knew it and saw it occupied.
-#[derive(Clone, Copy, Debug)]
+/// What the sessions that know one cell saw: the current session's newest value (`UNKNOWN_VALUE`, 0,
+/// before any), and how many earlier sessions knew it and saw it occupied.
+#[derive(Clone, Copy, Debug, Default)]
 struct CellHistory {
     session: Option<u32>,
     value: u16,
     known: u16,
     occupied: u16,
-}
-
-impl Default for CellHistory {
-    fn default() -> Self {
-        Self {
-            session: None,
-            value: UNKNOWN_VALUE,
-            known: 0,
-            occupied: 0,
-        }
-    }
 }
 
 impl CellHistory {
