@@ -249,6 +249,10 @@ struct Agent {
     /// At the kill: each unfinished session and the highest sequence number still in the outbox
     /// (0: none pending, everything the session made was acknowledged).
     at_kill: Option<BTreeMap<String, u64>>,
+    /// Whether the outbox already held the session's end at the kill: the robot had ended it itself and
+    /// the kill only interrupted the delivery (a server restart under load can hold the test's loop past
+    /// the robot's own end of its 8-second session).
+    ended_at_kill: bool,
     exit: Option<ExitStatus>,
 }
 
@@ -285,6 +289,8 @@ impl Agent {
             .map(|(session, _)| (session, 0))
             .collect();
         for batch in outbox.pending().expect("pending") {
+            let batch = UploadBatch::try_from(&batch).expect("a pending batch");
+            self.ended_at_kill |= batch.items.contains(&UploadItem::SessionEnd);
             let seq = at_kill.entry(batch.session_uuid).or_default();
             *seq = (*seq).max(batch.seq);
         }
@@ -438,7 +444,7 @@ async fn chaos(transport: &str, default_kills: usize) {
             )
             .expect("agent config");
             let log = dir.path().join(format!("{robot}.log"));
-            let kill_after = seconds(session_s * rng.random_range(0.5..0.75));
+            let kill_after = seconds(session_s * rng.random_range(0.3..0.6));
             let child = spawn_logged(
                 &agent_binary(),
                 &["run", "--config", &config.to_string_lossy()],
@@ -453,6 +459,7 @@ async fn chaos(transport: &str, default_kills: usize) {
                 kill_after,
                 streaming_since: None,
                 at_kill: None,
+                ended_at_kill: false,
                 exit: None,
             }
         })
@@ -658,8 +665,19 @@ async fn chaos(transport: &str, default_kills: usize) {
             "{}: what the outbox held at the kill was delivered",
             agent.robot
         );
-        assert!(!interrupted.ended_by_robot && complete.ended_by_robot);
-        assert!(!interrupted.nodes.is_empty() && interrupted.nodes.len() < nodes.len());
+        assert_eq!(
+            (interrupted.ended_by_robot, complete.ended_by_robot),
+            (agent.ended_at_kill, true),
+            "{}: (interrupted, complete) session ended by the robot, as the outbox held at the kill",
+            agent.robot
+        );
+        assert!(!interrupted.nodes.is_empty());
+        assert_eq!(
+            interrupted.nodes.len() == nodes.len(),
+            agent.ended_at_kill,
+            "{}: the interrupted session holds every node only if the robot had ended it",
+            agent.robot
+        );
         let first_difference = |stored: &[NodeAdded]| {
             stored
                 .iter()
@@ -748,9 +766,10 @@ async fn chaos(transport: &str, default_kills: usize) {
     assert!(live_delta == reference_delta, "the served map differs");
     eprintln!(
         "kill -9 chaos ({transport}, seed {seed}): {kills} server kills ({kills_while_streaming} while robots \
-         streamed), 2 agent kills, {run_s:.1} s; restarts answered after {restart_s:.2?} s; final \
+         streamed), 2 agent kills ({} mid-session), {run_s:.1} s; restarts answered after {restart_s:.2?} s; final \
          version {}, {} sessions, {} nodes ({:?} per complete session), {} constraints, {} finished \
          submaps, {} trimmed, {} dropped; versions seen {}",
+        agents.iter().filter(|a| !a.ended_at_kill).count(),
         live.version,
         counts.sessions,
         counts.nodes,
