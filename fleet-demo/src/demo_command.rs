@@ -677,6 +677,7 @@ fn score(
             placements,
             committed,
             match_scores: &[],
+            search_bests: &[],
         };
         let score = score_session(&track, &world_from_map, scoring);
         if run.session > 0 {

@@ -236,6 +236,7 @@ impl SessionRecord {
             placements: &self.placements,
             committed: self.committed,
             match_scores: &self.match_scores,
+            search_bests: &self.search_bests,
         }
     }
 }

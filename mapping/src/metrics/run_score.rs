@@ -35,6 +35,9 @@ pub struct RunScore {
     pub ams_min: Option<f64>,
     /// Distance driven, metres.
     pub distance_m: f64,
+    /// The sessions' [`SessionScore::mrcl_ceiling`] weighted by distance, over the sessions that have
+    /// one (`None`: none has).
+    pub mrcl_ceiling: Option<f64>,
 }
 
 /// Scores a run from the scores of its localizing sessions (not the mapping session: it defines the
@@ -50,6 +53,11 @@ pub fn score_run(sessions: &[SessionScore]) -> RunScore {
         .map(|s| s.ate_rms_m * s.ate_rms_m * s.localized_scans as f64)
         .sum();
     let ams: Vec<f64> = sessions.iter().filter_map(|s| s.ams).collect();
+    let ceilings: Vec<(f64, f64)> = sessions
+        .iter()
+        .filter_map(|s| Some((s.mrcl_ceiling?, s.distance_m)))
+        .collect();
+    let ceiling_distance: f64 = ceilings.iter().map(|(_, d)| d).sum();
     RunScore {
         sessions: n,
         cri: (n > 0).then(|| initialized as f64 / n as f64),
@@ -80,6 +88,13 @@ pub fn score_run(sessions: &[SessionScore]) -> RunScore {
         ams_mean: (!ams.is_empty()).then(|| ams.iter().sum::<f64>() / ams.len() as f64),
         ams_min: ams.iter().copied().reduce(f64::min),
         distance_m: distance,
+        mrcl_ceiling: (!ceilings.is_empty()).then(|| {
+            if ceiling_distance > 0.0 {
+                ceilings.iter().map(|(c, d)| c * d).sum::<f64>() / ceiling_distance
+            } else {
+                ceilings.iter().map(|(c, _)| c).sum::<f64>() / ceilings.len() as f64
+            }
+        }),
     }
 }
 
@@ -118,6 +133,7 @@ mod tests {
             placements: &[],
             committed: placement,
             match_scores: &scores,
+            search_bests: &[],
         };
         score_session(&track, &Rigid2::identity(), &ScoringOptions::DEFAULT)
     }

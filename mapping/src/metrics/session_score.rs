@@ -66,6 +66,10 @@ pub struct SessionTrack<'a> {
     /// The match score of each of its scans against the map as it was then (0 for a scan the robot could
     /// not place); empty when not measured (the mapping session, which has no map before it).
     pub match_scores: &'a [f64],
+    /// Each whole-map search of the session start, in order: where its best candidate put the scan it
+    /// was made at, decided at the scan the search ran at (`None`: no candidate). Empty when not
+    /// recorded (the mapping session, shells that do not record searches).
+    pub search_bests: &'a [Option<Placement>],
 }
 
 /// The scores of one session (see the module docs).
@@ -109,6 +113,13 @@ pub struct SessionScore {
     pub ams: Option<f64>,
     /// Scans that score.
     pub scored_scans: usize,
+    /// The MRCL the session start's own evidence allowed: 1 − the share of the distance driven before
+    /// the first whole-map search whose best candidate was correct ([`ScoringOptions::correct`]). Every
+    /// search before it ranked a wrong pose best, so placing the session earlier meant placing it wrong
+    /// or on a candidate the search ranked below a wrong one; the route driven until then is the evidence
+    /// the search needed. A ceiling for this search and its schedule (the hold-back included), not for
+    /// every method. 0 when no search's best was correct; `None` without recorded searches.
+    pub mrcl_ceiling: Option<f64>,
     /// Good distance (metres within tolerance, estimate at the time) and its smoothed counterpart, kept to
     /// weigh MRCL over a run by distance.
     #[serde(skip)]
@@ -142,6 +153,15 @@ pub fn truth_at(truth: &[(Timestamp, Rigid2)], time: Timestamp) -> Option<Rigid2
         (Some(p), None) | (None, Some(p)) => Some(p.1),
         (None, None) => None,
     }
+}
+
+/// Distance along `truth` (time-ordered) up to the pose at `until` (inclusive; `None`: the whole of it).
+fn distance_driven(truth: &[(Timestamp, Rigid2)], until: Option<Timestamp>) -> f64 {
+    truth
+        .windows(2)
+        .take_while(|w| until.is_none_or(|t| w[1].0 <= t))
+        .map(|w| (w[1].1.translation.vector - w[0].1.translation.vector).norm())
+        .sum()
 }
 
 /// AMS: the mean of the match scores of a session's scans (`None` for none).
@@ -184,6 +204,21 @@ pub fn score_session(
         .any(|&(m, deg, _)| !options.wrong_placement.accepts(m, deg));
     let initialized = !wrong_placement && first.is_some_and(in_time_and_correct);
     let good = |a: &TrajectoryAccuracy| a.mrcl * a.distance_m;
+    let mrcl_ceiling = (!track.search_bests.is_empty()).then(|| {
+        let first_right = track
+            .search_bests
+            .iter()
+            .flatten()
+            .find(|p| judge(p).is_some_and(|(m, deg, _)| options.correct.accepts(m, deg)));
+        first_right.map_or(0.0, |p| {
+            let total = distance_driven(track.truth, None);
+            if total > 0.0 {
+                1.0 - distance_driven(track.truth, Some(p.decided_at)) / total
+            } else {
+                1.0
+            }
+        })
+    });
     SessionScore {
         mrcl: online.mrcl,
         mrcl_smoothed: smoothed.mrcl,
@@ -203,6 +238,7 @@ pub fn score_session(
         wrong_placement,
         ams: average_match_score(track.match_scores),
         scored_scans: track.match_scores.len(),
+        mrcl_ceiling,
         good_distance_m: [good(&online), good(&smoothed)],
     }
 }
@@ -251,6 +287,7 @@ mod tests {
             placements: &[],
             committed: Some(placement_at(0.0, 0.0, 0.0, 0.0)),
             match_scores: &[],
+            search_bests: &[],
         };
         let score = score_session(&track, &Rigid2::identity(), &ScoringOptions::DEFAULT);
         // Steps 4→5 .. 9→10 have both ends correct: 5 m of 10.
@@ -277,6 +314,7 @@ mod tests {
             placements: &[],
             committed: Some(placement_at(6.0, 6.0, 0.1, 0.0)),
             match_scores: &[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.8, 0.8, 0.8, 0.8, 0.8],
+            search_bests: &[],
         };
         let score = score_session(&track, &Rigid2::identity(), &ScoringOptions::DEFAULT);
         assert!((score.mrcl - 0.4).abs() < 1e-12, "{score:?}");
@@ -289,6 +327,41 @@ mod tests {
         // Every scan scores, the lost ones 0: (5 × 0.8) / 11.
         assert!((score.ams.unwrap() - 4.0 / 11.0).abs() < 1e-12);
         assert_eq!(score.scored_scans, 11);
+    }
+
+    #[test]
+    fn the_mrcl_ceiling_starts_at_the_first_search_whose_best_was_right() {
+        let truth = truth();
+        let track_with = |search_bests: &[Option<Placement>]| {
+            let track = SessionTrack {
+                truth: &truth,
+                start_time: t(0.0),
+                online: &[],
+                smoothed: &truth,
+                placements: &[],
+                committed: None,
+                match_scores: &[],
+                search_bests,
+            };
+            score_session(&track, &Rigid2::identity(), &ScoringOptions::DEFAULT).mrcl_ceiling
+        };
+        // Searches decided at 2 s (no candidate), 3 s (best 5 m off), 4 s (best 0.1 m off) and 8 s:
+        // 4 m of the 10 driven before the first right best.
+        let bests = [
+            None,
+            Some(placement_at(3.0, 3.0, 5.0, 0.0)),
+            Some(placement_at(4.0, 2.0, 0.1, 0.0)),
+            Some(placement_at(8.0, 8.0, 0.0, 0.0)),
+        ];
+        let ceiling = track_with(&bests).expect("searches recorded");
+        assert!((ceiling - 0.6).abs() < 1e-12, "{ceiling}");
+        // A best turned the wrong way is not right either.
+        let turned = [Some(placement_at(4.0, 4.0, 0.0, 30.0)), bests[3]];
+        let ceiling = track_with(&turned).expect("searches recorded");
+        assert!((ceiling - 0.2).abs() < 1e-12, "{ceiling}");
+        // No right best at all; no search recorded.
+        assert_eq!(track_with(&bests[..2]), Some(0.0));
+        assert_eq!(track_with(&[]), None);
     }
 
     #[test]
@@ -307,6 +380,7 @@ mod tests {
                 placements: &[],
                 committed: placement,
                 match_scores: &[],
+                search_bests: &[],
             };
             score_session(&track, &Rigid2::identity(), &options)
         };
@@ -345,6 +419,7 @@ mod tests {
                 placements,
                 committed,
                 match_scores: &[],
+                search_bests: &[],
             };
             score_session(&track, &Rigid2::identity(), &ScoringOptions::DEFAULT)
         };
@@ -399,6 +474,7 @@ mod tests {
             placements: &[],
             committed: Some(placement),
             match_scores: &[],
+            search_bests: &[],
         };
         let s = score_session(&track, &world_from_map, &ScoringOptions::DEFAULT);
         assert!(s.placement_error_m.unwrap() < 1e-9, "{s:?}");

@@ -292,6 +292,7 @@ impl Reporter<'_> {
                 "cri_committed": run.cri_committed,
                 "mrcl": run.mrcl,
                 "mrcl_smoothed": run.mrcl_smoothed,
+                "mrcl_ceiling": run.mrcl_ceiling,
                 "ams_mean": run.ams_mean,
                 "ams_min": run.ams_min,
                 "wrong_placements": run.wrong_placements,
