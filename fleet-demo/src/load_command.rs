@@ -651,7 +651,9 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
     };
     let minutes = (args.duration_s / 60.0).floor() as usize;
     let figures = minute_figures::minute_figures(&minute_inputs, minutes);
-    let per_minute = minute_figures::report(&figures);
+    // Sessions end (and trims free memory) every `--session-s` of robot time.
+    let session_period_minutes = args.session_s.map(|s| ((s / 60.0).round() as usize).max(1));
+    let per_minute = minute_figures::report(&figures, session_period_minutes);
     if figures.len() >= 2 {
         let (w, h, pixels) = minute_figures::chart(
             &figures,
@@ -736,6 +738,20 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
             soak["rss_last_mb"].as_f64().unwrap_or(f64::NAN),
             soak["p95_slope_s_per_minute"].as_f64().unwrap_or(f64::NAN),
             args.out.join("minutes.png").display()
+        );
+    }
+    let period = &soak["by_session_period"];
+    if let Some(slope) = period["rss_mean_slope_mb_per_minute"].as_f64() {
+        println!(
+            "per whole {}-minute session period after minute {}: mean RSS slope {slope:+.2} MiB per minute, mean live heap {:+.2}, largest p95 {:+.3} s per minute",
+            period["period_minutes"],
+            minute_figures::WARM_UP_MINUTES,
+            period["live_heap_mean_slope_mb_per_minute"]
+                .as_f64()
+                .unwrap_or(f64::NAN),
+            period["p95_max_slope_s_per_minute"]
+                .as_f64()
+                .unwrap_or(f64::NAN),
         );
     }
     println!(

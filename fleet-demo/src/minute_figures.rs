@@ -138,9 +138,74 @@ fn after_warm_up(
         .collect()
 }
 
+/// The whole periods of `period` minutes after the warm-up, as `(first minute, figures)`.
+fn whole_periods(figures: &[MinuteFigures], period: usize) -> Vec<(usize, &[MinuteFigures])> {
+    let after: Vec<usize> = figures
+        .iter()
+        .enumerate()
+        .filter(|(_, f)| f.minute >= WARM_UP_MINUTES)
+        .map(|(i, _)| i)
+        .collect();
+    let Some(&first) = after.first() else {
+        return Vec::new();
+    };
+    figures[first..]
+        .chunks_exact(period.max(1))
+        .map(|chunk| (chunk[0].minute, chunk))
+        .collect()
+}
+
+/// Memory and latency per whole session period after the warm-up (the robots' sessions end every
+/// `period` minutes, and each end trims: memory saws up and down with that period, so a least-squares
+/// slope over minutes that start in a trough and end at a peak reads the saw's phase as growth). Per
+/// period: mean RSS, mean live heap, largest p95; and the least-squares slopes of those over the
+/// periods' middle minutes.
+fn by_period(figures: &[MinuteFigures], period: usize) -> serde_json::Value {
+    let periods = whole_periods(figures, period);
+    let mean = |chunk: &[MinuteFigures], value: &dyn Fn(&MinuteFigures) -> Option<f64>| {
+        let values: Vec<f64> = chunk.iter().filter_map(value).collect();
+        (values.len() == chunk.len()).then(|| values.iter().sum::<f64>() / values.len() as f64)
+    };
+    let rows: Vec<(f64, Option<f64>, Option<f64>, Option<f64>)> = periods
+        .iter()
+        .map(|(first, chunk)| {
+            (
+                *first as f64 + chunk.len() as f64 / 2.0,
+                mean(chunk, &|f| f.rss_mb),
+                mean(chunk, &|f| f.memory.as_ref()?.live_heap_mb),
+                chunk
+                    .iter()
+                    .filter_map(|f| f.latency_p95_s)
+                    .reduce(f64::max),
+            )
+        })
+        .collect();
+    let series = |pick: fn(&(f64, Option<f64>, Option<f64>, Option<f64>)) -> Option<f64>| {
+        rows.iter()
+            .filter_map(|r| Some((r.0, pick(r)?)))
+            .collect::<Vec<_>>()
+    };
+    json!({
+        "period_minutes": period,
+        "periods": periods.iter().zip(&rows).map(|((first, _), r)| json!({
+            "first_minute": first,
+            "rss_mean_mb": r.1,
+            "live_heap_mean_mb": r.2,
+            "p95_max_s": r.3,
+        })).collect::<Vec<_>>(),
+        "rss_mean_slope_mb_per_minute": slope(&series(|r| r.1)),
+        "live_heap_mean_slope_mb_per_minute": slope(&series(|r| r.2)),
+        "p95_max_slope_s_per_minute": slope(&series(|r| r.3)),
+    })
+}
+
 /// The report's `minutes` array and its `after_warm_up` summary: slopes of RSS (MiB per minute) and of
-/// p95 latency (s per minute) over the minutes after the warm-up, with their first and last values.
-pub fn report(figures: &[MinuteFigures]) -> serde_json::Value {
+/// p95 latency (s per minute) over the minutes after the warm-up, with their first and last values, and
+/// with `session_period_minutes` (how often the robots' sessions end) the same per whole period.
+pub fn report(
+    figures: &[MinuteFigures],
+    session_period_minutes: Option<usize>,
+) -> serde_json::Value {
     let rss = after_warm_up(figures, |f| f.rss_mb);
     let heap = after_warm_up(figures, |f| f.memory.as_ref()?.live_heap_mb);
     let history = after_warm_up(figures, |f| Some(f.memory.as_ref()?.history_grids_mb()));
@@ -180,6 +245,7 @@ pub fn report(figures: &[MinuteFigures]) -> serde_json::Value {
             "p95_first_s": p95.first().map(|p| p.1),
             "p95_last_s": p95.last().map(|p| p.1),
             "p95_max_s": p95.iter().map(|p| p.1).reduce(f64::max),
+            "by_session_period": session_period_minutes.map(|period| by_period(figures, period)),
         },
     })
 }
@@ -317,7 +383,7 @@ mod tests {
                 uplink_bytes: 1,
             })
             .collect();
-        let summary = &report(&figures)["after_warm_up"];
+        let summary = &report(&figures, None)["after_warm_up"];
         assert_eq!(summary["rss_slope_mb_per_minute"].as_f64(), Some(0.0));
         assert_eq!(summary["rss_first_mb"].as_f64(), Some(300.0));
         let heap = summary["live_heap_slope_mb_per_minute"]
@@ -330,5 +396,57 @@ mod tests {
         assert_eq!(pixels.len(), 3 * 400 * 720);
         // Something other than the white background was drawn.
         assert!(pixels.iter().any(|&p| p != 255));
+    }
+
+    #[test]
+    fn a_flat_saw_is_flat_by_period_however_the_minutes_fall() {
+        // Memory saws between 1000 and 1400 MiB with a 5-minute period (a trim at every session end)
+        // and p95 between 1 and 3 s; minutes 5..=23: starting in a trough, ending near a peak.
+        let figures: Vec<MinuteFigures> = (0..24)
+            .map(|m| MinuteFigures {
+                minute: m,
+                rss_mb: Some(1000.0 + 100.0 * (m % 5) as f64),
+                memory: Some(MemoryAttribution {
+                    live_heap_mb: Some(900.0 + 100.0 * (m % 5) as f64),
+                    ..MemoryAttribution::default()
+                }),
+                latency_p50_s: Some(0.5),
+                latency_p95_s: Some(1.0 + 0.5 * (m % 5) as f64),
+                submaps: 1,
+                batches: 1,
+                uplink_bytes: 1,
+            })
+            .collect();
+        let summary = &report(&figures, Some(5))["after_warm_up"];
+        // Minute by minute the saw's phase reads as growth ...
+        let by_minute = summary["rss_slope_mb_per_minute"].as_f64().expect("slope");
+        assert!(by_minute > 2.0, "{by_minute}");
+        // ... per whole period it is flat: three periods (minutes 5, 10, 15), the fourth not whole.
+        let period = &summary["by_session_period"];
+        assert_eq!(period["periods"].as_array().map(Vec::len), Some(3));
+        assert_eq!(period["periods"][0]["first_minute"].as_u64(), Some(5));
+        assert_eq!(period["periods"][0]["rss_mean_mb"].as_f64(), Some(1200.0));
+        assert_eq!(period["periods"][2]["p95_max_s"].as_f64(), Some(3.0));
+        for key in [
+            "rss_mean_slope_mb_per_minute",
+            "live_heap_mean_slope_mb_per_minute",
+            "p95_max_slope_s_per_minute",
+        ] {
+            let slope = period[key].as_f64().expect(key);
+            assert!(slope.abs() < 1e-9, "{key}: {slope}");
+        }
+        // Growth by period is still seen.
+        let growing: Vec<MinuteFigures> = figures
+            .iter()
+            .map(|f| MinuteFigures {
+                rss_mb: f.rss_mb.map(|r| r + 10.0 * f.minute as f64),
+                ..f.clone()
+            })
+            .collect();
+        let slope = report(&growing, Some(5))["after_warm_up"]["by_session_period"]
+            ["rss_mean_slope_mb_per_minute"]
+            .as_f64()
+            .expect("slope");
+        assert!((slope - 10.0).abs() < 1e-9, "{slope}");
     }
 }
