@@ -140,13 +140,7 @@ fn after_warm_up(
 
 /// The whole periods of `period` minutes after the warm-up, as `(first minute, figures)`.
 fn whole_periods(figures: &[MinuteFigures], period: usize) -> Vec<(usize, &[MinuteFigures])> {
-    let after: Vec<usize> = figures
-        .iter()
-        .enumerate()
-        .filter(|(_, f)| f.minute >= WARM_UP_MINUTES)
-        .map(|(i, _)| i)
-        .collect();
-    let Some(&first) = after.first() else {
+    let Some(first) = figures.iter().position(|f| f.minute >= WARM_UP_MINUTES) else {
         return Vec::new();
     };
     figures[first..]

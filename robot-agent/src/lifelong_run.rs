@@ -93,6 +93,10 @@ pub struct SearchFigures {
     /// Its paired test of the best against the weakest rival (`None` for the first search, which ranks
     /// by score margin).
     pub weakest_z: Option<f64>,
+    /// How well its cloud fit the map at its best candidate (mean probability on the unfiltered map, the
+    /// score the fit floor `min_unfiltered_score` judges; `None` for the first search, which ranks by
+    /// branch-and-bound score).
+    pub fit: Option<f32>,
     /// How far its best candidate (the placement, for `placed`) put the session's latest node from the
     /// truth, metres (filled in by the scoring shell; `None` without a candidate or truth).
     pub best_error_m: Option<f64>,
@@ -840,6 +844,7 @@ fn act_on_start(
                 outcome,
                 weakest_z,
                 best,
+                fit,
             } => {
                 if let Some(record) = record.as_deref_mut() {
                     let best = best.and_then(|global_from_local| {
@@ -860,6 +865,7 @@ fn act_on_start(
                             RelocalizationOutcome::Found(_) => "revoked_again",
                         },
                         weakest_z: *weakest_z,
+                        fit: *fit,
                         best_error_m: None,
                     });
                     // The first search's refusal, for the report.
@@ -904,6 +910,7 @@ fn act_on_start(
                         node: placement.node,
                         outcome: "placed",
                         weakest_z: placement.weakest_z,
+                        fit: placement.fit,
                         best_error_m: None,
                     });
                     if first_search {

@@ -326,6 +326,11 @@ pub struct StartAnswer {
     /// ([`StartSearch::search_again`]'s; `None` for [`StartSearch::search`], which ranks by score
     /// margin, or without a rival).
     pub weakest_z: Option<f64>,
+    /// How well the merged cloud fits the unfiltered map at the best pose (its mean probability, the
+    /// score [`RelocalizationOptions::min_unfiltered_score`] is a floor for), as
+    /// [`StartSearch::search_again`] judged it; `None` for [`StartSearch::search`] or without a
+    /// candidate.
+    pub fit: Option<f32>,
 }
 
 /// Finds `global_from_local` of a new session from its first scans, with no prior, against `map`'s
@@ -483,6 +488,7 @@ impl StartSearch {
             best: None,
             rivals: Vec::new(),
             weakest_z: None,
+            fit: None,
         };
         let Some((first_from_local, cloud)) = merge_scans(scans, self.options.voxel_size) else {
             return not_found;
@@ -514,6 +520,7 @@ impl StartSearch {
                 best,
                 rivals,
                 weakest_z: None,
+                fit: None,
             };
         }
         StartAnswer {
@@ -524,6 +531,7 @@ impl StartSearch {
             best,
             rivals,
             weakest_z: None,
+            fit: None,
         }
     }
 
@@ -557,6 +565,7 @@ impl StartSearch {
             outcome,
             best: evidence.as_ref().map(|e| e.global_from_local),
             weakest_z: evidence.as_ref().and_then(|e| e.weakest).map(|(z, _, _)| z),
+            fit: evidence.as_ref().map(|e| e.sharp_score),
             rivals: evidence.map(|e| e.rivals).unwrap_or_default(),
         }
     }

@@ -219,6 +219,8 @@ pub struct StartPlacement {
     pub score: Option<f32>,
     /// The search's paired test against its weakest rival ([`StartAnswer::weakest_z`]).
     pub weakest_z: Option<f64>,
+    /// How well the search's cloud fit the map at the placement ([`StartAnswer::fit`]).
+    pub fit: Option<f32>,
 }
 
 /// Why a placement was revoked.
@@ -257,6 +259,8 @@ pub enum SessionStartEvent {
         weakest_z: Option<f64>,
         /// `global_from_local` at its best candidate ([`StartAnswer::best`]), for reports.
         best: Option<Rigid2>,
+        /// How well the cloud fit the map at its best candidate ([`StartAnswer::fit`]), for reports.
+        fit: Option<f32>,
     },
     /// Placed tentatively: place the session in the map, on probation (its submaps stay out of the
     /// relocalization map and it trims nothing).
@@ -368,6 +372,7 @@ impl SessionStart {
             node,
             score: None,
             weakest_z: None,
+            fit: None,
         };
         let events = start.place(placement, node);
         Ok((start, events))
@@ -583,6 +588,7 @@ impl SessionStart {
                 best: None,
                 rivals: Vec::new(),
                 weakest_z: None,
+                fit: None,
             },
             Some(search) => {
                 let scans = self.cloud.make_contiguous();
@@ -605,6 +611,7 @@ impl SessionStart {
                     node,
                     score: Some(found.score),
                     weakest_z: answer.weakest_z,
+                    fit: answer.fit,
                 };
                 self.rivals = answer.rivals;
                 self.candidates.clear();
@@ -625,6 +632,7 @@ impl SessionStart {
                     outcome,
                     weakest_z: answer.weakest_z,
                     best: answer.best,
+                    fit: answer.fit,
                 }]
             }
         }

@@ -22,6 +22,9 @@
 //!   [`MatchScorer`](super::MatchScorer)); a scan the
 //!   robot could not place scores 0, so a lost session counts as matching nothing instead of being left
 //!   out.
+//! - **MRCL ceiling**: the MRCL the session start's own searches allowed, from the first search whose
+//!   best candidate was correct ([`SessionScore::mrcl_ceiling`]): what MRCL could reach with this search
+//!   and no wrong placement.
 //!
 //! Everything is measured in the truth's (world) frame through `world_from_map`, the rigid alignment of
 //! the mapping session to its truth ([`align_to_truth`](super::align_to_truth)).

@@ -95,6 +95,7 @@ fn a_refused_start_retries_on_the_doubling_schedule() {
                         outcome: RelocalizationOutcome::NotFound,
                         weakest_z: None,
                         best: None,
+                        fit: None,
                     },
                 ] => node == k,
                 _ => panic!("{events:?}"),
