@@ -149,47 +149,62 @@ fn whole_periods(figures: &[MinuteFigures], period: usize) -> Vec<(usize, &[Minu
         .collect()
 }
 
+/// One whole session period's figures.
+struct PeriodFigures {
+    /// Its first minute.
+    first_minute: usize,
+    /// Its middle, in minutes (the x of the slopes).
+    middle: f64,
+    /// Mean RSS, MiB (`None` when a minute has none).
+    rss_mean_mb: Option<f64>,
+    /// Mean live heap, MiB (`None` when a minute has none).
+    live_heap_mean_mb: Option<f64>,
+    /// Largest p95 latency, seconds.
+    p95_max_s: Option<f64>,
+}
+
 /// Memory and latency per whole session period after the warm-up (the robots' sessions end every
 /// `period` minutes, and each end trims: memory saws up and down with that period, so a least-squares
 /// slope over minutes that start in a trough and end at a peak reads the saw's phase as growth). Per
 /// period: mean RSS, mean live heap, largest p95; and the least-squares slopes of those over the
 /// periods' middle minutes.
 fn by_period(figures: &[MinuteFigures], period: usize) -> serde_json::Value {
-    let periods = whole_periods(figures, period);
     let mean = |chunk: &[MinuteFigures], value: &dyn Fn(&MinuteFigures) -> Option<f64>| {
         let values: Vec<f64> = chunk.iter().filter_map(value).collect();
         (values.len() == chunk.len()).then(|| values.iter().sum::<f64>() / values.len() as f64)
     };
-    let rows: Vec<(f64, Option<f64>, Option<f64>, Option<f64>)> = periods
-        .iter()
-        .map(|(first, chunk)| {
-            (
-                *first as f64 + chunk.len() as f64 / 2.0,
-                mean(chunk, &|f| f.rss_mb),
-                mean(chunk, &|f| f.memory.as_ref()?.live_heap_mb),
-                chunk
-                    .iter()
-                    .filter_map(|f| f.latency_p95_s)
-                    .reduce(f64::max),
-            )
+    let periods: Vec<PeriodFigures> = whole_periods(figures, period)
+        .into_iter()
+        .map(|(first_minute, chunk)| PeriodFigures {
+            first_minute,
+            middle: first_minute as f64 + chunk.len() as f64 / 2.0,
+            rss_mean_mb: mean(chunk, &|f| f.rss_mb),
+            live_heap_mean_mb: mean(chunk, &|f| f.memory.as_ref()?.live_heap_mb),
+            p95_max_s: chunk
+                .iter()
+                .filter_map(|f| f.latency_p95_s)
+                .reduce(f64::max),
         })
         .collect();
-    let series = |pick: fn(&(f64, Option<f64>, Option<f64>, Option<f64>)) -> Option<f64>| {
-        rows.iter()
-            .filter_map(|r| Some((r.0, pick(r)?)))
-            .collect::<Vec<_>>()
+    let slope_of = |value: fn(&PeriodFigures) -> Option<f64>| {
+        slope(
+            &periods
+                .iter()
+                .filter_map(|p| Some((p.middle, value(p)?)))
+                .collect::<Vec<_>>(),
+        )
     };
     json!({
         "period_minutes": period,
-        "periods": periods.iter().zip(&rows).map(|((first, _), r)| json!({
-            "first_minute": first,
-            "rss_mean_mb": r.1,
-            "live_heap_mean_mb": r.2,
-            "p95_max_s": r.3,
+        "periods": periods.iter().map(|p| json!({
+            "first_minute": p.first_minute,
+            "rss_mean_mb": p.rss_mean_mb,
+            "live_heap_mean_mb": p.live_heap_mean_mb,
+            "p95_max_s": p.p95_max_s,
         })).collect::<Vec<_>>(),
-        "rss_mean_slope_mb_per_minute": slope(&series(|r| r.1)),
-        "live_heap_mean_slope_mb_per_minute": slope(&series(|r| r.2)),
-        "p95_max_slope_s_per_minute": slope(&series(|r| r.3)),
+        "rss_mean_slope_mb_per_minute": slope_of(|p| p.rss_mean_mb),
+        "live_heap_mean_slope_mb_per_minute": slope_of(|p| p.live_heap_mean_mb),
+        "p95_max_slope_s_per_minute": slope_of(|p| p.p95_max_s),
     })
 }
 

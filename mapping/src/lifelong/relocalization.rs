@@ -1039,7 +1039,10 @@ mod tests {
         let start = rigid2(3.0, 1.0, 0.0);
         let scans = corridor_route();
         let search = StartSearch::new(&grid, &options);
-        let first = search.search(&scans[..3]).outcome;
+        let first_answer = search.search(&scans[..3]);
+        // The first search ranks by score margin: no fit judged.
+        assert_eq!(first_answer.fit, None);
+        let first = first_answer.outcome;
         let RelocalizationOutcome::Ambiguous {
             runner_up_from_best,
             ..
@@ -1052,8 +1055,17 @@ mod tests {
         assert!((dx.hypot(dy) - 8.0).abs() < 0.5, "{runner_up_from_best:?}");
         let mut placed = None;
         for k in (5..=scans.len()).step_by(4) {
-            match search.search_again(&scans[..k]).outcome {
+            let answer = search.search_again(&scans[..k]);
+            match answer.outcome {
                 RelocalizationOutcome::Found(found) => {
+                    // Placed: its fit passed the floor, and the answer says by how much.
+                    assert!(
+                        answer
+                            .fit
+                            .is_some_and(|fit| fit >= options.min_unfiltered_score),
+                        "{:?}",
+                        answer.fit
+                    );
                     placed = Some((k, found));
                     break;
                 }
