@@ -158,11 +158,11 @@ pub fn truth_at(truth: &[(Timestamp, Rigid2)], time: Timestamp) -> Option<Rigid2
     }
 }
 
-/// Distance along `truth` (time-ordered) up to the pose at `until` (inclusive; `None`: the whole of it).
-fn distance_driven(truth: &[(Timestamp, Rigid2)], until: Option<Timestamp>) -> f64 {
+/// Distance along `truth` (time-ordered) up to the pose at `until` (inclusive).
+fn distance_driven(truth: &[(Timestamp, Rigid2)], until: Timestamp) -> f64 {
     truth
         .windows(2)
-        .take_while(|w| until.is_none_or(|t| w[1].0 <= t))
+        .take_while(|w| w[1].0 <= until)
         .map(|w| (w[1].1.translation.vector - w[0].1.translation.vector).norm())
         .sum()
 }
@@ -214,9 +214,10 @@ pub fn score_session(
             .flatten()
             .find(|p| judge(p).is_some_and(|(m, deg, _)| options.correct.accepts(m, deg)));
         first_right.map_or(0.0, |p| {
-            let total = distance_driven(track.truth, None);
+            // The whole truth distance, as MRCL counts it.
+            let total = online.distance_m;
             if total > 0.0 {
-                1.0 - distance_driven(track.truth, Some(p.decided_at)) / total
+                1.0 - distance_driven(track.truth, p.decided_at) / total
             } else {
                 1.0
             }
