@@ -651,8 +651,12 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
     };
     let minutes = (args.duration_s / 60.0).floor() as usize;
     let figures = minute_figures::minute_figures(&minute_inputs, minutes);
-    // Sessions end (and trims free memory) every `--session-s` of robot time.
-    let session_period_minutes = args.session_s.map(|s| ((s / 60.0).round() as usize).max(1));
+    // Sessions end (and trims free memory) every `--session-s` of robot time; the figures are per
+    // minute, so per-period figures need a whole number of minutes.
+    let session_period_minutes = args
+        .session_s
+        .filter(|s| *s >= 60.0 && s % 60.0 == 0.0)
+        .map(|s| (s / 60.0) as usize);
     let per_minute = minute_figures::report(&figures, session_period_minutes);
     if figures.len() >= 2 {
         let (w, h, pixels) = minute_figures::chart(
