@@ -18,6 +18,10 @@
 //!    robots' LLO off the server's two cores, so the figures are the server's. The prepared sessions stay
 //!    in memory until the end, so memory growth during the measured phase is the server's (and its
 //!    clients').
+//!    With `--mature-sessions K`, K more sessions per robot are prepared, on earlier days, and streamed
+//!    as fast as the server takes them before the measured window (not measured): the soak then starts
+//!    from sites that have had K sessions per robot, as a server in production holds them, instead of
+//!    fresh maps still filling their one layer of later submaps.
 //! 3. *Streaming* (measured): every robot replays its LLO output on the recording's clock, divided by
 //!    `--speed` (10 nodes per batch, and a batch is sent at once when it holds a finished submap), its
 //!    sessions back to back, starts staggered over 2 s. If the server falls behind, uploads wait and the
@@ -62,6 +66,8 @@ use crate::minute_figures::{self, MinuteInputs, MinuteSample};
 const NODES_PER_BATCH: usize = 10;
 /// Nodes merged for the session-start relocalization.
 const RELOCALIZATION_NODES: usize = 10;
+/// Robot time per wall-clock time of the unmeasured maturing sessions: as fast as the server takes them.
+const MATURING_SPEED: f64 = 1e4;
 
 /// Arguments of `load`.
 #[derive(Args)]
@@ -106,6 +112,13 @@ pub struct LoadArgs {
     /// the robots sending their own matches.
     #[arg(long)]
     glm_on_server: bool,
+    /// Sessions each robot streams before the measured window, as fast as the server takes them (not
+    /// measured; default 0): the sites start the soak with the map a store has after that many
+    /// cleaning days instead of a fresh one. A fresh site's map grows until the fresh submaps over its
+    /// routes form one layer (about a dozen sessions of the site); a server in production mostly holds
+    /// sites past that.
+    #[arg(long, default_value_t = 0)]
+    mature_sessions: usize,
 }
 
 /// One robot of the benchmark.
@@ -194,6 +207,10 @@ pub fn run(args: &LoadArgs) -> anyhow::Result<()> {
         args.mapping_duration_s
             .is_none_or(|d| d.is_finite() && d >= 30.0),
         "--mapping-duration-s must be at least 30"
+    );
+    anyhow::ensure!(
+        args.mature_sessions <= 50,
+        "--mature-sessions must be at most 50"
     );
     block_on(load(args))
 }
@@ -349,10 +366,12 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
     );
     let prepare_started = Instant::now();
     let session_plan = session_lengths(args.duration_s, args.session_s);
+    // The maturing sessions come first, on the robots' earlier days, as long as the measured ones.
+    let maturing_plan = vec![session_plan[0]; args.mature_sessions];
     let robots_per_site = args.agents.div_ceil(args.sites);
     let mut preparing = Vec::new();
     for (r, robot) in robots.iter().enumerate() {
-        for (j, &length) in session_plan.iter().enumerate() {
+        for (j, &length) in maturing_plan.iter().chain(&session_plan).enumerate() {
             let world = worlds[robot.site].clone();
             let sim = SimSessionOptions {
                 max_duration_s: length,
@@ -420,6 +439,10 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
             duration_s,
         });
     }
+    let maturing: Vec<Vec<PreparedSession>> = prepared
+        .iter_mut()
+        .map(|sessions| sessions.drain(..args.mature_sessions).collect())
+        .collect();
     let sessions = || prepared.iter().flatten();
     let relocalized = sessions().filter(|p| p.prior.is_some()).count();
     let data_seconds: f64 = sessions().map(|p| p.duration_s).sum();
@@ -434,6 +457,60 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
             format!("{glm_matches} GLM matches found on the robots")
         }
     );
+
+    // 2b. Not measured: the sites mature.
+    if args.mature_sessions > 0 {
+        let maturing_started = Instant::now();
+        eprintln!(
+            "phase 2b: every robot streams {} maturing session(s) as fast as the server takes them (not measured)",
+            args.mature_sessions
+        );
+        let mut streams = Vec::new();
+        for (robot, sessions) in robots.iter().zip(maturing) {
+            let (uplink, site, id) = (robot.uplink.clone(), robot.site, robot.id.clone());
+            let glm_on_server = args.glm_on_server;
+            streams.push(tokio::spawn(async move {
+                let mut left = 0;
+                for (j, session) in sessions.iter().enumerate() {
+                    let uploader = Uploader::new(
+                        uplink.clone(),
+                        Outbox::in_memory(&site_id(site)),
+                        &site_id(site),
+                        &id,
+                        &format!("load-{id}-maturing-{j}"),
+                    )?;
+                    left += stream_prepared(
+                        uploader,
+                        session,
+                        site,
+                        glm_on_server,
+                        Instant::now(),
+                        MATURING_SPEED,
+                    )
+                    .await?
+                    .left_in_outbox;
+                }
+                anyhow::Ok(left)
+            }));
+        }
+        for stream in streams {
+            let left = stream.await.context("robot task")??;
+            anyhow::ensure!(
+                left == 0,
+                "a maturing session could not deliver everything ({left} batches left)"
+            );
+        }
+        wait_caught_up(&server, &robots, args.sites).await;
+        eprintln!(
+            "  matured in {:.0} s; site sessions {:?}",
+            maturing_started.elapsed().as_secs_f64(),
+            (0..args.sites)
+                .map(|s| server
+                    .site(&site_id(s))
+                    .map_or(0, |h| h.current().counts.sessions))
+                .collect::<Vec<_>>()
+        );
+    }
 
     // 3. Measured: everyone streams at real time.
     eprintln!(
@@ -694,6 +771,7 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
         "duration_s": args.duration_s,
         "session_s": session_plan.first(),
         "sessions_per_robot": session_plan.len(),
+        "mature_sessions_per_robot": args.mature_sessions,
         "speed": args.speed,
         "streaming_wall_s": streaming_s,
         "measured_wall_s": measured_s,

@@ -1,5 +1,5 @@
 //! `evermap-demo load` on a tiny budget: one site, two robots, 2 minutes of robot time each as two
-//! 60 s sessions back to back, replayed 8× faster than real time (15 s of streaming). Checks that the
+//! 60 s sessions back to back, replayed 8× faster than real time (15 s of streaming), after one maturing session per robot. Checks that the
 //! benchmark runs end to end and that its report is consistent (everything acknowledged, the offline
 //! robot's catch-up smaller than the whole map, a row per minute of robot time with its memory — the
 //! resident set, the live heap and what holds it — and latency, and the chart); the figures themselves are measured in BENCHMARKS.md.
@@ -24,7 +24,7 @@ fn the_load_benchmark_streams_everything_and_reports_it() {
             "--speed",
             "8",
         ])
-        .args(["--mapping-duration-s", "60"])
+        .args(["--mapping-duration-s", "60", "--mature-sessions", "1"])
         .arg("--out")
         .arg(&out)
         .status()
@@ -41,11 +41,12 @@ fn the_load_benchmark_streams_everything_and_reports_it() {
         .as_f64()
         .expect("bytes");
     assert!(per_second > 100.0, "{per_second}");
-    // The mapping session and each robot's two cleaning sessions.
+    // The mapping session, each robot's maturing session and its two cleaning sessions.
     assert_eq!(report["sessions_per_robot"].as_u64(), Some(2));
+    assert_eq!(report["mature_sessions_per_robot"].as_u64(), Some(1));
     assert_eq!(
         report["sites_final"]["store-1"]["sessions"].as_u64(),
-        Some(5)
+        Some(7)
     );
     // A row per minute of robot time, each with the memory at its end and the batches of that minute.
     let minutes = report["per_minute_of_robot_time"]["minutes"]

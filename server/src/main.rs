@@ -3,6 +3,7 @@
 
 mod optimize_command;
 mod serve_command;
+mod site_command;
 
 use clap::{Parser, Subcommand};
 
@@ -20,12 +21,16 @@ enum Command {
     Optimize(optimize_command::OptimizeArgs),
     /// Serves site maps to robots over gRPC (with health, reflection and Prometheus metrics).
     Serve(serve_command::ServeArgs),
+    /// A stopped instance's sites: list, export to an archive, import one, delete (moving a site
+    /// between instances).
+    Site(site_command::SiteArgs),
 }
 
 fn main() -> anyhow::Result<()> {
     match Cli::parse().command {
         Some(Command::Optimize(args)) => optimize_command::run(&args),
         Some(Command::Serve(args)) => serve_command::run(&args),
+        Some(Command::Site(args)) => site_command::run(&args),
         None => Ok(()),
     }
 }

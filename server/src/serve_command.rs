@@ -1,6 +1,7 @@
-//! `evermap-server serve`: the fleet map server on a sled store until Ctrl-C.
+//! `evermap-server serve`: the fleet map server on a sled store until Ctrl-C or SIGTERM (how service
+//! managers stop it), either of which shuts it down gracefully.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use anyhow::Context as _;
@@ -26,15 +27,7 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
             tracing::Level::INFO
         })
         .init();
-    let config = match &args.config {
-        Some(path) => {
-            let text = std::fs::read_to_string(path)
-                .with_context(|| format!("cannot read {}", path.display()))?;
-            ServerConfig::from_toml(&text).with_context(|| format!("in {}", path.display()))?
-        }
-        None => ServerConfig::default(),
-    };
-    config.validate()?;
+    let config = read_config(args.config.as_deref())?;
     if config.sites.is_empty() {
         tracing::warn!("no sites configured: nothing can be uploaded");
     }
@@ -48,9 +41,41 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
             .await?
             .with_context(|| format!("cannot open storage at {}", config.storage.path.display()))?;
         let server = RunningServer::start(&config, Arc::new(store)).await?;
-        tokio::signal::ctrl_c().await?;
-        tracing::info!("Ctrl-C: shutting down");
+        let signal = stop_signal().await?;
+        tracing::info!("{signal}: shutting down");
         server.shutdown().await?;
         anyhow::Ok(())
     })
+}
+
+/// The configuration in `path` (TOML), or the defaults without one, validated.
+pub fn read_config(path: Option<&Path>) -> anyhow::Result<ServerConfig> {
+    let config = match path {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("cannot read {}", path.display()))?;
+            ServerConfig::from_toml(&text).with_context(|| format!("in {}", path.display()))?
+        }
+        None => ServerConfig::default(),
+    };
+    config.validate()?;
+    Ok(config)
+}
+
+/// Waits for Ctrl-C (SIGINT) or, on Unix, SIGTERM; returns which came.
+async fn stop_signal() -> anyhow::Result<&'static str> {
+    #[cfg(unix)]
+    {
+        let mut terminate =
+            tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())?;
+        tokio::select! {
+            result = tokio::signal::ctrl_c() => result.map(|()| "Ctrl-C").map_err(Into::into),
+            _ = terminate.recv() => Ok("SIGTERM"),
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        tokio::signal::ctrl_c().await?;
+        Ok("Ctrl-C")
+    }
 }

@@ -2,7 +2,7 @@
 //!
 //! ```toml
 //! listen = "127.0.0.1:50051"          # gRPC
-//! metrics_listen = "127.0.0.1:9464"   # Prometheus text at /metrics; remove the line to disable
+//! metrics_listen = "127.0.0.1:9464"   # Prometheus text at /metrics (the default; port 0: any free port)
 //! max_message_bytes = 67108864
 //! session_idle_timeout_s = 3600.0    # end a session whose robot has been silent this long; 0 = never
 //!

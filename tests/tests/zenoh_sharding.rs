@@ -32,10 +32,14 @@
     reason = "integration test helpers: a failed unwrap is a failed test"
 )]
 use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::fs::File;
 use std::future::Future;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command};
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::Duration;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::time::{Duration, Instant};
 
 use mapping::geometry::rigid2;
 use mapping::sensor::Timestamp;
@@ -133,12 +137,14 @@ struct RobotRun {
 }
 
 /// One robot of `site`: makes a batch every `BATCH_INTERVAL` until `stop`, flushing after each (a
-/// transient failure leaves the batches in its outbox), then drains its outbox (bounded).
+/// transient failure leaves the batches in its outbox), then drains its outbox (bounded). `acked` holds
+/// the site version of its latest acknowledgement.
 async fn run_robot(
     router_port: u16,
     site: &'static str,
     outbox_dir: std::path::PathBuf,
     stop: Arc<AtomicBool>,
+    acked: Arc<AtomicU64>,
 ) -> RobotRun {
     let options = ZenohLinkOptions {
         mode: "client".into(),
@@ -163,6 +169,7 @@ async fn run_robot(
         Ok(stats) => {
             if stats.applied + stats.duplicates > 0 {
                 run.acked_versions.push(stats.map_version);
+                acked.fetch_max(stats.map_version, Ordering::SeqCst);
             }
             true
         }
@@ -275,7 +282,13 @@ async fn sites_sharded_over_two_instances_and_one_moved_lose_nothing_and_keep_th
         let dir = dirs.path().join(format!("outbox-{site}"));
         robots.insert(
             *site,
-            tokio::spawn(run_robot(router_port, site, dir, Arc::clone(&stop))),
+            tokio::spawn(run_robot(
+                router_port,
+                site,
+                dir,
+                Arc::clone(&stop),
+                Arc::new(AtomicU64::new(0)),
+            )),
         );
     }
 
@@ -407,5 +420,305 @@ async fn sites_sharded_over_two_instances_and_one_moved_lose_nothing_and_keep_th
     );
     a.shutdown().await.unwrap();
     b.shutdown().await.unwrap();
+    zenohd.close().await.unwrap();
+}
+
+/// `evermap-server`, built beside this crate's `evermap-fuzz` (`cargo nextest run --workspace` builds
+/// every binary of the workspace).
+fn server_binary() -> PathBuf {
+    let fuzz = PathBuf::from(env!("CARGO_BIN_EXE_evermap-fuzz"));
+    let binary = fuzz.with_file_name(format!("evermap-server{}", std::env::consts::EXE_SUFFIX));
+    assert!(
+        binary.is_file(),
+        "{} is missing: build the workspace (cargo nextest run --workspace builds it)",
+        binary.display()
+    );
+    binary
+}
+
+/// One `evermap-server serve` instance: its configuration file, store and log.
+struct Instance {
+    name: &'static str,
+    dir: PathBuf,
+    router_port: u16,
+    child: Option<Child>,
+}
+
+impl Instance {
+    fn new(name: &'static str, dir: &Path, router_port: u16) -> Self {
+        let dir = dir.join(name);
+        std::fs::create_dir_all(&dir).unwrap();
+        Self {
+            name,
+            dir,
+            router_port,
+            child: None,
+        }
+    }
+
+    fn config_path(&self) -> PathBuf {
+        self.dir.join("server.toml")
+    }
+
+    /// Writes the instance's configuration serving `sites`: gRPC and metrics on any free port (the
+    /// robots reach it through the router only), zenoh to the router, its own store.
+    fn configure(&self, sites: &[&str]) {
+        let store = toml::Value::String(self.dir.join("data").display().to_string());
+        let mut text = format!(
+            "listen = \"127.0.0.1:0\"\nmetrics_listen = \"127.0.0.1:0\"\n\n[storage]\npath = {store}\n\n\
+             [zenoh]\nmode = \"peer\"\nconnect = [\"tcp/127.0.0.1:{}\"]\n",
+            self.router_port
+        );
+        for site in sites {
+            writeln!(
+                text,
+                "\n[[sites]]\nid = \"{site}\"\nrobots = [{{ id = \"{}\", token = \"{}\" }}]",
+                robot(site),
+                token(site)
+            )
+            .unwrap();
+        }
+        std::fs::write(self.config_path(), text).unwrap();
+    }
+
+    fn start(&mut self) {
+        let log = File::options()
+            .create(true)
+            .append(true)
+            .open(self.dir.join("serve.log"))
+            .unwrap();
+        let child = Command::new(server_binary())
+            .arg("serve")
+            .arg("--config")
+            .arg(self.config_path())
+            .env("NO_COLOR", "1")
+            .stdout(log.try_clone().unwrap())
+            .stderr(log)
+            .spawn()
+            .unwrap();
+        self.child = Some(child);
+    }
+
+    /// Stops the instance as a service manager does (SIGTERM) and checks that it shut down cleanly.
+    fn stop(&mut self) {
+        let mut child = self.child.take().expect("a running instance");
+        let sent = Command::new("kill")
+            .args(["-TERM", &child.id().to_string()])
+            .status()
+            .unwrap();
+        assert!(sent.success());
+        let deadline = Instant::now() + Duration::from_secs(30);
+        let status = loop {
+            if let Some(status) = child.try_wait().unwrap() {
+                break status;
+            }
+            if Instant::now() > deadline {
+                let _ = child.kill();
+                panic!(
+                    "{} did not stop within 30 s of SIGTERM:\n{}",
+                    self.name,
+                    self.log()
+                );
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        };
+        assert!(status.success(), "{}: {status}\n{}", self.name, self.log());
+    }
+
+    fn log(&self) -> String {
+        std::fs::read_to_string(self.dir.join("serve.log")).unwrap_or_default()
+    }
+
+    /// Runs `evermap-server site <args> --config <this instance's>`; its exit status and output.
+    fn site_command(&self, args: &[&str]) -> (bool, String) {
+        let output = Command::new(server_binary())
+            .arg("site")
+            .args(args)
+            .arg("--config")
+            .arg(self.config_path())
+            .output()
+            .unwrap();
+        let text = String::from_utf8_lossy(&output.stdout).into_owned()
+            + &String::from_utf8_lossy(&output.stderr);
+        (output.status.success(), text)
+    }
+
+    /// Opens the stopped instance's store.
+    fn store(&self) -> Arc<dyn MapStore> {
+        sled(&self.dir.join("data"))
+    }
+}
+
+impl Drop for Instance {
+    fn drop(&mut self) {
+        if let Some(mut child) = self.child.take() {
+            let _ = child.kill();
+            let _ = child.wait();
+        }
+    }
+}
+
+/// Waits (bounded) until `acked` reaches `version`.
+async fn acked_at_least(site: &str, acked: &AtomicU64, version: u64) {
+    bounded(
+        &format!("{site}'s robot acknowledged at version {version}"),
+        60,
+        async {
+            while acked.load(Ordering::SeqCst) < version {
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            }
+        },
+    )
+    .await;
+}
+
+/// The version an `evermap-server site export|import` line names ("... at version V: ...").
+fn version_in(line: &str) -> u64 {
+    line.split("at version ")
+        .nth(1)
+        .and_then(|rest| rest.split(':').next())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("no version in {line:?}"))
+}
+
+// Reference: issue 16 §4, the same move with `evermap-server serve` processes and the operator's
+// commands: "two `evermap-server serve` instances each owning half the sites, one zenoh router, ... a
+// site moved from one instance to the other (export, import, config change) while its robots keep
+// their outboxes, nothing lost, versions continuing".
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_site_moved_between_serve_processes_with_the_site_commands_loses_nothing() {
+    const KEPT_A: &str = "store-a0";
+    const KEPT_B: &str = "store-b0";
+    let router_port = tests::free_port();
+    let zenohd = router(router_port).await;
+    let dirs = tempfile::tempdir().unwrap();
+    let mut a = Instance::new("a", dirs.path(), router_port);
+    let mut b = Instance::new("b", dirs.path(), router_port);
+    a.configure(&[KEPT_A, MOVED]);
+    b.configure(&[KEPT_B]);
+    a.start();
+    b.start();
+
+    let stop = Arc::new(AtomicBool::new(false));
+    let mut robots = BTreeMap::new();
+    for site in [KEPT_A, MOVED, KEPT_B] {
+        let acked = Arc::new(AtomicU64::new(0));
+        let task = tokio::spawn(run_robot(
+            router_port,
+            site,
+            dirs.path().join(format!("outbox-{site}")),
+            Arc::clone(&stop),
+            Arc::clone(&acked),
+        ));
+        robots.insert(site, (task, acked));
+    }
+    for (site, (_, acked)) in &robots {
+        acked_at_least(site, acked, 8).await;
+    }
+
+    // A serving instance's store is refused, with the advice to stop it.
+    let (ok, text) = b.site_command(&["list"]);
+    assert!(!ok && text.contains("stop it first"), "{text}");
+
+    // The move. A stops; its robots keep their batches.
+    a.stop();
+    // The site cannot be deleted while A's configuration still serves it.
+    let (ok, text) = a.site_command(&["delete", "--site", MOVED, "--yes"]);
+    assert!(!ok && text.contains("still serves"), "{text}");
+    let archive = dirs.path().join("moved.evermap-site");
+    let (ok, exported) = a.site_command(&[
+        "export",
+        "--site",
+        MOVED,
+        "--out",
+        archive.to_str().unwrap(),
+    ]);
+    assert!(ok, "{exported}");
+    let version_on_a = version_in(&exported);
+    // An archive is never overwritten.
+    let (ok, text) = a.site_command(&[
+        "export",
+        "--site",
+        MOVED,
+        "--out",
+        archive.to_str().unwrap(),
+    ]);
+    assert!(!ok && text.contains("exists"), "{text}");
+    // B stops, imports the site and starts again serving it.
+    b.stop();
+    b.configure(&[KEPT_B, MOVED]);
+    let (ok, imported) = b.site_command(&[
+        "import",
+        "--site",
+        MOVED,
+        "--archive",
+        archive.to_str().unwrap(),
+    ]);
+    assert!(ok, "{imported}");
+    assert_eq!(version_in(&imported), version_on_a, "{imported}");
+    b.start();
+    // A's copy goes, and A starts again without the site.
+    a.configure(&[KEPT_A]);
+    let (ok, text) = a.site_command(&["delete", "--site", MOVED, "--yes"]);
+    assert!(ok, "{text}");
+    let (ok, listed) = a.site_command(&["list"]);
+    assert!(
+        ok && listed.contains(KEPT_A) && !listed.contains(MOVED),
+        "{listed}"
+    );
+    a.start();
+
+    // The moved site's robot resumes on B, and the other robots on their restarted owners.
+    acked_at_least(MOVED, &robots[MOVED].1, version_on_a + 5).await;
+    for site in [KEPT_A, KEPT_B] {
+        let now = robots[site].1.load(Ordering::SeqCst);
+        acked_at_least(site, &robots[site].1, now + 3).await;
+    }
+    stop.store(true, Ordering::SeqCst);
+    let mut runs = BTreeMap::new();
+    for (site, (task, _)) in robots {
+        runs.insert(site, bounded("a robot finishing", 90, task).await.unwrap());
+    }
+    a.stop();
+    b.stop();
+    let (store_a, store_b) = (a.store(), b.store());
+    for (site, run) in &runs {
+        let store = if *site == KEPT_A { &store_a } else { &store_b };
+        assert!(run.outbox_empty, "{site}: the outbox drains: {run:?}");
+        let (uploads, nodes) = logged_uploads(store.as_ref(), site);
+        let expected: Vec<(String, u64)> = (1..=run.batches)
+            .map(|seq| ("session-1".to_owned(), seq))
+            .collect();
+        assert_eq!(uploads, expected, "{site}: every batch stored exactly once");
+        assert_eq!(nodes as i64, run.batches as i64 * NODES_PER_BATCH, "{site}");
+        assert!(
+            run.acked_versions.windows(2).all(|w| w[0] <= w[1]),
+            "{site}: acknowledged versions went backwards: {:?}",
+            run.acked_versions
+        );
+        assert!(
+            run.failed_flushes > 0,
+            "{site}: the restarts were felt: {run:?}"
+        );
+    }
+    assert!(
+        runs[MOVED].acked_versions.iter().any(|v| *v > version_on_a),
+        "acknowledged on B after the move: {:?}",
+        runs[MOVED]
+    );
+    assert_eq!(store_a.list_sites().unwrap(), [KEPT_A]);
+    let mut on_b = store_b.list_sites().unwrap();
+    on_b.sort();
+    assert_eq!(on_b, [MOVED, KEPT_B]);
+    eprintln!(
+        "site commands: moved {MOVED} at version {version_on_a}; {}",
+        runs.iter()
+            .map(|(site, run)| format!(
+                "{site}: {} batches, {} failed flushes",
+                run.batches, run.failed_flushes
+            ))
+            .collect::<Vec<_>>()
+            .join("; ")
+    );
     zenohd.close().await.unwrap();
 }
