@@ -739,8 +739,15 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
         let (w, h, pixels) = minute_figures::chart(
             &figures,
             &format!(
-                "{} robots, {} sites, {}x",
-                args.agents, args.sites, args.speed
+                "{} robots, {} sites, {}x{}",
+                args.agents,
+                args.sites,
+                args.speed,
+                if args.mature_sessions > 0 {
+                    format!(", after {} maturing sessions each", args.mature_sessions)
+                } else {
+                    String::new()
+                }
             ),
             720,
         );

@@ -82,26 +82,37 @@ impl RunningServer {
     ) -> Result<Self, ServeError> {
         config.validate()?;
         let metrics = Arc::new(ServerMetrics::default());
+        // Every site's log is replayed at once (each on a blocking thread): a restart takes as long as
+        // the longest replay on a free core, not the sum of them.
+        tracing::info!(sites = config.sites.len(), "replaying the sites' logs");
+        let mut loading = tokio::task::JoinSet::new();
+        let mut loading_site = BTreeMap::new();
+        for site in &config.sites {
+            let (id, options) = (site.id.clone(), config.map.clone());
+            let (store, metrics) = (Arc::clone(&store), Arc::clone(&metrics));
+            let task_options = SiteTaskOptions {
+                queue_depth: config.site_queue_depth,
+                session_idle_timeout: config.session_idle_timeout()?,
+            };
+            let task = loading.spawn(async move {
+                let loaded = SiteTask::spawn(&id, options, store, metrics, task_options).await;
+                (id, loaded)
+            });
+            loading_site.insert(task.id(), site.id.clone());
+        }
         let mut sites = BTreeMap::new();
         let mut site_tasks = Vec::new();
-        for site in &config.sites {
-            let (handle, task) = SiteTask::spawn(
-                &site.id,
-                config.map.clone(),
-                Arc::clone(&store),
-                Arc::clone(&metrics),
-                SiteTaskOptions {
-                    queue_depth: config.site_queue_depth,
-                    session_idle_timeout: config.session_idle_timeout()?,
-                },
-            )
-            .await
-            .map_err(|source| ServeError::Site {
-                site: site.id.clone(),
+        while let Some(joined) = loading.join_next_with_id().await {
+            let (_, (id, loaded)) = joined.map_err(|e| ServeError::Site {
+                site: loading_site.get(&e.id()).cloned().unwrap_or_default(),
+                source: SiteError::Internal(format!("loading the site failed: {e}")),
+            })?;
+            let (handle, task) = loaded.map_err(|source| ServeError::Site {
+                site: id.clone(),
                 source,
             })?;
-            tracing::info!(site = %site.id, version = handle.current().version, "site loaded");
-            sites.insert(site.id.clone(), handle);
+            tracing::info!(site = %id, version = handle.current().version, "site loaded");
+            sites.insert(id, handle);
             site_tasks.push(task);
         }
         let sites = Arc::new(sites);
@@ -277,5 +288,53 @@ impl RunningServer {
         }
         tracing::info!("server stopped");
         result
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use storage::{MemStore, RecordId, WriteBatch};
+
+    use super::*;
+    use crate::site::SITE_LOG_KIND;
+    use crate::{RobotConfig, SiteConfig};
+
+    fn site(id: &str) -> SiteConfig {
+        SiteConfig {
+            id: id.into(),
+            robots: vec![RobotConfig {
+                id: "robot".into(),
+                token: format!("token-of-{id}"),
+            }],
+        }
+    }
+
+    #[tokio::test]
+    async fn a_site_whose_log_cannot_be_replayed_stops_the_start_and_is_named() {
+        let store = Arc::new(MemStore::new());
+        // "bad"'s first log entry is not a log entry.
+        let mut batch = WriteBatch::new("bad");
+        batch
+            .put(SITE_LOG_KIND, RecordId::from_u64(1), vec![0xff; 7])
+            .bump_map_version();
+        store.apply(&batch).unwrap();
+        let config = ServerConfig {
+            listen: "127.0.0.1:0".parse().unwrap(),
+            metrics_listen: None,
+            sites: ["good-1", "bad", "good-2"].map(site).to_vec(),
+            ..ServerConfig::default()
+        };
+        let started = RunningServer::start(&config, store).await;
+        match started {
+            Err(ServeError::Site { site, source }) => {
+                assert_eq!(site, "bad");
+                assert!(
+                    matches!(source, SiteError::CorruptLog { index: 1, .. }),
+                    "{source}"
+                );
+            }
+            Err(other) => panic!("the wrong error: {other}"),
+            Ok(_) => panic!("a site whose log cannot be replayed must stop the start"),
+        }
     }
 }
