@@ -1,6 +1,7 @@
 //! `evermap-server serve`: the fleet map server on a sled store until Ctrl-C or SIGTERM (how service
 //! managers stop it), either of which shuts it down gracefully.
 
+use std::io::IsTerminal as _;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -26,6 +27,8 @@ pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
         } else {
             tracing::Level::INFO
         })
+        // Colours only on a terminal, and never with NO_COLOR set: a service's log is a file or journald.
+        .with_ansi(std::io::stdout().is_terminal() && std::env::var_os("NO_COLOR").is_none())
         .init();
     let config = read_config(args.config.as_deref())?;
     if config.sites.is_empty() {

@@ -11,6 +11,7 @@
 //! The configuration file: [`robot_agent::agent_config::AgentConfig`] (its module docs show one).
 
 use std::fmt::Write as _;
+use std::io::IsTerminal as _;
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -60,6 +61,8 @@ fn random_uuid() -> String {
 pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     tracing_subscriber::fmt()
         .with_max_level(tracing::Level::INFO)
+        // Colours only on a terminal, and never with NO_COLOR set: a service's log is a file or journald.
+        .with_ansi(std::io::stdout().is_terminal() && std::env::var_os("NO_COLOR").is_none())
         .init();
     let text = std::fs::read_to_string(&args.config)
         .with_context(|| format!("cannot read {}", args.config.display()))?;
