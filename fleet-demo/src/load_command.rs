@@ -472,13 +472,7 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
             streams.push(tokio::spawn(async move {
                 let mut left = 0;
                 for (j, session) in sessions.iter().enumerate() {
-                    let uploader = Uploader::new(
-                        uplink.clone(),
-                        Outbox::in_memory(&site_id(site)),
-                        &site_id(site),
-                        &id,
-                        &format!("load-{id}-maturing-{j}"),
-                    )?;
+                    let uploader = session_uploader(&uplink, site, &id, &format!("maturing-{j}"))?;
                     left += stream_prepared(
                         uploader,
                         session,
@@ -610,13 +604,7 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
             // Sessions back to back on the robot's clock.
             let mut session_start = robot_start;
             for (j, session) in sessions.iter().enumerate() {
-                let uploader = Uploader::new(
-                    uplink.clone(),
-                    Outbox::in_memory(&site_id(site)),
-                    &site_id(site),
-                    &id,
-                    &format!("load-{id}-cleaning-{j}"),
-                )?;
+                let uploader = session_uploader(&uplink, site, &id, &format!("cleaning-{j}"))?;
                 outcome.add(
                     stream_prepared(uploader, session, site, glm_on_server, session_start, speed)
                         .await?,
@@ -857,6 +845,22 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
         path.display()
     );
     Ok(())
+}
+
+/// The uploader of robot `id`'s session `name` on site number `site`, with an outbox in memory.
+fn session_uploader(
+    uplink: &GrpcUplink,
+    site: usize,
+    id: &str,
+    name: &str,
+) -> anyhow::Result<Uploader<GrpcUplink>> {
+    Ok(Uploader::new(
+        uplink.clone(),
+        Outbox::in_memory(&site_id(site)),
+        &site_id(site),
+        id,
+        &format!("load-{id}-{name}"),
+    )?)
 }
 
 /// A non-negative, finite number of seconds as a duration (anything else: zero).

@@ -122,6 +122,18 @@ fn open_store(config: &ServerConfig, must_exist: bool) -> anyhow::Result<SledSto
     })
 }
 
+/// Opens the configured store, which must hold `site`; the store and the site's map version.
+fn open_stored_site(config: &ServerConfig, site: &str) -> anyhow::Result<(SledStore, u64)> {
+    let store = open_store(config, true)?;
+    anyhow::ensure!(
+        store.list_sites()?.iter().any(|s| s == site),
+        "the store at {} holds no site {site:?}",
+        config.storage.path.display()
+    );
+    let version = store.map_version(site)?;
+    Ok((store, version))
+}
+
 fn list(config: &ServerConfig) -> anyhow::Result<()> {
     let store = open_store(config, true)?;
     let stored = store.list_sites()?;
@@ -148,13 +160,7 @@ fn export(config: &ServerConfig, site: &str, out: &Path) -> anyhow::Result<()> {
         "{} exists: refusing to overwrite it",
         out.display()
     );
-    let store = open_store(config, true)?;
-    anyhow::ensure!(
-        store.list_sites()?.iter().any(|s| s == site),
-        "the store at {} holds no site {site:?}",
-        config.storage.path.display()
-    );
-    let version = store.map_version(site)?;
+    let (store, version) = open_stored_site(config, site)?;
     // Written whole beside the target, then renamed: a crash never leaves a truncated archive under the
     // name an import would read.
     let partial = partial_path(out);
@@ -218,13 +224,7 @@ fn delete(config: &ServerConfig, site: &str, yes: bool) -> anyhow::Result<()> {
         yes,
         "deleting {site} is permanent: export it first, then pass --yes"
     );
-    let store = open_store(config, true)?;
-    anyhow::ensure!(
-        store.list_sites()?.iter().any(|s| s == site),
-        "the store at {} holds no site {site:?}",
-        config.storage.path.display()
-    );
-    let version = store.map_version(site)?;
+    let (store, version) = open_stored_site(config, site)?;
     store.delete_site(site)?;
     println!(
         "deleted {site} (it was at version {version}) from {}",

@@ -219,6 +219,18 @@ fn logged_uploads(store: &dyn MapStore, site: &str) -> (Vec<(String, u64)>, usiz
     (uploads, nodes)
 }
 
+/// The robot's outbox drained, and `store`'s log of `site` holds each of its batches exactly once and in
+/// order (sequence numbers 1..=batches, each once: a duplicate would be a second entry, a loss a gap).
+fn assert_stored_exactly_once(store: &dyn MapStore, site: &str, run: &RobotRun) {
+    assert!(run.outbox_empty, "{site}: the outbox drains: {run:?}");
+    let (uploads, nodes) = logged_uploads(store, site);
+    let expected: Vec<(String, u64)> = (1..=run.batches)
+        .map(|seq| ("session-1".to_owned(), seq))
+        .collect();
+    assert_eq!(uploads, expected, "{site}: every batch stored exactly once");
+    assert_eq!(nodes as i64, run.batches as i64 * NODES_PER_BATCH, "{site}");
+}
+
 /// Waits (bounded) until `site` on `server` is at `version` or beyond.
 async fn version_at_least(server: &RunningServer, site: &str, version: u64) {
     let handle = server.site(site).unwrap();
@@ -368,14 +380,7 @@ async fn sites_sharded_over_two_instances_and_one_moved_lose_nothing_and_keep_th
         } else {
             (&a, &store_a)
         };
-        assert!(run.outbox_empty, "{site}: the outbox drains: {run:?}");
-        // Exactly once and in order: the owner's log holds seqs 1..=batches, each once.
-        let (uploads, nodes) = logged_uploads(store.as_ref(), site);
-        let expected: Vec<(String, u64)> = (1..=run.batches)
-            .map(|seq| ("session-1".to_owned(), seq))
-            .collect();
-        assert_eq!(uploads, expected, "{site}: every batch stored exactly once");
-        assert_eq!(nodes as i64, run.batches as i64 * NODES_PER_BATCH, "{site}");
+        assert_stored_exactly_once(store.as_ref(), site, &run);
         let handle = owner.site(site).unwrap();
         assert_eq!(
             handle.node_poses().await.unwrap().len() as i64,
@@ -626,23 +631,18 @@ async fn a_site_moved_between_serve_processes_with_the_site_commands_loses_nothi
     let (ok, text) = a.site_command(&["delete", "--site", MOVED, "--yes"]);
     assert!(!ok && text.contains("still serves"), "{text}");
     let archive = dirs.path().join("moved.evermap-site");
-    let (ok, exported) = a.site_command(&[
+    let export = [
         "export",
         "--site",
         MOVED,
         "--out",
         archive.to_str().unwrap(),
-    ]);
+    ];
+    let (ok, exported) = a.site_command(&export);
     assert!(ok, "{exported}");
     let version_on_a = version_in(&exported);
     // An archive is never overwritten.
-    let (ok, text) = a.site_command(&[
-        "export",
-        "--site",
-        MOVED,
-        "--out",
-        archive.to_str().unwrap(),
-    ]);
+    let (ok, text) = a.site_command(&export);
     assert!(!ok && text.contains("exists"), "{text}");
     // B stops, imports the site and starts again serving it.
     b.stop();
@@ -684,13 +684,7 @@ async fn a_site_moved_between_serve_processes_with_the_site_commands_loses_nothi
     let (store_a, store_b) = (a.store(), b.store());
     for (site, run) in &runs {
         let store = if *site == KEPT_A { &store_a } else { &store_b };
-        assert!(run.outbox_empty, "{site}: the outbox drains: {run:?}");
-        let (uploads, nodes) = logged_uploads(store.as_ref(), site);
-        let expected: Vec<(String, u64)> = (1..=run.batches)
-            .map(|seq| ("session-1".to_owned(), seq))
-            .collect();
-        assert_eq!(uploads, expected, "{site}: every batch stored exactly once");
-        assert_eq!(nodes as i64, run.batches as i64 * NODES_PER_BATCH, "{site}");
+        assert_stored_exactly_once(store.as_ref(), site, run);
         assert!(
             run.acked_versions.windows(2).all(|w| w[0] <= w[1]),
             "{site}: acknowledged versions went backwards: {:?}",
