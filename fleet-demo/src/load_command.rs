@@ -115,8 +115,8 @@ pub struct LoadArgs {
     /// Sessions each robot streams before the measured window, as fast as the server takes them (not
     /// measured; default 0): the sites start the soak with the map a store has after that many
     /// cleaning days instead of a fresh one. A fresh site's map grows until the fresh submaps over its
-    /// routes form one layer (about a dozen sessions of the site); a server in production mostly holds
-    /// sites past that.
+    /// routes form one layer (here about 4 sessions of 300 s per site; about a dozen of 120 s in the
+    /// lifelong experiment); a server in production mostly holds sites past that.
     #[arg(long, default_value_t = 0)]
     mature_sessions: usize,
 }
