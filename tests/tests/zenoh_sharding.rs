@@ -681,6 +681,25 @@ async fn a_site_moved_between_serve_processes_with_the_site_commands_loses_nothi
     }
     a.stop();
     b.stop();
+    // A second import of the site is refused (B holds it), and so is exporting a site a store lacks.
+    let (ok, text) = b.site_command(&[
+        "import",
+        "--site",
+        MOVED,
+        "--archive",
+        archive.to_str().unwrap(),
+    ]);
+    assert!(!ok && text.contains("already holds data"), "{text}");
+    let elsewhere = dirs.path().join("elsewhere.evermap-site");
+    let (ok, text) = a.site_command(&[
+        "export",
+        "--site",
+        MOVED,
+        "--out",
+        elsewhere.to_str().unwrap(),
+    ]);
+    assert!(!ok && text.contains("holds no site"), "{text}");
+    assert!(!elsewhere.exists(), "a refused export writes nothing");
     let (store_a, store_b) = (a.store(), b.store());
     for (site, run) in &runs {
         let store = if *site == KEPT_A { &store_a } else { &store_b };
