@@ -164,21 +164,16 @@ fn export(config: &ServerConfig, site: &str, out: &Path) -> anyhow::Result<()> {
     // Written whole beside the target, then renamed: a crash never leaves a truncated archive under the
     // name an import would read.
     let partial = partial_path(out);
-    let file =
-        File::create(&partial).with_context(|| format!("cannot create {}", partial.display()))?;
-    let mut writer = BufWriter::new(file);
-    let summary = store
-        .export_site(site, &mut writer)
-        .with_context(|| format!("exporting {site}"))?;
-    writer.flush()?;
-    writer
-        .into_inner()
-        .map_err(std::io::IntoInnerError::into_error)?
-        .sync_all()
-        .with_context(|| format!("cannot sync {}", partial.display()))?;
-    std::fs::rename(&partial, out)
-        .with_context(|| format!("cannot rename {} to {}", partial.display(), out.display()))?;
-    sync_parent(out)?;
+    let written = write_archive(&store, site, &partial).and_then(|summary| {
+        std::fs::rename(&partial, out)
+            .with_context(|| format!("cannot rename {} to {}", partial.display(), out.display()))?;
+        sync_parent(out)?;
+        Ok(summary)
+    });
+    // A half-written archive is of no use to anyone.
+    let summary = written.inspect_err(|_| {
+        let _ = std::fs::remove_file(&partial);
+    })?;
     println!(
         "exported {site} at version {version}: {} records, {} payload bytes, to {}",
         summary.records,
@@ -231,6 +226,26 @@ fn delete(config: &ServerConfig, site: &str, yes: bool) -> anyhow::Result<()> {
         config.storage.path.display()
     );
     Ok(())
+}
+
+/// Writes `site` of `store` to the archive file `path`, synced to disk.
+fn write_archive(
+    store: &SledStore,
+    site: &str,
+    path: &Path,
+) -> anyhow::Result<storage::TransferSummary> {
+    let file = File::create(path).with_context(|| format!("cannot create {}", path.display()))?;
+    let mut writer = BufWriter::new(file);
+    let summary = store
+        .export_site(site, &mut writer)
+        .with_context(|| format!("exporting {site}"))?;
+    writer.flush()?;
+    writer
+        .into_inner()
+        .map_err(std::io::IntoInnerError::into_error)?
+        .sync_all()
+        .with_context(|| format!("cannot sync {}", path.display()))?;
+    Ok(summary)
 }
 
 /// `out` with `.partial` appended to its file name.

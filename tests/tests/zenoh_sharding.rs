@@ -647,13 +647,14 @@ async fn a_site_moved_between_serve_processes_with_the_site_commands_loses_nothi
     // B stops, imports the site and starts again serving it.
     b.stop();
     b.configure(&[KEPT_B, MOVED]);
-    let (ok, imported) = b.site_command(&[
+    let import = [
         "import",
         "--site",
         MOVED,
         "--archive",
         archive.to_str().unwrap(),
-    ]);
+    ];
+    let (ok, imported) = b.site_command(&import);
     assert!(ok, "{imported}");
     assert_eq!(version_in(&imported), version_on_a, "{imported}");
     b.start();
@@ -682,13 +683,7 @@ async fn a_site_moved_between_serve_processes_with_the_site_commands_loses_nothi
     a.stop();
     b.stop();
     // A second import of the site is refused (B holds it), and so is exporting a site a store lacks.
-    let (ok, text) = b.site_command(&[
-        "import",
-        "--site",
-        MOVED,
-        "--archive",
-        archive.to_str().unwrap(),
-    ]);
+    let (ok, text) = b.site_command(&import);
     assert!(!ok && text.contains("already holds data"), "{text}");
     let elsewhere = dirs.path().join("elsewhere.evermap-site");
     let (ok, text) = a.site_command(&[
