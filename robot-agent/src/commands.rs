@@ -2,6 +2,7 @@
 
 pub mod lifelong;
 pub mod offline;
+pub mod perturb_args;
 pub mod relocalize;
 pub mod run;
 pub mod sessions;

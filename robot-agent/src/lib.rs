@@ -9,6 +9,7 @@ pub mod line_chart;
 pub mod map_image;
 pub mod offline_slam;
 pub mod outbox;
+pub mod perturbation;
 pub mod process_stats;
 pub mod ros2_publisher;
 pub mod source;

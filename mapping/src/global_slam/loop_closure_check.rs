@@ -53,6 +53,11 @@ pub struct LoopClosurePrecision {
 }
 
 /// The share of `checks` the optimized graph holds.
+///
+/// What it cannot see: it measures agreement with the final optimization, not with the world. A map
+/// pulled consistently wrong (a wing rotated by closures that all agree with each other) holds every
+/// closure it is made of and scores 1. Only ground truth (`metrics::relations_error`'s `torn` and
+/// largest errors) shows such a tear.
 pub fn loop_closure_precision(checks: &[LoopClosureCheck]) -> LoopClosurePrecision {
     let ratio = |held: usize, of: usize| {
         if of == 0 {

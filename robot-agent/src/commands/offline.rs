@@ -17,6 +17,8 @@ use robot_agent::line_chart::{LineChart, Series};
 use robot_agent::offline_slam::{SlamConfig, render_map, run_offline, run_slam};
 use robot_agent::ros2_publisher::{Ros2Publisher, Ros2SlamPublisher};
 use robot_agent::{map_image, process_stats, source};
+
+use super::perturb_args::PerturbArgs;
 use serde_json::json;
 
 /// Arguments of `offline`.
@@ -63,6 +65,9 @@ pub struct OfflineArgs {
     /// A TOML file overriding the default SLAM configuration (see `SlamConfig`).
     #[arg(long)]
     config: Option<PathBuf>,
+    /// The robustness suite's perturbations of the recording.
+    #[command(flatten)]
+    perturb: PerturbArgs,
 }
 
 /// Reads a TOML SLAM configuration, or the defaults.
@@ -93,7 +98,12 @@ pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
     };
 
     let start = Instant::now();
+    let mut perturbation = serde_json::Value::Null;
     let (run, input, read_report, read_time_s, live) = if args.ros2 {
+        anyhow::ensure!(
+            args.perturb.perturb.is_none(),
+            "--perturb works on recordings, not on a live robot"
+        );
         let (run, live) = map_live(args, &config)?;
         (
             run,
@@ -108,7 +118,8 @@ pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
             .as_ref()
             .context("give --input (a recording) or --ros2 (a live robot)")?;
         eprintln!("reading {}", input.display());
-        let recording = source::read_recording(input)?;
+        let (recording, done) = args.perturb.apply(source::read_recording(input)?)?;
+        perturbation = done;
         let read_time_s = start.elapsed().as_secs_f64();
         let scans = recording.report.scans;
         let bar = ProgressBar::new(scans as u64);
@@ -190,6 +201,7 @@ pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
         "live": live,
         "peak_rss_mb": process_stats::peak_rss_mb(),
         "relations": relations_json,
+        "perturbation": perturbation,
     });
     let report_path = args.out.join("report.json");
     std::fs::write(&report_path, serde_json::to_string_pretty(&report)? + "\n")

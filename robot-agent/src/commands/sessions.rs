@@ -22,6 +22,8 @@ use robot_agent::offline_slam::render_range_data;
 use robot_agent::{map_image, process_stats, source};
 use serde_json::json;
 
+use super::perturb_args::PerturbArgs;
+
 /// Arguments of `sessions`.
 #[derive(Args)]
 pub struct SessionsArgs {
@@ -44,6 +46,9 @@ pub struct SessionsArgs {
     /// Trimming policy (clt, delete, keep, frozen); overrides the configuration's.
     #[arg(long)]
     policy: Option<TrimPolicy>,
+    /// The robustness suite's perturbations of the recording.
+    #[command(flatten)]
+    perturb: PerturbArgs,
 }
 
 fn load_config(args: &SessionsArgs) -> anyhow::Result<SessionsConfig> {
@@ -80,7 +85,7 @@ pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
 
     let start = Instant::now();
     eprintln!("reading {}", args.input.display());
-    let recording = source::read_recording(&args.input)?;
+    let (recording, perturbation) = args.perturb.apply(source::read_recording(&args.input)?)?;
     let bar = ProgressBar::new(recording.report.scans as u64);
     bar.set_style(
         ProgressStyle::with_template(
@@ -148,6 +153,7 @@ pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
     let report = json!({
         "input": args.input.display().to_string(),
         "split": args.split,
+        "perturbation": perturbation,
         "policy": config.lifelong.policy.name(),
         "data_duration_s": run.data_duration_s,
         "wall_time_s": wall_time_s,

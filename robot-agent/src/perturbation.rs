@@ -1,0 +1,512 @@
+//! Seeded, deterministic perturbations of a recording: the robustness suite's variants.
+//!
+//! A robot's owner brings a building and a sensor nobody tuned on. The suite predicts how the engine
+//! does there by degrading the recordings we have the ways real robots differ: a short-range scanner,
+//! fewer beams, worse odometry, wheel slips the odometry never sees, a slow scan rate, people and carts
+//! in the beams, a recording that starts elsewhere. Each variant is a [`Perturbation`]; the same
+//! recording, variant and seed always give the same events.
+//!
+//! Variants (`--perturb NAME[,NAME...]`, see [`Perturbation::parse`]):
+//!
+//! | name | what |
+//! |---|---|
+//! | `clean` | nothing |
+//! | `range8`, `range4` | no return beyond 8 m / 4 m: such readings become `+inf` (REP 117's "no return") |
+//! | `sparse` | every other beam |
+//! | `odom` | odometry 3 % long in translation, 2° of heading drift per 10 m, and per-step noise |
+//! | `slip` | wheel slips the odometry never saw: 0.2–0.5 m and 3–8°, every 20–60 m of driving |
+//! | `slow` | scans at least 0.7 s apart |
+//! | `clutter` | 5 % of beams replaced by short returns in blobs of 1–4 beams (people, carts) |
+//! | `late` | the first 20 % of the recording's time dropped |
+//! | `noise` | Gaussian range noise, σ = 3 cm (a low-cost scanner) |
+//! | `hard` | `range4` + `slip` + `clutter` + `slow` |
+
+use mapping::geometry::{Rigid2, Rigid2Ext as _, rigid2};
+use mapping::sensor::{LaserScan, OdometryReading, SensorEvent};
+use rand::{Rng as _, SeedableRng as _};
+use rand_distr::{Distribution as _, Normal};
+use rand_pcg::Pcg64;
+
+use crate::source::Recording;
+
+/// Every variant name [`Perturbation::parse`] knows, in the suite's order.
+pub const VARIANTS: &[&str] = &[
+    "clean", "range8", "range4", "sparse", "odom", "slip", "slow", "clutter", "late", "noise",
+    "hard",
+];
+
+/// The variants the suite calls mild: a clean run's error should at most double under them.
+pub const MILD_VARIANTS: &[&str] = &[
+    "range8", "sparse", "odom", "slow", "clutter", "late", "noise",
+];
+
+/// Odometry that is wrong the way wheel odometry is: a scale error, a heading drift with distance, and
+/// per-step noise.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct OdometryError {
+    /// Translation scale error (fraction): 0.03 = every reported step 3 % long.
+    pub scale: f64,
+    /// Heading drift added per metre driven, radians (2° per 10 m = 0.0035 rad/m).
+    pub drift_per_m: f64,
+    /// Translation noise per step, as a fraction of the step's length (σ).
+    pub translation_noise: f64,
+    /// Rotation noise per metre driven, radians (σ, scaled by the step's length).
+    pub rotation_noise_per_m: f64,
+}
+
+/// Wheel slips the odometry never saw.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Slips {
+    /// Distance driven between slips, metres: drawn uniformly from this range each time.
+    pub every_m: (f64, f64),
+    /// Size of a slip's translation, metres (uniform, in a uniform direction).
+    pub translation_m: (f64, f64),
+    /// Size of a slip's rotation, radians (uniform, either sign).
+    pub rotation_rad: (f64, f64),
+}
+
+/// Short returns that replace some beams: people and carts between the scanner and the walls.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Clutter {
+    /// Share of beams replaced (0..1).
+    pub share: f64,
+    /// Beams per blob: uniform in `1..=max_blob_beams`.
+    pub max_blob_beams: usize,
+    /// Nearest and farthest clutter range, metres (never beyond the beam's own return).
+    pub range_m: (f32, f32),
+}
+
+/// One variant of the suite: what is done to a recording. The default does nothing.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Perturbation {
+    /// Readings beyond this range (metres) become `+inf`.
+    pub max_range_m: Option<f32>,
+    /// Keep every other beam.
+    pub sparse: bool,
+    /// Wheel odometry error.
+    pub odometry: Option<OdometryError>,
+    /// Wheel slips the odometry missed.
+    pub slips: Option<Slips>,
+    /// Scans closer than this (seconds) to the previous kept one are dropped.
+    pub min_scan_period_s: Option<f64>,
+    /// People and carts in the beams.
+    pub clutter: Option<Clutter>,
+    /// Share of the recording's time dropped at its start (0..1).
+    pub drop_first_share: Option<f64>,
+    /// Gaussian range noise (σ, metres) on every return.
+    pub range_noise_m: Option<f32>,
+}
+
+/// A variant name [`Perturbation::parse`] does not know.
+#[derive(Debug, thiserror::Error, PartialEq)]
+#[error("unknown perturbation `{0}` (known: {known})", known = VARIANTS.join(", "))]
+pub struct UnknownPerturbation(String);
+
+/// What a perturbation did, for the report.
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
+pub struct PerturbationReport {
+    /// Scans before and after.
+    pub scans_in: usize,
+    /// Scans kept.
+    pub scans_out: usize,
+    /// Odometry readings kept.
+    pub odometry_out: usize,
+    /// Slips injected.
+    pub slips: usize,
+    /// Beams cut to `+inf` by the range limit.
+    pub beams_cut: usize,
+    /// Beams replaced by clutter.
+    pub beams_cluttered: usize,
+}
+
+impl Perturbation {
+    /// The perturbation named by a comma-separated list of variants (`range4,slip`); each adds its part.
+    pub fn parse(names: &str) -> Result<Self, UnknownPerturbation> {
+        let mut p = Self::default();
+        for name in names.split(',').map(str::trim).filter(|n| !n.is_empty()) {
+            p.add(name)?;
+        }
+        Ok(p)
+    }
+
+    fn add(&mut self, name: &str) -> Result<(), UnknownPerturbation> {
+        match name {
+            "clean" => {}
+            "range8" => self.max_range_m = Some(self.max_range_m.map_or(8.0, |r| r.min(8.0))),
+            "range4" => self.max_range_m = Some(self.max_range_m.map_or(4.0, |r| r.min(4.0))),
+            "sparse" => self.sparse = true,
+            "odom" => {
+                self.odometry = Some(OdometryError {
+                    scale: 0.03,
+                    drift_per_m: 0.2f64.to_radians(),
+                    translation_noise: 0.02,
+                    rotation_noise_per_m: 0.5f64.to_radians(),
+                })
+            }
+            "slip" => {
+                self.slips = Some(Slips {
+                    every_m: (20.0, 60.0),
+                    translation_m: (0.2, 0.5),
+                    rotation_rad: (3f64.to_radians(), 8f64.to_radians()),
+                })
+            }
+            "slow" => self.min_scan_period_s = Some(0.7),
+            "clutter" => {
+                self.clutter = Some(Clutter {
+                    share: 0.05,
+                    max_blob_beams: 4,
+                    range_m: (0.3, 5.0),
+                })
+            }
+            "late" => self.drop_first_share = Some(0.2),
+            "noise" => self.range_noise_m = Some(0.03),
+            "hard" => {
+                for part in ["range4", "slip", "clutter", "slow"] {
+                    self.add(part)?;
+                }
+            }
+            other => return Err(UnknownPerturbation(other.to_owned())),
+        }
+        Ok(())
+    }
+
+    /// Whether this does nothing.
+    pub fn is_identity(&self) -> bool {
+        *self == Self::default()
+    }
+
+    /// `recording` perturbed, deterministically for `seed`. Each part draws from its own stream, so
+    /// adding one part to a variant does not change what the others do.
+    pub fn apply(&self, recording: &Recording, seed: u64) -> (Recording, PerturbationReport) {
+        let rng =
+            |stream: u64| Pcg64::seed_from_u64(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ stream);
+        let mut report = PerturbationReport::default();
+        let mut events: Vec<SensorEvent> = recording.events.clone();
+        report.scans_in = count_scans(&events);
+
+        if let Some(share) = self.drop_first_share
+            && let (Some(first), Some(last)) = (events.first(), events.last())
+        {
+            let cut = first
+                .time()
+                .offset_by(share * last.time().seconds_since(first.time()));
+            events.retain(|e| e.time() >= cut);
+        }
+        if let Some(period) = self.min_scan_period_s {
+            let mut last = None;
+            events.retain(|e| match e {
+                SensorEvent::Scan(scan) => {
+                    let keep = last.is_none_or(|t| scan.time.seconds_since(t) >= period);
+                    if keep {
+                        last = Some(scan.time);
+                    }
+                    keep
+                }
+                _ => true,
+            });
+        }
+        if self.odometry.is_some() || self.slips.is_some() {
+            report.slips = self.perturb_odometry(&mut events, &mut rng(1), &mut rng(2));
+        }
+        let mut clutter_rng = rng(3);
+        let mut noise_rng = rng(4);
+        for event in &mut events {
+            if let SensorEvent::Scan(scan) = event {
+                self.perturb_scan(scan, &mut clutter_rng, &mut noise_rng, &mut report);
+            }
+        }
+        report.scans_out = count_scans(&events);
+        report.odometry_out = events
+            .iter()
+            .filter(|e| matches!(e, SensorEvent::Odometry(_)))
+            .count();
+        (
+            Recording {
+                events,
+                base_from_laser: recording.base_from_laser,
+                report: recording.report.clone(),
+            },
+            report,
+        )
+    }
+
+    /// Rewrites the odometry poses step by step: each step as recorded, then scaled, drifted and
+    /// noised, and at a slip composed with the slip's inverse (the robot moved by the slip, the wheels
+    /// did not report it). Returns the number of slips.
+    fn perturb_odometry(
+        &self,
+        events: &mut [SensorEvent],
+        error_rng: &mut Pcg64,
+        slip_rng: &mut Pcg64,
+    ) -> usize {
+        let unit = Normal::new(0.0, 1.0).expect("unit normal");
+        let draw_slip_gap = |rng: &mut Pcg64| {
+            self.slips.map_or(f64::INFINITY, |s| {
+                rng.random_range(s.every_m.0..=s.every_m.1)
+            })
+        };
+        let mut next_slip_m = draw_slip_gap(slip_rng);
+        let mut driven_m = 0.0;
+        let mut slips = 0;
+        let mut previous: Option<(Rigid2, Rigid2)> = None; // (recorded, perturbed)
+        for event in events.iter_mut() {
+            let SensorEvent::Odometry(OdometryReading { pose, .. }) = event else {
+                continue;
+            };
+            let recorded = *pose;
+            let Some((last_recorded, last_perturbed)) = previous else {
+                previous = Some((recorded, recorded));
+                continue;
+            };
+            let step = last_recorded.inverse() * recorded;
+            let length = step.translation.vector.norm();
+            let mut step = step.to_xytheta();
+            if let Some(e) = self.odometry {
+                step.x *= 1.0 + e.scale;
+                step.y *= 1.0 + e.scale;
+                step.x += e.translation_noise * length * unit.sample(error_rng);
+                step.y += e.translation_noise * length * unit.sample(error_rng);
+                step.z += e.drift_per_m * length
+                    + e.rotation_noise_per_m * length * unit.sample(error_rng);
+            }
+            let mut step = Rigid2::from_xytheta(&step);
+            driven_m += length;
+            if let Some(s) = self.slips
+                && driven_m >= next_slip_m
+            {
+                let direction = slip_rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
+                let size = slip_rng.random_range(s.translation_m.0..=s.translation_m.1);
+                let sign = if slip_rng.random_bool(0.5) { 1.0 } else { -1.0 };
+                let turn = sign * slip_rng.random_range(s.rotation_rad.0..=s.rotation_rad.1);
+                let slip = rigid2(size * direction.cos(), size * direction.sin(), turn);
+                step *= slip.inverse();
+                slips += 1;
+                driven_m = 0.0;
+                next_slip_m = draw_slip_gap(slip_rng);
+            }
+            let perturbed = last_perturbed * step;
+            *pose = perturbed;
+            previous = Some((recorded, perturbed));
+        }
+        slips
+    }
+
+    fn perturb_scan(
+        &self,
+        scan: &mut LaserScan,
+        clutter_rng: &mut Pcg64,
+        noise_rng: &mut Pcg64,
+        report: &mut PerturbationReport,
+    ) {
+        if self.sparse {
+            scan.ranges = scan.ranges.iter().step_by(2).copied().collect();
+            scan.angle_increment *= 2.0;
+            scan.time_increment *= 2.0;
+        }
+        let (range_min, range_max) = (scan.range_min, scan.range_max);
+        let is_return = |r: f32| r.is_finite() && r < range_max;
+        if let Some(sigma) = self.range_noise_m {
+            let normal = Normal::new(0.0, sigma).expect("finite noise");
+            for i in 0..scan.ranges.len() {
+                if is_return(scan.ranges[i]) {
+                    scan.ranges[i] = (scan.ranges[i] + normal.sample(noise_rng)).max(range_min);
+                }
+            }
+        }
+        if let Some(c) = self.clutter {
+            let mean_blob = (1 + c.max_blob_beams) as f64 / 2.0;
+            let start_probability = (c.share / mean_blob).clamp(0.0, 1.0);
+            let mut i = 0;
+            while i < scan.ranges.len() {
+                if clutter_rng.random_bool(start_probability) {
+                    let beams = clutter_rng.random_range(1..=c.max_blob_beams.max(1));
+                    let range = clutter_rng.random_range(c.range_m.0..=c.range_m.1);
+                    for r in scan.ranges.iter_mut().skip(i).take(beams) {
+                        // A person stands in front of the wall, never behind it.
+                        if !is_return(*r) || range < *r {
+                            *r = range.max(range_min);
+                            report.beams_cluttered += 1;
+                        }
+                    }
+                    i += beams;
+                } else {
+                    i += 1;
+                }
+            }
+        }
+        if let Some(limit) = self.max_range_m {
+            for r in &mut scan.ranges {
+                if r.is_finite() && *r > limit {
+                    if *r < range_max {
+                        report.beams_cut += 1;
+                    }
+                    *r = f32::INFINITY;
+                }
+            }
+        }
+    }
+}
+
+fn count_scans(events: &[SensorEvent]) -> usize {
+    events
+        .iter()
+        .filter(|e| matches!(e, SensorEvent::Scan(_)))
+        .count()
+}
+
+#[cfg(test)]
+mod tests {
+    use mapping::sensor::Timestamp;
+
+    use super::*;
+
+    /// A straight drive at 1 m/s along x for `seconds`, odometry at 10 Hz and a 5 Hz scan of 181 beams
+    /// all reading 6 m.
+    fn drive(seconds: u32) -> Recording {
+        let mut events = Vec::new();
+        for k in 0..seconds * 10 {
+            let t = f64::from(k) / 10.0;
+            events.push(SensorEvent::Odometry(OdometryReading {
+                time: Timestamp::from_secs_f64(t),
+                pose: rigid2(t, 0.0, 0.0),
+            }));
+            if k % 2 == 0 {
+                events.push(SensorEvent::Scan(LaserScan {
+                    time: Timestamp::from_secs_f64(t),
+                    angle_min: -std::f32::consts::FRAC_PI_2,
+                    angle_increment: 1f32.to_radians(),
+                    time_increment: 0.0,
+                    range_min: 0.1,
+                    range_max: 30.0,
+                    ranges: vec![6.0; 181],
+                }));
+            }
+        }
+        Recording {
+            events,
+            base_from_laser: Rigid2::identity(),
+            report: Default::default(),
+        }
+    }
+
+    fn scans(r: &Recording) -> Vec<&LaserScan> {
+        r.events
+            .iter()
+            .filter_map(|e| match e {
+                SensorEvent::Scan(s) => Some(s),
+                _ => None,
+            })
+            .collect()
+    }
+
+    fn last_odometry(r: &Recording) -> Rigid2 {
+        r.events
+            .iter()
+            .rev()
+            .find_map(|e| match e {
+                SensorEvent::Odometry(o) => Some(o.pose),
+                _ => None,
+            })
+            .expect("odometry")
+    }
+
+    #[test]
+    fn every_named_variant_parses_and_unknown_names_are_refused() {
+        for name in VARIANTS {
+            Perturbation::parse(name).expect(name);
+        }
+        assert!(Perturbation::parse("clean").unwrap().is_identity());
+        let hard = Perturbation::parse("hard").unwrap();
+        assert_eq!(
+            hard,
+            Perturbation::parse("range4,slip,clutter,slow").unwrap()
+        );
+        let error = Perturbation::parse("range4,wet").unwrap_err();
+        assert!(error.to_string().contains("`wet`"), "{error}");
+    }
+
+    #[test]
+    fn the_same_seed_gives_the_same_recording_and_another_seed_another() {
+        let recording = drive(200);
+        let p = Perturbation::parse("odom,slip,clutter,noise").unwrap();
+        let (a, _) = p.apply(&recording, 7);
+        let (b, _) = p.apply(&recording, 7);
+        let (c, _) = p.apply(&recording, 8);
+        assert_eq!(a.events, b.events);
+        assert_ne!(a.events, c.events);
+    }
+
+    #[test]
+    fn range_limits_cut_far_returns_to_infinity_and_sparse_halves_the_beams() {
+        let recording = drive(5);
+        let (short, report) = Perturbation::parse("range4").unwrap().apply(&recording, 1);
+        assert!(
+            scans(&short)
+                .iter()
+                .all(|s| s.ranges.iter().all(|r| r.is_infinite()))
+        );
+        assert_eq!(report.beams_cut, 25 * 181);
+        let (sparse, _) = Perturbation::parse("sparse").unwrap().apply(&recording, 1);
+        let s = scans(&sparse)[0];
+        assert_eq!(s.ranges.len(), 91);
+        assert!((s.angle_increment - 2f32.to_radians()).abs() < 1e-6);
+    }
+
+    #[test]
+    fn slow_and_late_drop_what_they_say() {
+        let recording = drive(100);
+        let (slow, report) = Perturbation::parse("slow").unwrap().apply(&recording, 1);
+        let times: Vec<f64> = scans(&slow).iter().map(|s| s.time.as_secs_f64()).collect();
+        assert!(times.windows(2).all(|w| w[1] - w[0] >= 0.7 - 1e-9));
+        assert_eq!(report.scans_in, 500);
+        assert_eq!(report.scans_out, 125);
+        let (late, _) = Perturbation::parse("late").unwrap().apply(&recording, 1);
+        let first = late.events.first().unwrap().time().as_secs_f64();
+        assert!((first - 0.2 * 99.9).abs() < 0.11, "first event at {first}");
+    }
+
+    #[test]
+    fn odometry_error_and_slips_are_the_sizes_they_are_said_to_be() {
+        let recording = drive(500); // 499.9 m
+        let (odom, _) = Perturbation::parse("odom").unwrap().apply(&recording, 3);
+        let end = last_odometry(&odom);
+        // 2° per 10 m over ~500 m is ~100° of heading drift, plus noise.
+        let drift = end.theta().to_degrees();
+        assert!((80.0..120.0).contains(&drift), "heading drift {drift}°");
+        let (slipped, report) = Perturbation::parse("slip").unwrap().apply(&recording, 3);
+        // One slip every 20–60 m: between 8 and 25 in 500 m.
+        assert!((8..=25).contains(&report.slips), "{} slips", report.slips);
+        // Between slips the odometry moves exactly as recorded.
+        let steps: Vec<Rigid2> = slipped
+            .events
+            .iter()
+            .filter_map(|e| match e {
+                SensorEvent::Odometry(o) => Some(o.pose),
+                _ => None,
+            })
+            .collect::<Vec<_>>()
+            .windows(2)
+            .map(|w| w[0].inverse() * w[1])
+            .collect();
+        let odd = steps
+            .iter()
+            .filter(|s| (s.translation.vector.norm() - 0.1).abs() > 1e-9 || s.theta().abs() > 1e-9)
+            .count();
+        assert_eq!(odd, report.slips);
+        assert!(steps.iter().all(|s| s.theta().abs() < 8.01f64.to_radians()));
+    }
+
+    #[test]
+    fn clutter_replaces_about_its_share_of_beams_with_nearer_returns() {
+        let recording = drive(100);
+        let (cluttered, report) = Perturbation::parse("clutter").unwrap().apply(&recording, 5);
+        let beams = 500 * 181;
+        let share = report.beams_cluttered as f64 / beams as f64;
+        assert!((0.04..0.06).contains(&share), "clutter share {share}");
+        assert!(
+            scans(&cluttered)
+                .iter()
+                .all(|s| s.ranges.iter().all(|r| (0.3..=6.0).contains(r)))
+        );
+    }
+}

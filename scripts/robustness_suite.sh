@@ -1,0 +1,49 @@
+#!/usr/bin/env bash
+# The robustness suite: every variant of `evermap-agent offline --perturb` on the Freiburg recordings,
+# scored against their relations, and one table of the results (scripts/robustness_table.py).
+#
+#   scripts/robustness_suite.sh [OUT_DIR]        (default out/robustness)
+#
+# Environment: RECORDINGS (default "mit-csail aces intel"), VARIANTS (default: every variant),
+# CONFIG (a TOML file passed as --config; the suite's figures are scored without one), SEED (default 1), JOBS (parallel runs, default 2), AGENT (default target/release/evermap-agent).
+# A run whose report.json exists is not run again, so an interrupted suite resumes where it stopped;
+# delete OUT_DIR to start over (do so after changing the engine).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+out=${1:-out/robustness}
+recordings=${RECORDINGS:-"mit-csail aces intel"}
+variants=${VARIANTS:-"clean range8 range4 sparse odom slip slow clutter late noise hard"}
+seed=${SEED:-1}
+jobs=${JOBS:-2}
+agent=${AGENT:-target/release/evermap-agent}
+datasets=../shared/datasets
+if [[ ! -x $agent ]]; then
+  echo "no $agent: build it first (cargo build --release --workspace)" >&2
+  exit 1
+fi
+mkdir -p "$out"
+runs=()
+for r in $recordings; do
+  for v in $variants; do
+    [[ -f $out/$r/$v/report.json ]] || runs+=("$r $v")
+  done
+done
+echo "${#runs[@]} runs to do in $out (seed $seed, $jobs at a time)" >&2
+run_one() {
+  local r=$1 v=$2 dir=$out/$1/$2
+  mkdir -p "$dir"
+  if "$agent" offline --input "$datasets/rosbag1/$r.orig.bag" --relations "$datasets/relations/$r.relations" \
+      --perturb "$v" --perturb-seed "$seed" ${config:+--config "$config"} --out "$dir.partial" >"$dir/stdout" 2>"$dir/stderr"; then
+    mv "$dir.partial"/* "$dir"/ && rmdir "$dir.partial"
+    echo "done $r $v" >&2
+  else
+    echo "FAILED $r $v (see $dir/stderr)" >&2
+  fi
+}
+export -f run_one
+config=${CONFIG:-}
+export out seed agent datasets config
+if ((${#runs[@]})); then
+  printf '%s\n' "${runs[@]}" | xargs -P "$jobs" -L 1 bash -c 'run_one $0 $1'
+fi
+python3 scripts/robustness_table.py "$out"
