@@ -73,10 +73,6 @@ pub struct LocalTrajectoryBuilderOptions {
     /// chance alone finds larger values (Intel, 4 scans per second: a look-alike room 93° away at 5.1 while
     /// the scan had turned 6°; the stalled turns it exists for score 7–12). Default 6.
     pub min_recovery_z: f64,
-    /// A scan whose correlative match scores below this (mean probability) is matched but not inserted
-    /// into the submaps: a weak match may be wrong, and a wrong scan in the submap makes the next
-    /// scans agree with it. Default 0.
-    pub min_insertion_score: f64,
     /// Least-squares refinement weights.
     pub least_squares: LeastSquaresScanMatcherOptions,
     /// The least-squares refinement pulls the translation toward the prediction (odometry, or constant
@@ -105,7 +101,6 @@ impl Default for LocalTrajectoryBuilderOptions {
             min_deviation_z: 4.0,
             min_recovery_score: 0.35,
             min_recovery_z: 6.0,
-            min_insertion_score: 0.0,
             least_squares: LeastSquaresScanMatcherOptions::default(),
             max_odometry_target_disagreement: 1f64.to_radians(),
             motion_filter: MotionFilterOptions::default(),
@@ -269,7 +264,7 @@ impl LocalTrajectoryBuilder {
         time: Timestamp,
         points: &[Point2<f32>],
         grid: &ProbabilityGrid,
-    ) -> (Rigid2, Rigid2, f32) {
+    ) -> (Rigid2, Rigid2) {
         let o = &self.options;
         let base = &o.real_time_correlative;
         let claimed_rotation = self.last_pose.map_or(0.0, |last| {
@@ -313,7 +308,7 @@ impl LocalTrajectoryBuilder {
             // Nothing near the prediction fits: search every rotation.
             let recovery = search(predicted, std::f64::consts::PI);
             if clearly_better(&recovery, o.min_recovery_z) {
-                return (recovery.0, *predicted, recovery.1);
+                return (recovery.0, *predicted);
             }
         }
         // The paired test protects a fit near the prediction from a slightly better one farther away. Where
@@ -324,9 +319,9 @@ impl LocalTrajectoryBuilder {
                 if (!trusted_fits && f64::from(alternative.1) >= o.min_recovery_score)
                     || clearly_better(&alternative, o.min_deviation_z) =>
             {
-                (alternative.0, center, alternative.1)
+                (alternative.0, center)
             }
-            _ => (trusted.0, *predicted, trusted.1),
+            _ => (trusted.0, *predicted),
         }
     }
 
@@ -345,7 +340,6 @@ impl LocalTrajectoryBuilder {
         let predicted = self.extrapolator.extrapolate(time);
         let filtered =
             adaptive_voxel_filter(&range_data.returns, &self.options.adaptive_voxel_filter);
-        let mut match_score = None;
         let pose = match self.active.matching_submap() {
             Some(submap) => {
                 let (initial, center) = if self.options.use_correlative_scan_matching {
@@ -366,10 +360,7 @@ impl LocalTrajectoryBuilder {
                     } else {
                         &filtered[..]
                     };
-                    let (pose, center, score) =
-                        self.correlative_match(&predicted, time, correlative_points, &submap.grid);
-                    match_score = Some(score);
-                    (pose, center)
+                    self.correlative_match(&predicted, time, correlative_points, &submap.grid)
                 } else {
                     (predicted, predicted)
                 };
@@ -395,8 +386,7 @@ impl LocalTrajectoryBuilder {
         };
         self.extrapolator.add_pose(time, pose);
         self.last_pose = Some(pose);
-        let weak = match_score.is_some_and(|s| f64::from(s) < self.options.min_insertion_score);
-        if weak || self.motion_filter.is_similar(time, &pose) {
+        if self.motion_filter.is_similar(time, &pose) {
             return Some(MatchingResult {
                 time,
                 local_pose: pose,
