@@ -141,14 +141,14 @@ impl Perturbation {
                     drift_per_m: 0.2f64.to_radians(),
                     translation_noise: 0.02,
                     rotation_noise_per_m: 0.5f64.to_radians(),
-                })
+                });
             }
             "slip" => {
                 self.slips = Some(Slips {
                     every_m: (20.0, 60.0),
                     translation_m: (0.2, 0.5),
                     rotation_rad: (3f64.to_radians(), 8f64.to_radians()),
-                })
+                });
             }
             "slow" => self.min_scan_period_s = Some(0.7),
             "clutter" => {
@@ -156,7 +156,7 @@ impl Perturbation {
                     share: 0.05,
                     max_blob_beams: 4,
                     range_m: (0.3, 5.0),
-                })
+                });
             }
             "late" => self.drop_first_share = Some(0.2),
             "noise" => self.range_noise_m = Some(0.03),
@@ -385,7 +385,7 @@ mod tests {
         Recording {
             events,
             base_from_laser: Rigid2::identity(),
-            report: Default::default(),
+            report: crate::source::ReadReport::default(),
         }
     }
 
@@ -500,8 +500,8 @@ mod tests {
     fn clutter_replaces_about_its_share_of_beams_with_nearer_returns() {
         let recording = drive(100);
         let (cluttered, report) = Perturbation::parse("clutter").unwrap().apply(&recording, 5);
-        let beams = 500 * 181;
-        let share = report.beams_cluttered as f64 / beams as f64;
+        let beams = 500.0 * 181.0;
+        let share = report.beams_cluttered as f64 / beams;
         assert!((0.04..0.06).contains(&share), "clutter share {share}");
         assert!(
             scans(&cluttered)
