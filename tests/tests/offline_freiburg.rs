@@ -9,10 +9,10 @@ use mapping::geometry::Rigid2;
 use mapping::global_slam::loop_closure_precision;
 use mapping::io::relations::read_relations;
 use mapping::metrics::{relations_error, rigid_alignment};
-use mapping::sensor::{SensorEvent, Timestamp};
+use mapping::sensor::Timestamp;
 use robot_agent::offline_slam::{SlamConfig, run_offline};
 use robot_agent::perturbation::Perturbation;
-use robot_agent::source::{Recording, read_recording};
+use robot_agent::source::read_recording;
 use tests::datasets_dir;
 
 /// What one recording must reach.
@@ -103,30 +103,6 @@ fn intel_offline_run_is_accurate() -> anyhow::Result<()> {
     )
 }
 
-/// `recording` with only the scans at least `period_s` after the previous kept one; odometry untouched.
-fn thinned(recording: &Recording, period_s: f64) -> Recording {
-    let mut last: Option<Timestamp> = None;
-    let events = recording
-        .events
-        .iter()
-        .filter(|event| match event {
-            SensorEvent::Scan(scan) => {
-                let keep = last.is_none_or(|t| scan.time.seconds_since(t) >= period_s);
-                if keep {
-                    last = Some(scan.time);
-                }
-                keep
-            }
-            _ => true,
-        })
-        .cloned()
-        .collect();
-    Recording {
-        events,
-        ..recording.clone()
-    }
-}
-
 /// The trajectory of `low` against `full` at `low`'s scan times, after the rigid fit of the two: RMS
 /// and largest position error (metres).
 fn disagreement(low: &[(Timestamp, Rigid2)], full: &[(Timestamp, Rigid2)]) -> (f64, f64) {
@@ -159,7 +135,8 @@ fn csail_at_one_scan_per_second_does_not_tear() -> anyhow::Result<()> {
     let recording = read_recording(&datasets_dir().join("rosbag1/mit-csail.orig.bag"))?;
     let config = SlamConfig::default();
     let full = run_offline(&recording, &config, &mut |_| {})?;
-    let low = run_offline(&thinned(&recording, 0.7), &config, &mut |_| {})?;
+    let (slow, _) = Perturbation::parse("slow")?.apply(&recording, 1);
+    let low = run_offline(&slow, &config, &mut |_| {})?;
     assert!((480..=510).contains(&low.scans), "{} scans", low.scans);
     let (rms, max) = disagreement(&low.scan_poses, &full.scan_poses);
     eprintln!("CSAIL at 1.4 scans/s against the full rate: RMS {rms:.3} m, max {max:.3} m");
