@@ -83,6 +83,7 @@ pub fn load_config(path: Option<&Path>) -> anyhow::Result<SlamConfig> {
 /// Runs the command.
 pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
     let config = load_config(args.config.as_deref())?;
+    args.perturb.check()?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     let relations = match &args.relations {

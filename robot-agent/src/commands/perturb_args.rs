@@ -18,6 +18,14 @@ pub struct PerturbArgs {
 }
 
 impl PerturbArgs {
+    /// Refuses an unknown variant before anything is read.
+    pub fn check(&self) -> anyhow::Result<()> {
+        if let Some(names) = &self.perturb {
+            Perturbation::parse(names).context("invalid --perturb")?;
+        }
+        Ok(())
+    }
+
     /// `recording` perturbed as asked, and what was done (for the report); unchanged without `--perturb`.
     pub fn apply(&self, recording: Recording) -> anyhow::Result<(Recording, serde_json::Value)> {
         let Some(names) = &self.perturb else {

@@ -69,6 +69,7 @@ fn load_config(args: &SessionsArgs) -> anyhow::Result<SessionsConfig> {
 /// Runs the command.
 pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
     let config = load_config(args)?;
+    args.perturb.check()?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     let relations: Option<Vec<Relation>> = match &args.relations {
