@@ -7,12 +7,12 @@
 
 use mapping::geometry::Rigid2;
 use mapping::global_slam::loop_closure_precision;
-use mapping::io::relations::read_relations;
+use mapping::io::relations::{Relation, read_relations};
 use mapping::metrics::{relations_error, rigid_alignment};
 use mapping::sensor::Timestamp;
 use robot_agent::offline_slam::{SlamConfig, run_offline};
 use robot_agent::perturbation::Perturbation;
-use robot_agent::source::read_recording;
+use robot_agent::source::{Recording, read_recording};
 use tests::datasets_dir;
 
 /// What one recording must reach.
@@ -24,11 +24,17 @@ struct Bounds {
     min_closures: usize,
 }
 
-fn check(name: &str, bounds: &Bounds) -> anyhow::Result<()> {
+/// The shared recording `name` and its ground-truth relations.
+fn recording_and_relations(name: &str) -> anyhow::Result<(Recording, Vec<Relation>)> {
     let recording = read_recording(&datasets_dir().join(format!("rosbag1/{name}.orig.bag")))?;
     let relations = read_relations(std::io::BufReader::new(std::fs::File::open(
         datasets_dir().join(format!("relations/{name}.relations")),
     )?))?;
+    Ok((recording, relations))
+}
+
+fn check(name: &str, bounds: &Bounds) -> anyhow::Result<()> {
+    let (recording, relations) = recording_and_relations(name)?;
     let run = run_offline(&recording, &SlamConfig::default(), &mut |_| {})?;
     let error = relations_error(&run.scan_poses, &relations);
     let precision = loop_closure_precision(&run.global.loop_closure_checks());
@@ -148,10 +154,7 @@ fn csail_at_one_scan_per_second_does_not_tear() -> anyhow::Result<()> {
 /// One variant of the robustness suite (`scripts/robustness_suite.sh`) on `name`, seed 1: no relation may
 /// tear (over 1 m) and the mean may not pass `max_mean_m`.
 fn check_perturbed(name: &str, variant: &str, max_mean_m: f64) -> anyhow::Result<()> {
-    let recording = read_recording(&datasets_dir().join(format!("rosbag1/{name}.orig.bag")))?;
-    let relations = read_relations(std::io::BufReader::new(std::fs::File::open(
-        datasets_dir().join(format!("relations/{name}.relations")),
-    )?))?;
+    let (recording, relations) = recording_and_relations(name)?;
     let (perturbed, done) = Perturbation::parse(variant)?.apply(&recording, 1);
     let run = run_offline(&perturbed, &SlamConfig::default(), &mut |_| {})?;
     let error = relations_error(&run.scan_poses, &relations);

@@ -267,8 +267,7 @@ mod tests {
     #[test]
     fn stamps_between_poses_are_interpolated_and_those_beyond_the_trajectory_unmatched() {
         let poses = trajectory();
-        // Halfway between the poses at 0 s and 1 s: (0.5, 0.25, 0.05) on the straight path of `trajectory`
-        // in the first pose's frame (identity) only approximately; the interpolation is along the step.
+        // Halfway between the poses at 0 s and 1 s, interpolated along the step between them.
         let step = poses[0].1.inverse() * poses[1].1;
         let half = rigid2(0.5 * step.x(), 0.5 * step.y(), 0.5 * step.theta());
         let relations = vec![

@@ -83,7 +83,7 @@ pub fn load_config(path: Option<&Path>) -> anyhow::Result<SlamConfig> {
 /// Runs the command.
 pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
     let config = load_config(args.config.as_deref())?;
-    args.perturb.check()?;
+    let perturbation_asked = args.perturb.perturbation()?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     let relations = match &args.relations {
@@ -102,7 +102,7 @@ pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
     let mut perturbation = serde_json::Value::Null;
     let (run, input, read_report, read_time_s, live) = if args.ros2 {
         anyhow::ensure!(
-            args.perturb.perturb.is_none(),
+            perturbation_asked.is_none(),
             "--perturb works on recordings, not on a live robot"
         );
         let (run, live) = map_live(args, &config)?;
@@ -119,7 +119,9 @@ pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
             .as_ref()
             .context("give --input (a recording) or --ros2 (a live robot)")?;
         eprintln!("reading {}", input.display());
-        let (recording, done) = args.perturb.apply(source::read_recording(input)?)?;
+        let (recording, done) = args
+            .perturb
+            .apply(perturbation_asked.as_ref(), source::read_recording(input)?);
         perturbation = done;
         let read_time_s = start.elapsed().as_secs_f64();
         let scans = recording.report.scans;

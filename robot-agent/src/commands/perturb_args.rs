@@ -18,20 +18,25 @@ pub struct PerturbArgs {
 }
 
 impl PerturbArgs {
-    /// Refuses an unknown variant before anything is read.
-    pub fn check(&self) -> anyhow::Result<()> {
-        if let Some(names) = &self.perturb {
-            Perturbation::parse(names).context("invalid --perturb")?;
-        }
-        Ok(())
+    /// The perturbation asked for (`None` without `--perturb`); an unknown variant is refused here, so
+    /// call it before reading the recording.
+    pub fn perturbation(&self) -> anyhow::Result<Option<Perturbation>> {
+        self.perturb
+            .as_deref()
+            .map(|names| Perturbation::parse(names).context("invalid --perturb"))
+            .transpose()
     }
 
-    /// `recording` perturbed as asked, and what was done (for the report); unchanged without `--perturb`.
-    pub fn apply(&self, recording: Recording) -> anyhow::Result<(Recording, serde_json::Value)> {
-        let Some(names) = &self.perturb else {
-            return Ok((recording, serde_json::Value::Null));
+    /// `recording` perturbed by `perturbation` (from [`Self::perturbation`]), and what was done (for the
+    /// report); unchanged when there is none.
+    pub fn apply(
+        &self,
+        perturbation: Option<&Perturbation>,
+        recording: Recording,
+    ) -> (Recording, serde_json::Value) {
+        let (Some(perturbation), Some(names)) = (perturbation, &self.perturb) else {
+            return (recording, serde_json::Value::Null);
         };
-        let perturbation = Perturbation::parse(names).context("invalid --perturb")?;
         let (perturbed, report) = perturbation.apply(&recording, self.perturb_seed);
         eprintln!(
             "perturbed ({names}, seed {}): {} of {} scans kept, {} slips, {} beams cut, {} cluttered",
@@ -42,13 +47,13 @@ impl PerturbArgs {
             report.beams_cut,
             report.beams_cluttered
         );
-        Ok((
+        (
             perturbed,
             serde_json::json!({
                 "variant": names,
                 "seed": self.perturb_seed,
                 "done": report,
             }),
-        ))
+        )
     }
 }

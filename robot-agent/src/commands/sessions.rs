@@ -69,7 +69,7 @@ fn load_config(args: &SessionsArgs) -> anyhow::Result<SessionsConfig> {
 /// Runs the command.
 pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
     let config = load_config(args)?;
-    args.perturb.check()?;
+    let perturbation_asked = args.perturb.perturbation()?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     let relations: Option<Vec<Relation>> = match &args.relations {
@@ -86,7 +86,10 @@ pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
 
     let start = Instant::now();
     eprintln!("reading {}", args.input.display());
-    let (recording, perturbation) = args.perturb.apply(source::read_recording(&args.input)?)?;
+    let (recording, perturbation) = args.perturb.apply(
+        perturbation_asked.as_ref(),
+        source::read_recording(&args.input)?,
+    );
     let bar = ProgressBar::new(recording.report.scans as u64);
     bar.set_style(
         ProgressStyle::with_template(
