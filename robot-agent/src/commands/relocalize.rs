@@ -402,6 +402,7 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
         "answers_off_by_relations": tally.relations_wrong,
         "success_translation_m": SUCCESS_TRANSLATION_M,
         "success_rotation_deg": SUCCESS_ROTATION_DEG,
+        "on_observed_ground": observed_ground_summary(&results),
         "results": results,
     });
     let path = args.out.join("report.json");
@@ -414,7 +415,8 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
             "wrong": report["wrong"], "refused": report["refused"],
             "answers_checked_by_relations": report["answers_checked_by_relations"],
             "answers_off_by_relations": report["answers_off_by_relations"],
-            "median_ms": report["median_ms"], "p95_ms": report["p95_ms"]})
+            "median_ms": report["median_ms"], "p95_ms": report["p95_ms"],
+            "on_observed_ground": report["on_observed_ground"]})
     );
     Ok(())
 }
@@ -633,6 +635,39 @@ fn median(mut values: Vec<f64>) -> Option<f64> {
 }
 
 /// How the answers went: right, wrong (and how far off), refused.
+/// A sample is on observed ground when at least this share of its cloud's points, placed at the truth,
+/// fall on cells the map observed: a search can only be asked to place what the map shows.
+const OBSERVED_GROUND_SHARE: f64 = 0.8;
+
+/// Success, precision and time over the samples on observed ground (see [`OBSERVED_GROUND_SHARE`]),
+/// from the per-sample results (`answer`, `truth_known_fraction`, `ms`). Samples without a truth pose
+/// cannot be judged and are left out.
+fn observed_ground_summary(results: &[serde_json::Value]) -> serde_json::Value {
+    let observed: Vec<&serde_json::Value> = results
+        .iter()
+        .filter(|r| {
+            r["truth_known_fraction"]
+                .as_f64()
+                .is_some_and(|f| f >= OBSERVED_GROUND_SHARE)
+        })
+        .collect();
+    let count = |answer: &str| observed.iter().filter(|r| r["answer"] == answer).count();
+    let (right, wrong) = (count("right"), count("wrong"));
+    let n = observed.len();
+    let mut ms: Vec<f64> = observed.iter().filter_map(|r| r["ms"].as_f64()).collect();
+    ms.sort_by(f64::total_cmp);
+    json!({
+        "min_known_share": OBSERVED_GROUND_SHARE,
+        "samples": n,
+        "right": right,
+        "wrong": wrong,
+        "refused": n - right - wrong,
+        "success_rate": (n > 0).then(|| right as f64 / n as f64),
+        "precision": if right + wrong > 0 { right as f64 / (right + wrong) as f64 } else { 1.0 },
+        "median_ms": (!ms.is_empty()).then(|| percentile(&ms, 0.5)),
+    })
+}
+
 #[derive(Default)]
 struct Tally {
     right: usize,
@@ -710,4 +745,32 @@ fn align(pairs: &[(Rigid2, Rigid2)]) -> Rigid2 {
         .map(|(h, f)| (f.translation.vector, h.translation.vector))
         .collect();
     mapping::metrics::rigid_alignment(&positions)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_observed_ground_summary_judges_only_samples_the_map_shows() {
+        let results = [
+            json!({"answer": "right", "truth_known_fraction": 0.95, "ms": 300.0}),
+            json!({"answer": "wrong", "truth_known_fraction": 0.85, "ms": 500.0}),
+            json!({"answer": "ambiguous", "truth_known_fraction": 0.9, "ms": 900.0}),
+            // Off the map's observed ground, or with no truth: not judged here.
+            json!({"answer": "wrong", "truth_known_fraction": 0.4, "ms": 100.0}),
+            json!({"answer": "no_truth"}),
+        ];
+        let summary = observed_ground_summary(&results);
+        assert_eq!(summary["samples"], 3);
+        assert_eq!(summary["right"], 1);
+        assert_eq!(summary["wrong"], 1);
+        assert_eq!(summary["refused"], 1);
+        assert_eq!(summary["precision"], 0.5);
+        assert_eq!(summary["median_ms"], 500.0);
+        assert_eq!(
+            observed_ground_summary(&[])["success_rate"],
+            serde_json::Value::Null
+        );
+    }
 }
