@@ -8,7 +8,7 @@
 
 use serde::Serialize;
 
-use crate::geometry::{Rigid2, Rigid2Ext as _, normalize_angle};
+use crate::geometry::{Rigid2, Rigid2Ext as _, normalize_angle, rigid2};
 use crate::io::relations::Relation;
 use crate::sensor::Timestamp;
 
@@ -83,7 +83,7 @@ fn pose_at(poses: &[(Timestamp, Rigid2)], t: Timestamp) -> Option<Rigid2> {
     let f = t.seconds_since(*ta) / span;
     let step = a.inverse() * b;
     let translation = step.translation.vector * f;
-    Some(a * crate::geometry::rigid2(translation.x, translation.y, f * step.theta()))
+    Some(a * rigid2(translation.x, translation.y, f * step.theta()))
 }
 
 fn mean_std(values: &[f64]) -> (f64, f64) {
@@ -195,7 +195,6 @@ pub fn relations_error(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::geometry::rigid2;
 
     fn trajectory() -> Vec<(Timestamp, Rigid2)> {
         (0..20)

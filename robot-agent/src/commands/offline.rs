@@ -17,9 +17,9 @@ use robot_agent::line_chart::{LineChart, Series};
 use robot_agent::offline_slam::{SlamConfig, render_map, run_offline, run_slam};
 use robot_agent::ros2_publisher::{Ros2Publisher, Ros2SlamPublisher};
 use robot_agent::{map_image, process_stats, source};
+use serde_json::json;
 
 use super::perturb_args::PerturbArgs;
-use serde_json::json;
 
 /// Arguments of `offline`.
 #[derive(Args)]

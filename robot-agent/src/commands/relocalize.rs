@@ -383,7 +383,7 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
         "grow_step_s": args.grow_to_s.map(|_| args.grow_step_s),
         "samples": n,
         "success_rate": tally.right as f64 / n as f64,
-        "precision": if answered > 0 { tally.right as f64 / answered as f64 } else { 1.0 },
+        "precision": precision(tally.right, wrong_sorted.len()),
         "answered_rate": answered as f64 / n as f64,
         "right": tally.right,
         "wrong": wrong_sorted.len(),
@@ -634,7 +634,15 @@ fn median(mut values: Vec<f64>) -> Option<f64> {
     (!values.is_empty()).then(|| percentile(&values, 0.5))
 }
 
-/// How the answers went: right, wrong (and how far off), refused.
+/// The share of answers that were right (1 with no answer: nothing wrong was said).
+fn precision(right: usize, wrong: usize) -> f64 {
+    if right + wrong > 0 {
+        right as f64 / (right + wrong) as f64
+    } else {
+        1.0
+    }
+}
+
 /// A sample is on observed ground when at least this share of its cloud's points, placed at the truth,
 /// fall on cells the map observed: a search can only be asked to place what the map shows.
 const OBSERVED_GROUND_SHARE: f64 = 0.8;
@@ -663,11 +671,12 @@ fn observed_ground_summary(results: &[serde_json::Value]) -> serde_json::Value {
         "wrong": wrong,
         "refused": n - right - wrong,
         "success_rate": (n > 0).then(|| right as f64 / n as f64),
-        "precision": if right + wrong > 0 { right as f64 / (right + wrong) as f64 } else { 1.0 },
+        "precision": precision(right, wrong),
         "median_ms": (!ms.is_empty()).then(|| percentile(&ms, 0.5)),
     })
 }
 
+/// How the answers went: right, wrong (and how far off), refused.
 #[derive(Default)]
 struct Tally {
     right: usize,
