@@ -1,6 +1,7 @@
 //! Accuracy measures of SLAM results, and the scores of a lifelong run (what each session lived).
 
 mod match_score;
+mod placement_verdict;
 mod relations_metric;
 mod run_score;
 mod scoring_options;
@@ -8,7 +9,11 @@ mod session_score;
 mod trajectory_metric;
 
 pub use match_score::{MatchScorer, match_score};
-pub use relations_metric::{RelationError, RelationsErrorStats, relation_errors, relations_error};
+pub use placement_verdict::{PlacementVerdict, Verdict, judge_placements};
+pub use relations_metric::{
+    RelationError, RelationsErrorStats, pose_at, relation_error, relation_error_stats,
+    relation_errors, relations_error,
+};
 pub use run_score::{RunScore, score_run};
 pub use scoring_options::{ScoringOptions, ScoringOptionsError};
 pub use session_score::{

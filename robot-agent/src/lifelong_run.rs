@@ -28,6 +28,7 @@ use mapping::sensor::{RangeData, SensorEvent, Timestamp};
 use nalgebra::Point2;
 use serde::{Deserialize, Serialize};
 
+use crate::map_probes::{MapProbe, MapProbes};
 use crate::offline_slam::run_searches;
 use crate::process_stats::thread_cpu_ms;
 use crate::source::Recording;
@@ -272,6 +273,8 @@ pub struct SessionsRun {
     pub data_duration_s: f64,
     /// What each session that had data lived, in session order.
     pub records: Vec<SessionRecord>,
+    /// The answer to each of the run's [`MapProbe`]s, in their order.
+    pub probe_poses: Vec<Option<Rigid2>>,
 }
 
 enum Message {
@@ -296,21 +299,20 @@ enum Message {
     },
 }
 
-#[derive(Clone, Copy)]
-struct ScanAnchor {
-    time: Timestamp,
-    local_pose: Rigid2,
-    node: Option<NodeId>,
+/// A matched scan: its time, LLO's pose and the node it follows.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct ScanAnchor {
+    pub(crate) time: Timestamp,
+    pub(crate) local_pose: Rigid2,
+    pub(crate) node: Option<NodeId>,
 }
 
-/// Runs `recording` as `split` time sessions (see the module docs). `progress` gets the number of scans
-/// processed so far.
-pub fn run_sessions(
+/// Where `run_sessions` cuts `recording` into `split` sessions: the start time of each (session `k` runs
+/// from `boundaries[k]` to `boundaries[k + 1]`).
+pub fn session_boundaries(
     recording: &Recording,
     split: usize,
-    config: &SessionsConfig,
-    progress: &mut dyn FnMut(usize),
-) -> Result<SessionsRun, SessionsError> {
+) -> Result<Vec<Timestamp>, SessionsError> {
     if split == 0 {
         return Err(SessionsError::Config("split must be at least 1".into()));
     }
@@ -318,13 +320,29 @@ pub fn run_sessions(
         return Err(SessionsError::NoScans);
     };
     let data_duration_s = last.time().seconds_since(first.time());
-    let boundaries: Vec<Timestamp> = (0..split)
+    Ok((0..split)
         .map(|k| {
             first
                 .time()
                 .offset_by(data_duration_s * k as f64 / split as f64)
         })
-        .collect();
+        .collect())
+}
+
+/// Runs `recording` as `split` time sessions (see the module docs), answering `probes` on the way.
+/// `progress` gets the number of scans processed so far.
+pub fn run_sessions(
+    recording: &Recording,
+    split: usize,
+    config: &SessionsConfig,
+    probes: &[MapProbe],
+    progress: &mut dyn FnMut(usize),
+) -> Result<SessionsRun, SessionsError> {
+    let boundaries = session_boundaries(recording, split)?;
+    let data_duration_s = match (recording.events.first(), recording.events.last()) {
+        (Some(first), Some(last)) => last.time().seconds_since(first.time()),
+        _ => 0.0,
+    };
     let session_of = |t: Timestamp| boundaries.partition_point(|b| *b <= t).saturating_sub(1);
     let mut inputs: Vec<SessionInput> = (0..split)
         .map(|_| SessionInput {
@@ -335,7 +353,7 @@ pub fn run_sessions(
     for event in &recording.events {
         inputs[session_of(event.time())].events.push(event.clone());
     }
-    let mut run = run_session_inputs(inputs.into_iter(), config, progress, &mut |_| {})?;
+    let mut run = run_session_inputs(inputs.into_iter(), config, probes, progress, &mut |_| {})?;
     // Spans without data still count as sessions of the split.
     run.boundaries = boundaries;
     run.data_duration_s = data_duration_s;
@@ -344,11 +362,13 @@ pub fn run_sessions(
 
 /// Runs each of `inputs` as one session, in order, through the lifelong map (see the module docs).
 /// Sessions are pulled from the iterator one at a time, so a simulator can generate them lazily.
-/// `progress` gets the number of scans processed so far; `on_session_end` is called on the map's worker
-/// thread as each session ends (a long run can report what it measured so far).
+/// `probes` are answered on the way (see [`MapProbe`]); `progress` gets the number of scans processed so
+/// far; `on_session_end` is called on the map's worker thread as each session ends (a long run can report
+/// what it measured so far).
 pub fn run_session_inputs(
     inputs: impl Iterator<Item = SessionInput>,
     config: &SessionsConfig,
+    probes: &[MapProbe],
     progress: &mut dyn FnMut(usize),
     on_session_end: &mut (dyn FnMut(&SessionEnd<'_>) + Send),
 ) -> Result<SessionsRun, SessionsError> {
@@ -367,7 +387,13 @@ pub fn run_session_inputs(
         let worker = std::thread::Builder::new()
             .name("lifelong-map".into())
             .spawn_scoped(scope, move || {
-                worker(map, config, &receiver, on_session_end)
+                worker(
+                    map,
+                    config,
+                    MapProbes::new(probes),
+                    &receiver,
+                    on_session_end,
+                )
             })
             .map_err(|e| SessionsError::Worker(e.to_string()))?;
 
@@ -474,6 +500,7 @@ pub fn run_session_inputs(
             mut sessions,
             retired,
             records,
+            probe_poses,
         } = output;
 
         // Last known global pose of every node: the final map, else its pose when it was trimmed.
@@ -508,6 +535,7 @@ pub fn run_session_inputs(
             node_range_data,
             data_duration_s,
             records,
+            probe_poses,
         })
     })
 }
@@ -527,6 +555,7 @@ struct WorkerOutput {
     /// Every node's pose when the last session that saw it in the map ended.
     retired: BTreeMap<NodeId, Rigid2>,
     records: Vec<SessionRecord>,
+    probe_poses: Vec<Option<Rigid2>>,
 }
 
 /// `map_from_base` of each scan whose node has a pose in `node_poses`: the node's pose composed with
@@ -550,6 +579,7 @@ fn poses_of_scans(
 fn worker(
     mut map: LifelongMap,
     config: &SessionsConfig,
+    mut probes: MapProbes,
     receiver: &mpsc::Receiver<Message>,
     on_session_end: &mut (dyn FnMut(&SessionEnd<'_>) + Send),
 ) -> Result<WorkerOutput, SessionsError> {
@@ -614,6 +644,8 @@ fn worker(
                 insertion_submaps,
                 finished_submaps,
             } => {
+                // The scans before this node were estimated from the map as it stands now.
+                probes.answer_before(time, |id| map.global().node_pose(id));
                 let scored_points = (session > 0).then(|| points.clone());
                 let start_points = start.as_ref().map(|_| points.clone());
                 let (id, events) = map.add_node(
@@ -714,6 +746,10 @@ fn worker(
                 active_submaps,
                 scans,
             } => {
+                if let Some(last) = scans.last() {
+                    probes
+                        .answer_before(Timestamp(last.time.0 + 1), |id| map.global().node_pose(id));
+                }
                 map.finish_submaps(session, active_submaps)?;
                 let jobs = map.take_search_jobs();
                 let results = run_searches(map.constraint_builder(), &jobs);
@@ -795,6 +831,7 @@ fn worker(
                     summary.relocalization_offset_m = offset;
                     summary.peak_rss_mb = crate::process_stats::peak_rss_mb();
                 }
+                probes.add_ended_session(&scans, &node_local);
                 if let (Some(summary), Some(record)) = (sessions.last(), records.last_mut()) {
                     record.online = poses_of_scans(&scans, &node_local, &online_nodes);
                     record.smoothed = poses_of_scans(&scans, &node_local, &at_session_end);
@@ -813,6 +850,7 @@ fn worker(
         sessions,
         retired,
         records,
+        probe_poses: probes.into_answers(),
     })
 }
 

@@ -34,6 +34,7 @@ fn later_sessions_relocalize_and_localize_in_the_session_zero_frame() {
     let run = run_session_inputs(
         inputs,
         &SessionsConfig::default(),
+        &[],
         &mut |_| {},
         &mut |end| {
             ended.push(end.summary.session);

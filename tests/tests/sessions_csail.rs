@@ -14,7 +14,7 @@ fn csail_in_two_sessions_localizes_across_sessions() -> anyhow::Result<()> {
     let relations = read_relations(std::io::BufReader::new(std::fs::File::open(
         datasets_dir().join("relations/mit-csail.relations"),
     )?))?;
-    let run = run_sessions(&recording, 2, &SessionsConfig::default(), &mut |_| {})?;
+    let run = run_sessions(&recording, 2, &SessionsConfig::default(), &[], &mut |_| {})?;
     let session_of = |t| run.boundaries.partition_point(|b| *b <= t);
     let cross: Vec<_> = relations
         .iter()

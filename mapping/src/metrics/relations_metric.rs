@@ -62,7 +62,7 @@ pub struct RelationsErrorStats {
 /// The estimated pose at `t`: the nearest one within [`MAX_TIME_GAP_S`], as the benchmark's tool takes
 /// it; where there is none (scans dropped, a slow scanner), the pose interpolated between the estimates
 /// just before and after `t` if they are at most [`MAX_INTERPOLATION_SPAN_S`] apart.
-fn pose_at(poses: &[(Timestamp, Rigid2)], t: Timestamp) -> Option<Rigid2> {
+pub fn pose_at(poses: &[(Timestamp, Rigid2)], t: Timestamp) -> Option<Rigid2> {
     let i = poses.partition_point(|(s, _)| *s < t);
     let candidates = [i.checked_sub(1), Some(i)];
     let nearest = candidates
@@ -96,7 +96,7 @@ fn mean_std(values: &[f64]) -> (f64, f64) {
     (mean, var.sqrt())
 }
 
-fn median(values: &[f64]) -> f64 {
+pub(crate) fn median(values: &[f64]) -> f64 {
     if values.is_empty() {
         return 0.0;
     }
@@ -133,28 +133,33 @@ pub fn relation_errors(
     relations
         .iter()
         .filter_map(|r| {
-            let (a, b) = (pose_at(poses, r.t1)?, pose_at(poses, r.t2)?);
-            let estimate = a.inverse() * b;
-            let dx = estimate.x() - r.delta.x();
-            let dy = estimate.y() - r.delta.y();
-            let dth = normalize_angle(estimate.theta() - r.delta.theta());
-            Some(RelationError {
-                t1: r.t1,
-                t2: r.t2,
-                trans_m: dx.hypot(dy),
-                rot_deg: dth.abs().to_degrees(),
-            })
+            Some(relation_error(
+                r,
+                &pose_at(poses, r.t1)?,
+                &pose_at(poses, r.t2)?,
+            ))
         })
         .collect()
 }
 
-/// Scores a trajectory (sorted by time) against reference relations.
-pub fn relations_error(
-    poses: &[(Timestamp, Rigid2)],
-    relations: &[Relation],
-) -> RelationsErrorStats {
-    let errors = relation_errors(poses, relations);
-    let unmatched = relations.len() - errors.len();
+/// The error of one relation given the estimated poses at its two stamps (`at_t1`, `at_t2`, in one
+/// frame).
+pub fn relation_error(relation: &Relation, at_t1: &Rigid2, at_t2: &Rigid2) -> RelationError {
+    let estimate = at_t1.inverse() * at_t2;
+    let dx = estimate.x() - relation.delta.x();
+    let dy = estimate.y() - relation.delta.y();
+    let dth = normalize_angle(estimate.theta() - relation.delta.theta());
+    RelationError {
+        t1: relation.t1,
+        t2: relation.t2,
+        trans_m: dx.hypot(dy),
+        rot_deg: dth.abs().to_degrees(),
+    }
+}
+
+/// Statistics of relation errors computed elsewhere (see [`relations_error`]); `unmatched` is the
+/// number of relations that had no error.
+pub fn relation_error_stats(errors: &[RelationError], unmatched: usize) -> RelationsErrorStats {
     let trans: Vec<f64> = errors.iter().map(|e| e.trans_m).collect();
     let rot: Vec<f64> = errors.iter().map(|e| e.rot_deg).collect();
     let torn = errors
@@ -190,6 +195,15 @@ pub fn relations_error(
             torn as f64 / trans.len() as f64
         },
     }
+}
+
+/// Scores a trajectory (sorted by time) against reference relations.
+pub fn relations_error(
+    poses: &[(Timestamp, Rigid2)],
+    relations: &[Relation],
+) -> RelationsErrorStats {
+    let errors = relation_errors(poses, relations);
+    relation_error_stats(&errors, relations.len() - errors.len())
 }
 
 #[cfg(test)]

@@ -410,6 +410,7 @@ pub fn run(args: &LifelongArgs) -> anyhow::Result<()> {
     let run = run_session_inputs(
         inputs,
         &config,
+        &[],
         &mut |done| {
             bar.set_position(done as u64);
         },

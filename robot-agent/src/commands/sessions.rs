@@ -1,10 +1,16 @@
 //! `evermap-agent sessions`: one recording run as several time sessions through the lifelong map,
-//! scored over the relations whose two stamps fall in different sessions, and over all: once with the
-//! final map's trajectory, once with the estimate the robot had at the time of each scan (what it would
-//! have navigated with; scans before a session was placed have none and leave their relations
-//! unmatched). Per session, the AMS over every node against the map as it was at the session's start
-//! and when the session committed to its placement (`mapping::metrics`, as `lifelong` scores them;
-//! there is no pose truth here, so no MRCL or placement error).
+//! scored over the relations whose two stamps fall in different sessions, and over all.
+//!
+//! - `relations_cross_session`: the final map's trajectory (smoothed after the fact).
+//! - `relations_cross_session_at_the_time`: each such relation as the robot lived it, its later scan's
+//!   estimate at that scan against the earlier scan's pose in the map as the map stood at that moment
+//!   (the map the robot was placed on; see `mapping::metrics::judge_placements`). Scans before a session
+//!   was placed have no estimate and leave their relations unmatched.
+//! - Per session: every placement the robot acted on, judged right or wrong by the median of those
+//!   relations while it held (0.5 m or 5°, `scoring.wrong_placement`), when the session was placed and
+//!   committed, why each refused search refused, and the AMS over every node against the map as it was
+//!   at the session's start (`mapping::metrics`, as `lifelong` scores them; there is no pose truth here,
+//!   so no MRCL).
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -15,9 +21,13 @@ use indicatif::{ProgressBar, ProgressStyle};
 use mapping::geometry::Rigid2;
 use mapping::io::relations::{Relation, read_relations};
 use mapping::lifelong::TrimPolicy;
-use mapping::metrics::{average_match_score, relations_error};
+use mapping::metrics::{
+    RelationError, Verdict, average_match_score, judge_placements, pose_at, relation_error,
+    relation_error_stats, relations_error,
+};
 use mapping::sensor::Timestamp;
-use robot_agent::lifelong_run::{SessionsConfig, run_sessions};
+use robot_agent::lifelong_run::{SessionsConfig, run_sessions, session_boundaries};
+use robot_agent::map_probes::MapProbe;
 use robot_agent::offline_slam::render_range_data;
 use robot_agent::{map_image, process_stats, source};
 use serde_json::json;
@@ -97,7 +107,28 @@ pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
         )
         .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
-    let run = run_sessions(&recording, args.split, &config, &mut |done| {
+    // Relations tying a scan of one session to a scan of another: each asks where the map held the
+    // earlier scan when the robot estimated the later one.
+    let boundaries = session_boundaries(&recording, args.split)?;
+    let session_of = |t: Timestamp| boundaries.partition_point(|b| *b <= t);
+    let cross: Vec<Relation> = relations
+        .iter()
+        .flatten()
+        .filter(|r| session_of(r.t1) != session_of(r.t2))
+        .cloned()
+        .collect();
+    let probes: Vec<MapProbe> = cross
+        .iter()
+        .map(|r| {
+            let (earlier, later) = if session_of(r.t1) < session_of(r.t2) {
+                (r.t1, r.t2)
+            } else {
+                (r.t2, r.t1)
+            };
+            MapProbe { earlier, later }
+        })
+        .collect();
+    let run = run_sessions(&recording, args.split, &config, &probes, &mut |done| {
         bar.set_position(done as u64);
     })?;
     bar.finish_and_clear();
@@ -117,38 +148,77 @@ pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
     let (w, h, pixels) = map_image::grid_to_gray(&map);
     map_image::write_gray_png(&args.out.join("map.png"), w, h, &pixels)?;
 
-    let session_of = |t: Timestamp| run.boundaries.partition_point(|b| *b <= t);
     let mut online: Vec<(Timestamp, Rigid2)> = run
         .records
         .iter()
         .flat_map(|r| r.online.iter().copied())
         .collect();
     online.sort_by_key(|(t, _)| *t);
-    let (all, cross, cross_online) = match &relations {
-        Some(relations) => {
-            let cross: Vec<Relation> = relations
-                .iter()
-                .filter(|r| session_of(r.t1) != session_of(r.t2))
-                .cloned()
-                .collect();
-            (
-                Some(relations_error(&run.scan_poses, relations)),
-                Some(relations_error(&run.scan_poses, &cross)),
-                Some(relations_error(&online, &cross)),
-            )
-        }
+    // Each cross-session relation at the time: the robot's estimate of its later scan against the map's
+    // pose of its earlier scan at that moment.
+    let at_the_time: Vec<RelationError> = cross
+        .iter()
+        .zip(&probes)
+        .zip(&run.probe_poses)
+        .filter_map(|((relation, probe), earlier)| {
+            let earlier = (*earlier)?;
+            let later = pose_at(&online, probe.later)?;
+            Some(if probe.earlier == relation.t1 {
+                relation_error(relation, &earlier, &later)
+            } else {
+                relation_error(relation, &later, &earlier)
+            })
+        })
+        .collect();
+    let (all, cross_smoothed, cross_online) = match &relations {
+        Some(relations) => (
+            Some(relations_error(&run.scan_poses, relations)),
+            Some(relations_error(&run.scan_poses, &cross)),
+            Some(relation_error_stats(
+                &at_the_time,
+                cross.len() - at_the_time.len(),
+            )),
+        ),
         None => (None, None, None),
     };
+    let mut verdict_counts = [0usize; 3];
     let scores: Vec<_> = run
         .records
         .iter()
         .map(|r| {
+            let summary = run.sessions.iter().find(|s| s.session == r.session);
+            let verdicts = relations.as_ref().map(|_| {
+                let errors: Vec<RelationError> = at_the_time
+                    .iter()
+                    .filter(|e| session_of(e.t1.max(e.t2)) == r.session as usize + 1)
+                    .copied()
+                    .collect();
+                judge_placements(&r.placements, &errors, config.scoring.wrong_placement)
+            });
+            for v in verdicts.iter().flatten() {
+                verdict_counts[match v.verdict {
+                    Verdict::Right => 0,
+                    Verdict::Wrong => 1,
+                    Verdict::Unjudged => 2,
+                }] += 1;
+            }
+            let refusals: Vec<&str> = summary
+                .map(|s| {
+                    s.searches
+                        .iter()
+                        .map(|f| f.outcome)
+                        .filter(|o| *o != "placed")
+                        .collect()
+                })
+                .unwrap_or_default();
             json!({
                 "session": r.session,
                 "ams": average_match_score(&r.match_scores),
                 "scored_nodes": r.match_scores.len(),
                 "placed_after_s": r.placements.first().map(|p| p.decided_at.seconds_since(r.start_time)),
                 "committed_after_s": r.committed.map(|p| p.decided_at.seconds_since(r.start_time)),
+                "placements": verdicts,
+                "refused_searches": refusals,
                 "scans_localized_at_the_time": r.online.len(),
             })
         })
@@ -163,9 +233,12 @@ pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
         "wall_time_s": wall_time_s,
         "realtime_factor": if wall_time_s > 0.0 { run.data_duration_s / wall_time_s } else { 0.0 },
         "relations_all": all,
-        "relations_cross_session": cross,
+        "relations_cross_session": cross_smoothed,
         "relations_cross_session_at_the_time": cross_online,
         "session_scores": scores,
+        "placements_right": verdict_counts[0],
+        "placements_wrong": verdict_counts[1],
+        "placements_unjudged": verdict_counts[2],
         "scan_poses": run.scan_poses.len(),
         "final": counts,
         "sessions": run.sessions,
@@ -178,6 +251,8 @@ pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
         "{}",
         json!({"relations_all": report["relations_all"], "relations_cross_session": report["relations_cross_session"],
                "relations_cross_session_at_the_time": report["relations_cross_session_at_the_time"],
+               "placements_right": verdict_counts[0], "placements_wrong": verdict_counts[1],
+               "placements_unjudged": verdict_counts[2],
                "wall_time_s": wall_time_s, "final": counts})
     );
     Ok(())
