@@ -9,7 +9,9 @@ mod session_score;
 mod trajectory_metric;
 
 pub use match_score::{MatchScorer, match_score};
-pub use placement_verdict::{PlacementVerdict, Verdict, judge_placements};
+pub use placement_verdict::{
+    PLACEMENT_WINDOW_S, PlacementVerdict, SpanVerdict, Verdict, judge_placements,
+};
 pub use relations_metric::{
     RelationError, RelationsErrorStats, pose_at, relation_error, relation_error_stats,
     relation_errors, relations_error,

@@ -6,7 +6,8 @@
 use std::collections::BTreeMap;
 
 use mapping::geometry::Rigid2;
-use mapping::metrics::pose_at;
+use mapping::io::relations::Relation;
+use mapping::metrics::{RelationError, pose_at, relation_error};
 use mapping::pose_graph::NodeId;
 use mapping::sensor::Timestamp;
 
@@ -21,6 +22,52 @@ pub struct MapProbe {
     pub earlier: Timestamp,
     /// A scan of a later session.
     pub later: Timestamp,
+}
+
+/// The relations whose two stamps fall in different sessions (`boundaries`: each session's start time),
+/// with the probe each asks: where the map held its earlier scan when the robot estimated its later one.
+pub fn cross_session_probes(
+    relations: &[Relation],
+    boundaries: &[Timestamp],
+) -> (Vec<Relation>, Vec<MapProbe>) {
+    let session_of = |t: Timestamp| boundaries.partition_point(|b| *b <= t);
+    relations
+        .iter()
+        .filter(|r| session_of(r.t1) != session_of(r.t2))
+        .map(|r| {
+            let (earlier, later) = if session_of(r.t1) < session_of(r.t2) {
+                (r.t1, r.t2)
+            } else {
+                (r.t2, r.t1)
+            };
+            (r.clone(), MapProbe { earlier, later })
+        })
+        .unzip()
+}
+
+/// Each relation's error as the robot lived it: its later scan's estimate at the time (`online`,
+/// time-ordered `map_from_base`) against `answers`, the map's pose of its earlier scan at that moment
+/// (the run's answers to `probes`). Relations without either pose are left out.
+pub fn relation_errors_at_the_time(
+    relations: &[Relation],
+    probes: &[MapProbe],
+    answers: &[Option<Rigid2>],
+    online: &[(Timestamp, Rigid2)],
+) -> Vec<RelationError> {
+    relations
+        .iter()
+        .zip(probes)
+        .zip(answers)
+        .filter_map(|((relation, probe), earlier)| {
+            let earlier = (*earlier)?;
+            let later = pose_at(online, probe.later)?;
+            Some(if probe.earlier == relation.t1 {
+                relation_error(relation, &earlier, &later)
+            } else {
+                relation_error(relation, &later, &earlier)
+            })
+        })
+        .collect()
 }
 
 /// Answers [`MapProbe`]s as a run goes: the map's worker calls [`Self::answer_before`] before it takes

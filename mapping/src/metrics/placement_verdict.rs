@@ -8,7 +8,8 @@
 //! a wrong placement from an early map.) A placement the robot acted on, from the scan that decided it
 //! until the next placement, is wrong when the median error of its relations exceeds
 //! [`ScoringOptions::wrong_placement`](super::ScoringOptions) (0.5 m or 5° by default): the robot would
-//! have navigated in the wrong place.
+//! have navigated in the wrong place. It is judged twice: over its first minute (was the robot placed
+//! right?) and over the whole time it held (did it stay right?).
 
 use serde::Serialize;
 
@@ -28,12 +29,15 @@ pub enum Verdict {
     Unjudged,
 }
 
-/// One placement the robot acted on, judged.
+/// How long after its decision a placement is judged as a placement (seconds): the relations of this
+/// first minute say whether the robot was put in the right place; those of the whole time it held say
+/// whether it stayed localized (a session whose own trajectory tears later is wrong there, not here).
+pub const PLACEMENT_WINDOW_S: f64 = 60.0;
+
+/// The relations' judgement over one span of time.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
-pub struct PlacementVerdict {
-    /// The scan time that decided the placement.
-    pub decided_at: Timestamp,
-    /// Relations whose later scan fell while the placement was in effect.
+pub struct SpanVerdict {
+    /// Relations whose later scan fell in the span.
     pub relations: usize,
     /// Their median translation error at the time, metres (`None` without relations).
     pub median_trans_m: Option<f64>,
@@ -41,6 +45,44 @@ pub struct PlacementVerdict {
     pub median_rot_deg: Option<f64>,
     /// Right, wrong, or unjudged.
     pub verdict: Verdict,
+}
+
+/// One placement the robot acted on, judged.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct PlacementVerdict {
+    /// The scan time that decided the placement.
+    pub decided_at: Timestamp,
+    /// Over the first [`PLACEMENT_WINDOW_S`] it held: was the robot placed right?
+    pub placed: SpanVerdict,
+    /// Over the whole time it held, until the next placement or the session's end: did the robot
+    /// stay right?
+    pub held: SpanVerdict,
+}
+
+fn judge_span<'a>(
+    errors: impl Iterator<Item = &'a RelationError>,
+    wrong: PoseTolerance,
+) -> SpanVerdict {
+    let (trans, rot): (Vec<f64>, Vec<f64>) = errors.map(|e| (e.trans_m, e.rot_deg)).unzip();
+    if trans.is_empty() {
+        return SpanVerdict {
+            relations: 0,
+            median_trans_m: None,
+            median_rot_deg: None,
+            verdict: Verdict::Unjudged,
+        };
+    }
+    let (t, r) = (median(&trans), median(&rot));
+    SpanVerdict {
+        relations: trans.len(),
+        median_trans_m: Some(t),
+        median_rot_deg: Some(r),
+        verdict: if t > wrong.translation_m || r > wrong.rotation_deg {
+            Verdict::Wrong
+        } else {
+            Verdict::Right
+        },
+    }
 }
 
 /// Judges each of `placements` (in the order they were decided) by the relation errors at the time
@@ -62,25 +104,13 @@ pub fn judge_placements(
                     later >= placement.decided_at && until.is_none_or(|u| later < u)
                 })
                 .collect();
-            let trans: Vec<f64> = in_effect.iter().map(|e| e.trans_m).collect();
-            let rot: Vec<f64> = in_effect.iter().map(|e| e.rot_deg).collect();
-            let (median_trans_m, median_rot_deg, verdict) = if in_effect.is_empty() {
-                (None, None, Verdict::Unjudged)
-            } else {
-                let (t, r) = (median(&trans), median(&rot));
-                let verdict = if t > wrong.translation_m || r > wrong.rotation_deg {
-                    Verdict::Wrong
-                } else {
-                    Verdict::Right
-                };
-                (Some(t), Some(r), verdict)
-            };
+            let first_window = in_effect.iter().copied().filter(|e| {
+                e.t1.max(e.t2).seconds_since(placement.decided_at) <= PLACEMENT_WINDOW_S
+            });
             PlacementVerdict {
                 decided_at: placement.decided_at,
-                relations: in_effect.len(),
-                median_trans_m,
-                median_rot_deg,
-                verdict,
+                placed: judge_span(first_window, wrong),
+                held: judge_span(in_effect.iter().copied(), wrong),
             }
         })
         .collect()
@@ -134,17 +164,33 @@ mod tests {
             error(1.0, 5.0, 9.0, 9.0),
         ];
         let verdicts = judge_placements(&placements, &errors, tolerance);
-        let kinds: Vec<Verdict> = verdicts.iter().map(|v| v.verdict).collect();
+        let kinds: Vec<Verdict> = verdicts.iter().map(|v| v.held.verdict).collect();
         assert_eq!(
             kinds,
             [Verdict::Wrong, Verdict::Right, Verdict::Unjudged],
             "{verdicts:?}"
         );
-        assert_eq!(verdicts[0].relations, 3);
-        assert_eq!(verdicts[0].median_trans_m, Some(2.9));
-        assert_eq!(verdicts[1].relations, 3);
-        assert_eq!(verdicts[1].median_rot_deg, Some(0.4));
-        assert_eq!(verdicts[2].median_trans_m, None);
+        assert_eq!(verdicts[0].held.relations, 3);
+        assert_eq!(verdicts[0].held.median_trans_m, Some(2.9));
+        assert_eq!(verdicts[1].held.relations, 3);
+        assert_eq!(verdicts[1].held.median_rot_deg, Some(0.4));
+        assert_eq!(verdicts[2].held.median_trans_m, None);
+        // All within a minute of their placements: the same judgement.
+        assert_eq!(verdicts[0].placed, verdicts[0].held);
+    }
+
+    #[test]
+    fn a_session_placed_right_that_tears_later_is_placed_right_and_held_wrong() {
+        let tolerance = PoseTolerance {
+            translation_m: 0.5,
+            rotation_deg: 5.0,
+        };
+        let mut errors = vec![error(1.0, 30.0, 0.03, 0.2), error(2.0, 50.0, 0.04, 0.3)];
+        // Its own trajectory tears after 5 minutes.
+        errors.extend((0..5).map(|k| error(3.0, 300.0 + f64::from(k), 4.0, 10.0)));
+        let verdicts = judge_placements(&[placement(10.0)], &errors, tolerance);
+        assert_eq!(verdicts[0].placed.verdict, Verdict::Right, "{verdicts:?}");
+        assert_eq!(verdicts[0].held.verdict, Verdict::Wrong, "{verdicts:?}");
     }
 
     #[test]
@@ -157,6 +203,6 @@ mod tests {
                 rotation_deg: 5.0,
             },
         );
-        assert_eq!(verdicts[0].verdict, Verdict::Wrong);
+        assert_eq!(verdicts[0].held.verdict, Verdict::Wrong);
     }
 }

@@ -22,12 +22,12 @@ use mapping::geometry::Rigid2;
 use mapping::io::relations::{Relation, read_relations};
 use mapping::lifelong::TrimPolicy;
 use mapping::metrics::{
-    RelationError, Verdict, average_match_score, judge_placements, pose_at, relation_error,
-    relation_error_stats, relations_error,
+    RelationError, Verdict, average_match_score, judge_placements, relation_error_stats,
+    relations_error,
 };
 use mapping::sensor::Timestamp;
 use robot_agent::lifelong_run::{SessionsConfig, run_sessions, session_boundaries};
-use robot_agent::map_probes::MapProbe;
+use robot_agent::map_probes::{cross_session_probes, relation_errors_at_the_time};
 use robot_agent::offline_slam::render_range_data;
 use robot_agent::{map_image, process_stats, source};
 use serde_json::json;
@@ -111,23 +111,8 @@ pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
     // earlier scan when the robot estimated the later one.
     let boundaries = session_boundaries(&recording, args.split)?;
     let session_of = |t: Timestamp| boundaries.partition_point(|b| *b <= t);
-    let cross: Vec<Relation> = relations
-        .iter()
-        .flatten()
-        .filter(|r| session_of(r.t1) != session_of(r.t2))
-        .cloned()
-        .collect();
-    let probes: Vec<MapProbe> = cross
-        .iter()
-        .map(|r| {
-            let (earlier, later) = if session_of(r.t1) < session_of(r.t2) {
-                (r.t1, r.t2)
-            } else {
-                (r.t2, r.t1)
-            };
-            MapProbe { earlier, later }
-        })
-        .collect();
+    let (cross, probes) =
+        cross_session_probes(relations.as_deref().unwrap_or_default(), &boundaries);
     let run = run_sessions(&recording, args.split, &config, &probes, &mut |done| {
         bar.set_position(done as u64);
     })?;
@@ -154,22 +139,7 @@ pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
         .flat_map(|r| r.online.iter().copied())
         .collect();
     online.sort_by_key(|(t, _)| *t);
-    // Each cross-session relation at the time: the robot's estimate of its later scan against the map's
-    // pose of its earlier scan at that moment.
-    let at_the_time: Vec<RelationError> = cross
-        .iter()
-        .zip(&probes)
-        .zip(&run.probe_poses)
-        .filter_map(|((relation, probe), earlier)| {
-            let earlier = (*earlier)?;
-            let later = pose_at(&online, probe.later)?;
-            Some(if probe.earlier == relation.t1 {
-                relation_error(relation, &earlier, &later)
-            } else {
-                relation_error(relation, &later, &earlier)
-            })
-        })
-        .collect();
+    let at_the_time = relation_errors_at_the_time(&cross, &probes, &run.probe_poses, &online);
     let (all, cross_smoothed, cross_online) = match &relations {
         Some(relations) => (
             Some(relations_error(&run.scan_poses, relations)),
@@ -181,7 +151,13 @@ pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
         ),
         None => (None, None, None),
     };
-    let mut verdict_counts = [0usize; 3];
+    // Placements placed right / wrong / unjudged, and held right / wrong / unjudged.
+    let mut verdict_counts = [[0usize; 3]; 2];
+    let index = |v: Verdict| match v {
+        Verdict::Right => 0,
+        Verdict::Wrong => 1,
+        Verdict::Unjudged => 2,
+    };
     let scores: Vec<_> = run
         .records
         .iter()
@@ -196,11 +172,8 @@ pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
                 judge_placements(&r.placements, &errors, config.scoring.wrong_placement)
             });
             for v in verdicts.iter().flatten() {
-                verdict_counts[match v.verdict {
-                    Verdict::Right => 0,
-                    Verdict::Wrong => 1,
-                    Verdict::Unjudged => 2,
-                }] += 1;
+                verdict_counts[0][index(v.placed.verdict)] += 1;
+                verdict_counts[1][index(v.held.verdict)] += 1;
             }
             let refusals: Vec<&str> = summary
                 .map(|s| {
@@ -223,6 +196,10 @@ pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
             })
         })
         .collect();
+    let placement_counts = json!({
+        "placed": {"right": verdict_counts[0][0], "wrong": verdict_counts[0][1], "unjudged": verdict_counts[0][2]},
+        "held": {"right": verdict_counts[1][0], "wrong": verdict_counts[1][1], "unjudged": verdict_counts[1][2]},
+    });
     let counts = run.map.counts();
     let report = json!({
         "input": args.input.display().to_string(),
@@ -236,9 +213,7 @@ pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
         "relations_cross_session": cross_smoothed,
         "relations_cross_session_at_the_time": cross_online,
         "session_scores": scores,
-        "placements_right": verdict_counts[0],
-        "placements_wrong": verdict_counts[1],
-        "placements_unjudged": verdict_counts[2],
+        "placements": placement_counts,
         "scan_poses": run.scan_poses.len(),
         "final": counts,
         "sessions": run.sessions,
@@ -251,8 +226,7 @@ pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
         "{}",
         json!({"relations_all": report["relations_all"], "relations_cross_session": report["relations_cross_session"],
                "relations_cross_session_at_the_time": report["relations_cross_session_at_the_time"],
-               "placements_right": verdict_counts[0], "placements_wrong": verdict_counts[1],
-               "placements_unjudged": verdict_counts[2],
+               "placements": placement_counts,
                "wall_time_s": wall_time_s, "final": counts})
     );
     Ok(())
