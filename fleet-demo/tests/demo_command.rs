@@ -1,6 +1,7 @@
 //! `evermap-demo demo` end to end on a small budget: the server on sled, two robots over loopback zenoh
 //! (the default) or gRPC, a short mapping session and one cleaning session each. Bounded by the demo's own timeouts (every wait
-//! in it is capped) and by nextest's slow-test timeout.
+//! in it is capped) and by nextest's slow-test timeout (`.config/nextest.toml`: terminated after 20
+//! minutes).
 
 use std::process::Command;
 

@@ -30,7 +30,6 @@
 
 use std::collections::BTreeMap;
 use std::fs::File;
-use std::net::TcpListener;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, ExitStatus};
 use std::sync::{Arc, Mutex};
@@ -47,6 +46,7 @@ use robot_agent::source::{ReadReport, Recording, read_recording, write_bag};
 use robot_agent::uplink::{SessionOptions, run_llo};
 use server::site::SiteMap;
 use storage::{MapStore as _, RecordKind, SledStore, SledStoreOptions};
+use test_support::{datasets_dir, free_port};
 use tonic::transport::{Channel, Endpoint};
 
 const SITE: &str = "store-k9";
@@ -65,16 +65,6 @@ fn env_or<T: std::str::FromStr>(name: &str, default: T) -> T {
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(default)
-}
-
-fn datasets_dir() -> PathBuf {
-    let manifest = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
-    manifest
-        .ancestors()
-        .skip(1)
-        .map(|dir| dir.join("shared/datasets"))
-        .find(|dir| dir.is_dir())
-        .unwrap_or_else(|| manifest.join("../../shared/datasets"))
 }
 
 /// A binary of another crate of the workspace (`evermap-server`, `evermap-agent`), built beside this
@@ -97,13 +87,6 @@ fn agent_binary() -> PathBuf {
 /// `s` seconds (finite and non-negative here).
 fn seconds(s: f64) -> Duration {
     Duration::try_from_secs_f64(s).expect("a duration")
-}
-
-fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .expect("a free port")
-        .port()
 }
 
 /// Scans `from..from + scans` of `recording` with the odometry between them.

@@ -8,14 +8,7 @@ use robot_agent::source::{SourceError, read_recording};
 /// `../shared/datasets/<rel>` next to the repository root, found by walking up (the main checkout and
 /// worktrees sit at different depths).
 fn dataset(rel: &str) -> PathBuf {
-    let manifest = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
-    manifest
-        .ancestors()
-        .skip(1)
-        .map(|dir| dir.join("shared/datasets"))
-        .find(|dir| dir.is_dir())
-        .unwrap_or_else(|| manifest.join("../../shared/datasets"))
-        .join(rel)
+    test_support::datasets_dir().join(rel)
 }
 
 #[test]

@@ -22,6 +22,7 @@ use robot_agent::offline_slam::{SlamConfig, run_offline, run_slam};
 use robot_agent::ros2_publisher::{Ros2Publisher, Ros2PublisherOptions, Ros2SlamPublisher};
 use robot_agent::source::{LiveRos2Source, Recording, Ros2LiveOptions, StreamEnd, read_recording};
 use robot_agent::uplink::ZenohLinkOptions;
+use test_support::free_port;
 
 /// Seconds of the recording replayed, and how much faster than real time.
 const EXCERPT_S: f64 = 30.0;
@@ -33,14 +34,7 @@ fn workspace() -> PathBuf {
 
 /// `../shared/datasets/<rel>` next to the repository root (worktrees sit at other depths).
 fn dataset(rel: &str) -> PathBuf {
-    let manifest = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
-    manifest
-        .ancestors()
-        .skip(1)
-        .map(|dir| dir.join("shared/datasets"))
-        .find(|dir| dir.is_dir())
-        .unwrap_or_else(|| manifest.join("../../shared/datasets"))
-        .join(rel)
+    test_support::datasets_dir().join(rel)
 }
 
 fn python() -> PathBuf {
@@ -69,14 +63,6 @@ fn python() -> PathBuf {
         path.display()
     );
     path
-}
-
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
 }
 
 /// The events of `recording` stamped no later than `until` (the file run on the live excerpt).

@@ -417,13 +417,7 @@ EDGE2 3 0 1.05 0 1.5707963 10 0 10 10 0 0
 
     #[test]
     fn robust_loop_closures_ignore_a_hundred_false_ones() {
-        // `../shared/datasets` beside the repository root, found by walking up from this crate.
-        let manifest = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
-        let input = manifest
-            .ancestors()
-            .map(|dir| dir.join("shared/datasets/posegraphs/intel_sesync1728.g2o"))
-            .find(|path| path.is_file())
-            .expect("../shared/datasets beside the repository");
+        let input = test_support::datasets_dir().join("posegraphs/intel_sesync1728.g2o");
         let report = execute(&OptimizeArgs {
             add_outliers: 90,
             outlier_groups: 1,

@@ -18,6 +18,7 @@ use robot_agent::uplink::{GrpcUplink, MapUplink as _, UplinkError, ZenohLinkOpti
 use server::grpc::AuthLimitOptions;
 use server::{RobotConfig, RunningServer, ServerConfig, SiteConfig};
 use storage::MemStore;
+use tests::free_port;
 
 const TOKEN_A: &str = "secret-token-of-site-a-robot-1";
 const TOKEN_B: &str = "secret-token-of-site-b-robot-1";
@@ -186,11 +187,4 @@ async fn tokens_stay_out_of_the_logs_and_guessing_costs_the_guesser() {
     for token in [TOKEN_A, TOKEN_B, WRONG] {
         assert!(!text.contains(token), "token {token:?} was logged:\n{text}");
     }
-}
-
-/// A loopback port free right now, for the zenoh endpoint.
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .map_or(0, |a| a.port())
 }

@@ -621,16 +621,9 @@ mod tests {
 
     #[test]
     fn reads_csail_edges_only_file() {
-        let path = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"));
-        let Some(path) = path
-            .ancestors()
-            .map(|d| d.join("shared/datasets/posegraphs/CSAIL.g2o"))
-            .find(|p| p.exists())
-        else {
-            panic!("CSAIL.g2o not found above {}", path.display());
-        };
-        let parsed =
-            read_pose_graph(std::io::BufReader::new(std::fs::File::open(path).unwrap())).unwrap();
+        let path = test_support::datasets_dir().join("posegraphs/CSAIL.g2o");
+        let file = std::fs::File::open(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+        let parsed = read_pose_graph(std::io::BufReader::new(file)).unwrap();
         assert_eq!(
             (parsed.graph.num_variables(), parsed.graph.num_constraints()),
             (1045, 1172)

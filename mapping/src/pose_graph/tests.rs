@@ -2,7 +2,6 @@
 
 use std::fs::File;
 use std::io::BufReader;
-use std::path::PathBuf;
 
 use approx::assert_relative_eq;
 use nalgebra::Matrix3;
@@ -19,13 +18,7 @@ fn node(index: u32) -> VariableId {
 }
 
 fn dataset(name: &str) -> PoseGraph {
-    // `../../shared/datasets` from the main checkout; one level more from a worktree under /work/wt.
-    let manifest = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
-    let path = manifest
-        .ancestors()
-        .map(|dir| dir.join("shared/datasets/posegraphs").join(name))
-        .find(|p| p.exists())
-        .unwrap_or_else(|| manifest.join("../../shared/datasets/posegraphs").join(name));
+    let path = test_support::datasets_dir().join("posegraphs").join(name);
     let file = File::open(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
     read_pose_graph(BufReader::new(file)).unwrap().graph
 }

@@ -4,7 +4,6 @@
 use std::collections::BTreeSet;
 use std::fs::File;
 use std::io::BufReader;
-use std::path::PathBuf;
 
 use nalgebra::{Matrix3, Vector3};
 use rand::{Rng as _, SeedableRng as _};
@@ -670,13 +669,7 @@ fn apply_checks_before_editing() {
 }
 
 fn dataset(name: &str) -> PoseGraph {
-    let manifest = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
-    // `../../shared/datasets` from the main checkout's crate; one level more from a worktree.
-    let path = manifest
-        .ancestors()
-        .map(|dir| dir.join("shared/datasets/posegraphs").join(name))
-        .find(|p| p.exists())
-        .unwrap_or_else(|| manifest.join("../../shared/datasets/posegraphs").join(name));
+    let path = test_support::datasets_dir().join("posegraphs").join(name);
     let file = File::open(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
     read_pose_graph(BufReader::new(file)).unwrap().graph
 }

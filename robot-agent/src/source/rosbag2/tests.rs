@@ -12,14 +12,7 @@ use crate::source::cdr_reader::CdrReader;
 use crate::source::ros_messages::DecodeError;
 
 fn dataset(rel: &str) -> PathBuf {
-    let manifest = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
-    manifest
-        .ancestors()
-        .skip(1)
-        .map(|dir| dir.join("shared/datasets"))
-        .find(|dir| dir.is_dir())
-        .unwrap_or_else(|| manifest.join("../../shared/datasets"))
-        .join(rel)
+    test_support::datasets_dir().join(rel)
 }
 
 /// Keeps every raw message with its topic's type.

@@ -1,0 +1,31 @@
+//! # test-support — helpers the evermap test suites share
+//!
+//! The few helpers that integration and unit tests across the workspace need alike, written once:
+//! [`datasets_dir`] (the shared recordings and pose graphs) and [`free_port`] (a loopback port for
+//! endpoints that cannot take port 0). No workspace crate is a dependency, so any crate can take this one
+//! as a dev-dependency.
+
+use std::path::PathBuf;
+
+/// The shared data sets folder, `../shared/datasets` next to the repository root. Found by walking up from
+/// this crate, so that it works from the main checkout (`/work/main`) and from worktrees one level deeper
+/// (`/work/wt/<name>`); falls back to the main checkout's relative path. Every workspace crate sits at this
+/// crate's depth, so the walk finds the same folder for all of them.
+pub fn datasets_dir() -> PathBuf {
+    let manifest = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    manifest
+        .ancestors()
+        .skip(1)
+        .map(|dir| dir.join("shared/datasets"))
+        .find(|dir| dir.is_dir())
+        .unwrap_or_else(|| manifest.join("../../shared/datasets"))
+}
+
+/// A loopback TCP port free right now (bound, then released), for zenoh endpoints that cannot take
+/// port 0. Another process could take it in between; tests on a shared machine prefer that small risk
+/// to fixed ports that collide.
+pub fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .map_or(0, |a| a.port())
+}
