@@ -328,8 +328,8 @@ pub struct StartAnswer {
     pub weakest_z: Option<f64>,
     /// How well the merged cloud fits the unfiltered map at the best pose (its mean probability, the
     /// score [`RelocalizationOptions::min_unfiltered_score`] is a floor for), as
-    /// [`StartSearch::search_again`] judged it; `None` for [`StartSearch::search`] or without a
-    /// candidate.
+    /// the search judged it; `None` without a candidate, and for [`StartSearch::search`] when it refused
+    /// the best as ambiguous before judging its fit.
     pub fit: Option<f32>,
 }
 
@@ -481,7 +481,8 @@ impl StartSearch {
     }
 
     /// Searches the whole map for `scans` (`(local_from_tracking, points)`, first scan first); refuses
-    /// a best pose whose runner-up scores within `min_score_margin` (`Ambiguous`).
+    /// a best pose whose runner-up scores within `min_score_margin` (`Ambiguous`), and one that fits the
+    /// unfiltered map below `min_unfiltered_score` (`NotFound`, with its `fit`).
     pub fn search(&self, scans: &[(Rigid2, Vec<Point2<f32>>)]) -> StartAnswer {
         let not_found = StartAnswer {
             outcome: RelocalizationOutcome::NotFound,
@@ -523,15 +524,29 @@ impl StartSearch {
                 fit: None,
             };
         }
+        // Every answer must fit the unfiltered map (`min_unfiltered_score`), as retries and one-shot
+        // answers must: a cloud from ground the map never saw reaches `min_score` on the max-filtered map
+        // somewhere (ACES in 3 sessions: a first search placed a session 19 m off at fit 0.27).
+        let sharpened = self.sharpen(&cloud, &found.pose);
+        let fit = mean_probability(self.sharp_grid(), &cloud, &sharpened) as f32;
+        if fit < self.options.min_unfiltered_score {
+            return StartAnswer {
+                outcome: RelocalizationOutcome::NotFound,
+                best,
+                rivals,
+                weakest_z: None,
+                fit: Some(fit),
+            };
+        }
         StartAnswer {
             outcome: RelocalizationOutcome::Found(SessionRelocalization {
-                global_from_local: self.sharpen(&cloud, &found.pose) * first_from_local,
+                global_from_local: sharpened * first_from_local,
                 score: found.score,
             }),
             best,
             rivals,
             weakest_z: None,
-            fit: None,
+            fit: Some(fit),
         }
     }
 
@@ -1040,7 +1055,7 @@ mod tests {
         let scans = corridor_route();
         let search = StartSearch::new(&grid, &options);
         let first_answer = search.search(&scans[..3]);
-        // The first search ranks by score margin: no fit judged.
+        // The first search ranks by score margin: an ambiguous one is refused before any fit is judged.
         assert_eq!(first_answer.fit, None);
         let first = first_answer.outcome;
         let RelocalizationOutcome::Ambiguous {
@@ -1177,6 +1192,40 @@ mod tests {
         let (per_point, blocked) = (z(0.0), z(RelocalizationOptions::default().route_block_m));
         assert!(per_point > 3.0, "per point: z {per_point}");
         assert!(blocked > 0.0 && blocked < 2.0, "per block: z {blocked}");
+    }
+
+    #[test]
+    fn a_first_search_is_refused_where_its_best_fits_the_unfiltered_map_below_the_floor() {
+        let grid = corridors_grid();
+        let scans = corridor_route();
+        let answer = |min_unfiltered_score: f32| {
+            StartSearch::new(
+                &grid,
+                &RelocalizationOptions {
+                    min_unfiltered_score,
+                    // The corridors differ by one pillar: no margin asked, so the best is placed.
+                    min_score_margin: 0.0,
+                    ..RelocalizationOptions::default()
+                },
+            )
+            .search(&scans)
+        };
+        // The route past the pillar places the robot, and says how well it fits.
+        let placed = answer(0.0);
+        let Some(fit) = placed.fit else {
+            panic!("the route past the pillar places: {placed:?}");
+        };
+        assert!(
+            matches!(placed.outcome, RelocalizationOutcome::Found(_)),
+            "{placed:?}"
+        );
+        // The same search with the floor just above that fit refuses it.
+        let refused = answer(fit + 0.01);
+        assert!(
+            matches!(refused.outcome, RelocalizationOutcome::NotFound),
+            "{refused:?}"
+        );
+        assert_eq!(refused.fit, Some(fit));
     }
 
     #[test]
