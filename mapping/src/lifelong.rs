@@ -32,6 +32,7 @@ mod options;
 mod relocalization;
 mod relocalization_map;
 mod session_start;
+mod submap_render;
 mod submap_trimmer;
 #[cfg(test)]
 mod tests;
@@ -48,11 +49,10 @@ pub use relocalization::{
     CloudFit, RelocalizationOptions, RelocalizationOutcome, SearchEvidence, SessionRelocalization,
     StartAnswer, StartSearch, relocalize_scans_in_grid, relocalize_session_start,
 };
-pub use relocalization_map::{
-    MapCells, render_relocalization_map, render_submaps, render_submaps_newest,
-};
+pub use relocalization_map::{MapCells, render_relocalization_map};
 pub use session_start::{
     RevokeReason, SessionStart, SessionStartEvent, SessionStartOptions, SessionStartState,
     StartPlacement,
 };
+pub use submap_render::{render_submaps_log_odds, render_submaps_max, render_submaps_newest};
 pub use submap_trimmer::{PlacedGrid, covered_fraction};

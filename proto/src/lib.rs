@@ -5,6 +5,8 @@
 //! [`FILE_DESCRIPTOR_SET`], and conversions between wire messages and the `mapping` crate's types; and
 //! the zenoh side of the protocol, its key expressions ([`zenoh_api_key`], [`zenoh_version_key`]) and
 //! link settings ([`ZenohLinkOptions`], [`ZenohTlsOptions`]), shared by the agent and the server.
+//! Both also encode map pictures here ([`encode_png`]: the `GetMapImage` reply's PNG, the agent's
+//! picture files, the web console's images).
 //!
 //! Conversions from the wire are `TryFrom` and check everything a peer could get wrong (missing fields,
 //! NaN or infinite numbers, sizes that do not match, unknown `format_version`), returning a
@@ -25,6 +27,7 @@
 mod conversion_error;
 mod convert;
 mod map_delta;
+mod png_image;
 mod upload_batch;
 mod zenoh_link_options;
 mod zenoh_tls_options;
@@ -35,6 +38,7 @@ pub use convert::{
     pose_to_pb,
 };
 pub use map_delta::{MapDelta, SubmapSnapshot};
+pub use png_image::{PngCompression, PngError, PngPixels, encode_png};
 pub use upload_batch::{NodeAdded, UploadBatch, UploadItem};
 pub use zenoh_link_options::{
     ZenohLinkOptions, ZenohLinkOptionsError, zenoh_api_key, zenoh_version_key,

@@ -19,7 +19,7 @@ use mapping::geometry::{Rigid2, Rigid2Ext as _};
 use mapping::grid::ProbabilityGrid;
 use mapping::lifelong::{
     GraphCounts, LifelongError, LifelongEvent, LifelongMap, LifelongOptions, RelocalizationOutcome,
-    SessionStart, SessionStartEvent, StartSearch, render_submaps,
+    SessionStart, SessionStartEvent, StartSearch, render_submaps_max,
 };
 use mapping::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
 use mapping::metrics::{MatchScorer, Placement, ScoringOptions, SessionTrack};
@@ -613,8 +613,9 @@ fn worker(
                     // AMS scores every scan against everything the map holds (each cell at the
                     // highest value any submap gives it: the definition every earlier figure used);
                     // the session start searches the map as `map_cells` renders it.
-                    map_at_start = render_submaps(map.placed_submaps(), relocalization.resolution)
-                        .map(|grid| MatchScorer::new(&grid, config.scoring.match_window));
+                    map_at_start =
+                        render_submaps_max(map.placed_submaps(), relocalization.resolution)
+                            .map(|grid| MatchScorer::new(&grid, config.scoring.match_window));
                     let rendered = map.relocalization_map(relocalization);
                     let search = rendered
                         .as_ref()

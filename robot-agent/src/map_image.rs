@@ -1,11 +1,13 @@
-//! Writing occupancy grids as pictures: PNG for people, PGM + YAML for Nav2's `map_server`. The pixels
-//! come from [`mapping::map_image`] (shared with the server); this module encodes and writes them.
+//! Writing occupancy grids as pictures: PNG for people, PGM + YAML for Nav2's `map_server`. The pixels,
+//! PGM and YAML come from [`mapping::map_image`] and the PNG bytes from [`proto::encode_png`] (both shared
+//! with the server); this module writes them to files.
 
-use std::io::Write;
 use std::path::Path;
 
 use mapping::grid::ProbabilityGrid;
+use mapping::map_image::{gray_to_pgm, nav2_map_yaml};
 pub use mapping::map_image::{grid_to_gray, layout_to_rgb, map_change_to_rgb};
+use proto::{PngCompression, PngError, PngPixels};
 
 /// Errors while writing map images.
 #[derive(Debug, thiserror::Error)]
@@ -24,7 +26,7 @@ pub enum MapImageError {
         /// The file.
         path: String,
         /// Why.
-        source: png::EncodingError,
+        source: PngError,
     },
     /// The grid is empty.
     #[error("the map is empty: nothing to draw")]
@@ -45,7 +47,7 @@ pub fn write_gray_png(
     height: u32,
     pixels: &[u8],
 ) -> Result<(), MapImageError> {
-    write_png(path, width, height, png::ColorType::Grayscale, pixels)
+    write_png(path, width, height, PngPixels::Gray, pixels)
 }
 
 /// Writes 8-bit RGB pixels as a PNG file.
@@ -55,30 +57,26 @@ pub fn write_rgb_png(
     height: u32,
     pixels: &[u8],
 ) -> Result<(), MapImageError> {
-    write_png(path, width, height, png::ColorType::Rgb, pixels)
+    write_png(path, width, height, PngPixels::Rgb, pixels)
 }
 
 fn write_png(
     path: &Path,
     width: u32,
     height: u32,
-    color: png::ColorType,
+    layout: PngPixels,
     pixels: &[u8],
 ) -> Result<(), MapImageError> {
-    if width == 0 || height == 0 {
-        return Err(MapImageError::Empty);
-    }
-    let file = std::fs::File::create(path).map_err(io_err(path))?;
-    let mut encoder = png::Encoder::new(std::io::BufWriter::new(file), width, height);
-    encoder.set_color(color);
-    encoder.set_depth(png::BitDepth::Eight);
-    let png_err = |source| MapImageError::Png {
-        path: path.display().to_string(),
-        source,
-    };
-    let mut writer = encoder.write_header().map_err(png_err)?;
-    writer.write_image_data(pixels).map_err(png_err)?;
-    writer.finish().map_err(png_err)
+    let png = proto::encode_png(width, height, layout, pixels, PngCompression::Balanced).map_err(
+        |source| match source {
+            PngError::Empty => MapImageError::Empty,
+            source @ PngError::Encoding(_) => MapImageError::Png {
+                path: path.display().to_string(),
+                source,
+            },
+        },
+    )?;
+    std::fs::write(path, png).map_err(io_err(path))
 }
 
 /// Writes `<stem>.pgm` and `<stem>.yaml` in `dir` in the format of Nav2's `map_server`.
@@ -89,16 +87,7 @@ pub fn write_nav2_map(dir: &Path, stem: &str, grid: &ProbabilityGrid) -> Result<
     }
     let pgm_name = format!("{stem}.pgm");
     let pgm_path = dir.join(&pgm_name);
-    let mut pgm = Vec::with_capacity(pixels.len() + 32);
-    write!(pgm, "P5\n{w} {h}\n255\n").map_err(io_err(&pgm_path))?;
-    pgm.extend_from_slice(&pixels);
-    std::fs::write(&pgm_path, pgm).map_err(io_err(&pgm_path))?;
-
-    let limits = grid.limits();
+    std::fs::write(&pgm_path, gray_to_pgm(w, h, &pixels)).map_err(io_err(&pgm_path))?;
     let yaml_path = dir.join(format!("{stem}.yaml"));
-    let yaml = format!(
-        "image: {pgm_name}\nmode: trinary\nresolution: {}\norigin: [{}, {}, 0.0]\nnegate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\n",
-        limits.resolution, limits.origin.x, limits.origin.y
-    );
-    std::fs::write(&yaml_path, yaml).map_err(io_err(&yaml_path))
+    std::fs::write(&yaml_path, nav2_map_yaml(&pgm_name, grid.limits())).map_err(io_err(&yaml_path))
 }

@@ -16,7 +16,7 @@ use mapping::global_slam::{
     LoopClosure, SearchJob,
 };
 use mapping::grid::{MapLimits, ProbabilityGrid, RangeDataInserter, RangeDataInserterOptions};
-use mapping::lifelong::{PlacedGrid, RelocalizationOptions, render_submaps};
+use mapping::lifelong::{PlacedGrid, RelocalizationOptions, render_submaps_max};
 use mapping::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
 use mapping::pose_graph::{NodeId, OptimizationSummary};
 use mapping::sensor::{OdometryReading, RangeData, RangeStats, SensorEvent, Timestamp};
@@ -315,7 +315,7 @@ pub fn run_slam(
 
 /// The finished submaps of `global` rendered at their optimized poses (`None` before the first one).
 pub fn render_finished_submaps(global: &GlobalSlam, resolution: f64) -> Option<ProbabilityGrid> {
-    render_submaps(
+    render_submaps_max(
         global.submaps().iter().filter_map(|(id, record)| {
             let grid = record.grid.as_deref()?;
             let global_from_submap = global.submap_pose(*id)?;

@@ -1,8 +1,10 @@
-//! In-memory PNG and Nav2 (pgm + yaml) encodings of a grid, for `GetMapImage`. Pixels follow
-//! `mapping::map_image` (free white, occupied black, unknown gray 205, top row first).
+//! In-memory PNG and Nav2 (pgm + yaml) encodings of a grid, for `GetMapImage`: the pixels, PGM and YAML
+//! of `mapping::map_image` (free white, occupied black, unknown gray 205, top row first) and the PNG of
+//! `proto::encode_png`, as the agent writes them to files.
 
 use mapping::grid::ProbabilityGrid;
-use mapping::map_image::grid_to_gray;
+use mapping::map_image::{gray_to_pgm, grid_to_gray, nav2_map_yaml};
+use proto::{PngCompression, PngPixels, encode_png};
 
 /// The encoded images of one grid.
 #[derive(Clone, Debug, PartialEq)]
@@ -22,31 +24,20 @@ pub struct EncodedMap {
 /// Encodes `grid`; `None` for an empty grid or a PNG encoder failure.
 pub fn encode_map(grid: &ProbabilityGrid) -> Option<EncodedMap> {
     let (width, height, pixels) = grid_to_gray(grid);
-    if width == 0 || height == 0 {
-        return None;
-    }
-    let mut png = Vec::new();
-    {
-        let mut encoder = png::Encoder::new(&mut png, width, height);
-        encoder.set_color(png::ColorType::Grayscale);
-        encoder.set_depth(png::BitDepth::Eight);
-        let mut writer = encoder.write_header().ok()?;
-        writer.write_image_data(&pixels).ok()?;
-        writer.finish().ok()?;
-    }
-    let mut pgm = format!("P5\n{width} {height}\n255\n").into_bytes();
-    pgm.extend_from_slice(&pixels);
-    let limits = grid.limits();
-    let yaml = format!(
-        "image: map.pgm\nmode: trinary\nresolution: {}\norigin: [{}, {}, 0.0]\nnegate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\n",
-        limits.resolution, limits.origin.x, limits.origin.y
-    );
+    let png = encode_png(
+        width,
+        height,
+        PngPixels::Gray,
+        &pixels,
+        PngCompression::Balanced,
+    )
+    .ok()?;
     Some(EncodedMap {
         width,
         height,
         png,
-        pgm,
-        yaml,
+        pgm: gray_to_pgm(width, height, &pixels),
+        yaml: nav2_map_yaml("map.pgm", grid.limits()),
     })
 }
 

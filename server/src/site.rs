@@ -6,7 +6,6 @@
 //! later) talks to it.
 
 mod map_history;
-mod map_render;
 mod session_view;
 mod site_error;
 mod site_handle;
@@ -18,7 +17,6 @@ pub use map_history::{
     DEFAULT_HISTORY_CAPACITY, DEFAULT_HISTORY_PAST_GRID_BUDGET_BYTES, HistoryEntry, MapHistory,
     PlacedGrids,
 };
-pub use map_render::render_submaps;
 pub use session_view::{PlacementState, SessionView};
 pub use site_error::SiteError;
 pub use site_handle::{RenderedMap, SiteHandle, UploadAck, VersionInfo};

@@ -85,34 +85,6 @@ pub fn render_relocalization_map<'a>(
     known.then(|| out.cropped_to_known())
 }
 
-/// Renders placed grids into one map-frame grid of cell size `resolution`: each cell takes the highest
-/// probability among the grids that know its centre ([`MapCells::Highest`], for pictures of everything
-/// ever seen). `None` when no grid knows anything.
-pub fn render_submaps<'a>(
-    grids: impl IntoIterator<Item = PlacedGrid<'a>>,
-    resolution: f64,
-) -> Option<ProbabilityGrid> {
-    render_relocalization_map(
-        grids.into_iter().map(|g| (0, g)),
-        resolution,
-        MapCells::Highest,
-    )
-}
-
-/// Like [`render_submaps`], but each cell takes the value of the *last* grid (in iteration order) that
-/// knows its centre: with grids ordered oldest first, the map as the newest observations describe it
-/// ([`MapCells::Newest`], for the map change rate).
-pub fn render_submaps_newest<'a>(
-    grids: impl IntoIterator<Item = PlacedGrid<'a>>,
-    resolution: f64,
-) -> Option<ProbabilityGrid> {
-    render_relocalization_map(
-        grids.into_iter().map(|g| (0, g)),
-        resolution,
-        MapCells::Newest,
-    )
-}
-
 /// What the sessions that know one cell saw: the current session's newest value (`UNKNOWN_VALUE`, 0,
 /// before any), and how many earlier sessions knew it and saw it occupied.
 #[derive(Clone, Copy, Debug, Default)]

@@ -309,7 +309,7 @@ async fn publish_to_ros2(
                             .collect()
                     })
                     .unwrap_or_default();
-                let map = mapping::lifelong::render_submaps(
+                let map = mapping::lifelong::render_submaps_max(
                     grids
                         .iter()
                         .map(|(global_from_grid, grid)| mapping::lifelong::PlacedGrid {

@@ -1,8 +1,9 @@
 //! The console's images: a site's map at one version, and the map change between two versions.
 //!
-//! The map is rendered as `GetMapImage` renders it ([`crate::site::render_submaps`], gray pixels by
-//! `mapping::map_image::grid_to_gray`), encoded with the PNG encoder's fast setting (fdeflate:
-//! a few milliseconds for the README demo's 1000 × 700 map, about as small as the default's). The change compares the two versions' maps as the lifelong
+//! The map is rendered as `GetMapImage` renders it (`mapping::lifelong::render_submaps_log_odds`, gray
+//! pixels by `mapping::map_image::grid_to_gray`), encoded by `proto::encode_png` with its fast setting
+//! (fdeflate: a few milliseconds for the README demo's 1000 × 700 map, about as small as the default's).
+//! The change compares the two versions' maps as the lifelong
 //! reports do: each rendered newest-observation-wins (`mapping::lifelong::render_submaps_newest`, the
 //! site as its latest sessions saw it), classified cell by cell by `mapping::lifelong::map_change_rate`
 //! with the reports' 0.05 m registration tolerance, coloured like `map_change.png` (blue unchanged, green
@@ -10,11 +11,13 @@
 
 use mapping::grid::{MapLimits, ProbabilityGrid};
 use mapping::lifelong::{
-    MAP_CHANGE_TOLERANCE_M, PlacedGrid, map_change_rate, render_submaps_newest,
+    MAP_CHANGE_TOLERANCE_M, PlacedGrid, map_change_rate, render_submaps_log_odds,
+    render_submaps_newest,
 };
+use proto::{PngCompression, PngPixels};
 use serde::Serialize;
 
-use crate::site::{HistoryEntry, render_submaps};
+use crate::site::HistoryEntry;
 
 /// Where an image lies in the site frame: its bottom-left corner, cell size and size in cells (the
 /// image's top row is the row of largest y).
@@ -75,29 +78,19 @@ pub struct ChangeImage {
 
 /// Renders the map of `entry` at `resolution` (m). `None` when it has nothing to draw.
 pub fn render_map_image(entry: &HistoryEntry, resolution: f64) -> Option<MapImage> {
-    let grid = render_submaps(&entry.grids, resolution)?;
+    let grid = render_submaps_log_odds(&entry.grids, resolution)?;
     let (width, height, pixels) = mapping::map_image::grid_to_gray(&grid);
     Some(MapImage {
         map_version: entry.version,
         placement: ImagePlacement::of(grid.limits()),
-        png: encode_png(width, height, png::ColorType::Grayscale, &pixels)?,
+        png: encode_png(width, height, PngPixels::Gray, &pixels)?,
     })
 }
 
-/// `pixels` (8 bits per channel, top row first) as a PNG; `None` when empty or on an encoder error.
-fn encode_png(width: u32, height: u32, color: png::ColorType, pixels: &[u8]) -> Option<Vec<u8>> {
-    if width == 0 || height == 0 {
-        return None;
-    }
-    let mut png = Vec::new();
-    let mut encoder = png::Encoder::new(&mut png, width, height);
-    encoder.set_color(color);
-    encoder.set_depth(png::BitDepth::Eight);
-    encoder.set_compression(png::Compression::Fast);
-    let mut writer = encoder.write_header().ok()?;
-    writer.write_image_data(pixels).ok()?;
-    writer.finish().ok()?;
-    Some(png)
+/// `pixels` (8 bits per channel, top row first) as a fast PNG; `None` when empty or on an encoder
+/// error.
+fn encode_png(width: u32, height: u32, layout: PngPixels, pixels: &[u8]) -> Option<Vec<u8>> {
+    proto::encode_png(width, height, layout, pixels, PngCompression::Fast).ok()
 }
 
 fn render_newest(entry: &HistoryEntry, resolution: f64) -> Option<ProbabilityGrid> {
@@ -126,7 +119,7 @@ pub fn render_change_image(
     );
     let change = map_change_rate(&old, &new, MAP_CHANGE_TOLERANCE_M);
     let (width, height, pixels) = mapping::map_image::map_change_to_rgb(&change);
-    let png = encode_png(width, height, png::ColorType::Rgb, &pixels)?;
+    let png = encode_png(width, height, PngPixels::Rgb, &pixels)?;
     Some(ChangeImage {
         from_map_version: before.version,
         to_map_version: after.version,
@@ -190,7 +183,7 @@ mod tests {
         let mut reader = decoder.read_info().unwrap();
         let mut pixels = vec![0; reader.output_buffer_size().unwrap()];
         let info = reader.next_frame(&mut pixels).unwrap();
-        let grid = render_submaps(&grids, 0.05).unwrap();
+        let grid = render_submaps_log_odds(&grids, 0.05).unwrap();
         let (width, height, expected) = mapping::map_image::grid_to_gray(&grid);
         assert_eq!((info.width, info.height), (width, height));
         assert_eq!(info.color_type, png::ColorType::Grayscale);

@@ -36,7 +36,7 @@ use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use mapping::lifelong::LifelongOptions;
+use mapping::lifelong::{LifelongOptions, render_submaps_log_odds};
 use prost::Message as _;
 use proto::{FORMAT_VERSION, UploadBatch, pb};
 use storage::{BatchOutcome, MapStore, RecordKind, WriteBatch};
@@ -46,7 +46,6 @@ use tokio::task::JoinHandle;
 use super::site_handle::Command;
 use super::{
     RenderedMap, SiteError, SiteHandle, SiteMap, SiteView, UploadAck, UploadCheck, VersionInfo,
-    render_submaps,
 };
 use crate::ServerMetrics;
 
@@ -204,7 +203,7 @@ impl SiteTask {
                         // Rendering can take a while: do it beside the task, not in it.
                         tokio::spawn(async move {
                             let grid = tokio::task::spawn_blocking(move || {
-                                render_submaps(&grids, resolution)
+                                render_submaps_log_odds(&grids, resolution)
                             })
                             .await
                             .map_err(internal);

@@ -1,21 +1,63 @@
-//! Renders a site's submaps into one grid in the site frame.
+//! The site's submaps painted into one grid in the map frame, three ways. Where several submaps know a
+//! cell, the painters differ in how they combine them:
 //!
-//! Each output cell looks up, in every submap whose footprint covers it, the submap cell under its centre
-//! (nearest neighbour, after mapping the centre through `grid_from_global`), and fuses the known ones by
-//! adding their log-odds, clamped to the grid's probability range. Pulling from the output side leaves no
-//! holes when submaps are rotated. The source cell is affine in the output cell's index, so each output
-//! row is walked only where it crosses a submap, with one fixed-point add per coordinate and cell: the cost is
-//! the sum of the submaps' areas in output cells, a few nanoseconds each (the web console renders a map
-//! per version).
+//! - [`render_submaps_max`]: the highest probability any submap gives the cell (every wall and goods
+//!   arrangement ever seen; the agent's maps: the offline map, the `/map` it publishes to ROS 2, the
+//!   map AMS scores scans against).
+//! - [`render_submaps_newest`]: the last submap's value, submaps taken oldest first (the site as its
+//!   latest sessions saw it; the map change rate and its pictures).
+//! - [`render_submaps_log_odds`]: the sum of the submaps' log-odds, clamped to the grid's probability
+//!   range (every observation counts; the server's `GetMapImage` and the web console's map).
+//!
+//! The first two are [`render_relocalization_map`] with [`MapCells::Highest`] and [`MapCells::Newest`]
+//! (one session for all grids), cropped to the known cells.
+//!
+//! The log-odds painter looks up, for each output cell, in every submap whose footprint covers it, the
+//! submap cell under its centre (nearest neighbour, after mapping the centre through `grid_from_global`).
+//! Pulling from the output side leaves no holes when submaps are rotated. The source cell is affine in
+//! the output cell's index, so each output row is walked only where it crosses a submap, with one
+//! fixed-point add per coordinate and cell: the cost is the sum of the submaps' areas in output cells, a
+//! few nanoseconds each (the web console renders a map per version).
 
 use std::sync::{Arc, OnceLock};
 
-use mapping::geometry::Rigid2;
-use mapping::grid::{
-    CellIndex, MAX_PROBABILITY, MIN_PROBABILITY, MapLimits, ProbabilityGrid, UNKNOWN_VALUE,
-    value_to_probability,
-};
 use nalgebra::{Point2, Vector2};
+
+use super::{MapCells, PlacedGrid, render_relocalization_map};
+use crate::geometry::Rigid2;
+use crate::grid::{
+    CellIndex, MAX_PROBABILITY, MIN_PROBABILITY, MapLimits, ProbabilityGrid, UNKNOWN_VALUE,
+    probability_to_value, value_to_probability,
+};
+
+/// Renders placed grids into one map-frame grid of cell size `resolution`: each cell takes the highest
+/// probability among the grids that know its centre ([`MapCells::Highest`], for pictures of everything
+/// ever seen). `None` when no grid knows anything.
+pub fn render_submaps_max<'a>(
+    grids: impl IntoIterator<Item = PlacedGrid<'a>>,
+    resolution: f64,
+) -> Option<ProbabilityGrid> {
+    render_as_one_session(grids, resolution, MapCells::Highest)
+}
+
+/// Like [`render_submaps_max`], but each cell takes the value of the *last* grid (in iteration order)
+/// that knows its centre: with grids ordered oldest first, the map as the newest observations describe
+/// it ([`MapCells::Newest`], for the map change rate).
+pub fn render_submaps_newest<'a>(
+    grids: impl IntoIterator<Item = PlacedGrid<'a>>,
+    resolution: f64,
+) -> Option<ProbabilityGrid> {
+    render_as_one_session(grids, resolution, MapCells::Newest)
+}
+
+/// [`render_relocalization_map`] with every grid in one session.
+fn render_as_one_session<'a>(
+    grids: impl IntoIterator<Item = PlacedGrid<'a>>,
+    resolution: f64,
+    cells: MapCells,
+) -> Option<ProbabilityGrid> {
+    render_relocalization_map(grids.into_iter().map(|g| (0, g)), resolution, cells)
+}
 
 fn logit(p: f32) -> f32 {
     (p / (1.0 - p)).ln()
@@ -34,27 +76,18 @@ fn logit_of_value() -> &'static [f32] {
 
 /// Where a grid placed at `global_from_grid` lies in the site frame: the lower and upper corners of
 /// its axis-aligned bounding box, m.
-fn footprint(global_from_grid: &Rigid2, limits: &MapLimits) -> (Vector2<f64>, Vector2<f64>) {
-    let size = Vector2::new(f64::from(limits.width), f64::from(limits.height)) * limits.resolution;
-    let corners = [
-        Vector2::zeros(),
-        Vector2::new(size.x, 0.0),
-        Vector2::new(0.0, size.y),
-        size,
-    ]
-    .map(|c| global_from_grid * Point2::from(limits.origin + c));
-    let min = corners
-        .iter()
-        .fold(Vector2::repeat(f64::INFINITY), |m, c| m.inf(&c.coords));
-    let max = corners
-        .iter()
-        .fold(Vector2::repeat(f64::NEG_INFINITY), |m, c| m.sup(&c.coords));
-    (min, max)
+fn footprint(global_from_grid: &Rigid2, grid: &ProbabilityGrid) -> (Vector2<f64>, Vector2<f64>) {
+    PlacedGrid {
+        global_from_grid: *global_from_grid,
+        grid,
+    }
+    .global_bounds()
 }
 
 /// Fuses `grids` (each with `global_from_grid`, the pose of its frame in the site frame) into one grid of
-/// cell side `resolution` (m; 0 or less: the first grid's). `None` when there is nothing to draw.
-pub fn render_submaps(
+/// cell side `resolution` (m; 0 or less: the first grid's) by adding their log-odds. `None` when there is
+/// nothing to draw.
+pub fn render_submaps_log_odds(
     grids: &[(Rigid2, Arc<ProbabilityGrid>)],
     resolution: f64,
 ) -> Option<ProbabilityGrid> {
@@ -69,7 +102,7 @@ pub fn render_submaps(
         Vector2::repeat(f64::NEG_INFINITY),
     );
     for (global_from_grid, grid) in grids {
-        let (lo, hi) = footprint(global_from_grid, grid.limits());
+        let (lo, hi) = footprint(global_from_grid, grid);
         min = min.inf(&lo);
         max = max.sup(&hi);
     }
@@ -85,7 +118,7 @@ pub fn render_submaps(
     for ((value, l), known) in out.values_mut().iter_mut().zip(&log_odds).zip(&known) {
         if *known {
             let l = l.clamp(lo, hi);
-            *value = mapping::grid::probability_to_value(1.0 / (1.0 + (-l).exp()));
+            *value = probability_to_value(1.0 / (1.0 + (-l).exp()));
         }
     }
     Some(out)
@@ -149,7 +182,7 @@ fn add_grid(
         grid_from_global.rotation * Vector2::new(limits.resolution, 0.0) / source.resolution;
     let step_y =
         grid_from_global.rotation * Vector2::new(0.0, limits.resolution) / source.resolution;
-    let (lo, hi) = footprint(global_from_grid, source);
+    let (lo, hi) = footprint(global_from_grid, grid);
     let (a, b) = (
         limits.cell_index(&Point2::from(lo)),
         limits.cell_index(&Point2::from(hi)),
@@ -206,7 +239,7 @@ fn add_grid(
 
 #[cfg(test)]
 mod tests {
-    use mapping::geometry::rigid2;
+    use crate::geometry::rigid2;
 
     use super::*;
 
@@ -225,7 +258,7 @@ mod tests {
     #[test]
     fn an_unmoved_grid_renders_as_itself() {
         let grid = Arc::new(wall_grid());
-        let out = render_submaps(&[(Rigid2::identity(), Arc::clone(&grid))], 0.0).unwrap();
+        let out = render_submaps_log_odds(&[(Rigid2::identity(), Arc::clone(&grid))], 0.0).unwrap();
         assert_eq!(out.limits().width, 20);
         assert_eq!(out.limits().height, 10);
         for iy in 0..10 {
@@ -243,19 +276,19 @@ mod tests {
     fn a_moved_grid_puts_its_wall_where_the_pose_says() {
         // The wall is at local x = 0.55; rotated by 90° and shifted by (5, 0) it is at global y = 0.55.
         let pose = rigid2(5.0, 0.0, std::f64::consts::FRAC_PI_2);
-        let out = render_submaps(&[(pose, Arc::new(wall_grid()))], 0.1).unwrap();
+        let out = render_submaps_log_odds(&[(pose, Arc::new(wall_grid()))], 0.1).unwrap();
         let wall = out.limits().cell_index(&Point2::new(5.0, 0.55));
         let free = out.limits().cell_index(&Point2::new(5.0, 0.0));
         assert!(out.probability(&wall) > 0.85, "{}", out.probability(&wall));
         assert!(out.probability(&free) < 0.3);
         assert!(!out.is_known(&out.limits().cell_index(&Point2::new(0.0, 0.0))));
-        assert!(render_submaps(&[], 0.1).is_none());
+        assert!(render_submaps_log_odds(&[], 0.1).is_none());
     }
 
     /// The direct lookup the renderer walks rows for: per output cell, the isometry and `floor` of its
     /// centre into every grid whose bounding box covers it (the renderer before rows were walked).
     fn render_directly(grids: &[(Rigid2, Arc<ProbabilityGrid>)], resolution: f64) -> Vec<u16> {
-        let out = render_submaps(grids, resolution).unwrap();
+        let out = render_submaps_log_odds(grids, resolution).unwrap();
         let limits = out.limits().clone();
         let mut log_odds = vec![0.0_f32; limits.num_cells()];
         let mut known = vec![false; limits.num_cells()];
@@ -285,7 +318,7 @@ mod tests {
             .zip(&known)
             .map(|(l, k)| {
                 if *k {
-                    mapping::grid::probability_to_value(1.0 / (1.0 + (-l.clamp(lo, hi)).exp()))
+                    probability_to_value(1.0 / (1.0 + (-l.clamp(lo, hi)).exp()))
                 } else {
                     UNKNOWN_VALUE
                 }
@@ -324,7 +357,7 @@ mod tests {
                 .collect();
             // Coarser, equal and finer output cells than the grids'.
             let resolution = [0.11, 0.05, 0.03][case % 3];
-            let fast = render_submaps(&grids, resolution).unwrap();
+            let fast = render_submaps_log_odds(&grids, resolution).unwrap();
             let direct = render_directly(&grids, resolution);
             assert_eq!(fast.values(), &direct[..], "case {case}");
             compared += direct.iter().filter(|v| **v != UNKNOWN_VALUE).count();
@@ -335,8 +368,8 @@ mod tests {
     #[test]
     fn overlapping_observations_reinforce() {
         let grid = Arc::new(wall_grid());
-        let one = render_submaps(&[(Rigid2::identity(), Arc::clone(&grid))], 0.1).unwrap();
-        let two = render_submaps(
+        let one = render_submaps_log_odds(&[(Rigid2::identity(), Arc::clone(&grid))], 0.1).unwrap();
+        let two = render_submaps_log_odds(
             &[
                 (Rigid2::identity(), Arc::clone(&grid)),
                 (Rigid2::identity(), grid),
