@@ -95,8 +95,8 @@ pub struct SearchFigures {
     /// by score margin).
     pub weakest_z: Option<f64>,
     /// How well its cloud fit the map at its best candidate (mean probability on the unfiltered map, the
-    /// score the fit floor `min_unfiltered_score` judges; `None` for the first search, which ranks by
-    /// branch-and-bound score).
+    /// score the fit floor `min_unfiltered_score` judges; `None` without a candidate, or where the
+    /// first search refused its best as ambiguous by score margin before judging the fit).
     pub fit: Option<f32>,
     /// How far its best candidate (the placement, for `placed`) put the session's latest node from the
     /// truth, metres (filled in by the scoring shell; `None` without a candidate or truth).

@@ -16,7 +16,10 @@
 //!    map well enough and beats every other candidate in the paired test over the route's blocks).
 //!    Between them, every [`SessionStartOptions::recheck_every_n_nodes`] nodes, a cheap test of the last
 //!    search's candidates against the grown route ([`StartSearch::route_decides`]) brings the retry
-//!    forward when the route already tells them apart. After
+//!    forward when the route already tells them apart. While the last search found nothing at all (the
+//!    route lies off the map), the latest [`SessionStartOptions::recent_search_nodes`] nodes are searched
+//!    every `retry_every_n_nodes` nodes, so that a session placed nowhere is placed soon after it drives
+//!    onto mapped ground. After
 //!    [`SessionStartOptions::give_up_after_nodes`] the session stops searching.
 //! 3. **Probation.** A placement is tentative: the shell places the session so that GLM can match its
 //!    nodes near their estimates, but its submaps stay out of the map robots relocalize against and it
@@ -75,6 +78,14 @@ pub struct SessionStartOptions {
     /// Most nodes (the latest) a retry's cloud holds (count ≥ `hold_back_nodes`). Default 400 (about
     /// 80 m of driving): beyond that LLO's drift across the cloud outgrows the match tolerance.
     pub max_search_nodes: usize,
+    /// While the last search found nothing at all (no pose reached the score: the route so far lies on
+    /// ground the map does not show, so no look-alike place is in play), search every
+    /// `retry_every_n_nodes` nodes with only the latest this many nodes, and after a scheduled retry
+    /// that found nothing, with them too: a robot that starts off the map is placed soon after it
+    /// drives onto mapped ground, instead of at the next doubling, by a cloud whose unmapped start
+    /// cannot hold its score down (MIT CSAIL and ACES cut into sessions: sessions starting off the
+    /// earlier sessions' ground were never placed). Count; 0 = off. Default 40.
+    pub recent_search_nodes: usize,
     /// Stop searching after this many nodes without a placement (count; 0 = never): the session stays
     /// unplaced. Default 0.
     pub give_up_after_nodes: usize,
@@ -135,6 +146,7 @@ impl Default for SessionStartOptions {
             retry_every_n_nodes: 20,
             recheck_every_n_nodes: 10,
             max_search_nodes: 400,
+            recent_search_nodes: 40,
             give_up_after_nodes: 0,
             probation_matches: 3,
             probation_min_separation_m: 3.0,
@@ -328,6 +340,8 @@ pub struct SessionStart {
     rivals: Vec<Rigid2>,
     /// While searching: the best and the other candidates of the last refused search.
     candidates: Vec<Rigid2>,
+    /// While searching: the last search found nothing at all.
+    found_nothing: bool,
     /// Route position (metres) of the latest undecided contest of the current placement.
     contested_at_m: Option<f64>,
 }
@@ -354,6 +368,7 @@ impl SessionStart {
             revocations: 0,
             rivals: Vec::new(),
             candidates: Vec::new(),
+            found_nothing: false,
             contested_at_m: None,
         })
     }
@@ -569,6 +584,12 @@ impl SessionStart {
             && every > 0
             && since.is_multiple_of(every)
             && (since / every).is_power_of_two();
+        let recent = self.options.recent_search_nodes;
+        let arrival = self.searches > 0
+            && self.found_nothing
+            && recent > 0
+            && every > 0
+            && since.is_multiple_of(every);
         let recheck = self.options.recheck_every_n_nodes;
         let retry = scheduled
             || (self.searches > 0
@@ -578,7 +599,7 @@ impl SessionStart {
                 && self.search.as_ref().is_some_and(|search| {
                     search.route_decides(self.cloud.make_contiguous(), &self.candidates)
                 }));
-        if !(first || retry) {
+        if !(first || retry || arrival) {
             return Vec::new();
         }
         self.searches += 1;
@@ -592,13 +613,25 @@ impl SessionStart {
             },
             Some(search) => {
                 let scans = self.cloud.make_contiguous();
+                let latest = &scans[scans.len().saturating_sub(recent)..];
                 if first {
                     search.search(scans)
+                } else if retry {
+                    let answer = search.search_again(scans);
+                    if matches!(answer.outcome, RelocalizationOutcome::NotFound)
+                        && recent > 0
+                        && latest.len() < scans.len()
+                    {
+                        search.search_again(latest)
+                    } else {
+                        answer
+                    }
                 } else {
-                    search.search_again(scans)
+                    search.search_again(latest)
                 }
             }
         };
+        self.found_nothing = matches!(answer.outcome, RelocalizationOutcome::NotFound);
         // The cloud's frame is its first node's local frame, which the search resolves: `found` is
         // already `global_from_local` of the session's LLO frame.
         match answer.outcome {

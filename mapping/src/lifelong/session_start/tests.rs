@@ -1,6 +1,8 @@
 //! The session-start state machine on synthetic inputs: a room it can place a session in, and matches
 //! made up to agree or disagree with a placement.
 
+use nalgebra::Point2;
+
 use super::*;
 use crate::geometry::rigid2;
 use crate::lifelong::RelocalizationOptions;
@@ -82,8 +84,13 @@ fn the_held_back_nodes_place_the_session_on_probation() {
 
 #[test]
 fn a_refused_start_retries_on_the_doubling_schedule() {
-    // No map: every search finds nothing.
-    let mut start = SessionStart::new(options(), None).unwrap();
+    // No map: every search finds nothing. (Without the searches of the latest nodes, which a search
+    // that found nothing brings every `retry_every_n_nodes`; see the next test.)
+    let options = SessionStartOptions {
+        recent_search_nodes: 0,
+        ..options()
+    };
+    let mut start = SessionStart::new(options, None).unwrap();
     let searched_at: Vec<usize> = (0..20)
         .filter(|&k| {
             let events = start.add_node(local(k), Vec::new());
@@ -106,6 +113,64 @@ fn a_refused_start_retries_on_the_doubling_schedule() {
     assert_eq!(searched_at, vec![2, 3, 7, 15]);
     assert_eq!(start.searches(), 4);
     assert_eq!(start.state(), SessionStartState::Searching);
+}
+
+/// Where a session that starts off the map, on `off_map_nodes` nodes of ground the map does not show (a
+/// ring of points 4 m around the robot, which no pose of the room fits), then drives into the room, is
+/// first placed: `(node, global_from_local)`.
+fn placed_after_arriving(
+    options: SessionStartOptions,
+    off_map_nodes: usize,
+) -> Option<(usize, Rigid2)> {
+    let mut start = SessionStart::new(options, Some(room_search())).unwrap();
+    let ring: Vec<Point2<f32>> = (0..120)
+        .map(|k| {
+            let a = f64::from(k) * 3f64.to_radians();
+            Point2::new((4.0 * a.cos()) as f32, (4.0 * a.sin()) as f32)
+        })
+        .collect();
+    // In the room the robot creeps along +x from `entry`; its LLO frame puts that at `local(off_map)`.
+    let entry = rigid2(2.7, 2.2, 0.4);
+    let global_from_local = entry * local(off_map_nodes).inverse();
+    for k in 0..off_map_nodes + 24 {
+        let (local_pose, points) = if k < off_map_nodes {
+            (local(k), ring.clone())
+        } else {
+            let step = rigid2(0.05 * (k - off_map_nodes) as f64, 0.0, 0.0);
+            let world = entry * step;
+            (global_from_local.inverse() * world, room_scan(&world))
+        };
+        for event in start.add_node(local_pose, points) {
+            if let SessionStartEvent::Placed(placement) = event {
+                return Some((placement.node, placement.global_from_local));
+            }
+        }
+    }
+    None
+}
+
+#[test]
+fn a_session_that_starts_off_the_map_is_placed_soon_after_it_drives_onto_it() {
+    let entry = rigid2(2.7, 2.2, 0.4);
+    let truth = entry * local(9).inverse();
+    // 9 nodes off the map: every search finds nothing; from node 9 on the robot is in the room.
+    let with_recent = SessionStartOptions {
+        recent_search_nodes: 4,
+        ..options()
+    };
+    let (node, placed) = placed_after_arriving(with_recent, 9).expect("placed");
+    // The first search of the latest 4 nodes that all lie in the room: every 4 nodes from the start.
+    assert!(node <= 9 + 3 + 4, "placed at node {node}");
+    let error = (placed.translation.vector - truth.translation.vector).norm();
+    assert!(error < 0.1, "placed {error} m off");
+    // The doubling schedule alone searches every node since the start, the ring included, and finds
+    // nothing while the ring outweighs the room.
+    let doubling_only = SessionStartOptions {
+        recent_search_nodes: 0,
+        ..options()
+    };
+    let late = placed_after_arriving(doubling_only, 9);
+    assert!(late.is_none_or(|(node, _)| node > 9 + 3 + 4), "{late:?}");
 }
 
 #[test]
