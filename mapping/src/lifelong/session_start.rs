@@ -16,10 +16,11 @@
 //!    map well enough and beats every other candidate in the paired test over the route's blocks).
 //!    Between them, every [`SessionStartOptions::recheck_every_n_nodes`] nodes, a cheap test of the last
 //!    search's candidates against the grown route ([`StartSearch::route_decides`]) brings the retry
-//!    forward when the route already tells them apart. While the last search found nothing at all (the
-//!    route lies off the map), the latest [`SessionStartOptions::recent_search_nodes`] nodes are searched
-//!    every `retry_every_n_nodes` nodes, so that a session placed nowhere is placed soon after it drives
-//!    onto mapped ground. After
+//!    forward when the route already tells them apart. While the last search found nothing (no pose
+//!    reached the score, or the best fit the map below its floor: the route lies largely off the map),
+//!    the latest [`SessionStartOptions::recent_search_nodes`] nodes are searched every
+//!    `retry_every_n_nodes` nodes, so that a session placed nowhere is placed soon after it drives onto
+//!    mapped ground. After
 //!    [`SessionStartOptions::give_up_after_nodes`] the session stops searching.
 //! 3. **Probation.** A placement is tentative: the shell places the session so that GLM can match its
 //!    nodes near their estimates, but its submaps stay out of the map robots relocalize against and it
@@ -78,13 +79,15 @@ pub struct SessionStartOptions {
     /// Most nodes (the latest) a retry's cloud holds (count ≥ `hold_back_nodes`). Default 400 (about
     /// 80 m of driving): beyond that LLO's drift across the cloud outgrows the match tolerance.
     pub max_search_nodes: usize,
-    /// While the last search found nothing at all (no pose reached the score: the route so far lies on
-    /// ground the map does not show, so no look-alike place is in play), search every
-    /// `retry_every_n_nodes` nodes with only the latest this many nodes, and after a scheduled retry
-    /// that found nothing, with them too: a robot that starts off the map is placed soon after it
-    /// drives onto mapped ground, instead of at the next doubling, by a cloud whose unmapped start
-    /// cannot hold its score down (MIT CSAIL and ACES cut into sessions: sessions starting off the
-    /// earlier sessions' ground were never placed). Count; 0 = off. Default 40.
+    /// While the last search found nothing (`NotFound`: no pose reached the score, or the best fit the
+    /// unfiltered map below `min_unfiltered_score`; the route so far lies largely on ground the map does
+    /// not show), search every `retry_every_n_nodes` nodes with only the latest this many nodes, and
+    /// after a scheduled retry that found nothing, with them too: a robot that starts off the map is
+    /// placed soon after it drives onto mapped ground, instead of at the next doubling, by a cloud whose
+    /// unmapped start cannot hold its score down (MIT CSAIL and ACES cut into sessions: sessions
+    /// starting off the earlier sessions' ground were never placed). Each such search decides as a retry
+    /// does. Counting only searches where no pose reached the score lost ACES ÷ 2's placement. Count;
+    /// 0 = off. Default 40.
     pub recent_search_nodes: usize,
     /// Stop searching after this many nodes without a placement (count; 0 = never): the session stays
     /// unplaced. Default 0.
@@ -340,7 +343,7 @@ pub struct SessionStart {
     rivals: Vec<Rigid2>,
     /// While searching: the best and the other candidates of the last refused search.
     candidates: Vec<Rigid2>,
-    /// While searching: the last search found nothing at all.
+    /// While searching: the last search answered `NotFound`.
     found_nothing: bool,
     /// Route position (metres) of the latest undecided contest of the current placement.
     contested_at_m: Option<f64>,
@@ -580,16 +583,10 @@ impl SessionStart {
         }
         let first = self.searches == 0 && count == self.options.hold_back_nodes;
         let every = self.options.retry_every_n_nodes;
-        let scheduled = self.searches > 0
-            && every > 0
-            && since.is_multiple_of(every)
-            && (since / every).is_power_of_two();
+        let retry_step = self.searches > 0 && every > 0 && since.is_multiple_of(every);
+        let scheduled = retry_step && (since / every).is_power_of_two();
         let recent = self.options.recent_search_nodes;
-        let arrival = self.searches > 0
-            && self.found_nothing
-            && recent > 0
-            && every > 0
-            && since.is_multiple_of(every);
+        let arrival = retry_step && self.found_nothing && recent > 0;
         let recheck = self.options.recheck_every_n_nodes;
         let retry = scheduled
             || (self.searches > 0
