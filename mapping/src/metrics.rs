@@ -1,5 +1,6 @@
 //! Accuracy measures of SLAM results, and the scores of a lifelong run (what each session lived).
 
+mod map_world_agreement;
 mod match_score;
 mod placement_verdict;
 mod relations_metric;
@@ -8,6 +9,7 @@ mod scoring_options;
 mod session_score;
 mod trajectory_metric;
 
+pub use map_world_agreement::{MAP_WORLD_TOLERANCE_M, MapWorldAgreement, map_world_agreement};
 pub use match_score::{MatchScorer, match_score};
 pub use placement_verdict::{
     PLACEMENT_WINDOW_S, PlacementVerdict, SpanVerdict, Verdict, judge_placements,

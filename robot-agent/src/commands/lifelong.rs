@@ -23,7 +23,8 @@ use mapping::lifelong::{
     render_submaps_newest,
 };
 use mapping::metrics::{
-    ScoringOptions, SessionScore, align_to_truth, pose_error, score_run, score_session, truth_at,
+    MAP_WORLD_TOLERANCE_M, MapWorldAgreement, ScoringOptions, SessionScore, align_to_truth,
+    map_world_agreement, pose_error, score_run, score_session, truth_at,
 };
 use mapping::sensor::Timestamp;
 use mapping::simulation::{SessionOptions, Store};
@@ -80,6 +81,13 @@ struct SessionRow {
     mcr: Option<f64>,
     /// The simulator's own change rate from day 0 to this session's day, measured the same way.
     world_change_rate: f64,
+    /// The map after this session (newest-wins) against this session's day of the world, over the area
+    /// the last [`MAP_WORLD_SESSIONS`] sessions observed: the share of the day's occupied structure the
+    /// map shows, and the share of the map's occupied cells the day's world no longer has.
+    map_shows_world: Option<f64>,
+    map_gone_from_world: Option<f64>,
+    /// The cell counts behind those two shares.
+    map_world: Option<MapWorldAgreement>,
     nodes: usize,
     submaps: usize,
     constraints: usize,
@@ -174,12 +182,26 @@ impl Reporter<'_> {
         let score = score_session(&end.record.track(&truth), &world_from_map, &self.scoring);
         let resolution = self.config.local.submaps.resolution;
         let change = map_change(end.map, resolution);
-        let world_change_rate = map_change_rate(
-            &self.truth_day_zero,
-            &self.store.occupancy(k, resolution).surface_grid(),
-            MAP_CHANGE_TOLERANCE_M,
-        )
-        .rate;
+        let world_today = self.store.occupancy(k, resolution).surface_grid();
+        let world_change_rate =
+            map_change_rate(&self.truth_day_zero, &world_today, MAP_CHANGE_TOLERANCE_M).rate;
+        let map_world = change.as_ref().and_then(|(_, map_now)| {
+            let recent = k.saturating_sub(MAP_WORLD_SESSIONS - 1);
+            let area = render_submaps_newest(
+                end.map
+                    .placed_submaps_by_id()
+                    .filter(|(id, _)| id.trajectory >= recent)
+                    .map(|(_, g)| g),
+                resolution,
+            )?;
+            Some(map_world_agreement(
+                map_now,
+                &world_today,
+                &world_from_map,
+                &area,
+                MAP_WORLD_TOLERANCE_M,
+            ))
+        });
         let s = end.summary;
         let counts = s.counts;
         self.rows.push(SessionRow {
@@ -187,6 +209,9 @@ impl Reporter<'_> {
             score,
             mcr: change.as_ref().map(|(c, _)| c.rate),
             world_change_rate,
+            map_shows_world: map_world.and_then(|a| a.shown()),
+            map_gone_from_world: map_world.and_then(|a| a.gone()),
+            map_world,
             nodes: counts.nodes,
             submaps: counts.submaps,
             constraints: counts.constraints,
@@ -228,7 +253,7 @@ impl Reporter<'_> {
         self.details.push(details);
         self.last_change = change;
         eprintln!(
-            "session {k:>2}: init {:<5} placed {} committed {} placement {} mrcl {:.3} (smoothed {:.3}) ams {} ate {:.3} m | mcr {} world {:.3} | nodes {} submaps {} constraints {} | pgr {:.0} ms, {} ms cpu ({} LM steps)",
+            "session {k:>2}: init {:<5} placed {} committed {} placement {} mrcl {:.3} (smoothed {:.3}) ams {} ate {:.3} m | mcr {} world {:.3} | map shows {} of the world, {} gone | nodes {} submaps {} constraints {} | pgr {:.0} ms, {} ms cpu ({} LM steps)",
             if k == 0 {
                 "-".to_string()
             } else {
@@ -252,6 +277,8 @@ impl Reporter<'_> {
                 .and_then(|r| r.mcr)
                 .map_or("-".to_string(), |m| format!("{m:.3}")),
             world_change_rate,
+            share(map_world.and_then(|a| a.shown())),
+            share(map_world.and_then(|a| a.gone())),
             counts.nodes,
             counts.submaps,
             counts.constraints,
@@ -298,6 +325,10 @@ impl Reporter<'_> {
                 "wrong_placements": run.wrong_placements,
                 "mcr": last.and_then(|r| r.mcr),
                 "world_change_rate": last.map(|r| r.world_change_rate),
+                "map_shows_world": last.and_then(|r| r.map_shows_world),
+                "map_gone_from_world": last.and_then(|r| r.map_gone_from_world),
+                "map_world_sessions": MAP_WORLD_SESSIONS,
+                "map_world_tolerance_m": MAP_WORLD_TOLERANCE_M,
                 "final": last.map(|r| json!({
                     "nodes": r.nodes, "submaps": r.submaps, "constraints": r.constraints,
                     "trimmed_total": r.trimmed_total, "dropped_total": r.dropped_total,
@@ -320,6 +351,15 @@ impl Reporter<'_> {
         std::fs::rename(&temporary, &path)
             .with_context(|| format!("cannot write {}", path.display()))
     }
+}
+
+/// The map against the world is judged over the area this many of the latest sessions observed (the
+/// ground a robot cleans today, not corners nobody has seen for weeks).
+const MAP_WORLD_SESSIONS: u32 = 5;
+
+/// A share as `0.912`, or `-`.
+fn share(value: Option<f64>) -> String {
+    value.map_or("-".to_string(), |v| format!("{v:.3}"))
 }
 
 /// MCR: session 0's map against the map as its newest submaps describe the site now (both rendered
