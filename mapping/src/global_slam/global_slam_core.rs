@@ -356,9 +356,7 @@ impl GlobalSlam {
                         self.options.odometry_translation_sigma,
                         self.options.odometry_rotation_sigma,
                     ),
-                    loss: RobustLoss::Huber {
-                        delta: self.options.odometry_huber_scale,
-                    },
+                    loss: RobustLoss::Trivial,
                 })
                 .map_err(graph_error)?;
         }

@@ -47,14 +47,11 @@ pub struct GlobalSlamOptions {
     /// Standard deviation (m) of the translation between consecutive nodes of a trajectory, from LLO's
     /// relative motion. Default 0.02 m.
     pub odometry_translation_sigma: f64,
-    /// Standard deviation (rad) of the rotation between consecutive nodes. Default 0.01 rad.
+    /// Standard deviation (rad) of the rotation between consecutive nodes. Default 0.01 rad. The
+    /// constraint is plain least squares: a robust (Huber) chain let a few agreeing wrong closures kink
+    /// it at one step instead of being refused by it, and changed nothing on the robustness suite
+    /// (BENCHMARKS.md, "Session 25").
     pub odometry_rotation_sigma: f64,
-    /// Huber threshold (in standard deviations) on the whitened error of the constraint between
-    /// consecutive nodes. Within it the chain is plain least squares; beyond it, where LLO slipped between
-    /// two nodes (a scan placed tens of centimetres off), the step pulls with a constant force, so that
-    /// loop closures can move the nodes after the slip instead of bending around one stiff wrong step.
-    /// Default 3 (Intel 0.0324 → 0.0320 m, CSAIL and ACES unchanged; session 11).
-    pub odometry_huber_scale: f64,
     /// After every optimization, an accepted loop closure whose χ² (`eᵀΩe` with its own information,
     /// unitless) still exceeds this is taken out of the graph, and the graph is optimized again without
     /// it: the odometry chain and the other closures together refuse it (a look-alike place, or several
@@ -98,7 +95,6 @@ impl Default for GlobalSlamOptions {
             intra_submap_rotation_sigma: 0.1,
             odometry_translation_sigma: 0.02,
             odometry_rotation_sigma: 0.01,
-            odometry_huber_scale: 3.0,
             loop_closure_retraction_chi2: 6.0,
             unanchored_search_every_n_nodes: 0,
             settled_region_hops: None,
@@ -142,11 +138,6 @@ impl GlobalSlamOptions {
             "odometry_rotation_sigma",
             "rad",
             self.odometry_rotation_sigma,
-        )?;
-        check_sigma(
-            "odometry_huber_scale",
-            "standard deviations",
-            self.odometry_huber_scale,
         )?;
         if !(self.loop_closure_retraction_chi2.is_finite()
             && self.loop_closure_retraction_chi2 >= 0.0)
