@@ -23,15 +23,9 @@ pub struct SledStoreOptions {
     /// sled page cache size, in bytes; at least 1 MiB. Default 256 MiB. sled 0.34 does not keep to it
     /// (see [`Self::reopen_after_bytes`]).
     pub cache_capacity_bytes: u64,
-    /// Bytes of values (and their keys) written to or read from the database since it was opened after
-    /// which the store reopens it, at its next successful flush when no operation holds it: sled 0.34
-    /// keeps in memory every value it has written or read since it was opened, whatever
-    /// `cache_capacity_bytes` says (its LRU sees an access only once 64 have queued in one of its 256
-    /// shards, so at the rate a site log grows it never evicts anything), and dropping the database is
-    /// what frees them. So this bounds the store's memory: a site log written for hours would otherwise
-    /// stay whole in memory (issue 16 §5), as would the whole log after a replay. A reopen after a
-    /// successful flush loses nothing and does not change [`crate::MapStore::generation`]; it takes
-    /// sled's recovery (~50 ms for an 80 MB database here). 0: never. Default 16 MiB.
+    /// Bytes of values (and keys) written or read since the database was opened after which the store
+    /// reopens it, at its next successful flush when no operation holds it (0: never). Default 16 MiB.
+    /// Why: `docs/TUNING.md#sled-reopen-after-bytes`.
     pub reopen_after_bytes: u64,
     /// Period of sled's background flush, in milliseconds; 0 disables it (then only
     /// [`crate::MapStore::flush`] and [`crate::MapStore::apply_durable`] make data durable). Default 500.

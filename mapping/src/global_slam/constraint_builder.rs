@@ -28,11 +28,7 @@ pub struct ConstraintBuilderOptions {
     /// Fraction of candidate (node, submap) pairs that are searched, in `[0, 1]`. Default 0.15.
     pub sampling_ratio: f64,
     /// Pairs whose estimated node-to-submap-origin distance exceeds this (m) are not searched. Default 20 m
-    /// (Cartographer's is 15 m): a finished submap holds twice LLO's `num_range_data` scans, about 34 m of
-    /// a straight aisle at the default motion filter, and with 15 m the far half of such a submap was never
-    /// matched, so nothing but LLO held a long aisle's heading (simulated store, session 0, seed 1:
-    /// trajectory error 0.274 → 0.153 m RMS, 25 m gave 0.151, 30 m 0.165; seeds 2 and 3 gained 1 and 3 cm;
-    /// Freiburg relations error equal or lower; see BENCHMARKS.md).
+    /// (Cartographer's is 15 m). Why: `docs/TUNING.md#cb-max-constraint-distance`.
     pub max_constraint_distance: f64,
     /// Minimum branch-and-bound score (mean probability at the scan points) to accept a loop closure
     /// near the current estimate. Default 0.55.
@@ -40,25 +36,21 @@ pub struct ConstraintBuilderOptions {
     /// Minimum score to accept a match searched over a whole submap with no prior (relocalization).
     /// Default 0.6.
     pub global_localization_min_score: f32,
-    /// A match is refused when the best clearly different pose in the same window (another peak, see
-    /// [`LoopClosure::runner_up_score`]) scores within this much of it: the scan fits two places about
-    /// equally well, and a loop closure at the wrong one tears the map. Score units (mean probability).
-    /// Default 0.02.
+    /// Refuse a match when a clearly different pose in its window ([`LoopClosure::runner_up_score`]) scores
+    /// within this much of it (mean probability). Default 0.02. Why: `docs/TUNING.md#cb-min-score-margin`.
     pub min_score_margin: f32,
     /// Standard deviation (m) of an accepted loop closure's translation. Default 0.03 m.
     pub loop_closure_translation_sigma: f64,
     /// Standard deviation (rad) of an accepted loop closure's rotation. Default 0.01 rad.
     pub loop_closure_rotation_sigma: f64,
-    /// Huber threshold on the whitened loop-closure error (in standard deviations). Default 1: beyond one
-    /// sigma a closure pulls with a constant force, so the few wrong ones that pass every check cannot
-    /// bend the graph in proportion to how wrong they are.
+    /// Huber threshold on the whitened loop-closure error (in standard deviations). Default 1.
+    /// Why: `docs/TUNING.md#cb-huber-scale`.
     pub huber_scale: f64,
-    /// Branch-and-bound search window and depth. Defaults here: 1.5 m, ±15°, depth 7. This is the window
-    /// right after a loop closure; it grows with the distance travelled since (below).
+    /// Branch-and-bound search window right after a loop closure (it grows with the path since, below) and
+    /// depth. Defaults here: 1.5 m, ±15°, depth 7. Why: `docs/TUNING.md#cb-fast-correlative`.
     pub fast_correlative: FastCorrelativeScanMatcherOptions,
     /// How much the translation window grows per metre travelled since the trajectory's last loop closure
-    /// (m/m): LLO's drift, so that the loop at the end of a long stretch without closures is still in
-    /// reach. Default 0.05 (5 %).
+    /// (m/m). Default 0.05 (5 %). Why: `docs/TUNING.md#cb-linear-window-growth`.
     pub linear_window_growth: f64,
     /// How much the rotation window grows per metre travelled since the last loop closure (rad/m).
     /// Default 0.0035 (0.2°/m).
@@ -66,23 +58,16 @@ pub struct ConstraintBuilderOptions {
     /// The translation window never grows beyond this (m). Default 20 m.
     pub max_linear_search_window: f64,
     /// A loop closure only resets the window growth when its submap lies at least this far back along the
-    /// trajectory (m): matching the submap the robot has just left says nothing about the drift around a
-    /// loop. Default 20 m.
+    /// trajectory (m). Default 20 m. Why: `docs/TUNING.md#cb-min-loop-length`.
     pub min_loop_length: f64,
-    /// A match that moves its node farther than this (m) from its current estimate, plus
-    /// `linear_window_growth` per metre driven since the last loop (the drift LLO may have accumulated), is
-    /// refused: on the Freiburg recordings 87–100 % of the matches that moved their node more than 0.5 m
-    /// with little drift behind them were wrong (violated after the final optimization), and a wrong match
-    /// tears the map. Default 0.5 m (0.3 m refused too many true ones: Intel 0.0324 → 0.0395 m).
+    /// Refuse a match that moves its node farther than this (m) from its estimate plus `linear_window_growth`
+    /// per metre since the last loop. Default 0.5 m. Why: `docs/TUNING.md#cb-max-innovation-translation`.
     pub max_innovation_translation: f64,
     /// … or rotates it more than this (rad), plus `angular_window_growth` per metre. Default 0.052 rad (3°).
     pub max_innovation_rotation: f64,
-    /// A match refused as beyond drift is still used once matches of this many different nodes (itself
-    /// included), against at least two submaps, agree with it (each closes a consistent cycle with it): a
-    /// sudden LLO slip tears the trajectory by more than drift explains, and only such a chorus may repair
-    /// it; one look-alike place seen from consecutive nodes agrees with itself, but rarely across submaps
-    /// and nodes this many. 0 = never. Default 5 (Intel with 60-scan submaps tore
-    /// 2.5 m without it: 0.163 → 0.0335 m).
+    /// A match refused as beyond drift is still used once matches of this many nodes (itself included),
+    /// against at least two submaps, agree with it (count; 0 = never). Default 5.
+    /// Why: `docs/TUNING.md#cb-beyond-drift-confirmations`.
     pub beyond_drift_confirmations: usize,
     /// A match that would move its node more than this (m) from its current estimate is used only once a
     /// match of another node agrees with it (see `agreement_path_length`). Default 0.5 m.
@@ -119,16 +104,13 @@ impl Default for ConstraintBuilderOptions {
             loop_closure_translation_sigma: 0.03,
             loop_closure_rotation_sigma: 0.01,
             huber_scale: 1.0,
-            // Right after a loop closure LLO has drifted little, and the window grows with the path driven
-            // since (below): 1.5 m × ±15° finds the closures a 4 m × ±20° window found, a wrong match
-            // has less room, and it costs less (Intel 106 s → 91 s; see BENCHMARKS.md, session 9).
+            // 1.5 m × ±15°, growing with the path since (below). Why: docs/TUNING.md#cb-fast-correlative.
             fast_correlative: FastCorrelativeScanMatcherOptions {
                 linear_search_window: 1.5,
                 angular_search_window: 15f64.to_radians(),
                 ..FastCorrelativeScanMatcherOptions::default()
             },
-            // Cartographer's constraint-builder weights: the scan, not the branch-and-bound pose it starts
-            // from, decides the refined pose (Cartographer's LLO weights 1 / 10 / 40 anchor it to the search's discrete angle).
+            // Cartographer's constraint-builder weights. Why: docs/TUNING.md#cb-least-squares.
             least_squares: LeastSquaresScanMatcherOptions {
                 occupied_space_weight: 20.0,
                 translation_weight: 10.0,

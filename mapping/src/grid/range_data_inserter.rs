@@ -19,15 +19,10 @@ use crate::sensor::RangeData;
 #[serde(deny_unknown_fields, default)]
 pub struct RangeDataInserterOptions {
     /// Probability that a cell is occupied given one hit in it, in (0.5, 1). Default 0.7.
-    ///
-    /// Cartographer's 0.55 / 0.49 assume dozens of scans per cell: after one or two observations a wall
-    /// reads 0.55 and free space 0.47, hardly apart, while unseen cells read 0.1. At 1–2 scans per second
-    /// (0.5–1 m and up to 80° between scans) a scan then fits best where its points fall on seen free space
-    /// rather than on a barely marked wall, and LLO turned tens of degrees the wrong way (MIT CSAIL thinned
-    /// to 1.4 scans/s: 26 steps more than 5° wrong with 0.55 / 0.49, 5 with 0.65 / 0.45; 0.7 / 0.45 was best on
-    /// all three recordings at both rates, see BENCHMARKS.md).
+    /// Why: `docs/TUNING.md#rdi-hit-probability`.
     pub hit_probability: f32,
     /// Probability that a cell is occupied given one ray through it, in (0, 0.5). Default 0.45.
+    /// Why: `docs/TUNING.md#rdi-miss-probability`.
     pub miss_probability: f32,
     /// Whether rays mark the cells they cross as free. Default true.
     pub insert_free_space: bool,

@@ -32,115 +32,62 @@ use crate::scan_matching::{
 pub struct RelocalizationOptions {
     /// Cell size of the rendered map, metres. Default 0.05 m (the submaps').
     pub resolution: f64,
-    /// How the rendered map values a cell the submaps disagree on ([`MapCells`]). Default `newest`:
-    /// what the site looks like now, not every goods arrangement ever seen merged.
+    /// How the rendered map values a cell the submaps disagree on ([`MapCells`]). Default `newest`.
+    /// Why: `docs/TUNING.md#reloc-map-cells`.
     pub map_cells: MapCells,
-    /// Voxel size the merged cloud is thinned to, metres (0: no thinning). Default 0.15 m: the search costs
-    /// time in proportion to the points, and 0.15 m keeps the shape (0.05 m took 3× longer on the simulated
-    /// store for the same poses).
+    /// Voxel size the merged cloud is thinned to, metres (0: no thinning). Default 0.15 m.
+    /// Why: `docs/TUNING.md#reloc-voxel-size`.
     pub voxel_size: f64,
-    /// Most points of the merged cloud the whole-map search places (count ≥ 1): a larger cloud is thinned
-    /// for the search with coarser voxels until it has at most this many ([`thinned_to`]); its candidates
-    /// are then refined and compared with the whole cloud. The search's cost grows faster than its points
-    /// (a 10 s stack on Intel: a median 0.5 s at 150–250 points, 2.6 s above 350), while its shape, which
-    /// finds the candidates, survives coarser voxels. Default 200.
+    /// Most points of the merged cloud the whole-map search places (count ≥ 1; a larger cloud is thinned with
+    /// coarser voxels, [`thinned_to`]). Default 200. Why: `docs/TUNING.md#reloc-max-search-points`.
     pub max_search_points: usize,
     /// Minimum branch-and-bound score (mean probability at the points) to accept. Default 0.6.
     pub min_score: f32,
     /// Depth of the branch-and-bound precomputation. Default 7.
     pub branch_and_bound_depth: u32,
-    /// The whole-map searches tried in turn, each on a coarse grid of this many map cells per cell along
-    /// each axis ([`RelocalizerOptions::coarse_factor`], each 1..=16; at least one): a coarser grid tries
-    /// `factor²` fewer positions and `factor` fewer rotations, and its candidates are searched again at full
-    /// resolution, but it ranks the peaks of look-alike shelves less sharply, so its candidate list fills
-    /// with peaks that cannot be told apart, and the true rival of the best may be left out. When a
-    /// search's list was full and its bound on every peak it left out
-    /// ([`crate::scan_matching::Relocalization::unrefined_bound`]) comes within `min_score_margin` of its
-    /// best, it could not rank its candidates, and the next factor searches again; the last one's answer
-    /// stands. Default `[4, 2]`: on the simulated store (seed 1, sessions 1–12) factor 4 took 1.0–1.2 s of
-    /// CPU per first search against 3.2–4.9 s for factor 2, and factor 4 alone placed a session of the
-    /// `aisles` store 42.8 m off where factor 2 refused it (BENCHMARKS.md, session 13).
+    /// The whole-map searches tried in turn, each on a coarse grid of this many map cells per cell along each
+    /// axis ([`RelocalizerOptions::coarse_factor`], each 1..=16; at least one); the next one searches again
+    /// when a search could not rank its candidates ([`crate::scan_matching::Relocalization::unrefined_bound`]
+    /// within `min_score_margin` of its best). Default `[4, 2]`. Why: `docs/TUNING.md#reloc-coarse-factors`.
     pub coarse_factors: Vec<u32>,
-    /// Whole-map candidates scoring more than this below the best on the coarse grid are not looked
-    /// for ([`RelocalizerOptions::coarse_score_window`]; score units ≥ 0, `inf` for no bound): a rival
-    /// that far behind cannot make a search ambiguous, and looking for it explores most of a store of
-    /// look-alike shelves. Default infinite.
+    /// Whole-map candidates scoring more than this below the best on the coarse grid are not looked for
+    /// ([`RelocalizerOptions::coarse_score_window`]; score units ≥ 0, `inf` for no bound). Default infinite.
+    /// Why: `docs/TUNING.md#reloc-candidate-score-window`.
     pub candidate_score_window: f32,
-    /// Refuse a match whose runner-up (a clearly different pose, see
-    /// [`crate::scan_matching::Relocalization::runner_up_score`]) scores within this much of it: in a
-    /// store of look-alike aisles a near-tie is a guess, and a session placed in the wrong aisle corrupts
-    /// the map; an unplaced session retries later from elsewhere. Score units; 0 = accept ties. Default
-    /// 0.03.
+    /// Refuse a match whose runner-up ([`crate::scan_matching::Relocalization::runner_up_score`]) scores
+    /// within this much of it (score units; 0 = accept ties). Default 0.03.
+    /// Why: `docs/TUNING.md#reloc-min-score-margin`.
     pub min_score_margin: f32,
-    /// How far (metres) a point may fall from a surface the map saw and still count as a hit while
-    /// searching: the rendered map is max-filtered by this much before the branch-and-bound search (the
-    /// winner is then refined on the unfiltered map). A store changes between sessions — goods protrude
-    /// more or less, go missing and show the shelf frame behind — and a match scored cell-exactly on a
-    /// weeks-old map falls below `min_score` even where the walls, frames and pillars all agree. 0 scores
-    /// cell-exactly. Default 0.15 m (half the simulated store's goods depth; three cells).
+    /// How far (metres) a point may fall from a surface the map saw and still count as a hit while searching
+    /// (the map is max-filtered by this; 0 scores cell-exactly). Default 0.15 m.
+    /// Why: `docs/TUNING.md#reloc-match-tolerance`.
     pub match_tolerance: f64,
-    /// How decisively the best pose must beat every other candidate before [`StartSearch::search_again`]
-    /// places an ambiguous start: per point of the merged cloud, the difference between the best pose's
-    /// and another candidate's score at that point; the paired statistic `Σd / √(Σd²)` must reach this
-    /// for every other candidate. Points both explain equally (the shelves of two look-alike aisles) add nothing;
-    /// features only one explains (a pillar, an aisle end) add evidence; goods that fit one aisle by chance
-    /// as often fit the other and cancel. Unitless (about standard errors). This bar holds for a cloud of
-    /// at most `long_route_scans` scans, `long_route_min_disambiguation_z` beyond. Default 3, set on the
-    /// statistic counted over `route_block_m` blocks and scored against the truth: of 74 retries with at
-    /// most 200 scans whose best candidate was wrong, none reached 1.4 on the store (seeds 1 and 3) and
-    /// the highest reached 2.01 on the look-alike `aisles` (seed 1), while ten retries whose best was
-    /// right reached 3.3–4.0, which the earlier bar of 4 refused (BENCHMARKS.md, session 18); 3 keeps a
-    /// margin of one over the worst wrong best. Counted per point, 3 placed a store session 19.9 m off
-    /// and another 1.0 m off (seed 1, sessions 24 and 20; session 15) and probation committed both: what
-    /// makes 3 safe is the blocks.
+    /// The paired statistic `Σd / √(Σd²)` the best pose must reach against every other candidate before
+    /// [`StartSearch::search_again`] places an ambiguous start (clouds of at most `long_route_scans`
+    /// scans). Unitless (about standard errors). Default 3. Why: `docs/TUNING.md#reloc-min-disambiguation-z`.
     pub min_disambiguation_z: f64,
-    /// The paired test's bar (as `min_disambiguation_z`) for a cloud of more than `long_route_scans`
-    /// scans. The test counts blocks as independent evidence, but LLO's drift bends a long cloud, and a
-    /// bent cloud's blocks misfit the right place together: at 2.5 two `aisles` sessions were placed
-    /// 35.9 and 117.6 m off from 400-scan clouds (z 2.66 and 2.75; seed 1, sessions 23 and 24;
-    /// BENCHMARKS.md, session 18), and wrong bests of 320-scan clouds reached 1.7–1.8.
-    /// Unitless. Default 4 (the bar of sessions 12–17, which placed no session wrong).
+    /// The paired test's bar (as `min_disambiguation_z`) for a cloud of more than `long_route_scans` scans.
+    /// Unitless. Default 4. Why: `docs/TUNING.md#reloc-long-route-min-disambiguation-z`.
     pub long_route_min_disambiguation_z: f64,
     /// Clouds of more scans than this (one per node; about 0.2 m of driving each in the simulated
     /// store) are tested at `long_route_min_disambiguation_z`. Count. Default 200 (about 40 m).
     pub long_route_scans: usize,
-    /// Block size of the paired tests over a session's route — [`StartSearch::search_again`]'s and
-    /// probation's [`StartSearch::contest`] ([`blocked_paired_z`]): the per-point differences are summed
-    /// per square of this size in the cloud's frame, and the statistic counts blocks, not points. Goods
-    /// move a gondola section at a time (a 4 ft section is 1.22 m), and a section of the wrong aisle
-    /// that happens to fit the stale goods of the right one adds dozens of points of "evidence" per scan
-    /// of it; counted per point it placed a store session 19.9 m off at z ≥ 4 from 80 nodes (seed 1,
-    /// session 24, with LLO's refinement capped at 40 iterations; BENCHMARKS.md, session 16). One-shot
-    /// answers ([`StartSearch::decide`]) stay per point: their thresholds were set on real recordings
-    /// per point, and per block a single Intel scan answered 1 % of samples instead of 52 %. Metres ≥ 0
-    /// (0: per point). Default 1.2 m.
+    /// Block size of the paired tests over a session's route ([`StartSearch::search_again`],
+    /// [`StartSearch::contest`]; [`blocked_paired_z`]), metres ≥ 0 (0: per point; one-shot answers stay per
+    /// point). Default 1.2 m. Why: `docs/TUNING.md#reloc-route-block-m`.
     pub route_block_m: f64,
-    /// The paired test of `min_disambiguation_z` for a one-shot answer ([`StartSearch::decide`]), which
-    /// cannot wait for more data: answers placed metres off passed 3 on the Intel and MIT CSAIL recordings
-    /// (z 3.1 and 3.4, single scans) but none passed 4 (BENCHMARKS.md, relocalization with no prior). The
-    /// session start keeps `min_disambiguation_z` for its retries (each adds scans, and a session placed
-    /// wrongly is still checked by cross-session matches). On the 0.7 / 0.45 grids 3 placed an Intel single
-    /// scan 0.21 m off (precision 0.98). Unitless. Default 4.
+    /// The paired test of `min_disambiguation_z` for a one-shot answer ([`StartSearch::decide`]). Unitless.
+    /// Default 4. Why: `docs/TUNING.md#reloc-min-answer-z`.
     pub min_answer_z: f64,
     /// Smallest mean probability of the cloud at the best pose on the unfiltered map for a one-shot answer
-    /// ([`StartSearch::decide`]): a cloud from ground the map never saw can reach `min_score` on the
-    /// max-filtered map somewhere with no rival at all (ACES: 0.38–0.40 at poses 30 m off, right answers
-    /// from 0.45 up; stacks of scans fit lower as LLO's drift blurs them). On the sharper 0.7 / 0.45 grids
-    /// right answers refused by it fit 0.30–0.38, but 0.34 placed an ACES scan 29 m off and 0.32 a MIT
-    /// CSAIL 10 s stack metres off (BENCHMARKS.md, session 11). Score units. Default 0.4.
+    /// ([`StartSearch::decide`]). Default 0.4. Why: `docs/TUNING.md#reloc-min-unfiltered-score`.
     pub min_unfiltered_score: f32,
     /// Largest shift (metres) of the first scan's own refinement from the pose the whole cloud gave it
-    /// ([`SearchEvidence::first_scan_shift_m`]) for a one-shot answer ([`StartSearch::decide`]), which
-    /// answers the cloud's pose: the cloud and its first scan are two estimates of one pose, and when they
-    /// disagree by much more than the accuracy an answer claims, the stack is bent at its start (LLO's
-    /// drift) or the scan fits better elsewhere, and the cloud's pose of it is not to be trusted either.
-    /// On the Intel and MIT CSAIL recordings (10–30 s stacks, 0.7 / 0.45 grids) the cloud's pose was
-    /// within 0.15 m wherever the shift was at most 0.16 m (and at 0.197 and 0.222 m), and 0.21–0.24 m off
-    /// at shifts of 0.209 m and more. Default 0.18 m.
+    /// ([`SearchEvidence::first_scan_shift_m`]) for a one-shot answer ([`StartSearch::decide`]). Default
+    /// 0.18 m. Why: `docs/TUNING.md#reloc-max-first-scan-shift`.
     pub max_first_scan_shift: f64,
     /// Distinct coarse candidates refined at full resolution (count ≥ 1; see [`RelocalizerOptions`]).
-    /// Default 8: corridors and shelf rows make coarse maxima ambiguous, and the refinements are cheap
-    /// next to the coarse search.
+    /// Default 8. Why: `docs/TUNING.md#reloc-max-candidates`.
     pub max_candidates: usize,
     /// Refinement of the match.
     pub least_squares: LeastSquaresScanMatcherOptions,

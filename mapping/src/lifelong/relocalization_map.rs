@@ -33,9 +33,7 @@ pub enum MapCells {
     /// occupied in every session that saw it keeps its value; goods that appeared since the last
     /// session count half (issue 14 §3's per-cell persistence, over the sessions the map still holds —
     /// a trimmed session's evidence goes with its submaps). Not the default: it lowers the fit of right
-    /// answers too, and the session start's fit floor (`min_unfiltered_score`, set on real recordings)
-    /// then refused right answers at z 3.6–6.5 on the simulated store (seeds 1 and 3, BENCHMARKS.md,
-    /// session 19), placing a session after 88 s instead of 11 s.
+    /// answers too. Why: `docs/TUNING.md#reloc-map-cells`.
     Persistent,
 }
 

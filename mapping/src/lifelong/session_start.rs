@@ -63,31 +63,20 @@ pub struct SessionStartOptions {
     /// Nodes held back and merged into the cloud of the first whole-map search (count ≥ 1). Default 10
     /// (about 2 m of driving).
     pub hold_back_nodes: usize,
-    /// While unplaced, search the whole map again with every node since the start after this many nodes
-    /// (counted from the start, or from the last revocation), then after twice, four times ... as many
-    /// (count; 0 = never retry). The doubling keeps a session that cannot be placed from spending its
-    /// time searching, and bounds how often the paired test is tried on look-alike aisles: retrying
-    /// every 10 nodes (with 5 held back) placed a session of the `aisles` store 49 m off, and probation
-    /// committed it (seed 1, session 10; BENCHMARKS.md, session 12). Default 20.
+    /// While unplaced, search the whole map again with every node since the start (or the last revocation)
+    /// after this many nodes, then twice, four times ... as many (count; 0 = never retry). Default 20.
+    /// Why: `docs/TUNING.md#ss-retry-every-n-nodes`.
     pub retry_every_n_nodes: usize,
-    /// While unplaced, between the scheduled retries, every this many nodes test whether the route now
-    /// tells apart the candidates of the last search ([`StartSearch::route_decides`]: a few refinements,
-    /// no search), and if so retry at once (count; 0 = never). The doubling schedule alone left sessions
-    /// that the route had told apart after 80 nodes waiting for the search at 160 (35 s; seed 1,
-    /// sessions 24 and 25). Default 10 (about 2 m).
+    /// Between the scheduled retries, every this many nodes test whether the route now tells apart the last
+    /// search's candidates ([`StartSearch::route_decides`]), and if so retry at once (count; 0 = never).
+    /// Default 10 (about 2 m). Why: `docs/TUNING.md#ss-recheck-every-n-nodes`.
     pub recheck_every_n_nodes: usize,
     /// Most nodes (the latest) a retry's cloud holds (count ≥ `hold_back_nodes`). Default 400 (about
     /// 80 m of driving): beyond that LLO's drift across the cloud outgrows the match tolerance.
     pub max_search_nodes: usize,
-    /// While the last search found nothing (`NotFound`: no pose reached the score, or the best fit the
-    /// unfiltered map below `min_unfiltered_score`; the route so far lies largely on ground the map does
-    /// not show), search every `retry_every_n_nodes` nodes with only the latest this many nodes, and
-    /// after a scheduled retry that found nothing, with them too: a robot that starts off the map is
-    /// placed soon after it drives onto mapped ground, instead of at the next doubling, by a cloud whose
-    /// unmapped start cannot hold its score down (MIT CSAIL and ACES cut into sessions: sessions
-    /// starting off the earlier sessions' ground were never placed). Each such search decides as a retry
-    /// does. Counting only searches where no pose reached the score lost ACES ÷ 2's placement. Count;
-    /// 0 = off. Default 40.
+    /// While the last search found nothing (`NotFound`, the fit floor's included), search with only the
+    /// latest this many nodes every `retry_every_n_nodes` nodes and after a scheduled retry that found
+    /// nothing (count; 0 = off). Default 40. Why: `docs/TUNING.md#ss-recent-search-nodes`.
     pub recent_search_nodes: usize,
     /// Stop searching after this many nodes without a placement (count; 0 = never): the session stays
     /// unplaced. Default 0.
@@ -103,10 +92,8 @@ pub struct SessionStartOptions {
     /// (count ≥ 1; capped by `probation_matches`). Default 2.
     pub probation_min_submaps: usize,
     /// A match agrees when the node position it implies lies within this of the node's position under the
-    /// placement (plus `agreement_growth` per metre of route). Metres > 0. Default 1 m: a quarter of the
-    /// simulated store's aisle pitch (4 m), so a placement in the next aisle disagrees, while a placement
-    /// a few decimetres off along a corridor, which GLM then pulls into place, agrees (MIT CSAIL's second
-    /// session starts 0.6 m off along a corridor).
+    /// placement (plus `agreement_growth` per metre of route). Metres > 0. Default 1 m.
+    /// Why: `docs/TUNING.md#ss-agreement-translation-m`.
     pub agreement_translation_m: f64,
     /// ... and its heading within this. Radians > 0. Default 5° (the wrong-placement bound of the scores).
     pub agreement_rotation_rad: f64,
@@ -117,28 +104,15 @@ pub struct SessionStartOptions {
     /// does not undo a placement, two independent ones do.
     pub probation_disagreements: usize,
     /// Revoke a placement not committed after this much route past its node, metres (0 = never), and
-    /// search again. Default 0: a placement nothing confirms stays on probation (it trims nothing and is
-    /// dropped at the session's end); with 60 m, MIT CSAIL's second session — placed 0.6 m off along a
-    /// corridor, 10 cross-session matches in its first 60 m, none far enough apart — was revoked and
-    /// never placed again.
+    /// search again. Default 0. Why: `docs/TUNING.md#ss-probation-timeout-m`.
     pub probation_timeout_m: f64,
-    /// A search answer within this distance (metres, at the latest node) and `agreement_rotation_rad` of
-    /// a revoked placement is refused as that placement again, unless the search's paired test against
-    /// its weakest rival reaches `probation_min_z` (the bar a placement passes before it is committed):
-    /// two false GLM matches in a changed aisle revoke a right placement as readily as a wrong one, and
-    /// without that exception two right placements (0.02 and 0.07 m off) were refused for the rest of
-    /// their sessions at z up to 5.1 and 5.4 (store seed 3, session 16; `aisles` seed 1, session 19;
-    /// BENCHMARKS.md, session 18). Metres ≥ 0. Default 1 m.
+    /// A search answer within this distance (metres ≥ 0, at the latest node) and `agreement_rotation_rad` of
+    /// a revoked placement is refused, unless its paired test against its weakest rival reaches
+    /// `probation_min_z`. Default 1 m. Why: `docs/TUNING.md#ss-revoked-radius-m`.
     pub revoked_radius_m: f64,
-    /// Before a placement is committed, the session's cloud since the start (at most the latest
-    /// `max_search_nodes`) must fit it better than each rival its search ranked below it by this paired
-    /// test ([`StartSearch::contest`]); a rival that fits better by as much revokes it, and in between the
-    /// test is made again `probation_min_separation_m` of route later. The matches that confirm a
-    /// placement are searched near its estimate, so in a look-alike aisle they agree with a wrong
-    /// placement as readily as with the right one; the whole route is the evidence they cannot give.
-    /// Unitless (about standard errors; 0 = no test). Default 4 (as
-    /// [`super::RelocalizationOptions::min_answer_z`]): probation committed a store session placed 19.9 m
-    /// off by the search's runner-up at 3 (seed 1, session 24; BENCHMARKS.md, session 15).
+    /// Before a placement is committed, the session's route must fit it better than each rival its search
+    /// ranked below it by this paired test ([`StartSearch::contest`]); a rival as much better revokes it.
+    /// Unitless (about standard errors; 0 = no test). Default 4. Why: `docs/TUNING.md#ss-probation-min-z`.
     pub probation_min_z: f64,
 }
 

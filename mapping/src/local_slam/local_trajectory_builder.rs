@@ -36,50 +36,30 @@ pub struct LocalTrajectoryBuilderOptions {
     pub use_correlative_scan_matching: bool,
     /// Correlative search window and penalties.
     pub real_time_correlative: RealTimeCorrelativeScanMatcherOptions,
-    /// Only points within this range (metres) take part in the correlative search; the least-squares
-    /// refinement still uses all of them. Far points set the search's rotation step (one cell at the
-    /// farthest point), so a 25 m LiDAR costs 2.5× the rotations of a 10 m cut for no gain in a coarse
-    /// initial guess. If fewer than `min_num_returns` points are that close, all are used. 0 = no cut.
-    /// Default 10 m.
+    /// Only points within this range (metres) take part in the correlative search (all of them if fewer than
+    /// `min_num_returns` are); 0 = no cut. Default 10 m. Why: `docs/TUNING.md#llo-correlative-max-range`.
     pub correlative_max_range: f32,
-    /// Half-width (radians) of the rotation window around the prediction within which the prediction is
-    /// trusted, plus `trusted_window_per_radian` × the rotation it claims since the last scan. The
-    /// correlative search still spans the wider window (`real_time_correlative.angular_search_window` plus
-    /// the whole claimed rotation, and a search around the constant-velocity prediction when odometry
-    /// stalls), but a match outside the trusted window replaces the best one inside only when it fits the
-    /// scan better by `min_deviation_z` (point-paired, see [`paired_z`]). Without this, a scan that overlaps
-    /// its submap poorly (1–2 scans per second in a fast turn) always finds some slightly better fit tens of
-    /// degrees away and LLO turns by it. Default 10°.
+    /// Half-width (radians) of the window around the prediction, plus `trusted_window_per_radian` × its
+    /// claimed rotation, in which the prediction is trusted: a match outside replaces the best inside only
+    /// when it fits better by `min_deviation_z` ([`paired_z`]). Default 10°.
+    /// Why: `docs/TUNING.md#llo-trusted-angular-window`.
     pub trusted_angular_window: f64,
     /// Growth of the trusted window with the claimed rotation (radians per radian). Default 0.25.
     pub trusted_window_per_radian: f64,
     /// How much better (paired statistic, see [`paired_z`]) a match outside the trusted window must fit
     /// than the best one inside it to be taken. Default 4.
     pub min_deviation_z: f64,
-    /// When the best correlative match of the windows above scores below this (mean probability), the
-    /// scan fits nowhere near the prediction: odometry stalled or slipped by more than the window (Intel
-    /// at 1 scan per second: a 25° turn in place reported as 0.2°). The search is then repeated over every
-    /// rotation, and its result taken if it fits clearly better than the best match near the prediction
-    /// (`min_recovery_z`). Matched scans score 0.4–0.8 on the default grids. Also the floor of a fit in
-    /// the trusted window: where the trusted window's best match scores below it, a match of the wider
-    /// windows that scores at least this is taken without the paired test (`min_deviation_z`), which
-    /// exists to keep a fit near the prediction, not a misfit (Intel at t = 1676.9 s: odometry claimed
-    /// −72° where the scans turned about +7°; the trusted window's best scored 0.21, the wide window's
-    /// 0.35 at paired z 3.995, and LLO turned 110° the wrong way when the run's state put it there).
-    /// Default 0.35.
+    /// Below this best correlative score (mean probability) the search is repeated over every rotation; also
+    /// the floor of a fit in the trusted window. Default 0.35. Why: `docs/TUNING.md#llo-min-recovery-score`.
     pub min_recovery_score: f64,
     /// How much better (paired statistic) the search over every rotation must fit than the best match
-    /// near the prediction. Higher than `min_deviation_z`: it tries about ten times as many rotations, so
-    /// chance alone finds larger values (Intel, 4 scans per second: a look-alike room 93° away at 5.1 while
-    /// the scan had turned 6°; the stalled turns it exists for score 7–12). Default 6.
+    /// near the prediction. Default 6. Why: `docs/TUNING.md#llo-min-recovery-z`.
     pub min_recovery_z: f64,
     /// Least-squares refinement weights.
     pub least_squares: LeastSquaresScanMatcherOptions,
-    /// The least-squares refinement pulls the translation toward the prediction (odometry, or constant
-    /// velocity), which carries the motion where the scan cannot see it (corridors), unless the
-    /// correlative search turned the pose more than this (radians) away from the prediction: odometry is
-    /// then wrong at this scan and the correlative result is the target. Default 1°; 0 = always the
-    /// correlative result, π = always the prediction.
+    /// The least-squares refinement pulls the translation toward the prediction unless the correlative search
+    /// turned the pose more than this (radians) away from it: 0 = always the correlative result, π = always
+    /// the prediction. Default 1°. Why: `docs/TUNING.md#llo-max-odometry-target-disagreement`.
     pub max_odometry_target_disagreement: f64,
     /// When a scan becomes a node.
     pub motion_filter: MotionFilterOptions,

@@ -50,18 +50,13 @@ pub struct OptimizerOptions {
     pub min_diagonal: f64,
     /// Upper clamp of the damping diagonal `D`. Cost units per metre² or radian².
     pub max_diagonal: f64,
-    /// Before iterating, compute a rotation-first initial guess (orientations by linear least squares
-    /// on the angle errors, then positions by linear least squares given those orientations) and start
-    /// from it when its χ² (robust losses ignored: the guess is a least-squares estimate) is lower than
-    /// the current estimate's. Costs two extra linear solves; worth
-    /// it from odometry-quality estimates, rarely from an already-optimized graph.
+    /// Before iterating, compute a rotation-first initial guess (orientations, then positions, by linear
+    /// least squares) and start from it when its χ² (robust losses ignored) is lower. Default false.
+    /// Why: `docs/TUNING.md#opt-rotation-first-initialization`.
     pub rotation_first_initialization: bool,
-    /// A constraint whose robust weight `ρ'(s)` falls below this at a linearization point is left out of
-    /// the linear system — of its sparsity pattern too — until its weight rises above ten times this
-    /// (checked at every relinearization, from every constraint's `s`, which is cheap). Its cost still
-    /// counts in `F`, so steps are accepted on the true objective. A redescending loss (DCS) drives a
-    /// false loop closure's weight towards zero: without this, a thousand such long-range edges fill in
-    /// the Cholesky factor while contributing nothing. `0` keeps every constraint. Unitless, in `[0, 0.1)`.
+    /// A constraint whose robust weight `ρ'(s)` falls below this is left out of the linear system until it
+    /// rises above ten times this (its cost still counts). Unitless, in `[0, 0.1)`; `0` keeps every
+    /// constraint. Default 1e-4. Why: `docs/TUNING.md#opt-prune-weight`.
     pub prune_weight: f64,
 }
 

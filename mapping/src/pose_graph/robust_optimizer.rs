@@ -45,9 +45,8 @@ use crate::geometry::Rigid2;
 #[derive(Clone, Debug, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct RobustOptimizerOptions {
-    /// The truncation threshold `c̄²` on a candidate's squared Mahalanobis norm `eᵀΩe` (unitless):
-    /// beyond it a candidate is rejected. 25 is 5σ on one axis; the benchmark graphs' loop closures
-    /// all lie below 6.2 at their least-squares optimum, false ones in the thousands. > 0.
+    /// The truncation threshold `c̄²` on a candidate's squared Mahalanobis norm `eᵀΩe` (unitless, > 0):
+    /// beyond it a candidate is rejected. Default 25. Why: `docs/TUNING.md#ropt-inlier-chi2`.
     pub inlier_chi2: f64,
     /// `Φ` of the rejection track's dynamic covariance scaling, on the squared Mahalanobis norm
     /// (unitless, > 0). Agarwal et al. use 1.

@@ -31,22 +31,10 @@ pub struct LeastSquaresScanMatcherOptions {
     /// the same whatever its point count. Default 1.
     pub occupied_space_weight: f64,
     /// Weight (1/m) of the residual pulling the translation toward the target translation. Default 3.
-    ///
-    /// What it weighs against: the scan's own information (`scan_information`, occupied-space `JᵀJ`),
-    /// whose translation eigenvalues are a median 24–33 (1/m²) in the weakest direction and 54–72 in the
-    /// strongest on the Freiburg recordings (1st percentile of the weakest: 9–13). A weight of 3 (prior
-    /// information 9) lets the scan decide wherever it sees the motion and the target carry it only where
-    /// the scan is nearly blind; Cartographer's 10 (information 100, several times the scan's) pulled LLO
-    /// most of the way to the odometry prediction, which on Intel is stamped in bursts and off along the
-    /// track. Measured in session 15 with `evermap-agent offline` (relations error, translation m /
-    /// rotation °, this and `rotation_weight` together, 10/40 → 3/10): CSAIL 0.0340/0.393 → 0.0297/0.340,
-    /// ACES 0.0359/0.351 → 0.0366/0.333, Intel 0.0314/0.395 → 0.0257/0.331. At 2 the Intel run tore (a
-    /// turn in place whose odometry is 89° off, no longer held); at 1 ACES did.
+    /// Why: `docs/TUNING.md#ls-translation-weight`.
     pub translation_weight: f64,
-    /// Weight (1/rad) of the residual pulling the rotation toward the initial rotation. Default 10 (prior
-    /// information 100 against the scan's own rotation information of a median 570–1230 (1/rad²) on the
-    /// Freiburg recordings; Cartographer's 40, information 1600, held the rotation at the initial guess's).
-    /// 5 and 20 measured within 0.02° of 10's rotation errors.
+    /// Weight (1/rad) of the residual pulling the rotation toward the initial rotation. Default 10.
+    /// Why: `docs/TUNING.md#ls-rotation-weight`.
     pub rotation_weight: f64,
     /// Maximum number of Levenberg–Marquardt iterations (accepted or rejected steps). Default 20.
     pub max_iterations: u32,

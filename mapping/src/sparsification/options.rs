@@ -41,14 +41,12 @@ pub enum TreeMean {
     /// jump when a submap is trimmed, and the whole-graph means of the exact and the sparsified
     /// posteriors coincide. But where the tree keeps much less information than the clique in the
     /// direction the gradient pulls, `δ = −Λ_tree⁻¹ g_B` is large: the tree's measurements lie far from
-    /// the poses, first order no longer holds, and the graph slides. On the simulated store (seed 1,
-    /// session 7) one batch of 5 trims raised the graph's χ² from 495 to 8309 (for good) and took 25
-    /// LM steps, 1.2 s (BENCHMARKS.md, session 16).
+    /// the poses, first order no longer holds, and the graph slides (see `docs/TUNING.md#sp-tree-mean`).
     MatchGradient,
     /// Use the exact marginal's own mean (`Λ_B δ = −g_B`, one Gauss–Newton step of the clique from the
     /// estimate): KL-optimal for the blanket marginal taken alone, and close to the poses wherever the
     /// clique pins them; the tree's weaker information then pulls the rest of the graph a little. The
-    /// default: on the same store session 7's trims left the χ² at 459 and took 2 steps.
+    /// default. Why: `docs/TUNING.md#sp-tree-mean`.
     MatchMarginalMean,
 }
 
@@ -58,7 +56,8 @@ pub enum TreeMean {
 pub struct SparsificationOptions {
     /// How tree edges become constraints.
     pub edge_model: EdgeModel,
-    /// Which mean the tree's measurements encode.
+    /// Which mean the tree's measurements encode. Default `MatchMarginalMean`.
+    /// Why: `docs/TUNING.md#sp-tree-mean`.
     pub tree_mean: TreeMean,
     /// How robust constraints touching the eliminated variables are linearised.
     pub robust_weighting: RobustWeighting,
