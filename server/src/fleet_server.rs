@@ -111,7 +111,9 @@ impl RunningServer {
                 site: id.clone(),
                 source,
             })?;
-            tracing::info!(site = %id, version = handle.current().version, "site loaded");
+            crate::site::site_span(&id).in_scope(|| {
+                tracing::info!(version = handle.current().version, "site loaded");
+            });
             sites.insert(id, handle);
             site_tasks.push(task);
         }

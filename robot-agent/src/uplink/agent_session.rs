@@ -148,6 +148,14 @@ pub struct SessionTrace {
     pub glm_matches: u64,
 }
 
+/// The span a robot session runs in, `session{site, robot, session}`: the shell that runs a session
+/// (`evermap-agent run`, the demo's robots) enters it, so every line the session's uploader, GLM and
+/// shell log names the session. At ERROR level so that it is on whenever any event is: a filter at WARN
+/// still shows whose session a warning is about.
+pub fn session_span(site: &str, robot_id: &str, session_uuid: &str) -> tracing::Span {
+    tracing::error_span!("session", site = %site, robot = %robot_id, session = %session_uuid)
+}
+
 /// Runs LLO over `recording` on a named thread and streams its output through `uploader` in batches of
 /// `nodes_per_batch` nodes, ending with `SessionEnd`. Transient failures are retried while LLO goes on
 /// (the outbox keeps everything); after the recording, flushing is retried for up to

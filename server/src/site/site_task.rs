@@ -42,6 +42,7 @@ use proto::{FORMAT_VERSION, UploadBatch, pb};
 use storage::{BatchOutcome, MapStore, RecordKind, WriteBatch};
 use tokio::sync::{mpsc, watch};
 use tokio::task::JoinHandle;
+use tracing::Instrument as _;
 
 use super::site_handle::Command;
 use super::{
@@ -93,6 +94,19 @@ pub struct SiteTask {
     unflushed: bool,
 }
 
+/// The span a site's task runs in, `site{site}`: every line the task (and the zenoh front end's tasks
+/// of the site) logs names the site through it. At ERROR level so that it is on whenever any event is: a
+/// filter at WARN still shows which site a warning is about.
+pub(crate) fn site_span(site: &str) -> tracing::Span {
+    tracing::error_span!("site", site = %site)
+}
+
+/// The span a site task handles one session's request in, `session{robot, session}` (inside the
+/// site's span).
+fn session_span(robot_id: &str, session_uuid: &str) -> tracing::Span {
+    tracing::error_span!("session", robot = %robot_id, session = %session_uuid)
+}
+
 fn internal(e: impl std::fmt::Display) -> SiteError {
     SiteError::Internal(e.to_string())
 }
@@ -107,6 +121,7 @@ impl SiteTask {
         metrics: Arc<ServerMetrics>,
         task_options: SiteTaskOptions,
     ) -> Result<(SiteHandle, JoinHandle<()>), SiteError> {
+        let span = site_span(site);
         let started = Instant::now();
         let generation = store.generation();
         let map = {
@@ -115,12 +130,13 @@ impl SiteTask {
                 .await
                 .map_err(internal)??
         };
-        tracing::info!(
-            site,
-            version = map.version(),
-            seconds = started.elapsed().as_secs_f64(),
-            "site log replayed"
-        );
+        span.in_scope(|| {
+            tracing::info!(
+                version = map.version(),
+                seconds = started.elapsed().as_secs_f64(),
+                "site log replayed"
+            );
+        });
         let info = VersionInfo {
             version: map.version(),
             counts: map.counts(),
@@ -146,7 +162,7 @@ impl SiteTask {
             last_heard,
             unflushed: false,
         };
-        let join = tokio::spawn(task.run(commands_rx));
+        let join = tokio::spawn(task.run(commands_rx).instrument(span));
         Ok((SiteHandle::new(site, commands, versions_rx, views_rx), join))
     }
 
@@ -172,12 +188,17 @@ impl SiteTask {
                     session_uuid,
                     reply,
                 } => {
-                    let _ = reply.send(self.open_session(&robot_id, &session_uuid).await);
+                    let opened = self
+                        .open_session(&robot_id, &session_uuid)
+                        .instrument(session_span(&robot_id, &session_uuid))
+                        .await;
+                    let _ = reply.send(opened);
                     self.heard(&session_uuid);
                 }
                 Command::Upload { batch, reply } => {
                     let session = batch.session_uuid.clone();
-                    let _ = reply.send(self.upload(*batch).await);
+                    let span = session_span(&batch.robot_id, &session);
+                    let _ = reply.send(self.upload(*batch).instrument(span).await);
                     self.heard(&session);
                 }
                 Command::CloseSession {
@@ -185,7 +206,11 @@ impl SiteTask {
                     session_uuid,
                     reply,
                 } => {
-                    let _ = reply.send(self.close_session(&robot_id, &session_uuid).await);
+                    let closed = self
+                        .close_session(&robot_id, &session_uuid)
+                        .instrument(session_span(&robot_id, &session_uuid))
+                        .await;
+                    let _ = reply.send(closed);
                 }
                 Command::Delta { since, reply } => {
                     let _ = reply.send(self.map().and_then(|m| m.delta_since(since)));
@@ -201,14 +226,17 @@ impl SiteTask {
                     Ok(map) => {
                         let (version, grids) = (map.version(), map.grids_for_render());
                         // Rendering can take a while: do it beside the task, not in it.
-                        tokio::spawn(async move {
-                            let grid = tokio::task::spawn_blocking(move || {
-                                render_submaps_log_odds(&grids, resolution)
-                            })
-                            .await
-                            .map_err(internal);
-                            let _ = reply.send(grid.map(|grid| RenderedMap { version, grid }));
-                        });
+                        tokio::spawn(
+                            async move {
+                                let grid = tokio::task::spawn_blocking(move || {
+                                    render_submaps_log_odds(&grids, resolution)
+                                })
+                                .await
+                                .map_err(internal);
+                                let _ = reply.send(grid.map(|grid| RenderedMap { version, grid }));
+                            }
+                            .in_current_span(),
+                        );
                     }
                     Err(e) => {
                         let _ = reply.send(Err(e));
@@ -253,19 +281,23 @@ impl SiteTask {
             })
             .collect();
         for (session, robot) in silent {
-            match self.close_session(&robot, &session).await {
+            let span = session_span(&robot, &session);
+            match self
+                .close_session(&robot, &session)
+                .instrument(span.clone())
+                .await
+            {
                 Ok(version) => {
                     self.metrics.session_timed_out();
-                    tracing::info!(
-                        site = %self.site(), robot, session, version,
-                        silent_s = timeout.as_secs_f64(),
-                        "session ended: its robot was silent past the idle timeout"
-                    );
+                    span.in_scope(|| {
+                        tracing::info!(
+                            version,
+                            silent_s = timeout.as_secs_f64(),
+                            "session ended: its robot was silent past the idle timeout"
+                        );
+                    });
                 }
-                Err(e) => tracing::warn!(
-                    site = %self.site(), robot, session,
-                    "cannot end a silent session: {e}"
-                ),
+                Err(e) => span.in_scope(|| tracing::warn!("cannot end a silent session: {e}")),
             }
         }
     }
@@ -318,7 +350,7 @@ impl SiteTask {
         }
         if let Err(e) = flushed {
             tracing::warn!(
-                site = %self.site(), version,
+                version,
                 "change stored but not durable ({e}): not acknowledged until a flush succeeds"
             );
             self.unflushed = true;
@@ -372,7 +404,8 @@ impl SiteTask {
             });
         }
         tracing::warn!(
-            site = %self.site(), from_version = before, to_version = map.version(),
+            from_version = before,
+            to_version = map.version(),
             seconds = started.elapsed().as_secs_f64(),
             "the store was reopened after a failed write: site map rebuilt from its log"
         );
@@ -410,7 +443,7 @@ impl SiteTask {
             }));
         }
         self.unflushed = false;
-        tracing::info!(site = %self.site(), "stored changes are durable again");
+        tracing::info!("stored changes are durable again");
         self.publish();
         Ok(())
     }
@@ -512,7 +545,7 @@ impl SiteTask {
         self.metrics.record_pgr(started.elapsed());
         if let Err(e) = applied {
             // Stored but not fully applied: a bug (check_upload accepted it). Replay will hit it again.
-            tracing::error!(site = %self.site(), version, "stored upload failed to apply: {e}");
+            tracing::error!(version, "stored upload failed to apply: {e}");
             return Err(e);
         }
         self.metrics.upload_applied();
