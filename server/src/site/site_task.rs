@@ -747,6 +747,66 @@ mod tests {
         task.await.unwrap();
     }
 
+    /// Log lines written by a test's subscriber.
+    #[derive(Clone, Default)]
+    struct Captured(Arc<std::sync::Mutex<Vec<u8>>>);
+
+    impl std::io::Write for Captured {
+        fn write(&mut self, bytes: &[u8]) -> std::io::Result<usize> {
+            if let Ok(mut captured) = self.0.lock() {
+                captured.extend_from_slice(bytes);
+            }
+            Ok(bytes.len())
+        }
+
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+
+    // Reference: issue 35 item 6 — a span per site task and per session, not fields on every line.
+    #[tokio::test(start_paused = true)]
+    async fn the_tasks_lines_run_in_the_sites_span_and_the_sessions_span() {
+        let captured = Captured::default();
+        let writer = captured.clone();
+        // A current-thread runtime: the site task runs on this thread, under this subscriber.
+        let _default = tracing::subscriber::set_default(
+            tracing_subscriber::fmt()
+                .with_env_filter(crate::logging::fallback_filter(
+                    tracing_subscriber::filter::LevelFilter::INFO,
+                ))
+                .with_ansi(false)
+                .with_writer(move || writer.clone())
+                .finish(),
+        );
+        let store: Arc<dyn MapStore> = Arc::new(MemStore::new());
+        let (site, _task) = spawn_with(&store, Some(Duration::from_secs(60)))
+            .await
+            .unwrap();
+        site.open_session("r", "also-silent").await.unwrap();
+        let_time_pass(70).await;
+        let text = String::from_utf8(captured.0.lock().unwrap().clone()).unwrap();
+        let line = |needle: &str| {
+            text.lines()
+                .find(|l| l.contains(needle))
+                .unwrap_or_else(|| panic!("no {needle:?} in\n{text}"))
+                .to_owned()
+        };
+        assert!(
+            line("site log replayed").contains("site{site=s}: "),
+            "{text}"
+        );
+        let ended = line("its robot was silent past the idle timeout");
+        assert!(
+            ended.contains("site{site=s}:session{robot=r session=also-silent}: "),
+            "{ended}"
+        );
+        assert!(
+            !ended.contains(" site=s"),
+            "no site field repeated: {ended}"
+        );
+    }
+
     #[tokio::test(start_paused = true)]
     async fn without_a_timeout_sessions_stay_open() {
         let store: Arc<dyn MapStore> = Arc::new(MemStore::new());
