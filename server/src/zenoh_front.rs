@@ -38,7 +38,7 @@ pub enum ZenohFrontError {
     Options(#[from] proto::ZenohLinkOptionsError),
     /// zenoh refused (bad endpoint, port taken, ...).
     #[error("zenoh: {0}")]
-    Zenoh(String),
+    Zenoh(#[source] zenoh::Error),
     /// Another server instance behind the same routers serves the site.
     #[error(
         "site {site:?} is already served by another server instance behind the zenoh routers (it answers \
@@ -65,11 +65,10 @@ impl ZenohFront {
         context: ApiContext,
         max_in_flight: usize,
     ) -> Result<Self, ZenohFrontError> {
-        let zenoh_error = |e: zenoh::Error| ZenohFrontError::Zenoh(e.to_string());
         ensure_no_other_owner(options, context.sites.keys(), OWNER_WAIT).await?;
         let session = zenoh::open(options.to_zenoh_config()?)
             .await
-            .map_err(zenoh_error)?;
+            .map_err(ZenohFrontError::Zenoh)?;
         let agent = AgentApi::new(context.clone());
         let map = MapApi::new(context.clone());
         let mut tasks = Vec::new();
@@ -77,7 +76,7 @@ impl ZenohFront {
             let queryable = session
                 .declare_queryable(zenoh_api_key(id))
                 .await
-                .map_err(zenoh_error)?;
+                .map_err(ZenohFrontError::Zenoh)?;
             let (agent, map) = (agent.clone(), map.clone());
             let in_flight = Arc::new(Semaphore::new(max_in_flight.max(1)));
             tasks.push(tokio::spawn(
@@ -112,7 +111,7 @@ impl ZenohFront {
             let publisher = session
                 .declare_publisher(zenoh_version_key(id))
                 .await
-                .map_err(zenoh_error)?;
+                .map_err(ZenohFrontError::Zenoh)?;
             let mut versions = handle.subscribe();
             let site = id.clone();
             tasks.push(tokio::spawn(

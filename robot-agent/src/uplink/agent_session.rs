@@ -91,9 +91,12 @@ pub enum SessionError {
     /// The server refused something for good.
     #[error(transparent)]
     Uplink(#[from] UplinkError),
-    /// The LLO thread could not be started or panicked.
+    /// The LLO thread panicked.
     #[error("LLO thread: {0}")]
     Llo(String),
+    /// The LLO thread could not be started.
+    #[error("LLO thread: {0}")]
+    LloSpawn(#[source] std::io::Error),
 }
 
 /// How a session finds its place in the site map before its first upload, through
@@ -408,7 +411,7 @@ pub async fn stream_session_from<U: MapUplink>(
                 }
             }
         })
-        .map_err(|e| SessionError::Llo(e.to_string()))?;
+        .map_err(SessionError::LloSpawn)?;
 
     let mut report = SessionReport::default();
     let mut trace = SessionTrace::default();

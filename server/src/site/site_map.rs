@@ -409,8 +409,9 @@ impl SiteMap {
         glm_on_robot: bool,
     ) -> Result<(), SiteError> {
         let is_first = self.map.counts().nodes == 0;
-        let invalid = |e: LifelongError| SiteError::InvalidBatch(e.to_string());
-        self.map.start_session(trajectory, prior).map_err(invalid)?;
+        self.map
+            .start_session(trajectory, prior)
+            .map_err(SiteError::Rejected)?;
         // Only a placed session can be matched on the robot: it needs the prior.
         if glm_on_robot && prior.is_some() {
             self.map.set_matched_on_robot(trajectory);
@@ -420,22 +421,22 @@ impl SiteMap {
             return Ok(());
         }
         let options = self.map.options().session_start.clone();
-        let internal =
-            |e: mapping::lifelong::LifelongOptionsError| SiteError::Internal(e.to_string());
         let start = match prior {
             Some(prior) => {
                 self.session_starts.priors += 1;
                 // The robot decided at its last held-back node.
                 let decided_at = options.hold_back_nodes.saturating_sub(1);
-                self.map.begin_probation(trajectory).map_err(invalid)?;
+                self.map
+                    .begin_probation(trajectory)
+                    .map_err(SiteError::Rejected)?;
                 let (start, events) =
                     SessionStart::with_placement(options, None, prior, decided_at)
-                        .map_err(internal)?;
+                        .map_err(SiteError::Options)?;
                 self.starts.insert(trajectory, start);
                 self.act_on_start(trajectory, &events)?;
                 return Ok(());
             }
-            None => SessionStart::new(options, self.start_search()).map_err(internal)?,
+            None => SessionStart::new(options, self.start_search()).map_err(SiteError::Options)?,
         };
         self.starts.insert(trajectory, start);
         Ok(())
@@ -455,21 +456,24 @@ impl SiteMap {
         trajectory: u32,
         decisions: &[SessionStartEvent],
     ) -> Result<(), SiteError> {
-        let internal = |e: LifelongError| SiteError::Internal(e.to_string());
         for decision in decisions {
             self.count_start_decision(trajectory, decision);
             match decision {
                 SessionStartEvent::Placed(placement) => {
                     self.map
                         .place_session(trajectory, placement.global_from_local)
-                        .map_err(internal)?;
-                    self.map.begin_probation(trajectory).map_err(internal)?;
+                        .map_err(SiteError::Map)?;
+                    self.map
+                        .begin_probation(trajectory)
+                        .map_err(SiteError::Map)?;
                 }
                 SessionStartEvent::Committed { .. } => {
                     self.map.commit_session(trajectory);
                 }
                 SessionStartEvent::Revoked { .. } => {
-                    self.map.revoke_placement(trajectory).map_err(internal)?;
+                    self.map
+                        .revoke_placement(trajectory)
+                        .map_err(SiteError::Map)?;
                     // The robot's frame is wrong: its matches say nothing more; search here.
                     self.map.set_matched_here(trajectory);
                     self.robot_revoked.insert(trajectory);
@@ -533,9 +537,13 @@ impl SiteMap {
         if self.map.is_started(trajectory) && !self.map.is_finished(trajectory) {
             let unplaced = self.map.is_unplaced(trajectory) || self.map.is_on_probation(trajectory);
             dropped = unplaced;
-            events = self.map.finish_session(trajectory).map_err(|e| {
-                SiteError::Internal(format!("ending session {session_uuid:?}: {e}"))
-            })?;
+            events =
+                self.map
+                    .finish_session(trajectory)
+                    .map_err(|source| SiteError::EndSession {
+                        session: session_uuid.to_owned(),
+                        source,
+                    })?;
             if unplaced {
                 self.dropped_sessions += 1;
             }
@@ -572,7 +580,7 @@ impl SiteMap {
                 &insertion,
                 finished,
             )
-            .map_err(|e| SiteError::InvalidBatch(e.to_string()))?;
+            .map_err(SiteError::Rejected)?;
         // A session started on an empty committed map searches once there is one.
         let needs_search = self
             .starts

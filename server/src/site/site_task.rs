@@ -107,10 +107,6 @@ fn session_span(robot_id: &str, session_uuid: &str) -> tracing::Span {
     tracing::error_span!("session", robot = %robot_id, session = %session_uuid)
 }
 
-fn internal(e: impl std::fmt::Display) -> SiteError {
-    SiteError::Internal(e.to_string())
-}
-
 impl SiteTask {
     /// Rebuilds `site` from `store` (replaying its log), then starts its task. Returns the handle and the
     /// task's join handle (the task ends on [`SiteHandle::shutdown`] or when every handle is dropped).
@@ -128,7 +124,7 @@ impl SiteTask {
             let (site, store, options) = (site.to_owned(), Arc::clone(&store), options.clone());
             tokio::task::spawn_blocking(move || replay(&site, options, store.as_ref()))
                 .await
-                .map_err(internal)??
+                .map_err(SiteError::Worker)??
         };
         span.in_scope(|| {
             tracing::info!(
@@ -232,7 +228,7 @@ impl SiteTask {
                                     render_submaps_log_odds(&grids, resolution)
                                 })
                                 .await
-                                .map_err(internal);
+                                .map_err(SiteError::Worker);
                                 let _ = reply.send(grid.map(|grid| RenderedMap { version, grid }));
                             }
                             .in_current_span(),
@@ -339,7 +335,7 @@ impl SiteTask {
         let (outcome, flushed) =
             tokio::task::spawn_blocking(move || store.apply(&batch).map(|o| (o, store.flush())))
                 .await
-                .map_err(internal)??;
+                .map_err(SiteError::Worker)??;
         match outcome {
             BatchOutcome::Applied { map_version } if map_version == version => {}
             other => {
@@ -373,7 +369,7 @@ impl SiteTask {
             let (store, site) = (Arc::clone(&self.store), self.site());
             tokio::task::spawn_blocking(move || store.map_version(&site))
                 .await
-                .map_err(internal)??
+                .map_err(SiteError::Worker)??
         };
         if !self.unflushed && stored == self.map()?.version() {
             self.generation = generation;
@@ -392,7 +388,7 @@ impl SiteTask {
                 (self.site(), Arc::clone(&self.store), self.options.clone());
             tokio::task::spawn_blocking(move || replay(&site, options, store.as_ref()))
                 .await
-                .map_err(internal)??
+                .map_err(SiteError::Worker)??
         };
         if map.version() < published {
             return Err(SiteError::CorruptLog {
@@ -431,7 +427,7 @@ impl SiteTask {
         let store = Arc::clone(&self.store);
         tokio::task::spawn_blocking(move || store.flush())
             .await
-            .map_err(internal)??;
+            .map_err(SiteError::Worker)??;
         if self.store.generation() != self.generation {
             // The store was reopened: the unflushed change may be gone. Rebuild, and let the robot
             // retry (its batch is then applied once, or acknowledged as a duplicate).
@@ -461,7 +457,7 @@ impl SiteTask {
             (map, result)
         })
         .await
-        .map_err(internal)?;
+        .map_err(SiteError::Worker)?;
         self.map = Some(map);
         Ok(result)
     }
@@ -528,9 +524,7 @@ impl SiteTask {
         // restart rebuilds this map bit for bit. A batch whose stored form does not decode is refused
         // before anything is stored.
         let entry = pb::UploadBatch::from(&batch);
-        let batch = UploadBatch::try_from(&entry).map_err(|e| {
-            SiteError::InvalidBatch(format!("its stored form would not decode: {e}"))
-        })?;
+        let batch = UploadBatch::try_from(&entry).map_err(SiteError::Unstorable)?;
         self.persist(
             version,
             pb::site_log_entry::Entry::Upload(entry),
@@ -603,7 +597,7 @@ fn replay(
     options: LifelongOptions,
     store: &dyn MapStore,
 ) -> Result<SiteMap, SiteError> {
-    let mut map = SiteMap::new(site, options).map_err(internal)?;
+    let mut map = SiteMap::new(site, options).map_err(SiteError::Map)?;
     let stored_version = store.map_version(site)?;
     for record in store.scan(site, SITE_LOG_KIND)? {
         let (id, bytes) = record?;
@@ -612,19 +606,22 @@ fn replay(
             reason: format!("log record id {id} is not a number"),
         })?;
         let corrupt = |reason: String| SiteError::CorruptLog { index, reason };
+        let undecodable = |source: Box<dyn std::error::Error + Send + Sync>| {
+            SiteError::CorruptEntry { index, source }
+        };
         if index != map.version() + 1 {
             return Err(corrupt(format!("expected entry {}", map.version() + 1)));
         }
         let entry =
-            pb::SiteLogEntry::decode(bytes.as_slice()).map_err(|e| corrupt(e.to_string()))?;
+            pb::SiteLogEntry::decode(bytes.as_slice()).map_err(|e| undecodable(e.into()))?;
         proto::check_format_version("SiteLogEntry", entry.format_version)
-            .map_err(|e| corrupt(e.to_string()))?;
+            .map_err(|e| undecodable(e.into()))?;
         match entry.entry {
             Some(pb::site_log_entry::Entry::SessionOpened(open)) => {
                 map.open_session(&open.robot_id, &open.session_uuid, open.trajectory, index)?;
             }
             Some(pb::site_log_entry::Entry::Upload(upload)) => {
-                let batch = UploadBatch::try_from(&upload).map_err(|e| corrupt(e.to_string()))?;
+                let batch = UploadBatch::try_from(&upload).map_err(|e| undecodable(e.into()))?;
                 map.apply_upload(&batch, index)?;
             }
             Some(pb::site_log_entry::Entry::SessionClosed(close)) => {
@@ -853,10 +850,15 @@ mod tests {
             .put(SITE_LOG_KIND, 1_u64, b"not a log entry".to_vec())
             .bump_map_version();
         store.apply(&batch).unwrap();
-        assert!(matches!(
-            spawn(&store).await,
-            Err(SiteError::CorruptLog { index: 1, .. })
-        ));
+        let error = spawn(&store).await.err().unwrap();
+        assert!(
+            matches!(error, SiteError::CorruptEntry { index: 1, .. }),
+            "{error}"
+        );
+        // The decoder's own error stays the source (issue 35 item 6), and in the message as before.
+        let source = std::error::Error::source(&error).unwrap();
+        assert!(source.is::<prost::DecodeError>(), "{source:?}");
+        assert!(error.to_string().ends_with(&source.to_string()), "{error}");
 
         // A version bumped without its log entry (a lost entry) is caught too.
         let store: Arc<dyn MapStore> = Arc::new(MemStore::new());
