@@ -37,7 +37,7 @@ use robot_agent::outbox::Outbox;
 use robot_agent::source::{ReadReport, Recording};
 use robot_agent::uplink::{
     FleetUplink, GlobalSubmapCache, GrpcUplink, MapUplink as _, SessionOptions, SessionStart,
-    Uploader, ZenohLinkOptions, ZenohUplink, follow_site, stream_session,
+    Uploader, ZenohLinkOptions, ZenohUplink, follow_site, session_span, stream_session,
 };
 use robot_agent::world::World;
 use serde_json::json;
@@ -45,6 +45,7 @@ use server::site::SiteHandle;
 use server::{HttpConfig, RobotConfig, RunningServer, ServerConfig, SiteConfig};
 use storage::{SledStore, SledStoreOptions};
 use tokio::sync::watch;
+use tracing::Instrument as _;
 
 use crate::command_runtime::{block_on, recreate_dir};
 
@@ -467,7 +468,9 @@ async fn run_session(
         relocalization: RelocalizationOptions::default(),
         session_start: mapping::lifelong::SessionStartOptions::default(),
     });
-    let (report, trace) = stream_session(recording, &options, &mut uploader, start).await?;
+    let (report, trace) = stream_session(recording, &options, &mut uploader, start)
+        .instrument(session_span(SITE, &robot, &uuid))
+        .await?;
     // Opening is idempotent: this returns the trajectory the server gave the session.
     let opened = uploader.uplink_mut().open_session(&robot, &uuid).await?;
     let end_poses = agent

@@ -56,6 +56,7 @@ use serde_json::json;
 use server::{RobotConfig, RunningServer, ServerConfig, SiteConfig};
 use storage::{SledStore, SledStoreOptions};
 use tokio::sync::watch;
+use tracing::Instrument as _;
 
 use crate::command_runtime::{block_on, recreate_dir};
 use crate::demo_command::MAX_MESSAGE_BYTES;
@@ -339,7 +340,10 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
             ..SessionOptions::default()
         };
         mappers.push(tokio::spawn(async move {
-            stream_recording(recording, &options, &mut uploader).await
+            let span = uploader.session_span();
+            stream_recording(recording, &options, &mut uploader)
+                .instrument(span)
+                .await
         }));
     }
     for mapper in mappers {
@@ -894,8 +898,23 @@ fn quantiles(values: &mut [f64]) -> serde_json::Value {
     json!({ "p50": at(0.5), "p95": at(0.95), "max": values[values.len() - 1], "count": values.len() })
 }
 
-/// Streams a prepared session on its recording's clock divided by `speed`, starting at `start`.
+/// [`stream_prepared_session`] in the robot session's span.
 async fn stream_prepared(
+    uploader: Uploader<GrpcUplink>,
+    session: &PreparedSession,
+    site: usize,
+    glm_on_server: bool,
+    start: Instant,
+    speed: f64,
+) -> anyhow::Result<StreamOutcome> {
+    let span = uploader.session_span();
+    stream_prepared_session(uploader, session, site, glm_on_server, start, speed)
+        .instrument(span)
+        .await
+}
+
+/// Streams a prepared session on its recording's clock divided by `speed`, starting at `start`.
+async fn stream_prepared_session(
     mut uploader: Uploader<GrpcUplink>,
     session: &PreparedSession,
     site: usize,

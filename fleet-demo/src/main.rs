@@ -10,6 +10,7 @@ mod minute_figures;
 
 use clap::{Parser, Subcommand};
 use peak_alloc::PeakAlloc;
+use tracing_subscriber::filter::LevelFilter;
 
 /// Counts live heap bytes (the load benchmark's per-minute memory attribution), then allocates with
 /// the system allocator.
@@ -42,6 +43,9 @@ enum Command {
 
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
+    // The demo and the benchmark print their own progress and figures; the server's and the robots'
+    // log lines are off unless RUST_LOG asks for them (then on standard error).
+    server::init_logging(LevelFilter::OFF, server::LogOutput::Stderr);
     match cli.command {
         Some(Command::Demo(args)) => demo_command::run(&args),
         Some(Command::Load(args)) => load_command::run(&args),

@@ -145,6 +145,9 @@ fn spawn_logged(binary: &Path, args: &[&str], log: &Path) -> Child {
     Command::new(binary)
         .args(args)
         .env("NO_COLOR", "1")
+        // The test reads the binaries' INFO lines ("starting session"): whatever RUST_LOG the runner has
+        // must not filter them out.
+        .env_remove("RUST_LOG")
         .stdout(out)
         .stderr(err)
         .spawn()

@@ -52,6 +52,24 @@ pub enum AgentConfigError {
         /// Why.
         reason: String,
     },
+    /// A section's own check refused it.
+    #[error("{field}: {source}")]
+    Refused {
+        /// The section.
+        field: &'static str,
+        /// Why.
+        source: Box<dyn std::error::Error + Send + Sync>,
+    },
+}
+
+fn refused(
+    field: &'static str,
+    source: impl std::error::Error + Send + Sync + 'static,
+) -> AgentConfigError {
+    AgentConfigError::Refused {
+        field,
+        source: Box::new(source),
+    }
 }
 
 fn invalid(field: &'static str, reason: impl Into<String>) -> AgentConfigError {
@@ -174,8 +192,7 @@ impl AgentConfig {
                         "give either source (a recording) or [ros2] (a live robot), not both",
                     ));
                 }
-                ros2.validate()
-                    .map_err(|e| invalid("ros2", e.to_string()))?;
+                ros2.validate().map_err(|e| refused("ros2", e))?;
             }
             None => {
                 if self.source.as_os_str().is_empty() {
@@ -204,13 +221,9 @@ impl AgentConfig {
         self.call_timeout()?;
         self.retry_interval()?;
         self.final_flush_timeout()?;
-        self.local
-            .validate()
-            .map_err(|e| invalid("local", e.to_string()))?;
+        self.local.validate().map_err(|e| refused("local", e))?;
         if let Some(zenoh) = &self.zenoh {
-            zenoh
-                .validate()
-                .map_err(|e| invalid("zenoh", e.to_string()))?;
+            zenoh.validate().map_err(|e| refused("zenoh", e))?;
         }
         Ok(())
     }
@@ -248,6 +261,23 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(error.contains("call_timeout_s"), "{error}");
+    }
+
+    // Reference: issue 35 item 6 — a section's own error stays the source of the config's error.
+    #[test]
+    fn a_refused_section_keeps_its_error_as_the_source() {
+        let text = "site = \"s\"\nrobot_id = \"r\"\ntoken = \"t0k3n-t0k3n\"\nsource = \"x.bag\"\n\
+                    [local]\ncorrelative_max_range = -1.0\n";
+        let error = AgentConfig::from_toml(text)
+            .unwrap()
+            .validate()
+            .unwrap_err();
+        let source = std::error::Error::source(&error).expect("the section's error");
+        assert!(
+            source.is::<mapping::local_slam::LocalTrajectoryBuilderOptionsError>(),
+            "{source:?}"
+        );
+        assert_eq!(error.to_string(), format!("local: {source}"));
     }
 
     #[test]

@@ -55,12 +55,18 @@ pub enum SessionsError {
     /// The configuration is invalid.
     #[error("invalid configuration: {0}")]
     Config(String),
+    /// A section of the configuration refused its options.
+    #[error("invalid configuration: {0}")]
+    Options(#[source] Box<dyn std::error::Error + Send + Sync>),
     /// The recording has no laser scans.
     #[error("the recording has no laser scans")]
     NoScans,
-    /// The worker thread could not be started or died.
+    /// The worker thread died.
     #[error("lifelong map worker failed: {0}")]
     Worker(String),
+    /// The worker thread could not be started.
+    #[error("lifelong map worker failed: {0}")]
+    Spawn(#[source] std::io::Error),
 }
 
 /// One optimization's figures in a [`SessionSummary`].
@@ -375,11 +381,11 @@ pub fn run_session_inputs(
     config
         .local
         .validate()
-        .map_err(|e| SessionsError::Config(e.to_string()))?;
+        .map_err(|e| SessionsError::Options(e.into()))?;
     config
         .scoring
         .validate()
-        .map_err(|e| SessionsError::Config(e.to_string()))?;
+        .map_err(|e| SessionsError::Options(e.into()))?;
     let map = LifelongMap::new(config.lifelong.clone())?;
 
     let (sender, receiver) = mpsc::sync_channel::<Message>(256);
@@ -395,7 +401,7 @@ pub fn run_session_inputs(
                     on_session_end,
                 )
             })
-            .map_err(|e| SessionsError::Worker(e.to_string()))?;
+            .map_err(SessionsError::Spawn)?;
 
         let mut anchors: Vec<(u32, ScanAnchor)> = Vec::new();
         let mut session_anchors: Vec<ScanAnchor> = Vec::new();
@@ -622,7 +628,7 @@ fn worker(
                         .map(|grid| StartSearch::new(grid, relocalization));
                     start = Some(
                         SessionStart::new(config.lifelong.session_start.clone(), search)
-                            .map_err(|e| SessionsError::Config(e.to_string()))?,
+                            .map_err(|e| SessionsError::Options(e.into()))?,
                     );
                 }
                 // Every later session starts unplaced; its `SessionStart` places it.

@@ -3,6 +3,8 @@
 mod commands;
 
 use clap::{Parser, Subcommand};
+use robot_agent::logging::{LogOutput, init_logging};
+use tracing_subscriber::filter::LevelFilter;
 
 /// evermap robot agent: local LiDAR odometry and global matching, and offline tools on recordings.
 #[derive(Parser)]
@@ -34,6 +36,13 @@ enum Command {
 
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
+    // `run` logs to standard output at INFO as a service does; the offline tools print their results
+    // there and log nothing unless RUST_LOG asks (then to standard error).
+    let (level, output) = match &cli.command {
+        Command::Run(_) => (LevelFilter::INFO, LogOutput::Stdout),
+        _ => (LevelFilter::OFF, LogOutput::Stderr),
+    };
+    init_logging(level, output);
     match cli.command {
         Command::Offline(args) => commands::offline::run(&args),
         Command::Relocalize(args) => commands::relocalize::run(&args),

@@ -45,13 +45,16 @@ pub enum OfflineError {
     Global(#[from] GlobalSlamError),
     /// The configuration is invalid.
     #[error("invalid local SLAM configuration: {0}")]
-    LocalOptions(String),
+    LocalOptions(#[source] mapping::local_slam::LocalTrajectoryBuilderOptionsError),
     /// The recording has no laser scans.
     #[error("the recording has no laser scans")]
     NoScans,
-    /// The global SLAM worker thread could not be started or died.
+    /// The global SLAM worker thread died.
     #[error("global SLAM worker failed: {0}")]
     Worker(String),
+    /// The global SLAM worker thread could not be started.
+    #[error("global SLAM worker failed: {0}")]
+    Spawn(#[source] std::io::Error),
 }
 
 /// The pose of one scan: its LLO pose and the node it hangs off.
@@ -166,7 +169,7 @@ pub fn run_slam(
     config
         .local
         .validate()
-        .map_err(|e| OfflineError::LocalOptions(e.to_string()))?;
+        .map_err(OfflineError::LocalOptions)?;
     let global = GlobalSlam::new(config.global.clone())?;
     let render_resolution = observer.map_resolution();
 
@@ -178,7 +181,7 @@ pub fn run_slam(
             .spawn_scoped(scope, move || {
                 global_worker(global, &receiver, &update_sender, render_resolution)
             })
-            .map_err(|e| OfflineError::Worker(e.to_string()))?;
+            .map_err(OfflineError::Spawn)?;
 
         let mut llo = LocalTrajectoryBuilder::new(config.local.clone());
         let mut anchors = Vec::new();

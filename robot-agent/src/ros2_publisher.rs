@@ -96,8 +96,13 @@ pub enum Ros2PublishError {
     #[error(transparent)]
     Name(#[from] rmw_zenoh::RosNameError),
     /// Zenoh refused a declaration.
-    #[error("zenoh: {0}")]
-    Zenoh(String),
+    #[error("zenoh: {what}: {source}")]
+    Zenoh {
+        /// What was declared.
+        what: String,
+        /// Why.
+        source: zenoh::Error,
+    },
 }
 
 impl Ros2PublisherOptions {
@@ -237,8 +242,10 @@ impl Ros2Publisher {
         let zid = session.zid();
         let zid_text = zid.to_string();
         let node_id = 0;
-        let zenoh_error =
-            |what: &str, e: zenoh::Error| Ros2PublishError::Zenoh(format!("{what}: {e}"));
+        let zenoh_error = |what: &str, source: zenoh::Error| Ros2PublishError::Zenoh {
+            what: what.to_owned(),
+            source,
+        };
         let mut tokens = vec![
             session
                 .liveliness()

@@ -23,7 +23,8 @@ use std::pin::Pin;
 
 pub use agent_session::{
     SessionInput, SessionOptions, SessionReport, SessionStart, SessionTrace, follow_site,
-    follow_site_with, relocalize_nodes, stream_recording, stream_session, stream_session_from,
+    follow_site_with, relocalize_nodes, session_span, stream_recording, stream_session,
+    stream_session_from,
 };
 pub use fleet_uplink::FleetUplink;
 pub use global_submap_cache::{CacheError, GlobalSubmapCache};

@@ -46,13 +46,24 @@ pub enum ServeError {
     },
     /// The reflection service could not be built.
     #[error("gRPC reflection: {0}")]
-    Reflection(String),
+    Reflection(#[source] tonic_reflection::server::Error),
     /// The gRPC server failed.
     #[error("gRPC server: {0}")]
-    Transport(String),
-    /// The TLS certificate or key could not be read or used.
+    Transport(#[source] tonic::transport::Error),
+    /// The gRPC server's task failed (panicked).
+    #[error("gRPC server: {0}")]
+    TransportTask(#[source] tokio::task::JoinError),
+    /// The TLS certificate or key could not be read.
+    #[error("TLS: cannot read {}: {source}", path.display())]
+    TlsFile {
+        /// The file.
+        path: std::path::PathBuf,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// The TLS certificate or key could not be used.
     #[error("TLS: {0}")]
-    Tls(String),
+    Tls(#[source] tonic::transport::Error),
     /// The zenoh front end could not start.
     #[error(transparent)]
     Zenoh(#[from] crate::zenoh_front::ZenohFrontError),
@@ -105,13 +116,15 @@ impl RunningServer {
         while let Some(joined) = loading.join_next_with_id().await {
             let (_, (id, loaded)) = joined.map_err(|e| ServeError::Site {
                 site: loading_site.get(&e.id()).cloned().unwrap_or_default(),
-                source: SiteError::Internal(format!("loading the site failed: {e}")),
+                source: SiteError::Worker(e),
             })?;
             let (handle, task) = loaded.map_err(|source| ServeError::Site {
                 site: id.clone(),
                 source,
             })?;
-            tracing::info!(site = %id, version = handle.current().version, "site loaded");
+            crate::site::site_span(&id).in_scope(|| {
+                tracing::info!(version = handle.current().version, "site loaded");
+            });
             sites.insert(id, handle);
             site_tasks.push(task);
         }
@@ -130,7 +143,7 @@ impl RunningServer {
             .register_encoded_file_descriptor_set(proto::FILE_DESCRIPTOR_SET)
             .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
             .build_v1()
-            .map_err(|e| ServeError::Reflection(e.to_string()))?;
+            .map_err(ServeError::Reflection)?;
         let limit = config.max_message_bytes;
         let zenoh = match &config.zenoh {
             Some(options) => {
@@ -159,14 +172,16 @@ impl RunningServer {
         let mut builder = tonic::transport::Server::builder();
         if let Some(tls) = &config.tls {
             let read = |path: &std::path::Path| {
-                std::fs::read(path)
-                    .map_err(|e| ServeError::Tls(format!("cannot read {}: {e}", path.display())))
+                std::fs::read(path).map_err(|source| ServeError::TlsFile {
+                    path: path.to_owned(),
+                    source,
+                })
             };
             let identity =
                 tonic::transport::Identity::from_pem(read(&tls.cert_pem)?, read(&tls.key_pem)?);
             builder = builder
                 .tls_config(tonic::transport::ServerTlsConfig::new().identity(identity))
-                .map_err(|e| ServeError::Tls(e.to_string()))?;
+                .map_err(ServeError::Tls)?;
         }
         let grpc = tokio::spawn(
             builder
@@ -273,8 +288,8 @@ impl RunningServer {
         let mut grpc = self.grpc;
         let result = match tokio::time::timeout(SHUTDOWN_GRACE, &mut grpc).await {
             Ok(Ok(Ok(()))) => Ok(()),
-            Ok(Ok(Err(e))) => Err(ServeError::Transport(e.to_string())),
-            Ok(Err(e)) => Err(ServeError::Transport(e.to_string())),
+            Ok(Ok(Err(e))) => Err(ServeError::Transport(e)),
+            Ok(Err(e)) => Err(ServeError::TransportTask(e)),
             Err(_) => {
                 tracing::warn!("gRPC calls still open after the grace period: cutting them");
                 grpc.abort();
@@ -329,7 +344,7 @@ mod tests {
             Err(ServeError::Site { site, source }) => {
                 assert_eq!(site, "bad");
                 assert!(
-                    matches!(source, SiteError::CorruptLog { index: 1, .. }),
+                    matches!(source, SiteError::CorruptEntry { index: 1, .. }),
                     "{source}"
                 );
             }

@@ -6,6 +6,7 @@ mod serve_command;
 mod site_command;
 
 use clap::{Parser, Subcommand};
+use tracing_subscriber::filter::LevelFilter;
 
 /// evermap map server.
 #[derive(Parser)]
@@ -27,7 +28,15 @@ enum Command {
 }
 
 fn main() -> anyhow::Result<()> {
-    match Cli::parse().command {
+    let cli = Cli::parse();
+    // `serve` logs to standard output at INFO (DEBUG with `--verbose`) as a service does; the tools
+    // print their results there and log nothing unless RUST_LOG asks (then to standard error).
+    let (level, output) = match &cli.command {
+        Some(Command::Serve(args)) => (args.log_level(), server::LogOutput::Stdout),
+        _ => (LevelFilter::OFF, server::LogOutput::Stderr),
+    };
+    server::init_logging(level, output);
+    match cli.command {
         Some(Command::Optimize(args)) => optimize_command::run(&args),
         Some(Command::Serve(args)) => serve_command::run(&args),
         Some(Command::Site(args)) => site_command::run(&args),

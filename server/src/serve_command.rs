@@ -1,13 +1,13 @@
 //! `evermap-server serve`: the fleet map server on a sled store until Ctrl-C or SIGTERM (how service
 //! managers stop it), either of which shuts it down gracefully.
 
-use std::io::IsTerminal as _;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use anyhow::Context as _;
 use server::{RunningServer, ServerConfig};
 use storage::SledStore;
+use tracing_subscriber::filter::LevelFilter;
 
 /// Arguments of `serve`.
 #[derive(clap::Args)]
@@ -15,21 +15,24 @@ pub struct ServeArgs {
     /// TOML configuration (see `server_config.rs` for every key); defaults apply without it.
     #[arg(long)]
     config: Option<PathBuf>,
-    /// Log more (debug level).
+    /// Log more (debug level); `RUST_LOG`, when set, decides instead.
     #[arg(long, short)]
     verbose: bool,
 }
 
-pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
-    tracing_subscriber::fmt()
-        .with_max_level(if args.verbose {
-            tracing::Level::DEBUG
+impl ServeArgs {
+    /// The log level without `RUST_LOG`: INFO, or DEBUG with `--verbose`.
+    pub fn log_level(&self) -> LevelFilter {
+        if self.verbose {
+            LevelFilter::DEBUG
         } else {
-            tracing::Level::INFO
-        })
-        // Colours only on a terminal, and never with NO_COLOR set: a service's log is a file or journald.
-        .with_ansi(std::io::stdout().is_terminal() && std::env::var_os("NO_COLOR").is_none())
-        .init();
+            LevelFilter::INFO
+        }
+    }
+}
+
+/// Runs the command (the caller has set up logging: [`server::init_logging`]).
+pub fn run(args: &ServeArgs) -> anyhow::Result<()> {
     let config = read_config(args.config.as_deref())?;
     if config.sites.is_empty() {
         tracing::warn!("no sites configured: nothing can be uploaded");

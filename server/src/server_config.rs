@@ -46,7 +46,7 @@ use crate::console::HttpConfig;
 use crate::grpc::AuthLimitOptions;
 
 /// Invalid [`ServerConfig`].
-#[derive(Debug, thiserror::Error, PartialEq)]
+#[derive(Debug, thiserror::Error)]
 pub enum ServerConfigError {
     /// A field is out of range.
     #[error("{field}: {reason}")]
@@ -55,6 +55,14 @@ pub enum ServerConfigError {
         field: String,
         /// Why.
         reason: String,
+    },
+    /// A section's (or a field's) own check refused it.
+    #[error("{field}: {source}")]
+    Refused {
+        /// The section or field (dotted path).
+        field: &'static str,
+        /// Why.
+        source: Box<dyn std::error::Error + Send + Sync>,
     },
     /// Two sites share an id, or two robots a token.
     #[error("duplicate {what} {value:?}")]
@@ -175,9 +183,9 @@ impl ServerConfig {
         match Duration::try_from_secs_f64(self.session_idle_timeout_s) {
             Ok(d) if d.is_zero() => Ok(None),
             Ok(d) => Ok(Some(d)),
-            Err(e) => Err(ServerConfigError::Invalid {
-                field: "session_idle_timeout_s".into(),
-                reason: e.to_string(),
+            Err(e) => Err(ServerConfigError::Refused {
+                field: "session_idle_timeout_s",
+                source: e.into(),
             }),
         }
     }
@@ -205,17 +213,20 @@ impl ServerConfig {
                 "must be a number of seconds ≥ 0 (0 = never)",
             );
         }
+        let refused = |field, source: Box<dyn std::error::Error + Send + Sync>| {
+            Err(ServerConfigError::Refused { field, source })
+        };
         if let Err(e) = self.storage.validate() {
-            return invalid("storage", &e.to_string());
+            return refused("storage", e.into());
         }
         if let Err(e) = self.auth.validate() {
-            return invalid("auth", &e.to_string());
+            return refused("auth", e.into());
         }
         if let Some(Err(e)) = self.zenoh.as_ref().map(ZenohLinkOptions::validate) {
-            return invalid("zenoh", &e.to_string());
+            return refused("zenoh", e.into());
         }
         if let Err(e) = self.map.validate() {
-            return invalid("map", &e.to_string());
+            return refused("map", e.into());
         }
         if let Some(http) = &self.http {
             if let Err(e) = http.validate() {
@@ -233,7 +244,7 @@ impl ServerConfig {
         let mut tokens = BTreeSet::new();
         for site in &self.sites {
             if let Err(e) = storage::validate_site_id(&site.id) {
-                return invalid("sites.id", &e.to_string());
+                return refused("sites.id", e.into());
             }
             if !sites.insert(site.id.as_str()) {
                 return Err(ServerConfigError::Duplicate {
@@ -281,13 +292,13 @@ mod tests {
 
     #[test]
     fn documented_example_parses_and_defaults_are_valid() {
-        assert_eq!(ServerConfig::default().validate(), Ok(()));
+        ServerConfig::default().validate().unwrap();
         let text = "listen = \"127.0.0.1:50051\"\nmetrics_listen = \"127.0.0.1:9464\"\n\
             max_message_bytes = 67108864\n[storage]\npath = \"./evermap-data\"\n\
             [zenoh]\nlisten = [\"tcp/127.0.0.1:7447\"]\n[map]\npolicy = \"clt\"\n[[sites]]\nid = \"store-1\"\n\
             robots = [{ id = \"robot-1\", token = \"change-me\" }]\n";
         let config = ServerConfig::from_toml(text).unwrap();
-        assert_eq!(config.validate(), Ok(()));
+        config.validate().unwrap();
         assert_eq!(config.sites[0].robots[0].id, "robot-1");
         assert_eq!(config.map.policy, mapping::lifelong::TrimPolicy::Clt);
         assert_eq!(
@@ -355,11 +366,28 @@ mod tests {
             session_idle_timeout_s: 0.0,
             ..ServerConfig::default()
         };
-        assert_eq!(never.session_idle_timeout(), Ok(None));
+        assert_eq!(never.session_idle_timeout().unwrap(), None);
         assert_eq!(
-            ServerConfig::default().session_idle_timeout(),
-            Ok(Some(Duration::from_secs(3600)))
+            ServerConfig::default().session_idle_timeout().unwrap(),
+            Some(Duration::from_secs(3600))
         );
+    }
+
+    // Reference: issue 35 item 6 — a section's own error stays in the chain, down from ServeError.
+    #[test]
+    fn a_refused_section_keeps_its_error_as_the_source() {
+        let mut config = ServerConfig::default();
+        config.map.session_start.hold_back_nodes = 0;
+        let error = crate::ServeError::from(config.validate().unwrap_err());
+        let chain: Vec<&(dyn std::error::Error + 'static)> =
+            std::iter::successors(Some(&error as &(dyn std::error::Error + 'static)), |e| {
+                e.source()
+            })
+            .collect();
+        assert_eq!(chain.len(), 3, "serve, config, map options: {error:?}");
+        assert!(chain[1].is::<ServerConfigError>());
+        assert!(chain[2].is::<mapping::lifelong::LifelongOptionsError>());
+        assert_eq!(chain[1].to_string(), format!("map: {}", chain[2]));
     }
 
     #[test]
@@ -377,14 +405,11 @@ mod tests {
             Err(ServerConfigError::Invalid { field, .. }) if field == "http.operator_token"
         ));
         config.http.as_mut().unwrap().operator_token = Some("operator-token".into());
-        assert_eq!(config.validate(), Ok(()));
+        config.validate().unwrap();
         config.sites[0].robots.clear();
         config.http.as_mut().unwrap().operator_token = None;
-        assert_eq!(
-            config.validate(),
-            Ok(()),
-            "no tokens anywhere: an open console"
-        );
+        // No tokens anywhere: an open console.
+        config.validate().unwrap();
         assert!(ServerConfig::from_toml("[http]\nport = 1\n").is_err());
     }
 }

@@ -8,7 +8,7 @@ use std::time::Duration;
 
 use crate::site::SiteHandle;
 
-/// Reads one per-site gauge.
+/// Reads one per-site gauge or counter.
 type Gauge = fn(&SiteHandle) -> u64;
 
 /// Counters shared by every front end and site task. Thread-safe.
@@ -178,7 +178,7 @@ impl ServerMetrics {
             "# HELP evermap_sites Sites served.\n# TYPE evermap_sites gauge\nevermap_sites {}\n",
             sites.len()
         );
-        let gauges: [(&str, &str, Gauge); 9] = [
+        let gauges: [(&str, &str, Gauge); 11] = [
             ("evermap_site_version", "Current map version.", |s| {
                 s.current().version
             }),
@@ -218,11 +218,74 @@ impl ServerMetrics {
                 "Requests waiting for the site task.",
                 |s| s.queue_depth() as u64,
             ),
+            (
+                "evermap_site_loop_closures_beyond_drift",
+                "Matches refused because they moved their node farther than the drift since its last \
+                 loop explains, not confirmed by other matches since.",
+                |s| s.current().counts.loop_closures_beyond_drift,
+            ),
+            (
+                "evermap_site_loop_closures_retracted",
+                "Accepted loop closures out of the graph now because the optimized graph refuses them.",
+                |s| s.current().counts.loop_closures_retracted,
+            ),
         ];
         for (name, help, value) in gauges {
             let _ = write!(out, "# HELP {name} {help}\n# TYPE {name} gauge\n");
             for site in sites {
                 let _ = writeln!(out, "{name}{{site=\"{}\"}} {}", site.site(), value(site));
+            }
+        }
+        // What each site's map counted since the site began (rebuilt by replay after a restart).
+        let counters: [(&str, &str, Gauge); 4] = [
+            (
+                "evermap_site_loop_closures_total",
+                "Loop closures accepted (those of trimmed submaps included).",
+                |s| s.current().counts.loop_closures,
+            ),
+            (
+                "evermap_site_loop_closure_searches_total",
+                "Loop-closure searches queued.",
+                |s| s.current().counts.loop_closure_searches,
+            ),
+            (
+                "evermap_site_loop_closures_outvoted_total",
+                "Matches refused because other matches of their node disagreed with them.",
+                |s| s.current().counts.loop_closures_outvoted,
+            ),
+            (
+                "evermap_site_session_start_retries_total",
+                "Whole-map searches for a session's start after its first one.",
+                |s| s.current().counts.session_starts.retries,
+            ),
+        ];
+        for (name, help, value) in counters {
+            let _ = write!(out, "# HELP {name} {help}\n# TYPE {name} counter\n");
+            for site in sites {
+                let _ = writeln!(out, "{name}{{site=\"{}\"}} {}", site.site(), value(site));
+            }
+        }
+        out.push_str(
+            "# HELP evermap_site_session_starts_total Session-start decisions, by decision: prior (a \
+             robot's placement taken on probation), placed and refused (the server's whole-map \
+             searches), committed, revoked, gave_up.\n\
+             # TYPE evermap_site_session_starts_total counter\n",
+        );
+        for site in sites {
+            let starts = site.current().counts.session_starts;
+            for (decision, n) in [
+                ("prior", starts.priors),
+                ("placed", starts.placed),
+                ("refused", starts.refused),
+                ("committed", starts.committed),
+                ("revoked", starts.revoked),
+                ("gave_up", starts.gave_up),
+            ] {
+                let _ = writeln!(
+                    out,
+                    "evermap_site_session_starts_total{{site=\"{}\",decision=\"{decision}\"}} {n}",
+                    site.site()
+                );
             }
         }
         out
@@ -231,7 +294,19 @@ impl ServerMetrics {
 
 #[cfg(test)]
 mod tests {
+    use std::sync::Arc;
+
+    use mapping::geometry::{Rigid2, rigid2};
+    use mapping::grid::{CellIndex, MapLimits, ProbabilityGrid};
+    use mapping::lifelong::LifelongOptions;
+    use mapping::pose_graph::SubmapId;
+    use proto::{NodeAdded, UploadBatch, UploadItem};
+    use storage::{MapStore, MemStore};
+    use tokio::io::{AsyncReadExt as _, AsyncWriteExt as _};
+
     use super::*;
+    use crate::metrics_endpoint::{bind_metrics, serve_metrics};
+    use crate::site::{SiteTask, SiteTaskOptions};
 
     #[test]
     fn counters_appear_in_the_exposition() {
@@ -246,5 +321,127 @@ mod tests {
         assert!(text.contains("evermap_pgr_seconds_total 1.5\n"));
         assert!(text.contains("evermap_sites 0\n"));
         assert_eq!(metrics.refused_count("permission_denied"), 1);
+    }
+
+    /// Node `k` of a straight route (x = 0.1 k), inserted into submap `k`, with that submap finished.
+    fn node_and_submap(k: u32) -> [UploadItem; 2] {
+        let mut grid = ProbabilityGrid::new(MapLimits::new(0.05, [-1.0, -1.0].into(), 40, 40));
+        for i in 0..40 {
+            grid.set_probability(&CellIndex::new(i, 30), 0.9);
+        }
+        [
+            UploadItem::NodeAdded(NodeAdded {
+                time: mapping::sensor::Timestamp(i64::from(k) * 100_000_000),
+                local_pose: rigid2(0.1 * f64::from(k), 0.0, 0.0),
+                points: vec![[1.0, 0.5].into(), [1.0, -0.5].into()],
+                insertion_submaps: vec![(k, rigid2(f64::from(k), 0.0, 0.0))],
+            }),
+            UploadItem::SubmapFinished { index: k, grid },
+        ]
+    }
+
+    fn batch(session: &str, items: Vec<UploadItem>) -> UploadBatch {
+        UploadBatch {
+            site: "s".into(),
+            robot_id: "r".into(),
+            session_uuid: session.into(),
+            seq: 1,
+            items,
+        }
+    }
+
+    // Reference: issue 35 item 6 — the loop-closure and session-start counters reach /metrics.
+    #[tokio::test]
+    async fn metrics_serve_each_sites_loop_closure_and_session_start_counters() {
+        let mut options = LifelongOptions::default();
+        options.session_start.probation_matches = 2;
+        options.session_start.probation_min_separation_m = 0.15;
+        options.session_start.hold_back_nodes = 1;
+        let store: Arc<dyn MapStore> = Arc::new(MemStore::new());
+        let metrics = Arc::new(ServerMetrics::default());
+        let (site, _task) = SiteTask::spawn(
+            "s",
+            options,
+            store,
+            Arc::clone(&metrics),
+            SiteTaskOptions::default(),
+        )
+        .await
+        .unwrap();
+        // a maps a route; b drives it with its robot's prior, and its robot matches its nodes to a's
+        // submaps where they are: loop closures, which commit b's prior.
+        site.open_session("r", "a").await.unwrap();
+        let mut a: Vec<UploadItem> = (0..6).flat_map(node_and_submap).collect();
+        a.push(UploadItem::SessionEnd);
+        site.upload(batch("a", a)).await.unwrap();
+        site.open_session("r", "b").await.unwrap();
+        let mut b = vec![UploadItem::SessionStartPrior {
+            global_from_local: Rigid2::identity(),
+            glm_on_robot: true,
+        }];
+        for k in 0..6 {
+            b.extend(node_and_submap(k));
+            if k % 2 == 0 {
+                b.push(UploadItem::GlobalMatch {
+                    submap: SubmapId {
+                        trajectory: 0,
+                        index: k,
+                    },
+                    submap_from_node: rigid2(0.1 * f64::from(k) - f64::from(k), 0.0, 0.0),
+                    score: 0.9,
+                });
+            }
+        }
+        site.upload(batch("b", b)).await.unwrap();
+        let counts = site.current().counts;
+        assert!(counts.loop_closures >= 2, "{counts:?}");
+
+        // Scraped over HTTP, as Prometheus does.
+        let listener = bind_metrics(([127, 0, 0, 1], 0).into()).await.unwrap();
+        let addr = listener.local_addr().unwrap();
+        let endpoint = tokio::spawn(serve_metrics(listener, metrics, Arc::new(vec![site])));
+        let mut stream = tokio::net::TcpStream::connect(addr).await.unwrap();
+        stream
+            .write_all(b"GET /metrics HTTP/1.1\r\nhost: evermap\r\n\r\n")
+            .await
+            .unwrap();
+        let mut text = String::new();
+        stream.read_to_string(&mut text).await.unwrap();
+        endpoint.abort();
+        let expected = [
+            "# TYPE evermap_site_loop_closures_total counter".to_owned(),
+            format!(
+                "evermap_site_loop_closures_total{{site=\"s\"}} {}",
+                counts.loop_closures
+            ),
+            format!(
+                "evermap_site_loop_closure_searches_total{{site=\"s\"}} {}",
+                counts.loop_closure_searches
+            ),
+            format!(
+                "evermap_site_loop_closures_outvoted_total{{site=\"s\"}} {}",
+                counts.loop_closures_outvoted
+            ),
+            "# TYPE evermap_site_loop_closures_beyond_drift gauge".to_owned(),
+            format!(
+                "evermap_site_loop_closures_beyond_drift{{site=\"s\"}} {}",
+                counts.loop_closures_beyond_drift
+            ),
+            format!(
+                "evermap_site_loop_closures_retracted{{site=\"s\"}} {}",
+                counts.loop_closures_retracted
+            ),
+            "# TYPE evermap_site_session_starts_total counter".to_owned(),
+            "evermap_site_session_starts_total{site=\"s\",decision=\"prior\"} 1".to_owned(),
+            "evermap_site_session_starts_total{site=\"s\",decision=\"committed\"} 1".to_owned(),
+            "evermap_site_session_starts_total{site=\"s\",decision=\"revoked\"} 0".to_owned(),
+            "evermap_site_session_start_retries_total{site=\"s\"} 0".to_owned(),
+        ];
+        for line in expected {
+            assert!(
+                text.lines().any(|l| l == line),
+                "{line:?} missing from\n{text}"
+            );
+        }
     }
 }

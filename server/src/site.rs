@@ -20,6 +20,7 @@ pub use map_history::{
 pub use session_view::{PlacementState, SessionView};
 pub use site_error::SiteError;
 pub use site_handle::{RenderedMap, SiteHandle, UploadAck, VersionInfo};
-pub use site_map::{MapCounts, SessionOpened, SiteMap, UploadCheck};
+pub use site_map::{MapCounts, SessionOpened, SessionStartCounts, SiteMap, UploadCheck};
+pub(crate) use site_task::site_span;
 pub use site_task::{SITE_LOG_KIND, SiteTask, SiteTaskOptions};
 pub use site_view::SiteView;

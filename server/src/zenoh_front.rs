@@ -24,9 +24,11 @@ use tokio::sync::Semaphore;
 use tokio::task::JoinHandle;
 use tokio_stream::StreamExt as _;
 use tonic::metadata::MetadataValue;
+use tracing::Instrument as _;
 
 use crate::grpc::status::EXPECTED_SEQ_METADATA;
 use crate::grpc::{AgentApi, ApiContext, MapApi, version_to_pb};
+use crate::site::site_span;
 
 /// Why the zenoh front end could not start.
 #[derive(Debug, thiserror::Error)]
@@ -36,7 +38,7 @@ pub enum ZenohFrontError {
     Options(#[from] proto::ZenohLinkOptionsError),
     /// zenoh refused (bad endpoint, port taken, ...).
     #[error("zenoh: {0}")]
-    Zenoh(String),
+    Zenoh(#[source] zenoh::Error),
     /// Another server instance behind the same routers serves the site.
     #[error(
         "site {site:?} is already served by another server instance behind the zenoh routers (it answers \
@@ -63,11 +65,10 @@ impl ZenohFront {
         context: ApiContext,
         max_in_flight: usize,
     ) -> Result<Self, ZenohFrontError> {
-        let zenoh_error = |e: zenoh::Error| ZenohFrontError::Zenoh(e.to_string());
         ensure_no_other_owner(options, context.sites.keys(), OWNER_WAIT).await?;
         let session = zenoh::open(options.to_zenoh_config()?)
             .await
-            .map_err(zenoh_error)?;
+            .map_err(ZenohFrontError::Zenoh)?;
         let agent = AgentApi::new(context.clone());
         let map = MapApi::new(context.clone());
         let mut tasks = Vec::new();
@@ -75,48 +76,59 @@ impl ZenohFront {
             let queryable = session
                 .declare_queryable(zenoh_api_key(id))
                 .await
-                .map_err(zenoh_error)?;
+                .map_err(ZenohFrontError::Zenoh)?;
             let (agent, map) = (agent.clone(), map.clone());
             let in_flight = Arc::new(Semaphore::new(max_in_flight.max(1)));
-            tasks.push(tokio::spawn(async move {
-                while let Ok(query) = queryable.recv_async().await {
-                    // One task per query: a slow upload must not hold up a version read. The site task
-                    // still applies one site's changes in order.
-                    let Ok(permit) = Arc::clone(&in_flight).acquire_owned().await else {
-                        break;
-                    };
-                    let (agent, map) = (agent.clone(), map.clone());
-                    tokio::spawn(async move {
-                        let _permit = permit;
-                        let payload = query.payload().map(|p| p.to_bytes().into_owned());
-                        for reply in answer(&agent, &map, payload.as_deref()).await {
-                            let bytes = reply.encode_to_vec();
-                            if let Err(e) = query.reply(query.key_expr().clone(), bytes).await {
-                                tracing::warn!("zenoh reply to {}: {e}", query.key_expr());
-                                break;
+            tasks.push(tokio::spawn(
+                async move {
+                    while let Ok(query) = queryable.recv_async().await {
+                        // One task per query: a slow upload must not hold up a version read. The site task
+                        // still applies one site's changes in order.
+                        let Ok(permit) = Arc::clone(&in_flight).acquire_owned().await else {
+                            break;
+                        };
+                        let (agent, map) = (agent.clone(), map.clone());
+                        tokio::spawn(
+                            async move {
+                                let _permit = permit;
+                                let payload = query.payload().map(|p| p.to_bytes().into_owned());
+                                for reply in answer(&agent, &map, payload.as_deref()).await {
+                                    let bytes = reply.encode_to_vec();
+                                    if let Err(e) =
+                                        query.reply(query.key_expr().clone(), bytes).await
+                                    {
+                                        tracing::warn!("zenoh reply to {}: {e}", query.key_expr());
+                                        break;
+                                    }
+                                }
                             }
-                        }
-                    });
+                            .in_current_span(),
+                        );
+                    }
                 }
-            }));
+                .instrument(site_span(id)),
+            ));
             let publisher = session
                 .declare_publisher(zenoh_version_key(id))
                 .await
-                .map_err(zenoh_error)?;
+                .map_err(ZenohFrontError::Zenoh)?;
             let mut versions = handle.subscribe();
             let site = id.clone();
-            tasks.push(tokio::spawn(async move {
-                loop {
-                    let info = *versions.borrow_and_update();
-                    let bytes = version_to_pb(&site, &info).encode_to_vec();
-                    if let Err(e) = publisher.put(bytes).await {
-                        tracing::warn!(%site, "zenoh version publication: {e}");
-                    }
-                    if versions.changed().await.is_err() {
-                        break;
+            tasks.push(tokio::spawn(
+                async move {
+                    loop {
+                        let info = *versions.borrow_and_update();
+                        let bytes = version_to_pb(&site, &info).encode_to_vec();
+                        if let Err(e) = publisher.put(bytes).await {
+                            tracing::warn!("zenoh version publication: {e}");
+                        }
+                        if versions.changed().await.is_err() {
+                            break;
+                        }
                     }
                 }
-            }));
+                .instrument(site_span(id)),
+            ));
         }
         tracing::info!(
             sites = context.sites.len(),

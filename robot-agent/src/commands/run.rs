@@ -11,7 +11,6 @@
 //! The configuration file: [`robot_agent::agent_config::AgentConfig`] (its module docs show one).
 
 use std::fmt::Write as _;
-use std::io::IsTerminal as _;
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -26,8 +25,10 @@ use robot_agent::ros2_publisher::{PublishStats, Ros2Publisher, odom_from_base_at
 use robot_agent::source::{self, LiveRos2Source, OdometryHistory, Ros2LiveOptions};
 use robot_agent::uplink::{
     ClientTls, FleetUplink, GlobalSubmapCache, GrpcUplink, MapUplink as _, SessionInput,
-    SessionOptions, SessionStart, Uploader, ZenohUplink, follow_site, stream_session_from,
+    SessionOptions, SessionStart, Uploader, ZenohUplink, follow_site, session_span,
+    stream_session_from,
 };
+use tracing::Instrument as _;
 
 /// Arguments of `run`.
 #[derive(Args)]
@@ -57,13 +58,8 @@ fn random_uuid() -> String {
     )
 }
 
-/// Runs the command.
+/// Runs the command (the caller has set up logging: `robot_agent::logging::init_logging`).
 pub fn run(args: &RunArgs) -> anyhow::Result<()> {
-    tracing_subscriber::fmt()
-        .with_max_level(tracing::Level::INFO)
-        // Colours only on a terminal, and never with NO_COLOR set: a service's log is a file or journald.
-        .with_ansi(std::io::stdout().is_terminal() && std::env::var_os("NO_COLOR").is_none())
-        .init();
     let text = std::fs::read_to_string(&args.config)
         .with_context(|| format!("cannot read {}", args.config.display()))?;
     let config = AgentConfig::from_toml(&text)
@@ -111,9 +107,14 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         local: config.local.clone(),
         ..SessionOptions::default()
     };
+    // Everything from here on is this robot session's: its lines name it through the span (entered
+    // on this thread, which polls the session's future in `block_on`; the tasks it spawns carry it).
+    let span = session_span(&config.site, &config.robot_id, &session_uuid);
+    let _in_session = span.enter();
     tracing::info!(
-        site = %config.site, robot = %config.robot_id, session = %session_uuid,
-        pending = outbox.len()?, interrupted = interrupted.len(), "starting session"
+        pending = outbox.len()?,
+        interrupted = interrupted.len(),
+        "starting session"
     );
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(1)
@@ -146,12 +147,10 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         tracing::info!(transport = uplink.transport(), "uplink ready");
         let cache = Arc::new(Mutex::new(GlobalSubmapCache::default()));
         let (stop, stopped) = tokio::sync::watch::channel(false);
-        let follower = tokio::spawn(follow_site(
-            uplink.clone(),
-            Arc::clone(&cache),
-            stopped,
-            retry_interval,
-        ));
+        let follower = tokio::spawn(
+            follow_site(uplink.clone(), Arc::clone(&cache), stopped, retry_interval)
+                .in_current_span(),
+        );
         let mut uploader = Uploader::new(
             uplink,
             outbox,
@@ -177,15 +176,16 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
             session_start: mapping::lifelong::SessionStartOptions::default(),
         };
         let map_publisher = match live_session {
-            Some((session, ros2, odometry)) if ros2.publish.enabled => {
-                Some(tokio::spawn(publish_to_ros2(
+            Some((session, ros2, odometry)) if ros2.publish.enabled => Some(tokio::spawn(
+                publish_to_ros2(
                     session,
                     ros2,
                     Arc::clone(&cache),
                     (node_pose_receiver, odometry),
                     stop.subscribe(),
-                )))
-            }
+                )
+                .in_current_span(),
+            )),
             _ => None,
         };
         let (report, trace) =

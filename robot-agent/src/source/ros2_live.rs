@@ -113,9 +113,20 @@ pub enum Ros2LiveError {
     /// A topic name cannot be subscribed to.
     #[error(transparent)]
     Name(#[from] rmw_zenoh::RosNameError),
-    /// Zenoh refused the configuration, the session or a subscription.
-    #[error("zenoh: {0}")]
-    Zenoh(String),
+    /// The `[ros2.zenoh]` link options are invalid.
+    #[error("invalid [ros2] option zenoh: {0}")]
+    ZenohOptions(#[source] proto::ZenohLinkOptionsError),
+    /// The `[ros2.publish]` options are invalid.
+    #[error("invalid [ros2] option publish: {0}")]
+    Publish(#[source] crate::ros2_publisher::Ros2PublishError),
+    /// Zenoh refused the session or a subscription.
+    #[error("zenoh: {what}: {source}")]
+    Zenoh {
+        /// What was asked of it.
+        what: String,
+        /// Why.
+        source: zenoh::Error,
+    },
 }
 
 fn invalid(field: &'static str, reason: impl Into<String>) -> Ros2LiveError {
@@ -137,9 +148,7 @@ impl Ros2LiveOptions {
         for (topic, ros_type) in self.topics() {
             rmw_zenoh::topic_key(self.domain_id, &topic, ros_type, "*")?;
         }
-        self.zenoh
-            .validate()
-            .map_err(|e| invalid("zenoh", e.to_string()))?;
+        self.zenoh.validate().map_err(Ros2LiveError::ZenohOptions)?;
         if self.queue_capacity == 0 || self.queue_capacity > 1 << 20 {
             return Err(invalid("queue_capacity", "must be in 1..=1048576 messages"));
         }
@@ -155,9 +164,7 @@ impl Ros2LiveOptions {
             }
         }
         self.stream_end().validate()?;
-        self.publish
-            .validate()
-            .map_err(|e| invalid("publish", e.to_string()))?;
+        self.publish.validate().map_err(Ros2LiveError::Publish)?;
         Ok(())
     }
 
@@ -314,10 +321,13 @@ impl LiveRos2Source {
         let config = options
             .zenoh
             .to_zenoh_config()
-            .map_err(|e| invalid("zenoh", e.to_string()))?;
+            .map_err(Ros2LiveError::ZenohOptions)?;
         let session = zenoh::open(config)
             .wait()
-            .map_err(|e| Ros2LiveError::Zenoh(format!("cannot open a session: {e}")))?;
+            .map_err(|source| Ros2LiveError::Zenoh {
+                what: "cannot open a session".into(),
+                source,
+            })?;
         let (sender, receiver) = mpsc::sync_channel(options.queue_capacity);
         let topics = options.topics();
         let arrivals = Arc::new(Mutex::new(ArrivalCounters::new(topics.len())));
@@ -346,7 +356,10 @@ impl LiveRos2Source {
                     }
                 })
                 .wait()
-                .map_err(|e| Ros2LiveError::Zenoh(format!("cannot subscribe to {key}: {e}")))?;
+                .map_err(|source| Ros2LiveError::Zenoh {
+                    what: format!("cannot subscribe to {key}"),
+                    source,
+                })?;
             subscribers.push(subscriber);
         }
         Ok(Self {

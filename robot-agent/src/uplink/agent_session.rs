@@ -91,9 +91,12 @@ pub enum SessionError {
     /// The server refused something for good.
     #[error(transparent)]
     Uplink(#[from] UplinkError),
-    /// The LLO thread could not be started or panicked.
+    /// The LLO thread panicked.
     #[error("LLO thread: {0}")]
     Llo(String),
+    /// The LLO thread could not be started.
+    #[error("LLO thread: {0}")]
+    LloSpawn(#[source] std::io::Error),
 }
 
 /// How a session finds its place in the site map before its first upload, through
@@ -146,6 +149,14 @@ pub struct SessionTrace {
     pub glm_on_robot: bool,
     /// GLM matches the robot sent.
     pub glm_matches: u64,
+}
+
+/// The span a robot session runs in, `session{site, robot, session}`: the shell that runs a session
+/// (`evermap-agent run`, the demo's robots) enters it, so every line the session's uploader, GLM and
+/// shell log names the session. At ERROR level so that it is on whenever any event is: a filter at WARN
+/// still shows whose session a warning is about.
+pub fn session_span(site: &str, robot_id: &str, session_uuid: &str) -> tracing::Span {
+    tracing::error_span!("session", site = %site, robot = %robot_id, session = %session_uuid)
 }
 
 /// Runs LLO over `recording` on a named thread and streams its output through `uploader` in batches of
@@ -400,7 +411,7 @@ pub async fn stream_session_from<U: MapUplink>(
                 }
             }
         })
-        .map_err(|e| SessionError::Llo(e.to_string()))?;
+        .map_err(SessionError::LloSpawn)?;
 
     let mut report = SessionReport::default();
     let mut trace = SessionTrace::default();

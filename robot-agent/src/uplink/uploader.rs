@@ -108,6 +108,11 @@ impl<U: MapUplink> Uploader<U> {
         })
     }
 
+    /// The span this session runs in ([`super::session_span`] of its site, robot and session).
+    pub fn session_span(&self) -> tracing::Span {
+        super::session_span(&self.site, &self.robot_id, &self.session_uuid)
+    }
+
     /// The trajectory the server gave this uploader's session, once it has been opened.
     pub fn trajectory(&self) -> Option<u32> {
         self.trajectory
@@ -150,7 +155,7 @@ impl<U: MapUplink> Uploader<U> {
                     if !self.outbox_full {
                         self.outbox_full = true;
                         tracing::warn!(
-                            session = %self.session_uuid, seq = batch.seq,
+                            seq = batch.seq,
                             "the outbox cannot store a batch ({e}): keeping batches in memory (at \
                              most {MAX_UNSTORED_BATCHES}) until the disk has room"
                         );
@@ -162,7 +167,7 @@ impl<U: MapUplink> Uploader<U> {
         }
         if self.outbox_full {
             self.outbox_full = false;
-            tracing::info!(session = %self.session_uuid, "the outbox has room again");
+            tracing::info!("the outbox has room again");
         }
         Ok(())
     }
@@ -254,7 +259,7 @@ impl<U: MapUplink> Uploader<U> {
                 // can never be applied.
                 let dropped = self.outbox.finish_session(session)?;
                 tracing::warn!(
-                    session,
+                    interrupted_session = session,
                     dropped,
                     "the server had already ended this interrupted session: dropping its undelivered batches"
                 );
@@ -280,7 +285,7 @@ impl<U: MapUplink> Uploader<U> {
         }
         self.outbox.finish_session(session)?;
         stats.interrupted_ended += 1;
-        tracing::info!(session, "interrupted session ended");
+        tracing::info!(interrupted_session = session, "interrupted session ended");
         Ok(())
     }
 

@@ -402,7 +402,7 @@ async fn change_image(
     let image =
         tokio::task::spawn_blocking(move || render_change_image(&before, &after, resolution))
             .await
-            .map_err(|e| ConsoleError::Internal(e.to_string()))?
+            .map_err(ConsoleError::Worker)?
             .ok_or_else(|| ConsoleError::Internal("the change could not be rendered".into()))?;
     let image = Arc::new(image);
     state.cache_change(site, Arc::clone(&image));

@@ -32,6 +32,9 @@ pub enum ConsoleError {
     /// Rendering or encoding failed (500).
     #[error("{0}")]
     Internal(String),
+    /// The rendering task failed (panicked) (500).
+    #[error("{0}")]
+    Worker(#[source] tokio::task::JoinError),
 }
 
 impl ConsoleError {
@@ -44,7 +47,7 @@ impl ConsoleError {
             }
             Self::BadRequest(_) => StatusCode::BAD_REQUEST,
             Self::Site(_) => StatusCode::SERVICE_UNAVAILABLE,
-            Self::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
+            Self::Internal(_) | Self::Worker(_) => StatusCode::INTERNAL_SERVER_ERROR,
         }
     }
 }

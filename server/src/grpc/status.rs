@@ -52,14 +52,20 @@ pub fn from_site(metrics: &ServerMetrics, error: &SiteError) -> Status {
             status
         }
         SiteError::InvalidBatch(_)
+        | SiteError::Rejected(_)
+        | SiteError::Unstorable(_)
         | SiteError::Storage(
             StorageError::InvalidSessionId { .. }
             | StorageError::InvalidSiteId { .. }
             | StorageError::TooLarge { .. },
         ) => Status::invalid_argument(message),
         SiteError::Storage(_) | SiteError::Stopped(_) => Status::unavailable(message),
-        SiteError::CorruptLog { .. } => Status::data_loss(message),
-        SiteError::Internal(_) => Status::internal(message),
+        SiteError::CorruptLog { .. } | SiteError::CorruptEntry { .. } => Status::data_loss(message),
+        SiteError::Internal(_)
+        | SiteError::Worker(_)
+        | SiteError::Map(_)
+        | SiteError::EndSession { .. }
+        | SiteError::Options(_) => Status::internal(message),
     };
     counted(metrics, status)
 }

@@ -20,6 +20,13 @@ pub enum SiteError {
     /// The session was closed; nothing more can be uploaded to it.
     #[error("session {0:?} is closed")]
     SessionClosed(String),
+    /// The map refused the session's start or one of its nodes (the batch does not fit the map).
+    #[error("invalid batch: {0}")]
+    Rejected(#[source] mapping::lifelong::LifelongError),
+    /// The batch's stored form would not decode, so it could not be replayed: refused before anything
+    /// is stored.
+    #[error("invalid batch: its stored form would not decode: {0}")]
+    Unstorable(#[source] proto::ConversionError),
     /// A batch skipped sequence numbers.
     #[error("sequence gap in session {session:?}: expected seq {expected}, got {got}")]
     SequenceGap {
@@ -42,7 +49,16 @@ pub enum SiteError {
     /// once a flush succeeds (it is never applied twice).
     #[error("storage: {0}")]
     Storage(#[from] storage::StorageError),
-    /// A stored log entry cannot be decoded or replayed.
+    /// A stored log entry cannot be decoded.
+    #[error("corrupt site log at entry {index}: {source}")]
+    CorruptEntry {
+        /// The entry's index (= the site version it made).
+        index: u64,
+        /// Why.
+        source: Box<dyn std::error::Error + Send + Sync>,
+    },
+    /// A stored log entry cannot be replayed (out of order, closing an unknown session, the log ending
+    /// short of the store's version).
     #[error("corrupt site log at entry {index}: {reason}")]
     CorruptLog {
         /// The entry's index (= the site version it made).
@@ -53,7 +69,25 @@ pub enum SiteError {
     /// The site's task has stopped (server shutting down, or a bug).
     #[error("site {0:?} is not running")]
     Stopped(String),
-    /// A worker thread failed.
+    /// What the site should never see happened (its map lost by a failed worker, the store disagreeing
+    /// on the version it wrote).
     #[error("internal error: {0}")]
     Internal(String),
+    /// A worker task failed (panicked or was cancelled).
+    #[error("internal error: {0}")]
+    Worker(#[source] tokio::task::JoinError),
+    /// The map failed where it should not have (a bug: the site had checked the request).
+    #[error("internal error: {0}")]
+    Map(#[source] mapping::lifelong::LifelongError),
+    /// Ending a session in the map failed (a bug: the map had accepted the session).
+    #[error("internal error: ending session {session:?}: {source}")]
+    EndSession {
+        /// The session.
+        session: String,
+        /// Why.
+        source: mapping::lifelong::LifelongError,
+    },
+    /// The map's options were refused (a bug: the server validated them at start).
+    #[error("internal error: {0}")]
+    Options(#[source] mapping::lifelong::LifelongOptionsError),
 }

@@ -75,7 +75,7 @@ pub enum UploadCheck {
     },
 }
 
-/// Sizes of a site map.
+/// Sizes of a site map, and what it counted since the site began (rebuilt by replay, like the map).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct MapCounts {
     /// Sessions ever opened.
@@ -94,8 +94,44 @@ pub struct MapCounts {
     pub dropped_sessions: u64,
     /// Loop closures accepted since the site began (those of trimmed submaps included).
     pub loop_closures: u64,
+    /// Loop-closure searches queued since the site began (`GlobalSlam::searches_queued`).
+    pub loop_closure_searches: u64,
+    /// Matches refused since the site began because other matches of their node disagreed
+    /// (`GlobalSlam::closures_outvoted`).
+    pub loop_closures_outvoted: u64,
+    /// Matches refused because they moved their node farther than the drift since its last loop
+    /// explains, and not confirmed by others since (`GlobalSlam::closures_beyond_drift`: it falls when a
+    /// chorus confirms them).
+    pub loop_closures_beyond_drift: u64,
+    /// Accepted loop closures out of the graph now because the optimized graph refuses them
+    /// (`GlobalSlam::closures_retracted`: it falls when one fits again or is trimmed).
+    pub loop_closures_retracted: u64,
+    /// What the sessions' starts decided since the site began.
+    pub session_starts: SessionStartCounts,
     /// Sessions opened and not ended yet.
     pub open_sessions: u64,
+}
+
+/// The decisions of the site's session starts ([`SessionStart`], every session but the first) since
+/// the site began, counted as the site acts on them.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct SessionStartCounts {
+    /// Sessions that came with their robot's placement (a `SessionStartPrior`), put on probation (or
+    /// committed at once when no match is asked for).
+    pub priors: u64,
+    /// Whole-map searches by the server that placed their session, on probation
+    /// (`SessionStartEvent::Placed`).
+    pub placed: u64,
+    /// Whole-map searches by the server that did not place their session (`SessionStartEvent::Refused`).
+    pub refused: u64,
+    /// Whole-map searches by the server after a session's first one (placed or refused).
+    pub retries: u64,
+    /// Placements committed (`SessionStartEvent::Committed`), a robot's prior or the server's own.
+    pub committed: u64,
+    /// Placements revoked (`SessionStartEvent::Revoked`).
+    pub revoked: u64,
+    /// Sessions that stopped searching unplaced (`SessionStartEvent::GaveUp`).
+    pub gave_up: u64,
 }
 
 #[derive(Clone, Debug)]
@@ -126,6 +162,10 @@ pub struct SiteMap {
     history: MapHistory,
     /// The session that started the map (its frame is the site's).
     base: Option<u32>,
+    /// What the session starts decided so far.
+    session_starts: SessionStartCounts,
+    /// Running sessions the server has searched for at least once (a later search is a retry).
+    searched: BTreeSet<u32>,
 }
 
 impl SiteMap {
@@ -144,6 +184,8 @@ impl SiteMap {
             robot_revoked: BTreeSet::new(),
             history: MapHistory::default(),
             base: None,
+            session_starts: SessionStartCounts::default(),
+            searched: BTreeSet::new(),
         })
     }
 
@@ -367,8 +409,9 @@ impl SiteMap {
         glm_on_robot: bool,
     ) -> Result<(), SiteError> {
         let is_first = self.map.counts().nodes == 0;
-        let invalid = |e: LifelongError| SiteError::InvalidBatch(e.to_string());
-        self.map.start_session(trajectory, prior).map_err(invalid)?;
+        self.map
+            .start_session(trajectory, prior)
+            .map_err(SiteError::Rejected)?;
         // Only a placed session can be matched on the robot: it needs the prior.
         if glm_on_robot && prior.is_some() {
             self.map.set_matched_on_robot(trajectory);
@@ -378,21 +421,22 @@ impl SiteMap {
             return Ok(());
         }
         let options = self.map.options().session_start.clone();
-        let internal =
-            |e: mapping::lifelong::LifelongOptionsError| SiteError::Internal(e.to_string());
         let start = match prior {
             Some(prior) => {
+                self.session_starts.priors += 1;
                 // The robot decided at its last held-back node.
                 let decided_at = options.hold_back_nodes.saturating_sub(1);
-                self.map.begin_probation(trajectory).map_err(invalid)?;
+                self.map
+                    .begin_probation(trajectory)
+                    .map_err(SiteError::Rejected)?;
                 let (start, events) =
                     SessionStart::with_placement(options, None, prior, decided_at)
-                        .map_err(internal)?;
+                        .map_err(SiteError::Options)?;
                 self.starts.insert(trajectory, start);
                 self.act_on_start(trajectory, &events)?;
                 return Ok(());
             }
-            None => SessionStart::new(options, self.start_search()).map_err(internal)?,
+            None => SessionStart::new(options, self.start_search()).map_err(SiteError::Options)?,
         };
         self.starts.insert(trajectory, start);
         Ok(())
@@ -412,20 +456,24 @@ impl SiteMap {
         trajectory: u32,
         decisions: &[SessionStartEvent],
     ) -> Result<(), SiteError> {
-        let internal = |e: LifelongError| SiteError::Internal(e.to_string());
         for decision in decisions {
+            self.count_start_decision(trajectory, decision);
             match decision {
                 SessionStartEvent::Placed(placement) => {
                     self.map
                         .place_session(trajectory, placement.global_from_local)
-                        .map_err(internal)?;
-                    self.map.begin_probation(trajectory).map_err(internal)?;
+                        .map_err(SiteError::Map)?;
+                    self.map
+                        .begin_probation(trajectory)
+                        .map_err(SiteError::Map)?;
                 }
                 SessionStartEvent::Committed { .. } => {
                     self.map.commit_session(trajectory);
                 }
                 SessionStartEvent::Revoked { .. } => {
-                    self.map.revoke_placement(trajectory).map_err(internal)?;
+                    self.map
+                        .revoke_placement(trajectory)
+                        .map_err(SiteError::Map)?;
                     // The robot's frame is wrong: its matches say nothing more; search here.
                     self.map.set_matched_here(trajectory);
                     self.robot_revoked.insert(trajectory);
@@ -446,6 +494,36 @@ impl SiteMap {
         Ok(())
     }
 
+    /// Counts one of `trajectory`'s session-start decisions.
+    fn count_start_decision(&mut self, trajectory: u32, decision: &SessionStartEvent) {
+        let counts = &mut self.session_starts;
+        let searched = match decision {
+            SessionStartEvent::Placed(_) => {
+                counts.placed += 1;
+                true
+            }
+            SessionStartEvent::Refused { .. } => {
+                counts.refused += 1;
+                true
+            }
+            SessionStartEvent::Committed { .. } => {
+                counts.committed += 1;
+                false
+            }
+            SessionStartEvent::Revoked { .. } => {
+                counts.revoked += 1;
+                false
+            }
+            SessionStartEvent::GaveUp { .. } => {
+                counts.gave_up += 1;
+                false
+            }
+        };
+        if searched && !self.searched.insert(trajectory) {
+            self.session_starts.retries += 1;
+        }
+    }
+
     /// Ends a session in the lifelong map (final optimization, trimming) and marks it closed.
     fn end_session(&mut self, session_uuid: &str) -> Result<Vec<LifelongEvent>, SiteError> {
         let Some(session) = self.sessions.get(session_uuid) else {
@@ -455,12 +533,17 @@ impl SiteMap {
         let mut events = Vec::new();
         let mut dropped = false;
         self.starts.remove(&trajectory);
+        self.searched.remove(&trajectory);
         if self.map.is_started(trajectory) && !self.map.is_finished(trajectory) {
             let unplaced = self.map.is_unplaced(trajectory) || self.map.is_on_probation(trajectory);
             dropped = unplaced;
-            events = self.map.finish_session(trajectory).map_err(|e| {
-                SiteError::Internal(format!("ending session {session_uuid:?}: {e}"))
-            })?;
+            events =
+                self.map
+                    .finish_session(trajectory)
+                    .map_err(|source| SiteError::EndSession {
+                        session: session_uuid.to_owned(),
+                        source,
+                    })?;
             if unplaced {
                 self.dropped_sessions += 1;
             }
@@ -497,7 +580,7 @@ impl SiteMap {
                 &insertion,
                 finished,
             )
-            .map_err(|e| SiteError::InvalidBatch(e.to_string()))?;
+            .map_err(SiteError::Rejected)?;
         // A session started on an empty committed map searches once there is one.
         let needs_search = self
             .starts
@@ -712,6 +795,7 @@ impl SiteMap {
     /// The sizes of the map.
     pub fn counts(&self) -> MapCounts {
         let graph = self.map.counts();
+        let global = self.map.global();
         MapCounts {
             sessions: self.sessions.len() as u64,
             nodes: graph.nodes as u64,
@@ -720,7 +804,12 @@ impl SiteMap {
             constraints: graph.constraints as u64,
             trimmed_submaps: self.trimmed.len() as u64,
             dropped_sessions: self.dropped_sessions,
-            loop_closures: self.map.global().loop_closures_accepted() as u64,
+            loop_closures: global.loop_closures_accepted() as u64,
+            loop_closure_searches: global.searches_queued() as u64,
+            loop_closures_outvoted: global.closures_outvoted() as u64,
+            loop_closures_beyond_drift: global.closures_beyond_drift() as u64,
+            loop_closures_retracted: global.closures_retracted() as u64,
+            session_starts: self.session_starts,
             open_sessions: self.sessions.values().filter(|s| !s.closed).count() as u64,
         }
     }

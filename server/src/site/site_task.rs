@@ -42,6 +42,7 @@ use proto::{FORMAT_VERSION, UploadBatch, pb};
 use storage::{BatchOutcome, MapStore, RecordKind, WriteBatch};
 use tokio::sync::{mpsc, watch};
 use tokio::task::JoinHandle;
+use tracing::Instrument as _;
 
 use super::site_handle::Command;
 use super::{
@@ -93,8 +94,17 @@ pub struct SiteTask {
     unflushed: bool,
 }
 
-fn internal(e: impl std::fmt::Display) -> SiteError {
-    SiteError::Internal(e.to_string())
+/// The span a site's task runs in, `site{site}`: every line the task (and the zenoh front end's tasks
+/// of the site) logs names the site through it. At ERROR level so that it is on whenever any event is: a
+/// filter at WARN still shows which site a warning is about.
+pub(crate) fn site_span(site: &str) -> tracing::Span {
+    tracing::error_span!("site", site = %site)
+}
+
+/// The span a site task handles one session's request in, `session{robot, session}` (inside the
+/// site's span).
+fn session_span(robot_id: &str, session_uuid: &str) -> tracing::Span {
+    tracing::error_span!("session", robot = %robot_id, session = %session_uuid)
 }
 
 impl SiteTask {
@@ -107,20 +117,22 @@ impl SiteTask {
         metrics: Arc<ServerMetrics>,
         task_options: SiteTaskOptions,
     ) -> Result<(SiteHandle, JoinHandle<()>), SiteError> {
+        let span = site_span(site);
         let started = Instant::now();
         let generation = store.generation();
         let map = {
             let (site, store, options) = (site.to_owned(), Arc::clone(&store), options.clone());
             tokio::task::spawn_blocking(move || replay(&site, options, store.as_ref()))
                 .await
-                .map_err(internal)??
+                .map_err(SiteError::Worker)??
         };
-        tracing::info!(
-            site,
-            version = map.version(),
-            seconds = started.elapsed().as_secs_f64(),
-            "site log replayed"
-        );
+        span.in_scope(|| {
+            tracing::info!(
+                version = map.version(),
+                seconds = started.elapsed().as_secs_f64(),
+                "site log replayed"
+            );
+        });
         let info = VersionInfo {
             version: map.version(),
             counts: map.counts(),
@@ -146,7 +158,7 @@ impl SiteTask {
             last_heard,
             unflushed: false,
         };
-        let join = tokio::spawn(task.run(commands_rx));
+        let join = tokio::spawn(task.run(commands_rx).instrument(span));
         Ok((SiteHandle::new(site, commands, versions_rx, views_rx), join))
     }
 
@@ -172,12 +184,17 @@ impl SiteTask {
                     session_uuid,
                     reply,
                 } => {
-                    let _ = reply.send(self.open_session(&robot_id, &session_uuid).await);
+                    let opened = self
+                        .open_session(&robot_id, &session_uuid)
+                        .instrument(session_span(&robot_id, &session_uuid))
+                        .await;
+                    let _ = reply.send(opened);
                     self.heard(&session_uuid);
                 }
                 Command::Upload { batch, reply } => {
                     let session = batch.session_uuid.clone();
-                    let _ = reply.send(self.upload(*batch).await);
+                    let span = session_span(&batch.robot_id, &session);
+                    let _ = reply.send(self.upload(*batch).instrument(span).await);
                     self.heard(&session);
                 }
                 Command::CloseSession {
@@ -185,7 +202,11 @@ impl SiteTask {
                     session_uuid,
                     reply,
                 } => {
-                    let _ = reply.send(self.close_session(&robot_id, &session_uuid).await);
+                    let closed = self
+                        .close_session(&robot_id, &session_uuid)
+                        .instrument(session_span(&robot_id, &session_uuid))
+                        .await;
+                    let _ = reply.send(closed);
                 }
                 Command::Delta { since, reply } => {
                     let _ = reply.send(self.map().and_then(|m| m.delta_since(since)));
@@ -201,14 +222,17 @@ impl SiteTask {
                     Ok(map) => {
                         let (version, grids) = (map.version(), map.grids_for_render());
                         // Rendering can take a while: do it beside the task, not in it.
-                        tokio::spawn(async move {
-                            let grid = tokio::task::spawn_blocking(move || {
-                                render_submaps_log_odds(&grids, resolution)
-                            })
-                            .await
-                            .map_err(internal);
-                            let _ = reply.send(grid.map(|grid| RenderedMap { version, grid }));
-                        });
+                        tokio::spawn(
+                            async move {
+                                let grid = tokio::task::spawn_blocking(move || {
+                                    render_submaps_log_odds(&grids, resolution)
+                                })
+                                .await
+                                .map_err(SiteError::Worker);
+                                let _ = reply.send(grid.map(|grid| RenderedMap { version, grid }));
+                            }
+                            .in_current_span(),
+                        );
                     }
                     Err(e) => {
                         let _ = reply.send(Err(e));
@@ -253,19 +277,23 @@ impl SiteTask {
             })
             .collect();
         for (session, robot) in silent {
-            match self.close_session(&robot, &session).await {
+            let span = session_span(&robot, &session);
+            match self
+                .close_session(&robot, &session)
+                .instrument(span.clone())
+                .await
+            {
                 Ok(version) => {
                     self.metrics.session_timed_out();
-                    tracing::info!(
-                        site = %self.site(), robot, session, version,
-                        silent_s = timeout.as_secs_f64(),
-                        "session ended: its robot was silent past the idle timeout"
-                    );
+                    span.in_scope(|| {
+                        tracing::info!(
+                            version,
+                            silent_s = timeout.as_secs_f64(),
+                            "session ended: its robot was silent past the idle timeout"
+                        );
+                    });
                 }
-                Err(e) => tracing::warn!(
-                    site = %self.site(), robot, session,
-                    "cannot end a silent session: {e}"
-                ),
+                Err(e) => span.in_scope(|| tracing::warn!("cannot end a silent session: {e}")),
             }
         }
     }
@@ -307,7 +335,7 @@ impl SiteTask {
         let (outcome, flushed) =
             tokio::task::spawn_blocking(move || store.apply(&batch).map(|o| (o, store.flush())))
                 .await
-                .map_err(internal)??;
+                .map_err(SiteError::Worker)??;
         match outcome {
             BatchOutcome::Applied { map_version } if map_version == version => {}
             other => {
@@ -318,7 +346,7 @@ impl SiteTask {
         }
         if let Err(e) = flushed {
             tracing::warn!(
-                site = %self.site(), version,
+                version,
                 "change stored but not durable ({e}): not acknowledged until a flush succeeds"
             );
             self.unflushed = true;
@@ -341,7 +369,7 @@ impl SiteTask {
             let (store, site) = (Arc::clone(&self.store), self.site());
             tokio::task::spawn_blocking(move || store.map_version(&site))
                 .await
-                .map_err(internal)??
+                .map_err(SiteError::Worker)??
         };
         if !self.unflushed && stored == self.map()?.version() {
             self.generation = generation;
@@ -360,7 +388,7 @@ impl SiteTask {
                 (self.site(), Arc::clone(&self.store), self.options.clone());
             tokio::task::spawn_blocking(move || replay(&site, options, store.as_ref()))
                 .await
-                .map_err(internal)??
+                .map_err(SiteError::Worker)??
         };
         if map.version() < published {
             return Err(SiteError::CorruptLog {
@@ -372,7 +400,8 @@ impl SiteTask {
             });
         }
         tracing::warn!(
-            site = %self.site(), from_version = before, to_version = map.version(),
+            from_version = before,
+            to_version = map.version(),
             seconds = started.elapsed().as_secs_f64(),
             "the store was reopened after a failed write: site map rebuilt from its log"
         );
@@ -398,7 +427,7 @@ impl SiteTask {
         let store = Arc::clone(&self.store);
         tokio::task::spawn_blocking(move || store.flush())
             .await
-            .map_err(internal)??;
+            .map_err(SiteError::Worker)??;
         if self.store.generation() != self.generation {
             // The store was reopened: the unflushed change may be gone. Rebuild, and let the robot
             // retry (its batch is then applied once, or acknowledged as a duplicate).
@@ -410,7 +439,7 @@ impl SiteTask {
             }));
         }
         self.unflushed = false;
-        tracing::info!(site = %self.site(), "stored changes are durable again");
+        tracing::info!("stored changes are durable again");
         self.publish();
         Ok(())
     }
@@ -428,7 +457,7 @@ impl SiteTask {
             (map, result)
         })
         .await
-        .map_err(internal)?;
+        .map_err(SiteError::Worker)?;
         self.map = Some(map);
         Ok(result)
     }
@@ -495,9 +524,7 @@ impl SiteTask {
         // restart rebuilds this map bit for bit. A batch whose stored form does not decode is refused
         // before anything is stored.
         let entry = pb::UploadBatch::from(&batch);
-        let batch = UploadBatch::try_from(&entry).map_err(|e| {
-            SiteError::InvalidBatch(format!("its stored form would not decode: {e}"))
-        })?;
+        let batch = UploadBatch::try_from(&entry).map_err(SiteError::Unstorable)?;
         self.persist(
             version,
             pb::site_log_entry::Entry::Upload(entry),
@@ -512,7 +539,7 @@ impl SiteTask {
         self.metrics.record_pgr(started.elapsed());
         if let Err(e) = applied {
             // Stored but not fully applied: a bug (check_upload accepted it). Replay will hit it again.
-            tracing::error!(site = %self.site(), version, "stored upload failed to apply: {e}");
+            tracing::error!(version, "stored upload failed to apply: {e}");
             return Err(e);
         }
         self.metrics.upload_applied();
@@ -570,7 +597,7 @@ fn replay(
     options: LifelongOptions,
     store: &dyn MapStore,
 ) -> Result<SiteMap, SiteError> {
-    let mut map = SiteMap::new(site, options).map_err(internal)?;
+    let mut map = SiteMap::new(site, options).map_err(SiteError::Map)?;
     let stored_version = store.map_version(site)?;
     for record in store.scan(site, SITE_LOG_KIND)? {
         let (id, bytes) = record?;
@@ -579,19 +606,22 @@ fn replay(
             reason: format!("log record id {id} is not a number"),
         })?;
         let corrupt = |reason: String| SiteError::CorruptLog { index, reason };
+        let undecodable = |source: Box<dyn std::error::Error + Send + Sync>| {
+            SiteError::CorruptEntry { index, source }
+        };
         if index != map.version() + 1 {
             return Err(corrupt(format!("expected entry {}", map.version() + 1)));
         }
         let entry =
-            pb::SiteLogEntry::decode(bytes.as_slice()).map_err(|e| corrupt(e.to_string()))?;
+            pb::SiteLogEntry::decode(bytes.as_slice()).map_err(|e| undecodable(e.into()))?;
         proto::check_format_version("SiteLogEntry", entry.format_version)
-            .map_err(|e| corrupt(e.to_string()))?;
+            .map_err(|e| undecodable(e.into()))?;
         match entry.entry {
             Some(pb::site_log_entry::Entry::SessionOpened(open)) => {
                 map.open_session(&open.robot_id, &open.session_uuid, open.trajectory, index)?;
             }
             Some(pb::site_log_entry::Entry::Upload(upload)) => {
-                let batch = UploadBatch::try_from(&upload).map_err(|e| corrupt(e.to_string()))?;
+                let batch = UploadBatch::try_from(&upload).map_err(|e| undecodable(e.into()))?;
                 map.apply_upload(&batch, index)?;
             }
             Some(pb::site_log_entry::Entry::SessionClosed(close)) => {
@@ -714,6 +744,66 @@ mod tests {
         task.await.unwrap();
     }
 
+    /// Log lines written by a test's subscriber.
+    #[derive(Clone, Default)]
+    struct Captured(Arc<std::sync::Mutex<Vec<u8>>>);
+
+    impl std::io::Write for Captured {
+        fn write(&mut self, bytes: &[u8]) -> std::io::Result<usize> {
+            if let Ok(mut captured) = self.0.lock() {
+                captured.extend_from_slice(bytes);
+            }
+            Ok(bytes.len())
+        }
+
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+
+    // Reference: issue 35 item 6 — a span per site task and per session, not fields on every line.
+    #[tokio::test(start_paused = true)]
+    async fn the_tasks_lines_run_in_the_sites_span_and_the_sessions_span() {
+        let captured = Captured::default();
+        let writer = captured.clone();
+        // A current-thread runtime: the site task runs on this thread, under this subscriber.
+        let _default = tracing::subscriber::set_default(
+            tracing_subscriber::fmt()
+                .with_env_filter(crate::logging::fallback_filter(
+                    tracing_subscriber::filter::LevelFilter::INFO,
+                ))
+                .with_ansi(false)
+                .with_writer(move || writer.clone())
+                .finish(),
+        );
+        let store: Arc<dyn MapStore> = Arc::new(MemStore::new());
+        let (site, _task) = spawn_with(&store, Some(Duration::from_secs(60)))
+            .await
+            .unwrap();
+        site.open_session("r", "also-silent").await.unwrap();
+        let_time_pass(70).await;
+        let text = String::from_utf8(captured.0.lock().unwrap().clone()).unwrap();
+        let line = |needle: &str| {
+            text.lines()
+                .find(|l| l.contains(needle))
+                .unwrap_or_else(|| panic!("no {needle:?} in\n{text}"))
+                .to_owned()
+        };
+        assert!(
+            line("site log replayed").contains("site{site=s}: "),
+            "{text}"
+        );
+        let ended = line("its robot was silent past the idle timeout");
+        assert!(
+            ended.contains("site{site=s}:session{robot=r session=also-silent}: "),
+            "{ended}"
+        );
+        assert!(
+            !ended.contains(" site=s"),
+            "no site field repeated: {ended}"
+        );
+    }
+
     #[tokio::test(start_paused = true)]
     async fn without_a_timeout_sessions_stay_open() {
         let store: Arc<dyn MapStore> = Arc::new(MemStore::new());
@@ -760,10 +850,15 @@ mod tests {
             .put(SITE_LOG_KIND, 1_u64, b"not a log entry".to_vec())
             .bump_map_version();
         store.apply(&batch).unwrap();
-        assert!(matches!(
-            spawn(&store).await,
-            Err(SiteError::CorruptLog { index: 1, .. })
-        ));
+        let error = spawn(&store).await.err().unwrap();
+        assert!(
+            matches!(error, SiteError::CorruptEntry { index: 1, .. }),
+            "{error}"
+        );
+        // The decoder's own error stays the source (issue 35 item 6), and in the message as before.
+        let source = std::error::Error::source(&error).unwrap();
+        assert!(source.is::<prost::DecodeError>(), "{source:?}");
+        assert!(error.to_string().ends_with(&source.to_string()), "{error}");
 
         // A version bumped without its log entry (a lost entry) is caught too.
         let store: Arc<dyn MapStore> = Arc::new(MemStore::new());

@@ -46,7 +46,7 @@ pub async fn ensure_no_other_owner<'a>(
     let mut config = options.to_zenoh_config()?;
     config
         .insert_json5("mode", "\"client\"")
-        .map_err(|e| ZenohFrontError::Zenoh(e.to_string()))?;
+        .map_err(ZenohFrontError::Zenoh)?;
     let session = match zenoh::open(config).await {
         Ok(session) => session,
         Err(e) => {
@@ -91,7 +91,7 @@ async fn owners(session: &zenoh::Session, site: &str) -> Result<usize, ZenohFron
         .payload(probe.encode_to_vec())
         .timeout(LOOK_TIMEOUT)
         .await
-        .map_err(|e| ZenohFrontError::Zenoh(e.to_string()))?;
+        .map_err(ZenohFrontError::Zenoh)?;
     let mut answers = 0;
     // The query ends (and the channel closes) at the latest after LOOK_TIMEOUT.
     while replies.recv_async().await.is_ok() {

@@ -559,3 +559,50 @@ fn history_and_session_views_follow_the_published_map() {
     assert_eq!(views[1].state, PlacementState::Dropped);
     assert!(views[1].closed);
 }
+
+#[test]
+fn session_start_decisions_are_counted_and_replay_counts_them_alike() {
+    let mut options = LifelongOptions::default();
+    options.session_start.hold_back_nodes = 2;
+    options.session_start.retry_every_n_nodes = 2;
+    options.session_start.give_up_after_nodes = 8;
+    // A prior nothing confirms is revoked 0.25 m along its route.
+    options.session_start.probation_timeout_m = 0.25;
+    let mut changes = vec![("a", covering_session(6, None, true))];
+    // b: no prior: the server searches for it, retries, and gives up after 8 nodes.
+    changes.push(("b", (0..10).map(|i| node(i, &[0])).collect()));
+    // c: its robot's prior, revoked at its 4th node (0.3 m), before any search of the server is due.
+    let mut c = vec![UploadItem::SessionStartPrior {
+        global_from_local: Rigid2::identity(),
+        glm_on_robot: false,
+    }];
+    c.extend((0..5).map(|i| node(i, &[0])));
+    changes.push(("c", c));
+    let build = || {
+        let mut map = SiteMap::new("s", options.clone()).unwrap();
+        for (session, items) in &changes {
+            open(&mut map, session);
+            apply(&mut map, &batch(session, 1, items.clone()));
+        }
+        map
+    };
+    let map = build();
+    let starts = map.counts().session_starts;
+    let searches = starts.placed + starts.refused;
+    assert_eq!((starts.priors, starts.revoked), (1, 1), "{starts:?}");
+    assert!(
+        searches >= 2,
+        "b is searched and searched again: {starts:?}"
+    );
+    assert_eq!(
+        starts.retries,
+        searches - 1,
+        "only b was searched: {starts:?}"
+    );
+    assert_eq!(
+        (starts.placed, starts.committed, starts.gave_up),
+        (0, 0, 1),
+        "b fits nowhere on a map of parallel lines: {starts:?}"
+    );
+    assert_eq!(build().counts(), map.counts(), "replay counts the same");
+}
