@@ -16,7 +16,7 @@ pub use placement_verdict::{
 };
 pub use relations_metric::{
     RelationError, RelationsErrorStats, pose_at, relation_error, relation_error_stats,
-    relation_errors, relations_error,
+    relation_errors, relations_error, relations_error_at_scans,
 };
 pub use run_score::{RunScore, score_run};
 pub use scoring_options::{ScoringOptions, ScoringOptionsError};

@@ -63,18 +63,10 @@ pub struct RelationsErrorStats {
 /// it; where there is none (scans dropped, a slow scanner), the pose interpolated between the estimates
 /// just before and after `t` if they are at most [`MAX_INTERPOLATION_SPAN_S`] apart.
 pub fn pose_at(poses: &[(Timestamp, Rigid2)], t: Timestamp) -> Option<Rigid2> {
-    let i = poses.partition_point(|(s, _)| *s < t);
-    let candidates = [i.checked_sub(1), Some(i)];
-    let nearest = candidates
-        .into_iter()
-        .flatten()
-        .filter_map(|k| poses.get(k))
-        .min_by_key(|(s, _)| (s.0 - t.0).abs())
-        .filter(|(s, _)| (s.seconds_since(t)).abs() <= MAX_TIME_GAP_S)
-        .map(|(_, p)| *p);
-    if nearest.is_some() {
-        return nearest;
+    if let Some(nearest) = pose_at_scan(poses, t) {
+        return Some(nearest);
     }
+    let i = poses.partition_point(|(s, _)| *s < t);
     let ((ta, a), (tb, b)) = (poses.get(i.checked_sub(1)?)?, poses.get(i)?);
     let span = tb.seconds_since(*ta);
     if !(span > 0.0 && span <= MAX_INTERPOLATION_SPAN_S) {
@@ -84,6 +76,19 @@ pub fn pose_at(poses: &[(Timestamp, Rigid2)], t: Timestamp) -> Option<Rigid2> {
     let step = a.inverse() * b;
     let translation = step.translation.vector * f;
     Some(a * rigid2(translation.x, translation.y, f * step.theta()))
+}
+
+/// The estimated pose nearest `t` within [`MAX_TIME_GAP_S`], never interpolated: the pose of a scan the
+/// engine had (`None` where it had none that near).
+pub fn pose_at_scan(poses: &[(Timestamp, Rigid2)], t: Timestamp) -> Option<Rigid2> {
+    let i = poses.partition_point(|(s, _)| *s < t);
+    [i.checked_sub(1), Some(i)]
+        .into_iter()
+        .flatten()
+        .filter_map(|k| poses.get(k))
+        .min_by_key(|(s, _)| (s.0 - t.0).abs())
+        .filter(|(s, _)| (s.seconds_since(t)).abs() <= MAX_TIME_GAP_S)
+        .map(|(_, p)| *p)
 }
 
 fn mean_std(values: &[f64]) -> (f64, f64) {
@@ -206,6 +211,28 @@ pub fn relations_error(
     relation_error_stats(&errors, relations.len() - errors.len())
 }
 
+/// [`relations_error`] over only the relations whose two stamps both have an estimated pose within
+/// [`MAX_TIME_GAP_S`] (see [`pose_at_scan`]): the trajectory scored on the scans the engine had. A
+/// trajectory with scans dropped (a slow scanner) is otherwise scored partly at interpolated poses, whose
+/// error (the robot turns between scans, the interpolation does not) is a floor no engine goes below;
+/// relations with a stamp the engine had no scan for count as `unmatched`.
+pub fn relations_error_at_scans(
+    poses: &[(Timestamp, Rigid2)],
+    relations: &[Relation],
+) -> RelationsErrorStats {
+    let errors: Vec<RelationError> = relations
+        .iter()
+        .filter_map(|r| {
+            Some(relation_error(
+                r,
+                &pose_at_scan(poses, r.t1)?,
+                &pose_at_scan(poses, r.t2)?,
+            ))
+        })
+        .collect();
+    relation_error_stats(&errors, relations.len() - errors.len())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -306,5 +333,30 @@ mod tests {
             e.trans_abs_mean_m < 1e-12 && e.rot_abs_mean_deg < 1e-9,
             "{e:?}"
         );
+    }
+
+    #[test]
+    fn scored_at_scans_only_relations_whose_stamps_both_have_a_pose_count() {
+        let poses = trajectory();
+        let relations = vec![
+            // Both stamps within 0.1 s of a pose: scored (exactly right here).
+            Relation {
+                t1: Timestamp(50_000_000),
+                t2: Timestamp(1_000_000_000),
+                delta: poses[0].1.inverse() * poses[1].1,
+            },
+            // One stamp halfway between two poses: interpolated by `relations_error`, not scored here.
+            Relation {
+                t1: Timestamp(0),
+                t2: Timestamp(500_000_000),
+                delta: Rigid2::identity(),
+            },
+        ];
+        let all = relations_error(&poses, &relations);
+        let at_scans = relations_error_at_scans(&poses, &relations);
+        assert_eq!((all.count, all.unmatched), (2, 0));
+        assert_eq!((at_scans.count, at_scans.unmatched), (1, 1));
+        assert!(at_scans.trans_abs_mean_m < 1e-12, "{at_scans:?}");
+        assert!(all.trans_abs_mean_m > 0.1, "{all:?}");
     }
 }

@@ -166,6 +166,15 @@ pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
         }
         None => None,
     };
+    // The same relations scored only where the engine had a scan at both stamps (no interpolated
+    // poses): equal to `relations` on a recording's own scans, and the fair score of a run with scans
+    // dropped (`--perturb slow`).
+    let relations_at_scans_json = match &relations {
+        Some(r) => Some(serde_json::to_value(
+            mapping::metrics::relations_error_at_scans(&run.scan_poses, r),
+        )?),
+        None => None,
+    };
     let closures = run.global.accepted_loop_closures();
     let ams = if closures.is_empty() {
         0.0
@@ -204,6 +213,7 @@ pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
         "live": live,
         "peak_rss_mb": process_stats::peak_rss_mb(),
         "relations": relations_json,
+        "relations_at_scans": relations_at_scans_json,
         "perturbation": perturbation,
     });
     let report_path = args.out.join("report.json");
