@@ -83,7 +83,11 @@ fn required<'a, T>(
     value.ok_or(ConversionError::MissingField { message, field })
 }
 
-fn to_usize(value: u64, message: &'static str, field: &'static str) -> Result<usize, ConversionError> {
+fn to_usize(
+    value: u64,
+    message: &'static str,
+    field: &'static str,
+) -> Result<usize, ConversionError> {
     usize::try_from(value).map_err(|_| ConversionError::OutOfRange {
         message,
         field,
@@ -516,7 +520,9 @@ fn global_from_pb(g: Option<&pb::GlobalSlamState>) -> Result<GlobalSlamState, Co
         accepted_loop_closures.push(closure_from_pb(a.closure.as_ref())?);
         acceptances.push(acceptance_from_pb(a.acceptance.as_ref())?);
         closure_states.push(match &a.state {
-            Some(pb::accepted_closure::State::InGraph(id)) => ClosureState::InGraph(ConstraintId(*id)),
+            Some(pb::accepted_closure::State::InGraph(id)) => {
+                ClosureState::InGraph(ConstraintId(*id))
+            }
             Some(pb::accepted_closure::State::Retracted(c)) => {
                 ClosureState::Retracted(constraint_from_pb(c)?)
             }

@@ -151,7 +151,13 @@ pub struct Position {
 /// Feeds `inputs` from `from` up to `to` (exclusive: `to.nodes` nodes of `to.session` fed), the way
 /// every shell does: start (session 1 unplaced, placed after 5 nodes; session 2 on probation, committed
 /// after 30), nodes with GLM run on the calling thread, the active submaps, the end.
-pub fn feed(map: &mut LifelongMap, inputs: &[SessionInput], from: Position, to: Position, log: &mut Log) {
+pub fn feed(
+    map: &mut LifelongMap,
+    inputs: &[SessionInput],
+    from: Position,
+    to: Position,
+    log: &mut Log,
+) {
     let mut at = from;
     while at.session < to.session || (at.session == to.session && at.nodes < to.nodes) {
         let session = at.session;
@@ -160,7 +166,11 @@ pub fn feed(map: &mut LifelongMap, inputs: &[SessionInput], from: Position, to: 
         };
         if !at.started {
             let prior = (session != 1).then_some(input.map_from_local);
-            log_events(log, "start", &map.start_session(session, prior).expect("start"));
+            log_events(
+                log,
+                "start",
+                &map.start_session(session, prior).expect("start"),
+            );
             if session == 2 {
                 map.begin_probation(session).expect("probation");
             }
@@ -204,8 +214,16 @@ pub fn feed(map: &mut LifelongMap, inputs: &[SessionInput], from: Position, to: 
             .finish_submaps(session, input.active_submaps.clone())
             .expect("finish submaps");
         log_events(log, "finish_submaps", &events);
-        log_events(log, "glm", &map.run_pending_searches(Vec::<LoopClosure>::new()));
-        log_events(log, "finish_session", &map.finish_session(session).expect("finish"));
+        log_events(
+            log,
+            "glm",
+            &map.run_pending_searches(Vec::<LoopClosure>::new()),
+        );
+        log_events(
+            log,
+            "finish_session",
+            &map.finish_session(session).expect("finish"),
+        );
         log.push(format!("counts {:?}", map.counts()));
         at = Position {
             session: session + 1,
@@ -232,4 +250,3 @@ pub fn snapshot(map: &LifelongMap) -> String {
         map.global().loop_closure_checks()
     )
 }
-

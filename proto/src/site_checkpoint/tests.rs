@@ -26,7 +26,8 @@ fn a_checkpoint_of_an_unknown_format_version_is_refused_with_an_error_naming_it(
     );
     let text = error.to_string();
     assert!(
-        text.contains("SiteCheckpoint") && text.contains(&(CHECKPOINT_FORMAT_VERSION + 6).to_string()),
+        text.contains("SiteCheckpoint")
+            && text.contains(&(CHECKPOINT_FORMAT_VERSION + 6).to_string()),
         "{text}"
     );
 }
@@ -86,10 +87,9 @@ fn a_map_restored_from_its_encoded_checkpoint_behaves_bit_for_bit_like_the_origi
         map: original.to_state(),
     };
     let bytes = pb::SiteCheckpoint::from(&checkpoint).encode_to_vec();
-    let decoded = SiteCheckpoint::try_from(
-        &pb::SiteCheckpoint::decode(bytes.as_slice()).expect("protobuf"),
-    )
-    .expect("checkpoint");
+    let decoded =
+        SiteCheckpoint::try_from(&pb::SiteCheckpoint::decode(bytes.as_slice()).expect("protobuf"))
+            .expect("checkpoint");
     assert!(decoded == checkpoint, "the decoded checkpoint differs");
     // `{:?}` tells −0.0 from 0.0, which `==` does not.
     assert_eq!(format!("{decoded:?}"), format!("{checkpoint:?}"));

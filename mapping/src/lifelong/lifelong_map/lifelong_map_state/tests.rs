@@ -49,7 +49,10 @@ fn restored_map_behaves_like_the_original(inputs: &[SessionInput], checkpoint: P
 
     // Not vacuous: what follows the checkpoint matched against restored submaps, trimmed and sparsified.
     let text = log_original.join("\n");
-    assert!(text.contains("LoopClosureAdded"), "no GLM match after the checkpoint");
+    assert!(
+        text.contains("LoopClosureAdded"),
+        "no GLM match after the checkpoint"
+    );
     assert!(
         text.contains("SubmapTrimmed"),
         "nothing trimmed after the checkpoint"
