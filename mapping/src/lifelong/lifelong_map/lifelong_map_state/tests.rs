@@ -83,3 +83,23 @@ fn a_map_restored_from_its_state_gives_the_same_outputs_as_the_original() {
         restored_map_behaves_like_the_original(&inputs, checkpoint);
     }
 }
+
+#[test]
+fn a_state_that_contradicts_itself_is_refused() {
+    let map = LifelongMap::new(options()).expect("map");
+    let mut state = map.to_state();
+    state.base = Some(3);
+    assert!(LifelongMap::from_state(options(), state).is_err());
+
+    let mut state = map.to_state();
+    state
+        .global
+        .acceptances
+        .push(crate::global_slam::Acceptance::default());
+    let error = LifelongMap::from_state(options(), state)
+        .err()
+        .expect("refused");
+    assert!(error.to_string().contains("acceptances"), "{error}");
+
+    assert!(LifelongMap::from_state(options(), map.to_state()).is_ok());
+}
