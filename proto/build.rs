@@ -5,11 +5,12 @@ use std::path::PathBuf;
 
 use prost::Message as _;
 
-const PROTOS: [&str; 5] = [
+const PROTOS: [&str; 6] = [
     "evermap/fleet/v1/common.proto",
     "evermap/fleet/v1/agent_service.proto",
     "evermap/fleet/v1/map_service.proto",
     "evermap/fleet/v1/site_log.proto",
+    "evermap/fleet/v1/site_checkpoint.proto",
     "evermap/fleet/v1/zenoh_link.proto",
 ];
 

@@ -21,3 +21,5 @@ pub mod scan_matching;
 pub mod sensor;
 pub mod simulation;
 pub mod sparsification;
+#[cfg(any(test, feature = "testing"))]
+pub mod testing;

@@ -37,7 +37,9 @@ mod submap_trimmer;
 #[cfg(test)]
 mod tests;
 
-pub use lifelong_map::{GraphCounts, LifelongError, LifelongEvent, LifelongMap};
+pub use lifelong_map::{
+    GraphCounts, LifelongError, LifelongEvent, LifelongMap, LifelongMapState, SessionProgress,
+};
 pub use map_change::{
     CellChange, MAP_CHANGE_TOLERANCE_M, MapChange, OCCUPIED_PROBABILITY, map_change_rate,
 };

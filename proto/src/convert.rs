@@ -1,6 +1,6 @@
 //! Conversions between wire messages and `mapping` types, one file per family.
 
-mod constraint;
+pub(crate) mod constraint;
 mod geometry;
 mod grid;
 mod node;

@@ -28,6 +28,7 @@ mod conversion_error;
 mod convert;
 mod map_delta;
 mod png_image;
+mod site_checkpoint;
 mod upload_batch;
 mod zenoh_link_options;
 mod zenoh_tls_options;
@@ -39,6 +40,7 @@ pub use convert::{
 };
 pub use map_delta::{MapDelta, SubmapSnapshot};
 pub use png_image::{PngCompression, PngError, PngPixels, encode_png};
+pub use site_checkpoint::{CHECKPOINT_FORMAT_VERSION, SiteCheckpoint};
 pub use upload_batch::{NodeAdded, UploadBatch, UploadItem};
 pub use zenoh_link_options::{
     ZenohLinkOptions, ZenohLinkOptionsError, zenoh_api_key, zenoh_version_key,

@@ -331,7 +331,7 @@ pub struct SearchWindow {
 }
 
 /// A node-to-submap search to run.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct SearchJob {
     /// The submap to match against (must have been added with [`ConstraintBuilder::add_finished_submap`]).
     pub submap: SubmapId,

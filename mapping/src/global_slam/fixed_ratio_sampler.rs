@@ -2,7 +2,7 @@
 
 /// Accepts a fixed fraction of the events it is asked about, spread evenly and deterministically
 /// (unlike a random sampler, two runs on the same data search the same loop closures).
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct FixedRatioSampler {
     ratio: f64,
     num_pulses: u64,
@@ -17,6 +17,26 @@ impl FixedRatioSampler {
             num_pulses: 0,
             num_samples: 0,
         }
+    }
+
+    /// A sampler that has seen `num_pulses` events and taken `num_samples` of them (a checkpoint's; see
+    /// [`Self::ratio`] and [`Self::counts`]).
+    pub fn from_counts(ratio: f64, num_pulses: u64, num_samples: u64) -> Self {
+        Self {
+            ratio: ratio.clamp(0.0, 1.0),
+            num_pulses,
+            num_samples,
+        }
+    }
+
+    /// The fraction it takes.
+    pub fn ratio(&self) -> f64 {
+        self.ratio
+    }
+
+    /// `(events seen, events taken)`.
+    pub fn counts(&self) -> (u64, u64) {
+        (self.num_pulses, self.num_samples)
     }
 
     /// Registers one event and says whether to take it.

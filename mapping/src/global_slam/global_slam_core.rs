@@ -1,5 +1,9 @@
 //! The global SLAM state machine.
 
+mod global_slam_state;
+
+pub use global_slam_state::GlobalSlamState;
+
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
 
@@ -18,7 +22,7 @@ use crate::pose_graph::{
 use crate::sensor::Timestamp;
 
 /// What global SLAM knows about a node.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct NodeRecord {
     /// When the node's scan was taken.
     pub time: Timestamp,
@@ -33,7 +37,7 @@ pub struct NodeRecord {
 }
 
 /// What global SLAM knows about a submap.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct SubmapRecord {
     /// `local_from_submap` from LLO.
     pub local_pose: Rigid2,
@@ -69,8 +73,8 @@ pub struct Acceptance {
 }
 
 /// Where an accepted loop closure stands.
-#[derive(Clone, Debug)]
-enum ClosureState {
+#[derive(Clone, Debug, PartialEq)]
+pub enum ClosureState {
     /// In the graph as this constraint.
     InGraph(ConstraintId),
     /// Taken out because the optimized graph refused it; put back once the graph fits it again.
@@ -85,6 +89,9 @@ pub enum GlobalSlamError {
     /// The options are invalid.
     #[error(transparent)]
     Options(#[from] GlobalSlamOptionsError),
+    /// A state to restore ([`GlobalSlam::from_state`]) contradicts itself.
+    #[error("inconsistent global SLAM state: {0}")]
+    InconsistentState(String),
     /// The trajectory already has nodes, so it cannot be started (again).
     #[error("trajectory {0} has already started")]
     TrajectoryStarted(u32),

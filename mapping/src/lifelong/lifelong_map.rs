@@ -1,5 +1,9 @@
 //! One site's multi-session map: sessions, trimming and sparsification around [`GlobalSlam`].
 
+mod lifelong_map_state;
+
+pub use lifelong_map_state::{LifelongMapState, SessionProgress};
+
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
 

@@ -36,9 +36,13 @@ pub enum PoseGraphError {
     /// The robust loss has a non-positive or non-finite parameter.
     #[error("invalid robust loss parameter")]
     InvalidLoss,
+    /// A graph rebuilt from parts ([`PoseGraph::from_parts`]) repeats a constraint id, or its next id is
+    /// not above every constraint's.
+    #[error("constraint id {0:?} repeated or not below the next id")]
+    ConstraintIdOutOfOrder(ConstraintId),
 }
 
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, PartialEq)]
 struct Variable {
     pose: Rigid2,
     fixed: bool,
@@ -47,7 +51,7 @@ struct Variable {
 }
 
 /// A 2D pose graph.
-#[derive(Clone, Debug, Default)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct PoseGraph {
     variables: BTreeMap<VariableId, Variable>,
     constraints: BTreeMap<ConstraintId, Constraint>,
@@ -224,6 +228,37 @@ impl PoseGraph {
     /// this moment.
     pub fn next_constraint_id(&self) -> ConstraintId {
         ConstraintId(self.next_constraint)
+    }
+
+    /// A graph rebuilt from what [`Self::variables`], [`Self::constraints`] and
+    /// [`Self::next_constraint_id`] returned (a checkpoint): the same variables, the same constraints
+    /// under the same ids, and the same next id, so the rebuilt graph equals the original and behaves
+    /// identically. Fails on what [`Self::add_variable`] and [`Self::add_constraint`] refuse, on a
+    /// repeated constraint id, and on a `next_constraint` not above every id.
+    pub fn from_parts(
+        variables: impl IntoIterator<Item = (VariableId, Rigid2, bool)>,
+        constraints: impl IntoIterator<Item = (ConstraintId, Constraint)>,
+        next_constraint: ConstraintId,
+    ) -> Result<Self, PoseGraphError> {
+        let mut graph = Self::new();
+        for (id, pose, fixed) in variables {
+            graph.add_variable(id, pose)?;
+            graph.set_fixed(id, fixed)?;
+        }
+        let mut constraints: Vec<(ConstraintId, Constraint)> = constraints.into_iter().collect();
+        constraints.sort_by_key(|(id, _)| *id);
+        for (id, constraint) in constraints {
+            if id.0 < graph.next_constraint {
+                return Err(PoseGraphError::ConstraintIdOutOfOrder(id));
+            }
+            graph.next_constraint = id.0;
+            graph.add_constraint(constraint)?;
+        }
+        if next_constraint.0 < graph.next_constraint {
+            return Err(PoseGraphError::ConstraintIdOutOfOrder(next_constraint));
+        }
+        graph.next_constraint = next_constraint.0;
+        Ok(graph)
     }
 
     /// Ids of the constraints touching a variable, in id order (empty if the variable is unknown).

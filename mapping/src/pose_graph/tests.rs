@@ -761,3 +761,56 @@ fn robust_optimizer_options_are_validated() {
         ))
     ));
 }
+
+/// A graph rebuilt from its parts (a checkpoint) equals the original, gaps in the constraint ids and the
+/// next id included, and keeps numbering where the original would.
+#[test]
+fn a_graph_rebuilt_from_its_parts_equals_the_original_and_numbers_on_alike() {
+    let (mut graph, truth) = square_world(12, RobustLoss::Trivial);
+    graph.set_fixed(node(0), true).unwrap();
+    graph.remove_constraint(ConstraintId(3)).unwrap();
+    graph.remove_variable(node(7)).unwrap();
+    let removed_last = graph.add_constraint(constraint(
+        1,
+        5,
+        truth[1].inverse() * truth[5],
+        RobustLoss::Huber { delta: 0.5 },
+    ));
+    graph.remove_constraint(removed_last.unwrap()).unwrap();
+
+    let mut rebuilt = PoseGraph::from_parts(
+        graph.variables(),
+        graph.constraints().map(|(id, c)| (id, c.clone())),
+        graph.next_constraint_id(),
+    )
+    .unwrap();
+    assert_eq!(rebuilt, graph);
+    for id in [node(2), node(6), node(8)] {
+        assert_eq!(rebuilt.constraints_of(id), graph.constraints_of(id));
+    }
+    let z = truth[2].inverse() * truth[9];
+    assert_eq!(
+        rebuilt.add_constraint(constraint(2, 9, z, RobustLoss::Trivial)),
+        graph.add_constraint(constraint(2, 9, z, RobustLoss::Trivial))
+    );
+    assert_eq!(rebuilt, graph);
+}
+
+#[test]
+fn a_graph_from_parts_with_repeated_or_stale_ids_is_refused() {
+    let (graph, _) = square_world(6, RobustLoss::Trivial);
+    let constraints: Vec<(ConstraintId, Constraint)> =
+        graph.constraints().map(|(id, c)| (id, c.clone())).collect();
+    let repeated = constraints
+        .iter()
+        .cloned()
+        .chain(constraints.first().cloned());
+    assert!(matches!(
+        PoseGraph::from_parts(graph.variables(), repeated, graph.next_constraint_id()),
+        Err(PoseGraphError::ConstraintIdOutOfOrder(_))
+    ));
+    assert!(matches!(
+        PoseGraph::from_parts(graph.variables(), constraints, ConstraintId(2)),
+        Err(PoseGraphError::ConstraintIdOutOfOrder(ConstraintId(2)))
+    ));
+}

@@ -44,7 +44,7 @@ impl From<pb::SubmapId> for SubmapId {
     }
 }
 
-fn variable_to_pb(id: VariableId) -> pb::VariableRef {
+pub(crate) fn variable_to_pb(id: VariableId) -> pb::VariableRef {
     pb::VariableRef {
         id: Some(match id {
             VariableId::Node(n) => pb::variable_ref::Id::Node(n.into()),
@@ -57,35 +57,105 @@ fn variable_from_pb(
     v: Option<&pb::VariableRef>,
     field: &'static str,
 ) -> Result<VariableId, ConversionError> {
+    variable_in(v, M, field)
+}
+
+/// A variable from the wire: the (optional, message-typed) field `message.field`.
+pub(crate) fn variable_in(
+    v: Option<&pb::VariableRef>,
+    message: &'static str,
+    field: &'static str,
+) -> Result<VariableId, ConversionError> {
     match v.and_then(|v| v.id) {
         Some(pb::variable_ref::Id::Node(n)) => Ok(VariableId::Node(n.into())),
         Some(pb::variable_ref::Id::Submap(s)) => Ok(VariableId::Submap(s.into())),
-        None => Err(ConversionError::MissingField { message: M, field }),
+        None => Err(ConversionError::MissingField { message, field }),
     }
+}
+
+/// The wire form of a robust loss: its kind and its scale.
+pub(crate) fn loss_to_pb(loss: RobustLoss) -> (pb::RobustLossKind, f64) {
+    match loss {
+        RobustLoss::Trivial => (pb::RobustLossKind::Trivial, 0.0),
+        RobustLoss::Huber { delta } => (pb::RobustLossKind::Huber, delta),
+        RobustLoss::Cauchy { scale } => (pb::RobustLossKind::Cauchy, scale),
+        RobustLoss::Dcs { phi } => (pb::RobustLossKind::Dcs, phi),
+        RobustLoss::TruncatedLeastSquares { threshold } => {
+            (pb::RobustLossKind::TruncatedLeastSquares, threshold)
+        }
+    }
+}
+
+/// The wire form of a constraint kind.
+pub(crate) fn kind_to_pb(kind: ConstraintKind) -> pb::ConstraintKind {
+    match kind {
+        ConstraintKind::NodeToSubmapIntra => pb::ConstraintKind::NodeToSubmapIntra,
+        ConstraintKind::NodeToSubmapInter => pb::ConstraintKind::NodeToSubmapInter,
+        ConstraintKind::Odometry => pb::ConstraintKind::Odometry,
+        ConstraintKind::NodeToNode => pb::ConstraintKind::NodeToNode,
+        ConstraintKind::SubmapToSubmap => pb::ConstraintKind::SubmapToSubmap,
+    }
+}
+
+/// A constraint kind from the wire (`message.kind`).
+pub(crate) fn kind_from_pb(
+    kind: i32,
+    message: &'static str,
+) -> Result<ConstraintKind, ConversionError> {
+    match pb::ConstraintKind::try_from(kind) {
+        Ok(pb::ConstraintKind::NodeToSubmapIntra) => Ok(ConstraintKind::NodeToSubmapIntra),
+        Ok(pb::ConstraintKind::NodeToSubmapInter) => Ok(ConstraintKind::NodeToSubmapInter),
+        Ok(pb::ConstraintKind::Odometry) => Ok(ConstraintKind::Odometry),
+        Ok(pb::ConstraintKind::NodeToNode) => Ok(ConstraintKind::NodeToNode),
+        Ok(pb::ConstraintKind::SubmapToSubmap) => Ok(ConstraintKind::SubmapToSubmap),
+        _ => Err(ConversionError::OutOfRange {
+            message,
+            field: "kind",
+            value: kind.to_string(),
+        }),
+    }
+}
+
+/// A valid robust loss from the wire (`message.loss` and `message.loss_scale`).
+pub(crate) fn loss_from_pb(
+    loss: i32,
+    loss_scale: f64,
+    message: &'static str,
+) -> Result<RobustLoss, ConversionError> {
+    let scale = check_finite(loss_scale, message, "loss_scale")?;
+    let loss = match pb::RobustLossKind::try_from(loss) {
+        Ok(pb::RobustLossKind::Trivial) => RobustLoss::Trivial,
+        Ok(pb::RobustLossKind::Huber) => RobustLoss::Huber { delta: scale },
+        Ok(pb::RobustLossKind::Cauchy) => RobustLoss::Cauchy { scale },
+        Ok(pb::RobustLossKind::Dcs) => RobustLoss::Dcs { phi: scale },
+        Ok(pb::RobustLossKind::TruncatedLeastSquares) => {
+            RobustLoss::TruncatedLeastSquares { threshold: scale }
+        }
+        _ => {
+            return Err(ConversionError::OutOfRange {
+                message,
+                field: "loss",
+                value: loss.to_string(),
+            });
+        }
+    };
+    if !loss.is_valid() {
+        return Err(ConversionError::OutOfRange {
+            message,
+            field: "loss_scale",
+            value: scale.to_string(),
+        });
+    }
+    Ok(loss)
 }
 
 impl From<&Constraint> for pb::Constraint {
     fn from(c: &Constraint) -> Self {
         let i = &c.information;
-        let (loss, loss_scale) = match c.loss {
-            RobustLoss::Trivial => (pb::RobustLossKind::Trivial, 0.0),
-            RobustLoss::Huber { delta } => (pb::RobustLossKind::Huber, delta),
-            RobustLoss::Cauchy { scale } => (pb::RobustLossKind::Cauchy, scale),
-            RobustLoss::Dcs { phi } => (pb::RobustLossKind::Dcs, phi),
-            RobustLoss::TruncatedLeastSquares { threshold } => {
-                (pb::RobustLossKind::TruncatedLeastSquares, threshold)
-            }
-        };
+        let (loss, loss_scale) = loss_to_pb(c.loss);
         Self {
             format_version: FORMAT_VERSION,
-            kind: match c.kind {
-                ConstraintKind::NodeToSubmapIntra => pb::ConstraintKind::NodeToSubmapIntra,
-                ConstraintKind::NodeToSubmapInter => pb::ConstraintKind::NodeToSubmapInter,
-                ConstraintKind::Odometry => pb::ConstraintKind::Odometry,
-                ConstraintKind::NodeToNode => pb::ConstraintKind::NodeToNode,
-                ConstraintKind::SubmapToSubmap => pb::ConstraintKind::SubmapToSubmap,
-            }
-            .into(),
+            kind: kind_to_pb(c.kind).into(),
             from: Some(variable_to_pb(c.from)),
             to: Some(variable_to_pb(c.to)),
             from_from_to: Some(pose_to_pb(&c.from_from_to)),
@@ -110,20 +180,7 @@ impl TryFrom<&pb::Constraint> for Constraint {
     /// entries, and a valid robust loss.
     fn try_from(c: &pb::Constraint) -> Result<Self, ConversionError> {
         check_format_version(M, c.format_version)?;
-        let kind = match pb::ConstraintKind::try_from(c.kind) {
-            Ok(pb::ConstraintKind::NodeToSubmapIntra) => ConstraintKind::NodeToSubmapIntra,
-            Ok(pb::ConstraintKind::NodeToSubmapInter) => ConstraintKind::NodeToSubmapInter,
-            Ok(pb::ConstraintKind::Odometry) => ConstraintKind::Odometry,
-            Ok(pb::ConstraintKind::NodeToNode) => ConstraintKind::NodeToNode,
-            Ok(pb::ConstraintKind::SubmapToSubmap) => ConstraintKind::SubmapToSubmap,
-            _ => {
-                return Err(ConversionError::OutOfRange {
-                    message: M,
-                    field: "kind",
-                    value: c.kind.to_string(),
-                });
-            }
-        };
+        let kind = kind_from_pb(c.kind, M)?;
         let [xx, xy, xt, yy, yt, tt] =
             <[f64; 6]>::try_from(c.information.as_slice()).map_err(|_| {
                 ConversionError::BadSize {
@@ -136,30 +193,7 @@ impl TryFrom<&pb::Constraint> for Constraint {
         for v in [xx, xy, xt, yy, yt, tt] {
             check_finite(v, M, "information")?;
         }
-        let scale = check_finite(c.loss_scale, M, "loss_scale")?;
-        let loss = match pb::RobustLossKind::try_from(c.loss) {
-            Ok(pb::RobustLossKind::Trivial) => RobustLoss::Trivial,
-            Ok(pb::RobustLossKind::Huber) => RobustLoss::Huber { delta: scale },
-            Ok(pb::RobustLossKind::Cauchy) => RobustLoss::Cauchy { scale },
-            Ok(pb::RobustLossKind::Dcs) => RobustLoss::Dcs { phi: scale },
-            Ok(pb::RobustLossKind::TruncatedLeastSquares) => {
-                RobustLoss::TruncatedLeastSquares { threshold: scale }
-            }
-            _ => {
-                return Err(ConversionError::OutOfRange {
-                    message: M,
-                    field: "loss",
-                    value: c.loss.to_string(),
-                });
-            }
-        };
-        if !loss.is_valid() {
-            return Err(ConversionError::OutOfRange {
-                message: M,
-                field: "loss_scale",
-                value: scale.to_string(),
-            });
-        }
+        let loss = loss_from_pb(c.loss, c.loss_scale, M)?;
         Ok(Self {
             kind,
             from: variable_from_pb(c.from.as_ref(), "from")?,
