@@ -26,6 +26,7 @@
 
 mod conversion_error;
 mod convert;
+pub mod logging;
 mod map_delta;
 mod png_image;
 mod site_checkpoint;

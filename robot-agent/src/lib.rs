@@ -6,7 +6,6 @@
 pub mod agent_config;
 pub mod lifelong_run;
 pub mod line_chart;
-pub mod logging;
 pub mod map_image;
 pub mod map_probes;
 pub mod offline_slam;

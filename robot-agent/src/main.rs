@@ -3,7 +3,7 @@
 mod commands;
 
 use clap::{Parser, Subcommand};
-use robot_agent::logging::{LogOutput, init_logging};
+use proto::logging::{LogOutput, init_logging};
 use tracing_subscriber::filter::LevelFilter;
 
 /// evermap robot agent: local LiDAR odometry and global matching, and offline tools on recordings.

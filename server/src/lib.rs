@@ -12,7 +12,6 @@
 pub mod console;
 pub mod fleet_server;
 pub mod grpc;
-pub mod logging;
 pub mod map_image_bytes;
 pub mod memory_release;
 pub mod metrics_endpoint;
@@ -23,6 +22,6 @@ pub mod zenoh_front;
 
 pub use console::HttpConfig;
 pub use fleet_server::{RunningServer, ServeError};
-pub use logging::{LogOutput, init_logging};
+pub use proto::logging::{LogOutput, init_logging};
 pub use server_config::{RobotConfig, ServerConfig, ServerConfigError, SiteConfig, TlsConfig};
 pub use server_metrics::ServerMetrics;

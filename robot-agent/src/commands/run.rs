@@ -58,7 +58,7 @@ fn random_uuid() -> String {
     )
 }
 
-/// Runs the command (the caller has set up logging: `robot_agent::logging::init_logging`).
+/// Runs the command (the caller has set up logging: `proto::logging::init_logging`).
 pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let text = std::fs::read_to_string(&args.config)
         .with_context(|| format!("cannot read {}", args.config.display()))?;

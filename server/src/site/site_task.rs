@@ -769,7 +769,7 @@ mod tests {
         // A current-thread runtime: the site task runs on this thread, under this subscriber.
         let _default = tracing::subscriber::set_default(
             tracing_subscriber::fmt()
-                .with_env_filter(crate::logging::fallback_filter(
+                .with_env_filter(proto::logging::fallback_filter(
                     tracing_subscriber::filter::LevelFilter::INFO,
                 ))
                 .with_ansi(false)

@@ -1,12 +1,14 @@
-//! The log output of the binaries that link the server (`evermap-server`, `evermap-demo`): `tracing`
-//! events formatted by `tracing-subscriber`, filtered by `RUST_LOG` when it is set and otherwise at the
-//! level the command chose.
+//! The log output of every binary (`evermap-agent`, `evermap-server`, `evermap-demo`): `tracing` events
+//! formatted by `tracing-subscriber`, filtered by `RUST_LOG` when it is set and otherwise at the level the
+//! command chose. Here because both sides link this crate and neither links the other.
 //!
 //! `RUST_LOG` takes `tracing-subscriber`'s `EnvFilter` directives: a level (`debug`), per-target levels
 //! (`info,server::site=debug,zenoh=warn`), or a level inside one span (`info,[site{site=store-1}]=debug`:
 //! everything one site's task logs). The server's spans: `site{site}` around each site task (and the
 //! zenoh tasks of that site), `session{robot, session}` inside it around each request of a session, and
-//! one per agent RPC (`open_session`, `upload`, `close_session`) with the site, robot and session asked for.
+//! one per agent RPC (`open_session`, `upload`, `close_session`) with the site, robot and session asked
+//! for. The agent's `run` runs its robot session in a `session{site, robot, session}` span
+//! (`robot_agent::uplink::session_span`).
 
 use std::io::IsTerminal as _;
 
