@@ -26,7 +26,7 @@
 //! are run by the caller, anywhere, with [`LifelongMap::constraint_builder`].
 
 mod lifelong_map;
-mod map_change;
+pub(crate) mod map_change;
 mod map_matcher;
 mod options;
 mod relocalization;

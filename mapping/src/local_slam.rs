@@ -11,7 +11,7 @@ mod voxel_filter;
 pub use active_submaps::{ActiveSubmaps, SubmapsOptions};
 pub use local_trajectory_builder::{
     InsertionResult, LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions,
-    LocalTrajectoryBuilderOptionsError, MatchingResult, TrajectoryNodeData,
+    LocalTrajectoryBuilderOptionsError, MatchingResult, NodeParts, TrajectoryNodeData,
 };
 pub use motion_filter::{MotionFilter, MotionFilterOptions};
 pub use pose_extrapolator::PoseExtrapolator;

@@ -450,21 +450,15 @@ pub fn run_session_inputs(
                             next_index += 1;
                             last_node = Some(id);
                             node_data.insert(id, (result.local_pose, range_data));
+                            let (points, insertion_submaps, finished_submaps) =
+                                insertion.into_node_parts();
                             let message = Message::Node {
                                 session,
                                 time: result.time,
                                 local_pose: result.local_pose,
-                                points: insertion.node.filtered_points,
-                                insertion_submaps: insertion
-                                    .insertion_submaps
-                                    .iter()
-                                    .map(|s| (s.index, s.local_pose))
-                                    .collect(),
-                                finished_submaps: insertion
-                                    .finished_submaps
-                                    .into_iter()
-                                    .map(|(index, submap)| (index, submap.grid))
-                                    .collect(),
+                                points,
+                                insertion_submaps,
+                                finished_submaps,
                             };
                             alive = alive && send(message);
                             if !alive {

@@ -225,20 +225,14 @@ pub fn run_slam(
                         next_node_index += 1;
                         last_node = Some(id);
                         node_range_data.insert(id, range_data);
+                        let (points, insertion_submaps, finished_submaps) =
+                            insertion.into_node_parts();
                         let message = WorkerMessage::Node {
                             time: result.time,
                             local_pose: result.local_pose,
-                            points: insertion.node.filtered_points,
-                            insertion_submaps: insertion
-                                .insertion_submaps
-                                .iter()
-                                .map(|s| (s.index, s.local_pose))
-                                .collect(),
-                            finished_submaps: insertion
-                                .finished_submaps
-                                .into_iter()
-                                .map(|(index, submap)| (index, submap.grid))
-                                .collect(),
+                            points,
+                            insertion_submaps,
+                            finished_submaps,
                         };
                         if sender.send(message).is_err() {
                             break; // the worker died; its join below reports why

@@ -61,14 +61,14 @@ pub struct MapChange {
     pub cells: Vec<Option<CellChange>>,
 }
 
-fn state(grid: &ProbabilityGrid, p: &Point2<f64>) -> Option<bool> {
+pub(crate) fn state(grid: &ProbabilityGrid, p: &Point2<f64>) -> Option<bool> {
     let index = grid.limits().cell_index(p);
     grid.is_known(&index)
         .then(|| grid.probability(&index) > OCCUPIED_PROBABILITY)
 }
 
 /// Offsets (m) of the lattice points within `tolerance` of a cell centre, the centre first.
-fn neighbourhood(resolution: f64, tolerance: f64) -> Vec<Vector2<f64>> {
+pub(crate) fn neighbourhood(resolution: f64, tolerance: f64) -> Vec<Vector2<f64>> {
     let reach = (tolerance / resolution).floor() as i32;
     let mut offsets = vec![Vector2::zeros()];
     for dy in -reach..=reach {
@@ -83,7 +83,11 @@ fn neighbourhood(resolution: f64, tolerance: f64) -> Vec<Vector2<f64>> {
 }
 
 /// Whether `grid` has an occupied cell at one of `offsets` from `p`.
-fn occupied_near(grid: &ProbabilityGrid, p: &Point2<f64>, offsets: &[Vector2<f64>]) -> bool {
+pub(crate) fn occupied_near(
+    grid: &ProbabilityGrid,
+    p: &Point2<f64>,
+    offsets: &[Vector2<f64>],
+) -> bool {
     offsets.iter().any(|o| state(grid, &(p + o)) == Some(true))
 }
 

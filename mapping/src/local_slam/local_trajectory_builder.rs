@@ -175,6 +175,31 @@ pub struct InsertionResult {
     pub finished_submaps: Vec<(usize, Submap)>,
 }
 
+/// What global SLAM takes of a scan that became a node: its filtered points, `(index, local_from_submap)`
+/// of the submaps it went into, and `(index, grid)` of the submaps it finished.
+pub type NodeParts = (
+    Vec<Point2<f32>>,
+    Vec<(usize, Rigid2)>,
+    Vec<(usize, ProbabilityGrid)>,
+);
+
+impl InsertionResult {
+    /// The parts global SLAM takes (see [`NodeParts`]).
+    pub fn into_node_parts(self) -> NodeParts {
+        (
+            self.node.filtered_points,
+            self.insertion_submaps
+                .iter()
+                .map(|s| (s.index, s.local_pose))
+                .collect(),
+            self.finished_submaps
+                .into_iter()
+                .map(|(index, submap)| (index, submap.grid))
+                .collect(),
+        )
+    }
+}
+
 /// The outcome of one matched scan.
 #[derive(Clone, Debug)]
 pub struct MatchingResult {

@@ -15,12 +15,13 @@
 //! walls that are not there. Both read the map as it is, beside MCR (the map against its own first
 //! session) and the world's change rate (the truth against its own first day).
 
-use nalgebra::{Point2, Vector2};
+use nalgebra::Point2;
 use serde::Serialize;
 
 use crate::geometry::Rigid2;
 use crate::grid::{CellIndex, ProbabilityGrid};
 use crate::lifelong::OCCUPIED_PROBABILITY;
+use crate::lifelong::map_change::{neighbourhood, occupied_near, state as occupied};
 
 /// Registration tolerance of [`map_world_agreement`], metres: 0.1 m, two cells of the 0.05 m submap
 /// grid. A map is registered to the truth through its first session's trajectory (a few centimetres of
@@ -52,33 +53,6 @@ impl MapWorldAgreement {
     pub fn gone(&self) -> Option<f64> {
         (self.map_occupied > 0).then(|| self.map_gone as f64 / self.map_occupied as f64)
     }
-}
-
-fn occupied(grid: &ProbabilityGrid, p: &Point2<f64>) -> Option<bool> {
-    let index = grid.limits().cell_index(p);
-    grid.is_known(&index)
-        .then(|| grid.probability(&index) > OCCUPIED_PROBABILITY)
-}
-
-/// Offsets (m) of the lattice points within `tolerance` of a cell centre, the centre first.
-fn neighbourhood(resolution: f64, tolerance: f64) -> Vec<Vector2<f64>> {
-    let reach = (tolerance / resolution + 1e-9).floor() as i32;
-    let mut offsets = vec![Vector2::zeros()];
-    for dy in -reach..=reach {
-        for dx in -reach..=reach {
-            let offset = Vector2::new(f64::from(dx), f64::from(dy)) * resolution;
-            if (dx, dy) != (0, 0) && offset.norm() <= tolerance + 1e-9 {
-                offsets.push(offset);
-            }
-        }
-    }
-    offsets
-}
-
-fn occupied_near(grid: &ProbabilityGrid, p: &Point2<f64>, offsets: &[Vector2<f64>]) -> bool {
-    offsets
-        .iter()
-        .any(|o| occupied(grid, &(p + o)) == Some(true))
 }
 
 /// Compares `map` (map frame) with `world` (the day's truth, world frame; `world_from_map` registers

@@ -82,20 +82,14 @@ pub fn session_inputs() -> Vec<SessionInput> {
                         let Some(insertion) = result.insertion else {
                             continue;
                         };
+                        let (points, insertion_submaps, finished_submaps) =
+                            insertion.into_node_parts();
                         nodes.push(NodeInput {
                             time: result.time,
                             local_pose: result.local_pose,
-                            points: insertion.node.filtered_points,
-                            insertion_submaps: insertion
-                                .insertion_submaps
-                                .iter()
-                                .map(|s| (s.index, s.local_pose))
-                                .collect(),
-                            finished_submaps: insertion
-                                .finished_submaps
-                                .into_iter()
-                                .map(|(index, submap)| (index, submap.grid))
-                                .collect(),
+                            points,
+                            insertion_submaps,
+                            finished_submaps,
                         });
                     }
                 }
