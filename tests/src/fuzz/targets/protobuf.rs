@@ -1,6 +1,7 @@
 //! Every `evermap.fleet.v1` message, decoded with prost and, where one exists, converted into `mapping`
 //! types as the server and agent do (`UploadBatch`, `MapDelta`, `Submap`, `Node`, `Constraint`, `Grid`,
-//! the site log's and zenoh's envelopes). The first byte of an input picks the message. An accepted
+//! the site log's and zenoh's envelopes, a site checkpoint restored into a map). The first byte of an
+//! input picks the message. An accepted
 //! conversion must survive the trip back: after one trip (poses normalise through (x, y, θ)),
 //! `T → pb → T` gives `T` again.
 
@@ -8,12 +9,14 @@ use std::sync::Arc;
 
 use mapping::geometry::{Rigid2, Rigid2Ext as _, rigid2};
 use mapping::grid::{CellIndex, MapLimits, ProbabilityGrid};
+use mapping::lifelong::{LifelongMap, LifelongOptions};
 use mapping::pose_graph::{Constraint, ConstraintKind, NodeId, RobustLoss, SubmapId, VariableId};
 use mapping::sensor::Timestamp;
 use nalgebra::{Matrix3, Point2, Vector2};
 use prost::Message;
 use proto::{
-    FORMAT_VERSION, MapDelta, NodeAdded, NodeSnapshot, SubmapSnapshot, UploadBatch, UploadItem, pb,
+    FORMAT_VERSION, MapDelta, NodeAdded, NodeSnapshot, SiteCheckpoint, SubmapSnapshot, UploadBatch,
+    UploadItem, pb,
 };
 
 use super::super::fuzz_target::{FuzzTarget, Verdict};
@@ -267,7 +270,42 @@ fn seeds() -> Vec<Vec<u8>> {
                 sites: vec![version],
             },
         ),
+        tagged(20, &checkpoint()),
     ]
+}
+
+/// The checkpoint of a new site's map (no session yet).
+fn checkpoint() -> pb::SiteCheckpoint {
+    let map = LifelongMap::new(LifelongOptions::default())
+        .unwrap_or_else(|e| panic!("default lifelong options are valid: {e}"));
+    pb::SiteCheckpoint::from(&SiteCheckpoint {
+        log_index: 7,
+        map_version: 3,
+        map: map.to_state(),
+    })
+}
+
+/// A checkpoint as a restarting server takes it: converted, then restored into a map. An accepted one
+/// converts back to itself, and the restored map's state is the one it was restored from.
+fn restore(message: &pb::SiteCheckpoint) -> Verdict {
+    let result = SiteCheckpoint::try_from(message);
+    let Ok(once) = result else {
+        return Verdict::of(&result);
+    };
+    let twice = SiteCheckpoint::try_from(&pb::SiteCheckpoint::from(&once))
+        .unwrap_or_else(|e| panic!("invariant: checkpoint does not convert back: {e}"));
+    assert!(
+        twice == once,
+        "invariant: SiteCheckpoint round trip differs"
+    );
+    let restored = LifelongMap::from_state(LifelongOptions::default(), once.map.clone());
+    if let Ok(map) = &restored {
+        assert!(
+            map.to_state() == once.map,
+            "invariant: a restored map's state differs from its checkpoint's"
+        );
+    }
+    Verdict::of(&restored)
 }
 
 /// Decodes `M` from `bytes`, `Rejected` when prost refuses.
@@ -331,7 +369,7 @@ fn run(input: &[u8]) -> Result<Verdict, Verdict> {
     let Some((&tag, bytes)) = input.split_first() else {
         return Ok(Verdict::Rejected("empty".into()));
     };
-    Ok(match tag % 21 {
+    Ok(match tag % 22 {
         0 => upload(&decode(bytes)?),
         1 => delta(&decode(bytes)?),
         2 => {
@@ -438,6 +476,7 @@ fn run(input: &[u8]) -> Result<Verdict, Verdict> {
         17 => decode::<pb::GetSubmapRequest>(bytes).map(|_| Verdict::Accepted)?,
         18 => decode::<pb::ListSitesResponse>(bytes).map(|_| Verdict::Accepted)?,
         19 => decode::<pb::GetMapImageRequest>(bytes).map(|_| Verdict::Accepted)?,
+        20 => restore(&decode(bytes)?),
         _ => decode::<pb::WatchRequest>(bytes).map(|_| Verdict::Accepted)?,
     })
 }
