@@ -41,7 +41,9 @@ pub use convert::{
 };
 pub use map_delta::{MapDelta, SubmapSnapshot};
 pub use png_image::{PngCompression, PngError, PngPixels, encode_png};
-pub use site_checkpoint::{CHECKPOINT_FORMAT_VERSION, SiteCheckpoint};
+pub use site_checkpoint::{
+    CHECKPOINT_FORMAT_VERSION, RestoreError, SiteCheckpoint, options_fingerprint,
+};
 pub use upload_batch::{NodeAdded, UploadBatch, UploadItem};
 pub use zenoh_link_options::{
     ZenohLinkOptions, ZenohLinkOptionsError, zenoh_api_key, zenoh_version_key,

@@ -15,7 +15,9 @@ use mapping::global_slam::{
     Acceptance, ClosureState, FixedRatioSampler, GlobalSlamState, LoopClosure, NodeRecord,
     SearchJob, SearchWindow, SubmapRecord,
 };
-use mapping::lifelong::{LifelongMapState, SessionProgress};
+use mapping::lifelong::{
+    LifelongError, LifelongMap, LifelongMapState, LifelongOptions, SessionProgress,
+};
 use mapping::pose_graph::{Constraint, ConstraintId, NodeId, PoseGraph, SubmapId, VariableId};
 use mapping::sensor::Timestamp;
 use nalgebra::{Complex, Matrix3, Translation2, UnitComplex};
@@ -40,6 +42,57 @@ pub struct SiteCheckpoint {
     pub map_version: u64,
     /// The lifelong map's state.
     pub map: LifelongMapState,
+    /// [`options_fingerprint`] of the options the map ran with.
+    pub options_fingerprint: u32,
+}
+
+/// A fingerprint of `options` (CRC-32 of their `Debug` form: every field, names and values, in order),
+/// kept with a checkpoint so that it is never restored under other options. Any change of the options
+/// or of their struct changes it.
+pub fn options_fingerprint(options: &LifelongOptions) -> u32 {
+    crc32fast::hash(format!("{options:?}").as_bytes())
+}
+
+/// Why a decoded checkpoint cannot become a map.
+#[derive(Debug, thiserror::Error)]
+pub enum RestoreError {
+    /// The checkpoint was written under other options than the ones given.
+    #[error(
+        "the checkpoint was written under other lifelong options (fingerprint {written:#010x}, these {given:#010x}): restore it with the options it ran with, or rebuild the site from its log"
+    )]
+    OptionsChanged {
+        /// The checkpoint's fingerprint.
+        written: u32,
+        /// The given options' fingerprint.
+        given: u32,
+    },
+    /// The state contradicts itself, or the options are invalid.
+    #[error("the checkpoint's map cannot be restored: {0}")]
+    Map(#[from] LifelongError),
+}
+
+impl SiteCheckpoint {
+    /// The checkpoint of `map` after the site log entry `log_index`, at map version `map_version`.
+    pub fn of(map: &LifelongMap, log_index: u64, map_version: u64) -> Self {
+        Self {
+            log_index,
+            map_version,
+            map: map.to_state(),
+            options_fingerprint: options_fingerprint(map.options()),
+        }
+    }
+
+    /// The map this checkpoint holds, under `options` (the ones it ran with: anything else is refused).
+    pub fn restore(self, options: LifelongOptions) -> Result<LifelongMap, RestoreError> {
+        let given = options_fingerprint(&options);
+        if given != self.options_fingerprint {
+            return Err(RestoreError::OptionsChanged {
+                written: self.options_fingerprint,
+                given,
+            });
+        }
+        Ok(LifelongMap::from_state(options, self.map)?)
+    }
 }
 
 impl From<&SiteCheckpoint> for pb::SiteCheckpoint {
@@ -49,6 +102,7 @@ impl From<&SiteCheckpoint> for pb::SiteCheckpoint {
             log_index: c.log_index,
             map_version: c.map_version,
             map: Some(map_to_pb(&c.map)),
+            options_fingerprint: c.options_fingerprint,
         }
     }
 }
@@ -71,6 +125,7 @@ impl TryFrom<&pb::SiteCheckpoint> for SiteCheckpoint {
             log_index: c.log_index,
             map_version: c.map_version,
             map: map_from_pb(required(c.map.as_ref(), M, "map")?)?,
+            options_fingerprint: c.options_fingerprint,
         })
     }
 }

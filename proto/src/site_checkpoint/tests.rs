@@ -81,11 +81,7 @@ fn a_map_restored_from_its_encoded_checkpoint_behaves_bit_for_bit_like_the_origi
     };
     let mut original = LifelongMap::new(options()).expect("map");
     feed(&mut original, &inputs, start, at, &mut Log::new());
-    let checkpoint = SiteCheckpoint {
-        log_index: 1234,
-        map_version: 99,
-        map: original.to_state(),
-    };
+    let checkpoint = SiteCheckpoint::of(&original, 1234, 99);
     let bytes = pb::SiteCheckpoint::from(&checkpoint).encode_to_vec();
     let decoded =
         SiteCheckpoint::try_from(&pb::SiteCheckpoint::decode(bytes.as_slice()).expect("protobuf"))
@@ -99,7 +95,7 @@ fn a_map_restored_from_its_encoded_checkpoint_behaves_bit_for_bit_like_the_origi
         "a checkpoint with nothing in flight proves little"
     );
 
-    let mut restored = LifelongMap::from_state(options(), decoded.map).expect("restore");
+    let mut restored = decoded.restore(options()).expect("restore");
     assert_eq!(snapshot(&restored), snapshot(&original));
     let (mut log_original, mut log_restored) = (Log::new(), Log::new());
     feed(&mut original, &inputs, at, end, &mut log_original);
@@ -110,4 +106,25 @@ fn a_map_restored_from_its_encoded_checkpoint_behaves_bit_for_bit_like_the_origi
     }
     assert_eq!(log_original.len(), log_restored.len());
     assert_eq!(snapshot(&restored), snapshot(&original));
+}
+
+#[test]
+fn a_checkpoint_is_restored_only_under_the_options_it_ran_with() {
+    let map = LifelongMap::new(options()).expect("map");
+    let checkpoint = SiteCheckpoint::of(&map, 5, 2);
+    assert!(checkpoint.clone().restore(options()).is_ok());
+    let mut other = options();
+    other.global.loop_closure_retraction_chi2 += 1.0;
+    let Err(error) = checkpoint.restore(other.clone()) else {
+        panic!("restored under other options");
+    };
+    assert!(
+        matches!(error, RestoreError::OptionsChanged { written, given }
+            if written == options_fingerprint(&options()) && given == options_fingerprint(&other)),
+        "{error:?}"
+    );
+    assert!(
+        error.to_string().contains("other lifelong options"),
+        "{error}"
+    );
 }

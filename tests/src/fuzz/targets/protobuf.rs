@@ -278,11 +278,7 @@ fn seeds() -> Vec<Vec<u8>> {
 fn checkpoint() -> pb::SiteCheckpoint {
     let map = LifelongMap::new(LifelongOptions::default())
         .unwrap_or_else(|e| panic!("default lifelong options are valid: {e}"));
-    pb::SiteCheckpoint::from(&SiteCheckpoint {
-        log_index: 7,
-        map_version: 3,
-        map: map.to_state(),
-    })
+    pb::SiteCheckpoint::from(&SiteCheckpoint::of(&map, 7, 3))
 }
 
 /// A checkpoint as a restarting server takes it: converted, then restored into a map. An accepted one
@@ -298,10 +294,11 @@ fn restore(message: &pb::SiteCheckpoint) -> Verdict {
         twice == once,
         "invariant: SiteCheckpoint round trip differs"
     );
-    let restored = LifelongMap::from_state(LifelongOptions::default(), once.map.clone());
+    let state = once.map.clone();
+    let restored = once.restore(LifelongOptions::default());
     if let Ok(map) = &restored {
         assert!(
-            map.to_state() == once.map,
+            map.to_state() == state,
             "invariant: a restored map's state differs from its checkpoint's"
         );
     }
