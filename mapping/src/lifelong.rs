@@ -48,8 +48,9 @@ pub use options::{
     LifelongOptions, LifelongOptionsError, ParseTrimPolicyError, SubmapTrimmerOptions, TrimPolicy,
 };
 pub use relocalization::{
-    CloudFit, RelocalizationOptions, RelocalizationOutcome, SearchEvidence, SessionRelocalization,
-    StartAnswer, StartSearch, relocalize_scans_in_grid, relocalize_session_start,
+    CloudFit, PriorCheck, RelocalizationOptions, RelocalizationOutcome, SearchEvidence,
+    SessionRelocalization, StartAnswer, StartSearch, relocalize_scans_in_grid,
+    relocalize_session_start,
 };
 pub use relocalization_map::{MapCells, render_relocalization_map};
 pub use session_start::{

@@ -90,6 +90,18 @@ impl SessionSummary {
     }
 }
 
+/// The check of a robot's dock at a session's start ([`SessionStartEvent::DockChecked`]).
+#[derive(Clone, Debug, Serialize)]
+pub struct DockCheckFigures {
+    /// Whether the evidence agreed with the dock (the session was placed there, on probation).
+    pub agreed: bool,
+    /// How well the first nodes' cloud fit the map at the dock (mean probability).
+    pub fit: Option<f32>,
+    /// The dock's weakest paired test against the whole map's other candidates (positive: the dock fits
+    /// better).
+    pub weakest_z: Option<f64>,
+}
+
 /// One whole-map search of a session start in a [`SessionSummary`].
 #[derive(Clone, Debug, Serialize)]
 pub struct SearchFigures {
@@ -187,6 +199,8 @@ pub struct SessionSummary {
     pub finish_optimizations: Vec<OptimizationFigures>,
     /// Every whole-map search of the session start, in order: what it answered and how decisively.
     pub searches: Vec<SearchFigures>,
+    /// Where the session started from the robot's dock ([`SessionInput::from_dock`]): the check of it.
+    pub dock_check: Option<DockCheckFigures>,
     /// Time of the session's first node (the one relocalization places).
     pub first_node_time: Option<Timestamp>,
     /// Global pose `[x, y, θ]` (m, m, rad) relocalization gave the session's first node.
@@ -201,6 +215,9 @@ pub struct SessionInput {
     pub events: Vec<SensorEvent>,
     /// The LiDAR's extrinsic.
     pub base_from_laser: Rigid2,
+    /// The robot starts from its dock: it believes it is where its last session ended (the last pose it
+    /// had there, when that session was placed) and checks that first ([`SessionStart::from_dock`]).
+    pub from_dock: bool,
 }
 
 /// What one session lived, recorded as it happened: the robot's estimate at the time of each scan, the
@@ -288,6 +305,8 @@ enum Message {
         session: u32,
         /// The session's first event.
         start_time: Timestamp,
+        /// See [`SessionInput::from_dock`].
+        from_dock: bool,
     },
     Node {
         session: u32,
@@ -340,6 +359,7 @@ pub fn session_boundaries(
 pub fn run_sessions(
     recording: &Recording,
     split: usize,
+    from_dock: bool,
     config: &SessionsConfig,
     probes: &[MapProbe],
     progress: &mut dyn FnMut(usize),
@@ -354,6 +374,7 @@ pub fn run_sessions(
         .map(|_| SessionInput {
             events: Vec::new(),
             base_from_laser: recording.base_from_laser,
+            from_dock,
         })
         .collect();
     for event in &recording.events {
@@ -429,6 +450,7 @@ pub fn run_session_inputs(
             let mut alive = send(Message::Start {
                 session,
                 start_time: first.time(),
+                from_dock: input.from_dock,
             });
             for event in mapping::sensor::collate_for_llo(&input.events) {
                 match event {
@@ -602,9 +624,12 @@ fn worker(
             Message::Start {
                 session,
                 start_time,
+                from_dock,
             } => {
                 scores.clear();
                 node_local.clear();
+                // Where the robot was at the end of its last session, as it had it then: its dock.
+                let dock = online_nodes.values().next_back().copied();
                 online_nodes.clear();
                 node_times.clear();
                 map_at_start = None;
@@ -620,9 +645,13 @@ fn worker(
                     let search = rendered
                         .as_ref()
                         .map(|grid| StartSearch::new(grid, relocalization));
+                    let options = config.lifelong.session_start.clone();
                     start = Some(
-                        SessionStart::new(config.lifelong.session_start.clone(), search)
-                            .map_err(|e| SessionsError::Options(e.into()))?,
+                        match dock.filter(|_| from_dock) {
+                            Some(dock) => SessionStart::from_dock(options, search, dock),
+                            None => SessionStart::new(options, search),
+                        }
+                        .map_err(|e| SessionsError::Options(e.into()))?,
                     );
                 }
                 // Every later session starts unplaced; its `SessionStart` places it.
@@ -876,8 +905,24 @@ fn act_on_start(
             index: u32::try_from(node).ok()?,
         })
     };
+    let mut from_dock = false;
     for decision in decisions {
         match decision {
+            SessionStartEvent::DockChecked {
+                agreed,
+                fit,
+                weakest_z,
+                ..
+            } => {
+                from_dock = *agreed;
+                if let Some(summary) = summary.as_deref_mut() {
+                    summary.dock_check = Some(DockCheckFigures {
+                        agreed: *agreed,
+                        fit: *fit,
+                        weakest_z: *weakest_z,
+                    });
+                }
+            }
             SessionStartEvent::Refused {
                 node,
                 outcome,
@@ -954,6 +999,8 @@ fn act_on_start(
                     });
                     if first_search {
                         summary.relocalized = true;
+                    } else if from_dock {
+                        summary.placed_at_time = node_times.get(placement.node).copied();
                     } else {
                         summary.placed_by_retry_at_node = Some(placement.node);
                         summary.placed_at_time = node_times.get(placement.node).copied();

@@ -29,6 +29,7 @@ fn later_sessions_relocalize_and_localize_in_the_session_zero_frame() {
     let inputs = sessions.iter().map(|s| SessionInput {
         events: s.events.clone(),
         base_from_laser: s.base_from_laser,
+        from_dock: false,
     });
     let mut ended = Vec::new();
     let run = run_session_inputs(

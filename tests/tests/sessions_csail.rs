@@ -17,7 +17,7 @@ fn csail_in_two_sessions_localizes_across_sessions() -> anyhow::Result<()> {
     )?))?;
     let config = SessionsConfig::default();
     let (cross, probes) = cross_session_probes(&relations, &session_boundaries(&recording, 2)?);
-    let run = run_sessions(&recording, 2, &config, &probes, &mut |_| {})?;
+    let run = run_sessions(&recording, 2, false, &config, &probes, &mut |_| {})?;
     // The placement the robot acted on, judged by the relations against the map it was placed on.
     let online = &run.records[1].online;
     let at_the_time = relation_errors_at_the_time(&cross, &probes, &run.probe_poses, online);

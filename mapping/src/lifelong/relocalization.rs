@@ -89,6 +89,11 @@ pub struct RelocalizationOptions {
     /// Distinct coarse candidates refined at full resolution (count ≥ 1; see [`RelocalizerOptions`]).
     /// Default 8. Why: `docs/TUNING.md#reloc-max-candidates`.
     pub max_candidates: usize,
+    /// Half-width of the window searched around a prior pose ([`StartSearch::check_prior`]: a robot's
+    /// last pose, at its dock), metres ≥ 0. Default 0.5 m.
+    pub prior_window_m: f64,
+    /// ... and its angular half-width, radians in [0, π]. Default 10°.
+    pub prior_window_rad: f64,
     /// Refinement of the match.
     pub least_squares: LeastSquaresScanMatcherOptions,
 }
@@ -114,6 +119,8 @@ impl Default for RelocalizationOptions {
             min_answer_z: 4.0,
             min_unfiltered_score: 0.4,
             max_first_scan_shift: 0.18,
+            prior_window_m: 0.5,
+            prior_window_rad: 10f64.to_radians(),
             least_squares: LeastSquaresScanMatcherOptions::default(),
         }
     }
@@ -208,6 +215,18 @@ impl RelocalizationOptions {
             return Err(LifelongOptionsError::OutOfRange {
                 field: "min_score",
                 reason: "must be in [0, 1]",
+            });
+        }
+        if !(self.prior_window_m.is_finite() && self.prior_window_m >= 0.0) {
+            return Err(LifelongOptionsError::OutOfRange {
+                field: "prior_window_m",
+                reason: "must be a non-negative number of metres",
+            });
+        }
+        if !(0.0..=std::f64::consts::PI).contains(&self.prior_window_rad) {
+            return Err(LifelongOptionsError::OutOfRange {
+                field: "prior_window_rad",
+                reason: "must be in [0, π] radians",
             });
         }
         self.least_squares
@@ -377,6 +396,26 @@ pub struct CloudFit {
     pub cloud_points: usize,
 }
 
+/// What [`StartSearch::check_prior`] found at a pose the robot believes it starts at (its dock: where its
+/// last session ended).
+#[derive(Clone, Debug, PartialEq)]
+pub struct PriorCheck {
+    /// Whether the evidence agrees with the prior: the cloud, refined from the prior on the unfiltered
+    /// map, fits it at least `min_unfiltered_score`, and no candidate of a whole-map search fits it
+    /// decisively better (the paired test at [`StartSearch::search_again`]'s bar). Near-tied candidates
+    /// do not refuse it: there the prior decides.
+    pub agrees: bool,
+    /// `global_from_local` at the prior refined with the cloud on the unfiltered map.
+    pub global_from_local: Rigid2,
+    /// How well the cloud fits the map there (mean probability on the unfiltered map).
+    pub fit: f32,
+    /// The weakest paired test of the refined prior against the whole-map search's other distinct
+    /// candidates (positive: the prior fits better); `None` when the search found no other.
+    pub weakest_z: Option<f64>,
+    /// `global_from_local` at each of those other candidates: the rivals probation contests.
+    pub rivals: Vec<Rigid2>,
+}
+
 /// Session-start relocalization that can wait out an ambiguous start.
 ///
 /// In a store of look-alike aisles the first metres of a session often fit two or more places equally well
@@ -495,6 +534,54 @@ impl StartSearch {
             weakest_z: None,
             fit: Some(fit),
         }
+    }
+
+    /// Checks the prior `global_from_local` of `scans` (`(local_from_tracking, points)`, first scan first)
+    /// against the map (see [`PriorCheck`]): the robot starts where it believes it is unless the evidence
+    /// says otherwise. `None` when there are no points.
+    pub fn check_prior(
+        &self,
+        scans: &[(Rigid2, Vec<Point2<f32>>)],
+        prior: &Rigid2,
+    ) -> Option<PriorCheck> {
+        let (first_from_local, cloud) = merge_scans(scans, self.options.voxel_size)?;
+        let grid = self.sharp_grid();
+        // Where the robot believes it is, searched within LLO's and GLM's usual error of a last pose, then
+        // refined like every candidate.
+        let window = RealTimeCorrelativeScanMatcher::new(RealTimeCorrelativeScanMatcherOptions {
+            linear_search_window: self.options.prior_window_m,
+            angular_search_window: self.options.prior_window_rad,
+            translation_delta_cost_weight: 0.0,
+            rotation_delta_cost_weight: 0.0,
+        });
+        let (searched, _) = window.match_pose(&(prior * first_from_local.inverse()), &cloud, grid);
+        let at_prior = refine_on_sharp_map(grid, &cloud, &searched, &self.options);
+        let fit = mean_probability(grid, &cloud, &at_prior) as f32;
+        let bar = self.disambiguation_z(scans.len());
+        let block_m = self.options.route_block_m;
+        // The whole map's candidates, each refined on the unfiltered map; one that refines onto the prior
+        // is the prior.
+        let rivals: Vec<Rigid2> = self
+            .relocalize(&cloud)
+            .map(|found| distinct(found.candidates))
+            .unwrap_or_default()
+            .into_iter()
+            .map(|(pose, _)| self.sharpen(&cloud, &pose))
+            .filter(|pose| clearly_different(pose, &at_prior))
+            .collect();
+        let tests: Vec<f64> = rivals
+            .iter()
+            .map(|rival| blocked_paired_z(grid, &cloud, &at_prior, rival, block_m))
+            .collect();
+        let weakest_z = tests.iter().copied().min_by(f64::total_cmp);
+        let agrees = fit >= self.options.min_unfiltered_score && tests.iter().all(|z| *z > -bar);
+        Some(PriorCheck {
+            agrees,
+            global_from_local: at_prior * first_from_local,
+            fit,
+            weakest_z,
+            rivals: rivals.iter().map(|r| r * first_from_local).collect(),
+        })
     }
 
     /// The paired test's bar for a cloud of `scans` scans: `min_disambiguation_z`, or

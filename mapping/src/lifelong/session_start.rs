@@ -52,7 +52,7 @@ use std::collections::VecDeque;
 use nalgebra::Point2;
 use serde::Deserialize;
 
-use super::{LifelongOptionsError, RelocalizationOutcome, StartAnswer, StartSearch};
+use super::{LifelongOptionsError, PriorCheck, RelocalizationOutcome, StartAnswer, StartSearch};
 use crate::geometry::{Rigid2, Rigid2Ext as _, normalize_angle};
 use crate::pose_graph::SubmapId;
 
@@ -78,6 +78,10 @@ pub struct SessionStartOptions {
     /// latest this many nodes every `retry_every_n_nodes` nodes and after a scheduled retry that found
     /// nothing (count; 0 = off). Default 40. Why: `docs/TUNING.md#ss-recent-search-nodes`.
     pub recent_search_nodes: usize,
+    /// A session that starts where the robot's last session ended (its dock: [`SessionStart::from_dock`])
+    /// checks that pose with the cloud of its first this many nodes ([`StartSearch::check_prior`]) before
+    /// any whole-map search (count ≥ 1). Default 3 (about 0.5 m of driving).
+    pub dock_check_nodes: usize,
     /// Stop searching after this many nodes without a placement (count; 0 = never): the session stays
     /// unplaced. Default 0.
     pub give_up_after_nodes: usize,
@@ -124,6 +128,7 @@ impl Default for SessionStartOptions {
             recheck_every_n_nodes: 10,
             max_search_nodes: 400,
             recent_search_nodes: 40,
+            dock_check_nodes: 3,
             give_up_after_nodes: 0,
             probation_matches: 3,
             probation_min_separation_m: 3.0,
@@ -148,6 +153,12 @@ impl SessionStartOptions {
         }
         if self.max_search_nodes < self.hold_back_nodes {
             return out_of_range("max_search_nodes", "must be at least hold_back_nodes");
+        }
+        if !(1..=self.max_search_nodes).contains(&self.dock_check_nodes) {
+            return out_of_range(
+                "dock_check_nodes",
+                "must be at least 1 and at most max_search_nodes",
+            );
         }
         let non_negative = |v: f64| v.is_finite() && v >= 0.0;
         if !non_negative(self.probation_min_separation_m) {
@@ -251,6 +262,19 @@ pub enum SessionStartEvent {
         /// How well the cloud fit the map at its best candidate ([`StartAnswer::fit`]), for reports.
         fit: Option<f32>,
     },
+    /// The pose the robot believed it started at (its dock) was checked ([`StartSearch::check_prior`]):
+    /// where the evidence agreed, a `Placed` event follows; where it did not, the session searches the
+    /// whole map as any other does.
+    DockChecked {
+        /// The node the check was made at.
+        node: usize,
+        /// Whether the evidence agreed with the dock.
+        agreed: bool,
+        /// How well the cloud fit the map at the dock ([`PriorCheck::fit`]).
+        fit: Option<f32>,
+        /// The dock's weakest paired test against the whole map's other candidates.
+        weakest_z: Option<f64>,
+    },
     /// Placed tentatively: place the session in the map, on probation (its submaps stay out of the
     /// relocalization map and it trims nothing).
     Placed(StartPlacement),
@@ -321,6 +345,8 @@ pub struct SessionStart {
     found_nothing: bool,
     /// Route position (metres) of the latest undecided contest of the current placement.
     contested_at_m: Option<f64>,
+    /// Until it is checked: `map_from_tracking` where the robot believes its first node is (its dock).
+    dock: Option<Rigid2>,
 }
 
 impl SessionStart {
@@ -347,7 +373,22 @@ impl SessionStart {
             candidates: Vec::new(),
             found_nothing: false,
             contested_at_m: None,
+            dock: None,
         })
+    }
+
+    /// A session that starts where the robot believes it is: `map_from_tracking` of its first node (where
+    /// its last session ended, at its dock). That pose is checked with the first `dock_check_nodes` nodes
+    /// ([`StartSearch::check_prior`]) and placed there on probation where the evidence agrees; elsewhere
+    /// (the robot was carried, the dock moved) the session searches the whole map as [`Self::new`]'s does.
+    pub fn from_dock(
+        options: SessionStartOptions,
+        search: Option<StartSearch>,
+        map_from_tracking: Rigid2,
+    ) -> Result<Self, LifelongOptionsError> {
+        let mut start = Self::new(options, search)?;
+        start.dock = Some(map_from_tracking);
+        Ok(start)
     }
 
     /// A session placed elsewhere (a robot's prior, decided at its node `node`), on probation from the
@@ -440,7 +481,19 @@ impl SessionStart {
             }
             SessionStartState::Searching => {
                 self.keep_cloud(local_pose, points);
-                self.search_if_due(node)
+                match self.dock {
+                    Some(dock) if node + 1 >= self.options.dock_check_nodes => {
+                        self.dock = None;
+                        let mut events = self.check_dock(dock, node);
+                        if events.len() == 1 {
+                            // Refused: the whole-map search is made as soon as it is due.
+                            events.extend(self.search_if_due(node));
+                        }
+                        events
+                    }
+                    Some(_) => Vec::new(),
+                    None => self.search_if_due(node),
+                }
             }
         }
     }
@@ -555,7 +608,7 @@ impl SessionStart {
             self.cloud.clear();
             return vec![SessionStartEvent::GaveUp { node }];
         }
-        let first = self.searches == 0 && count == self.options.hold_back_nodes;
+        let first = self.searches == 0 && count >= self.options.hold_back_nodes;
         let every = self.options.retry_every_n_nodes;
         let retry_step = self.searches > 0 && every > 0 && since.is_multiple_of(every);
         let scheduled = retry_step && (since / every).is_power_of_two();
@@ -639,6 +692,42 @@ impl SessionStart {
                     fit: answer.fit,
                 }]
             }
+        }
+    }
+
+    /// Checks the dock `map_from_tracking` (of the first node) with the cloud so far: a `DockChecked`
+    /// event, followed by `Placed` (and what placing decides) where the evidence agrees.
+    fn check_dock(&mut self, map_from_tracking: Rigid2, node: usize) -> Vec<SessionStartEvent> {
+        let Some(&(first_local, _)) = self.nodes.first() else {
+            return Vec::new();
+        };
+        let prior = map_from_tracking * first_local.inverse();
+        let check: Option<PriorCheck> = self
+            .search
+            .as_ref()
+            .and_then(|search| search.check_prior(self.cloud.make_contiguous(), &prior));
+        let checked = SessionStartEvent::DockChecked {
+            node,
+            agreed: check.as_ref().is_some_and(|c| c.agrees),
+            fit: check.as_ref().map(|c| c.fit),
+            weakest_z: check.as_ref().and_then(|c| c.weakest_z),
+        };
+        match check {
+            Some(check) if check.agrees => {
+                let placement = StartPlacement {
+                    global_from_local: check.global_from_local,
+                    node,
+                    score: None,
+                    weakest_z: check.weakest_z,
+                    fit: Some(check.fit),
+                };
+                self.rivals = check.rivals;
+                self.candidates.clear();
+                let mut events = vec![checked, SessionStartEvent::Placed(placement)];
+                events.extend(self.place(placement, node));
+                events
+            }
+            _ => vec![checked],
         }
     }
 

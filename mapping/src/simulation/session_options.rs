@@ -47,6 +47,14 @@ pub struct SessionOptions {
     pub imu_bias_sigma: f64,
     /// Standard deviation of the gyro noise, rad/s. Default 0.01.
     pub imu_noise_sigma: f64,
+    /// Later sessions start where the previous one ended (the robot docks there and cleans on from it the
+    /// next day), except those carried elsewhere (`carried_fraction`). Session 1 always starts elsewhere
+    /// (the robot is put on its route after the mapping run). Default false: every later session starts
+    /// at a seeded random place on the route.
+    pub dock_starts: bool,
+    /// With `dock_starts`, the share of later sessions that start at a seeded random place instead
+    /// (the robot was carried), 0–1. Default 0.2.
+    pub carried_fraction: f64,
 }
 
 impl Default for SessionOptions {
@@ -71,6 +79,8 @@ impl Default for SessionOptions {
             imu_rate_hz: 100.0,
             imu_bias_sigma: 0.002,
             imu_noise_sigma: 0.01,
+            dock_starts: false,
+            carried_fraction: 0.2,
         }
     }
 }
@@ -111,6 +121,12 @@ impl SessionOptions {
             ("imu_bias_sigma", self.imu_bias_sigma),
             ("imu_noise_sigma", self.imu_noise_sigma),
         ];
+        if !(0.0..=1.0).contains(&self.carried_fraction) {
+            return Err(SimulationError::InvalidOption {
+                field: "carried_fraction",
+                reason: "must be in [0, 1]".into(),
+            });
+        }
         for (field, v) in non_negative {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(SimulationError::InvalidOption {

@@ -31,6 +31,8 @@ pub struct SimulatedSession {
     pub distance_m: f64,
     /// `world_from_base` at the start (truth; not for SLAM).
     pub start_pose: Rigid2,
+    /// Whether it starts exactly where the previous session ended ([`SessionOptions::dock_starts`]).
+    pub starts_at_previous_end: bool,
     /// Duration, seconds.
     pub duration_s: f64,
 }
@@ -114,7 +116,23 @@ pub(crate) fn simulate(
         options.max_duration_s
     };
     let laps = if index == 0 { 1 } else { 8 };
-    let truth = drive(&store.route(index, laps), options, max_duration);
+    let chain_start = dock_chain_start(store, index, options);
+    let truth = if chain_start == index {
+        drive(&store.route(index, laps), options, max_duration)
+    } else {
+        // One robot cleaning on from where it stopped: the sessions since the chain's start are one
+        // drive along the chain's first route, cut into sessions of `max_duration` each.
+        let sessions = f64::from(index - chain_start + 1);
+        let all = drive(
+            &store.route(chain_start, laps * (index - chain_start + 1) as usize),
+            options,
+            max_duration * sessions,
+        );
+        // The sessions before it drove as many steps as `drive` gives their chain (the same rounding);
+        // this one starts at their last pose.
+        let skip = ((max_duration * (sessions - 1.0)) * TRUTH_RATE_HZ) as usize - 1;
+        all.get(skip..).map(<[Rigid2]>::to_vec).unwrap_or_default()
+    };
     if truth.len() < 2 {
         return Err(SimulationError::EmptyRoute);
     }
@@ -241,6 +259,22 @@ pub(crate) fn simulate(
         ground_truth,
         distance_m: distance,
         start_pose: truth[0],
+        starts_at_previous_end: chain_start != index,
         duration_s: duration,
     })
+}
+
+/// The session whose seeded start the robot of session `index` has been cleaning on from: `index` itself
+/// unless [`SessionOptions::dock_starts`] chains it to the sessions before it. Sessions 0 and 1 and
+/// carried sessions start chains.
+fn dock_chain_start(store: &Store, index: u32, options: &SessionOptions) -> u32 {
+    if !options.dock_starts {
+        return index;
+    }
+    let carried = |session: u32| {
+        session <= 1
+            || super::store::seeded(store.seed(), 950_000 + u64::from(session))
+                .random_bool(options.carried_fraction)
+    };
+    (1..=index).rev().find(|&s| carried(s)).unwrap_or(index)
 }

@@ -189,6 +189,11 @@ impl Store {
         })
     }
 
+    /// The seed the store was generated with.
+    pub(crate) fn seed(&self) -> u64 {
+        self.seed
+    }
+
     /// The options the store was generated with.
     pub fn options(&self) -> &WorldOptions {
         &self.options

@@ -66,6 +66,10 @@ pub struct LifelongArgs {
     /// ~54 min in `aisles`).
     #[arg(long)]
     mapping_duration_s: Option<f64>,
+    /// Dock starts: each later session starts where the previous one ended (1 in 5 is carried to a random
+    /// place instead), and the robot checks the last pose it had first (`SessionStart::from_dock`).
+    #[arg(long)]
+    dock_starts: bool,
 }
 
 /// What one session scored and did, as `report.json` lists it.
@@ -128,6 +132,12 @@ struct SessionRow {
     ended_on_probation: bool,
     /// Whether the session ended placed in the map with a committed placement.
     placed: bool,
+    /// With `--dock-starts`: whether the session started exactly where the previous one ended (`false`:
+    /// the robot was carried elsewhere).
+    starts_at_previous_end: Option<bool>,
+    /// With `--dock-starts`: whether the check of the robot's dock agreed (placed there); `None` where
+    /// there was no dock to check (the previous session ended unplaced).
+    dock_agreed: Option<bool>,
 }
 
 fn load_config(args: &LifelongArgs) -> anyhow::Result<SessionsConfig> {
@@ -154,6 +164,8 @@ struct Reporter<'a> {
     scoring: ScoringOptions,
     /// The truth of each generated session (pushed by the simulator, read as sessions end).
     truths: &'a Mutex<Vec<Vec<(Timestamp, Rigid2)>>>,
+    /// With `--dock-starts`, per generated session: whether it starts where the previous one ended.
+    starts_at_previous_end: &'a Mutex<Vec<bool>>,
     /// Session 0's map aligned to its truth, once session 0 has ended.
     world_from_map: Option<Rigid2>,
     /// Day 0's layout as a map would see it.
@@ -204,6 +216,12 @@ impl Reporter<'_> {
         });
         let s = end.summary;
         let counts = s.counts;
+        let starts_at_previous_end = self
+            .starts_at_previous_end
+            .lock()
+            .map_err(|_| anyhow::anyhow!("the dock-start lock is poisoned"))?
+            .get(k as usize)
+            .copied();
         self.rows.push(SessionRow {
             session: k,
             score,
@@ -241,6 +259,8 @@ impl Reporter<'_> {
             revocations: s.revoked.len(),
             ended_on_probation: s.ended_on_probation,
             placed: k == 0 || s.placed,
+            starts_at_previous_end,
+            dock_agreed: s.dock_check.as_ref().map(|d| d.agreed),
         });
         let mut details = s.clone();
         // Each session-start search's best candidate against the truth (for calibrating its tests).
@@ -333,6 +353,16 @@ impl Reporter<'_> {
                     "nodes": r.nodes, "submaps": r.submaps, "constraints": r.constraints,
                     "trimmed_total": r.trimmed_total, "dropped_total": r.dropped_total,
                 })),
+                "dock_starts": self.options.dock_starts.then(|| {
+                    let later = self.rows.iter().filter(|r| r.session > 0);
+                    let count = |keep: &dyn Fn(&SessionRow) -> bool| later.clone().filter(|r| keep(r)).count();
+                    json!({
+                        "at_previous_end": count(&|r| r.starts_at_previous_end == Some(true)),
+                        "at_previous_end_placed_at_dock": count(&|r| r.starts_at_previous_end == Some(true) && r.dock_agreed == Some(true)),
+                        "carried": count(&|r| r.starts_at_previous_end == Some(false)),
+                        "carried_placed_at_dock": count(&|r| r.starts_at_previous_end == Some(false) && r.dock_agreed == Some(true)),
+                    })
+                }),
                 "wall_time_s": self.started.elapsed().as_secs_f64(),
                 "data_duration_s": data_duration_s,
                 "peak_rss_mb": process_stats::peak_rss_mb(),
@@ -390,6 +420,7 @@ pub fn run(args: &LifelongArgs) -> anyhow::Result<()> {
     if let Some(t) = args.mapping_duration_s {
         options.mapping_max_duration_s = t;
     }
+    options.dock_starts = args.dock_starts;
     options.validate()?;
     let start = Instant::now();
     let store = Store::generate(args.world.options(), args.seed)?;
@@ -403,6 +434,7 @@ pub fn run(args: &LifelongArgs) -> anyhow::Result<()> {
     );
     let truths: Mutex<Vec<Vec<(Timestamp, Rigid2)>>> = Mutex::new(Vec::new());
     let failure: RefCell<Option<anyhow::Error>> = RefCell::new(None);
+    let starts_at_previous_end: Mutex<Vec<bool>> = Mutex::new(Vec::new());
     let inputs = (0..=args.sessions).map_while(|k| {
         bar.set_message(format!("simulating session {k}/{}", args.sessions));
         match store.session(k, &options) {
@@ -420,9 +452,15 @@ pub fn run(args: &LifelongArgs) -> anyhow::Result<()> {
                 if let Ok(mut truths) = truths.lock() {
                     truths.push(session.ground_truth);
                 }
+                if options.dock_starts
+                    && let Ok(mut starts) = starts_at_previous_end.lock()
+                {
+                    starts.push(session.starts_at_previous_end);
+                }
                 Some(SessionInput {
                     events: session.events,
                     base_from_laser: session.base_from_laser,
+                    from_dock: options.dock_starts,
                 })
             }
             Err(e) => {
@@ -439,6 +477,7 @@ pub fn run(args: &LifelongArgs) -> anyhow::Result<()> {
         store: &store,
         scoring: config.scoring,
         truths: &truths,
+        starts_at_previous_end: &starts_at_previous_end,
         world_from_map: None,
         truth_day_zero: store.occupancy(0, resolution).surface_grid(),
         rows: Vec::new(),

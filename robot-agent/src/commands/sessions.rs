@@ -56,6 +56,10 @@ pub struct SessionsArgs {
     /// Trimming policy (clt, delete, keep, frozen); overrides the configuration's.
     #[arg(long)]
     policy: Option<TrimPolicy>,
+    /// Each later session first checks the last pose the robot had in the previous one (where the
+    /// recording was cut, it has not moved: a dock start); without it, every later session searches.
+    #[arg(long)]
+    dock_starts: bool,
     /// The robustness suite's perturbations of the recording.
     #[command(flatten)]
     perturb: PerturbArgs,
@@ -113,9 +117,16 @@ pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
     let session_of = |t: Timestamp| boundaries.partition_point(|b| *b <= t);
     let (cross, probes) =
         cross_session_probes(relations.as_deref().unwrap_or_default(), &boundaries);
-    let run = run_sessions(&recording, args.split, &config, &probes, &mut |done| {
-        bar.set_position(done as u64);
-    })?;
+    let run = run_sessions(
+        &recording,
+        args.split,
+        args.dock_starts,
+        &config,
+        &probes,
+        &mut |done| {
+            bar.set_position(done as u64);
+        },
+    )?;
     bar.finish_and_clear();
     let wall_time_s = start.elapsed().as_secs_f64();
 

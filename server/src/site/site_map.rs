@@ -488,7 +488,9 @@ impl SiteMap {
                         start.set_search(search);
                     }
                 }
-                SessionStartEvent::Refused { .. } | SessionStartEvent::GaveUp { .. } => {}
+                SessionStartEvent::Refused { .. }
+                | SessionStartEvent::GaveUp { .. }
+                | SessionStartEvent::DockChecked { .. } => {}
             }
         }
         Ok(())
@@ -518,6 +520,8 @@ impl SiteMap {
                 counts.gave_up += 1;
                 false
             }
+            // The server's sessions start from a robot's prior or a search, never from a dock.
+            SessionStartEvent::DockChecked { .. } => false,
         };
         if searched && !self.searched.insert(trajectory) {
             self.session_starts.retries += 1;

@@ -450,9 +450,101 @@ fn invalid_options_are_refused() {
             probation_min_z: -1.0,
             ..SessionStartOptions::default()
         },
+        SessionStartOptions {
+            dock_check_nodes: 0,
+            ..SessionStartOptions::default()
+        },
     ];
     for options in bad {
         assert!(options.validate().is_err(), "{options:?}");
     }
     assert!(SessionStartOptions::default().validate().is_ok());
+}
+
+/// A session starting from a dock the robot believes is at `dock` while it stands at `truth`: the events
+/// of its first nodes (`dock_check_nodes` 2, hold-back 3).
+fn from_dock(dock: Rigid2, truth: Rigid2) -> Vec<Vec<SessionStartEvent>> {
+    let options = SessionStartOptions {
+        dock_check_nodes: 2,
+        ..options()
+    };
+    let mut start = SessionStart::from_dock(options, Some(room_search()), dock).unwrap();
+    (0..3)
+        .map(|k| {
+            let world = truth * rigid2(0.05 * f64::from(k), 0.0, 0.0);
+            start.add_node(truth.inverse() * world, room_scan(&world))
+        })
+        .collect()
+}
+
+#[test]
+fn a_robot_at_its_dock_is_placed_there_at_the_dock_check() {
+    let truth = rigid2(2.7, 2.2, 0.4);
+    // Its last pose was a little off, as an estimate is.
+    let dock = truth * rigid2(0.12, -0.08, 2f64.to_radians());
+    let events = from_dock(dock, truth);
+    assert!(events[0].is_empty(), "{events:?}");
+    let [
+        SessionStartEvent::DockChecked {
+            node: 1,
+            agreed: true,
+            ..
+        },
+        SessionStartEvent::Placed(placement),
+    ] = events[1][..]
+    else {
+        panic!("placed at the dock check: {events:?}");
+    };
+    let error = (placement.global_from_local.translation.vector - truth.translation.vector).norm();
+    assert!(error < 0.05, "placed {error} m off");
+    assert!(events[2].is_empty(), "no search after: {events:?}");
+}
+
+#[test]
+fn a_robot_carried_away_from_its_dock_is_not_placed_there_and_searches() {
+    let truth = rigid2(2.7, 2.2, 0.4);
+    // It believes it is at its dock, 1.5 m and 60° away.
+    let dock = rigid2(1.4, 1.5, -0.65);
+    let events = from_dock(dock, truth);
+    assert!(
+        matches!(
+            events[1][..],
+            [SessionStartEvent::DockChecked { agreed: false, .. }]
+        ),
+        "{events:?}"
+    );
+    // The whole-map search at the hold-back places it where it is.
+    let [SessionStartEvent::Placed(placement)] = events[2][..] else {
+        panic!("placed by the search: {events:?}");
+    };
+    let error = (placement.global_from_local.translation.vector - truth.translation.vector).norm();
+    assert!(error < 0.05, "placed {error} m off");
+}
+
+#[test]
+fn a_dock_check_at_or_after_the_hold_back_searches_at_once_when_refused() {
+    let options = SessionStartOptions {
+        dock_check_nodes: 4,
+        ..options()
+    };
+    let truth = rigid2(2.7, 2.2, 0.4);
+    let mut start =
+        SessionStart::from_dock(options, Some(room_search()), rigid2(1.4, 1.5, -0.65)).unwrap();
+    let events: Vec<_> = (0..4)
+        .map(|k| {
+            let world = truth * rigid2(0.05 * f64::from(k), 0.0, 0.0);
+            start.add_node(truth.inverse() * world, room_scan(&world))
+        })
+        .collect();
+    assert!(events[..3].iter().all(Vec::is_empty), "{events:?}");
+    assert!(
+        matches!(
+            events[3][..],
+            [
+                SessionStartEvent::DockChecked { agreed: false, .. },
+                SessionStartEvent::Placed(_)
+            ]
+        ),
+        "{events:?}"
+    );
 }
