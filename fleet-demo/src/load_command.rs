@@ -120,6 +120,10 @@ pub struct LoadArgs {
     /// lifelong experiment); a server in production mostly holds sites past that.
     #[arg(long, default_value_t = 0)]
     mature_sessions: usize,
+    /// Run the server without site checkpoints (`[checkpoints] enabled = false`): the store keeps its
+    /// whole log and a restart replays it (the figure checkpoints are compared with).
+    #[arg(long)]
+    no_checkpoints: bool,
 }
 
 /// One robot of the benchmark.
@@ -251,6 +255,11 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
                 robots: robots.clone(),
             })
             .collect(),
+        checkpoints: if args.no_checkpoints {
+            server::site::CheckpointOptions::DISABLED
+        } else {
+            server::site::CheckpointOptions::DEFAULT
+        },
         ..ServerConfig::default()
     };
     let store = Arc::new(store);

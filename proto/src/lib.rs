@@ -42,7 +42,8 @@ pub use convert::{
 pub use map_delta::{MapDelta, SubmapSnapshot};
 pub use png_image::{PngCompression, PngError, PngPixels, encode_png};
 pub use site_checkpoint::{
-    CHECKPOINT_FORMAT_VERSION, RestoreError, SiteCheckpoint, options_fingerprint,
+    CHECKPOINT_FORMAT_VERSION, PublishedSubmapState, RestoreError, SessionStartCountsState,
+    SiteCheckpoint, SiteServerState, SiteSessionState, options_fingerprint,
 };
 pub use upload_batch::{NodeAdded, UploadBatch, UploadItem};
 pub use zenoh_link_options::{

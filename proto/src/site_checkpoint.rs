@@ -28,10 +28,19 @@ use crate::convert::constraint::{
 use crate::convert::{check_finite, points_from_pb, points_to_pb};
 use crate::{ConversionError, grid_from_pb, grid_to_pb, pb};
 
+mod site_server_state;
+
+pub use site_server_state::{
+    PublishedSubmapState, SessionStartCountsState, SiteServerState, SiteSessionState,
+};
+use site_server_state::{site_from_pb, site_to_pb};
+
 /// The `format_version` of the checkpoints this build writes, and the only one it reads. Bump it with
 /// every change of `site_checkpoint.proto` or of what the state means (a field of `GlobalSlamState` or
 /// `LifelongMapState` added, removed or reinterpreted).
-pub const CHECKPOINT_FORMAT_VERSION: u32 = 1;
+///
+/// Version 2: the server's part of the site ([`SiteServerState`], field 6) added and required.
+pub const CHECKPOINT_FORMAT_VERSION: u32 = 2;
 
 /// A site's map state and the log position it covers.
 #[derive(Clone, Debug, PartialEq)]
@@ -44,6 +53,8 @@ pub struct SiteCheckpoint {
     pub map: LifelongMapState,
     /// [`options_fingerprint`] of the options the map ran with.
     pub options_fingerprint: u32,
+    /// The server's part of the site (sessions, versions, counters).
+    pub site: SiteServerState,
 }
 
 /// A fingerprint of `options` (CRC-32 of their `Debug` form: every field, names and values, in order),
@@ -72,13 +83,15 @@ pub enum RestoreError {
 }
 
 impl SiteCheckpoint {
-    /// The checkpoint of `map` after the site log entry `log_index`, at map version `map_version`.
+    /// The checkpoint of `map` after the site log entry `log_index`, at map version `map_version`, with
+    /// an empty server part (the server sets [`Self::site`]).
     pub fn of(map: &LifelongMap, log_index: u64, map_version: u64) -> Self {
         Self {
             log_index,
             map_version,
             map: map.to_state(),
             options_fingerprint: options_fingerprint(map.options()),
+            site: SiteServerState::default(),
         }
     }
 
@@ -103,6 +116,7 @@ impl From<&SiteCheckpoint> for pb::SiteCheckpoint {
             map_version: c.map_version,
             map: Some(map_to_pb(&c.map)),
             options_fingerprint: c.options_fingerprint,
+            site: Some(site_to_pb(&c.site)),
         }
     }
 }
@@ -126,6 +140,7 @@ impl TryFrom<&pb::SiteCheckpoint> for SiteCheckpoint {
             map_version: c.map_version,
             map: map_from_pb(required(c.map.as_ref(), M, "map")?)?,
             options_fingerprint: c.options_fingerprint,
+            site: site_from_pb(required(c.site.as_ref(), M, "site")?)?,
         })
     }
 }
@@ -168,10 +183,10 @@ fn submap_in(
 
 fn pose_to_exact(pose: &Rigid2) -> pb::ExactPose2 {
     pb::ExactPose2 {
-        x: pose.translation.vector.x,
-        y: pose.translation.vector.y,
-        cos: pose.rotation.re,
-        sin: pose.rotation.im,
+        x: Some(pose.translation.vector.x),
+        y: Some(pose.translation.vector.y),
+        cos: Some(pose.rotation.re),
+        sin: Some(pose.rotation.im),
     }
 }
 
@@ -182,10 +197,13 @@ fn pose_from_exact(
     field: &'static str,
 ) -> Result<Rigid2, ConversionError> {
     let p = required(pose, message, field)?;
-    for v in [p.x, p.y, p.cos, p.sin] {
+    let [Some(x), Some(y), Some(cos), Some(sin)] = [p.x, p.y, p.cos, p.sin] else {
+        return Err(ConversionError::MissingField { message, field });
+    };
+    for v in [x, y, cos, sin] {
         check_finite(v, message, field)?;
     }
-    let norm = p.cos.hypot(p.sin);
+    let norm = cos.hypot(sin);
     if (norm - 1.0).abs() > 1e-6 {
         return Err(ConversionError::OutOfRange {
             message,
@@ -194,8 +212,8 @@ fn pose_from_exact(
         });
     }
     Ok(Rigid2::from_parts(
-        Translation2::new(p.x, p.y),
-        UnitComplex::new_unchecked(Complex::new(p.cos, p.sin)),
+        Translation2::new(x, y),
+        UnitComplex::new_unchecked(Complex::new(cos, sin)),
     ))
 }
 

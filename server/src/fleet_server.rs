@@ -104,6 +104,7 @@ impl RunningServer {
             let task_options = SiteTaskOptions {
                 queue_depth: config.site_queue_depth,
                 session_idle_timeout: config.session_idle_timeout()?,
+                checkpoints: config.checkpoints,
             };
             let task = loading.spawn(async move {
                 let loaded = SiteTask::spawn(&id, options, store, metrics, task_options).await;

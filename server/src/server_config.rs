@@ -6,6 +6,12 @@
 //! max_message_bytes = 67108864
 //! session_idle_timeout_s = 3600.0    # end a session whose robot has been silent this long; 0 = never
 //!
+//! [checkpoints]                      # optional: a site starts from its newest checkpoint + the log after it
+//! enabled = true
+//! every_n_versions = 200             # besides every session end
+//! keep = 2                           # checkpoints kept (at least 2); the log after the oldest is kept
+//! keep_log_entries = 0               # log entries kept before that, for audit
+//!
 //! [storage]
 //! path = "./evermap-data"
 //!
@@ -44,6 +50,7 @@ use storage::SledStoreOptions;
 
 use crate::console::HttpConfig;
 use crate::grpc::AuthLimitOptions;
+use crate::site::CheckpointOptions;
 
 /// Invalid [`ServerConfig`].
 #[derive(Debug, thiserror::Error)]
@@ -129,6 +136,10 @@ pub struct ServerConfig {
     pub session_idle_timeout_s: f64,
     /// On-disk storage.
     pub storage: SledStoreOptions,
+    /// Site checkpoints and log compaction (TOML section `[checkpoints]`: `enabled`,
+    /// `every_n_versions`, `keep`, `keep_log_entries`; see [`CheckpointOptions`]). Default: enabled,
+    /// at every session end and every 200 versions, two kept.
+    pub checkpoints: CheckpointOptions,
     /// The multi-session map of every site: GLM, PGR, the session start (`[map.relocalization]`,
     /// `[map.session_start]`: the server searches for a session its robot could not place, and holds every
     /// placement on probation), trimming policy and sparsification (the `mapping` crate's
@@ -162,6 +173,7 @@ impl Default for ServerConfig {
             site_queue_depth: 64,
             session_idle_timeout_s: 3600.0,
             storage: SledStoreOptions::default(),
+            checkpoints: CheckpointOptions::default(),
             map: LifelongOptions::default(),
             tls: None,
             auth: AuthLimitOptions::default(),
@@ -221,6 +233,9 @@ impl ServerConfig {
         }
         if let Err(e) = self.auth.validate() {
             return refused("auth", e.into());
+        }
+        if let Err(e) = self.checkpoints.validate() {
+            return refused("checkpoints", e.into());
         }
         if let Some(Err(e)) = self.zenoh.as_ref().map(ZenohLinkOptions::validate) {
             return refused("zenoh", e.into());

@@ -5,6 +5,7 @@
 //! answering, and publishes each new version; [`SiteHandle`] is how any front end (gRPC today, zenoh
 //! later) talks to it.
 
+mod checkpoint_options;
 mod map_history;
 mod session_view;
 mod site_error;
@@ -13,6 +14,7 @@ mod site_map;
 mod site_task;
 mod site_view;
 
+pub use checkpoint_options::{CheckpointOptions, CheckpointOptionsError};
 pub use map_history::{
     DEFAULT_HISTORY_CAPACITY, DEFAULT_HISTORY_PAST_GRID_BUDGET_BYTES, HistoryEntry, MapHistory,
     PlacedGrids,

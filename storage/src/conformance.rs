@@ -5,16 +5,19 @@
 use std::collections::BTreeSet;
 use std::thread;
 
-use crate::{BatchOutcome, MAX_ID_BYTES, MapStore, RecordId, RecordKind, StorageError, WriteBatch};
+use crate::{
+    BatchOutcome, CheckpointRetention, MAX_ID_BYTES, MapStore, RecordId, RecordKind, StorageError,
+    WriteBatch,
+};
 
 /// Cases `run_all` must run.
-pub(crate) const MIN_CASES: usize = 13;
+pub(crate) const MIN_CASES: usize = 16;
 
 type Case<S> = fn(&S);
 
 /// Runs every case on a fresh store from `make`; returns the number of cases run.
 pub(crate) fn run_all<S: MapStore>(make: &dyn Fn() -> S) -> usize {
-    let cases: [(&str, Case<S>); 13] = [
+    let cases: [(&str, Case<S>); 16] = [
         ("put_get_overwrite_delete", put_get_overwrite_delete),
         (
             "scan_is_per_site_and_kind_in_id_order",
@@ -45,6 +48,18 @@ pub(crate) fn run_all<S: MapStore>(make: &dyn Fn() -> S) -> usize {
         (
             "concurrent_bumps_are_serialized",
             concurrent_bumps_are_serialized,
+        ),
+        (
+            "checkpoints_are_stored_under_their_log_position",
+            checkpoints_are_stored_under_their_log_position,
+        ),
+        (
+            "compaction_keeps_the_log_after_the_older_kept_checkpoint",
+            compaction_keeps_the_log_after_the_older_kept_checkpoint,
+        ),
+        (
+            "export_import_carries_checkpoints",
+            export_import_carries_checkpoints,
         ),
     ];
     let mut ran = 0;
@@ -537,4 +552,136 @@ fn concurrent_bumps_are_serialized(store: &impl MapStore) {
         scan_all(store, "depot", RecordKind::Node).len() as u64,
         THREADS * BUMPS
     );
+}
+
+/// A site log of `entries` entries under `Trajectory` (id = index = map version), as the server writes it.
+fn write_log(store: &impl MapStore, site: &str, entries: std::ops::RangeInclusive<u64>) {
+    for index in entries {
+        let mut batch = WriteBatch::new(site);
+        batch
+            .put(
+                RecordKind::Trajectory,
+                index,
+                format!("entry {index}").into_bytes(),
+            )
+            .bump_map_version();
+        assert_eq!(
+            store.apply_durable(&batch).unwrap(),
+            BatchOutcome::Applied { map_version: index }
+        );
+    }
+}
+
+fn log_indexes(store: &impl MapStore, site: &str) -> Vec<u64> {
+    scan_all(store, site, RecordKind::Trajectory)
+        .into_iter()
+        .map(|(id, _)| id.as_u64().unwrap())
+        .collect()
+}
+
+fn checkpoints_are_stored_under_their_log_position(store: &impl MapStore) {
+    assert!(matches!(
+        store.put_checkpoint("depot", 0, b"state"),
+        Err(StorageError::SiteNotFound { .. })
+    ));
+    write_log(store, "depot", 1..=5);
+    assert!(matches!(
+        store.put_checkpoint("depot", 6, b"state 6"),
+        Err(StorageError::CheckpointAhead {
+            log_index: 6,
+            map_version: 5,
+            ..
+        })
+    ));
+    store.put_checkpoint("depot", 2, b"state 2").unwrap();
+    store.put_checkpoint("depot", 5, b"state 5").unwrap();
+    store.put_checkpoint("depot", 300, b"").unwrap_err();
+    assert_eq!(store.checkpoint_indexes("depot").unwrap(), [5, 2]);
+    assert_eq!(
+        store.checkpoint("depot", 5).unwrap().as_deref(),
+        Some(&b"state 5"[..])
+    );
+    assert_eq!(store.checkpoint("depot", 3).unwrap(), None);
+    assert!(store.checkpoint_indexes("other").unwrap().is_empty());
+    // Checkpoints are not records of any kind: scans and versions do not see them.
+    assert_eq!(log_indexes(store, "depot"), [1, 2, 3, 4, 5]);
+    assert_eq!(store.map_version("depot").unwrap(), 5);
+    store.delete_site("depot").unwrap();
+    assert!(store.checkpoint_indexes("depot").unwrap().is_empty());
+}
+
+fn compaction_keeps_the_log_after_the_older_kept_checkpoint(store: &impl MapStore) {
+    let retention = CheckpointRetention::DEFAULT;
+    write_log(store, "depot", 1..=30);
+    // One checkpoint: an unreadable one would have nothing to fall back to but the whole log.
+    store.put_checkpoint("depot", 10, b"state 10").unwrap();
+    let compaction = store
+        .compact("depot", RecordKind::Trajectory, &retention)
+        .unwrap();
+    assert_eq!(compaction.log_entries_removed, 0);
+    assert_eq!(log_indexes(store, "depot").len(), 30);
+    store.put_checkpoint("depot", 20, b"state 20").unwrap();
+    store.put_checkpoint("depot", 25, b"state 25").unwrap();
+    let compaction = store
+        .compact("depot", RecordKind::Trajectory, &retention)
+        .unwrap();
+    assert_eq!(compaction.checkpoints_removed, 1);
+    assert_eq!(compaction.log_entries_removed, 20);
+    assert_eq!(compaction.log_compacted_through, 20);
+    assert_eq!(store.checkpoint_indexes("depot").unwrap(), [25, 20]);
+    assert_eq!(log_indexes(store, "depot"), (21..=30).collect::<Vec<_>>());
+    // Again: nothing more to do. With entries kept for audit, fewer go.
+    let again = store
+        .compact("depot", RecordKind::Trajectory, &retention)
+        .unwrap();
+    assert_eq!(
+        (again.checkpoints_removed, again.log_entries_removed),
+        (0, 0)
+    );
+    write_log(store, "depot", 31..=40);
+    store.put_checkpoint("depot", 40, b"state 40").unwrap();
+    let audit = CheckpointRetention {
+        checkpoints: 2,
+        log_entries: 3,
+    };
+    let compaction = store
+        .compact("depot", RecordKind::Trajectory, &audit)
+        .unwrap();
+    assert_eq!(compaction.log_compacted_through, 22);
+    assert_eq!(log_indexes(store, "depot"), (23..=40).collect::<Vec<_>>());
+    assert_eq!(store.checkpoint_indexes("depot").unwrap(), [40, 25]);
+    assert!(matches!(
+        store.compact(
+            "depot",
+            RecordKind::Trajectory,
+            &CheckpointRetention {
+                checkpoints: 1,
+                log_entries: 0
+            }
+        ),
+        Err(StorageError::InvalidOptions { .. })
+    ));
+}
+
+fn export_import_carries_checkpoints(store: &impl MapStore) {
+    write_log(store, "depot", 1..=6);
+    store.put_checkpoint("depot", 3, b"state 3").unwrap();
+    store.put_checkpoint("depot", 6, b"state 6").unwrap();
+    store
+        .compact(
+            "depot",
+            RecordKind::Trajectory,
+            &CheckpointRetention::DEFAULT,
+        )
+        .unwrap();
+    let mut archive = Vec::new();
+    store.export_site("depot", &mut archive).unwrap();
+    store.import_site("annex", &mut archive.as_slice()).unwrap();
+    assert_eq!(store.checkpoint_indexes("annex").unwrap(), [6, 3]);
+    assert_eq!(
+        store.checkpoint("annex", 6).unwrap().as_deref(),
+        Some(&b"state 6"[..])
+    );
+    assert_eq!(log_indexes(store, "annex"), [4, 5, 6]);
+    assert_eq!(store.map_version("annex").unwrap(), 6);
 }

@@ -25,6 +25,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError, RwLock};
 
 use crate::{BatchOutcome, MapStore, RecordId, RecordIter, RecordKind, Result, StorageError};
+use crate::{CheckpointRetention, Compaction};
 use crate::{MemStore, TransferSummary, WriteBatch};
 
 /// Where a full disk makes writes fail.
@@ -219,6 +220,37 @@ impl MapStore for DiskFullStore {
             self.note_flushed()?;
         }
         Ok(())
+    }
+
+    fn put_checkpoint(&self, site: &str, log_index: u64, checkpoint: &[u8]) -> Result<()> {
+        self.check_any()?;
+        self.inner().put_checkpoint(site, log_index, checkpoint)?;
+        if self.fail_at == FailAt::Wedge {
+            self.note_flushed()?;
+        }
+        Ok(())
+    }
+
+    fn checkpoint_indexes(&self, site: &str) -> Result<Vec<u64>> {
+        self.inner().checkpoint_indexes(site)
+    }
+
+    fn checkpoint(&self, site: &str, log_index: u64) -> Result<Option<Vec<u8>>> {
+        self.inner().checkpoint(site, log_index)
+    }
+
+    fn compact(
+        &self,
+        site: &str,
+        log_kind: RecordKind,
+        retention: &CheckpointRetention,
+    ) -> Result<Compaction> {
+        self.check_any()?;
+        let compaction = self.inner().compact(site, log_kind, retention)?;
+        if self.fail_at == FailAt::Wedge {
+            self.note_flushed()?;
+        }
+        Ok(compaction)
     }
 
     fn export_site(&self, site: &str, out: &mut dyn Write) -> Result<TransferSummary> {

@@ -5,7 +5,8 @@
 //! [0x01][site len: u8][site][kind: u8][id]   record of a site
 //! ```
 //! The site is length-prefixed, so the prefix of site `a` never matches site `ab`. Record kinds at
-//! [`INTERNAL_KIND_MIN`] and above are written only by this crate (map version, session sequence numbers).
+//! [`INTERNAL_KIND_MIN`] and above are written only by this crate (map version, session sequence numbers,
+//! checkpoints).
 
 use std::fmt::Write as _;
 
@@ -21,6 +22,8 @@ pub(crate) const INTERNAL_KIND_MIN: u8 = 0xF0;
 pub(crate) const KIND_MAP_VERSION: u8 = 0xF0;
 /// Internal kind: last applied sequence number of a session (id = session id, value u64 LE).
 pub(crate) const KIND_SESSION_SEQ: u8 = 0xF1;
+/// Internal kind: a checkpoint of the site (id = the log index it covers, u64 BE; value opaque).
+pub(crate) const KIND_CHECKPOINT: u8 = 0xF2;
 
 /// Key of a site's registry entry.
 pub(crate) fn site_key(site: &str) -> Vec<u8> {
@@ -71,6 +74,7 @@ pub(crate) fn describe(key: &[u8]) -> String {
             let kind_name = match kind {
                 KIND_MAP_VERSION => "map-version".to_owned(),
                 KIND_SESSION_SEQ => "session-seq".to_owned(),
+                KIND_CHECKPOINT => "checkpoint".to_owned(),
                 other => RecordKind::from_byte(other)
                     .map_or_else(|| format!("kind{other}"), |k| k.name().to_owned()),
             };

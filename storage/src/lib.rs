@@ -9,7 +9,11 @@
 //! - Writes are [`WriteBatch`]es, applied all or nothing. A batch can bump the site's map version and be
 //!   conditional on an upload's session sequence number (exactly-once uploads), atomically with its records.
 //! - [`MapStore::apply_durable`] returns only after the batch is on disk.
-//! - A site can be exported to, and imported from, a single checksummed stream ([`SITE_ARCHIVE_MAGIC`]).
+//! - A site can be exported to, and imported from, a single checksummed stream ([`SITE_ARCHIVE_MAGIC`]),
+//!   its checkpoints included.
+//! - A site's state can be checkpointed atomically with the log position it covers
+//!   ([`MapStore::put_checkpoint`]), and its log compacted up to the older kept checkpoint
+//!   ([`MapStore::compact`], [`CheckpointRetention`]).
 //!
 //! Implementations: [`SledStore`] (the server's, on disk) and [`MemStore`] (tests), which share one
 //! implementation of these semantics over a small private key-value interface and pass one conformance suite.
@@ -28,6 +32,7 @@
 //! # Ok::<(), storage::StorageError>(())
 //! ```
 
+mod checkpoints;
 #[cfg(test)]
 mod conformance;
 mod disk_full_store;
@@ -43,6 +48,7 @@ mod sled_store_options;
 mod storage_error;
 mod write_batch;
 
+pub use checkpoints::{CheckpointRetention, Compaction};
 pub use disk_full_store::{DiskFullStore, FailAt, out_of_space};
 pub use envelope::RECORD_FORMAT_VERSION;
 pub use map_store::{MapStore, RecordIter};

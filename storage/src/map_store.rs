@@ -2,7 +2,10 @@
 
 use std::io::{Read, Write};
 
-use crate::{BatchOutcome, RecordId, RecordKind, Result, TransferSummary, WriteBatch};
+use crate::{
+    BatchOutcome, CheckpointRetention, Compaction, RecordId, RecordKind, Result, TransferSummary,
+    WriteBatch,
+};
 
 /// Records of one (site, kind) in id order, each verified; an `Err` item is a corrupt record or a
 /// backend failure (iteration may continue past a corrupt record).
@@ -91,6 +94,32 @@ pub trait MapStore: Send + Sync {
     /// Removes a site and all its records, durably. Not atomic for large sites, but crash-safe: the site is
     /// marked incomplete first, so an interrupted deletion leaves an unlisted site that a retry finishes.
     fn delete_site(&self, site: &str) -> Result<()>;
+
+    /// Stores `checkpoint` (the caller's encoding of the site's state) as covering the site's log up to
+    /// and including `log_index`, atomically with that position (it is the record's key), and durably:
+    /// returns once it is on disk. Refused for an unknown or incomplete site and for a `log_index`
+    /// beyond the site's map version ([`crate::StorageError::CheckpointAhead`]). Older checkpoints stay
+    /// until [`MapStore::compact`] removes them.
+    fn put_checkpoint(&self, site: &str, log_index: u64, checkpoint: &[u8]) -> Result<()>;
+
+    /// The log indexes of the site's stored checkpoints, newest first (unverified: a corrupt one is
+    /// listed, and [`MapStore::checkpoint`] reports it).
+    fn checkpoint_indexes(&self, site: &str) -> Result<Vec<u64>>;
+
+    /// The verified checkpoint covering the log up to `log_index`, `None` if absent;
+    /// [`crate::StorageError::Corrupt`] if it fails its checksum.
+    fn checkpoint(&self, site: &str, log_index: u64) -> Result<Option<Vec<u8>>>;
+
+    /// Deletes the checkpoints older than the newest `retention.checkpoints` that verify, then the
+    /// records of `log_kind` (the site's log, ids from [`RecordId::from_u64`]) up to the oldest kept
+    /// checkpoint's index less `retention.log_entries` — none while fewer checkpoints verify than are
+    /// kept. Crash-safe at every step (see the `checkpoints` module); durable when it returns.
+    fn compact(
+        &self,
+        site: &str,
+        log_kind: RecordKind,
+        retention: &CheckpointRetention,
+    ) -> Result<Compaction>;
 
     /// Writes every record of a complete site (counters included) to `out` as a site archive
     /// (see [`crate::SITE_ARCHIVE_MAGIC`] for the format). Fails on the first corrupt record.

@@ -4,7 +4,7 @@
 use std::io::{Read, Write};
 
 use crate::envelope::{self, decode_u64};
-use crate::key::{self, INTERNAL_KIND_MIN, KIND_MAP_VERSION, KIND_SESSION_SEQ};
+use crate::key::{self, INTERNAL_KIND_MIN, KIND_CHECKPOINT, KIND_MAP_VERSION, KIND_SESSION_SEQ};
 use crate::site_archive::{ArchiveReader, ArchiveWriter, Chunk};
 use crate::{
     BatchOp, BatchOutcome, RecordId, RecordIter, RecordKind, Result, StorageError, TransferSummary,
@@ -57,6 +57,23 @@ fn site_state(site_key: &[u8], stored: Option<&[u8]>) -> Result<Option<SiteState
         other => Err(StorageError::Corrupt {
             key: key::describe(site_key),
             reason: format!("unknown site state {other:?}"),
+        }),
+    }
+}
+
+/// Refuses an unknown or incomplete site (`stored`: its registry entry).
+pub(crate) fn site_must_be_complete(
+    site: &str,
+    site_key: &[u8],
+    stored: Option<&[u8]>,
+) -> Result<()> {
+    match site_state(site_key, stored)? {
+        Some(SiteState::Complete) => Ok(()),
+        Some(SiteState::Incomplete) => Err(StorageError::SiteIncomplete {
+            site: site.to_owned(),
+        }),
+        None => Err(StorageError::SiteNotFound {
+            site: site.to_owned(),
         }),
     }
 }
@@ -349,6 +366,7 @@ fn import_records(kv: &impl RawKv, site: &str, input: &mut dyn Read) -> Result<T
 fn check_imported_kind(kind: u8, id: &[u8], payload: &[u8]) -> Result<(), String> {
     match kind {
         KIND_MAP_VERSION if id.is_empty() && payload.len() == 8 => Ok(()),
+        KIND_CHECKPOINT if id.len() == 8 => Ok(()),
         KIND_SESSION_SEQ if payload.len() == 8 => std::str::from_utf8(id)
             .ok()
             .filter(|session| validate_session_id(session).is_ok())
@@ -410,6 +428,32 @@ macro_rules! impl_map_store_via_raw_kv {
 
             fn delete_site(&self, site: &str) -> $crate::Result<()> {
                 $crate::raw_kv::delete_site(self, site)
+            }
+
+            fn put_checkpoint(
+                &self,
+                site: &str,
+                log_index: u64,
+                checkpoint: &[u8],
+            ) -> $crate::Result<()> {
+                $crate::checkpoints::put_checkpoint(self, site, log_index, checkpoint)
+            }
+
+            fn checkpoint_indexes(&self, site: &str) -> $crate::Result<Vec<u64>> {
+                $crate::checkpoints::checkpoint_indexes(self, site)
+            }
+
+            fn checkpoint(&self, site: &str, log_index: u64) -> $crate::Result<Option<Vec<u8>>> {
+                $crate::checkpoints::checkpoint(self, site, log_index)
+            }
+
+            fn compact(
+                &self,
+                site: &str,
+                log_kind: $crate::RecordKind,
+                retention: &$crate::CheckpointRetention,
+            ) -> $crate::Result<$crate::Compaction> {
+                $crate::checkpoints::compact(self, site, log_kind, retention)
             }
 
             fn export_site(

@@ -123,6 +123,18 @@ pub enum StorageError {
         /// The failure was a full disk.
         out_of_space: bool,
     },
+    /// A checkpoint was to cover log entries the site does not hold yet.
+    #[error(
+        "a checkpoint of site {site:?} at log index {log_index} is ahead of the site's map version {map_version}"
+    )]
+    CheckpointAhead {
+        /// The site.
+        site: String,
+        /// The log index the checkpoint was to cover.
+        log_index: u64,
+        /// The site's map version.
+        map_version: u64,
+    },
     /// Reading or writing a stream or file failed.
     #[error("I/O error: {0}")]
     Io(#[from] std::io::Error),

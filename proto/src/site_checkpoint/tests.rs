@@ -50,12 +50,21 @@ fn a_checkpoint_without_its_map_is_refused() {
 #[test]
 fn a_rotation_off_the_unit_circle_is_refused() {
     let pose = pb::ExactPose2 {
-        x: 0.0,
-        y: 0.0,
-        cos: 2.0,
-        sin: 0.0,
+        x: Some(0.0),
+        y: Some(0.0),
+        cos: Some(2.0),
+        sin: Some(0.0),
     };
     assert!(pose_from_exact(Some(&pose), "ExactPose2", "pose").is_err());
+    let missing = pb::ExactPose2 {
+        sin: None,
+        cos: Some(1.0),
+        ..pose
+    };
+    assert!(matches!(
+        pose_from_exact(Some(&missing), "ExactPose2", "pose"),
+        Err(ConversionError::MissingField { .. })
+    ));
 }
 
 /// Issue 34, item 2, through the encoding: a map checkpointed mid-session (queued searches, a session on
@@ -127,4 +136,105 @@ fn a_checkpoint_is_restored_only_under_the_options_it_ran_with() {
         error.to_string().contains("other lifelong options"),
         "{error}"
     );
+}
+
+/// The server's part of a site comes back field for field, bit for bit (−0.0 and a rotation's exact
+/// cos and sin included), and a session listed twice is damage, not data.
+#[test]
+fn the_servers_part_of_a_checkpoint_round_trips_bit_for_bit() {
+    use mapping::geometry::rigid2;
+    use mapping::pose_graph::SubmapId;
+
+    let odd_pose = Rigid2::from_parts(
+        Translation2::new(-0.0, 1e-300),
+        UnitComplex::new_unchecked(Complex::new(0.6, 0.8000000000000002)),
+    );
+    let mut site = SiteServerState {
+        optimizations: 17,
+        dropped_sessions: 2,
+        robot_revoked: [3, 5].into_iter().collect(),
+        base: Some(0),
+        session_starts: SessionStartCountsState {
+            priors: 1,
+            placed: 2,
+            refused: 3,
+            retries: 4,
+            committed: 5,
+            revoked: 6,
+            gave_up: 7,
+        },
+        ..SiteServerState::default()
+    };
+    site.sessions.insert(
+        "uuid-b".into(),
+        SiteSessionState {
+            robot_id: "r2".into(),
+            trajectory: 1,
+            last_seq: 42,
+            closed: false,
+            prior: Some(odd_pose),
+            glm_on_robot: true,
+            nodes: 99,
+            dropped: false,
+        },
+    );
+    site.sessions.insert(
+        "uuid-a".into(),
+        SiteSessionState {
+            robot_id: "r1".into(),
+            trajectory: 0,
+            last_seq: 7,
+            closed: true,
+            prior: None,
+            glm_on_robot: false,
+            nodes: 12,
+            dropped: true,
+        },
+    );
+    let id = |t, i| SubmapId {
+        trajectory: t,
+        index: i,
+    };
+    site.published.insert(
+        id(1, 4),
+        PublishedSubmapState {
+            revision: 8,
+            pose_version: 11,
+            pose: odd_pose,
+        },
+    );
+    site.published.insert(
+        id(0, 0),
+        PublishedSubmapState {
+            revision: 2,
+            pose_version: 2,
+            pose: rigid2(1.5, -2.25, 0.3),
+        },
+    );
+    site.trimmed.insert(id(0, 1), 9);
+    let mut checkpoint = SiteCheckpoint::of(&LifelongMap::new(options()).expect("map"), 12, 12);
+    checkpoint.site = site;
+    let wire = pb::SiteCheckpoint::from(&checkpoint);
+    let decoded = SiteCheckpoint::try_from(
+        &pb::SiteCheckpoint::decode(wire.encode_to_vec().as_slice()).expect("protobuf"),
+    )
+    .expect("checkpoint");
+    assert_eq!(format!("{decoded:?}"), format!("{checkpoint:?}"));
+    assert!(decoded == checkpoint);
+
+    let mut twice = wire.clone();
+    let site_pb = twice.site.as_mut().expect("site");
+    site_pb.sessions.push(site_pb.sessions[0].clone());
+    let error = SiteCheckpoint::try_from(&twice).expect_err("a session listed twice");
+    assert!(error.to_string().contains("listed twice"), "{error}");
+
+    let mut without = wire;
+    without.site = None;
+    assert!(matches!(
+        SiteCheckpoint::try_from(&without),
+        Err(ConversionError::MissingField {
+            message: "SiteCheckpoint",
+            field: "site"
+        })
+    ));
 }

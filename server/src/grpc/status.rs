@@ -60,7 +60,10 @@ pub fn from_site(metrics: &ServerMetrics, error: &SiteError) -> Status {
             | StorageError::TooLarge { .. },
         ) => Status::invalid_argument(message),
         SiteError::Storage(_) | SiteError::Stopped(_) => Status::unavailable(message),
-        SiteError::CorruptLog { .. } | SiteError::CorruptEntry { .. } => Status::data_loss(message),
+        SiteError::CorruptLog { .. }
+        | SiteError::CorruptEntry { .. }
+        | SiteError::CorruptCheckpoint { .. }
+        | SiteError::CheckpointRefused { .. } => Status::data_loss(message),
         SiteError::Internal(_)
         | SiteError::Worker(_)
         | SiteError::Map(_)

@@ -66,6 +66,27 @@ pub enum SiteError {
         /// Why.
         reason: String,
     },
+    /// A stored checkpoint decodes but contradicts itself (its versions, its sessions' trajectories, its
+    /// map): an older checkpoint is used instead, when there is one.
+    #[error("corrupt site checkpoint at log index {index}: {reason}")]
+    CorruptCheckpoint {
+        /// The log index it covers.
+        index: u64,
+        /// Why.
+        reason: String,
+    },
+    /// A stored checkpoint this build must not restore: written in a format version it does not read
+    /// (by a newer build), or under other lifelong options. The site is not rebuilt behind it (the log
+    /// it covers may be compacted away): run the build, or the options, that wrote it.
+    #[error(
+        "site checkpoint at log index {index} refused, the site is not rebuilt without it: {source}"
+    )]
+    CheckpointRefused {
+        /// The log index it covers.
+        index: u64,
+        /// Why.
+        source: Box<dyn std::error::Error + Send + Sync>,
+    },
     /// The site's task has stopped (server shutting down, or a bug).
     #[error("site {0:?} is not running")]
     Stopped(String),

@@ -469,6 +469,7 @@ impl SiteMap {
                 }
                 SessionStartEvent::Committed { .. } => {
                     self.map.commit_session(trajectory);
+                    self.drop_final_start(trajectory);
                 }
                 SessionStartEvent::Revoked { .. } => {
                     self.map
@@ -488,12 +489,19 @@ impl SiteMap {
                         start.set_search(search);
                     }
                 }
-                SessionStartEvent::Refused { .. }
-                | SessionStartEvent::GaveUp { .. }
-                | SessionStartEvent::DockChecked { .. } => {}
+                SessionStartEvent::GaveUp { .. } => self.drop_final_start(trajectory),
+                SessionStartEvent::Refused { .. } | SessionStartEvent::DockChecked { .. } => {}
             }
         }
         Ok(())
+    }
+
+    /// Drops `trajectory`'s start once it has decided for good (committed, or gave up): a final
+    /// [`SessionStart`] ignores every node and match and decides nothing more, so keeping it changes no
+    /// output, and with no start left mid-way the site can be checkpointed (see `site_map_checkpoint`).
+    fn drop_final_start(&mut self, trajectory: u32) {
+        self.starts.remove(&trajectory);
+        self.searched.remove(&trajectory);
     }
 
     /// Counts one of `trajectory`'s session-start decisions.
@@ -926,5 +934,6 @@ fn count_optimizations(events: &[LifelongEvent]) -> usize {
         .count()
 }
 
+mod site_map_checkpoint;
 #[cfg(test)]
 mod tests;

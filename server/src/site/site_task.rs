@@ -8,6 +8,17 @@
 //! the version sequence. Heavy work (replay, GLM searches and optimization, rendering) and blocking
 //! storage calls run on tokio's blocking pool, never on the async workers.
 //!
+//! **Checkpoints** (issue 34; [`CheckpointOptions`]). After a change that ended a session, or
+//! `every_n_versions` versions after the last checkpoint, the task writes the site's whole state
+//! ([`SiteMap::checkpoint`]: only while no session is mid-start, else at a later change) as a
+//! `SiteCheckpoint` covering the log up to its version, atomically with that position
+//! ([`storage::MapStore::put_checkpoint`]), then compacts the log behind the older kept checkpoint
+//! ([`storage::MapStore::compact`]). Both run after the change is acknowledged and published. A start
+//! (and a rebuild) is the newest checkpoint that reads back, plus the log after it: one that fails its
+//! CRC or does not decode is skipped for the one before it (whose log compaction kept); one of a format
+//! version this build does not read, or written under other lifelong options, stops the site with
+//! [`SiteError::CheckpointRefused`] — never rebuilt behind it.
+//!
 //! A session whose robot falls silent (no open, upload or close of it) for longer than
 //! [`SiteTaskOptions::session_idle_timeout`] is ended by the task itself, exactly as if its robot had
 //! closed it (a `SessionClosed` log entry: final optimization, trimming, dropped if never placed), so a
@@ -38,7 +49,7 @@ use std::time::{Duration, Instant};
 
 use mapping::lifelong::{LifelongOptions, render_submaps_log_odds};
 use prost::Message as _;
-use proto::{FORMAT_VERSION, UploadBatch, pb};
+use proto::{CHECKPOINT_FORMAT_VERSION, FORMAT_VERSION, SiteCheckpoint, UploadBatch, pb};
 use storage::{BatchOutcome, MapStore, RecordKind, WriteBatch};
 use tokio::sync::{mpsc, watch};
 use tokio::task::JoinHandle;
@@ -46,7 +57,8 @@ use tracing::Instrument as _;
 
 use super::site_handle::Command;
 use super::{
-    RenderedMap, SiteError, SiteHandle, SiteMap, SiteView, UploadAck, UploadCheck, VersionInfo,
+    CheckpointOptions, RenderedMap, SiteError, SiteHandle, SiteMap, SiteView, UploadAck,
+    UploadCheck, VersionInfo,
 };
 use crate::ServerMetrics;
 
@@ -61,14 +73,18 @@ pub struct SiteTaskOptions {
     pub queue_depth: usize,
     /// End a session whose robot has been silent this long; `None`: never.
     pub session_idle_timeout: Option<Duration>,
+    /// When to checkpoint the site, and what compaction keeps.
+    pub checkpoints: CheckpointOptions,
 }
 
 impl Default for SiteTaskOptions {
-    /// 64 queued commands; sessions ended after one hour of silence.
+    /// 64 queued commands; sessions ended after one hour of silence; checkpoints as
+    /// [`CheckpointOptions::DEFAULT`].
     fn default() -> Self {
         Self {
             queue_depth: 64,
             session_idle_timeout: Some(Duration::from_secs(3600)),
+            checkpoints: CheckpointOptions::DEFAULT,
         }
     }
 }
@@ -92,6 +108,11 @@ pub struct SiteTask {
     last_heard: BTreeMap<String, tokio::time::Instant>,
     /// A stored change could not be flushed yet: nothing is acknowledged or published until one is.
     unflushed: bool,
+    checkpoints: CheckpointOptions,
+    /// A session ended since the last checkpoint.
+    checkpoint_due: bool,
+    /// The version of the last checkpoint written or loaded (0: none).
+    checkpointed_version: u64,
 }
 
 /// The span a site's task runs in, `site{site}`: every line the task (and the zenoh front end's tasks
@@ -120,15 +141,21 @@ impl SiteTask {
         let span = site_span(site);
         let started = Instant::now();
         let generation = store.generation();
-        let map = {
+        let loaded = {
             let (site, store, options) = (site.to_owned(), Arc::clone(&store), options.clone());
-            tokio::task::spawn_blocking(move || replay(&site, options, store.as_ref()))
-                .await
-                .map_err(SiteError::Worker)??
+            let use_checkpoints = task_options.checkpoints.enabled;
+            tokio::task::spawn_blocking(move || {
+                load(&site, options, store.as_ref(), use_checkpoints)
+            })
+            .await
+            .map_err(SiteError::Worker)??
         };
+        let map = loaded.map;
         span.in_scope(|| {
             tracing::info!(
                 version = map.version(),
+                checkpoint = loaded.checkpoint,
+                replayed = loaded.replayed,
                 seconds = started.elapsed().as_secs_f64(),
                 "site log replayed"
             );
@@ -157,6 +184,9 @@ impl SiteTask {
             session_idle_timeout: task_options.session_idle_timeout,
             last_heard,
             unflushed: false,
+            checkpoints: task_options.checkpoints,
+            checkpoint_due: false,
+            checkpointed_version: loaded.checkpoint.unwrap_or(0),
         };
         let join = tokio::spawn(task.run(commands_rx).instrument(span));
         Ok((SiteHandle::new(site, commands, versions_rx, views_rx), join))
@@ -174,6 +204,7 @@ impl SiteTask {
                 command = commands.recv() => command,
                 _ = idle_check.tick(), if self.session_idle_timeout.is_some() => {
                     self.end_silent_sessions().await;
+                    self.checkpoint_if_due().await;
                     continue;
                 }
             };
@@ -190,12 +221,14 @@ impl SiteTask {
                         .await;
                     let _ = reply.send(opened);
                     self.heard(&session_uuid);
+                    self.checkpoint_if_due().await;
                 }
                 Command::Upload { batch, reply } => {
                     let session = batch.session_uuid.clone();
                     let span = session_span(&batch.robot_id, &session);
                     let _ = reply.send(self.upload(*batch).instrument(span).await);
                     self.heard(&session);
+                    self.checkpoint_if_due().await;
                 }
                 Command::CloseSession {
                     robot_id,
@@ -207,6 +240,7 @@ impl SiteTask {
                         .instrument(session_span(&robot_id, &session_uuid))
                         .await;
                     let _ = reply.send(closed);
+                    self.checkpoint_if_due().await;
                 }
                 Command::Delta { since, reply } => {
                     let _ = reply.send(self.map().and_then(|m| m.delta_since(since)));
@@ -383,13 +417,18 @@ impl SiteTask {
         let published = self.versions.borrow().version;
         let before = self.map()?.version();
         let started = Instant::now();
-        let map = {
+        let loaded = {
             let (site, store, options) =
                 (self.site(), Arc::clone(&self.store), self.options.clone());
-            tokio::task::spawn_blocking(move || replay(&site, options, store.as_ref()))
-                .await
-                .map_err(SiteError::Worker)??
+            let use_checkpoints = self.checkpoints.enabled;
+            tokio::task::spawn_blocking(move || {
+                load(&site, options, store.as_ref(), use_checkpoints)
+            })
+            .await
+            .map_err(SiteError::Worker)??
         };
+        let map = loaded.map;
+        self.checkpointed_version = loaded.checkpoint.unwrap_or(0);
         if map.version() < published {
             return Err(SiteError::CorruptLog {
                 index: map.version() + 1,
@@ -474,6 +513,64 @@ impl SiteTask {
         }
     }
 
+    /// Writes a checkpoint of the site when one is due and can be taken (see the module docs), then
+    /// compacts the log. A failure is logged and retried after a later change: the log stays whole
+    /// until a checkpoint is durable, so nothing depends on it.
+    async fn checkpoint_if_due(&mut self) {
+        let Ok(version) = self.map().map(SiteMap::version) else {
+            return;
+        };
+        let options = self.checkpoints;
+        let by_versions =
+            version.saturating_sub(self.checkpointed_version) >= options.every_n_versions;
+        if !options.enabled
+            || !(self.checkpoint_due || by_versions)
+            || version <= self.checkpointed_version
+            || self.unflushed
+            || self.store.generation() != self.generation
+        {
+            return;
+        }
+        let started = Instant::now();
+        let encoded = self
+            .with_map_blocking(|map| {
+                map.checkpoint()
+                    .map(|c| pb::SiteCheckpoint::from(&c).encode_to_vec())
+            })
+            .await;
+        let bytes = match encoded {
+            Ok(Some(bytes)) => bytes,
+            Ok(None) => return, // a session is mid-start: at a later change
+            Err(e) => {
+                tracing::warn!(version, "cannot checkpoint the site: {e}");
+                return;
+            }
+        };
+        let (store, site, size) = (Arc::clone(&self.store), self.site(), bytes.len());
+        let retention = options.retention();
+        let written = tokio::task::spawn_blocking(move || {
+            store.put_checkpoint(&site, version, &bytes)?;
+            store.compact(&site, SITE_LOG_KIND, &retention)
+        })
+        .await;
+        match written {
+            Ok(Ok(compaction)) => {
+                self.checkpoint_due = false;
+                self.checkpointed_version = version;
+                tracing::info!(
+                    version,
+                    bytes = size,
+                    seconds = started.elapsed().as_secs_f64(),
+                    log_compacted_through = compaction.log_compacted_through,
+                    log_entries_removed = compaction.log_entries_removed,
+                    "site checkpointed"
+                );
+            }
+            Ok(Err(e)) => tracing::warn!(version, "cannot store the site's checkpoint: {e}"),
+            Err(e) => tracing::warn!(version, "cannot store the site's checkpoint: {e}"),
+        }
+    }
+
     async fn open_session(
         &mut self,
         robot_id: &str,
@@ -545,6 +642,7 @@ impl SiteTask {
         self.metrics.upload_applied();
         if self.map()?.is_closed(&session) {
             self.last_heard.remove(&session);
+            self.checkpoint_due = true;
         }
         self.durable().await?;
         self.publish();
@@ -584,6 +682,7 @@ impl SiteTask {
         self.with_map_blocking(move |map| map.close_session(&robot, &session, version))
             .await??;
         self.last_heard.remove(session_uuid);
+        self.checkpoint_due = true;
         self.metrics.record_pgr(started.elapsed());
         self.durable().await?;
         self.publish();
@@ -591,26 +690,120 @@ impl SiteTask {
     }
 }
 
-/// Rebuilds a site map from its stored log.
-fn replay(
+/// What [`load`] rebuilt a site from.
+pub(crate) struct Loaded {
+    pub(crate) map: SiteMap,
+    /// The log index of the checkpoint it started from (`None`: the whole log).
+    pub(crate) checkpoint: Option<u64>,
+    /// Log entries replayed after it.
+    pub(crate) replayed: u64,
+}
+
+/// Rebuilds a site map from its store: the newest checkpoint that reads back (when `use_checkpoints`)
+/// and the log after it, or the whole log (see the module docs for which checkpoints are skipped and
+/// which stop the site).
+pub(crate) fn load(
     site: &str,
     options: LifelongOptions,
     store: &dyn MapStore,
-) -> Result<SiteMap, SiteError> {
-    let mut map = SiteMap::new(site, options).map_err(SiteError::Map)?;
-    let stored_version = store.map_version(site)?;
-    for record in store.scan(site, SITE_LOG_KIND)? {
+    use_checkpoints: bool,
+) -> Result<Loaded, SiteError> {
+    let mut from = None;
+    if use_checkpoints {
+        for index in store.checkpoint_indexes(site)? {
+            match restore_checkpoint(site, options.clone(), store, index) {
+                Ok(Some(map)) => {
+                    from = Some((index, map));
+                    break;
+                }
+                Ok(None) => {}
+                Err(
+                    e @ (SiteError::CorruptCheckpoint { .. }
+                    | SiteError::Storage(storage::StorageError::Corrupt { .. })),
+                ) => {
+                    tracing::warn!(
+                        index,
+                        "site checkpoint unreadable, falling back to the one before it: {e}"
+                    );
+                }
+                Err(e) => return Err(e),
+            }
+        }
+    }
+    let checkpoint = from.as_ref().map(|(index, _)| *index);
+    let mut map = match from {
+        Some((_, map)) => map,
+        None => SiteMap::new(site, options).map_err(SiteError::Map)?,
+    };
+    let replayed = replay_after(&mut map, store)?;
+    Ok(Loaded {
+        map,
+        checkpoint,
+        replayed,
+    })
+}
+
+/// The site the checkpoint at `index` holds; `Ok(None)` if it is gone (compacted since it was listed).
+fn restore_checkpoint(
+    site: &str,
+    options: LifelongOptions,
+    store: &dyn MapStore,
+    index: u64,
+) -> Result<Option<SiteMap>, SiteError> {
+    let corrupt = |reason: String| SiteError::CorruptCheckpoint { index, reason };
+    let Some(bytes) = store.checkpoint(site, index)? else {
+        return Ok(None);
+    };
+    let message = pb::SiteCheckpoint::decode(bytes.as_slice())
+        .map_err(|e| corrupt(format!("it does not decode: {e}")))?;
+    if message.format_version != CHECKPOINT_FORMAT_VERSION {
+        // Never guessed at, never rebuilt behind: the log it covers may be compacted away.
+        return Err(SiteError::CheckpointRefused {
+            index,
+            source: proto::ConversionError::UnsupportedFormatVersion {
+                message: "SiteCheckpoint",
+                got: message.format_version,
+                supported: CHECKPOINT_FORMAT_VERSION,
+            }
+            .into(),
+        });
+    }
+    let checkpoint = SiteCheckpoint::try_from(&message).map_err(|e| corrupt(e.to_string()))?;
+    if checkpoint.log_index != index {
+        return Err(corrupt(format!(
+            "it is stored under log index {index} but says it covers {}",
+            checkpoint.log_index
+        )));
+    }
+    SiteMap::restore(site, options, checkpoint).map(Some)
+}
+
+/// Replays the log entries after `map`'s version (entries at or before it, kept for a fallback or for
+/// audit, are skipped undecoded); the log must continue the map without a gap and end at the store's
+/// version. Returns the number of entries replayed.
+fn replay_after(map: &mut SiteMap, store: &dyn MapStore) -> Result<u64, SiteError> {
+    let site = map.site().to_owned();
+    let stored_version = store.map_version(&site)?;
+    let mut replayed = 0;
+    for record in store.scan(&site, SITE_LOG_KIND)? {
         let (id, bytes) = record?;
         let index = id.as_u64().ok_or_else(|| SiteError::CorruptLog {
             index: 0,
             reason: format!("log record id {id} is not a number"),
         })?;
+        if index <= map.version() {
+            continue;
+        }
         let corrupt = |reason: String| SiteError::CorruptLog { index, reason };
         let undecodable = |source: Box<dyn std::error::Error + Send + Sync>| {
             SiteError::CorruptEntry { index, source }
         };
         if index != map.version() + 1 {
-            return Err(corrupt(format!("expected entry {}", map.version() + 1)));
+            return Err(corrupt(if map.version() == 0 {
+                "the log before it is compacted away and no readable checkpoint covers it".into()
+            } else {
+                format!("expected entry {}", map.version() + 1)
+            }));
         }
         let entry =
             pb::SiteLogEntry::decode(bytes.as_slice()).map_err(|e| undecodable(e.into()))?;
@@ -633,6 +826,7 @@ fn replay(
             }
             None => return Err(corrupt("empty entry".into())),
         }
+        replayed += 1;
     }
     if map.version() != stored_version {
         return Err(SiteError::CorruptLog {
@@ -643,7 +837,7 @@ fn replay(
             ),
         });
     }
-    Ok(map)
+    Ok(replayed)
 }
 
 #[cfg(test)]
@@ -668,6 +862,7 @@ mod tests {
             SiteTaskOptions {
                 queue_depth: 4,
                 session_idle_timeout,
+                checkpoints: CheckpointOptions::DEFAULT,
             },
         )
         .await

@@ -63,6 +63,7 @@ impl Site {
             SiteTaskOptions {
                 queue_depth: 4,
                 session_idle_timeout: None,
+                ..SiteTaskOptions::default()
             },
         )
         .await

@@ -1,0 +1,227 @@
+//! The server's part of a site checkpoint (`SiteServerState` in `site_checkpoint.proto`): what the
+//! server keeps about a site beyond the lifelong map — sessions with their acknowledged sequence
+//! numbers, published submaps' versions, trimmed submaps, counters — as plain data. The server turns
+//! its `SiteMap` into this and back; here it is only encoded, decoded and checked.
+
+use std::collections::{BTreeMap, BTreeSet};
+
+use mapping::geometry::Rigid2;
+use mapping::pose_graph::SubmapId;
+
+use super::{pose_from_exact, pose_to_exact, required, submap_in};
+use crate::{ConversionError, pb};
+
+/// One session of a site as the server keeps it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SiteSessionState {
+    /// The robot that opened it.
+    pub robot_id: String,
+    /// Its trajectory in the site map.
+    pub trajectory: u32,
+    /// The last applied upload sequence number (0: none).
+    pub last_seq: u64,
+    /// Whether it has ended.
+    pub closed: bool,
+    /// The robot's `global_from_local` prior, if it sent one.
+    pub prior: Option<Rigid2>,
+    /// The robot matches its nodes against the map itself.
+    pub glm_on_robot: bool,
+    /// Nodes applied.
+    pub nodes: u64,
+    /// It ended unplaced or on probation and was dropped.
+    pub dropped: bool,
+}
+
+/// A published submap's versions.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PublishedSubmapState {
+    /// The version at which its grid was published.
+    pub revision: u64,
+    /// The version at which its global pose last changed.
+    pub pose_version: u64,
+    /// The global pose at `pose_version`.
+    pub pose: Rigid2,
+}
+
+/// The session-start decisions a site counted (the server's `SessionStartCounts`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct SessionStartCountsState {
+    /// Sessions that came with their robot's placement.
+    pub priors: u64,
+    /// Server searches that placed their session.
+    pub placed: u64,
+    /// Server searches that did not.
+    pub refused: u64,
+    /// Server searches after a session's first.
+    pub retries: u64,
+    /// Placements committed.
+    pub committed: u64,
+    /// Placements revoked.
+    pub revoked: u64,
+    /// Sessions that stopped searching unplaced.
+    pub gave_up: u64,
+}
+
+/// The server's part of a site's state (see the module docs).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct SiteServerState {
+    /// Every session, by session uuid.
+    pub sessions: BTreeMap<String, SiteSessionState>,
+    /// Published submaps' versions.
+    pub published: BTreeMap<SubmapId, PublishedSubmapState>,
+    /// Published submaps trimmed since, with the version that trimmed each.
+    pub trimmed: BTreeMap<SubmapId, u64>,
+    /// Optimizations run since the site began.
+    pub optimizations: u64,
+    /// Sessions dropped since the site began.
+    pub dropped_sessions: u64,
+    /// Trajectories whose robot's placement was revoked.
+    pub robot_revoked: BTreeSet<u32>,
+    /// The session that started the map.
+    pub base: Option<u32>,
+    /// What the session starts decided.
+    pub session_starts: SessionStartCountsState,
+}
+
+pub(super) fn site_to_pb(s: &SiteServerState) -> pb::SiteServerState {
+    let c = s.session_starts;
+    pb::SiteServerState {
+        sessions: s
+            .sessions
+            .iter()
+            .map(|(uuid, session)| pb::SiteSessionState {
+                session_uuid: uuid.clone(),
+                robot_id: session.robot_id.clone(),
+                trajectory: session.trajectory,
+                last_seq: session.last_seq,
+                closed: session.closed,
+                prior: session.prior.as_ref().map(pose_to_exact),
+                glm_on_robot: session.glm_on_robot,
+                nodes: session.nodes,
+                dropped: session.dropped,
+            })
+            .collect(),
+        published: s
+            .published
+            .iter()
+            .map(|(id, p)| pb::PublishedSubmapState {
+                id: Some((*id).into()),
+                revision: p.revision,
+                pose_version: p.pose_version,
+                pose: Some(pose_to_exact(&p.pose)),
+            })
+            .collect(),
+        trimmed: s
+            .trimmed
+            .iter()
+            .map(|(id, version)| pb::TrimmedSubmapState {
+                id: Some((*id).into()),
+                version: *version,
+            })
+            .collect(),
+        optimizations: s.optimizations,
+        dropped_sessions: s.dropped_sessions,
+        robot_revoked: s.robot_revoked.iter().copied().collect(),
+        base: s.base,
+        session_starts: Some(pb::SessionStartCountsState {
+            priors: c.priors,
+            placed: c.placed,
+            refused: c.refused,
+            retries: c.retries,
+            committed: c.committed,
+            revoked: c.revoked,
+            gave_up: c.gave_up,
+        }),
+    }
+}
+
+/// Refuses a key seen twice: the encoder writes each once, so a repeat is damage, not data to merge.
+fn unique<K: Ord, V>(
+    map: &mut BTreeMap<K, V>,
+    key: K,
+    value: V,
+    message: &'static str,
+    field: &'static str,
+    shown: impl FnOnce() -> String,
+) -> Result<(), ConversionError> {
+    if map.insert(key, value).is_some() {
+        return Err(ConversionError::OutOfRange {
+            message,
+            field,
+            value: format!("{} listed twice", shown()),
+        });
+    }
+    Ok(())
+}
+
+pub(super) fn site_from_pb(s: &pb::SiteServerState) -> Result<SiteServerState, ConversionError> {
+    const M: &str = "SiteServerState";
+    let mut sessions = BTreeMap::new();
+    for session in &s.sessions {
+        const S: &str = "SiteSessionState";
+        let state = SiteSessionState {
+            robot_id: session.robot_id.clone(),
+            trajectory: session.trajectory,
+            last_seq: session.last_seq,
+            closed: session.closed,
+            prior: session
+                .prior
+                .as_ref()
+                .map(|p| pose_from_exact(Some(p), S, "prior"))
+                .transpose()?,
+            glm_on_robot: session.glm_on_robot,
+            nodes: session.nodes,
+            dropped: session.dropped,
+        };
+        unique(
+            &mut sessions,
+            session.session_uuid.clone(),
+            state,
+            S,
+            "session_uuid",
+            || format!("session {:?}", session.session_uuid),
+        )?;
+    }
+    let mut published = BTreeMap::new();
+    for p in &s.published {
+        const P: &str = "PublishedSubmapState";
+        let id = submap_in(p.id.as_ref(), P, "id")?;
+        let state = PublishedSubmapState {
+            revision: p.revision,
+            pose_version: p.pose_version,
+            pose: pose_from_exact(p.pose.as_ref(), P, "pose")?,
+        };
+        unique(&mut published, id, state, P, "id", || format!("{id:?}"))?;
+    }
+    let mut trimmed = BTreeMap::new();
+    for t in &s.trimmed {
+        let id = submap_in(t.id.as_ref(), "TrimmedSubmapState", "id")?;
+        unique(
+            &mut trimmed,
+            id,
+            t.version,
+            "TrimmedSubmapState",
+            "id",
+            || format!("{id:?}"),
+        )?;
+    }
+    let c = required(s.session_starts.as_ref(), M, "session_starts")?;
+    Ok(SiteServerState {
+        sessions,
+        published,
+        trimmed,
+        optimizations: s.optimizations,
+        dropped_sessions: s.dropped_sessions,
+        robot_revoked: s.robot_revoked.iter().copied().collect(),
+        base: s.base,
+        session_starts: SessionStartCountsState {
+            priors: c.priors,
+            placed: c.placed,
+            refused: c.refused,
+            retries: c.retries,
+            committed: c.committed,
+            revoked: c.revoked,
+            gave_up: c.gave_up,
+        },
+    })
+}
