@@ -1,11 +1,24 @@
-//! The kill -9 test: a child process (`storage-torture`) applies batches durably to a `SledStore` and prints
-//! each acknowledged sequence number; we SIGKILL it at a random moment, reopen the store and check that every
-//! acknowledged batch is present whole, that no batch is present in part, and that no record is corrupt.
+//! The kill -9 test: a child process (`storage-torture`) applies batches durably to a `SledStore`, writes
+//! checkpoints of the site and compacts its log (issue 34), and prints each step it finished; we SIGKILL
+//! it at a random moment — while it applies batches, while it opens and restores the site, or just after
+//! it began a checkpoint write or a compaction — reopen the store and check:
+//! - every acknowledged batch is present whole, no batch is present in part, and no record is corrupt
+//!   (the batches' Node records are never compacted: all of them, exactly);
+//! - every acknowledged batch is still readable: in the log, or covered by a checkpoint that verifies;
+//! - no checkpoint is corrupt, and every one that reads back holds exactly what its log index implies (a
+//!   digest of the log entries up to it, chained, and a body derived from that): none is returned valid
+//!   with other content; the newest acknowledged one is there unless compaction kept newer ones;
+//! - the log is one run without gaps up to the last batch, untouched while fewer than 2 checkpoints
+//!   verify and complete after the oldest stored one; restoring from every stored checkpoint plus the
+//!   log after it gives the digest of the whole log, and the next writer restored from the newest one;
+//! - at most 2 checkpoints are stored, and one more for each checkpoint write begun since the last
+//!   compaction that returned (a kill between a checkpoint and its compaction leaves it for the next).
+//!
 //! Repeated over many cycles on the same database, which keeps growing across kills.
 //!
-//! `kill_nine_cycles` is bounded for CI (30 cycles, 60 s). `kill_nine_long` (ignored) runs 300 cycles:
-//! `cargo nextest run --workspace --run-ignored only -E 'test(kill_nine_long)'`; set `EVERMAP_TORTURE_CYCLES`
-//! and `EVERMAP_TORTURE_SEED` to change the cycle count and the random seed.
+//! `kill_nine_cycles` is bounded for CI (60 cycles, 60 s; about 10 s here). `kill_nine_long` (ignored)
+//! runs 300 cycles: `cargo nextest run --workspace --run-ignored only -E 'test(kill_nine_long)'`; set
+//! `EVERMAP_TORTURE_CYCLES` and `EVERMAP_TORTURE_SEED` to change the cycle count and the random seed.
 
 #![expect(clippy::unwrap_used, reason = "test code")]
 
@@ -26,19 +39,88 @@ use storage::{MapStore as _, RecordId, RecordKind, SledStore};
 
 /// Batches one child may write before exiting by itself (a safety bound; kills come much earlier).
 const MAX_BATCHES_PER_CHILD: u64 = 5_000;
+/// Longest wait for the writer's next line.
+const WAIT: Duration = Duration::from_secs(20);
+
+/// One line of the writer (see `storage-torture`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Event {
+    Restored(u64),
+    Batch(u64),
+    CheckpointBegins(u64),
+    Checkpointed { index: u64, micros: u64 },
+    CompactionBegins(u64),
+    Compacted { micros: u64, removed: u64 },
+}
+
+impl Event {
+    fn parse(line: &str) -> Option<Self> {
+        let mut words = line.split(' ');
+        let tag = words.next()?;
+        let mut numbers = words.map(|word| word.parse::<u64>().ok());
+        let mut next = || numbers.next().flatten();
+        Some(match tag {
+            "r" => Self::Restored(next()?),
+            "b" => Self::Batch(next()?),
+            "C" => Self::CheckpointBegins(next()?),
+            "c" => Self::Checkpointed {
+                index: next()?,
+                micros: next()?,
+            },
+            "K" => Self::CompactionBegins(next()?),
+            "k" => {
+                let _index = next()?;
+                Self::Compacted {
+                    micros: next()?,
+                    removed: next()?,
+                }
+            }
+            _ => return None,
+        })
+    }
+}
+
+/// When a cycle kills the writer.
+#[derive(Clone, Copy, Debug)]
+enum Moment {
+    /// A random time after spawning (opening, restoring, the first batches).
+    Start,
+    /// A random time after the first acknowledged batch.
+    Batches,
+    /// A random time within half the last checkpoint write's duration after one begins.
+    Checkpoint,
+    /// A random time within half the last compaction's duration after one begins.
+    Compaction,
+}
 
 #[derive(Debug, Default)]
 struct Tally {
     cycles: u64,
     killed_by_signal: u64,
     killed_before_first_ack: u64,
+    /// Kills that landed after a checkpoint write began and before it returned.
+    killed_in_checkpoint: u64,
+    /// Kills that landed after a compaction began and before it returned.
+    killed_in_compaction: u64,
     acked_batches: u64,
     unacked_but_applied: u64,
+    acked_checkpoints: u64,
+    acked_compactions: u64,
+    log_entries_removed: u64,
+    /// Writers that restored from a checkpoint (not from the whole log).
+    restored_from_checkpoint: u64,
     last_seq: u64,
+    /// The newest acknowledged checkpoint.
+    newest_acked_checkpoint: u64,
+    /// Checkpoint writes begun since the last compaction returned.
+    checkpoints_since_compaction: usize,
+    /// What the last verification found.
+    newest_checkpoint: u64,
+    log_begins_at: u64,
 }
 
-/// Reads acknowledgement lines until the child's stdout closes; only complete lines count.
-fn spawn_reader(stdout: std::process::ChildStdout) -> mpsc::Receiver<u64> {
+/// Reads the writer's lines until its stdout closes; only complete lines count.
+fn spawn_reader(stdout: std::process::ChildStdout) -> mpsc::Receiver<Event> {
     let (sender, receiver) = mpsc::channel();
     thread::Builder::new()
         .name("ack-reader".to_owned())
@@ -46,8 +128,8 @@ fn spawn_reader(stdout: std::process::ChildStdout) -> mpsc::Receiver<u64> {
             let mut reader = BufReader::new(stdout);
             let mut line = String::new();
             while reader.read_line(&mut line).unwrap_or(0) > 0 {
-                if let Some(seq) = line.strip_suffix('\n').and_then(|seq| seq.parse().ok())
-                    && sender.send(seq).is_err()
+                if let Some(event) = line.strip_suffix('\n').and_then(Event::parse)
+                    && sender.send(event).is_err()
                 {
                     return;
                 }
@@ -58,8 +140,40 @@ fn spawn_reader(stdout: std::process::ChildStdout) -> mpsc::Receiver<u64> {
     receiver
 }
 
-/// Checks the whole database against the workload; returns the last applied sequence number.
-fn verify(path: &Path, max_acked: u64) -> u64 {
+/// The digests of the workload's log up to each index (index 0: the empty log), extended on demand.
+struct Digests(Vec<u64>);
+
+impl Digests {
+    fn up_to(&mut self, index: u64) -> u64 {
+        let index = usize::try_from(index).unwrap();
+        while self.0.len() <= index {
+            let seq = self.0.len() as u64;
+            let previous = *self.0.last().unwrap();
+            self.0
+                .push(workload::digest(previous, seq, &workload::log_value(seq)));
+        }
+        self.0[index]
+    }
+}
+
+/// What a verification found.
+struct Verified {
+    last: u64,
+    /// The stored checkpoints, newest first (all verify).
+    checkpoints: Vec<u64>,
+    /// The first log entry (`last + 1`: an empty log).
+    log_begins_at: u64,
+}
+
+/// Checks the whole database against the workload, every acknowledged batch up to `max_acked` and the
+/// newest acknowledged checkpoint.
+fn verify(
+    path: &Path,
+    max_acked: u64,
+    acked_checkpoint: u64,
+    uncompacted: usize,
+    digests: &mut Digests,
+) -> Verified {
     let store = SledStore::open_path(path).unwrap();
     let last = store
         .last_applied_seq(workload::SITE, workload::SESSION)
@@ -76,7 +190,12 @@ fn verify(path: &Path, max_acked: u64) -> u64 {
     );
     if last == 0 {
         assert!(store.list_sites().unwrap().is_empty());
-        return 0;
+        assert!(store.checkpoint_indexes(workload::SITE).unwrap().is_empty());
+        return Verified {
+            last,
+            checkpoints: Vec::new(),
+            log_begins_at: 1,
+        };
     }
     let latest = store
         .get(
@@ -125,7 +244,133 @@ fn verify(path: &Path, max_acked: u64) -> u64 {
         None,
         "nodes of acknowledged batches are missing"
     );
-    last
+
+    // Checkpoints: each one stored verifies and holds what its index implies.
+    let checkpoints = store.checkpoint_indexes(workload::SITE).unwrap();
+    assert!(
+        checkpoints.len() <= workload::KEEP_CHECKPOINTS + uncompacted,
+        "compaction keeps {} checkpoints and {uncompacted} were begun since, {} are stored: \
+         {checkpoints:?}",
+        workload::KEEP_CHECKPOINTS,
+        checkpoints.len()
+    );
+    let mut restore_points = Vec::new();
+    for &index in &checkpoints {
+        assert!(
+            (1..=last).contains(&index),
+            "checkpoint {index} is beyond the log (1..={last})"
+        );
+        let payload = store
+            .checkpoint(workload::SITE, index)
+            .unwrap_or_else(|error| panic!("checkpoint {index} is corrupt after a kill: {error}"))
+            .unwrap_or_else(|| panic!("checkpoint {index} is listed but absent"));
+        let expected = workload::checkpoint_payload(index, digests.up_to(index));
+        assert!(
+            payload == expected,
+            "checkpoint {index} reads back valid but is not what its index implies: {} bytes, \
+             header {:?}; expected {} bytes, header {:?}",
+            payload.len(),
+            workload::checkpoint_header(&payload),
+            expected.len(),
+            workload::checkpoint_header(&expected)
+        );
+        restore_points.push(workload::checkpoint_header(&payload).unwrap());
+    }
+    let newest = checkpoints.first().copied().unwrap_or(0);
+    if acked_checkpoint > 0 {
+        let newer = checkpoints
+            .iter()
+            .filter(|&&index| index > acked_checkpoint)
+            .count();
+        assert!(
+            checkpoints.contains(&acked_checkpoint) || newer >= workload::KEEP_CHECKPOINTS,
+            "checkpoint {acked_checkpoint} was acknowledged but is gone, and only {newer} newer \
+             are stored: {checkpoints:?}"
+        );
+    }
+
+    // The log: one run without gaps up to the last batch, and none of it compacted that a kept
+    // checkpoint does not cover.
+    let log: Vec<(u64, Vec<u8>)> = store
+        .scan(workload::SITE, workload::LOG_KIND)
+        .unwrap()
+        .map(|item| {
+            let (id, value) =
+                item.unwrap_or_else(|error| panic!("corrupt log entry after kill: {error}"));
+            (id.as_u64().unwrap(), value)
+        })
+        .collect();
+    let log_begins_at = log.first().map_or(last + 1, |(seq, _)| *seq);
+    for (offset, (seq, value)) in log.iter().enumerate() {
+        assert_eq!(
+            *seq,
+            log_begins_at + offset as u64,
+            "a gap in the log before entry {seq} (it begins at {log_begins_at})"
+        );
+        assert!(
+            *value == workload::log_value(*seq),
+            "log entry {seq} holds the wrong value"
+        );
+    }
+    assert_eq!(
+        log_begins_at + log.len() as u64,
+        last + 1,
+        "the log does not end at the last batch {last}"
+    );
+    if checkpoints.len() < workload::KEEP_CHECKPOINTS {
+        assert_eq!(
+            log_begins_at, 1,
+            "the log was compacted with only {checkpoints:?} checkpoint(s)"
+        );
+    }
+    let oldest = checkpoints.last().copied().unwrap_or(0);
+    assert!(
+        log_begins_at <= oldest + 1,
+        "the log after the oldest stored checkpoint {oldest} is incomplete: it begins at \
+         {log_begins_at} (checkpoints {checkpoints:?})"
+    );
+    assert!(
+        log_begins_at <= newest + 1,
+        "batches {}..{log_begins_at} were acknowledged but are neither in the log nor covered by a \
+         checkpoint",
+        newest + 1
+    );
+    // A restart from any stored checkpoint (the newest, or one a fallback would take) and the log after
+    // it rebuilds the whole log's state.
+    for (index, digest) in restore_points {
+        let restored = log
+            .iter()
+            .filter(|(seq, _)| *seq > index)
+            .fold(digest, |digest, (seq, value)| {
+                workload::digest(digest, *seq, value)
+            });
+        assert_eq!(
+            restored,
+            digests.up_to(last),
+            "checkpoint {index} and the log after it do not restore the log up to {last}"
+        );
+    }
+    Verified {
+        last,
+        checkpoints,
+        log_begins_at,
+    }
+}
+
+/// Waits for the writer's first event `wanted` accepts, keeping every event; `false` if the writer
+/// stopped or was silent for [`WAIT`].
+fn wait_for(
+    events: &mpsc::Receiver<Event>,
+    seen: &mut Vec<Event>,
+    wanted: impl Fn(&Event) -> bool,
+) -> bool {
+    while let Ok(event) = events.recv_timeout(WAIT) {
+        seen.push(event);
+        if wanted(&event) {
+            return true;
+        }
+    }
+    false
 }
 
 fn torture(cycles: u64, seed: u64, budget: Duration) -> Tally {
@@ -133,7 +378,13 @@ fn torture(cycles: u64, seed: u64, budget: Duration) -> Tally {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("db");
     let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
-    let mut tally = Tally::default();
+    let mut tally = Tally {
+        log_begins_at: 1,
+        ..Tally::default()
+    };
+    let mut digests = Digests(vec![0]);
+    // How long the last checkpoint write and compaction took: the targeted kills' windows.
+    let (mut checkpoint_micros, mut compaction_micros) = (5_000, 2_000);
     let start = Instant::now();
     while tally.cycles < cycles && start.elapsed() < budget {
         let mut child = Command::new(binary)
@@ -143,27 +394,47 @@ fn torture(cycles: u64, seed: u64, budget: Duration) -> Tally {
             .stderr(Stdio::piped())
             .spawn()
             .unwrap();
-        let acks = spawn_reader(child.stdout.take().unwrap());
-        // One cycle in five kills at a random moment after spawning (opening and recovery included); the rest
-        // kill a random time after the first acknowledgement, i.e. while batches are being written.
-        let mut acked = Vec::new();
-        if rng.random_ratio(1, 5) {
-            thread::sleep(Duration::from_millis(rng.random_range(0..60)));
-        } else {
-            let Ok(seq) = acks.recv_timeout(Duration::from_secs(20)) else {
-                let _ = child.kill();
-                let output = child.wait_with_output().unwrap();
-                panic!(
-                    "writer acknowledged nothing in 20 s: {}",
-                    String::from_utf8_lossy(&output.stderr)
-                );
-            };
-            acked.push(seq);
-            thread::sleep(Duration::from_micros(rng.random_range(0..150_000)));
+        let events = spawn_reader(child.stdout.take().unwrap());
+        // Checkpoint writes are short (under a millisecond here, about the time the kill takes to land
+        // after the writer said it began one): they get more cycles than compactions.
+        let moment = match rng.random_range(0..6) {
+            0 => Moment::Start,
+            1 | 2 => Moment::Batches,
+            3 | 4 => Moment::Checkpoint,
+            _ => Moment::Compaction,
+        };
+        let mut seen = Vec::new();
+        let reached = match moment {
+            Moment::Start => {
+                thread::sleep(Duration::from_millis(rng.random_range(0..60)));
+                true
+            }
+            Moment::Batches => wait_for(&events, &mut seen, |e| matches!(e, Event::Batch(_))),
+            Moment::Checkpoint => wait_for(&events, &mut seen, |e| {
+                matches!(e, Event::CheckpointBegins(_))
+            }),
+            Moment::Compaction => wait_for(&events, &mut seen, |e| {
+                matches!(e, Event::CompactionBegins(_))
+            }),
+        };
+        if !reached {
+            let _ = child.kill();
+            let output = child.wait_with_output().unwrap();
+            panic!(
+                "writer did not reach {moment:?} in {WAIT:?}: {}",
+                String::from_utf8_lossy(&output.stderr)
+            );
         }
+        let delay = match moment {
+            Moment::Start => 0,
+            Moment::Batches => rng.random_range(0..150_000),
+            Moment::Checkpoint => rng.random_range(0..=checkpoint_micros / 2),
+            Moment::Compaction => rng.random_range(0..=compaction_micros / 2),
+        };
+        thread::sleep(Duration::from_micros(delay));
         child.kill().unwrap(); // SIGKILL on Unix
         let status = child.wait().unwrap();
-        acked.extend(acks.iter());
+        seen.extend(events.iter());
         if status.signal() == Some(9) {
             tally.killed_by_signal += 1;
         } else {
@@ -174,20 +445,60 @@ fn torture(cycles: u64, seed: u64, budget: Duration) -> Tally {
                 "writer failed before the kill ({status}): {stderr}"
             );
         }
-        if acked.is_empty() {
+        match seen.last() {
+            Some(Event::CheckpointBegins(_)) => tally.killed_in_checkpoint += 1,
+            Some(Event::CompactionBegins(_)) => tally.killed_in_compaction += 1,
+            _ => {}
+        }
+        let mut max_acked = 0;
+        for event in &seen {
+            match *event {
+                Event::Restored(index) => {
+                    assert_eq!(
+                        index, tally.newest_checkpoint,
+                        "the writer restored from checkpoint {index}, not the newest stored one"
+                    );
+                    tally.restored_from_checkpoint += u64::from(index > 0);
+                }
+                Event::Batch(seq) => {
+                    assert!(
+                        seq > tally.last_seq.max(max_acked),
+                        "acks must continue after the stored batches"
+                    );
+                    max_acked = seq;
+                    tally.acked_batches += 1;
+                }
+                Event::Checkpointed { index, micros } => {
+                    tally.newest_acked_checkpoint = index;
+                    tally.acked_checkpoints += 1;
+                    checkpoint_micros = micros.clamp(100, 200_000);
+                }
+                Event::CheckpointBegins(_) => tally.checkpoints_since_compaction += 1,
+                Event::Compacted { micros, removed } => {
+                    tally.checkpoints_since_compaction = 0;
+                    tally.acked_compactions += 1;
+                    tally.log_entries_removed += removed;
+                    compaction_micros = micros.clamp(100, 200_000);
+                }
+                Event::CompactionBegins(_) => {}
+            }
+        }
+        if max_acked == 0 {
             tally.killed_before_first_ack += 1;
         }
-        let max_acked = acked.iter().copied().max().unwrap_or(0);
-        assert!(
-            max_acked == 0 || max_acked > tally.last_seq,
-            "acks must continue after the stored batches"
+        let verified = verify(
+            &path,
+            max_acked.max(tally.last_seq),
+            tally.newest_acked_checkpoint,
+            tally.checkpoints_since_compaction,
+            &mut digests,
         );
-        let last = verify(&path, max_acked.max(tally.last_seq));
-        tally.acked_batches += acked.len() as u64;
-        tally.unacked_but_applied += last - max_acked.max(tally.last_seq);
-        tally.last_seq = last;
+        tally.unacked_but_applied += verified.last - max_acked.max(tally.last_seq);
+        tally.last_seq = verified.last;
+        tally.newest_checkpoint = verified.checkpoints.first().copied().unwrap_or(0);
+        tally.log_begins_at = verified.log_begins_at;
         tally.cycles += 1;
-        if tally.cycles % 50 == 0 {
+        if tally.cycles.is_multiple_of(50) {
             eprintln!(
                 "cycle {}: {tally:?}, {:.0} s",
                 tally.cycles,
@@ -211,18 +522,8 @@ fn env_u64(name: &str, default: u64) -> u64 {
         .unwrap_or(default)
 }
 
-#[test]
-fn kill_nine_cycles() {
-    let tally = torture(
-        30,
-        env_u64("EVERMAP_TORTURE_SEED", 20_250_101),
-        Duration::from_secs(60),
-    );
-    assert!(
-        tally.cycles >= 10,
-        "only {} cycles ran in the time budget",
-        tally.cycles
-    );
+/// What every run must have exercised.
+fn assert_exercised(tally: &Tally) {
     assert!(
         tally.killed_by_signal * 10 >= tally.cycles * 9,
         "most writers must die by SIGKILL: {tally:?}"
@@ -231,6 +532,30 @@ fn kill_nine_cycles() {
         tally.last_seq >= 2 * tally.cycles,
         "too few batches written to test anything: {tally:?}"
     );
+    let targeted = tally.cycles / 12;
+    assert!(
+        tally.killed_in_checkpoint >= targeted && tally.killed_in_compaction >= targeted,
+        "too few kills landed in checkpoint writes or compactions: {tally:?}"
+    );
+    assert!(
+        tally.restored_from_checkpoint * 2 >= tally.cycles && tally.log_begins_at > 1,
+        "the writers must restore from checkpoints and compact the log: {tally:?}"
+    );
+}
+
+#[test]
+fn kill_nine_cycles() {
+    let tally = torture(
+        60,
+        env_u64("EVERMAP_TORTURE_SEED", 20_250_101),
+        Duration::from_secs(60),
+    );
+    assert!(
+        tally.cycles >= 10,
+        "only {} cycles ran in the time budget",
+        tally.cycles
+    );
+    assert_exercised(&tally);
 }
 
 #[test]
@@ -243,8 +568,5 @@ fn kill_nine_long() {
         Duration::from_secs(3600),
     );
     assert_eq!(tally.cycles, cycles, "time budget ran out: {tally:?}");
-    assert!(
-        tally.killed_by_signal * 10 >= tally.cycles * 9,
-        "most writers must die by SIGKILL: {tally:?}"
-    );
+    assert_exercised(&tally);
 }

@@ -6,12 +6,28 @@
 //!   so sled's large-value path is exercised too);
 //! - overwrites SiteMeta `"latest"` with `seq`;
 //! - puts Outbox `seq` and deletes Outbox `seq - 1`;
+//! - appends the site log entry [`LOG_KIND`] `seq` with `log_value(seq)`;
 //! - bumps the map version.
 //!
 //! So after batches 1..=n exactly: map version n, session n, latest n, a single Outbox record `n`, and the
 //! Node records of batches 1..=n and no others. Any partial batch breaks one of these.
+//!
+//! Checkpoints (issue 34): after batch `seq` with `checkpoint_due(seq)` the writer stores a checkpoint
+//! covering the log up to `seq`, [`checkpoint_payload`]: a header with the index and [`digest`] of the
+//! log entries 1..=`seq` (chained, so it is derivable only from every acknowledged entry in order) and a
+//! 16-256 KiB body generated from that digest; then it compacts the log, keeping [`KEEP_CHECKPOINTS`].
+//! Compaction deletes the log entries before the oldest kept checkpoint, so the checker recomputes what
+//! each checkpoint must hold from the workload alone.
 
 use storage::{RecordId, RecordKind, WriteBatch};
+
+/// The kind of the site log's entries (one per batch, id = the batch's sequence number).
+pub const LOG_KIND: RecordKind = RecordKind::Trajectory;
+/// Checkpoints a compaction keeps.
+pub const KEEP_CHECKPOINTS: usize = 2;
+/// Bytes of a checkpoint payload's header: magic, log index, digest.
+const CHECKPOINT_HEADER: usize = 4 + 8 + 8;
+const CHECKPOINT_MAGIC: &[u8; 4] = b"ckpt";
 
 /// Site written by the torture workload.
 pub const SITE: &str = "torture";
@@ -53,6 +69,64 @@ pub fn outbox_value(seq: u64) -> Vec<u8> {
     format!("upload {seq}").into_bytes()
 }
 
+/// Value of the site log entry `seq` (24-280 bytes).
+pub fn log_value(seq: u64) -> Vec<u8> {
+    let seed = mix(seq ^ 0x0106_0106);
+    let len = 24 + (seed % 257) as usize;
+    let mut state = seed;
+    (0..len)
+        .map(|_| {
+            state = mix(state);
+            state as u8
+        })
+        .collect()
+}
+
+/// The digest of the log entries up to `seq`, from the digest up to `seq - 1` and entry `seq`'s value
+/// (the digest of the empty log is 0).
+pub fn digest(previous: u64, seq: u64, log_value: &[u8]) -> u64 {
+    log_value
+        .chunks(8)
+        .fold(mix(previous ^ seq.rotate_left(17)), |h, chunk| {
+            let mut word = [0; 8];
+            word[..chunk.len()].copy_from_slice(chunk);
+            mix(h ^ u64::from_le_bytes(word))
+        })
+}
+
+/// Whether a checkpoint is written after batch `seq` (about one batch in 8).
+pub fn checkpoint_due(seq: u64) -> bool {
+    mix(seq ^ 0xC4EC_4B01).is_multiple_of(8)
+}
+
+/// The checkpoint covering the log up to `log_index`, whose digest is `digest`: the header (magic, index,
+/// digest) and 16-256 KiB generated from the digest.
+pub fn checkpoint_payload(log_index: u64, digest: u64) -> Vec<u8> {
+    let len = 16_384 + (mix(digest) % (256 * 1024 - 16_384)) as usize;
+    let mut payload = Vec::with_capacity(CHECKPOINT_HEADER + len + 8);
+    payload.extend_from_slice(CHECKPOINT_MAGIC);
+    payload.extend_from_slice(&log_index.to_le_bytes());
+    payload.extend_from_slice(&digest.to_le_bytes());
+    let mut state = digest;
+    while payload.len() < CHECKPOINT_HEADER + len {
+        state = mix(state);
+        payload.extend_from_slice(&state.to_le_bytes());
+    }
+    payload.truncate(CHECKPOINT_HEADER + len);
+    payload
+}
+
+/// The (log index, digest) a checkpoint payload's header states, `None` if it has none.
+pub fn checkpoint_header(payload: &[u8]) -> Option<(u64, u64)> {
+    let header = payload.get(..CHECKPOINT_HEADER)?;
+    let word = |at: usize| {
+        let mut bytes = [0; 8];
+        bytes.copy_from_slice(&header[at..at + 8]);
+        u64::from_le_bytes(bytes)
+    };
+    (&header[..4] == CHECKPOINT_MAGIC).then(|| (word(4), word(12)))
+}
+
 /// The whole batch `seq`.
 pub fn batch(seq: u64) -> WriteBatch {
     let mut batch = WriteBatch::new(SITE);
@@ -68,6 +142,7 @@ pub fn batch(seq: u64) -> WriteBatch {
     if seq > 1 {
         batch.delete(RecordKind::Outbox, seq - 1);
     }
+    batch.put(LOG_KIND, seq, log_value(seq));
     batch.bump_map_version().for_session(SESSION, seq);
     batch
 }
