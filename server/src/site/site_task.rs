@@ -548,6 +548,8 @@ impl SiteTask {
         };
         let (store, site, size) = (Arc::clone(&self.store), self.site(), bytes.len());
         let retention = options.retention();
+        // What the kill -9 chaos test times its kills by (`fleet-demo/tests/kill_nine_fleet.rs`).
+        tracing::debug!(version, bytes = size, "writing the site's checkpoint");
         let written = tokio::task::spawn_blocking(move || {
             store.put_checkpoint(&site, version, &bytes)?;
             store.compact(&site, SITE_LOG_KIND, &retention)
