@@ -1,9 +1,9 @@
 //! The simulated worlds the shells can build (`--world`), shared by `evermap-agent` and `evermap-server`.
 
 use clap::ValueEnum;
-use mapping::simulation::{AislesOptions, StoreOptions, WorldOptions};
+use simulator::{AislesOptions, StoreOptions, WorldOptions};
 
-/// The simulated worlds (`mapping::simulation`).
+/// The simulated worlds (`simulator`).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, ValueEnum)]
 pub enum World {
     /// A supermarket after typical floor plans: checkouts and entrance at the front, cases along the

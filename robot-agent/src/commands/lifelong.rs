@@ -27,7 +27,6 @@ use mapping::metrics::{
     map_world_agreement, pose_error, score_run, score_session, truth_at,
 };
 use mapping::sensor::Timestamp;
-use mapping::simulation::{SessionOptions, Store};
 use robot_agent::lifelong_run::{
     SessionEnd, SessionInput, SessionRecord, SessionSummary, SessionsConfig, run_session_inputs,
 };
@@ -35,6 +34,7 @@ use robot_agent::line_chart::{LineChart, Series};
 use robot_agent::{map_image, process_stats};
 use serde::Serialize;
 use serde_json::json;
+use simulator::{SessionOptions, Store};
 
 use super::simulate::World;
 
