@@ -38,10 +38,10 @@ use robot_agent::uplink::{
     FleetUplink, GlobalSubmapCache, GrpcUplink, MapUplink as _, SessionOptions, SessionStart,
     Uploader, ZenohLinkOptions, ZenohUplink, follow_site, session_span, stream_session,
 };
-use robot_agent::world::World;
 use serde_json::json;
 use server::site::SiteHandle;
 use server::{HttpConfig, RobotConfig, RunningServer, ServerConfig, SiteConfig};
+use simulator::World;
 use simulator::{SessionOptions as SimSessionOptions, Store};
 use storage::{SledStore, SledStoreOptions};
 use tokio::sync::watch;

@@ -50,9 +50,9 @@ use robot_agent::uplink::{
     GlobalSubmapCache, GrpcUplink, MapUplink as _, SessionOptions, Uploader, cached_submaps,
     follow_site_with, match_node, relocalize_nodes, run_llo, stream_recording, sync_matcher,
 };
-use robot_agent::world::World;
 use serde_json::json;
 use server::{RobotConfig, RunningServer, ServerConfig, SiteConfig};
+use simulator::World;
 use simulator::{SessionOptions as SimSessionOptions, Store};
 use storage::{SledStore, SledStoreOptions};
 use tokio::sync::watch;

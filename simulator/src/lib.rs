@@ -24,6 +24,7 @@
 //!   TiM571-like scans, drifting wheel odometry, a biased gyro) plus ground truth.
 //!
 //! * [`layout_to_rgb`]: a day's layout as a picture (structure, what changes, the route).
+//! * [`World`]: the worlds by name (`--world store|aisles`), at the benchmark's size or the demo's.
 //! * [`testing`] (feature `testing`): real simulated sessions fed to a lifelong map, resumable at any
 //!   node, for the checkpoint round-trip tests of `mapping` and `proto`.
 //!
@@ -39,6 +40,7 @@ mod simulated_session;
 mod store;
 pub mod store_layout;
 mod store_options;
+mod world;
 mod world_options;
 
 pub use aisles_options::AislesOptions;
@@ -48,6 +50,7 @@ pub use session_options::SessionOptions;
 pub use simulated_session::SimulatedSession;
 pub use store::{ItemKind, Store, TruthOccupancy};
 pub use store_options::StoreOptions;
+pub use world::World;
 pub use world_options::WorldOptions;
 
 /// Errors of the simulator.

@@ -28,8 +28,8 @@ use mapping::metrics::{pose_error, truth_at};
 use mapping::sensor::{SensorEvent, Timestamp};
 use robot_agent::lifelong_run::SessionsConfig;
 use robot_agent::process_stats::thread_cpu_ms;
-use robot_agent::world::World;
 use serde_json::json;
+use simulator::World;
 use simulator::{SessionOptions, Store};
 
 #[derive(Parser)]

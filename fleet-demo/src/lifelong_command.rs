@@ -1,4 +1,4 @@
-//! `evermap-agent lifelong`: the paper's month-in-a-supermarket experiment on the simulated changing store.
+//! `evermap-demo lifelong`: the paper's month-in-a-supermarket experiment on the simulated changing store.
 //!
 //! Session 0 maps the store; sessions 1..N are cleaning runs on later days (goods, pallets, displays and
 //! doors changed, people and carts about) that start with no prior, relocalize, localize by GLM and feed
@@ -34,9 +34,7 @@ use robot_agent::line_chart::{LineChart, Series};
 use robot_agent::{map_image, process_stats};
 use serde::Serialize;
 use serde_json::json;
-use simulator::{SessionOptions, Store};
-
-use super::simulate::World;
+use simulator::{SessionOptions, Store, World};
 
 /// Arguments of `lifelong`.
 #[derive(Args)]

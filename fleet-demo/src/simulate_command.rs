@@ -1,4 +1,4 @@
-//! `evermap-agent simulate`: writes one session of the simulated changing store as a ROS1 bag, with its
+//! `evermap-demo simulate`: writes one session of the simulated changing store as a ROS1 bag, with its
 //! ground truth as a TUM file beside it, so every tool can read it like a real recording.
 
 use std::path::PathBuf;
@@ -7,8 +7,7 @@ use anyhow::Context as _;
 use clap::Args;
 use robot_agent::map_image;
 use robot_agent::source::write_bag;
-pub use robot_agent::world::World;
-use simulator::{SessionOptions, Store};
+use simulator::{SessionOptions, Store, World};
 
 /// Arguments of `simulate`.
 #[derive(Args)]
