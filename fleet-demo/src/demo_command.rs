@@ -31,7 +31,6 @@ use mapping::metrics::{
 };
 use mapping::pose_graph::NodeId;
 use mapping::sensor::Timestamp;
-use mapping::simulation::{SessionOptions as SimSessionOptions, Store};
 use robot_agent::map_image;
 use robot_agent::outbox::Outbox;
 use robot_agent::source::{ReadReport, Recording};
@@ -39,10 +38,11 @@ use robot_agent::uplink::{
     FleetUplink, GlobalSubmapCache, GrpcUplink, MapUplink as _, SessionOptions, SessionStart,
     Uploader, ZenohLinkOptions, ZenohUplink, follow_site, session_span, stream_session,
 };
-use robot_agent::world::World;
 use serde_json::json;
 use server::site::SiteHandle;
 use server::{HttpConfig, RobotConfig, RunningServer, ServerConfig, SiteConfig};
+use simulator::World;
+use simulator::{SessionOptions as SimSessionOptions, Store};
 use storage::{SledStore, SledStoreOptions};
 use tokio::sync::watch;
 use tracing::Instrument as _;

@@ -41,7 +41,6 @@ use mapping::geometry::Rigid2;
 use mapping::global_slam::GlobalSlamOptions;
 use mapping::lifelong::{MapMatcher, RelocalizationOptions};
 use mapping::local_slam::LocalTrajectoryBuilderOptions;
-use mapping::simulation::{SessionOptions as SimSessionOptions, Store};
 use proto::{SubmapSnapshot, UploadItem};
 use robot_agent::map_image;
 use robot_agent::outbox::Outbox;
@@ -51,9 +50,10 @@ use robot_agent::uplink::{
     GlobalSubmapCache, GrpcUplink, MapUplink as _, SessionOptions, Uploader, cached_submaps,
     follow_site_with, match_node, relocalize_nodes, run_llo, stream_recording, sync_matcher,
 };
-use robot_agent::world::World;
 use serde_json::json;
 use server::{RobotConfig, RunningServer, ServerConfig, SiteConfig};
+use simulator::World;
+use simulator::{SessionOptions as SimSessionOptions, Store};
 use storage::{SledStore, SledStoreOptions};
 use tokio::sync::watch;
 use tracing::Instrument as _;

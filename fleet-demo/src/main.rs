@@ -1,12 +1,16 @@
-//! `evermap-demo`: the fleet simulated in one process — a real map server (the `server` crate) and
-//! simulated robots running the real agent code (the `robot-agent` crate) on loopback. Kept out of
-//! `evermap-server`, so the server that runs in a data centre links no robot code.
+//! `evermap-demo`: the simulations — the fleet simulated in one process (a real map server, the `server`
+//! crate, and simulated robots running the real agent code, the `robot-agent` crate, on loopback), the
+//! load benchmark, and the experiments on the simulated store (`lifelong`, `simulate`). Kept out of
+//! `evermap-server` and `evermap-agent`, so the server that runs in a data centre links no robot code
+//! and neither binary links the simulator.
 
 mod command_runtime;
 mod demo_command;
+mod lifelong_command;
 mod load_command;
 mod memory_attribution;
 mod minute_figures;
+mod simulate_command;
 
 use clap::{Parser, Subcommand};
 use peak_alloc::PeakAlloc;
@@ -17,7 +21,8 @@ use tracing_subscriber::filter::LevelFilter;
 #[global_allocator]
 static HEAP: PeakAlloc = PeakAlloc;
 
-/// evermap fleet simulations: the demo (the default) and the load benchmark.
+/// evermap simulations: the fleet demo (the default), the load benchmark, and the lifelong experiment
+/// on the simulated store.
 #[derive(Parser)]
 #[command(version, about, args_conflicts_with_subcommands = true)]
 struct Cli {
@@ -39,16 +44,24 @@ enum Command {
     /// submap-to-fleet latency, and per minute of robot time memory, latency and throughput (a soak:
     /// `--duration-s 1800 --session-s 300`) with a chart, `minutes.png`.
     Load(load_command::LoadArgs),
+    /// The lifelong experiment on the simulated changing store: session 0 maps it, sessions 1..N relocalize,
+    /// localize and update the map per the trimming policy; scored against ground truth (CRI, MRCL, AMS,
+    /// ATE, MCR, graph size).
+    Lifelong(lifelong_command::LifelongArgs),
+    /// Writes one session of the simulated changing store as a ROS1 bag plus its ground truth (TUM).
+    Simulate(simulate_command::SimulateArgs),
 }
 
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
-    // The demo and the benchmark print their own progress and figures; the server's and the robots'
-    // log lines are off unless RUST_LOG asks for them (then on standard error).
+    // Every command prints its own progress and figures; the server's and the robots' log lines are off
+    // unless RUST_LOG asks for them (then on standard error).
     server::init_logging(LevelFilter::OFF, server::LogOutput::Stderr);
     match cli.command {
         Some(Command::Demo(args)) => demo_command::run(&args),
         Some(Command::Load(args)) => load_command::run(&args),
+        Some(Command::Lifelong(args)) => lifelong_command::run(&args),
+        Some(Command::Simulate(args)) => simulate_command::run(&args),
         None => demo_command::run(&cli.demo),
     }
 }

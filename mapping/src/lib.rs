@@ -19,7 +19,4 @@ pub mod metrics;
 pub mod pose_graph;
 pub mod scan_matching;
 pub mod sensor;
-pub mod simulation;
 pub mod sparsification;
-#[cfg(any(test, feature = "testing"))]
-pub mod testing;

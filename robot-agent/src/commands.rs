@@ -1,9 +1,7 @@
 //! The agent's subcommands, one file each.
 
-pub mod lifelong;
 pub mod offline;
 pub mod perturb_args;
 pub mod relocalize;
 pub mod run;
 pub mod sessions;
-pub mod simulate;

@@ -15,4 +15,3 @@ pub mod process_stats;
 pub mod ros2_publisher;
 pub mod source;
 pub mod uplink;
-pub mod world;

@@ -1,4 +1,5 @@
-//! One recording run as several time sessions through the lifelong map (`evermap-agent sessions`).
+//! One recording run as several time sessions through the lifelong map (`evermap-agent sessions`; the
+//! simulated store's sessions go through the same driver in `evermap-demo lifelong`).
 //!
 //! The recording is cut into `split` equal spans of time. Each span is a session: LLO starts afresh (its
 //! own local frame, no knowledge of the others), and the session starts on the map with no prior: a

@@ -1,4 +1,6 @@
-//! `evermap-agent`: runs on each robot; also offers offline tools on recordings.
+//! `evermap-agent`: runs on each robot; also offers offline tools on recordings. What a robot does not
+//! run — the simulated store and the experiments on it — is `evermap-demo`'s (the `fleet-demo` crate),
+//! so this binary links no simulator.
 
 mod commands;
 
@@ -20,15 +22,9 @@ enum Command {
     Offline(commands::offline::OfflineArgs),
     /// Builds a map from the first 60 % of a recording and relocalizes scans of the rest with no prior.
     Relocalize(commands::relocalize::RelocalizeArgs),
-    /// Writes one session of the simulated changing store as a ROS1 bag plus its ground truth (TUM).
-    Simulate(commands::simulate::SimulateArgs),
     /// Runs a recording as several time sessions through the lifelong map (relocalization, GLM across
     /// sessions, trimming) and scores it over cross-session relations.
     Sessions(commands::sessions::SessionsArgs),
-    /// The lifelong experiment on the simulated changing store: session 0 maps it, sessions 1..N relocalize,
-    /// localize and update the map per the trimming policy; scored against ground truth (CRI, MRCL, AMS,
-    /// ATE, MCR, graph size).
-    Lifelong(commands::lifelong::LifelongArgs),
     /// Runs LLO on a recording and streams it to the fleet map server (durable outbox, resumes after a
     /// reconnect).
     Run(commands::run::RunArgs),
@@ -46,9 +42,7 @@ fn main() -> anyhow::Result<()> {
     match cli.command {
         Command::Offline(args) => commands::offline::run(&args),
         Command::Relocalize(args) => commands::relocalize::run(&args),
-        Command::Simulate(args) => commands::simulate::run(&args),
         Command::Sessions(args) => commands::sessions::run(&args),
-        Command::Lifelong(args) => commands::lifelong::run(&args),
         Command::Run(args) => commands::run::run(&args),
     }
 }

@@ -6,7 +6,7 @@ use std::path::Path;
 
 use mapping::grid::ProbabilityGrid;
 use mapping::map_image::{gray_to_pgm, nav2_map_yaml};
-pub use mapping::map_image::{grid_to_gray, layout_to_rgb, map_change_to_rgb};
+pub use mapping::map_image::{grid_to_gray, map_change_to_rgb};
 use proto::{PngCompression, PngError, PngPixels};
 
 /// Errors while writing map images.

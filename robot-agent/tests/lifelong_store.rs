@@ -2,8 +2,8 @@
 //! people about) start with no prior, relocalize and localize in session 0's frame.
 
 use mapping::metrics::{ScoringOptions, align_to_truth, score_session};
-use mapping::simulation::{AislesOptions, SessionOptions, Store};
 use robot_agent::lifelong_run::{SessionInput, SessionsConfig, run_session_inputs};
+use simulator::{AislesOptions, SessionOptions, Store};
 
 #[test]
 fn later_sessions_relocalize_and_localize_in_the_session_zero_frame() {

@@ -1,9 +1,9 @@
 //! The SLAM pipeline on the simulated store: LLO + GLM + PGR must track a short cleaning run.
 
 use mapping::geometry::Rigid2;
-use mapping::simulation::{SessionOptions, Store, StoreOptions};
 use robot_agent::offline_slam::{SlamConfig, run_offline};
 use robot_agent::source::{ReadReport, Recording};
+use simulator::{SessionOptions, Store, StoreOptions};
 
 /// RMS of position error after the best rigid alignment of `estimate` onto `truth` (matched by time).
 fn ate_rms(

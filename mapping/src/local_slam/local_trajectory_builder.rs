@@ -418,10 +418,11 @@ impl LocalTrajectoryBuilder {
 #[cfg(test)]
 mod tests {
     use nalgebra::Vector2;
+    // The simulator links this crate's non-test build: only its nalgebra-typed ray caster is used here.
+    use simulator::{Aabb, RayCaster};
 
     use super::*;
     use crate::geometry::rigid2;
-    use crate::simulation::{Aabb, RayCaster};
 
     /// An irregular 12 m × 9 m room with pillars and a recess, so that no rotation of a scan fits as
     /// well as the true one.

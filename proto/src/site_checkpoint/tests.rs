@@ -1,8 +1,8 @@
 use mapping::lifelong::LifelongMap;
-use mapping::testing::checkpoint_sessions::{
+use prost::Message as _;
+use simulator::testing::checkpoint_sessions::{
     Log, Position, SESSIONS, feed, options, session_inputs, snapshot,
 };
-use prost::Message as _;
 
 use super::*;
 

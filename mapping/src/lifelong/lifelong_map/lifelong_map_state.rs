@@ -117,6 +117,3 @@ impl LifelongMap {
         })
     }
 }
-
-#[cfg(test)]
-mod tests;

@@ -1,15 +1,15 @@
 //! Issue 34, items 2 and 3 on the server: a site restored from its newest checkpoint and the log after it
 //! equals, bit for bit, the site a replay of its whole log builds, and behaves the same for the next
 //! session; an unreadable checkpoint falls back to the one before; one of an unknown format version
-//! stops the site with an error naming it. The sessions are real (`mapping::testing`: a simulated store,
+//! stops the site with an error naming it. The sessions are real (`simulator::testing`: a simulated store,
 //! LLO, the agent's batches), fed through the site task as robots feed it.
 
 use std::fmt::Write as _;
 use std::sync::Arc;
 
-use mapping::testing::checkpoint_sessions::{self, SessionInput};
 use prost::Message as _;
 use proto::{UploadBatch, UploadItem, pb};
+use simulator::testing::checkpoint_sessions::{self, SessionInput};
 use storage::{MapStore, MemStore};
 
 use super::*;

@@ -2,6 +2,10 @@
 //! floor plans themselves are laid out by [`store_layout`](super::store_layout) (`--world store`) and
 //! [`aisles`](super::aisles) (`--world aisles`).
 
+use mapping::grid::{
+    CellIndex, MAX_PROBABILITY, MIN_PROBABILITY, MapLimits, ProbabilityGrid, UNKNOWN_VALUE,
+    probability_to_value,
+};
 use nalgebra::{Point2, Vector2};
 use rand::{Rng as _, SeedableRng as _};
 use rand_pcg::Pcg64;
@@ -10,10 +14,6 @@ use super::aisles::{self, AislesPlan};
 use super::ray_caster::Aabb;
 use super::store_layout::{self, StorePlan};
 use super::{SessionOptions, SimulatedSession, SimulationError, WorldOptions, simulated_session};
-use crate::grid::{
-    CellIndex, MAX_PROBABILITY, MIN_PROBABILITY, MapLimits, ProbabilityGrid, UNKNOWN_VALUE,
-    probability_to_value,
-};
 
 /// What a movable item is (for pictures and statistics).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -136,7 +136,7 @@ impl TruthOccupancy {
 
     /// The layout as a map would see it: surface cells occupied ([`MAX_PROBABILITY`]), free cells free
     /// ([`MIN_PROBABILITY`]), the interiors of obstacles unknown (a LiDAR never sees them). Compared with
-    /// [`map_change_rate`](crate::lifelong::map_change_rate), two layouts give the simulator's own change
+    /// [`map_change_rate`](mapping::lifelong::map_change_rate), two layouts give the simulator's own change
     /// rate, measured exactly as the map change rate (MCR) of the maps is.
     pub fn surface_grid(&self) -> ProbabilityGrid {
         let surface = self.surface();
@@ -154,7 +154,7 @@ impl TruthOccupancy {
     }
 }
 
-/// A seeded supermarket: see the module documentation of [`crate::simulation`].
+/// A seeded supermarket: see the module documentation of [`crate`].
 #[derive(Clone, Debug)]
 pub struct Store {
     options: WorldOptions,

@@ -1,10 +1,11 @@
-//! The simulated worlds the shells can build (`--world`), shared by `evermap-agent` and `evermap-server`.
+//! The simulated worlds a shell can build by name (`--world`): `evermap-demo`'s commands and the
+//! session-start example. With the feature `clap` it is a `clap::ValueEnum`.
 
-use clap::ValueEnum;
-use mapping::simulation::{AislesOptions, StoreOptions, WorldOptions};
+use crate::{AislesOptions, StoreOptions, WorldOptions};
 
-/// The simulated worlds (`mapping::simulation`).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, ValueEnum)]
+/// The simulated worlds, by name.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 pub enum World {
     /// A supermarket after typical floor plans: checkouts and entrance at the front, cases along the
     /// walls, service counters, produce islands, gondola runs of different lengths with end caps,

@@ -1,5 +1,7 @@
 //! One simulated session: the robot drives its route; LiDAR, wheel odometry and gyro observe it.
 
+use mapping::geometry::{Rigid2, Rigid2Ext as _, normalize_angle, rigid2};
+use mapping::sensor::{ImuReading, LaserScan, OdometryReading, SensorEvent, Timestamp};
 use nalgebra::{Point2, Vector2};
 use rand::Rng as _;
 use rand_pcg::Pcg64;
@@ -7,8 +9,6 @@ use rand_pcg::Pcg64;
 use super::ray_caster::{RayCaster, intersect_disc};
 use super::store::{Store, WalkerShape};
 use super::{SessionOptions, SimulationError};
-use crate::geometry::{Rigid2, Rigid2Ext as _, normalize_angle, rigid2};
-use crate::sensor::{ImuReading, LaserScan, OdometryReading, SensorEvent, Timestamp};
 
 /// Stamps of session `k` start on day `k` of the simulated calendar at 06:00 (2026-01-05 is day 0), so
 /// stamps never repeat across sessions.

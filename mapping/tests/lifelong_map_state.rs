@@ -1,15 +1,15 @@
-//! A lifelong map restored from its state ([`LifelongMap::to_state`] → [`LifelongMap::from_state`])
+//! A lifelong map restored from its state (`LifelongMap::to_state` → `LifelongMap::from_state`)
 //! behaves bit for bit like the map it was taken from: fed the same next sessions, both give the same
 //! events, node and submap poses, grids, counts and placement decisions (issue 34, item 2, for the
 //! mapping core; the server's checkpoint record and its replay test build on this).
 //!
-//! The sessions are real ([`crate::testing::checkpoint_sessions`]): a small simulated store, LLO on its
+//! The sessions are real (`simulator::testing::checkpoint_sessions`): a small simulated store, LLO on its
 //! scans, GLM by the real branch-and-bound constraint builder (whose precomputation grids the restored
 //! map rebuilds), Chow–Liu trimming at session ends; session 1 starts unplaced and is placed later,
 //! session 2 goes through probation.
 
-use crate::lifelong::{LifelongMap, LifelongMapState};
-use crate::testing::checkpoint_sessions::{
+use mapping::lifelong::{LifelongMap, LifelongMapState};
+use simulator::testing::checkpoint_sessions::{
     Log, Position, SESSIONS, SessionInput, feed, options, session_inputs, snapshot,
 };
 
@@ -95,7 +95,7 @@ fn a_state_that_contradicts_itself_is_refused() {
     state
         .global
         .acceptances
-        .push(crate::global_slam::Acceptance::default());
+        .push(mapping::global_slam::Acceptance::default());
     let error = LifelongMap::from_state(options(), state)
         .err()
         .expect("refused");

@@ -26,11 +26,11 @@ use mapping::lifelong::{SessionStart, SessionStartEvent, StartSearch};
 use mapping::local_slam::LocalTrajectoryBuilder;
 use mapping::metrics::{pose_error, truth_at};
 use mapping::sensor::{SensorEvent, Timestamp};
-use mapping::simulation::{SessionOptions, Store};
 use robot_agent::lifelong_run::SessionsConfig;
 use robot_agent::process_stats::thread_cpu_ms;
-use robot_agent::world::World;
 use serde_json::json;
+use simulator::World;
+use simulator::{SessionOptions, Store};
 
 #[derive(Parser)]
 struct Args {

@@ -1,4 +1,4 @@
-//! `evermap-agent lifelong`: the paper's month-in-a-supermarket experiment on the simulated changing store.
+//! `evermap-demo lifelong`: the paper's month-in-a-supermarket experiment on the simulated changing store.
 //!
 //! Session 0 maps the store; sessions 1..N are cleaning runs on later days (goods, pallets, displays and
 //! doors changed, people and carts about) that start with no prior, relocalize, localize by GLM and feed
@@ -27,7 +27,6 @@ use mapping::metrics::{
     map_world_agreement, pose_error, score_run, score_session, truth_at,
 };
 use mapping::sensor::Timestamp;
-use mapping::simulation::{SessionOptions, Store};
 use robot_agent::lifelong_run::{
     SessionEnd, SessionInput, SessionRecord, SessionSummary, SessionsConfig, run_session_inputs,
 };
@@ -35,8 +34,7 @@ use robot_agent::line_chart::{LineChart, Series};
 use robot_agent::{map_image, process_stats};
 use serde::Serialize;
 use serde_json::json;
-
-use super::simulate::World;
+use simulator::{SessionOptions, Store, World};
 
 /// Arguments of `lifelong`.
 #[derive(Args)]

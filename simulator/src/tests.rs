@@ -1,10 +1,10 @@
+use mapping::geometry::Rigid2Ext as _;
+use mapping::grid::{UNKNOWN_VALUE, value_to_probability};
+use mapping::lifelong::{MAP_CHANGE_TOLERANCE_M, OCCUPIED_PROBABILITY, map_change_rate};
+use mapping::sensor::SensorEvent;
 use nalgebra::{Point2, Vector2};
 
 use super::*;
-use crate::geometry::Rigid2Ext as _;
-use crate::grid::{UNKNOWN_VALUE, value_to_probability};
-use crate::lifelong::{MAP_CHANGE_TOLERANCE_M, OCCUPIED_PROBABILITY, map_change_rate};
-use crate::sensor::SensorEvent;
 
 fn short() -> SessionOptions {
     SessionOptions {
@@ -225,7 +225,7 @@ fn static_structure_never_changes() {
                 let (lo, hi) = (limits.cell_index(&b.min), limits.cell_index(&b.max));
                 for y in lo.y..=hi.y {
                     for x in lo.x..=hi.x {
-                        let cell = crate::grid::CellIndex::new(x, y);
+                        let cell = mapping::grid::CellIndex::new(x, y);
                         if b.contains(&limits.cell_center(&cell))
                             && let Some(i) = limits.flat_index(&cell)
                         {
@@ -289,7 +289,7 @@ fn occupancy_matches_the_geometry_cell_by_cell() {
             let mut occupied = 0;
             for y in 0..limits.height {
                 for x in 0..limits.width {
-                    let cell = crate::grid::CellIndex::new(x, y);
+                    let cell = mapping::grid::CellIndex::new(x, y);
                     let centre = limits.cell_center(&cell);
                     let truth = obstacles.iter().any(|b| b.contains(&centre));
                     let i = limits.flat_index(&cell).expect("inside");

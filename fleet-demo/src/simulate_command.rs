@@ -1,14 +1,13 @@
-//! `evermap-agent simulate`: writes one session of the simulated changing store as a ROS1 bag, with its
+//! `evermap-demo simulate`: writes one session of the simulated changing store as a ROS1 bag, with its
 //! ground truth as a TUM file beside it, so every tool can read it like a real recording.
 
 use std::path::PathBuf;
 
 use anyhow::Context as _;
 use clap::Args;
-use mapping::simulation::{SessionOptions, Store};
 use robot_agent::map_image;
 use robot_agent::source::write_bag;
-pub use robot_agent::world::World;
+use simulator::{SessionOptions, Store, World};
 
 /// Arguments of `simulate`.
 #[derive(Args)]
@@ -58,7 +57,7 @@ pub fn run(args: &SimulateArgs) -> anyhow::Result<()> {
     mapping::io::tum::write_tum(std::io::BufWriter::new(truth_file), &session.ground_truth)?;
     let mut layout_path = args.out.clone().into_os_string();
     layout_path.push(".layout.png");
-    let (w, h, pixels) = map_image::layout_to_rgb(&store, args.session, 0.05);
+    let (w, h, pixels) = simulator::layout_to_rgb(&store, args.session, 0.05);
     map_image::write_rgb_png(std::path::Path::new(&layout_path), w, h, &pixels)?;
     println!(
         "{}",

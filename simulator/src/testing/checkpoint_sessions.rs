@@ -4,15 +4,15 @@
 //! that equal text means bit-equal maps (`{:?}` prints each `f32`/`f64` so that it parses back to the
 //! same bits, −0.0 included).
 
+use mapping::geometry::Rigid2;
+use mapping::global_slam::LoopClosure;
+use mapping::grid::ProbabilityGrid;
+use mapping::lifelong::{LifelongEvent, LifelongMap, LifelongOptions, TrimPolicy};
+use mapping::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
+use mapping::sensor::{SensorEvent, Timestamp, collate_for_llo};
 use nalgebra::Point2;
 
-use crate::geometry::Rigid2;
-use crate::global_slam::LoopClosure;
-use crate::grid::ProbabilityGrid;
-use crate::lifelong::{LifelongEvent, LifelongMap, LifelongOptions, TrimPolicy};
-use crate::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
-use crate::sensor::{SensorEvent, Timestamp, collate_for_llo};
-use crate::simulation::{SessionOptions, Store, StoreOptions};
+use crate::{SessionOptions, Store, StoreOptions};
 
 /// One node as LLO handed it to the map.
 #[derive(Clone)]

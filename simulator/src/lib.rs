@@ -1,5 +1,8 @@
+//! # simulator — a seeded changing supermarket
+//!
 //! A seeded simulator of a changing supermarket, for the lifelong experiments (the paper's month in a
-//! store, whose data are not public).
+//! store, whose data are not public), the fleet demo and the load benchmark. Its own crate, over the
+//! `mapping` core: the shells that simulate (`evermap-demo`) link it, the server does not.
 //!
 //! * [`Store`] lays out one of two worlds ([`WorldOptions`]), both 120 m × 90 m = 10,800 m² by default:
 //!   - `store` ([`StoreOptions`], the default): a supermarket after typical published floor plans —
@@ -20,24 +23,34 @@
 //!   [`SessionOptions::max_duration_s`] — and returns the sensor events a recording would hold (SICK
 //!   TiM571-like scans, drifting wheel odometry, a biased gyro) plus ground truth.
 //!
-//! Pure and deterministic: the same options and seed give the same sessions bit for bit.
+//! * [`layout_to_rgb`]: a day's layout as a picture (structure, what changes, the route).
+//! * [`World`]: the worlds by name (`--world store|aisles`), at the benchmark's size or the demo's.
+//! * [`testing`] (feature `testing`): real simulated sessions fed to a lifelong map, resumable at any
+//!   node, for the checkpoint round-trip tests of `mapping` and `proto`.
+//!
+//! Pure and deterministic: the same options and seed give the same sessions bit for bit. No I/O, no
+//! clocks, no threads, as in `mapping`.
 
 mod aisles;
 mod aisles_options;
+mod layout_image;
 mod ray_caster;
 mod session_options;
 mod simulated_session;
 mod store;
 pub mod store_layout;
 mod store_options;
+mod world;
 mod world_options;
 
 pub use aisles_options::AislesOptions;
+pub use layout_image::layout_to_rgb;
 pub use ray_caster::{Aabb, RayCaster};
 pub use session_options::SessionOptions;
 pub use simulated_session::SimulatedSession;
 pub use store::{ItemKind, Store, TruthOccupancy};
 pub use store_options::StoreOptions;
+pub use world::World;
 pub use world_options::WorldOptions;
 
 /// Errors of the simulator.
@@ -56,5 +69,7 @@ pub enum SimulationError {
     EmptyRoute,
 }
 
+#[cfg(any(test, feature = "testing"))]
+pub mod testing;
 #[cfg(test)]
 mod tests;
