@@ -138,21 +138,6 @@ struct SessionRow {
     dock_agreed: Option<bool>,
 }
 
-fn load_config(args: &LifelongArgs) -> anyhow::Result<SessionsConfig> {
-    let mut config = match &args.config {
-        Some(path) => {
-            let text = std::fs::read_to_string(path)
-                .with_context(|| format!("cannot read config {}", path.display()))?;
-            toml::from_str(&text).with_context(|| format!("invalid config {}", path.display()))?
-        }
-        None => SessionsConfig::default(),
-    };
-    if let Some(policy) = args.policy {
-        config.lifelong.policy = policy;
-    }
-    Ok(config)
-}
-
 /// Scores each session as it ends and rewrites `report.json`, so a long run keeps what it measured.
 struct Reporter<'a> {
     args: &'a LifelongArgs,
@@ -408,7 +393,7 @@ fn map_change(map: &LifelongMap, resolution: f64) -> Option<(MapChange, Probabil
 
 /// Runs the command.
 pub fn run(args: &LifelongArgs) -> anyhow::Result<()> {
-    let config = load_config(args)?;
+    let config = SessionsConfig::load(args.config.as_deref(), args.policy)?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     let mut options = SessionOptions::default();

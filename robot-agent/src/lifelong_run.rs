@@ -47,6 +47,34 @@ pub struct SessionsConfig {
     pub scoring: ScoringOptions,
 }
 
+impl SessionsConfig {
+    /// The configuration in the TOML file at `path`, or the defaults without one; `policy` overrides the
+    /// file's trimming policy.
+    pub fn load(
+        path: Option<&std::path::Path>,
+        policy: Option<mapping::lifelong::TrimPolicy>,
+    ) -> Result<Self, SessionsError> {
+        let mut config = match path {
+            Some(path) => {
+                let text =
+                    std::fs::read_to_string(path).map_err(|source| SessionsError::ConfigFile {
+                        path: path.display().to_string(),
+                        source: Box::new(source),
+                    })?;
+                toml::from_str(&text).map_err(|source| SessionsError::ConfigFile {
+                    path: path.display().to_string(),
+                    source: Box::new(source),
+                })?
+            }
+            None => Self::default(),
+        };
+        if let Some(policy) = policy {
+            config.lifelong.policy = policy;
+        }
+        Ok(config)
+    }
+}
+
 /// Errors of a multi-session run.
 #[derive(Debug, thiserror::Error)]
 pub enum SessionsError {
@@ -56,6 +84,15 @@ pub enum SessionsError {
     /// The configuration is invalid.
     #[error("invalid configuration: {0}")]
     Config(String),
+    /// The configuration file could not be read or parsed.
+    #[error("configuration {path}: {source}")]
+    ConfigFile {
+        /// The file.
+        path: String,
+        /// Why.
+        #[source]
+        source: Box<dyn std::error::Error + Send + Sync>,
+    },
     /// A section of the configuration refused its options.
     #[error("invalid configuration: {0}")]
     Options(#[source] Box<dyn std::error::Error + Send + Sync>),

@@ -65,24 +65,9 @@ pub struct SessionsArgs {
     perturb: PerturbArgs,
 }
 
-fn load_config(args: &SessionsArgs) -> anyhow::Result<SessionsConfig> {
-    let mut config = match &args.config {
-        Some(path) => {
-            let text = std::fs::read_to_string(path)
-                .with_context(|| format!("cannot read config {}", path.display()))?;
-            toml::from_str(&text).with_context(|| format!("invalid config {}", path.display()))?
-        }
-        None => SessionsConfig::default(),
-    };
-    if let Some(policy) = args.policy {
-        config.lifelong.policy = policy;
-    }
-    Ok(config)
-}
-
 /// Runs the command.
 pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
-    let config = load_config(args)?;
+    let config = SessionsConfig::load(args.config.as_deref(), args.policy)?;
     let perturbation_asked = args.perturb.perturbation()?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
