@@ -19,6 +19,8 @@
 //! | `clutter` | 5 % of beams replaced by short returns in blobs of 1–4 beams (people, carts) |
 //! | `late` | the first 20 % of the recording's time dropped |
 //! | `noise` | Gaussian range noise, σ = 3 cm (a low-cost scanner) |
+//! | `stall` | the odometry stream stalls for 0.4–1.0 s every 20–60 m of driving: its readings repeat the
+//! | | last pose, then the next one carries the whole backlog (a driver that misses encoder ticks late, not lost) |
 //! | `hard` | `range4` + `slip` + `clutter` + `slow` |
 
 use mapping::geometry::{Rigid2, Rigid2Ext as _, rigid2};
@@ -32,7 +34,7 @@ use crate::source::Recording;
 /// Every variant name [`Perturbation::parse`] knows, in the suite's order.
 pub const VARIANTS: &[&str] = &[
     "clean", "range8", "range4", "sparse", "odom", "slip", "slow", "clutter", "late", "noise",
-    "hard",
+    "stall", "hard",
 ];
 
 /// Odometry that is wrong the way wheel odometry is: a scale error, a heading drift with distance, and
@@ -60,6 +62,17 @@ pub struct Slips {
     pub rotation_rad: (f64, f64),
 }
 
+/// Odometry stalls: the stream keeps coming but repeats its last pose, then catches up at once. The
+/// cumulative pose stays right (the ticks are late, not lost): MIT CSAIL's odometry does this once, in a
+/// turn (frozen for 0.85 s at t ≈ 170 s, then the backlog over four readings).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct OdometryStalls {
+    /// Distance driven between stalls, metres: drawn uniformly from this range each time.
+    pub every_m: (f64, f64),
+    /// How long a stall lasts, seconds (uniform).
+    pub duration_s: (f64, f64),
+}
+
 /// Short returns that replace some beams: people and carts between the scanner and the walls.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Clutter {
@@ -82,6 +95,8 @@ pub struct Perturbation {
     pub odometry: Option<OdometryError>,
     /// Wheel slips the odometry missed.
     pub slips: Option<Slips>,
+    /// Odometry stalls.
+    pub stalls: Option<OdometryStalls>,
     /// Scans closer than this (seconds) to the previous kept one are dropped.
     pub min_scan_period_s: Option<f64>,
     /// People and carts in the beams.
@@ -108,6 +123,10 @@ pub struct PerturbationReport {
     pub odometry_out: usize,
     /// Slips injected.
     pub slips: usize,
+    /// Odometry stalls injected.
+    pub stalls: usize,
+    /// Odometry readings that repeated a stalled pose.
+    pub stalled_readings: usize,
     /// Beams cut to `+inf` by the range limit.
     pub beams_cut: usize,
     /// Beams replaced by clutter.
@@ -155,6 +174,12 @@ impl Perturbation {
             }
             "late" => self.drop_first_share = Some(0.2),
             "noise" => self.range_noise_m = Some(0.03),
+            "stall" => {
+                self.stalls = Some(OdometryStalls {
+                    every_m: (20.0, 60.0),
+                    duration_s: (0.4, 1.0),
+                });
+            }
             "hard" => {
                 for part in ["range4", "slip", "clutter", "slow"] {
                     self.add(part)?;
@@ -197,6 +222,10 @@ impl Perturbation {
         }
         if self.odometry.is_some() || self.slips.is_some() {
             report.slips = self.perturb_odometry(&mut events, &mut rng(1), &mut rng(2));
+        }
+        if let Some(stalls) = self.stalls {
+            (report.stalls, report.stalled_readings) =
+                stall_odometry(&stalls, &mut events, &mut rng(5));
         }
         let mut clutter_rng = rng(3);
         let mut noise_rng = rng(4);
@@ -335,6 +364,50 @@ impl Perturbation {
             }
         }
     }
+}
+
+/// Makes the odometry stall (see [`OdometryStalls`]): every so many metres driven, the readings of the
+/// next `duration_s` repeat the pose of the reading that started the stall; the first reading after it
+/// is left as recorded, so it carries the whole backlog. Returns the stalls and the readings changed.
+fn stall_odometry(
+    stalls: &OdometryStalls,
+    events: &mut [SensorEvent],
+    rng: &mut Pcg64,
+) -> (usize, usize) {
+    let draw_gap = |rng: &mut Pcg64| rng.random_range(stalls.every_m.0..=stalls.every_m.1);
+    let mut next_stall_m = draw_gap(rng);
+    let mut driven_m = 0.0;
+    let mut last_recorded: Option<Rigid2> = None;
+    // The stall under way: (its end, the pose it repeats).
+    let mut stall: Option<(mapping::sensor::Timestamp, Rigid2)> = None;
+    let (mut count, mut changed) = (0, 0);
+    for event in events.iter_mut() {
+        let SensorEvent::Odometry(OdometryReading { time, pose }) = event else {
+            continue;
+        };
+        let recorded = *pose;
+        if let Some(last) = last_recorded {
+            driven_m += (last.inverse() * recorded).translation.vector.norm();
+        }
+        last_recorded = Some(recorded);
+        match stall {
+            Some((end, frozen)) if *time <= end => {
+                *pose = frozen;
+                changed += 1;
+                continue;
+            }
+            Some(_) => stall = None,
+            None => {}
+        }
+        if driven_m >= next_stall_m {
+            let duration = rng.random_range(stalls.duration_s.0..=stalls.duration_s.1);
+            stall = Some((time.offset_by(duration), recorded));
+            count += 1;
+            driven_m = 0.0;
+            next_stall_m = draw_gap(rng);
+        }
+    }
+    (count, changed)
 }
 
 fn count_scans(events: &[SensorEvent]) -> usize {
@@ -487,6 +560,42 @@ mod tests {
             .count();
         assert_eq!(odd, report.slips);
         assert!(steps.iter().all(|s| s.theta().abs() < 8.01f64.to_radians()));
+    }
+
+    #[test]
+    fn a_stall_repeats_the_last_pose_and_the_next_reading_carries_the_backlog() {
+        let recording = drive(500); // 499.9 m at 1 m/s, odometry at 10 Hz
+        let (stalled, report) = Perturbation::parse("stall").unwrap().apply(&recording, 3);
+        // One stall every 20–60 m: between 8 and 25 in 500 m, each 0.4–1.0 s (4–10 readings).
+        assert!(
+            (8..=25).contains(&report.stalls),
+            "{} stalls",
+            report.stalls
+        );
+        assert!(
+            (4 * report.stalls..=10 * report.stalls).contains(&report.stalled_readings),
+            "{} readings in {} stalls",
+            report.stalled_readings,
+            report.stalls
+        );
+        let poses: Vec<Rigid2> = stalled
+            .events
+            .iter()
+            .filter_map(|e| match e {
+                SensorEvent::Odometry(o) => Some(o.pose),
+                _ => None,
+            })
+            .collect();
+        let steps: Vec<f64> = poses
+            .windows(2)
+            .map(|w| (w[0].inverse() * w[1]).translation.vector.norm())
+            .collect();
+        let frozen = steps.iter().filter(|s| **s == 0.0).count();
+        assert_eq!(frozen, report.stalled_readings);
+        // The cumulative pose is never lost: the end is where the recording ends.
+        assert!((poses.last().unwrap().translation.x - 499.9).abs() < 1e-9);
+        // A backlog step is as long as the stall it follows.
+        assert!(steps.iter().all(|s| *s < 1.11), "{steps:?}");
     }
 
     #[test]

@@ -39,11 +39,12 @@ impl PerturbArgs {
         };
         let (perturbed, report) = perturbation.apply(&recording, self.perturb_seed);
         eprintln!(
-            "perturbed ({names}, seed {}): {} of {} scans kept, {} slips, {} beams cut, {} cluttered",
+            "perturbed ({names}, seed {}): {} of {} scans kept, {} slips, {} odometry stalls, {} beams cut, {} cluttered",
             self.perturb_seed,
             report.scans_out,
             report.scans_in,
             report.slips,
+            report.stalls,
             report.beams_cut,
             report.beams_cluttered
         );
