@@ -13,6 +13,26 @@ fn store_with_log(entries: u64) -> MemStore {
     store
 }
 
+/// Stores `state <index>` as the checkpoint at each index.
+fn put_states(store: &MemStore, indexes: &[u64]) {
+    for index in indexes {
+        store
+            .put_checkpoint("depot", *index, format!("state {index}").as_bytes())
+            .unwrap();
+    }
+}
+
+/// Compacts the site's log with the default retention.
+fn compact(store: &MemStore) -> Compaction {
+    store
+        .compact(
+            "depot",
+            RecordKind::Trajectory,
+            &CheckpointRetention::DEFAULT,
+        )
+        .unwrap()
+}
+
 /// The file of the site's checkpoint at `log_index` (there is one).
 fn file_of(store: &MemStore, log_index: u64) -> String {
     let key = entry_key("depot", log_index);
@@ -52,11 +72,7 @@ fn crash_at(store: &MemStore, at: CheckpointStep, step: impl FnOnce()) {
 #[test]
 fn a_corrupt_checkpoint_is_reported_and_compaction_neither_counts_nor_trusts_it() {
     let store = store_with_log(30);
-    for index in [10, 20, 30] {
-        store
-            .put_checkpoint("depot", index, format!("state {index}").as_bytes())
-            .unwrap();
-    }
+    put_states(&store, &[10, 20, 30]);
     corrupt_checkpoint(&store, 30);
     assert!(matches!(
         store.checkpoint("depot", 30),
@@ -64,13 +80,7 @@ fn a_corrupt_checkpoint_is_reported_and_compaction_neither_counts_nor_trusts_it(
     ));
     // Still listed: the caller sees it, reads it, and falls back.
     assert_eq!(store.checkpoint_indexes("depot").unwrap(), [30, 20, 10]);
-    let compaction = store
-        .compact(
-            "depot",
-            RecordKind::Trajectory,
-            &CheckpointRetention::DEFAULT,
-        )
-        .unwrap();
+    let compaction = compact(&store);
     // Kept: the two newest that verify (20 and 10), so the log after 10 stays.
     assert_eq!(compaction.checkpoints_removed, 0);
     assert_eq!(compaction.log_compacted_through, 10);
@@ -96,13 +106,7 @@ fn with_one_checkpoint_that_verifies_no_log_entry_goes() {
     store.put_checkpoint("depot", 6, b"state 6").unwrap();
     store.put_checkpoint("depot", 12, b"state 12").unwrap();
     corrupt_checkpoint(&store, 6);
-    let compaction = store
-        .compact(
-            "depot",
-            RecordKind::Trajectory,
-            &CheckpointRetention::DEFAULT,
-        )
-        .unwrap();
+    let compaction = compact(&store);
     assert_eq!(compaction.log_entries_removed, 0);
     assert_eq!(compaction.log_compacted_through, 0);
     assert_eq!(
@@ -126,8 +130,7 @@ fn retention_needs_two_checkpoints() {
 #[test]
 fn a_missing_file_is_a_corrupt_checkpoint_named_by_its_file() {
     let store = store_with_log(20);
-    store.put_checkpoint("depot", 10, b"state 10").unwrap();
-    store.put_checkpoint("depot", 20, b"state 20").unwrap();
+    put_states(&store, &[10, 20]);
     let file = file_of(&store, 20);
     store.files().with_files(|files| {
         files.remove(&file);
@@ -142,13 +145,7 @@ fn a_missing_file_is_a_corrupt_checkpoint_named_by_its_file() {
     assert!(message.contains("missing"), "{message}");
     // Listed, not counted: one checkpoint verifies, so no log entry goes.
     assert_eq!(store.checkpoint_indexes("depot").unwrap(), [20, 10]);
-    let compaction = store
-        .compact(
-            "depot",
-            RecordKind::Trajectory,
-            &CheckpointRetention::DEFAULT,
-        )
-        .unwrap();
+    let compaction = compact(&store);
     assert_eq!(compaction.log_entries_removed, 0);
     // A damaged file names itself too.
     corrupt_checkpoint(&store, 10);
@@ -187,20 +184,12 @@ fn a_crash_between_the_file_and_its_entry_leaves_an_orphan_the_next_open_removes
 #[test]
 fn a_crash_between_removing_entries_and_their_files_leaves_orphans_the_next_open_removes() {
     let store = store_with_log(30);
-    for index in [10, 20, 30] {
-        store
-            .put_checkpoint("depot", index, format!("state {index}").as_bytes())
-            .unwrap();
-    }
+    put_states(&store, &[10, 20, 30]);
     crash_at(
         &store,
         CheckpointStep::IndexRemoved { log_index: 10 },
         || {
-            let _ = store.compact(
-                "depot",
-                RecordKind::Trajectory,
-                &CheckpointRetention::DEFAULT,
-            );
+            compact(&store);
         },
     );
     // The entry and the log are compacted, the file is not deleted yet.
@@ -225,18 +214,8 @@ fn a_crash_between_removing_entries_and_their_files_leaves_orphans_the_next_open
 #[test]
 fn compaction_and_rewrites_delete_the_files_they_unname_and_refusals_write_none() {
     let store = store_with_log(40);
-    for index in [10, 20, 30, 40] {
-        store
-            .put_checkpoint("depot", index, format!("state {index}").as_bytes())
-            .unwrap();
-    }
-    store
-        .compact(
-            "depot",
-            RecordKind::Trajectory,
-            &CheckpointRetention::DEFAULT,
-        )
-        .unwrap();
+    put_states(&store, &[10, 20, 30, 40]);
+    compact(&store);
     let mut kept = vec![file_of(&store, 30), file_of(&store, 40)];
     kept.sort();
     assert_eq!(file_names(&store), kept);
@@ -301,13 +280,7 @@ fn inline_checkpoints_of_earlier_builds_are_read_compacted_exported_and_replaced
         3
     );
     // Compacted like the others; a new checkpoint at an inline one's position replaces it.
-    let compaction = store
-        .compact(
-            "depot",
-            RecordKind::Trajectory,
-            &CheckpointRetention::DEFAULT,
-        )
-        .unwrap();
+    let compaction = compact(&store);
     assert_eq!(compaction.checkpoints_removed, 1);
     assert_eq!(compaction.log_compacted_through, 20);
     store.put_checkpoint("depot", 20, b"state 20").unwrap();
