@@ -677,6 +677,23 @@ async fn chaos(transport: &str, default_kills: usize, robots: usize, timed_kills
     kill(&mut server);
 
     let store = SledStore::open(&SledStoreOptions::at(&data)).expect("the server's store");
+    // Every stored checkpoint reads back from its file, and the files are exactly the stored ones (what
+    // a kill between a file and its index entry leaves is deleted when the store opens).
+    let checkpoints = store
+        .checkpoint_indexes(SITE)
+        .expect("the checkpoint indexes");
+    for &index in &checkpoints {
+        store
+            .checkpoint(SITE, index)
+            .unwrap_or_else(|e| panic!("checkpoint {index} does not read back: {e}"))
+            .unwrap_or_else(|| panic!("checkpoint {index} is listed but absent"));
+    }
+    let files = std::fs::read_dir(data.join("checkpoints").join(SITE)).map_or(0, Iterator::count);
+    assert_eq!(
+        files,
+        checkpoints.len(),
+        "checkpoint files left beside the stored checkpoints {checkpoints:?}"
+    );
     let expected = llo.join().expect("the expected LLO output");
     let mut reference = SiteMap::new(SITE, LifelongOptions::default()).expect("site map");
     let mut sessions: BTreeMap<String, StoredSession> = BTreeMap::new();

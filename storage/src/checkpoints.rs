@@ -1,12 +1,33 @@
-//! Checkpoints of a site and compaction of its log (issue 34), written once over [`RawKv`] like the rest
-//! of [`crate::MapStore`]'s semantics.
+//! Checkpoints of a site and compaction of its log (issue 34), written once over [`RawKv`] and its
+//! checkpoint files like the rest of [`crate::MapStore`]'s semantics.
 //!
-//! A checkpoint is an opaque value (the caller's encoding of the site's whole state) stored under the
-//! log position it covers: the internal record `site/checkpoint/<log index, u64 big-endian>`, sealed with
-//! the format version byte and CRC32 like every record. Storing the index *as the key* makes the
-//! checkpoint and the position it covers one atomic write (one transaction, then an fsync): there is no
-//! second record that could disagree with it. The transaction also refuses a position beyond the site's
-//! map version (a checkpoint of changes the store does not hold).
+//! A checkpoint is an opaque value (the caller's encoding of the site's whole state) covering the site's
+//! log up to a position. Its bytes go to a file of their own (`checkpoint_files`: sled would keep the space
+//! of every large value it ever held); the key-value store holds only its index entry (length, CRC32, file
+//! name: `checkpoint_entry`) under the position it covers, `site/checkpoint-file/<log index, u64
+//! big-endian>`. Storing the index *as the key* makes the checkpoint and the position it covers one
+//! atomic write: there is no second record that could disagree with it. The order of the steps makes
+//! every crash safe:
+//!
+//! 1. [`put_checkpoint`] writes the file durably (a temporary file, fsync, rename, directory fsync), then
+//!    stores the entry in one transaction — which also refuses an unknown or incomplete site and a
+//!    position beyond the site's map version (a checkpoint of changes the store does not hold) — and
+//!    flushes. A crash before the entry is durable leaves an orphan file and no checkpoint.
+//! 2. [`compact`] removes entries (and log entries) in transactions and flushes, and only then deletes the
+//!    files they named. A crash before the deletions leaves orphan files.
+//! 3. When the store opens, [`remove_orphan_files`] deletes every file no entry names (orphans, and the
+//!    temporary files of interrupted writes).
+//!
+//! Reading a checkpoint reads its entry, then its file, and checks the length and the CRC (which covers
+//! the site and the log index as well as the bytes): a missing, short or damaged file is
+//! [`StorageError::Corrupt`] naming the file — the same "no valid checkpoint here" as a damaged record, so
+//! a reader falls back to the checkpoint before it — and its bytes are never returned. An entry whose file
+//! is gone stays listed, as invalid, until compaction drops it with the older checkpoints.
+//!
+//! Checkpoints stored inline by earlier builds (the record `site/checkpoint/<log index>`, sealed like
+//! every record) are still listed, read, compacted and exported; a new checkpoint at the same position
+//! replaces one. Site archives carry every checkpoint as such a record, so their format is unchanged; an
+//! import writes the bytes to files.
 //!
 //! Compaction ([`compact`]) keeps the newest [`CheckpointRetention::checkpoints`] checkpoints that
 //! verify and deletes older ones, then deletes the log entries up to the *oldest* retained checkpoint's
@@ -16,8 +37,12 @@
 //! state between them is a valid store (log entries are deleted oldest first, and only ones that every
 //! retained checkpoint covers), so a crash anywhere in a compaction loses nothing.
 
+use std::collections::BTreeSet;
+
+use crate::checkpoint_entry::CheckpointEntry;
+use crate::checkpoint_files::{CheckpointStep, site_dir};
 use crate::envelope;
-use crate::key::{self, KIND_CHECKPOINT, KIND_MAP_VERSION};
+use crate::key::{self, KIND_CHECKPOINT, KIND_CHECKPOINT_FILE, KIND_MAP_VERSION};
 use crate::raw_kv::{RawKv, site_must_be_complete};
 use crate::{MAX_VALUE_BYTES, RecordKind, Result, StorageError, validate_site_id};
 
@@ -74,8 +99,17 @@ pub struct Compaction {
     pub log_compacted_through: u64,
 }
 
-fn checkpoint_key(site: &str, log_index: u64) -> Vec<u8> {
+/// Reads a record, directly or inside a transaction.
+type Get<'a> = dyn FnMut(&[u8]) -> Result<Option<Vec<u8>>> + 'a;
+
+/// Key of a checkpoint stored inline (earlier builds; the kind of checkpoints in site archives).
+fn inline_key(site: &str, log_index: u64) -> Vec<u8> {
     key::record_key(site, KIND_CHECKPOINT, &log_index.to_be_bytes())
+}
+
+/// Key of a checkpoint's index entry.
+fn entry_key(site: &str, log_index: u64) -> Vec<u8> {
+    key::record_key(site, KIND_CHECKPOINT_FILE, &log_index.to_be_bytes())
 }
 
 fn index_of(key: &[u8], prefix_len: usize) -> Result<u64> {
@@ -88,6 +122,45 @@ fn index_of(key: &[u8], prefix_len: usize) -> Result<u64> {
     Ok(u64::from_be_bytes(bytes))
 }
 
+fn decode_entry(key: &[u8], stored: &[u8]) -> Result<CheckpointEntry> {
+    CheckpointEntry::decode(key, envelope::open(key, stored)?)
+}
+
+/// Refuses a checkpoint of an unknown or incomplete site, or beyond the site's map version.
+fn check_position(site: &str, log_index: u64, get: &mut Get<'_>) -> Result<()> {
+    let site_key = key::site_key(site);
+    site_must_be_complete(site, &site_key, get(&site_key)?.as_deref())?;
+    let version_key = key::record_key(site, KIND_MAP_VERSION, &[]);
+    let map_version = get(&version_key)?
+        .map(|stored| envelope::decode_u64(&version_key, envelope::open(&version_key, &stored)?))
+        .transpose()?
+        .unwrap_or(0);
+    if log_index > map_version {
+        return Err(StorageError::CheckpointAhead {
+            site: site.to_owned(),
+            log_index,
+            map_version,
+        });
+    }
+    Ok(())
+}
+
+/// Deletes the checkpoint file `file` unless the entry under `key` names it (or cannot be read: then the
+/// orphan sweep at the next open decides).
+fn remove_unless_named(kv: &impl RawKv, site: &str, key: &[u8], file: &str) -> Result<()> {
+    let files = kv.checkpoint_files();
+    let _lock = files.lock();
+    let named = match kv.raw_get(key) {
+        Ok(None) => false,
+        Ok(Some(stored)) => decode_entry(key, &stored).map_or(true, |entry| entry.file == file),
+        Err(_) => true,
+    };
+    if named {
+        return Ok(());
+    }
+    files.remove(site, file)
+}
+
 pub(crate) fn put_checkpoint(
     kv: &impl RawKv,
     site: &str,
@@ -95,7 +168,7 @@ pub(crate) fn put_checkpoint(
     checkpoint: &[u8],
 ) -> Result<()> {
     validate_site_id(site)?;
-    let key = checkpoint_key(site, log_index);
+    let key = entry_key(site, log_index);
     if checkpoint.len() > MAX_VALUE_BYTES {
         return Err(StorageError::TooLarge {
             key: key::describe(&key),
@@ -104,47 +177,95 @@ pub(crate) fn put_checkpoint(
             max: MAX_VALUE_BYTES,
         });
     }
-    let sealed = envelope::seal(&key, checkpoint);
-    let site_key = key::site_key(site);
-    let version_key = key::record_key(site, KIND_MAP_VERSION, &[]);
-    kv.transact(&|txn| {
-        site_must_be_complete(site, &site_key, txn.get(&site_key)?.as_deref())?;
-        let map_version = txn
-            .get(&version_key)?
-            .map(|stored| {
-                envelope::decode_u64(&version_key, envelope::open(&version_key, &stored)?)
-            })
-            .transpose()?
-            .unwrap_or(0);
-        if log_index > map_version {
-            return Err(StorageError::CheckpointAhead {
-                site: site.to_owned(),
-                log_index,
-                map_version,
-            });
+    // Refused before a file is written; checked again in the transaction.
+    check_position(site, log_index, &mut |k| kv.raw_get(k))?;
+    let entry = CheckpointEntry::of(site, log_index, checkpoint);
+    let sealed = envelope::seal(&key, &entry.encode());
+    let inline = inline_key(site, log_index);
+    let files = kv.checkpoint_files();
+    let lock = files.lock();
+    files.write(site, &entry.file, checkpoint)?;
+    files.step(CheckpointStep::FileDurable { log_index });
+    let stored = kv.transact(&|txn| {
+        check_position(site, log_index, &mut |k| txn.get(k))?;
+        let replaced = txn.get(&key)?;
+        txn.insert(&key, sealed.clone())?;
+        txn.remove(&inline)?;
+        Ok(replaced)
+    });
+    drop(lock);
+    let replaced = match stored {
+        Ok(replaced) => replaced,
+        Err(error) => {
+            // Best effort: an orphan left here goes at the next open.
+            let _ = remove_unless_named(kv, site, &key, &entry.file);
+            return Err(error);
         }
-        txn.insert(&key, sealed.clone())
-    })?;
-    kv.raw_flush()
+    };
+    kv.raw_flush()?;
+    // A checkpoint rewritten at the same position with other bytes: the file of the one it replaced.
+    if let Some(old) = replaced.and_then(|stored| decode_entry(&key, &stored).ok())
+        && old.file != entry.file
+    {
+        files.step(CheckpointStep::IndexRemoved { log_index });
+        remove_unless_named(kv, site, &key, &old.file)?;
+    }
+    Ok(())
 }
 
 pub(crate) fn checkpoint_indexes(kv: &impl RawKv, site: &str) -> Result<Vec<u64>> {
     validate_site_id(site)?;
-    let prefix = key::kind_prefix(site, KIND_CHECKPOINT);
-    let mut indexes = kv
-        .raw_scan(&prefix)
-        .map(|item| index_of(&item?.0, prefix.len()))
-        .collect::<Result<Vec<u64>>>()?;
-    indexes.reverse();
-    Ok(indexes)
+    let mut indexes = BTreeSet::new();
+    for kind in [KIND_CHECKPOINT_FILE, KIND_CHECKPOINT] {
+        let prefix = key::kind_prefix(site, kind);
+        for item in kv.raw_scan(&prefix) {
+            indexes.insert(index_of(&item?.0, prefix.len())?);
+        }
+    }
+    Ok(indexes.into_iter().rev().collect())
 }
 
 pub(crate) fn checkpoint(kv: &impl RawKv, site: &str, log_index: u64) -> Result<Option<Vec<u8>>> {
     validate_site_id(site)?;
-    let key = checkpoint_key(site, log_index);
-    kv.raw_get(&key)?
-        .map(|stored| Ok(envelope::open(&key, &stored)?.to_vec()))
+    let key = entry_key(site, log_index);
+    if let Some(stored) = kv.raw_get(&key)? {
+        return file_bytes(kv, site, &key, &stored).map(Some);
+    }
+    let inline = inline_key(site, log_index);
+    kv.raw_get(&inline)?
+        .map(|stored| Ok(envelope::open(&inline, &stored)?.to_vec()))
         .transpose()
+}
+
+/// The verified bytes of the checkpoint whose index entry, stored under `key`, is `stored`.
+pub(crate) fn file_bytes(
+    kv: &impl RawKv,
+    site: &str,
+    key: &[u8],
+    stored: &[u8],
+) -> Result<Vec<u8>> {
+    let log_index = index_of(key, key::kind_prefix(site, KIND_CHECKPOINT_FILE).len())?;
+    let entry = decode_entry(key, stored)?;
+    let files = kv.checkpoint_files();
+    let path = files.path(&entry.file);
+    let bytes = files
+        .read(site, &entry.file)?
+        .ok_or_else(|| StorageError::Corrupt {
+            key: key::describe(key),
+            reason: format!("file {} is missing", path.display()),
+        })?;
+    entry.verify(key, (site, log_index), &bytes, &path)?;
+    Ok(bytes)
+}
+
+/// Whether the checkpoint at `log_index` reads back; `Err` only for a failure that is not a damaged
+/// checkpoint (I/O, the backend).
+fn verifies(kv: &impl RawKv, site: &str, log_index: u64) -> Result<bool> {
+    match checkpoint(kv, site, log_index) {
+        Ok(found) => Ok(found.is_some()),
+        Err(StorageError::Corrupt { .. } | StorageError::UnsupportedFormat { .. }) => Ok(false),
+        Err(error) => Err(error),
+    }
 }
 
 pub(crate) fn compact(
@@ -157,34 +278,35 @@ pub(crate) fn compact(
     retention.validate()?;
     let site_key = key::site_key(site);
     site_must_be_complete(site, &site_key, kv.raw_get(&site_key)?.as_deref())?;
-    // Newest first: which verify.
-    let prefix = key::kind_prefix(site, KIND_CHECKPOINT);
-    let mut stored: Vec<(u64, bool)> = kv
-        .raw_scan(&prefix)
-        .map(|item| {
-            let (key, value) = item?;
-            let index = index_of(&key, prefix.len())?;
-            Ok((index, envelope::open(&key, &value).is_ok()))
-        })
-        .collect::<Result<_>>()?;
-    stored.reverse();
+    // Newest first: the first ones that verify are kept, everything older goes.
     let mut kept = 0;
     let mut oldest_kept = None;
     let mut older = Vec::new();
-    for (index, verifies) in stored {
+    for index in checkpoint_indexes(kv, site)? {
         if kept == retention.checkpoints {
             older.push(index);
-        } else if verifies {
+        } else if verifies(kv, site, index)? {
             kept += 1;
             oldest_kept = Some(index);
         }
     }
     let mut compaction = Compaction::default();
+    // The files the removed entries name (an undecodable entry's file is left to the orphan sweep).
+    let mut unnamed_files = Vec::new();
     if !older.is_empty() {
+        for &index in &older {
+            let key = entry_key(site, index);
+            if let Some(stored) = kv.raw_get(&key)?
+                && let Ok(entry) = decode_entry(&key, &stored)
+            {
+                unnamed_files.push((index, key, entry.file));
+            }
+        }
         kv.transact(&|txn| {
-            older
-                .iter()
-                .try_for_each(|index| txn.remove(&checkpoint_key(site, *index)))
+            older.iter().try_for_each(|&index| {
+                txn.remove(&entry_key(site, index))?;
+                txn.remove(&inline_key(site, index))
+            })
         })?;
         compaction.checkpoints_removed = older.len() as u64;
     }
@@ -213,7 +335,61 @@ pub(crate) fn compact(
     }
     compaction.log_compacted_through = through;
     kv.raw_flush()?;
+    // Only now that no durable entry names them: the files.
+    for (log_index, key, file) in unnamed_files {
+        kv.checkpoint_files()
+            .step(CheckpointStep::IndexRemoved { log_index });
+        remove_unless_named(kv, site, &key, &file)?;
+    }
     Ok(compaction)
+}
+
+/// Deletes a site's checkpoint files once its records are gone (deleted or purged for an import): flushes
+/// first, so no durable entry names a deleted file.
+pub(crate) fn remove_site_files(kv: &impl RawKv, site: &str) -> Result<()> {
+    kv.raw_flush()?;
+    let files = kv.checkpoint_files();
+    let _lock = files.lock();
+    files.remove_dir(site, &site_dir(site))
+}
+
+/// Writes an imported checkpoint (`id`: its log index, 8 bytes big-endian) to its file durably and returns
+/// its index entry (key, sealed value), for the import to store.
+pub(crate) fn import_file(
+    kv: &impl RawKv,
+    site: &str,
+    id: &[u8],
+    checkpoint: &[u8],
+) -> Result<(Vec<u8>, Vec<u8>)> {
+    let log_index = index_of(id, 0)?;
+    let key = entry_key(site, log_index);
+    let entry = CheckpointEntry::of(site, log_index, checkpoint);
+    kv.checkpoint_files().write(site, &entry.file, checkpoint)?;
+    let sealed = envelope::seal(&key, &entry.encode());
+    Ok((key, sealed))
+}
+
+/// Deletes every checkpoint file no index entry names (see the module docs); returns how many. Run when the
+/// store opens, before anything writes to it.
+pub(crate) fn remove_orphan_files(kv: &impl RawKv) -> Result<u64> {
+    let mut named = BTreeSet::new();
+    for item in kv.raw_scan(&[key::NS_SITE]) {
+        let (site_key, _) = item?;
+        let Ok(site) = std::str::from_utf8(&site_key[1..]) else {
+            continue;
+        };
+        if validate_site_id(site).is_err() {
+            continue;
+        }
+        for item in kv.raw_scan(&key::kind_prefix(site, KIND_CHECKPOINT_FILE)) {
+            let (key, stored) = item?;
+            // An entry that does not read back is no checkpoint: its file is an orphan.
+            if let Ok(entry) = decode_entry(&key, &stored) {
+                named.insert(entry.file);
+            }
+        }
+    }
+    kv.checkpoint_files().retain(&named)
 }
 
 #[cfg(test)]

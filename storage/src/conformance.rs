@@ -602,6 +602,13 @@ fn checkpoints_are_stored_under_their_log_position(store: &impl MapStore) {
         Some(&b"state 5"[..])
     );
     assert_eq!(store.checkpoint("depot", 3).unwrap(), None);
+    // Rewritten at its position: the new bytes replace the old.
+    store.put_checkpoint("depot", 5, b"state 5, again").unwrap();
+    assert_eq!(
+        store.checkpoint("depot", 5).unwrap().as_deref(),
+        Some(&b"state 5, again"[..])
+    );
+    assert_eq!(store.checkpoint_indexes("depot").unwrap(), [5, 2]);
     assert!(store.checkpoint_indexes("other").unwrap().is_empty());
     // Checkpoints are not records of any kind: scans and versions do not see them.
     assert_eq!(log_indexes(store, "depot"), [1, 2, 3, 4, 5]);

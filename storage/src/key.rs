@@ -6,7 +6,7 @@
 //! ```
 //! The site is length-prefixed, so the prefix of site `a` never matches site `ab`. Record kinds at
 //! [`INTERNAL_KIND_MIN`] and above are written only by this crate (map version, session sequence numbers,
-//! checkpoints).
+//! checkpoints and their index entries).
 
 use std::fmt::Write as _;
 
@@ -22,8 +22,13 @@ pub(crate) const INTERNAL_KIND_MIN: u8 = 0xF0;
 pub(crate) const KIND_MAP_VERSION: u8 = 0xF0;
 /// Internal kind: last applied sequence number of a session (id = session id, value u64 LE).
 pub(crate) const KIND_SESSION_SEQ: u8 = 0xF1;
-/// Internal kind: a checkpoint of the site (id = the log index it covers, u64 BE; value opaque).
+/// Internal kind: a checkpoint of the site stored inline (id = the log index it covers, u64 BE; value
+/// opaque). Written by builds before checkpoint files, still read; also the kind of checkpoints in site
+/// archives.
 pub(crate) const KIND_CHECKPOINT: u8 = 0xF2;
+/// Internal kind: the index entry of a checkpoint whose bytes are in a file (id = the log index it covers,
+/// u64 BE; value: the private `checkpoint_entry` encoding, naming the file).
+pub(crate) const KIND_CHECKPOINT_FILE: u8 = 0xF3;
 
 /// Key of a site's registry entry.
 pub(crate) fn site_key(site: &str) -> Vec<u8> {
@@ -75,6 +80,7 @@ pub(crate) fn describe(key: &[u8]) -> String {
                 KIND_MAP_VERSION => "map-version".to_owned(),
                 KIND_SESSION_SEQ => "session-seq".to_owned(),
                 KIND_CHECKPOINT => "checkpoint".to_owned(),
+                KIND_CHECKPOINT_FILE => "checkpoint-file".to_owned(),
                 other => RecordKind::from_byte(other)
                     .map_or_else(|| format!("kind{other}"), |k| k.name().to_owned()),
             };

@@ -12,8 +12,9 @@
 //! - A site can be exported to, and imported from, a single checksummed stream ([`SITE_ARCHIVE_MAGIC`]),
 //!   its checkpoints included.
 //! - A site's state can be checkpointed atomically with the log position it covers
-//!   ([`MapStore::put_checkpoint`]), and its log compacted up to the older kept checkpoint
-//!   ([`MapStore::compact`], [`CheckpointRetention`]).
+//!   ([`MapStore::put_checkpoint`]; [`SledStore`] keeps the bytes in files of their own, with only an
+//!   index entry in sled), and its log compacted up to the older kept checkpoint ([`MapStore::compact`],
+//!   [`CheckpointRetention`]).
 //!
 //! Implementations: [`SledStore`] (the server's, on disk) and [`MemStore`] (tests), which share one
 //! implementation of these semantics over a small private key-value interface and pass one conformance suite.
@@ -32,6 +33,8 @@
 //! # Ok::<(), storage::StorageError>(())
 //! ```
 
+mod checkpoint_entry;
+mod checkpoint_files;
 mod checkpoints;
 #[cfg(test)]
 mod conformance;
@@ -48,6 +51,7 @@ mod sled_store_options;
 mod storage_error;
 mod write_batch;
 
+pub use checkpoint_files::CheckpointStep;
 pub use checkpoints::{CheckpointRetention, Compaction};
 pub use disk_full_store::{DiskFullStore, FailAt, out_of_space};
 pub use envelope::RECORD_FORMAT_VERSION;

@@ -96,10 +96,14 @@ pub trait MapStore: Send + Sync {
     fn delete_site(&self, site: &str) -> Result<()>;
 
     /// Stores `checkpoint` (the caller's encoding of the site's state) as covering the site's log up to
-    /// and including `log_index`, atomically with that position (it is the record's key), and durably:
-    /// returns once it is on disk. Refused for an unknown or incomplete site and for a `log_index`
-    /// beyond the site's map version ([`crate::StorageError::CheckpointAhead`]). Older checkpoints stay
-    /// until [`MapStore::compact`] removes them.
+    /// and including `log_index`, atomically with that position (it is the index entry's key), and
+    /// durably: returns once it is on disk. The bytes go to a file of their own ([`crate::SledStore`]:
+    /// `<database dir>/checkpoints/<site>/<log index>-<CRC32>.ckpt`, written to a temporary file, fsynced
+    /// and renamed; [`crate::MemStore`]: memory), then the index entry (length, CRC32, file name) is
+    /// stored. Refused, before any file is written, for an unknown or incomplete site and for a
+    /// `log_index` beyond the site's map version ([`crate::StorageError::CheckpointAhead`]). A checkpoint
+    /// stored again at the same `log_index` replaces it. Older checkpoints stay until
+    /// [`MapStore::compact`] removes them.
     fn put_checkpoint(&self, site: &str, log_index: u64, checkpoint: &[u8]) -> Result<()>;
 
     /// The log indexes of the site's stored checkpoints, newest first (unverified: a corrupt one is
@@ -107,13 +111,16 @@ pub trait MapStore: Send + Sync {
     fn checkpoint_indexes(&self, site: &str) -> Result<Vec<u64>>;
 
     /// The verified checkpoint covering the log up to `log_index`, `None` if absent;
-    /// [`crate::StorageError::Corrupt`] if it fails its checksum.
+    /// [`crate::StorageError::Corrupt`] if it fails its checksum or its length, or its file is missing
+    /// (the error names the file): never bytes that are not the checkpoint's.
     fn checkpoint(&self, site: &str, log_index: u64) -> Result<Option<Vec<u8>>>;
 
     /// Deletes the checkpoints older than the newest `retention.checkpoints` that verify, then the
     /// records of `log_kind` (the site's log, ids from [`RecordId::from_u64`]) up to the oldest kept
     /// checkpoint's index less `retention.log_entries` — none while fewer checkpoints verify than are
-    /// kept. Crash-safe at every step (see the `checkpoints` module); durable when it returns.
+    /// kept. The files of the removed checkpoints are deleted once their removal is durable. Crash-safe
+    /// at every step (see the `checkpoints` module; a file a crash leaves behind is deleted when the store
+    /// next opens); durable when it returns.
     fn compact(
         &self,
         site: &str,

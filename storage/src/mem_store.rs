@@ -4,16 +4,19 @@ use std::collections::BTreeMap;
 use std::sync::{Mutex, MutexGuard, PoisonError};
 
 use crate::Result;
+use crate::checkpoint_files::{CheckpointFiles, MemCheckpointFiles};
 use crate::raw_kv::{RawIter, RawKv, RawTxn, impl_map_store_via_raw_kv};
 
 type Map = BTreeMap<Vec<u8>, Vec<u8>>;
 
 /// A [`crate::MapStore`] in memory, with exactly the semantics of [`crate::SledStore`] except durability
 /// ([`crate::MapStore::flush`] does nothing and everything is lost on drop). Values are sealed and verified
-/// like on disk. Transactions run under one mutex; scans return a copy taken when they start.
+/// like on disk, and checkpoints are index entries in the map with their bytes beside it, as sled's are
+/// with their bytes in files. Transactions run under one mutex; scans return a copy taken when they start.
 #[derive(Debug, Default)]
 pub struct MemStore {
     map: Mutex<Map>,
+    checkpoint_files: MemCheckpointFiles,
 }
 
 impl MemStore {
@@ -31,6 +34,12 @@ impl MemStore {
     #[cfg(test)]
     pub(crate) fn with_raw(&self, f: impl FnOnce(&mut Map)) {
         f(&mut self.lock());
+    }
+
+    /// Test hook: the checkpoint files, e.g. to damage or delete one.
+    #[cfg(test)]
+    pub(crate) fn files(&self) -> &MemCheckpointFiles {
+        &self.checkpoint_files
     }
 }
 
@@ -59,6 +68,10 @@ impl RawTxn for MemTxn<'_> {
 }
 
 impl RawKv for MemStore {
+    fn checkpoint_files(&self) -> &dyn CheckpointFiles {
+        &self.checkpoint_files
+    }
+
     fn raw_get(&self, key: &[u8]) -> Result<Option<Vec<u8>>> {
         Ok(self.lock().get(key).cloned())
     }

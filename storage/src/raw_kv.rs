@@ -3,8 +3,13 @@
 
 use std::io::{Read, Write};
 
+use crate::checkpoint_files::CheckpointFiles;
+use crate::checkpoints;
 use crate::envelope::{self, decode_u64};
-use crate::key::{self, INTERNAL_KIND_MIN, KIND_CHECKPOINT, KIND_MAP_VERSION, KIND_SESSION_SEQ};
+use crate::key::{
+    self, INTERNAL_KIND_MIN, KIND_CHECKPOINT, KIND_CHECKPOINT_FILE, KIND_MAP_VERSION,
+    KIND_SESSION_SEQ,
+};
 use crate::site_archive::{ArchiveReader, ArchiveWriter, Chunk};
 use crate::{
     BatchOp, BatchOutcome, RecordId, RecordIter, RecordKind, Result, StorageError, TransferSummary,
@@ -21,8 +26,10 @@ pub(crate) trait RawTxn {
     fn remove(&mut self, key: &[u8]) -> Result<()>;
 }
 
-/// A transactional ordered key-value store.
+/// A transactional ordered key-value store, with files beside it for the bytes of checkpoints.
 pub(crate) trait RawKv: Send + Sync {
+    /// Where the bytes of checkpoints go (see the `checkpoints` module).
+    fn checkpoint_files(&self) -> &dyn CheckpointFiles;
     fn raw_get(&self, key: &[u8]) -> Result<Option<Vec<u8>>>;
     fn raw_scan(&self, prefix: &[u8]) -> RawIter<'_>;
     /// Runs `body` atomically and serializably: its writes all land if it returns `Ok`, none otherwise.
@@ -211,12 +218,14 @@ pub(crate) fn last_applied_seq(kv: &impl RawKv, site: &str, session: &str) -> Re
     )
 }
 
-/// Marks the site incomplete, then removes its records chunk by chunk, then its registry entry.
+/// Marks the site incomplete, then removes its records chunk by chunk, its checkpoint files, then its
+/// registry entry.
 pub(crate) fn delete_site(kv: &impl RawKv, site: &str) -> Result<()> {
     validate_site_id(site)?;
     let site_key = key::site_key(site);
     kv.transact(&|txn| txn.insert(&site_key, sealed_state(&site_key, SiteState::Incomplete)))?;
     purge_records(kv, site)?;
+    checkpoints::remove_site_files(kv, site)?;
     kv.transact(&|txn| txn.remove(&site_key))?;
     kv.raw_flush()
 }
@@ -260,14 +269,19 @@ pub(crate) fn export_site(
     let mut writer = ArchiveWriter::new(out, site)?;
     for item in kv.raw_scan(&prefix) {
         let (key, stored) = item?;
-        let payload = envelope::open(&key, &stored)?;
         let Some((&kind, id)) = key[prefix.len()..].split_first() else {
             return Err(StorageError::Corrupt {
                 key: key::describe(&key),
                 reason: "key has no kind".to_owned(),
             });
         };
-        writer.record(kind, id, payload)?;
+        if kind == KIND_CHECKPOINT_FILE {
+            // A checkpoint in a file travels as the checkpoint record it stands for.
+            let bytes = checkpoints::file_bytes(kv, site, &key, &stored)?;
+            writer.record(KIND_CHECKPOINT, id, &bytes)?;
+        } else {
+            writer.record(kind, id, envelope::open(&key, &stored)?)?;
+        }
     }
     writer.finish()
 }
@@ -300,6 +314,7 @@ pub(crate) fn import_site(
         },
     )?;
     purge_records(kv, site)?;
+    checkpoints::remove_site_files(kv, site)?;
     match import_records(kv, site, input) {
         Ok(summary) => {
             kv.transact(&|txn| {
@@ -339,11 +354,15 @@ fn import_records(kv: &impl RawKv, site: &str, input: &mut dyn Read) -> Result<T
             Chunk::Begin { .. } => return Err(bad("second begin chunk".to_owned())),
             Chunk::Record { kind, id, payload } => {
                 check_imported_kind(kind, &id, &payload).map_err(bad)?;
-                let key = key::record_key(site, kind, &id);
                 summary.records += 1;
                 summary.payload_bytes += payload.len() as u64;
                 pending_bytes += payload.len();
-                pending.push((key.clone(), envelope::seal(&key, &payload)));
+                if kind == KIND_CHECKPOINT {
+                    pending.push(checkpoints::import_file(kv, site, &id, &payload)?);
+                } else {
+                    let key = key::record_key(site, kind, &id);
+                    pending.push((key.clone(), envelope::seal(&key, &payload)));
+                }
                 if pending.len() >= CHUNK_RECORDS || pending_bytes >= CHUNK_BYTES {
                     write(&mut pending)?;
                     pending_bytes = 0;

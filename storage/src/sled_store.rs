@@ -28,6 +28,13 @@
 //! reopens the database — when no operation holds it (scans included), else a later flush does. That
 //! reopen follows a successful flush, so it loses nothing and leaves
 //! [`crate::MapStore::generation`] unchanged; it is counted by [`SledStore::memory_reopens`].
+//!
+//! **Checkpoints in files.** The bytes of site checkpoints are not sled values: each is a file under
+//! `<database dir>/checkpoints/<site>/` (see [`crate::MapStore::put_checkpoint`]), written crash-safely,
+//! and sled holds only its index entry (log index, length, CRC32, file name). sled 0.34 keeps the space of
+//! the large values it held long after they are overwritten or removed (a 16-session site's checkpoints
+//! made its store 1.6 GB against 22 MB without), a deleted file frees its space at once. Opening the
+//! store deletes the files no entry names (left by a crash between a file and its entry).
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -39,8 +46,12 @@ use sled::transaction::{
     ConflictableTransactionError, TransactionError, TransactionalTree, UnabortableTransactionError,
 };
 
+use crate::checkpoint_files::{CheckpointDir, CheckpointFiles, CheckpointStep};
 use crate::raw_kv::{RawIter, RawKv, RawTxn, impl_map_store_via_raw_kv};
-use crate::{Result, SledStoreOptions, StorageError};
+use crate::{Result, SledStoreOptions, StorageError, checkpoints};
+
+/// The checkpoint directory's name inside the database directory.
+const CHECKPOINT_DIR: &str = "checkpoints";
 
 /// A [`crate::MapStore`] persisted in a sled database directory (one process at a time: sled locks it).
 #[derive(Debug)]
@@ -59,6 +70,8 @@ pub struct SledStore {
     held_bytes: Arc<AtomicU64>,
     /// Reopens that bounded the memory (see the module docs).
     memory_reopens: AtomicU64,
+    /// The files of the checkpoints' bytes (see the module docs).
+    checkpoint_files: CheckpointDir,
 }
 
 /// Why and since when the database refuses writes.
@@ -71,19 +84,25 @@ struct Wedge {
 }
 
 impl SledStore {
-    /// Opens (creating if needed) the database at `options.path`. While another process holds the lock,
-    /// retries up to `options.open_attempts` times, `options.open_retry_interval_ms` apart, then fails with
-    /// [`StorageError::Locked`].
+    /// Opens (creating if needed) the database at `options.path`, and its checkpoint directory
+    /// `options.path/checkpoints`, from which it deletes the files no checkpoint uses. While another
+    /// process holds the lock, retries up to `options.open_attempts` times, `options.open_retry_interval_ms`
+    /// apart, then fails with [`StorageError::Locked`].
     pub fn open(options: &SledStoreOptions) -> Result<Self> {
         options.validate()?;
-        Ok(Self {
-            db: RwLock::new(Some(Arc::new(open_db(options)?))),
+        // sled creates the database directory; the checkpoint directory goes inside it, under its lock.
+        let db = open_db(options)?;
+        let store = Self {
+            db: RwLock::new(Some(Arc::new(db))),
             options: options.clone(),
             wedge: Mutex::new(None),
             generation: AtomicU64::new(0),
             held_bytes: Arc::new(AtomicU64::new(0)),
             memory_reopens: AtomicU64::new(0),
-        })
+            checkpoint_files: CheckpointDir::open(options.path.join(CHECKPOINT_DIR))?,
+        };
+        checkpoints::remove_orphan_files(&store)?;
+        Ok(store)
     }
 
     /// Opens the database at `path` with default options.
@@ -96,9 +115,21 @@ impl SledStore {
         &self.options.path
     }
 
-    /// Bytes the database occupies on disk, as sled reports it.
+    /// Bytes the store occupies on disk: sled's files as sled reports them, and the checkpoint files.
     pub fn size_on_disk(&self) -> Result<u64> {
-        Ok(self.db_for_read()?.size_on_disk()?)
+        Ok(self.db_for_read()?.size_on_disk()? + self.checkpoint_files.total_bytes()?)
+    }
+
+    /// Bytes of the checkpoint files (included in [`SledStore::size_on_disk`]).
+    pub fn checkpoint_files_bytes(&self) -> Result<u64> {
+        self.checkpoint_files.total_bytes()
+    }
+
+    /// Calls `hook` at each step between a checkpoint's file and its index entry (see
+    /// [`CheckpointStep`]), on the thread storing or compacting; replaces any earlier hook. For crash
+    /// tests (`tests/kill_nine.rs` stops the writer there and kills it).
+    pub fn on_checkpoint_step(&self, hook: impl Fn(CheckpointStep) + Send + Sync + 'static) {
+        self.checkpoint_files.hook().set(Box::new(hook));
     }
 
     /// Whether the database refuses writes after a failed one (until it is reopened).
@@ -366,6 +397,10 @@ impl Iterator for SledScan {
 }
 
 impl RawKv for SledStore {
+    fn checkpoint_files(&self) -> &dyn CheckpointFiles {
+        &self.checkpoint_files
+    }
+
     fn raw_get(&self, key: &[u8]) -> Result<Option<Vec<u8>>> {
         let value = self.db_for_read()?.get(key)?.map(|value| value.to_vec());
         count_held(
@@ -689,6 +724,110 @@ mod tests {
             0,
             "counted per open store"
         );
+    }
+
+    /// The files under the store's checkpoint directory, relative to it, sorted.
+    fn checkpoint_files_on_disk(db: &Path) -> Vec<String> {
+        let root = db.join(CHECKPOINT_DIR);
+        let mut names = Vec::new();
+        for site in std::fs::read_dir(&root).unwrap() {
+            let site = site.unwrap();
+            for file in std::fs::read_dir(site.path()).unwrap() {
+                names.push(format!(
+                    "{}/{}",
+                    site.file_name().to_string_lossy(),
+                    file.unwrap().file_name().to_string_lossy()
+                ));
+            }
+        }
+        names.sort();
+        names
+    }
+
+    #[test]
+    fn checkpoint_bytes_live_in_files_and_sled_stays_small() {
+        let dir = tempfile::tempdir().unwrap();
+        let db = dir.path().join("db");
+        let store = SledStore::open(&SledStoreOptions::at(&db)).unwrap();
+        let checkpoint = |index: u64| vec![index as u8; 2 << 20];
+        for index in 1..=12_u64 {
+            let mut batch = WriteBatch::new("depot");
+            batch
+                .put(RecordKind::Trajectory, index, b"entry".to_vec())
+                .bump_map_version();
+            store.apply_durable(&batch).unwrap();
+            store
+                .put_checkpoint("depot", index, &checkpoint(index))
+                .unwrap();
+            store
+                .compact(
+                    "depot",
+                    RecordKind::Trajectory,
+                    &crate::CheckpointRetention::DEFAULT,
+                )
+                .unwrap();
+        }
+        let crc = |index: u64| {
+            crate::checkpoint_entry::CheckpointEntry::of("depot", index, &checkpoint(index)).crc
+        };
+        assert_eq!(
+            checkpoint_files_on_disk(&db),
+            [
+                format!("depot/00000000000000000011-{:08x}.ckpt", crc(11)),
+                format!("depot/00000000000000000012-{:08x}.ckpt", crc(12)),
+            ]
+        );
+        assert_eq!(store.checkpoint_files_bytes().unwrap(), 2 * (2 << 20));
+        assert_eq!(store.checkpoint("depot", 12).unwrap(), Some(checkpoint(12)));
+        // No checkpoint bytes in sled: 24 MiB of checkpoints written, sled holds kilobytes of values.
+        let largest = store
+            .raw_db()
+            .iter()
+            .map(|item| item.unwrap().1.len())
+            .max()
+            .unwrap();
+        assert!(largest < 1024, "a {largest}-byte value in sled");
+        let sled_bytes = store.size_on_disk().unwrap() - store.checkpoint_files_bytes().unwrap();
+        assert!(sled_bytes < 8 << 20, "sled's files take {sled_bytes} bytes");
+    }
+
+    #[test]
+    fn opening_removes_orphan_files_and_a_missing_file_reads_as_corrupt() {
+        let dir = tempfile::tempdir().unwrap();
+        let db = dir.path().join("db");
+        let options = SledStoreOptions::at(&db);
+        {
+            let store = SledStore::open(&options).unwrap();
+            let mut batch = WriteBatch::new("depot");
+            batch.bump_map_version();
+            store.apply_durable(&batch).unwrap();
+            store.apply_durable(&batch).unwrap();
+            store.put_checkpoint("depot", 1, b"state 1").unwrap();
+            store.put_checkpoint("depot", 2, b"state 2").unwrap();
+        }
+        let kept = checkpoint_files_on_disk(&db);
+        assert_eq!(kept.len(), 2);
+        // What crashes leave: a temporary file, a file whose entry never landed, a deleted site's dir.
+        let root = db.join(CHECKPOINT_DIR);
+        std::fs::write(root.join("depot/.x.ckpt.7-0.tmp"), b"half").unwrap();
+        std::fs::write(root.join("depot/00000000000000000003-00000000.ckpt"), b"3").unwrap();
+        std::fs::create_dir(root.join("gone")).unwrap();
+        std::fs::write(root.join("gone/00000000000000000001-00000000.ckpt"), b"1").unwrap();
+        let store = SledStore::open(&options).unwrap();
+        assert_eq!(checkpoint_files_on_disk(&db), kept);
+        assert!(!root.join("gone").exists());
+        assert_eq!(
+            store.checkpoint("depot", 2).unwrap().as_deref(),
+            Some(&b"state 2"[..])
+        );
+        // A file deleted behind the store's back: the checkpoint is invalid, named by its file.
+        std::fs::remove_file(root.join(&kept[1])).unwrap();
+        let error = store.checkpoint("depot", 2).unwrap_err();
+        assert!(
+            matches!(&error, StorageError::Corrupt { reason, .. } if reason.contains(&kept[1])),
+            "{error}"
+        );
+        assert_eq!(store.checkpoint_indexes("depot").unwrap(), [2, 1]);
     }
 
     #[test]

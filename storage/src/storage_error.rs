@@ -135,6 +135,29 @@ pub enum StorageError {
         /// The site's map version.
         map_version: u64,
     },
+    /// A checkpoint's file (see [`crate::SledStore`]) could not be written, read or removed.
+    #[error("cannot {action} checkpoint file {} of site {site:?}: {source}", file.display())]
+    CheckpointFile {
+        /// The site.
+        site: String,
+        /// The file.
+        file: PathBuf,
+        /// What was being done: `"write"`, `"read"`, `"remove"`.
+        action: &'static str,
+        /// The failure.
+        source: std::io::Error,
+    },
+    /// The directory of checkpoint files, or a file in it that no checkpoint uses, could not be created,
+    /// listed or removed.
+    #[error("cannot {action} {}: {source}", path.display())]
+    CheckpointDir {
+        /// The directory or file.
+        path: PathBuf,
+        /// What was being done, e.g. `"list the checkpoint directory"`.
+        action: &'static str,
+        /// The failure.
+        source: std::io::Error,
+    },
     /// Reading or writing a stream or file failed.
     #[error("I/O error: {0}")]
     Io(#[from] std::io::Error),
@@ -147,7 +170,11 @@ impl StorageError {
         if let Self::Wedged { out_of_space, .. } = self {
             return *out_of_space;
         }
-        let (Self::Io(io) | Self::Sled(sled::Error::Io(io))) = self else {
+        let (Self::Io(io)
+        | Self::Sled(sled::Error::Io(io))
+        | Self::CheckpointFile { source: io, .. }
+        | Self::CheckpointDir { source: io, .. }) = self
+        else {
             return false;
         };
         io.kind() == std::io::ErrorKind::StorageFull || io.raw_os_error() == Some(ENOSPC)

@@ -1,7 +1,9 @@
 //! The kill -9 test: a child process (`storage-torture`) applies batches durably to a `SledStore`, writes
 //! checkpoints of the site and compacts its log (issue 34), and prints each step it finished; we SIGKILL
 //! it at a random moment — while it applies batches, while it opens and restores the site, or just after
-//! it began a checkpoint write or a compaction — reopen the store and check:
+//! it began a checkpoint write or a compaction, or exactly between a checkpoint's file becoming durable
+//! and its index entry being stored, or between a compaction removing an entry durably and deleting its
+//! file (the writer pauses there, `PAUSE_AT`) — reopen the store and check:
 //! - every acknowledged batch is present whole, no batch is present in part, and no record is corrupt
 //!   (the batches' Node records are never compacted: all of them, exactly);
 //! - every acknowledged batch is still readable: in the log, or covered by a checkpoint that verifies;
@@ -12,7 +14,10 @@
 //!   verify and complete after the oldest stored one; restoring from every stored checkpoint plus the
 //!   log after it gives the digest of the whole log, and the next writer restored from the newest one;
 //! - at most 2 checkpoints are stored, and one more for each checkpoint write begun since the last
-//!   compaction that returned (a kill between a checkpoint and its compaction leaves it for the next).
+//!   compaction that returned (a kill between a checkpoint and its compaction leaves it for the next);
+//! - the checkpoint directory holds exactly one file per stored checkpoint, named by its index (the
+//!   orphans a kill left were deleted when the store opened), and a checkpoint killed between its file
+//!   and its entry, or between its entry's removal and its file's, is not listed.
 //!
 //! Repeated over many cycles on the same database, which keeps growing across kills.
 //!
@@ -51,6 +56,8 @@ enum Event {
     Checkpointed { index: u64, micros: u64 },
     CompactionBegins(u64),
     Compacted { micros: u64, removed: u64 },
+    FileDurable(u64),
+    IndexRemoved(u64),
 }
 
 impl Event {
@@ -68,6 +75,8 @@ impl Event {
                 micros: next()?,
             },
             "K" => Self::CompactionBegins(next()?),
+            "F" => Self::FileDurable(next()?),
+            "D" => Self::IndexRemoved(next()?),
             "k" => {
                 let _index = next()?;
                 Self::Compacted {
@@ -91,6 +100,22 @@ enum Moment {
     Checkpoint,
     /// A random time within half the last compaction's duration after one begins.
     Compaction,
+    /// Between a checkpoint's file being durable and its index entry being stored (the writer pauses).
+    FileDurable,
+    /// Between a compaction removing a checkpoint's entry durably and deleting its file (the writer
+    /// pauses).
+    IndexRemoved,
+}
+
+impl Moment {
+    /// The writer's `PAUSE_AT` argument for the moments it pauses at.
+    fn pause_at(self) -> Option<&'static str> {
+        match self {
+            Self::FileDurable => Some("file-durable"),
+            Self::IndexRemoved => Some("index-removed"),
+            Self::Start | Self::Batches | Self::Checkpoint | Self::Compaction => None,
+        }
+    }
 }
 
 #[derive(Debug, Default)]
@@ -102,6 +127,10 @@ struct Tally {
     killed_in_checkpoint: u64,
     /// Kills that landed after a compaction began and before it returned.
     killed_in_compaction: u64,
+    /// Kills between a checkpoint's file and its index entry.
+    killed_between_file_and_entry: u64,
+    /// Kills between an index entry's removal and its file's deletion.
+    killed_between_entry_and_file_removal: u64,
     acked_batches: u64,
     unacked_but_applied: u64,
     acked_checkpoints: u64,
@@ -172,6 +201,7 @@ fn verify(
     max_acked: u64,
     acked_checkpoint: u64,
     uncompacted: usize,
+    unlisted: Option<u64>,
     digests: &mut Digests,
 ) -> Verified {
     let store = SledStore::open_path(path).unwrap();
@@ -276,6 +306,23 @@ fn verify(
         );
         restore_points.push(workload::checkpoint_header(&payload).unwrap());
     }
+    if let Some(index) = unlisted {
+        assert!(
+            !checkpoints.contains(&index),
+            "checkpoint {index} was killed between its file and its index entry, but is listed: \
+             {checkpoints:?}"
+        );
+    }
+    let mut expected_files: Vec<String> = checkpoints
+        .iter()
+        .map(|index| format!("{index:020}"))
+        .collect();
+    expected_files.sort();
+    assert_eq!(
+        checkpoint_files(path),
+        expected_files,
+        "the checkpoint files are not one per stored checkpoint {checkpoints:?}"
+    );
     let newest = checkpoints.first().copied().unwrap_or(0);
     if acked_checkpoint > 0 {
         let newer = checkpoints
@@ -357,6 +404,31 @@ fn verify(
     }
 }
 
+/// The log indexes (20 digits) of the files in the store's checkpoint directory, sorted; panics on a
+/// file not named `<log index>-<CRC32>.ckpt`.
+fn checkpoint_files(db: &Path) -> Vec<String> {
+    let mut indexes = Vec::new();
+    let Ok(sites) = std::fs::read_dir(db.join("checkpoints")) else {
+        return indexes;
+    };
+    for site in sites {
+        for file in std::fs::read_dir(site.unwrap().path()).unwrap() {
+            let name = file.unwrap().file_name().to_string_lossy().into_owned();
+            let Some((index, _crc)) = name
+                .strip_suffix(".ckpt")
+                .and_then(|stem| stem.split_once('-'))
+                .filter(|(index, crc)| index.len() == 20 && crc.len() == 8)
+            else {
+                panic!("a stray file {name:?} in the checkpoint directory");
+            };
+            let index = index.to_owned();
+            indexes.push(index);
+        }
+    }
+    indexes.sort();
+    indexes
+}
+
 /// Waits for the writer's first event `wanted` accepts, keeping every event; `false` if the writer
 /// stopped or was silent for [`WAIT`].
 fn wait_for(
@@ -387,22 +459,25 @@ fn torture(cycles: u64, seed: u64, budget: Duration) -> Tally {
     let (mut checkpoint_micros, mut compaction_micros) = (5_000, 2_000);
     let start = Instant::now();
     while tally.cycles < cycles && start.elapsed() < budget {
+        // Checkpoint writes are short (under a millisecond here, about the time the kill takes to land
+        // after the writer said it began one): they get more cycles than compactions.
+        let moment = match rng.random_range(0..8) {
+            0 => Moment::Start,
+            1 | 2 => Moment::Batches,
+            3 | 4 => Moment::Checkpoint,
+            5 => Moment::Compaction,
+            6 => Moment::FileDurable,
+            _ => Moment::IndexRemoved,
+        };
         let mut child = Command::new(binary)
             .arg(&path)
             .arg(MAX_BATCHES_PER_CHILD.to_string())
+            .args(moment.pause_at())
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())
             .spawn()
             .unwrap();
         let events = spawn_reader(child.stdout.take().unwrap());
-        // Checkpoint writes are short (under a millisecond here, about the time the kill takes to land
-        // after the writer said it began one): they get more cycles than compactions.
-        let moment = match rng.random_range(0..6) {
-            0 => Moment::Start,
-            1 | 2 => Moment::Batches,
-            3 | 4 => Moment::Checkpoint,
-            _ => Moment::Compaction,
-        };
         let mut seen = Vec::new();
         let reached = match moment {
             Moment::Start => {
@@ -416,6 +491,12 @@ fn torture(cycles: u64, seed: u64, budget: Duration) -> Tally {
             Moment::Compaction => wait_for(&events, &mut seen, |e| {
                 matches!(e, Event::CompactionBegins(_))
             }),
+            Moment::FileDurable => {
+                wait_for(&events, &mut seen, |e| matches!(e, Event::FileDurable(_)))
+            }
+            Moment::IndexRemoved => {
+                wait_for(&events, &mut seen, |e| matches!(e, Event::IndexRemoved(_)))
+            }
         };
         if !reached {
             let _ = child.kill();
@@ -426,7 +507,7 @@ fn torture(cycles: u64, seed: u64, budget: Duration) -> Tally {
             );
         }
         let delay = match moment {
-            Moment::Start => 0,
+            Moment::Start | Moment::FileDurable | Moment::IndexRemoved => 0,
             Moment::Batches => rng.random_range(0..150_000),
             Moment::Checkpoint => rng.random_range(0..=checkpoint_micros / 2),
             Moment::Compaction => rng.random_range(0..=compaction_micros / 2),
@@ -445,9 +526,26 @@ fn torture(cycles: u64, seed: u64, budget: Duration) -> Tally {
                 "writer failed before the kill ({status}): {stderr}"
             );
         }
-        match seen.last() {
-            Some(Event::CheckpointBegins(_)) => tally.killed_in_checkpoint += 1,
-            Some(Event::CompactionBegins(_)) => tally.killed_in_compaction += 1,
+        // A writer that paused between a checkpoint's file and its entry was killed there: the
+        // checkpoint whose entry it kept from landing, or removed, must not be listed.
+        let mut unlisted = None;
+        match (seen.last(), moment.pause_at()) {
+            (Some(&Event::FileDurable(index)), Some(_)) => {
+                tally.killed_in_checkpoint += 1;
+                tally.killed_between_file_and_entry += 1;
+                unlisted = Some(index);
+            }
+            (Some(&Event::IndexRemoved(index)), Some(_)) => {
+                tally.killed_in_compaction += 1;
+                tally.killed_between_entry_and_file_removal += 1;
+                unlisted = Some(index);
+            }
+            (Some(Event::CheckpointBegins(_) | Event::FileDurable(_)), _) => {
+                tally.killed_in_checkpoint += 1;
+            }
+            (Some(Event::CompactionBegins(_) | Event::IndexRemoved(_)), _) => {
+                tally.killed_in_compaction += 1;
+            }
             _ => {}
         }
         let mut max_acked = 0;
@@ -480,7 +578,7 @@ fn torture(cycles: u64, seed: u64, budget: Duration) -> Tally {
                     tally.log_entries_removed += removed;
                     compaction_micros = micros.clamp(100, 200_000);
                 }
-                Event::CompactionBegins(_) => {}
+                Event::CompactionBegins(_) | Event::FileDurable(_) | Event::IndexRemoved(_) => {}
             }
         }
         if max_acked == 0 {
@@ -491,6 +589,7 @@ fn torture(cycles: u64, seed: u64, budget: Duration) -> Tally {
             max_acked.max(tally.last_seq),
             tally.newest_acked_checkpoint,
             tally.checkpoints_since_compaction,
+            unlisted,
             &mut digests,
         );
         tally.unacked_but_applied += verified.last - max_acked.max(tally.last_seq);
@@ -536,6 +635,12 @@ fn assert_exercised(tally: &Tally) {
     assert!(
         tally.killed_in_checkpoint >= targeted && tally.killed_in_compaction >= targeted,
         "too few kills landed in checkpoint writes or compactions: {tally:?}"
+    );
+    assert!(
+        tally.killed_between_file_and_entry >= 1
+            && tally.killed_between_entry_and_file_removal >= 1,
+        "no kill landed between a checkpoint's file and its index entry, or between an entry's \
+         removal and its file's: {tally:?}"
     );
     assert!(
         tally.restored_from_checkpoint * 2 >= tally.cycles && tally.log_begins_at > 1,

@@ -1,4 +1,4 @@
-//! `storage-torture DB_PATH MAX_BATCHES`: the writer of the kill -9 test (`tests/kill_nine.rs`).
+//! `storage-torture DB_PATH MAX_BATCHES [PAUSE_AT]`: the writer of the kill -9 test (`tests/kill_nine.rs`).
 //!
 //! Opens a `SledStore` at `DB_PATH` and restores the torture site as a server does: from the newest
 //! checkpoint that reads back (a corrupt one is skipped for the one before it) plus the log after it,
@@ -12,9 +12,13 @@
 //! - `r INDEX` restored from the checkpoint at INDEX (0: none) and the log after it;
 //! - `b SEQ` batch SEQ applied durably (the acknowledgement);
 //! - `C INDEX` a checkpoint write begins, `c INDEX MICROS` it is durable (acknowledged);
-//! - `K INDEX` a compaction begins, `k INDEX MICROS LOG_ENTRIES_REMOVED` it returned.
+//! - `K INDEX` a compaction begins, `k INDEX MICROS LOG_ENTRIES_REMOVED` it returned;
+//! - `F INDEX` the file of the checkpoint at INDEX is durable, its index entry not stored yet;
+//! - `D INDEX` the index entry of the checkpoint at INDEX is removed durably, its file not deleted yet.
 //!
-//! The test SIGKILLs it at random, or just after a `C` or a `K`.
+//! With `PAUSE_AT` `file-durable` or `index-removed` it stops for good after the first `F` or `D` line,
+//! for the kill to land exactly between the two steps. The test SIGKILLs it at random, just after a `C`
+//! or a `K`, or in such a pause.
 
 mod workload;
 
@@ -22,7 +26,9 @@ use std::io::Write as _;
 use std::process::ExitCode;
 use std::time::Instant;
 
-use storage::{BatchOutcome, CheckpointRetention, MapStore as _, SledStore, StorageError};
+use storage::{
+    BatchOutcome, CheckpointRetention, CheckpointStep, MapStore as _, SledStore, StorageError,
+};
 
 type Error = Box<dyn std::error::Error>;
 
@@ -96,8 +102,28 @@ fn checkpoint_and_compact(
     Ok(())
 }
 
-fn run(path: &str, max_batches: u64) -> Result<(), Error> {
+/// Reports each step between a checkpoint's file and its index entry (`F`, `D`), and stops for good at
+/// the first one `pause_at` names.
+fn report_checkpoint_steps(store: &SledStore, pause_at: Option<&str>) {
+    let pause_at = pause_at.map(str::to_owned);
+    store.on_checkpoint_step(move |step| {
+        let (tag, index, name) = match step {
+            CheckpointStep::FileDurable { log_index } => ('F', log_index, "file-durable"),
+            CheckpointStep::IndexRemoved { log_index } => ('D', log_index, "index-removed"),
+        };
+        let mut stdout = std::io::stdout().lock();
+        let _ = writeln!(stdout, "{tag} {index}").and_then(|()| stdout.flush());
+        if pause_at.as_deref() == Some(name) {
+            loop {
+                std::thread::sleep(std::time::Duration::from_secs(3600));
+            }
+        }
+    });
+}
+
+fn run(path: &str, max_batches: u64, pause_at: Option<&str>) -> Result<(), Error> {
     let store = SledStore::open_path(path)?;
+    report_checkpoint_steps(&store, pause_at);
     let last = store
         .last_applied_seq(workload::SITE, workload::SESSION)?
         .unwrap_or(0);
@@ -133,10 +159,15 @@ fn main() -> ExitCode {
     let args: Vec<String> = std::env::args().collect();
     let (Some(path), Some(max_batches)) = (args.get(1), args.get(2).and_then(|n| n.parse().ok()))
     else {
-        eprintln!("usage: storage-torture DB_PATH MAX_BATCHES");
+        eprintln!("usage: storage-torture DB_PATH MAX_BATCHES [file-durable|index-removed]");
         return ExitCode::from(2);
     };
-    match run(path, max_batches) {
+    let pause_at = args.get(3).map(String::as_str);
+    if pause_at.is_some_and(|at| !["file-durable", "index-removed"].contains(&at)) {
+        eprintln!("storage-torture: PAUSE_AT is file-durable or index-removed");
+        return ExitCode::from(2);
+    }
+    match run(path, max_batches, pause_at) {
         Ok(()) => ExitCode::SUCCESS,
         Err(error) => {
             eprintln!("storage-torture: {error}");
