@@ -19,12 +19,11 @@
 //! | `clutter` | 5 % of beams replaced by short returns in blobs of 1–4 beams (people, carts) |
 //! | `late` | the first 20 % of the recording's time dropped |
 //! | `noise` | Gaussian range noise, σ = 3 cm (a low-cost scanner) |
-//! | `stall` | the odometry stream stalls for 0.4–1.0 s every 20–60 m of driving: its readings repeat the
-//! | | last pose, then the next one carries the whole backlog (a driver that misses encoder ticks late, not lost) |
+//! | `stall` | odometry stalls for 0.4–1.0 s every 20–60 m of driving: readings repeat the last pose, then one carries the backlog |
 //! | `hard` | `range4` + `slip` + `clutter` + `slow` |
 
 use mapping::geometry::{Rigid2, Rigid2Ext as _, rigid2};
-use mapping::sensor::{LaserScan, OdometryReading, SensorEvent};
+use mapping::sensor::{LaserScan, OdometryReading, SensorEvent, Timestamp};
 use rand::{Rng as _, SeedableRng as _};
 use rand_distr::{Distribution as _, Normal};
 use rand_pcg::Pcg64;
@@ -379,7 +378,7 @@ fn stall_odometry(
     let mut driven_m = 0.0;
     let mut last_recorded: Option<Rigid2> = None;
     // The stall under way: (its end, the pose it repeats).
-    let mut stall: Option<(mapping::sensor::Timestamp, Rigid2)> = None;
+    let mut stall: Option<(Timestamp, Rigid2)> = None;
     let (mut count, mut changed) = (0, 0);
     for event in events.iter_mut() {
         let SensorEvent::Odometry(OdometryReading { time, pose }) = event else {
@@ -419,8 +418,6 @@ fn count_scans(events: &[SensorEvent]) -> usize {
 
 #[cfg(test)]
 mod tests {
-    use mapping::sensor::Timestamp;
-
     use super::*;
 
     /// A straight drive at 1 m/s along x for `seconds`, odometry at 10 Hz and a 5 Hz scan of 181 beams
