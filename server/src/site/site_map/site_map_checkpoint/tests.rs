@@ -153,6 +153,7 @@ fn task_options(checkpoints: CheckpointOptions) -> SiteTaskOptions {
         queue_depth: 4,
         session_idle_timeout: None,
         checkpoints,
+        unload_after: None,
     }
 }
 
