@@ -260,13 +260,14 @@ impl SiteHandle {
         self.ask(|reply| Command::Unload { reply }).await?
     }
 
-    /// Every session with its placement state and trajectory (the console).
+    /// Every session with its placement state and trajectory (the console); without trajectories while
+    /// the site is unloaded.
     pub fn sessions(&self) -> Arc<Vec<SessionView>> {
         Arc::clone(&self.view().sessions)
     }
 
     /// The versions of the map's history (each with its counts), oldest first (see
-    /// [`super::MapHistory`]).
+    /// [`super::MapHistory`]); none while the site is unloaded.
     pub fn history(&self) -> Vec<(u64, MapCounts)> {
         self.view()
             .history
@@ -276,7 +277,8 @@ impl SiteHandle {
     }
 
     /// The published map at `version` (`u64::MAX`: the newest): the newest history entry at or before
-    /// it, `None` before the site's first map.
+    /// it, `None` before the site's first map (and while the site is unloaded: see
+    /// [`Self::loaded_view`]).
     pub fn map_at(&self, version: u64) -> Option<HistoryEntry> {
         self.view().map_at(version).cloned()
     }

@@ -29,6 +29,7 @@ pub struct SiteView {
 impl SiteView {
     /// What is kept of `self` while its site is unloaded: the version and the sessions without their
     /// trajectories (a mature site's can be megabytes), no history.
+    #[must_use]
     pub fn unloaded(&self) -> Self {
         let sessions = self
             .sessions
