@@ -45,6 +45,8 @@ pid=$!
 trap 'kill -TERM $pid 2>/dev/null || true' EXIT
 rss_mib() { awk '/^VmRSS/ { printf "%.1f", $2 / 1024 }' "/proc/$pid/status"; }
 get() { curl -sf -H "Authorization: Bearer $TOKEN" "http://127.0.0.1:$HTTP_PORT$1"; }
+# Whether /metrics says every site is unloaded (read whole first: `grep -q` on a pipe may cut curl off).
+all_unloaded() { local m; m=$(get /metrics) || return 1; grep -qx "evermap_sites_unloaded $n" <<<"$m"; }
 for _ in $(seq 1 3000); do
   grep -q "web console serving" "$OUT/serve.log" && break
   kill -0 "$pid" 2>/dev/null || { echo "the server exited:" >&2; tail -20 "$OUT/serve.log" >&2; exit 1; }
@@ -53,10 +55,10 @@ done
 echo "$n site(s) loaded: RSS $(rss_mib) MiB"
 for cycle in $(seq 1 "$CYCLES"); do
   for _ in $(seq 1 600); do
-    get /metrics | grep -qx "evermap_sites_unloaded $n" && break
+    all_unloaded && break
     sleep 0.5
   done
-  get /metrics | grep -qx "evermap_sites_unloaded $n" || { echo "not every site unloaded" >&2; exit 1; }
+  all_unloaded || { echo "not every site unloaded" >&2; exit 1; }
   sleep 2
   unloaded=$(rss_mib)
   for site in $SITES; do
@@ -66,7 +68,8 @@ for cycle in $(seq 1 "$CYCLES"); do
   done
 done
 sed 's/\x1b\[[0-9;]*m//g' "$OUT/serve.log" | grep -E "site log replayed|site unloaded|unloaded site restored" | sed 's/.*site=/  site=/'
-get /metrics | grep -E "^evermap_site(s_loaded|s_unloaded|_unloads_total|_restore_seconds)"
+metrics=$(get /metrics)
+grep -E "^evermap_site(s_loaded|s_unloaded|_unloads_total|_restore_seconds)" <<<"$metrics"
 kill -TERM "$pid"
 wait "$pid"
 trap - EXIT
