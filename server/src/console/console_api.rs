@@ -462,17 +462,23 @@ async fn change_png(
     Ok(answer.png(image.png.clone()))
 }
 
-/// Server-sent events: `version` (a [`super::VersionEvent`]) whenever a site publishes a new version.
-/// A stream too slow to keep up skips versions (the next event carries the newest).
+/// Server-sent events: `version` (a [`super::VersionEvent`]) whenever a site publishes a new version,
+/// `site` (a [`super::LoadEvent`]) whenever a site's map leaves memory or comes back. A stream too slow
+/// to keep up skips versions (the next event carries the newest).
 async fn events(
     State(state): State<Shared>,
 ) -> Sse<impl tokio_stream::Stream<Item = Result<Event, Infallible>>> {
-    let stream = BroadcastStream::new(state.subscribe()).filter_map(|event| {
+    let versions = BroadcastStream::new(state.subscribe()).filter_map(|event| {
         let event = event.ok()?;
         let data = serde_json::to_string(&event).ok()?;
         Some(Ok(Event::default().event("version").data(data)))
     });
-    Sse::new(stream).keep_alive(KeepAlive::default())
+    let loads = BroadcastStream::new(state.subscribe_loads()).filter_map(|event| {
+        let event = event.ok()?;
+        let data = serde_json::to_string(&event).ok()?;
+        Some(Ok(Event::default().event("site").data(data)))
+    });
+    Sse::new(versions.merge(loads)).keep_alive(KeepAlive::default())
 }
 
 #[cfg(test)]

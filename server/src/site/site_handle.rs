@@ -293,6 +293,11 @@ impl SiteHandle {
         self.versions.clone()
     }
 
+    /// A receiver that sees every newly published view (a version, the site unloaded or restored).
+    pub fn subscribe_views(&self) -> watch::Receiver<Arc<SiteView>> {
+        self.views.clone()
+    }
+
     /// Requests queued and not yet taken by the task.
     pub fn queue_depth(&self) -> usize {
         self.commands.max_capacity() - self.commands.capacity()

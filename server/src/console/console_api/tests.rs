@@ -323,6 +323,48 @@ async fn a_new_version_reaches_the_event_stream() {
     }
 }
 
+/// The next event of an SSE body: its name and its data.
+async fn next_event(
+    stream: &mut (impl tokio_stream::Stream<Item = Result<axum::body::Bytes, axum::Error>> + Unpin),
+) -> (String, Value) {
+    let chunk = tokio::time::timeout(std::time::Duration::from_secs(10), stream.next())
+        .await
+        .expect("an event within 10 s")
+        .unwrap()
+        .unwrap();
+    let text = String::from_utf8(chunk.to_vec()).unwrap();
+    let mut lines = text.lines();
+    let name = lines
+        .next()
+        .unwrap()
+        .trim_start_matches("event: ")
+        .to_owned();
+    let data = serde_json::from_str(lines.next().unwrap().trim_start_matches("data: ")).unwrap();
+    (name, data)
+}
+
+// Reference: issue 34 item 4 — the console shows loaded and unloaded sites, live.
+#[tokio::test]
+async fn a_site_leaving_memory_and_coming_back_reaches_the_event_stream() {
+    let (app, state) = console(false, true).await;
+    let watchers = state.watch_versions();
+    let (status, response) = get(&app, "/api/events", Some(TOKEN)).await;
+    assert_eq!(status, StatusCode::OK);
+    let mut stream = response.into_body().into_data_stream();
+    let site = state.site("s").unwrap().clone();
+    assert!(site.unload().await.unwrap());
+    let (name, data) = next_event(&mut stream).await;
+    assert_eq!(name, "site");
+    assert_eq!(data, json!({ "site": "s", "loaded": false }));
+    site.node_poses().await.unwrap();
+    let (name, data) = next_event(&mut stream).await;
+    assert_eq!(name, "site", "a restore is no new version: {data}");
+    assert_eq!(data, json!({ "site": "s", "loaded": true }));
+    for w in watchers {
+        w.abort();
+    }
+}
+
 #[tokio::test]
 async fn images_carry_an_entity_tag_and_a_held_one_is_not_sent_again() {
     let (app, _) = console(false, true).await;
