@@ -242,9 +242,11 @@ impl SiteTask {
             let command = tokio::select! {
                 command = commands.recv() => command,
                 _ = idle_check.tick(), if timers => {
-                    self.end_silent_sessions().await;
-                    self.checkpoint_if_due().await;
-                    self.unload_if_idle().await;
+                    if !self.unloaded {
+                        self.end_silent_sessions().await;
+                        self.checkpoint_if_due().await;
+                        self.unload_if_idle().await;
+                    }
                     continue;
                 }
             };
