@@ -11,7 +11,7 @@
 # prints the answer's wall time and the RSS after it. Then the server's restore lines and /metrics'
 # unload figures. Environment: BIN (default target/release/evermap-server; build it with
 # `cargo build --release --workspace`), OUT (default out/unload_time), UNLOAD_S (default 5), CYCLES
-# (default 5), HTTP_PORT (default 18080).
+# (default 5), HTTP_PORT (default 18080), PARALLEL (1: ask every site at once, not one after another).
 set -euo pipefail
 
 STORE=${1:?usage: scripts/unload_time.sh STORE_DIR}
@@ -61,11 +61,26 @@ for cycle in $(seq 1 "$CYCLES"); do
   all_unloaded || { echo "not every site unloaded" >&2; exit 1; }
   sleep 2
   unloaded=$(rss_mib)
-  for site in $SITES; do
-    t=$(curl -sf -o /dev/null -w '%{time_total}' -H "Authorization: Bearer $TOKEN" \
-      "http://127.0.0.1:$HTTP_PORT/api/sites/$site/versions")
-    echo "cycle $cycle: site $site unloaded at RSS $unloaded MiB; its versions answered after $t s; RSS $(rss_mib) MiB"
-  done
+  if [ "${PARALLEL:-0}" = 1 ]; then
+    # Every site asked at once: the restores share the cores.
+    curls=()
+    for site in $SITES; do
+      curl -sf -o "$OUT/answer-$site" -w '%{time_total}\n' -H "Authorization: Bearer $TOKEN" \
+        "http://127.0.0.1:$HTTP_PORT/api/sites/$site/versions" >"$OUT/time-$site" &
+      curls+=($!)
+    done
+    wait "${curls[@]}"
+    for site in $SITES; do
+      echo "cycle $cycle: site $site unloaded (all at RSS $unloaded MiB); asked with the others, answered after $(cat "$OUT/time-$site") s"
+    done
+    echo "cycle $cycle: RSS $(rss_mib) MiB with every site restored"
+  else
+    for site in $SITES; do
+      t=$(curl -sf -o /dev/null -w '%{time_total}' -H "Authorization: Bearer $TOKEN" \
+        "http://127.0.0.1:$HTTP_PORT/api/sites/$site/versions")
+      echo "cycle $cycle: site $site unloaded at RSS $unloaded MiB; its versions answered after $t s; RSS $(rss_mib) MiB"
+    done
+  fi
 done
 sed 's/\x1b\[[0-9;]*m//g' "$OUT/serve.log" | grep -E "site log replayed|site unloaded|unloaded site restored" | sed 's/.*site=/  site=/'
 metrics=$(get /metrics)
