@@ -11,7 +11,8 @@
 //! An idle site that drops its whole map calls [`release_all_freed_memory_in_background`] instead:
 //! sites that went idle together free their maps on several threads at once, and what one finishes
 //! freeing while another's release runs must still go back (with the first function, five sites
-//! unloaded at once left 24–52 MiB of RSS, depending on the order the frees ended in).
+//! unloaded at once left 24–52 MiB of RSS, depending on the order the frees ended in; with this one
+//! 23–30 MiB, BENCHMARKS.md).
 //! Elsewhere (musl, other systems) it does nothing.
 
 use std::sync::atomic::{AtomicBool, Ordering};
