@@ -6,7 +6,8 @@
 //! (The Prometheus endpoint, `metrics_endpoint`, stays the tiny hand-written responder it is; the
 //! console serves the same text at `/metrics` beside its own routes.)
 //!
-//! The page shows every site with its version and counts; the selected site's map (PNG rendered like
+//! The page shows every site with its version, counts and whether its map is in memory (an idle site's
+//! leaves it: `site_unload_after_s`); the selected site's map (PNG rendered like
 //! `GetMapImage`) with each robot's latest pose and its sessions' trajectories drawn over it; the
 //! version history with a slider and the map-change overlay (unchanged / removed / added occupied cells
 //! between any earlier version and the one shown, `mapping::lifelong::map_change_rate`); the sessions
@@ -23,16 +24,16 @@
 //! | `GET /` | the page |
 //! | `GET /health` | `{"status":"serving","sites":N}` (no token needed) |
 //! | `GET /metrics` | the Prometheus text |
-//! | `GET /api/sites` | every site: version, counts, when the version landed |
+//! | `GET /api/sites` | every site: version, counts, when the version landed, `loaded` (its map in memory) |
 //! | `GET /api/sites/{site}` | one site, the same fields |
-//! | `GET /api/sites/{site}/versions` | the map's history: versions with their counts |
+//! | `GET /api/sites/{site}/versions` | the map's history: versions with their counts (an unloaded site is restored first, as for every route below but `robots`) |
 //! | `GET /api/sites/{site}/sessions` | sessions: robot, placement state, trajectory, latest pose |
 //! | `GET /api/sites/{site}/robots` | each robot's latest session and pose |
 //! | `GET /api/sites/{site}/map[?version=V]` | where the map image lies in the site frame |
 //! | `GET /api/sites/{site}/map.png[?version=V]` | the map at version V (default: now); `ETag`, 304 when held |
 //! | `GET /api/sites/{site}/change?from=A[&to=B]` | map change between two versions: rate, counts, placement |
 //! | `GET /api/sites/{site}/change.png?from=A[&to=B]` | the change as an image (blue unchanged, green removed, red added) |
-//! | `GET /api/events` | server-sent events: `version` on every new site version |
+//! | `GET /api/events` | server-sent events: `version` on every new site version, `site` when a site's map leaves memory or comes back (`{"site", "loaded"}`) |
 
 mod console_api;
 mod console_auth;
@@ -44,7 +45,7 @@ mod map_images;
 pub use console_api::router;
 pub use console_auth::{COOKIE_NAME, ConsoleAuth};
 pub use console_error::ConsoleError;
-pub use console_state::{ConsoleState, VersionEvent};
+pub use console_state::{ConsoleState, LoadEvent, VersionEvent};
 pub use http_config::{HttpConfig, MIN_OPERATOR_TOKEN_CHARS};
 pub use map_images::{ChangeImage, MapImage, render_change_image, render_map_image};
 

@@ -105,6 +105,7 @@ impl RunningServer {
                 queue_depth: config.site_queue_depth,
                 session_idle_timeout: config.session_idle_timeout()?,
                 checkpoints: config.checkpoints,
+                unload_after: config.site_unload_after()?,
             };
             let task = loading.spawn(async move {
                 let loaded = SiteTask::spawn(&id, options, store, metrics, task_options).await;

@@ -5,6 +5,7 @@
 //! metrics_listen = "127.0.0.1:9464"   # Prometheus text at /metrics (the default; port 0: any free port)
 //! max_message_bytes = 67108864
 //! session_idle_timeout_s = 3600.0    # end a session whose robot has been silent this long; 0 = never
+//! site_unload_after_s = 600.0        # drop an idle site's map from memory (restored at its next request); 0 = never
 //!
 //! [checkpoints]                      # optional: a site starts from its newest checkpoint + the log after it
 //! enabled = true
@@ -134,6 +135,13 @@ pub struct ServerConfig {
     /// robots ride out with their outbox: the rest of a session ended this way is refused. 0 = never.
     /// Default 3600 (one hour).
     pub session_idle_timeout_s: f64,
+    /// Unload a site that has had no open session and no request (a robot's, a map query, the
+    /// console's) for this long, seconds: its map leaves memory once a checkpoint covering its version
+    /// is durable, and the next request restores it from that checkpoint first (it waits for the
+    /// restore: 0.4–0.7 s for sites of 16–36 sessions, BENCHMARKS.md). Versions, counts and the session
+    /// list stay answerable without it. Never with `[checkpoints] enabled = false`. 0 = never.
+    /// Default 600 (10 minutes).
+    pub site_unload_after_s: f64,
     /// On-disk storage.
     pub storage: SledStoreOptions,
     /// Site checkpoints and log compaction (TOML section `[checkpoints]`: `enabled`,
@@ -172,6 +180,7 @@ impl Default for ServerConfig {
             delta_chunk_bytes: 4 << 20,
             site_queue_depth: 64,
             session_idle_timeout_s: 3600.0,
+            site_unload_after_s: 600.0,
             storage: SledStoreOptions::default(),
             checkpoints: CheckpointOptions::default(),
             map: LifelongOptions::default(),
@@ -202,6 +211,18 @@ impl ServerConfig {
         }
     }
 
+    /// [`Self::site_unload_after_s`] as a duration; `None` when 0 (never).
+    pub fn site_unload_after(&self) -> Result<Option<Duration>, ServerConfigError> {
+        match Duration::try_from_secs_f64(self.site_unload_after_s) {
+            Ok(d) if d.is_zero() => Ok(None),
+            Ok(d) => Ok(Some(d)),
+            Err(e) => Err(ServerConfigError::Refused {
+                field: "site_unload_after_s",
+                source: e.into(),
+            }),
+        }
+    }
+
     /// Checks every field.
     pub fn validate(&self) -> Result<(), ServerConfigError> {
         let invalid = |field: &str, reason: &str| {
@@ -222,6 +243,12 @@ impl ServerConfig {
         if self.session_idle_timeout().is_err() {
             return invalid(
                 "session_idle_timeout_s",
+                "must be a number of seconds ≥ 0 (0 = never)",
+            );
+        }
+        if self.site_unload_after().is_err() {
+            return invalid(
+                "site_unload_after_s",
                 "must be a number of seconds ≥ 0 (0 = never)",
             );
         }
@@ -376,7 +403,26 @@ mod tests {
                 matches!(config.validate(), Err(ServerConfigError::Invalid { field, .. }) if field == "session_idle_timeout_s"),
                 "{bad}"
             );
+            let config = ServerConfig {
+                site_unload_after_s: bad,
+                ..ServerConfig::default()
+            };
+            assert!(
+                matches!(config.validate(), Err(ServerConfigError::Invalid { field, .. }) if field == "site_unload_after_s"),
+                "{bad}"
+            );
         }
+        assert_eq!(
+            ServerConfig::from_toml("site_unload_after_s = 0.0")
+                .unwrap()
+                .site_unload_after()
+                .unwrap(),
+            None
+        );
+        assert_eq!(
+            ServerConfig::default().site_unload_after().unwrap(),
+            Some(Duration::from_secs(600))
+        );
         let never = ServerConfig {
             session_idle_timeout_s: 0.0,
             ..ServerConfig::default()

@@ -22,6 +22,10 @@ pub struct ServerMetrics {
     sessions_timed_out: AtomicU64,
     pgr_runs: AtomicU64,
     pgr_micros: AtomicU64,
+    site_unloads: AtomicU64,
+    site_restores: AtomicU64,
+    site_restore_micros: AtomicU64,
+    site_restore_max_micros: AtomicU64,
     refused: Mutex<BTreeMap<&'static str, u64>>,
 }
 
@@ -92,6 +96,29 @@ impl ServerMetrics {
             u64::try_from(elapsed.as_micros()).unwrap_or(u64::MAX),
             Ordering::Relaxed,
         );
+    }
+
+    /// Counts a site unloaded because it was idle.
+    pub fn site_unloaded(&self) {
+        self.site_unloads.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// Records the restore of an unloaded site (its checkpoint read, the log after it replayed).
+    pub fn site_restored(&self, elapsed: Duration) {
+        let micros = u64::try_from(elapsed.as_micros()).unwrap_or(u64::MAX);
+        self.site_restores.fetch_add(1, Ordering::Relaxed);
+        self.site_restore_micros
+            .fetch_add(micros, Ordering::Relaxed);
+        self.site_restore_max_micros
+            .fetch_max(micros, Ordering::Relaxed);
+    }
+
+    /// Sites unloaded and unloaded sites restored so far.
+    pub fn site_unloads_and_restores(&self) -> (u64, u64) {
+        (
+            self.site_unloads.load(Ordering::Relaxed),
+            self.site_restores.load(Ordering::Relaxed),
+        )
     }
 
     /// Counts a refused request, by reason (a gRPC status code name).
@@ -178,10 +205,39 @@ impl ServerMetrics {
             "# HELP evermap_sites Sites served.\n# TYPE evermap_sites gauge\nevermap_sites {}\n",
             sites.len()
         );
-        let gauges: [(&str, &str, Gauge); 11] = [
+        let loaded = sites.iter().filter(|s| s.is_loaded()).count();
+        let _ = write!(
+            out,
+            "# HELP evermap_sites_loaded Sites whose map is in memory.\n\
+             # TYPE evermap_sites_loaded gauge\nevermap_sites_loaded {loaded}\n\
+             # HELP evermap_sites_unloaded Sites unloaded while idle (restored at their next request).\n\
+             # TYPE evermap_sites_unloaded gauge\nevermap_sites_unloaded {}\n",
+            sites.len() - loaded
+        );
+        let _ = write!(
+            out,
+            "# HELP evermap_site_unloads_total Sites unloaded because they were idle.\n\
+             # TYPE evermap_site_unloads_total counter\nevermap_site_unloads_total {}\n\
+             # HELP evermap_site_restore_seconds Restores of unloaded sites (checkpoint read, log after it \
+             replayed) and their time.\n\
+             # TYPE evermap_site_restore_seconds summary\n\
+             evermap_site_restore_seconds_sum {}\nevermap_site_restore_seconds_count {}\n\
+             # HELP evermap_site_restore_seconds_max The longest restore of an unloaded site.\n\
+             # TYPE evermap_site_restore_seconds_max gauge\nevermap_site_restore_seconds_max {}\n",
+            load(&self.site_unloads),
+            load(&self.site_restore_micros) as f64 * 1e-6,
+            load(&self.site_restores),
+            load(&self.site_restore_max_micros) as f64 * 1e-6,
+        );
+        let gauges: [(&str, &str, Gauge); 12] = [
             ("evermap_site_version", "Current map version.", |s| {
                 s.current().version
             }),
+            (
+                "evermap_site_loaded",
+                "1 while the site's map is in memory, 0 while it is unloaded (idle).",
+                |s| u64::from(s.is_loaded()),
+            ),
             ("evermap_site_sessions", "Sessions of the site.", |s| {
                 s.current().counts.sessions
             }),

@@ -24,5 +24,5 @@ pub use site_error::SiteError;
 pub use site_handle::{RenderedMap, SiteHandle, UploadAck, VersionInfo};
 pub use site_map::{MapCounts, SessionOpened, SessionStartCounts, SiteMap, UploadCheck};
 pub(crate) use site_task::site_span;
-pub use site_task::{SITE_LOG_KIND, SiteTask, SiteTaskOptions};
+pub use site_task::{DEFAULT_SITE_UNLOAD_AFTER, SITE_LOG_KIND, SiteTask, SiteTaskOptions};
 pub use site_view::SiteView;

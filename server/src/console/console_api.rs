@@ -192,6 +192,7 @@ fn site_json(state: &ConsoleState, handle: &SiteHandle) -> Value {
         "version": info.version,
         "landed_at_ms": state.landed_at(handle.site(), info.version),
         "counts": counts_json(&info.counts),
+        "loaded": handle.is_loaded(),
     })
 }
 
@@ -212,20 +213,22 @@ async fn versions(
     State(state): State<Shared>,
     Path(site): Path<String>,
 ) -> Result<Response, ConsoleError> {
-    let history = state.site(&site)?.history();
-    let list: Vec<Value> = history
+    // The history is the map's: an unloaded site is restored first.
+    let view = state.site(&site)?.loaded_view().await?;
+    let list: Vec<Value> = view
+        .history
         .iter()
-        .map(|(version, counts)| {
+        .map(|entry| {
             json!({
-                "version": version,
-                "landed_at_ms": state.landed_at(&site, *version),
-                "counts": counts_json(counts),
+                "version": entry.version,
+                "landed_at_ms": state.landed_at(&site, entry.version),
+                "counts": counts_json(&entry.counts),
             })
         })
         .collect();
     Ok(json_response(&json!({
         "site": site,
-        "current_version": state.site(&site)?.current().version,
+        "current_version": view.version,
         "versions": list,
     })))
 }
@@ -263,12 +266,12 @@ async fn sessions(
     State(state): State<Shared>,
     Path(site): Path<String>,
 ) -> Result<Response, ConsoleError> {
-    let handle = state.site(&site)?;
-    let views = handle.sessions();
+    // The trajectories are the map's: an unloaded site is restored first.
+    let view = state.site(&site)?.loaded_view().await?;
     Ok(json_response(&json!({
         "site": site,
-        "version": handle.current().version,
-        "sessions": views.iter().map(session_json).collect::<Vec<_>>(),
+        "version": view.version,
+        "sessions": view.sessions.iter().map(session_json).collect::<Vec<_>>(),
     })))
 }
 
@@ -308,12 +311,17 @@ fn version_param(uri: &Uri, name: &str) -> Result<Option<u64>, ConsoleError> {
     }
 }
 
-fn entry_at(handle: &SiteHandle, version: Option<u64>) -> Result<HistoryEntry, ConsoleError> {
+/// The history entry of `site`'s map at `version` (default the newest); an unloaded site is restored
+/// first.
+async fn entry_at(handle: &SiteHandle, version: Option<u64>) -> Result<HistoryEntry, ConsoleError> {
+    let view = handle.loaded_view().await?;
     let asked = version.unwrap_or(u64::MAX);
-    handle.map_at(asked).ok_or_else(|| ConsoleError::NoMap {
-        site: handle.site().to_owned(),
-        version: version.unwrap_or_else(|| handle.current().version),
-    })
+    view.map_at(asked)
+        .cloned()
+        .ok_or_else(|| ConsoleError::NoMap {
+            site: handle.site().to_owned(),
+            version: version.unwrap_or(view.version),
+        })
 }
 
 async fn map_image(
@@ -322,7 +330,7 @@ async fn map_image(
     version: Option<u64>,
 ) -> Result<Arc<MapImage>, ConsoleError> {
     let handle = state.site(site)?;
-    let entry = entry_at(handle, version)?;
+    let entry = entry_at(handle, version).await?;
     state
         .map_image(site, entry)
         .await
@@ -364,7 +372,7 @@ async fn map_png(
     headers: HeaderMap,
 ) -> Result<Response, ConsoleError> {
     let version = version_param(&uri, "version")?;
-    let entry = entry_at(state.site(&site)?, version)?;
+    let entry = entry_at(state.site(&site)?, version).await?;
     let answer = PngAnswer {
         etag: image_etag("map", entry.version, entry.version, state.resolution),
         versioned: version.is_some(),
@@ -393,8 +401,8 @@ async fn change_image(
     if to.is_some_and(|to| to < from) {
         return Err(ConsoleError::BadRequest("from must not be after to".into()));
     }
-    let before = entry_at(handle, Some(from))?;
-    let after = entry_at(handle, to)?;
+    let before = entry_at(handle, Some(from)).await?;
+    let after = entry_at(handle, to).await?;
     if let Some(image) = state.cached_change(site, before.version, after.version) {
         return Ok(image);
     }
@@ -454,17 +462,23 @@ async fn change_png(
     Ok(answer.png(image.png.clone()))
 }
 
-/// Server-sent events: `version` (a [`super::VersionEvent`]) whenever a site publishes a new version.
-/// A stream too slow to keep up skips versions (the next event carries the newest).
+/// Server-sent events: `version` (a [`super::VersionEvent`]) whenever a site publishes a new version,
+/// `site` (a [`super::LoadEvent`]) whenever a site's map leaves memory or comes back. A stream too slow
+/// to keep up skips versions (the next event carries the newest).
 async fn events(
     State(state): State<Shared>,
 ) -> Sse<impl tokio_stream::Stream<Item = Result<Event, Infallible>>> {
-    let stream = BroadcastStream::new(state.subscribe()).filter_map(|event| {
+    let versions = BroadcastStream::new(state.subscribe()).filter_map(|event| {
         let event = event.ok()?;
         let data = serde_json::to_string(&event).ok()?;
         Some(Ok(Event::default().event("version").data(data)))
     });
-    Sse::new(stream).keep_alive(KeepAlive::default())
+    let loads = BroadcastStream::new(state.subscribe_loads()).filter_map(|event| {
+        let event = event.ok()?;
+        let data = serde_json::to_string(&event).ok()?;
+        Some(Ok(Event::default().event("site").data(data)))
+    });
+    Sse::new(versions.merge(loads)).keep_alive(KeepAlive::default())
 }
 
 #[cfg(test)]

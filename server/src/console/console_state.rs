@@ -38,6 +38,15 @@ pub struct VersionEvent {
     pub open_sessions: u64,
 }
 
+/// A site's map leaving memory (idle) or coming back, as sent on the event stream (`site`).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize)]
+pub struct LoadEvent {
+    /// The site.
+    pub site: String,
+    /// Whether its map is in memory now.
+    pub loaded: bool,
+}
+
 /// A small cache of the newest-used rendered images.
 struct ImageCache<K, V> {
     entries: VecDeque<(K, Arc<V>)>,
@@ -72,6 +81,7 @@ pub struct ConsoleState {
     /// Cell size of the rendered images, m.
     pub resolution: f64,
     events: broadcast::Sender<VersionEvent>,
+    loads: broadcast::Sender<LoadEvent>,
     landed: Mutex<BTreeMap<String, VecDeque<(u64, u64)>>>,
     maps: Mutex<ImageCache<(String, u64), MapSlot>>,
     changes: Mutex<ImageCache<(String, u64, u64), ChangeImage>>,
@@ -92,12 +102,14 @@ impl ConsoleState {
         metrics: Arc<ServerMetrics>,
     ) -> Self {
         let (events, _) = broadcast::channel(EVENTS_BUFFERED);
+        let (loads, _) = broadcast::channel(EVENTS_BUFFERED);
         Self {
             sites,
             auth: ConsoleAuth::new(config.operator_token.clone()),
             metrics,
             resolution: config.map_resolution_m,
             events,
+            loads,
             landed: Mutex::new(BTreeMap::new()),
             maps: Mutex::new(ImageCache {
                 entries: VecDeque::new(),
@@ -108,10 +120,10 @@ impl ConsoleState {
         }
     }
 
-    /// Starts, per site, a task that notes when each new version lands and broadcasts it, and one that
+    /// Starts, per site, a task that notes when each new version lands and broadcasts it, one that
     /// renders the newest map as soon as it lands while a page follows the events (one render at a time
-    /// per site, always of the newest map; requests for it share that render). The tasks end when
-    /// their site stops.
+    /// per site, always of the newest map; requests for it share that render), and one that broadcasts
+    /// the site's map leaving memory or coming back. The tasks end when their site stops.
     pub fn watch_versions(self: &Arc<Self>) -> Vec<JoinHandle<()>> {
         let mut tasks = Vec::new();
         for site in self.sites.values() {
@@ -136,6 +148,22 @@ impl ConsoleState {
                     }
                     if let Some(entry) = handle.map_at(u64::MAX) {
                         let _ = state.map_image(handle.site(), entry).await;
+                    }
+                }
+            }));
+            let (state, mut views) = (Arc::clone(self), site.subscribe_views());
+            let id = site.site().to_owned();
+            let mut loaded = !views.borrow_and_update().unloaded;
+            tasks.push(tokio::spawn(async move {
+                while views.changed().await.is_ok() {
+                    let now = !views.borrow_and_update().unloaded;
+                    if now != loaded {
+                        loaded = now;
+                        // No subscriber is not an error.
+                        let _ = state.loads.send(LoadEvent {
+                            site: id.clone(),
+                            loaded,
+                        });
                     }
                 }
             }));
@@ -200,6 +228,11 @@ impl ConsoleState {
     /// A receiver of every version landing from now on.
     pub fn subscribe(&self) -> broadcast::Receiver<VersionEvent> {
         self.events.subscribe()
+    }
+
+    /// A receiver of every site's map leaving memory or coming back from now on.
+    pub fn subscribe_loads(&self) -> broadcast::Receiver<LoadEvent> {
+        self.loads.subscribe()
     }
 
     /// The site's handle.

@@ -72,7 +72,56 @@ pub(crate) enum Command {
     NodePoses {
         reply: oneshot::Sender<BTreeMap<NodeId, Rigid2>>,
     },
+    /// Restores the site if it is unloaded; answers with its view.
+    Load {
+        reply: oneshot::Sender<Result<Arc<SiteView>, SiteError>>,
+    },
+    /// Unloads the site now if it can be (not a request: the idle timer does not restart).
+    Unload {
+        reply: oneshot::Sender<Result<bool, SiteError>>,
+    },
     Shutdown,
+}
+
+impl Command {
+    /// Whether the command needs the site's map in memory (everything but unloading and stopping).
+    pub(crate) fn needs_map(&self) -> bool {
+        !matches!(self, Self::Unload { .. } | Self::Shutdown)
+    }
+
+    /// Answers the command with `error` (a map of no nodes for `NodePoses`, which cannot fail).
+    pub(crate) fn fail(self, error: SiteError) {
+        match self {
+            Self::OpenSession { reply, .. } => {
+                let _ = reply.send(Err(error));
+            }
+            Self::Upload { reply, .. } => {
+                let _ = reply.send(Err(error));
+            }
+            Self::CloseSession { reply, .. } => {
+                let _ = reply.send(Err(error));
+            }
+            Self::Delta { reply, .. } => {
+                let _ = reply.send(Err(error));
+            }
+            Self::Submap { reply, .. } => {
+                let _ = reply.send(Err(error));
+            }
+            Self::Render { reply, .. } => {
+                let _ = reply.send(Err(error));
+            }
+            Self::NodePoses { reply } => {
+                let _ = reply.send(BTreeMap::new());
+            }
+            Self::Load { reply } => {
+                let _ = reply.send(Err(error));
+            }
+            Self::Unload { reply } => {
+                let _ = reply.send(Err(error));
+            }
+            Self::Shutdown => {}
+        }
+    }
 }
 
 /// Talks to one site's task: every request is queued (bounded: callers wait when the site is busy) and
@@ -182,18 +231,43 @@ impl SiteHandle {
     }
 
     /// The site as read-only front ends see it, as of the latest published version (read without
-    /// queueing behind the site's work).
+    /// queueing behind the site's work). While the site is unloaded this holds no history and no
+    /// trajectories ([`SiteView::unloaded`]); [`Self::loaded_view`] waits for them.
     pub fn view(&self) -> Arc<SiteView> {
         Arc::clone(&self.views.borrow())
     }
 
-    /// Every session with its placement state and trajectory (the console).
+    /// Whether the site's map is in memory (`false`: unloaded while idle; the next request restores it).
+    pub fn is_loaded(&self) -> bool {
+        !self.views.borrow().unloaded
+    }
+
+    /// The site's view with its history and trajectories: [`Self::view`] if the site is loaded, else
+    /// after the site task restored it from its checkpoint (a request like any other: it restarts the
+    /// site's idle time).
+    pub async fn loaded_view(&self) -> Result<Arc<SiteView>, SiteError> {
+        let view = self.view();
+        if !view.unloaded {
+            return Ok(view);
+        }
+        self.ask(|reply| Command::Load { reply }).await?
+    }
+
+    /// Drops the site's map from memory now, as its idle timer would, if it can: no session open and
+    /// a checkpoint covering its version durable (one is written if needed). `Ok(true)` if the site is
+    /// unloaded now (or already was). Queued like any request, but not one: the idle time goes on.
+    pub async fn unload(&self) -> Result<bool, SiteError> {
+        self.ask(|reply| Command::Unload { reply }).await?
+    }
+
+    /// Every session with its placement state and trajectory (the console); without trajectories while
+    /// the site is unloaded.
     pub fn sessions(&self) -> Arc<Vec<SessionView>> {
         Arc::clone(&self.view().sessions)
     }
 
     /// The versions of the map's history (each with its counts), oldest first (see
-    /// [`super::MapHistory`]).
+    /// [`super::MapHistory`]); none while the site is unloaded.
     pub fn history(&self) -> Vec<(u64, MapCounts)> {
         self.view()
             .history
@@ -203,7 +277,8 @@ impl SiteHandle {
     }
 
     /// The published map at `version` (`u64::MAX`: the newest): the newest history entry at or before
-    /// it, `None` before the site's first map.
+    /// it, `None` before the site's first map (and while the site is unloaded: see
+    /// [`Self::loaded_view`]).
     pub fn map_at(&self, version: u64) -> Option<HistoryEntry> {
         self.view().map_at(version).cloned()
     }
@@ -216,6 +291,11 @@ impl SiteHandle {
     /// A receiver that sees every newly published version (and the site stopping, as a closed channel).
     pub fn subscribe(&self) -> watch::Receiver<VersionInfo> {
         self.versions.clone()
+    }
+
+    /// A receiver that sees every newly published view (a version, the site unloaded or restored).
+    pub fn subscribe_views(&self) -> watch::Receiver<Arc<SiteView>> {
+        self.views.clone()
     }
 
     /// Requests queued and not yet taken by the task.

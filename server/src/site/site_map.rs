@@ -744,6 +744,7 @@ impl SiteMap {
             version: self.version,
             sessions: Arc::new(self.session_views()),
             history: Arc::new(self.history.entries().cloned().collect()),
+            unloaded: false,
         }
     }
 

@@ -28,6 +28,22 @@
 //! refused (`SessionClosed`), so the timeout must be longer than the link outages robots are expected
 //! to ride out with their outbox.
 //!
+//! **Idle sites leave memory** (issue 34, item 4; [`SiteTaskOptions::unload_after`]). A site with no
+//! open session that has had no request (of any kind: a robot's, a map query, the console's) for that
+//! long is *unloaded*: the task makes sure a checkpoint covering its current version is durable
+//! (writing one if the last does not cover it; with checkpoints disabled, or when one cannot be
+//! written or the store may differ from the map, the site stays loaded and tries again after another
+//! idle period), then drops its [`SiteMap`] — graph, grids, branch-and-bound precomputations, history —
+//! and hands the freed pages back to the system ([`crate::memory_release`]). What stays answers
+//! without the map: the published [`VersionInfo`] (version and counts: `Watch`, metrics, the console's
+//! site list) and the view's session list without trajectories ([`SiteView::unloaded`]). The next
+//! request of any kind first restores the site from its checkpoint plus the log after it (the same
+//! [`load`] a start runs; nothing is left to replay unless the store moved) and is then handled as if
+//! the site had never left: the caller only waits. The restored map equals the dropped one bit for
+//! bit (checkpoint restore does, see [`SiteMap::checkpoint`]), except its console history, which
+//! starts again at the restored version as after a restart. A restore that fails answers that request
+//! with the error and is tried again at the next.
+//!
 //! A full disk (or any storage failure) is a refusal, never a half-applied change: a write that fails
 //! stores nothing and leaves the map as it was. A write the store applied but could not flush (a
 //! log-structured store whose flush hits the full disk) is applied to the map too — the map always
@@ -75,26 +91,41 @@ pub struct SiteTaskOptions {
     pub session_idle_timeout: Option<Duration>,
     /// When to checkpoint the site, and what compaction keeps.
     pub checkpoints: CheckpointOptions,
+    /// Unload the site (drop its map from memory until the next request) once it has had no open
+    /// session and no request this long; `None`: never. Needs checkpoints (see the module docs).
+    pub unload_after: Option<Duration>,
 }
+
+/// [`SiteTaskOptions::unload_after`]'s default: 10 minutes.
+pub const DEFAULT_SITE_UNLOAD_AFTER: Duration = Duration::from_secs(600);
 
 impl Default for SiteTaskOptions {
     /// 64 queued commands; sessions ended after one hour of silence; checkpoints as
-    /// [`CheckpointOptions::DEFAULT`].
+    /// [`CheckpointOptions::DEFAULT`]; unloaded after [`DEFAULT_SITE_UNLOAD_AFTER`] idle.
     fn default() -> Self {
         Self {
             queue_depth: 64,
             session_idle_timeout: Some(Duration::from_secs(3600)),
             checkpoints: CheckpointOptions::DEFAULT,
+            unload_after: Some(DEFAULT_SITE_UNLOAD_AFTER),
         }
     }
 }
 
-/// How often, at most, silent sessions are looked for (and at least 4 times per timeout).
+/// How often, at most, silent sessions and an idle site are looked for (and at least 4 times per
+/// timeout).
 const IDLE_CHECK_INTERVAL: Duration = Duration::from_secs(1);
 
 /// Owns one site's [`SiteMap`]; see the module docs.
 pub struct SiteTask {
+    site: Arc<str>,
+    /// `None` while unloaded (or if a failed worker lost it).
     map: Option<Box<SiteMap>>,
+    /// The map is out of memory because the site was idle (see the module docs).
+    unloaded: bool,
+    unload_after: Option<Duration>,
+    /// When the last request (any command but an unload) arrived, or the task started.
+    last_request: tokio::time::Instant,
     /// The map's options (a rebuild replays with them).
     options: LifelongOptions,
     /// The store's generation the map is known to agree with (see the module docs).
@@ -174,7 +205,11 @@ impl SiteTask {
             .map(|(session, _)| (session, now))
             .collect();
         let task = Self {
+            site: site.into(),
             map: Some(Box::new(map)),
+            unloaded: false,
+            unload_after: task_options.unload_after,
+            last_request: now,
             options,
             generation,
             store,
@@ -193,22 +228,39 @@ impl SiteTask {
     }
 
     async fn run(mut self, mut commands: mpsc::Receiver<Command>) {
-        let check_every = self
-            .session_idle_timeout
-            .map_or(IDLE_CHECK_INTERVAL, |t| (t / 4).min(IDLE_CHECK_INTERVAL))
+        let check_every = [self.session_idle_timeout, self.unload_after]
+            .into_iter()
+            .flatten()
+            .map(|t| (t / 4).min(IDLE_CHECK_INTERVAL))
+            .min()
+            .unwrap_or(IDLE_CHECK_INTERVAL)
             .max(Duration::from_millis(1));
+        let timers = self.session_idle_timeout.is_some() || self.unload_after.is_some();
         let mut idle_check = tokio::time::interval(check_every);
         idle_check.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         loop {
             let command = tokio::select! {
                 command = commands.recv() => command,
-                _ = idle_check.tick(), if self.session_idle_timeout.is_some() => {
-                    self.end_silent_sessions().await;
-                    self.checkpoint_if_due().await;
+                _ = idle_check.tick(), if timers => {
+                    if !self.unloaded {
+                        self.end_silent_sessions().await;
+                        self.checkpoint_if_due().await;
+                        self.unload_if_idle().await;
+                    }
                     continue;
                 }
             };
             let Some(command) = command else { break };
+            if command.needs_map() {
+                self.last_request = tokio::time::Instant::now();
+                if self.unloaded
+                    && let Err(e) = self.restore().await
+                {
+                    tracing::warn!("cannot restore the unloaded site: {e}");
+                    command.fail(e);
+                    continue;
+                }
+            }
             match command {
                 Command::OpenSession {
                     robot_id,
@@ -275,6 +327,12 @@ impl SiteTask {
                 Command::NodePoses { reply } => {
                     let _ = reply.send(self.map().map(SiteMap::node_poses).unwrap_or_default());
                 }
+                Command::Load { reply } => {
+                    let _ = reply.send(self.map().map(|_| self.views.borrow().clone()));
+                }
+                Command::Unload { reply } => {
+                    let _ = reply.send(Ok(self.unload().await));
+                }
                 Command::Shutdown => break,
             }
         }
@@ -333,15 +391,148 @@ impl SiteTask {
     }
 
     fn map(&self) -> Result<&SiteMap, SiteError> {
-        self.map
-            .as_deref()
-            .ok_or_else(|| SiteError::Internal("the site map was lost by a failed worker".into()))
+        self.map.as_deref().ok_or_else(|| {
+            SiteError::Internal(if self.unloaded {
+                "the site is unloaded".into()
+            } else {
+                "the site map was lost by a failed worker".into()
+            })
+        })
     }
 
     fn site(&self) -> String {
-        self.map
-            .as_ref()
-            .map_or_else(String::new, |m| m.site().to_owned())
+        self.site.to_string()
+    }
+
+    /// Unloads the site if it has been idle long enough (see the module docs).
+    async fn unload_if_idle(&mut self) {
+        let Some(after) = self.unload_after else {
+            return;
+        };
+        if self.unloaded || self.last_request.elapsed() < after {
+            return;
+        }
+        if !self.unload().await {
+            // Not now (a session open, no checkpoint possible): look again after another idle period.
+            self.last_request = tokio::time::Instant::now();
+        }
+    }
+
+    /// Drops the map from memory if no session is open and a durable checkpoint covers its version
+    /// (written now if needed); `true` if the site is unloaded now.
+    async fn unload(&mut self) -> bool {
+        if self.unloaded {
+            return true;
+        }
+        let Ok(map) = self.map() else {
+            return false;
+        };
+        let version = map.version();
+        if !self.checkpoints.enabled || !map.open_sessions().is_empty() {
+            return false;
+        }
+        if self.checkpointed_version != version {
+            self.checkpoint_due = true;
+            self.checkpoint_if_due().await;
+        }
+        if self.checkpointed_version != version
+            || self.unflushed
+            || self.store.generation() != self.generation
+        {
+            tracing::debug!(
+                version,
+                checkpointed = self.checkpointed_version,
+                "site idle but not unloaded: no durable checkpoint covers its version"
+            );
+            return false;
+        }
+        let Some(map) = self.map.take() else {
+            return false;
+        };
+        self.unloaded = true;
+        self.last_heard.clear();
+        let view = self.views.borrow().unloaded();
+        self.views.send_replace(Arc::new(view));
+        self.metrics.site_unloaded();
+        tracing::info!(
+            version,
+            idle_s = self.last_request.elapsed().as_secs_f64(),
+            "site unloaded: idle, its map dropped from memory until the next request"
+        );
+        // Freeing a big map takes a while: beside the task, then the pages go back to the system.
+        drop(tokio::task::spawn_blocking(move || {
+            drop(map);
+            crate::memory_release::release_all_freed_memory_in_background();
+        }));
+        true
+    }
+
+    /// Restores an unloaded site from its store (its checkpoint and the log after it) and publishes
+    /// its view again; `Err` leaves it unloaded.
+    async fn restore(&mut self) -> Result<(), SiteError> {
+        let started = Instant::now();
+        let generation = self.store.generation();
+        let loaded = self.load_from_store().await?;
+        let published = *self.versions.borrow();
+        if loaded.map.version() < published.version {
+            return Err(SiteError::CorruptLog {
+                index: loaded.map.version() + 1,
+                reason: format!(
+                    "the unloaded site's store ends at version {}, below the published {}",
+                    loaded.map.version(),
+                    published.version
+                ),
+            });
+        }
+        let seconds = started.elapsed();
+        self.metrics.site_restored(seconds);
+        tracing::info!(
+            version = loaded.map.version(),
+            checkpoint = loaded.checkpoint,
+            replayed = loaded.replayed,
+            seconds = seconds.as_secs_f64(),
+            "unloaded site restored"
+        );
+        self.install(loaded, generation);
+        self.unloaded = false;
+        // The view comes back with the map; the version is only announced if it moved.
+        if let Ok(map) = self.map() {
+            let info = VersionInfo {
+                version: map.version(),
+                counts: map.counts(),
+            };
+            self.views.send_replace(Arc::new(map.view()));
+            self.versions.send_if_modified(|current| {
+                let moved = *current != info;
+                *current = info;
+                moved
+            });
+        }
+        Ok(())
+    }
+
+    /// [`load`] on the blocking pool.
+    async fn load_from_store(&self) -> Result<Loaded, SiteError> {
+        let (site, store, options) = (self.site(), Arc::clone(&self.store), self.options.clone());
+        let use_checkpoints = self.checkpoints.enabled;
+        tokio::task::spawn_blocking(move || load(&site, options, store.as_ref(), use_checkpoints))
+            .await
+            .map_err(SiteError::Worker)?
+    }
+
+    /// Makes `loaded` the task's map, built under the store's `generation`.
+    fn install(&mut self, loaded: Loaded, generation: u64) {
+        let map = loaded.map;
+        self.checkpointed_version = loaded.checkpoint.unwrap_or(0);
+        let now = tokio::time::Instant::now();
+        let open: Vec<String> = map.open_sessions().into_iter().map(|(s, _)| s).collect();
+        self.last_heard.retain(|session, _| open.contains(session));
+        for session in open {
+            self.last_heard.entry(session).or_insert(now);
+        }
+        self.map = Some(Box::new(map));
+        self.generation = generation;
+        self.unflushed = false;
     }
 
     /// Writes log entry `version` with the version bump and the session's sequence number, and flushes
@@ -417,42 +608,23 @@ impl SiteTask {
         let published = self.versions.borrow().version;
         let before = self.map()?.version();
         let started = Instant::now();
-        let loaded = {
-            let (site, store, options) =
-                (self.site(), Arc::clone(&self.store), self.options.clone());
-            let use_checkpoints = self.checkpoints.enabled;
-            tokio::task::spawn_blocking(move || {
-                load(&site, options, store.as_ref(), use_checkpoints)
-            })
-            .await
-            .map_err(SiteError::Worker)??
-        };
-        let map = loaded.map;
-        self.checkpointed_version = loaded.checkpoint.unwrap_or(0);
-        if map.version() < published {
+        let loaded = self.load_from_store().await?;
+        let version = loaded.map.version();
+        if version < published {
             return Err(SiteError::CorruptLog {
-                index: map.version() + 1,
+                index: version + 1,
                 reason: format!(
-                    "after the store was reopened its log ends at version {}, below the published {published}",
-                    map.version()
+                    "after the store was reopened its log ends at version {version}, below the published {published}"
                 ),
             });
         }
         tracing::warn!(
             from_version = before,
-            to_version = map.version(),
+            to_version = version,
             seconds = started.elapsed().as_secs_f64(),
             "the store was reopened after a failed write: site map rebuilt from its log"
         );
-        let now = tokio::time::Instant::now();
-        let open: Vec<String> = map.open_sessions().into_iter().map(|(s, _)| s).collect();
-        self.last_heard.retain(|session, _| open.contains(session));
-        for session in open {
-            self.last_heard.entry(session).or_insert(now);
-        }
-        self.map = Some(Box::new(map));
-        self.generation = generation;
-        self.unflushed = false;
+        self.install(loaded, generation);
         self.publish();
         Ok(())
     }
@@ -865,6 +1037,7 @@ mod tests {
                 queue_depth: 4,
                 session_idle_timeout,
                 checkpoints: CheckpointOptions::DEFAULT,
+                unload_after: None,
             },
         )
         .await
@@ -937,6 +1110,112 @@ mod tests {
         let_time_pass(30).await;
         assert_eq!(site.current().counts.open_sessions, 0);
         assert_eq!(site.current().version, closed_at + 1);
+        site.shutdown().await;
+        task.await.unwrap();
+    }
+
+    async fn spawn_unloading(
+        store: &Arc<dyn MapStore>,
+        metrics: &Arc<ServerMetrics>,
+        checkpoints: CheckpointOptions,
+    ) -> (SiteHandle, JoinHandle<()>) {
+        SiteTask::spawn(
+            "s",
+            LifelongOptions::default(),
+            Arc::clone(store),
+            Arc::clone(metrics),
+            SiteTaskOptions {
+                queue_depth: 4,
+                session_idle_timeout: None,
+                checkpoints,
+                unload_after: Some(Duration::from_secs(60)),
+            },
+        )
+        .await
+        .unwrap()
+    }
+
+    // Reference: issue 34 item 4 — "a site with no open session for a configurable time is dropped
+    // from memory and restored from its checkpoint on the next robot or query; the answer waits for
+    // the restore".
+    #[tokio::test(start_paused = true)]
+    async fn an_idle_site_is_unloaded_and_its_next_request_restores_it() {
+        // A site mapped without checkpoints: the first unload has to write one.
+        let store: Arc<dyn MapStore> = Arc::new(MemStore::new());
+        let metrics = Arc::new(ServerMetrics::default());
+        let (site, task) = spawn_unloading(&store, &metrics, CheckpointOptions::DISABLED).await;
+        site.open_session("r", "a").await.unwrap();
+        site.upload(node_batch("a", 1)).await.unwrap();
+        let closed = site.close_session("r", "a").await.unwrap();
+        let_time_pass(200).await;
+        assert!(site.is_loaded(), "no checkpoints: never unloaded");
+        assert!(!site.unload().await.unwrap());
+        assert!(store.checkpoint_indexes("s").unwrap().is_empty());
+        site.shutdown().await;
+        task.await.unwrap();
+
+        let (site, task) = spawn_unloading(&store, &metrics, CheckpointOptions::DEFAULT).await;
+        let counts = site.current().counts;
+        let poses = site.node_poses().await.unwrap();
+        assert_eq!(poses.len(), 1);
+        assert!(
+            site.unload().await.unwrap(),
+            "a checkpoint written, then unloaded"
+        );
+        assert_eq!(store.checkpoint_indexes("s").unwrap(), vec![closed]);
+        assert!(!site.is_loaded());
+        assert_eq!(site.node_poses().await.unwrap(), poses);
+        assert!(site.is_loaded());
+        assert_eq!(metrics.site_unloads_and_restores(), (1, 1));
+        // An open session keeps the site loaded however long it is silent.
+        site.open_session("r", "b").await.unwrap();
+        assert!(!site.unload().await.unwrap());
+        let_time_pass(200).await;
+        assert!(site.is_loaded());
+        let closed_b = site.close_session("r", "b").await.unwrap();
+        assert_eq!(closed_b, closed + 2);
+        let_time_pass(50).await;
+        assert!(site.is_loaded(), "idle for 50 s of 60");
+        let_time_pass(20).await;
+        assert!(!site.is_loaded(), "idle for 70 s of 60");
+        assert_eq!(metrics.site_unloads_and_restores(), (2, 1));
+        // A checkpoint covering the version is durable, and what lists the site still answers.
+        assert_eq!(store.checkpoint_indexes("s").unwrap()[0], closed_b);
+        assert_eq!(site.current().version, closed_b);
+        let view = site.view();
+        assert!(view.unloaded && view.history.is_empty());
+        assert_eq!(view.sessions.len(), 2);
+        assert_eq!(view.sessions[0].nodes, 1);
+
+        // A read-only query restores it and is answered as before.
+        assert_eq!(site.node_poses().await.unwrap(), poses);
+        assert!(site.is_loaded());
+        assert_eq!(metrics.site_unloads_and_restores(), (2, 2));
+        assert_eq!(site.current().version, closed_b);
+        assert_eq!(site.current().counts.nodes, counts.nodes);
+        assert_eq!(site.current().counts.sessions, 2);
+        // Its idle time began again at that query.
+        let_time_pass(50).await;
+        assert!(site.is_loaded());
+        let_time_pass(20).await;
+        assert!(!site.is_loaded());
+        // A robot's request restores it too, and the versions go on.
+        assert!(site.unload().await.unwrap(), "already unloaded");
+        let (opened, version) = site.open_session("r", "c").await.unwrap();
+        assert!(opened.created);
+        assert_eq!(version, closed_b + 1);
+        assert!(site.is_loaded());
+        assert_eq!(metrics.site_unloads_and_restores(), (3, 3));
+        let text = metrics.render(std::slice::from_ref(&site));
+        for line in [
+            "evermap_sites_loaded 1",
+            "evermap_sites_unloaded 0",
+            "evermap_site_unloads_total 3",
+            "evermap_site_restore_seconds_count 3",
+            "evermap_site_loaded{site=\"s\"} 1",
+        ] {
+            assert!(text.lines().any(|l| l == line), "{line:?} in\n{text}");
+        }
         site.shutdown().await;
         task.await.unwrap();
     }

@@ -116,6 +116,12 @@ async fn get_json(app: &Router, uri: &str) -> Value {
     serde_json::from_slice(&bytes).unwrap()
 }
 
+async fn get_text(app: &Router, uri: &str) -> String {
+    let (status, response) = get(app, uri, Some(TOKEN)).await;
+    assert_eq!(status, StatusCode::OK, "{uri}");
+    String::from_utf8(body(response).await).unwrap()
+}
+
 #[tokio::test]
 async fn without_the_operator_token_everything_but_health_is_refused() {
     let (app, _) = console(false, true).await;
@@ -317,6 +323,48 @@ async fn a_new_version_reaches_the_event_stream() {
     }
 }
 
+/// The next event of an SSE body: its name and its data.
+async fn next_event(
+    stream: &mut (impl tokio_stream::Stream<Item = Result<axum::body::Bytes, axum::Error>> + Unpin),
+) -> (String, Value) {
+    let chunk = tokio::time::timeout(std::time::Duration::from_secs(10), stream.next())
+        .await
+        .expect("an event within 10 s")
+        .unwrap()
+        .unwrap();
+    let text = String::from_utf8(chunk.to_vec()).unwrap();
+    let mut lines = text.lines();
+    let name = lines
+        .next()
+        .unwrap()
+        .trim_start_matches("event: ")
+        .to_owned();
+    let data = serde_json::from_str(lines.next().unwrap().trim_start_matches("data: ")).unwrap();
+    (name, data)
+}
+
+// Reference: issue 34 item 4 — the console shows loaded and unloaded sites, live.
+#[tokio::test]
+async fn a_site_leaving_memory_and_coming_back_reaches_the_event_stream() {
+    let (app, state) = console(false, true).await;
+    let watchers = state.watch_versions();
+    let (status, response) = get(&app, "/api/events", Some(TOKEN)).await;
+    assert_eq!(status, StatusCode::OK);
+    let mut stream = response.into_body().into_data_stream();
+    let site = state.site("s").unwrap().clone();
+    assert!(site.unload().await.unwrap());
+    let (name, data) = next_event(&mut stream).await;
+    assert_eq!(name, "site");
+    assert_eq!(data, json!({ "site": "s", "loaded": false }));
+    site.node_poses().await.unwrap();
+    let (name, data) = next_event(&mut stream).await;
+    assert_eq!(name, "site", "a restore is no new version: {data}");
+    assert_eq!(data, json!({ "site": "s", "loaded": true }));
+    for w in watchers {
+        w.abort();
+    }
+}
+
 #[tokio::test]
 async fn images_carry_an_entity_tag_and_a_held_one_is_not_sent_again() {
     let (app, _) = console(false, true).await;
@@ -374,4 +422,56 @@ async fn images_carry_an_entity_tag_and_a_held_one_is_not_sent_again() {
         .await
         .unwrap();
     assert_eq!(response.status(), StatusCode::NOT_MODIFIED);
+}
+
+// Reference: issue 34 item 4 — "metrics and the console show loaded and unloaded sites"; the map
+// waits for the restore.
+#[tokio::test]
+async fn an_unloaded_site_is_listed_as_such_and_its_map_restores_it() {
+    let (app, state) = console(false, true).await;
+    let site = state.site("s").unwrap().clone();
+    assert_eq!(get_json(&app, "/api/sites").await[0]["loaded"], true);
+    assert!(site.unload().await.unwrap());
+    let listed = get_json(&app, "/api/sites").await;
+    assert_eq!(listed[0]["loaded"], false);
+    assert_eq!(listed[0]["version"], 2);
+    assert_eq!(listed[0]["counts"]["nodes"], 3);
+    let metrics = get_text(&app, "/metrics").await;
+    assert!(metrics.contains("evermap_sites_unloaded 1\n"), "{metrics}");
+    assert!(
+        metrics.contains("evermap_site_loaded{site=\"s\"} 0\n"),
+        "{metrics}"
+    );
+    // Where the robots are is answered without the map.
+    let robots = get_json(&app, "/api/sites/s/robots").await;
+    assert_eq!(robots["robots"][0]["robot_id"], "r");
+    assert!(!site.is_loaded());
+    // The map is the map's: it waits for the restore.
+    let info = get_json(&app, "/api/sites/s/map").await;
+    assert_eq!(info["map_version"], 2);
+    assert!(site.is_loaded());
+    assert_eq!(get_json(&app, "/api/sites").await[0]["loaded"], true);
+    // So are the trajectories and the history.
+    assert!(site.unload().await.unwrap());
+    let sessions = get_json(&app, "/api/sites/s/sessions").await;
+    assert_eq!(
+        sessions["sessions"][0]["trajectory_xy"]
+            .as_array()
+            .unwrap()
+            .len(),
+        3
+    );
+    assert!(site.unload().await.unwrap());
+    let versions = get_json(&app, "/api/sites/s/versions").await;
+    assert_eq!(versions["versions"][0]["version"], 2);
+    let metrics = get_text(&app, "/metrics").await;
+    assert!(metrics.contains("evermap_sites_loaded 1\n"), "{metrics}");
+    assert!(
+        metrics.contains("evermap_site_unloads_total 3\n"),
+        "{metrics}"
+    );
+    assert!(
+        metrics.contains("evermap_site_restore_seconds_count 3\n"),
+        "{metrics}"
+    );
 }

@@ -1,7 +1,8 @@
 //! Issue 34, items 2 and 3 on the server: a site restored from its newest checkpoint and the log after it
 //! equals, bit for bit, the site a replay of its whole log builds, and behaves the same for the next
 //! session; an unreadable checkpoint falls back to the one before; one of an unknown format version
-//! stops the site with an error naming it. The sessions are real (`simulator::testing`: a simulated store,
+//! stops the site with an error naming it. Item 4: a site unloaded from memory and restored answers
+//! every request of the next session as a site that never left. The sessions are real (`simulator::testing`: a simulated store,
 //! LLO, the agent's batches), fed through the site task as robots feed it.
 
 use std::fmt::Write as _;
@@ -153,6 +154,7 @@ fn task_options(checkpoints: CheckpointOptions) -> SiteTaskOptions {
         queue_depth: 4,
         session_idle_timeout: None,
         checkpoints,
+        unload_after: None,
     }
 }
 
@@ -390,4 +392,100 @@ async fn a_checkpoint_of_an_unknown_format_version_stops_the_site_with_an_error_
         spawned.err(),
         Some(SiteError::CheckpointRefused { .. })
     ));
+}
+
+/// Everything a client can ask a site task, as text: its published version and counts, its whole
+/// delta, its node poses and its rendered map.
+async fn answers(site: &crate::site::SiteHandle) -> String {
+    let delta = site.delta_since(0).await.expect("delta");
+    let poses = site.node_poses().await.expect("poses");
+    let rendered = site.render(0.0).await.expect("render");
+    format!(
+        "{:?}\n{delta:?}\n{poses:?}\n{} {:?}",
+        site.current(),
+        rendered.version,
+        rendered
+            .grid
+            .map(|g| (g.limits().clone(), g.values().to_vec()))
+    )
+}
+
+// Reference: issue 34, item 4 — "a site with no open session for a configurable time is dropped from
+// memory and restored from its checkpoint on the next robot or query".
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_site_unloaded_and_restored_answers_the_next_session_as_one_never_unloaded() {
+    let inputs = checkpoint_sessions::session_inputs();
+    let sessions: Vec<Vec<UploadBatch>> = inputs
+        .iter()
+        .enumerate()
+        .map(|(session, input)| batches(session, input))
+        .collect();
+    assert_eq!(sessions.len(), 4);
+    let spawn = |checkpoints| async move {
+        let metrics = Arc::new(ServerMetrics::default());
+        let store: Arc<dyn MapStore> = Arc::new(MemStore::new());
+        let (site, task) = SiteTask::spawn(
+            SITE,
+            checkpoint_sessions::options(),
+            store,
+            Arc::clone(&metrics),
+            task_options(checkpoints),
+        )
+        .await
+        .expect("site");
+        (site, task, metrics)
+    };
+    // The default checkpoints (every 200 versions and at session ends) and never unloaded by time:
+    // `unload` does it when the test says.
+    let (kept, kept_task, _) = spawn(CheckpointOptions::DEFAULT).await;
+    let (unloaded, unloaded_task, metrics) = spawn(CheckpointOptions::DEFAULT).await;
+    for (session, batches) in sessions.iter().enumerate() {
+        if session == 3 {
+            // Session 3 comes to a site that was unloaded after session 2 and once more after a
+            // query restored it.
+            let before = answers(&unloaded).await;
+            assert!(unloaded.unload().await.expect("unload"), "nothing open");
+            assert!(!unloaded.is_loaded());
+            let view = unloaded.view();
+            assert!(view.history.is_empty(), "the grids left with the map");
+            assert!(view.sessions.iter().all(|s| s.trajectory_poses.is_empty()));
+            assert_eq!(view.sessions.len(), 3);
+            assert_eq!(answers(&unloaded).await, before, "restored by a query");
+            assert!(unloaded.is_loaded());
+            assert!(unloaded.unload().await.expect("unload"));
+            assert!(!unloaded.is_loaded());
+        }
+        let a = kept
+            .open_session(ROBOT, &uuid(session))
+            .await
+            .expect("open");
+        let b = unloaded
+            .open_session(ROBOT, &uuid(session))
+            .await
+            .expect("open");
+        assert_eq!(a, b, "session {session} opened");
+        for batch in batches {
+            let a = kept.upload(batch.clone()).await.expect("upload");
+            let b = unloaded.upload(batch.clone()).await.expect("upload");
+            assert_eq!(a, b, "session {session} batch {}", batch.seq);
+            if session == 3 {
+                let since = a.map_version - 1;
+                assert_eq!(
+                    kept.delta_since(since).await.expect("delta"),
+                    unloaded.delta_since(since).await.expect("delta"),
+                    "delta at version {}",
+                    a.map_version
+                );
+            }
+        }
+    }
+    assert_eq!(metrics.site_unloads_and_restores(), (2, 2));
+    assert!(unloaded.is_loaded());
+    assert_eq!(answers(&kept).await, answers(&unloaded).await);
+    let counts = unloaded.current().counts;
+    assert!(counts.nodes > 50 && counts.sessions == 4, "{counts:?}");
+    for (site, task) in [(kept, kept_task), (unloaded, unloaded_task)] {
+        site.shutdown().await;
+        task.await.expect("task");
+    }
 }

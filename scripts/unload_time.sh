@@ -1,0 +1,90 @@
+#!/usr/bin/env bash
+# How long a request to an unloaded (idle) site waits for its restore, and the memory unloading gives
+# back (BENCHMARKS.md, "Idle sites leave memory", issue 34 item 4).
+#
+#   scripts/unload_time.sh out/restart27/data      # a store an `evermap-demo load` run left
+#
+# Works on a copy (the original is never opened): serves every site in it with
+# `site_unload_after_s = UNLOAD_S` and the console on loopback, then CYCLES times: waits until
+# /metrics says every site is unloaded (and 2 s more for the freed pages to go back), notes the
+# server's RSS, asks each site's /api/sites/<site>/versions — which waits for the site's restore — and
+# prints the answer's wall time and the RSS after it. Then the server's restore lines and /metrics'
+# unload figures. Environment: BIN (default target/release/evermap-server; build it with
+# `cargo build --release --workspace`), OUT (default out/unload_time), UNLOAD_S (default 5), CYCLES
+# (default 5), HTTP_PORT (default 18080), PARALLEL (1: ask every site at once, not one after another).
+set -euo pipefail
+
+STORE=${1:?usage: scripts/unload_time.sh STORE_DIR}
+BIN=${BIN:-target/release/evermap-server}
+OUT=${OUT:-out/unload_time}
+UNLOAD_S=${UNLOAD_S:-5}
+CYCLES=${CYCLES:-5}
+HTTP_PORT=${HTTP_PORT:-18080}
+TOKEN=unload-time-operator
+[ -x "$BIN" ] || { echo "$BIN is missing: cargo build --release --workspace" >&2; exit 1; }
+[ -d "$STORE" ] || { echo "no store at $STORE" >&2; exit 1; }
+
+rm -rf "$OUT" && mkdir -p "$OUT"
+cp -r "$STORE" "$OUT/data"
+DATA=$(cd "$OUT/data" && pwd)
+printf 'listen = "127.0.0.1:0"\nmetrics_listen = "127.0.0.1:0"\n[storage]\npath = "%s"\n' "$DATA" >"$OUT/list.toml"
+SITES=$("$BIN" site list --config "$OUT/list.toml" | cut -f1)
+[ -n "$SITES" ] || { echo "the store at $STORE holds no site" >&2; exit 1; }
+{
+  printf 'listen = "127.0.0.1:0"\nmetrics_listen = "127.0.0.1:0"\nsite_unload_after_s = %s\n' "$UNLOAD_S"
+  printf '[storage]\npath = "%s"\n[http]\nlisten = "127.0.0.1:%s"\noperator_token = "%s"\n' "$DATA" "$HTTP_PORT" "$TOKEN"
+} >"$OUT/serve.toml"
+n=0
+for site in $SITES; do
+  n=$((n + 1))
+  printf '\n[[sites]]\nid = "%s"\nrobots = [{ id = "unload-robot", token = "unload-token-%d" }]\n' "$site" "$n" >>"$OUT/serve.toml"
+done
+
+NO_COLOR=1 RUST_LOG=${RUST_LOG:-info} "$BIN" serve --config "$OUT/serve.toml" >"$OUT/serve.log" 2>&1 &
+pid=$!
+trap 'kill -TERM $pid 2>/dev/null || true' EXIT
+rss_mib() { awk '/^VmRSS/ { printf "%.1f", $2 / 1024 }' "/proc/$pid/status"; }
+get() { curl -sf -H "Authorization: Bearer $TOKEN" "http://127.0.0.1:$HTTP_PORT$1"; }
+# Whether /metrics says every site is unloaded (read whole first: `grep -q` on a pipe may cut curl off).
+all_unloaded() { local m; m=$(get /metrics) || return 1; grep -qx "evermap_sites_unloaded $n" <<<"$m"; }
+for _ in $(seq 1 3000); do
+  grep -q "web console serving" "$OUT/serve.log" && break
+  kill -0 "$pid" 2>/dev/null || { echo "the server exited:" >&2; tail -20 "$OUT/serve.log" >&2; exit 1; }
+  sleep 0.2
+done
+echo "$n site(s) loaded: RSS $(rss_mib) MiB"
+for cycle in $(seq 1 "$CYCLES"); do
+  for _ in $(seq 1 600); do
+    all_unloaded && break
+    sleep 0.5
+  done
+  all_unloaded || { echo "not every site unloaded" >&2; exit 1; }
+  sleep 2
+  unloaded=$(rss_mib)
+  if [ "${PARALLEL:-0}" = 1 ]; then
+    # Every site asked at once: the restores share the cores.
+    curls=()
+    for site in $SITES; do
+      curl -sf -o "$OUT/answer-$site" -w '%{time_total}\n' -H "Authorization: Bearer $TOKEN" \
+        "http://127.0.0.1:$HTTP_PORT/api/sites/$site/versions" >"$OUT/time-$site" &
+      curls+=($!)
+    done
+    wait "${curls[@]}"
+    for site in $SITES; do
+      echo "cycle $cycle: site $site unloaded (all at RSS $unloaded MiB); asked with the others, answered after $(cat "$OUT/time-$site") s"
+    done
+    echo "cycle $cycle: RSS $(rss_mib) MiB with every site restored"
+  else
+    for site in $SITES; do
+      t=$(curl -sf -o /dev/null -w '%{time_total}' -H "Authorization: Bearer $TOKEN" \
+        "http://127.0.0.1:$HTTP_PORT/api/sites/$site/versions")
+      echo "cycle $cycle: site $site unloaded at RSS $unloaded MiB; its versions answered after $t s; RSS $(rss_mib) MiB"
+    done
+  fi
+done
+sed 's/\x1b\[[0-9;]*m//g' "$OUT/serve.log" | grep -E "site log replayed|site unloaded|unloaded site restored" | sed 's/.*site=/  site=/'
+metrics=$(get /metrics)
+grep -E "^evermap_site(s_loaded|s_unloaded|_unloads_total|_restore_seconds)" <<<"$metrics"
+kill -TERM "$pid"
+wait "$pid"
+trap - EXIT
