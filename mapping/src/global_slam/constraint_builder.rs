@@ -78,7 +78,8 @@ pub struct ConstraintBuilderOptions {
     /// with it (the two closures and the trajectory between the nodes form a consistent cycle). Default 30 m.
     pub agreement_path_length: f64,
     /// Two matches agree when the cycle they close is off by less than this translation (m) plus 2 %
-    /// of the path between their nodes … Default 0.3 m.
+    /// of the path between their nodes … Default 0.15 m.
+    /// Why: `docs/TUNING.md#cb-agreement-translation`.
     pub agreement_translation: f64,
     /// … and this rotation (rad). Default 0.035 rad (2°).
     pub agreement_rotation: f64,
@@ -127,7 +128,7 @@ impl Default for ConstraintBuilderOptions {
             max_unconfirmed_translation: 0.5,
             max_unconfirmed_rotation: 0.052,
             agreement_path_length: 30.0,
-            agreement_translation: 0.3,
+            agreement_translation: 0.15,
             agreement_rotation: 0.035,
             degenerate_ratio: 0.1,
             min_information_ratio: 0.01,
