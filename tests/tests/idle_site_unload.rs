@@ -7,27 +7,21 @@
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use mapping::geometry::rigid2;
-use mapping::sensor::Timestamp;
-use nalgebra::Point2;
-use proto::{NodeAdded, UploadItem};
+use proto::UploadItem;
 use robot_agent::outbox::Outbox;
 use robot_agent::uplink::{GrpcUplink, MapUplink as _, Uploader};
-use server::{RobotConfig, RunningServer, ServerConfig, SiteConfig};
+use server::{RunningServer, ServerConfig};
 use storage::MemStore;
+use tests::OneRobotSite;
 
 const SITE: &str = "store-unload";
 const TOKEN: &str = "token-unload-r1";
 const WAIT: Duration = Duration::from_secs(30);
 
-fn node(i: i64) -> Vec<UploadItem> {
-    vec![UploadItem::NodeAdded(NodeAdded {
-        time: Timestamp(i * 100_000_000),
-        local_pose: rigid2(0.1 * i as f64, 0.0, 0.0),
-        points: vec![Point2::new(1.0, 0.5), Point2::new(2.0, 0.0)],
-        insertion_submaps: vec![(0, rigid2(0.0, 0.0, 0.0))],
-    })]
-}
+const FIXTURE: OneRobotSite = OneRobotSite {
+    site: SITE,
+    token: TOKEN,
+};
 
 /// Waits (bounded) until the site is unloaded.
 async fn until_unloaded(server: &RunningServer) {
@@ -45,17 +39,8 @@ async fn until_unloaded(server: &RunningServer) {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_idle_site_is_unloaded_and_restored_by_a_query_and_by_a_robot() {
     let config = ServerConfig {
-        listen: "127.0.0.1:0".parse().expect("addr"),
-        metrics_listen: None,
         site_unload_after_s: 0.5,
-        sites: vec![SiteConfig {
-            id: SITE.into(),
-            robots: vec![RobotConfig {
-                id: "r1".into(),
-                token: TOKEN.into(),
-            }],
-        }],
-        ..ServerConfig::default()
+        ..FIXTURE.config()
     };
     let server = RunningServer::start(&config, Arc::new(MemStore::new()))
         .await
@@ -66,8 +51,8 @@ async fn an_idle_site_is_unloaded_and_restored_by_a_query_and_by_a_robot() {
     let outbox = Outbox::in_memory(SITE);
     let mut robot =
         Uploader::new(uplink.clone(), outbox.clone(), SITE, "r1", "first").expect("uploader");
-    robot.enqueue(&node(1)).expect("enqueue");
-    robot.enqueue(&node(2)).expect("enqueue");
+    robot.enqueue(&OneRobotSite::node(1)).expect("enqueue");
+    robot.enqueue(&OneRobotSite::node(2)).expect("enqueue");
     robot.enqueue(&[UploadItem::SessionEnd]).expect("enqueue");
     assert_eq!(robot.flush().await.expect("flush").applied, 3);
     let site = server.site(SITE).expect("site").clone();
@@ -87,7 +72,7 @@ async fn an_idle_site_is_unloaded_and_restored_by_a_query_and_by_a_robot() {
     // So does a robot's new session, and the versions go on.
     until_unloaded(&server).await;
     let mut back = Uploader::new(uplink, outbox, SITE, "r1", "second").expect("uploader");
-    back.enqueue(&node(3)).expect("enqueue");
+    back.enqueue(&OneRobotSite::node(3)).expect("enqueue");
     assert_eq!(back.flush().await.expect("flush").applied, 1);
     assert_eq!(server.metrics().site_unloads_and_restores(), (2, 2));
     let counts = site.current().counts;
