@@ -472,18 +472,7 @@ impl SiteTask {
     async fn restore(&mut self) -> Result<(), SiteError> {
         let started = Instant::now();
         let generation = self.store.generation();
-        let loaded = self.load_from_store().await?;
-        let published = *self.versions.borrow();
-        if loaded.map.version() < published.version {
-            return Err(SiteError::CorruptLog {
-                index: loaded.map.version() + 1,
-                reason: format!(
-                    "the unloaded site's store ends at version {}, below the published {}",
-                    loaded.map.version(),
-                    published.version
-                ),
-            });
-        }
+        let loaded = self.load_from_store("the unloaded site's store").await?;
         let seconds = started.elapsed();
         self.metrics.site_restored(seconds);
         tracing::info!(
@@ -511,13 +500,26 @@ impl SiteTask {
         Ok(())
     }
 
-    /// [`load`] on the blocking pool.
-    async fn load_from_store(&self) -> Result<Loaded, SiteError> {
+    /// [`load`] on the blocking pool. A map below the published version is refused as a corrupt log
+    /// (what was published was durable); `what` names the store in that error.
+    async fn load_from_store(&self, what: &str) -> Result<Loaded, SiteError> {
         let (site, store, options) = (self.site(), Arc::clone(&self.store), self.options.clone());
         let use_checkpoints = self.checkpoints.enabled;
-        tokio::task::spawn_blocking(move || load(&site, options, store.as_ref(), use_checkpoints))
-            .await
-            .map_err(SiteError::Worker)?
+        let loaded = tokio::task::spawn_blocking(move || {
+            load(&site, options, store.as_ref(), use_checkpoints)
+        })
+        .await
+        .map_err(SiteError::Worker)??;
+        let (version, published) = (loaded.map.version(), self.versions.borrow().version);
+        if version < published {
+            return Err(SiteError::CorruptLog {
+                index: version + 1,
+                reason: format!(
+                    "{what} ends at version {version}, below the published {published}"
+                ),
+            });
+        }
+        Ok(loaded)
     }
 
     /// Makes `loaded` the task's map, built under the store's `generation`.
@@ -605,19 +607,12 @@ impl SiteTask {
 
     /// Replays the store's log into a new map, which replaces the current one.
     async fn rebuild(&mut self, generation: u64) -> Result<(), SiteError> {
-        let published = self.versions.borrow().version;
         let before = self.map()?.version();
         let started = Instant::now();
-        let loaded = self.load_from_store().await?;
+        let loaded = self
+            .load_from_store("after the store was reopened its log")
+            .await?;
         let version = loaded.map.version();
-        if version < published {
-            return Err(SiteError::CorruptLog {
-                index: version + 1,
-                reason: format!(
-                    "after the store was reopened its log ends at version {version}, below the published {published}"
-                ),
-            });
-        }
         tracing::warn!(
             from_version = before,
             to_version = version,
