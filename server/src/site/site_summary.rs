@@ -17,9 +17,7 @@ use prost::Message as _;
 use proto::{ConversionError, FORMAT_VERSION, pb};
 use storage::{MapStore, RecordId, RecordKind};
 
-use super::{
-    MapCounts, PlacementState, SessionStartCounts, SessionView, SiteError, SiteView, VersionInfo,
-};
+use super::{MapCounts, PlacementState, SessionView, SiteError, SiteView, VersionInfo};
 
 /// The record kind a site's summary is stored under.
 pub(crate) const SUMMARY_KIND: RecordKind = RecordKind::SiteMeta;
@@ -92,7 +90,6 @@ impl SiteSummary {
 
     fn to_bytes(&self) -> Vec<u8> {
         let c = &self.info.counts;
-        let s = &c.session_starts;
         pb::SiteSummary {
             format_version: FORMAT_VERSION,
             version: self.info.version,
@@ -109,15 +106,7 @@ impl SiteSummary {
                 loop_closures_outvoted: c.loop_closures_outvoted,
                 loop_closures_beyond_drift: c.loop_closures_beyond_drift,
                 loop_closures_retracted: c.loop_closures_retracted,
-                session_starts: Some(pb::SessionStartCountsState {
-                    priors: s.priors,
-                    placed: s.placed,
-                    refused: s.refused,
-                    retries: s.retries,
-                    committed: s.committed,
-                    revoked: s.revoked,
-                    gave_up: s.gave_up,
-                }),
+                session_starts: Some(proto::SessionStartCountsState::from(c.session_starts).into()),
                 open_sessions: c.open_sessions,
             }),
             sessions: self.sessions.iter().map(session_to_pb).collect(),
@@ -135,7 +124,13 @@ impl SiteSummary {
             message: "SiteSummary",
             field: "counts",
         })?;
-        let s = c.session_starts.unwrap_or_default();
+        let session_starts = c
+            .session_starts
+            .as_ref()
+            .ok_or(ConversionError::MissingField {
+                message: "SiteCounts",
+                field: "session_starts",
+            })?;
         let counts = MapCounts {
             sessions: c.sessions,
             nodes: c.nodes,
@@ -149,15 +144,7 @@ impl SiteSummary {
             loop_closures_outvoted: c.loop_closures_outvoted,
             loop_closures_beyond_drift: c.loop_closures_beyond_drift,
             loop_closures_retracted: c.loop_closures_retracted,
-            session_starts: SessionStartCounts {
-                priors: s.priors,
-                placed: s.placed,
-                refused: s.refused,
-                retries: s.retries,
-                committed: s.committed,
-                revoked: s.revoked,
-                gave_up: s.gave_up,
-            },
+            session_starts: proto::SessionStartCountsState::from(session_starts).into(),
             open_sessions: c.open_sessions,
         };
         let sessions = message
@@ -239,6 +226,7 @@ mod tests {
     use mapping::geometry::rigid2;
     use storage::{MemStore, WriteBatch};
 
+    use super::super::SessionStartCounts;
     use super::*;
 
     fn summary(version: u64, open_sessions: u64) -> SiteSummary {
