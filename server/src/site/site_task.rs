@@ -161,8 +161,8 @@ pub struct SiteTask {
 
 /// How [`SiteTask::spawn`] starts a site.
 enum Start {
-    /// Its map, loaded.
-    Loaded(Loaded),
+    /// Its map, loaded (boxed: a `SiteMap` is kilobytes on the stack).
+    Loaded(Box<Loaded>),
     /// Unloaded, publishing its stored summary.
     Unloaded(SiteSummary),
 }
@@ -211,7 +211,8 @@ impl SiteTask {
                     {
                         return Ok(Start::Unloaded(summary));
                     }
-                    load(&site, options, store.as_ref(), use_checkpoints).map(Start::Loaded)
+                    load(&site, options, store.as_ref(), use_checkpoints)
+                        .map(|loaded| Start::Loaded(Box::new(loaded)))
                 })
             })
             .await
@@ -272,7 +273,7 @@ impl SiteTask {
                 unload_now = may_unload
                     && loaded.checkpoint.is_some()
                     && loaded.map.open_sessions().is_empty();
-                task.install(loaded, generation);
+                task.install(*loaded, generation);
                 task.publish();
             }
         }
