@@ -5,12 +5,13 @@ use std::path::PathBuf;
 
 use prost::Message as _;
 
-const PROTOS: [&str; 6] = [
+const PROTOS: [&str; 7] = [
     "evermap/fleet/v1/common.proto",
     "evermap/fleet/v1/agent_service.proto",
     "evermap/fleet/v1/map_service.proto",
     "evermap/fleet/v1/site_log.proto",
     "evermap/fleet/v1/site_checkpoint.proto",
+    "evermap/fleet/v1/site_summary.proto",
     "evermap/fleet/v1/zenoh_link.proto",
 ];
 

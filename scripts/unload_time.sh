@@ -11,7 +11,10 @@
 # prints the answer's wall time and the RSS after it. Then the server's restore lines and /metrics'
 # unload figures. Environment: BIN (default target/release/evermap-server; build it with
 # `cargo build --release --workspace`), OUT (default out/unload_time), UNLOAD_S (default 5), CYCLES
-# (default 5), HTTP_PORT (default 18080), PARALLEL (1: ask every site at once, not one after another).
+# (default 5), HTTP_PORT (default 18080), PARALLEL (1: ask every site at once, not one after another),
+# ASK (ask only the first ASK sites of the store each cycle; default all), IN_PLACE (1: serve the
+# store itself, not a copy — for stores too big to copy, such as scripts/clone_sites.sh's; serving
+# writes to it).
 set -euo pipefail
 
 STORE=${1:?usage: scripts/unload_time.sh STORE_DIR}
@@ -25,8 +28,12 @@ TOKEN=unload-time-operator
 [ -d "$STORE" ] || { echo "no store at $STORE" >&2; exit 1; }
 
 rm -rf "$OUT" && mkdir -p "$OUT"
-cp -r "$STORE" "$OUT/data"
-DATA=$(cd "$OUT/data" && pwd)
+if [ "${IN_PLACE:-0}" = 1 ]; then
+  DATA=$(cd "$STORE" && pwd)
+else
+  cp -r "$STORE" "$OUT/data"
+  DATA=$(cd "$OUT/data" && pwd)
+fi
 printf 'listen = "127.0.0.1:0"\nmetrics_listen = "127.0.0.1:0"\n[storage]\npath = "%s"\n' "$DATA" >"$OUT/list.toml"
 SITES=$("$BIN" site list --config "$OUT/list.toml" | cut -f1)
 [ -n "$SITES" ] || { echo "the store at $STORE holds no site" >&2; exit 1; }
@@ -40,6 +47,8 @@ for site in $SITES; do
   printf '\n[[sites]]\nid = "%s"\nrobots = [{ id = "unload-robot", token = "unload-token-%d" }]\n' "$site" "$n" >>"$OUT/serve.toml"
 done
 
+ASKED=$(head -n "${ASK:-$n}" <<<"$SITES")
+start=$(date +%s.%N)
 NO_COLOR=1 RUST_LOG=${RUST_LOG:-info} "$BIN" serve --config "$OUT/serve.toml" >"$OUT/serve.log" 2>&1 &
 pid=$!
 trap 'kill -TERM $pid 2>/dev/null || true' EXIT
@@ -52,7 +61,7 @@ for _ in $(seq 1 3000); do
   kill -0 "$pid" 2>/dev/null || { echo "the server exited:" >&2; tail -20 "$OUT/serve.log" >&2; exit 1; }
   sleep 0.2
 done
-echo "$n site(s) loaded: RSS $(rss_mib) MiB"
+echo "$n site(s) served after $(echo "$(date +%s.%N) - $start" | bc) s (the console up): RSS $(rss_mib) MiB, $(get /metrics | grep -x 'evermap_sites_unloaded [0-9]*') at the start"
 for cycle in $(seq 1 "$CYCLES"); do
   for _ in $(seq 1 600); do
     all_unloaded && break
@@ -64,18 +73,18 @@ for cycle in $(seq 1 "$CYCLES"); do
   if [ "${PARALLEL:-0}" = 1 ]; then
     # Every site asked at once: the restores share the cores.
     curls=()
-    for site in $SITES; do
+    for site in $ASKED; do
       curl -sf -o "$OUT/answer-$site" -w '%{time_total}\n' -H "Authorization: Bearer $TOKEN" \
         "http://127.0.0.1:$HTTP_PORT/api/sites/$site/versions" >"$OUT/time-$site" &
       curls+=($!)
     done
     wait "${curls[@]}"
-    for site in $SITES; do
+    for site in $ASKED; do
       echo "cycle $cycle: site $site unloaded (all at RSS $unloaded MiB); asked with the others, answered after $(cat "$OUT/time-$site") s"
     done
     echo "cycle $cycle: RSS $(rss_mib) MiB with every site restored"
   else
-    for site in $SITES; do
+    for site in $ASKED; do
       t=$(curl -sf -o /dev/null -w '%{time_total}' -H "Authorization: Bearer $TOKEN" \
         "http://127.0.0.1:$HTTP_PORT/api/sites/$site/versions")
       echo "cycle $cycle: site $site unloaded at RSS $unloaded MiB; its versions answered after $t s; RSS $(rss_mib) MiB"

@@ -43,7 +43,8 @@ pub use map_delta::{MapDelta, SubmapSnapshot};
 pub use png_image::{PngCompression, PngError, PngPixels, encode_png};
 pub use site_checkpoint::{
     CHECKPOINT_FORMAT_VERSION, PublishedSubmapState, RestoreError, SessionStartCountsState,
-    SiteCheckpoint, SiteServerState, SiteSessionState, options_fingerprint,
+    SiteCheckpoint, SiteServerState, SiteSessionState, options_fingerprint, pose_from_exact,
+    pose_to_exact,
 };
 pub use upload_batch::{NodeAdded, UploadBatch, UploadItem};
 pub use zenoh_link_options::{

@@ -181,7 +181,8 @@ fn submap_in(
     required(id, message, field).map(|id| (*id).into())
 }
 
-fn pose_to_exact(pose: &Rigid2) -> pb::ExactPose2 {
+/// `pose` exactly as stored: translation and the rotation's unit complex number (see `ExactPose2`).
+pub fn pose_to_exact(pose: &Rigid2) -> pb::ExactPose2 {
     pb::ExactPose2 {
         x: Some(pose.translation.vector.x),
         y: Some(pose.translation.vector.y),
@@ -191,7 +192,12 @@ fn pose_to_exact(pose: &Rigid2) -> pb::ExactPose2 {
 }
 
 /// A pose from its exact form: finite numbers, and a rotation of unit norm (to 1e-6; kept as stored).
-fn pose_from_exact(
+/// `message` and `field` name it in the error.
+///
+/// # Errors
+/// [`ConversionError`] for a missing pose or component, a number that is not finite, or a rotation
+/// that is not of unit norm.
+pub fn pose_from_exact(
     pose: Option<&pb::ExactPose2>,
     message: &'static str,
     field: &'static str,

@@ -69,6 +69,12 @@ pub enum ServeError {
     Zenoh(#[from] crate::zenoh_front::ZenohFrontError),
 }
 
+/// How many sites a start loads at once: twice the cores (a load is mostly CPU; the second one per
+/// core covers its reads), at least 2.
+fn start_parallelism() -> usize {
+    std::thread::available_parallelism().map_or(2, |n| n.get().saturating_mul(2).max(2))
+}
+
 /// A started server. Stop it with [`RunningServer::shutdown`] (dropping it leaves tasks running until the
 /// runtime ends).
 pub struct RunningServer {
@@ -93,11 +99,14 @@ impl RunningServer {
     ) -> Result<Self, ServeError> {
         config.validate()?;
         let metrics = Arc::new(ServerMetrics::default());
-        // Every site's log is replayed at once (each on a blocking thread): a restart takes as long as
-        // the longest replay on a free core, not the sum of them.
+        // The sites are loaded (each on a blocking thread) a few at a time: a restart takes about the
+        // sum of the loads over the cores, and only a few maps are in memory at once besides the sites
+        // that stay loaded (with unloading on, a site its checkpoint covers starts unloaded: at most its
+        // summary is read, or it is loaded and unloaded again before the next site's turn).
         tracing::info!(sites = config.sites.len(), "replaying the sites' logs");
         let mut loading = tokio::task::JoinSet::new();
         let mut loading_site = BTreeMap::new();
+        let turns = Arc::new(tokio::sync::Semaphore::new(start_parallelism()));
         for site in &config.sites {
             let (id, options) = (site.id.clone(), config.map.clone());
             let (store, metrics) = (Arc::clone(&store), Arc::clone(&metrics));
@@ -107,7 +116,10 @@ impl RunningServer {
                 checkpoints: config.checkpoints,
                 unload_after: config.site_unload_after()?,
             };
+            let turns = Arc::clone(&turns);
             let task = loading.spawn(async move {
+                // Never closed: a permit always comes.
+                let _turn = turns.acquire_owned().await;
                 let loaded = SiteTask::spawn(&id, options, store, metrics, task_options).await;
                 (id, loaded)
             });
@@ -125,7 +137,11 @@ impl RunningServer {
                 source,
             })?;
             crate::site::site_span(&id).in_scope(|| {
-                tracing::info!(version = handle.current().version, "site loaded");
+                tracing::info!(
+                    version = handle.current().version,
+                    in_memory = handle.is_loaded(),
+                    "site loaded"
+                );
             });
             sites.insert(id, handle);
             site_tasks.push(task);

@@ -98,7 +98,7 @@ impl ServerMetrics {
         );
     }
 
-    /// Counts a site unloaded because it was idle.
+    /// Counts a site map dropped from memory (idle, or loaded at the start only to store its summary).
     pub fn site_unloaded(&self) {
         self.site_unloads.fetch_add(1, Ordering::Relaxed);
     }
@@ -210,13 +210,15 @@ impl ServerMetrics {
             out,
             "# HELP evermap_sites_loaded Sites whose map is in memory.\n\
              # TYPE evermap_sites_loaded gauge\nevermap_sites_loaded {loaded}\n\
-             # HELP evermap_sites_unloaded Sites unloaded while idle (restored at their next request).\n\
+             # HELP evermap_sites_unloaded Sites whose map is out of memory: idle, or not asked for since the \
+             start (restored at their next request).\n\
              # TYPE evermap_sites_unloaded gauge\nevermap_sites_unloaded {}\n",
             sites.len() - loaded
         );
         let _ = write!(
             out,
-            "# HELP evermap_site_unloads_total Sites unloaded because they were idle.\n\
+            "# HELP evermap_site_unloads_total Site maps dropped from memory: idle, or loaded at the start \
+             for want of a summary.\n\
              # TYPE evermap_site_unloads_total counter\nevermap_site_unloads_total {}\n\
              # HELP evermap_site_restore_seconds Restores of unloaded sites (checkpoint read, log after it \
              replayed) and their time.\n\

@@ -11,6 +11,7 @@ mod session_view;
 mod site_error;
 mod site_handle;
 mod site_map;
+mod site_summary;
 mod site_task;
 mod site_view;
 

@@ -61,19 +61,16 @@ impl PrecomputationGrid {
         let (width, height) = (self.width + half, self.height + half);
         // Maximum along x into a buffer with the new width and the old height.
         let mut along_x = vec![0u8; width as usize * self.height as usize];
+        let (old_width, shift) = (self.width as usize, half as usize);
         for y in 0..self.height {
             let src = &self.cells[(y * self.width) as usize..((y + 1) * self.width) as usize];
             let dst = &mut along_x[(y * width) as usize..((y + 1) * width) as usize];
-            // New stored column i is original cell i − pad, i.e. old stored columns i − half and i.
-            for (i, d) in dst.iter_mut().enumerate() {
-                let i = i as i32;
-                let a = if i >= half {
-                    src[(i - half) as usize]
-                } else {
-                    0
-                };
-                let b = if i < self.width { src[i as usize] } else { 0 };
-                *d = a.max(b);
+            // New stored column i is original cell i − pad, i.e. the maximum of old stored columns i
+            // and i − half (0 where either is outside: the minimum of a quantized value). Two passes
+            // over whole slices, which the compiler vectorizes: column i first, then i − half.
+            dst[..old_width].copy_from_slice(src);
+            for (d, a) in dst[shift..shift + old_width].iter_mut().zip(src) {
+                *d = (*d).max(*a);
             }
         }
         let mut cells = vec![0u8; width as usize * height as usize];
@@ -152,11 +149,12 @@ impl PrecomputationGrid {
 
 /// Precomputation grids for depths `1..=max_depth` (depth 0 is the original grid).
 pub(crate) fn build_stack(grid: &ProbabilityGrid, max_depth: u32) -> Vec<PrecomputationGrid> {
+    let base = PrecomputationGrid::base(grid);
     let mut levels: Vec<PrecomputationGrid> = Vec::with_capacity(max_depth as usize);
-    let mut current = PrecomputationGrid::base(grid);
     for _ in 0..max_depth {
-        current = current.doubled();
-        levels.push(current.clone());
+        // Each depth from the one before, kept as built (no copy).
+        let next = levels.last().unwrap_or(&base).doubled();
+        levels.push(next);
     }
     levels
 }

@@ -62,6 +62,34 @@ pub struct SessionStartCountsState {
     pub gave_up: u64,
 }
 
+impl From<SessionStartCountsState> for pb::SessionStartCountsState {
+    fn from(c: SessionStartCountsState) -> Self {
+        Self {
+            priors: c.priors,
+            placed: c.placed,
+            refused: c.refused,
+            retries: c.retries,
+            committed: c.committed,
+            revoked: c.revoked,
+            gave_up: c.gave_up,
+        }
+    }
+}
+
+impl From<&pb::SessionStartCountsState> for SessionStartCountsState {
+    fn from(c: &pb::SessionStartCountsState) -> Self {
+        Self {
+            priors: c.priors,
+            placed: c.placed,
+            refused: c.refused,
+            retries: c.retries,
+            committed: c.committed,
+            revoked: c.revoked,
+            gave_up: c.gave_up,
+        }
+    }
+}
+
 /// The server's part of a site's state (see the module docs).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct SiteServerState {
@@ -123,15 +151,7 @@ pub(super) fn site_to_pb(s: &SiteServerState) -> pb::SiteServerState {
         dropped_sessions: s.dropped_sessions,
         robot_revoked: s.robot_revoked.iter().copied().collect(),
         base: s.base,
-        session_starts: Some(pb::SessionStartCountsState {
-            priors: c.priors,
-            placed: c.placed,
-            refused: c.refused,
-            retries: c.retries,
-            committed: c.committed,
-            revoked: c.revoked,
-            gave_up: c.gave_up,
-        }),
+        session_starts: Some(c.into()),
     }
 }
 
@@ -214,14 +234,6 @@ pub(super) fn site_from_pb(s: &pb::SiteServerState) -> Result<SiteServerState, C
         dropped_sessions: s.dropped_sessions,
         robot_revoked: s.robot_revoked.iter().copied().collect(),
         base: s.base,
-        session_starts: SessionStartCountsState {
-            priors: c.priors,
-            placed: c.placed,
-            refused: c.refused,
-            retries: c.retries,
-            committed: c.committed,
-            revoked: c.revoked,
-            gave_up: c.gave_up,
-        },
+        session_starts: c.into(),
     })
 }

@@ -134,6 +134,34 @@ pub struct SessionStartCounts {
     pub gave_up: u64,
 }
 
+impl From<SessionStartCounts> for proto::SessionStartCountsState {
+    fn from(c: SessionStartCounts) -> Self {
+        Self {
+            priors: c.priors,
+            placed: c.placed,
+            refused: c.refused,
+            retries: c.retries,
+            committed: c.committed,
+            revoked: c.revoked,
+            gave_up: c.gave_up,
+        }
+    }
+}
+
+impl From<proto::SessionStartCountsState> for SessionStartCounts {
+    fn from(c: proto::SessionStartCountsState) -> Self {
+        Self {
+            priors: c.priors,
+            placed: c.placed,
+            refused: c.refused,
+            retries: c.retries,
+            committed: c.committed,
+            revoked: c.revoked,
+            gave_up: c.gave_up,
+        }
+    }
+}
+
 #[derive(Clone, Debug)]
 struct SubmapVersions {
     /// Version at which the grid was stored.

@@ -44,6 +44,16 @@
 //! starts again at the restored version as after a restart. A restore that fails answers that request
 //! with the error and is tried again at the next.
 //!
+//! **Sites start unloaded** (issue 34: one instance holds hundreds of sites). With unloading and
+//! checkpoints on, a site whose newest checkpoint covers its whole log and that has no open session
+//! starts unloaded, exactly as if it had gone idle: from its stored [`SiteSummary`] (what an unloaded
+//! site publishes, stored beside each checkpoint taken with no session open and at each unload), so a
+//! start reads a few kB per site and no checkpoint. A site with such a checkpoint but no usable
+//! summary (a store written before summaries, a log after its checkpoint) is loaded, then unloaded at
+//! once (which checkpoints it if needed and stores its summary). Every other site — no checkpoint, a
+//! session open, unloading or checkpoints off — loads as before. The first command restores it, as
+//! any unloaded site's.
+//!
 //! A full disk (or any storage failure) is a refusal, never a half-applied change: a write that fails
 //! stores nothing and leaves the map as it was. A write the store applied but could not flush (a
 //! log-structured store whose flush hits the full disk) is applied to the map too — the map always
@@ -72,6 +82,7 @@ use tokio::task::JoinHandle;
 use tracing::Instrument as _;
 
 use super::site_handle::Command;
+use super::site_summary::SiteSummary;
 use super::{
     CheckpointOptions, RenderedMap, SiteError, SiteHandle, SiteMap, SiteView, UploadAck,
     UploadCheck, VersionInfo,
@@ -144,6 +155,16 @@ pub struct SiteTask {
     checkpoint_due: bool,
     /// The version of the last checkpoint written or loaded (0: none).
     checkpointed_version: u64,
+    /// The version of the last summary stored or read (0: none; see [`SiteSummary`]).
+    summary_version: u64,
+}
+
+/// How [`SiteTask::spawn`] starts a site.
+enum Start {
+    /// Its map, loaded (boxed: a `SiteMap` is kilobytes on the stack).
+    Loaded(Box<Loaded>),
+    /// Unloaded, publishing its stored summary.
+    Unloaded(SiteSummary),
 }
 
 /// The span a site's task runs in, `site{site}`: every line the task (and the zenoh front end's tasks
@@ -160,8 +181,14 @@ fn session_span(robot_id: &str, session_uuid: &str) -> tracing::Span {
 }
 
 impl SiteTask {
-    /// Rebuilds `site` from `store` (replaying its log), then starts its task. Returns the handle and the
-    /// task's join handle (the task ends on [`SiteHandle::shutdown`] or when every handle is dropped).
+    /// Rebuilds `site` from `store` (its newest checkpoint and the log after it), then starts its task.
+    /// Returns the handle and the task's join handle (the task ends on [`SiteHandle::shutdown`] or when
+    /// every handle is dropped).
+    ///
+    /// With unloading and checkpoints on, a site whose newest checkpoint covers its whole log starts
+    /// unloaded instead (see the module docs): from its stored summary when there is one, without
+    /// reading the checkpoint; else it is loaded and then unloaded at once (no session open), which
+    /// stores the summary for the next start.
     pub async fn spawn(
         site: &str,
         options: LifelongOptions,
@@ -172,59 +199,98 @@ impl SiteTask {
         let span = site_span(site);
         let started = Instant::now();
         let generation = store.generation();
-        let loaded = {
+        let may_unload = task_options.unload_after.is_some() && task_options.checkpoints.enabled;
+        let start = {
             let (site, store, options) = (site.to_owned(), Arc::clone(&store), options.clone());
             let use_checkpoints = task_options.checkpoints.enabled;
+            let span = span.clone();
             tokio::task::spawn_blocking(move || {
-                load(&site, options, store.as_ref(), use_checkpoints)
+                span.in_scope(|| {
+                    if may_unload
+                        && let Some(summary) = SiteSummary::usable_at_start(store.as_ref(), &site)?
+                    {
+                        return Ok(Start::Unloaded(summary));
+                    }
+                    load(&site, options, store.as_ref(), use_checkpoints)
+                        .map(|loaded| Start::Loaded(Box::new(loaded)))
+                })
             })
             .await
             .map_err(SiteError::Worker)??
         };
-        let map = loaded.map;
-        span.in_scope(|| {
-            tracing::info!(
-                version = map.version(),
-                checkpoint = loaded.checkpoint,
-                replayed = loaded.replayed,
-                seconds = started.elapsed().as_secs_f64(),
-                "site log replayed"
-            );
-        });
-        let info = VersionInfo {
-            version: map.version(),
-            counts: map.counts(),
-        };
-        let (versions, versions_rx) = watch::channel(info);
-        let (views, views_rx) = watch::channel(Arc::new(map.view()));
-        let (commands, commands_rx) = mpsc::channel(task_options.queue_depth.max(1));
         let now = tokio::time::Instant::now();
-        let last_heard = map
-            .open_sessions()
-            .into_iter()
-            .map(|(session, _)| (session, now))
-            .collect();
-        let task = Self {
+        let mut task = Self {
             site: site.into(),
-            map: Some(Box::new(map)),
+            map: None,
             unloaded: false,
             unload_after: task_options.unload_after,
             last_request: now,
             options,
             generation,
             store,
-            versions,
-            views,
+            versions: watch::channel(VersionInfo::default()).0,
+            views: watch::channel(Arc::new(SiteView::default())).0,
             metrics,
             session_idle_timeout: task_options.session_idle_timeout,
-            last_heard,
+            last_heard: BTreeMap::new(),
             unflushed: false,
             checkpoints: task_options.checkpoints,
             checkpoint_due: false,
-            checkpointed_version: loaded.checkpoint.unwrap_or(0),
+            checkpointed_version: 0,
+            summary_version: 0,
         };
+        let mut unload_now = false;
+        match start {
+            Start::Unloaded(summary) => {
+                let version = summary.info.version;
+                span.in_scope(|| {
+                    tracing::info!(
+                        version,
+                        seconds = started.elapsed().as_secs_f64(),
+                        "site starts unloaded: its newest checkpoint covers its whole log"
+                    );
+                });
+                task.versions.send_replace(summary.info);
+                task.views.send_replace(Arc::new(summary.unloaded_view()));
+                task.unloaded = true;
+                task.checkpointed_version = version;
+                task.summary_version = version;
+            }
+            Start::Loaded(loaded) => {
+                span.in_scope(|| {
+                    tracing::info!(
+                        version = loaded.map.version(),
+                        checkpoint = loaded.checkpoint,
+                        replayed = loaded.replayed,
+                        seconds = started.elapsed().as_secs_f64(),
+                        read_s = loaded.times.read.as_secs_f64(),
+                        decode_s = loaded.times.decode.as_secs_f64(),
+                        rebuild_s = loaded.times.rebuild.as_secs_f64(),
+                        replay_s = loaded.times.replay.as_secs_f64(),
+                        "site log replayed"
+                    );
+                });
+                unload_now = may_unload
+                    && loaded.checkpoint.is_some()
+                    && loaded.map.open_sessions().is_empty();
+                task.install(*loaded, generation);
+                task.publish();
+            }
+        }
+        let (commands, commands_rx) = mpsc::channel(task_options.queue_depth.max(1));
+        let handle = SiteHandle::new(
+            site,
+            commands,
+            task.versions.subscribe(),
+            task.views.subscribe(),
+        );
+        if unload_now {
+            // A site a checkpoint covers starts unloaded; this one had no summary yet (or a log after
+            // its checkpoint): unloading now stores both.
+            task.unload().instrument(span.clone()).await;
+        }
         let join = tokio::spawn(task.run(commands_rx).instrument(span));
-        Ok((SiteHandle::new(site, commands, versions_rx, views_rx), join))
+        Ok((handle, join))
     }
 
     async fn run(mut self, mut commands: mpsc::Receiver<Command>) {
@@ -446,6 +512,20 @@ impl SiteTask {
             );
             return false;
         }
+        if self.summary_version != version {
+            // Checkpointed while a session was open, or the summary's write failed: without one
+            // the next start loads the site.
+            if let Some(summary) = self.summary() {
+                let (store, site) = (Arc::clone(&self.store), self.site());
+                match tokio::task::spawn_blocking(move || summary.store(store.as_ref(), &site))
+                    .await
+                {
+                    Ok(Ok(())) => self.summary_version = version,
+                    Ok(Err(e)) => tracing::warn!(version, "cannot store the site's summary: {e}"),
+                    Err(e) => tracing::warn!(version, "cannot store the site's summary: {e}"),
+                }
+            }
+        }
         let Some(map) = self.map.take() else {
             return false;
         };
@@ -457,7 +537,7 @@ impl SiteTask {
         tracing::info!(
             version,
             idle_s = self.last_request.elapsed().as_secs_f64(),
-            "site unloaded: idle, its map dropped from memory until the next request"
+            "site unloaded: its map dropped from memory until the next request"
         );
         // Freeing a big map takes a while: beside the task, then the pages go back to the system.
         drop(tokio::task::spawn_blocking(move || {
@@ -480,6 +560,10 @@ impl SiteTask {
             checkpoint = loaded.checkpoint,
             replayed = loaded.replayed,
             seconds = seconds.as_secs_f64(),
+            read_s = loaded.times.read.as_secs_f64(),
+            decode_s = loaded.times.decode.as_secs_f64(),
+            rebuild_s = loaded.times.rebuild.as_secs_f64(),
+            replay_s = loaded.times.replay.as_secs_f64(),
             "unloaded site restored"
         );
         self.install(loaded, generation);
@@ -668,6 +752,17 @@ impl SiteTask {
         Ok(result)
     }
 
+    /// What the site publishes now, as its [`SiteSummary`] (`None` while unloaded).
+    fn summary(&self) -> Option<SiteSummary> {
+        if self.unloaded || self.map.is_none() {
+            return None;
+        }
+        Some(SiteSummary::of(
+            *self.versions.borrow(),
+            &self.views.borrow(),
+        ))
+    }
+
     fn publish(&self) {
         if let Ok(map) = self.map() {
             let info = VersionInfo {
@@ -715,23 +810,36 @@ impl SiteTask {
         };
         let (store, site, size) = (Arc::clone(&self.store), self.site(), bytes.len());
         let retention = options.retention();
+        // Stored only once the checkpoint at its version is durable, and only if a start could use it.
+        let summary = self
+            .summary()
+            .filter(|s| s.info.version == version && s.info.counts.open_sessions == 0);
+        let summarized = summary.is_some();
         // What the kill -9 chaos test times its kills by (`fleet-demo/tests/kill_nine_fleet.rs`).
         tracing::debug!(version, bytes = size, "writing the site's checkpoint");
         let written = tokio::task::spawn_blocking(move || {
             store.put_checkpoint(&site, version, &bytes)?;
-            store.compact(&site, SITE_LOG_KIND, &retention)
+            let compaction = store.compact(&site, SITE_LOG_KIND, &retention)?;
+            let summary = summary.map(|s| s.store(store.as_ref(), &site));
+            Ok::<_, SiteError>((compaction, summary))
         })
         .await;
         match written {
-            Ok(Ok(compaction)) => {
+            Ok(Ok((compaction, summary))) => {
                 self.checkpoint_due = false;
                 self.checkpointed_version = version;
+                match summary {
+                    Some(Ok(())) => self.summary_version = version,
+                    Some(Err(e)) => tracing::warn!(version, "cannot store the site's summary: {e}"),
+                    None => {}
+                }
                 tracing::info!(
                     version,
                     bytes = size,
                     seconds = started.elapsed().as_secs_f64(),
                     log_compacted_through = compaction.log_compacted_through,
                     log_entries_removed = compaction.log_entries_removed,
+                    summarized,
                     "site checkpointed"
                 );
             }
@@ -866,6 +974,22 @@ pub(crate) struct Loaded {
     pub(crate) checkpoint: Option<u64>,
     /// Log entries replayed after it.
     pub(crate) replayed: u64,
+    /// Where the time went.
+    pub(crate) times: LoadTimes,
+}
+
+/// Where a [`load`]'s time went, wall-clock time of each step (logged with every load and restore).
+#[derive(Clone, Copy, Debug, Default)]
+pub(crate) struct LoadTimes {
+    /// Reading the checkpoints' bytes (index, file, CRC), every one tried.
+    pub(crate) read: Duration,
+    /// Decoding them (protobuf, then the checks of `SiteCheckpoint`'s conversion).
+    pub(crate) decode: Duration,
+    /// Building the site map from the decoded state (`SiteMap::restore`: what the checkpoint does not
+    /// store, such as the branch-and-bound precomputation grids).
+    pub(crate) rebuild: Duration,
+    /// Reading the log and replaying the entries after the checkpoint.
+    pub(crate) replay: Duration,
 }
 
 /// Rebuilds a site map from its store: the newest checkpoint that reads back (when `use_checkpoints`)
@@ -878,9 +1002,10 @@ pub(crate) fn load(
     use_checkpoints: bool,
 ) -> Result<Loaded, SiteError> {
     let mut from = None;
+    let mut times = LoadTimes::default();
     if use_checkpoints {
         for index in store.checkpoint_indexes(site)? {
-            match restore_checkpoint(site, options.clone(), store, index) {
+            match restore_checkpoint(site, options.clone(), store, index, &mut times) {
                 Ok(Some(map)) => {
                     from = Some((index, map));
                     break;
@@ -904,11 +1029,14 @@ pub(crate) fn load(
         Some((_, map)) => map,
         None => SiteMap::new(site, options).map_err(SiteError::Map)?,
     };
+    let started = Instant::now();
     let replayed = replay_after(&mut map, store)?;
+    times.replay = started.elapsed();
     Ok(Loaded {
         map,
         checkpoint,
         replayed,
+        times,
     })
 }
 
@@ -918,11 +1046,16 @@ fn restore_checkpoint(
     options: LifelongOptions,
     store: &dyn MapStore,
     index: u64,
+    times: &mut LoadTimes,
 ) -> Result<Option<SiteMap>, SiteError> {
     let corrupt = |reason: String| SiteError::CorruptCheckpoint { index, reason };
-    let Some(bytes) = store.checkpoint(site, index)? else {
+    let started = Instant::now();
+    let bytes = store.checkpoint(site, index);
+    times.read += started.elapsed();
+    let Some(bytes) = bytes? else {
         return Ok(None);
     };
+    let started = Instant::now();
     let message = pb::SiteCheckpoint::decode(bytes.as_slice())
         .map_err(|e| corrupt(format!("it does not decode: {e}")))?;
     if message.format_version != CHECKPOINT_FORMAT_VERSION {
@@ -937,14 +1070,20 @@ fn restore_checkpoint(
             .into(),
         });
     }
-    let checkpoint = SiteCheckpoint::try_from(&message).map_err(|e| corrupt(e.to_string()))?;
+    let checkpoint = SiteCheckpoint::try_from(&message).map_err(|e| corrupt(e.to_string()));
+    drop(message);
+    times.decode += started.elapsed();
+    let checkpoint = checkpoint?;
     if checkpoint.log_index != index {
         return Err(corrupt(format!(
             "it is stored under log index {index} but says it covers {}",
             checkpoint.log_index
         )));
     }
-    SiteMap::restore(site, options, checkpoint).map(Some)
+    let started = Instant::now();
+    let map = SiteMap::restore(site, options, checkpoint);
+    times.rebuild += started.elapsed();
+    map.map(Some)
 }
 
 /// Replays the log entries after `map`'s version (entries at or before it, kept for a fallback or for
@@ -1013,6 +1152,7 @@ fn replay_after(map: &mut SiteMap, store: &dyn MapStore) -> Result<u64, SiteErro
 mod tests {
     use storage::MemStore;
 
+    use super::super::site_summary::{SUMMARY_ID, SUMMARY_KIND};
     use super::*;
 
     async fn spawn(store: &Arc<dyn MapStore>) -> Result<(SiteHandle, JoinHandle<()>), SiteError> {
@@ -1211,6 +1351,124 @@ mod tests {
         ] {
             assert!(text.lines().any(|l| l == line), "{line:?} in\n{text}");
         }
+        site.shutdown().await;
+        task.await.unwrap();
+    }
+
+    // Reference: issue 34 — "one instance holds 500 sites": a site its newest checkpoint covers
+    // starts unloaded and publishes what it published when it stopped; its first request restores it.
+    #[tokio::test(start_paused = true)]
+    async fn a_site_its_checkpoint_covers_starts_unloaded_and_its_first_request_restores_it() {
+        let store: Arc<dyn MapStore> = Arc::new(MemStore::new());
+        let metrics = Arc::new(ServerMetrics::default());
+        let (site, task) = spawn_unloading(&store, &metrics, CheckpointOptions::DEFAULT).await;
+        assert!(site.is_loaded(), "a new site (no checkpoint) loads");
+        site.open_session("r", "a").await.unwrap();
+        site.upload(node_batch("a", 1)).await.unwrap();
+        let closed = site.close_session("r", "a").await.unwrap();
+        let (info, view) = (site.current(), site.view());
+        // Answered after the close's checkpoint was written (the task takes one command at a time).
+        let poses = site.node_poses().await.unwrap();
+        assert_eq!(store.checkpoint_indexes("s").unwrap(), vec![closed]);
+        site.shutdown().await;
+        task.await.unwrap();
+
+        let metrics = Arc::new(ServerMetrics::default());
+        let (site, task) = spawn_unloading(&store, &metrics, CheckpointOptions::DEFAULT).await;
+        assert!(
+            !site.is_loaded(),
+            "the checkpoint at the session's end covers the log"
+        );
+        assert_eq!(site.current(), info, "the same version and counts");
+        let (started, expected) = (site.view(), view.unloaded());
+        assert_eq!(
+            started.sessions, expected.sessions,
+            "the same sessions, no trajectories"
+        );
+        assert_eq!(started.version, expected.version);
+        assert!(started.unloaded && started.history.is_empty());
+        assert_eq!(metrics.site_unloads_and_restores(), (0, 0));
+        let text = metrics.render(std::slice::from_ref(&site));
+        for line in ["evermap_sites_loaded 0", "evermap_sites_unloaded 1"] {
+            assert!(text.lines().any(|l| l == line), "{line:?} in\n{text}");
+        }
+        assert_eq!(site.node_poses().await.unwrap(), poses);
+        assert!(site.is_loaded());
+        assert_eq!(metrics.site_unloads_and_restores(), (0, 1));
+        assert_eq!(site.current(), info);
+        assert_eq!(site.view().sessions, view.sessions, "trajectories back");
+        // A robot's request goes on from the restored version; an open session keeps the site loaded
+        // at the next start.
+        let (_, opened) = site.open_session("r", "b").await.unwrap();
+        assert_eq!(opened, closed + 1);
+        site.shutdown().await;
+        task.await.unwrap();
+        let (site, task) = spawn_unloading(&store, &metrics, CheckpointOptions::DEFAULT).await;
+        assert!(site.is_loaded(), "a session open at the start: loaded");
+        let closed_b = site.close_session("r", "b").await.unwrap();
+        let info = site.current();
+        site.shutdown().await;
+        task.await.unwrap();
+
+        // Without unloading every site loads.
+        let (site, task) = spawn_with(&store, None).await.unwrap();
+        assert!(site.is_loaded());
+        assert_eq!(site.current(), info);
+        site.shutdown().await;
+        task.await.unwrap();
+
+        // No summary (a store from before them): loaded, then unloaded at once, which stores one.
+        store
+            .delete("s", SUMMARY_KIND, &storage::RecordId::from(SUMMARY_ID))
+            .unwrap();
+        let metrics = Arc::new(ServerMetrics::default());
+        let (site, task) = spawn_unloading(&store, &metrics, CheckpointOptions::DEFAULT).await;
+        assert!(!site.is_loaded());
+        assert_eq!(metrics.site_unloads_and_restores(), (1, 0));
+        assert_eq!(site.current(), info);
+        assert_eq!(site.current().version, closed_b);
+        assert!(
+            SiteSummary::usable_at_start(store.as_ref(), "s")
+                .unwrap()
+                .is_some()
+        );
+        site.shutdown().await;
+        task.await.unwrap();
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_site_with_a_log_after_its_checkpoint_is_loaded_checkpointed_and_unloaded_at_the_start()
+     {
+        let store: Arc<dyn MapStore> = Arc::new(MemStore::new());
+        let metrics = Arc::new(ServerMetrics::default());
+        let (site, task) = spawn_with(&store, None).await.unwrap();
+        site.open_session("r", "a").await.unwrap();
+        site.upload(node_batch("a", 1)).await.unwrap();
+        let closed = site.close_session("r", "a").await.unwrap();
+        site.shutdown().await;
+        task.await.unwrap();
+        // Changes made with checkpoints off (one checkpoint: compaction kept the whole log).
+        let (site, task) = spawn_unloading(&store, &metrics, CheckpointOptions::DISABLED).await;
+        site.open_session("r", "b").await.unwrap();
+        let closed_b = site.close_session("r", "b").await.unwrap();
+        assert_eq!(closed_b, closed + 2);
+        site.shutdown().await;
+        task.await.unwrap();
+        assert_eq!(store.checkpoint_indexes("s").unwrap(), vec![closed]);
+
+        let (site, task) = spawn_unloading(&store, &metrics, CheckpointOptions::DEFAULT).await;
+        assert!(!site.is_loaded());
+        assert_eq!(store.checkpoint_indexes("s").unwrap()[0], closed_b);
+        assert_eq!(site.current().version, closed_b);
+        assert_eq!(site.current().counts.sessions, 2);
+        let counts = site.current().counts;
+        site.shutdown().await;
+        task.await.unwrap();
+        // And the next start serves it unloaded from its summary.
+        let (site, task) = spawn_unloading(&store, &metrics, CheckpointOptions::DEFAULT).await;
+        assert!(!site.is_loaded());
+        assert_eq!(site.current().counts, counts);
+        assert_eq!(site.node_poses().await.unwrap().len(), 1);
         site.shutdown().await;
         task.await.unwrap();
     }

@@ -23,11 +23,10 @@ use std::sync::Arc;
 
 use mapping::lifelong::LifelongOptions;
 use proto::{
-    PublishedSubmapState, RestoreError, SessionStartCountsState, SiteCheckpoint, SiteServerState,
-    SiteSessionState,
+    PublishedSubmapState, RestoreError, SiteCheckpoint, SiteServerState, SiteSessionState,
 };
 
-use super::{MapHistory, Session, SessionStartCounts, SiteMap, SubmapVersions};
+use super::{MapHistory, Session, SiteMap, SubmapVersions};
 use crate::site::SiteError;
 use crate::site::map_history::HistoryEntry;
 
@@ -45,7 +44,6 @@ impl SiteMap {
         }
         debug_assert!(self.searched.is_empty(), "searched without a running start");
         let mut checkpoint = SiteCheckpoint::of(&self.map, self.version, self.version);
-        let c = self.session_starts;
         checkpoint.site = SiteServerState {
             sessions: self
                 .sessions
@@ -85,15 +83,7 @@ impl SiteMap {
             dropped_sessions: self.dropped_sessions,
             robot_revoked: self.robot_revoked.clone(),
             base: self.base,
-            session_starts: SessionStartCountsState {
-                priors: c.priors,
-                placed: c.placed,
-                refused: c.refused,
-                retries: c.retries,
-                committed: c.committed,
-                revoked: c.revoked,
-                gave_up: c.gave_up,
-            },
+            session_starts: self.session_starts.into(),
         };
         Some(checkpoint)
     }
@@ -134,7 +124,6 @@ impl SiteMap {
                 "its sessions' trajectories are {trajectories:?}, not 0, 1, 2, ..."
             )));
         }
-        let c = state.session_starts;
         let mut restored = Self {
             site: site.into(),
             map,
@@ -179,15 +168,7 @@ impl SiteMap {
             robot_revoked: state.robot_revoked,
             history: MapHistory::default(),
             base: state.base,
-            session_starts: SessionStartCounts {
-                priors: c.priors,
-                placed: c.placed,
-                refused: c.refused,
-                retries: c.retries,
-                committed: c.committed,
-                revoked: c.revoked,
-                gave_up: c.gave_up,
-            },
+            session_starts: state.session_starts.into(),
             searched: std::collections::BTreeSet::new(),
         };
         for id in restored.submap_versions.keys() {
