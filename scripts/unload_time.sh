@@ -24,43 +24,23 @@ UNLOAD_S=${UNLOAD_S:-5}
 CYCLES=${CYCLES:-5}
 HTTP_PORT=${HTTP_PORT:-18080}
 TOKEN=unload-time-operator
-[ -x "$BIN" ] || { echo "$BIN is missing: cargo build --release --workspace" >&2; exit 1; }
-[ -d "$STORE" ] || { echo "no store at $STORE" >&2; exit 1; }
-
-rm -rf "$OUT" && mkdir -p "$OUT"
-if [ "${IN_PLACE:-0}" = 1 ]; then
-  DATA=$(cd "$STORE" && pwd)
-else
-  cp -r "$STORE" "$OUT/data"
-  DATA=$(cd "$OUT/data" && pwd)
-fi
-printf 'listen = "127.0.0.1:0"\nmetrics_listen = "127.0.0.1:0"\n[storage]\npath = "%s"\n' "$DATA" >"$OUT/list.toml"
-SITES=$("$BIN" site list --config "$OUT/list.toml" | cut -f1)
-[ -n "$SITES" ] || { echo "the store at $STORE holds no site" >&2; exit 1; }
+# shellcheck source=serve_store.sh
+source "$(dirname "$0")/serve_store.sh"
+store_prepare "$STORE" "$OUT"
 {
   printf 'listen = "127.0.0.1:0"\nmetrics_listen = "127.0.0.1:0"\nsite_unload_after_s = %s\n' "$UNLOAD_S"
   printf '[storage]\npath = "%s"\n[http]\nlisten = "127.0.0.1:%s"\noperator_token = "%s"\n' "$DATA" "$HTTP_PORT" "$TOKEN"
 } >"$OUT/serve.toml"
-n=0
-for site in $SITES; do
-  n=$((n + 1))
-  printf '\n[[sites]]\nid = "%s"\nrobots = [{ id = "unload-robot", token = "unload-token-%d" }]\n' "$site" "$n" >>"$OUT/serve.toml"
-done
+store_site_entries unload-robot >>"$OUT/serve.toml"
 
 ASKED=$(head -n "${ASK:-$n}" <<<"$SITES")
 start=$(date +%s.%N)
-NO_COLOR=1 RUST_LOG=${RUST_LOG:-info} "$BIN" serve --config "$OUT/serve.toml" >"$OUT/serve.log" 2>&1 &
-pid=$!
-trap 'kill -TERM $pid 2>/dev/null || true' EXIT
+store_serve "$OUT/serve.toml" "$OUT/serve.log"
 rss_mib() { awk '/^VmRSS/ { printf "%.1f", $2 / 1024 }' "/proc/$pid/status"; }
 get() { curl -sf -H "Authorization: Bearer $TOKEN" "http://127.0.0.1:$HTTP_PORT$1"; }
 # Whether /metrics says every site is unloaded (read whole first: `grep -q` on a pipe may cut curl off).
 all_unloaded() { local m; m=$(get /metrics) || return 1; grep -qx "evermap_sites_unloaded $n" <<<"$m"; }
-for _ in $(seq 1 3000); do
-  grep -q "web console serving" "$OUT/serve.log" && break
-  kill -0 "$pid" 2>/dev/null || { echo "the server exited:" >&2; tail -20 "$OUT/serve.log" >&2; exit 1; }
-  sleep 0.2
-done
+store_wait_for "web console serving"
 echo "$n site(s) served after $(echo "$(date +%s.%N) - $start" | bc) s (the console up): RSS $(rss_mib) MiB, $(get /metrics | grep -x 'evermap_sites_unloaded [0-9]*') at the start"
 for cycle in $(seq 1 "$CYCLES"); do
   for _ in $(seq 1 600); do
@@ -94,6 +74,4 @@ done
 sed 's/\x1b\[[0-9;]*m//g' "$OUT/serve.log" | grep -E "site log replayed|site unloaded|unloaded site restored" | sed 's/.*site=/  site=/'
 metrics=$(get /metrics)
 grep -E "^evermap_site(s_loaded|s_unloaded|_unloads_total|_restore_seconds)" <<<"$metrics"
-kill -TERM "$pid"
-wait "$pid"
-trap - EXIT
+store_stop

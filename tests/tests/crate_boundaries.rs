@@ -13,8 +13,20 @@ use serde_json::Value;
 fn normal_dependencies() -> BTreeMap<String, BTreeSet<String>> {
     let manifest = Path::new(env!("CARGO_MANIFEST_DIR")).join("../Cargo.toml");
     let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".to_owned());
-    let output = Command::new(cargo)
+    // Resolved for this machine only: what a binary built here links, and no download of the packages
+    // other platforms would need (`--offline` finds only what the build fetched).
+    let version = Command::new(&cargo)
+        .arg("-vV")
+        .output()
+        .expect("cargo -vV runs");
+    let version = String::from_utf8_lossy(&version.stdout);
+    let host = version
+        .lines()
+        .find_map(|line| line.strip_prefix("host: "))
+        .expect("cargo -vV names the host");
+    let output = Command::new(&cargo)
         .args(["metadata", "--format-version", "1", "--offline", "--locked"])
+        .args(["--filter-platform", host])
         .arg("--manifest-path")
         .arg(&manifest)
         .output()
