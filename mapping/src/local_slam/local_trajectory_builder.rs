@@ -620,7 +620,7 @@ mod tests {
             without > 0.15,
             "position error without the window {without} m"
         );
-        // A scan that fits near the prediction never searches farther.
+        // Without a slip the scans fit near the prediction and the window has nothing to correct.
         let small = unseen_slip_error(LocalTrajectoryBuilderOptions::default(), 0.0);
         assert!(small < 0.05, "position error {small} m");
     }
