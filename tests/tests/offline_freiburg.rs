@@ -93,7 +93,7 @@ fn aces_offline_run_is_accurate() -> anyhow::Result<()> {
 
 #[test]
 fn intel_offline_run_is_accurate() -> anyhow::Result<()> {
-    // Measured 0.0227 m, 0.314°, precision 0.988, 6157 closures (session 30); 0.0242 m, 0.335°, 0.990 (session 17; session 15: 0.0257 m; session 12: 0.0314 m,
+    // Measured 0.0242 m, 0.335°, precision 0.990 (session 17; session 15: 0.0257 m; session 12: 0.0314 m,
     // 0.984, 6189 closures, 862 retracted; session 11: 0.0313 m, 0.973; session 10: 0.0324 m, 0.911).
     // Cartographer published 0.0229 m, 0.453°.
     // Intel's odometry and scan stamps come in bursts (see ../shared/datasets/README.md).
@@ -167,7 +167,7 @@ fn check_perturbed(name: &str, variant: &str, max_mean_m: f64) -> anyhow::Result
 
 #[test]
 fn csail_with_people_and_carts_in_the_beams_does_not_tear() -> anyhow::Result<()> {
-    // Measured 0.0342 m mean, 0.65 m largest (BENCHMARKS.md, robustness suite, session 30).
+    // Measured 0.0305 m mean, 0.54 m largest (BENCHMARKS.md, robustness suite).
     check_perturbed("mit-csail", "clutter", 0.045)
 }
 
@@ -179,6 +179,6 @@ fn aces_with_drifting_odometry_does_not_tear() -> anyhow::Result<()> {
 
 #[test]
 fn intel_with_wheel_slips_does_not_tear() -> anyhow::Result<()> {
-    // Measured 0.0233 m mean, 0.37 m largest (session 30).
+    // Measured 0.0280 m mean, 0.72 m largest.
     check_perturbed("intel", "slip", 0.04)
 }

@@ -55,10 +55,6 @@ pub struct LocalTrajectoryBuilderOptions {
     /// How much better (paired statistic) the search over every rotation must fit than the best match
     /// near the prediction. Default 6. Why: `docs/TUNING.md#llo-min-recovery-z`.
     pub min_recovery_z: f64,
-    /// Half-width (metres) of the translation window searched, in the trusted angular window, where nothing
-    /// near the prediction fits (best score below `min_recovery_score`); 0 = off. Default 0.5 m.
-    /// Why: `docs/TUNING.md#llo-recovery-linear-window`.
-    pub recovery_linear_window: f64,
     /// Least-squares refinement weights.
     pub least_squares: LeastSquaresScanMatcherOptions,
     /// The least-squares refinement pulls the translation toward the prediction unless the correlative search
@@ -85,7 +81,6 @@ impl Default for LocalTrajectoryBuilderOptions {
             min_deviation_z: 4.0,
             min_recovery_score: 0.35,
             min_recovery_z: 6.0,
-            recovery_linear_window: 0.5,
             least_squares: LeastSquaresScanMatcherOptions::default(),
             max_odometry_target_disagreement: 1f64.to_radians(),
             motion_filter: MotionFilterOptions::default(),
@@ -110,7 +105,6 @@ impl LocalTrajectoryBuilderOptions {
         for (name, value) in [
             ("min_recovery_score", self.min_recovery_score),
             ("min_recovery_z", self.min_recovery_z),
-            ("recovery_linear_window", self.recovery_linear_window),
             ("trusted_angular_window", self.trusted_angular_window),
             ("trusted_window_per_radian", self.trusted_window_per_radian),
             ("min_deviation_z", self.min_deviation_z),
@@ -316,31 +310,10 @@ impl LocalTrajectoryBuilder {
         };
         let best_score = best_alternative.map_or(trusted.1, |((_, s), _)| s.max(trusted.1));
         if f64::from(best_score) < o.min_recovery_score {
-            // Nothing near the prediction fits: the robot may have slipped farther than the base window
-            // reaches, or turned where the odometry did not see it. Search both ways; the better fit wins.
-            let shifted = (o.recovery_linear_window > base.linear_search_window)
-                .then(|| {
-                    RealTimeCorrelativeScanMatcher::new(RealTimeCorrelativeScanMatcherOptions {
-                        linear_search_window: o.recovery_linear_window,
-                        angular_search_window: trusted_window.min(std::f64::consts::PI),
-                        ..base.clone()
-                    })
-                    .match_pose(predicted, points, grid)
-                })
-                .filter(|shifted| {
-                    f64::from(shifted.1) >= o.min_recovery_score
-                        && clearly_better(shifted, o.min_deviation_z)
-                });
+            // Nothing near the prediction fits: search every rotation.
             let recovery = search(predicted, std::f64::consts::PI);
-            let recovery = clearly_better(&recovery, o.min_recovery_z).then_some(recovery);
-            match (shifted, recovery) {
-                // A shifted match is its own refinement target: the prediction's translation is what
-                // it corrects.
-                (Some(shifted), recovery) if recovery.is_none_or(|r| shifted.1 >= r.1) => {
-                    return (shifted.0, shifted.0);
-                }
-                (_, Some(recovery)) => return (recovery.0, *predicted),
-                _ => {}
+            if clearly_better(&recovery, o.min_recovery_z) {
+                return (recovery.0, *predicted);
             }
         }
         // The paired test protects a fit near the prediction from a slightly better one farther away. Where
@@ -572,57 +545,6 @@ mod tests {
         // The defaults take the right rotation too.
         let default = wrong_way_turn_error(LocalTrajectoryBuilderOptions::default());
         assert!(default < 1.5, "heading error {default}°");
-    }
-
-    /// The robot drives +0.2 m along x per scan from (3, 4); at the last scan it slips `slip` metres
-    /// forward and as many to the left and turns 6°, and the odometry sees none of it (the robustness
-    /// suite's slips: 0.2–0.5 m, 3–8°). Returns the position error (metres) at that scan.
-    fn unseen_slip_error(options: LocalTrajectoryBuilderOptions, slip: f64) -> f64 {
-        let room = room();
-        let mut llo = LocalTrajectoryBuilder::new(options);
-        let mut error = 0.0;
-        for k in 0..11 {
-            let time = Timestamp::from_secs_f64(f64::from(k));
-            let forward = 0.2 * f64::from(k);
-            llo.add_odometry(&OdometryReading {
-                time,
-                pose: rigid2(forward, 0.0, 0.0),
-            });
-            let (slipped, turn) = if k == 10 {
-                (slip, if slip > 0.0 { 6f64.to_radians() } else { 0.0 })
-            } else {
-                (0.0, 0.0)
-            };
-            let world_from_tracking = rigid2(3.0 + forward + slipped, 4.0 + slipped, turn);
-            let result = llo
-                .add_range_data(time, &scan(&room, &world_from_tracking))
-                .expect("scan matched");
-            // The local frame starts at the first scan's pose (3, 4), heading 0.
-            let truth = Vector2::new(forward + slipped, slipped);
-            error = (result.local_pose.translation.vector - truth).norm();
-        }
-        error
-    }
-
-    #[test]
-    fn a_slip_beyond_the_base_window_is_found_by_the_recovery_translation_window() {
-        // 0.3 m forward and 0.3 m aside: every wall misses the prediction's ±0.1-m window.
-        let error = unseen_slip_error(LocalTrajectoryBuilderOptions::default(), 0.3);
-        assert!(error < 0.05, "position error {error} m");
-        let without = unseen_slip_error(
-            LocalTrajectoryBuilderOptions {
-                recovery_linear_window: 0.0,
-                ..LocalTrajectoryBuilderOptions::default()
-            },
-            0.3,
-        );
-        assert!(
-            without > 0.15,
-            "position error without the window {without} m"
-        );
-        // Without a slip the scans fit near the prediction and the window has nothing to correct.
-        let small = unseen_slip_error(LocalTrajectoryBuilderOptions::default(), 0.0);
-        assert!(small < 0.05, "position error {small} m");
     }
 
     #[test]

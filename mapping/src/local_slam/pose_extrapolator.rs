@@ -5,9 +5,7 @@
 //! instead (integrated yaw rate). Without either, a constant-velocity model from matched poses is used.
 //! Velocities are only ever estimated over at least `MIN_VELOCITY_WINDOW_S`: recordings deliver
 //! messages in bursts (Intel: thousands of intervals under 5 ms), and a velocity from a 0.2 ms gap is
-//! noise. Nor is a velocity carried ahead more than twice the span it was measured over
-//! (`MIN_VELOCITY_SPAN_PER_HORIZON`): across a gap in the odometry, one scan's error would be multiplied.
-//! Readings that go back in time are dropped and counted.
+//! noise. Readings that go back in time are dropped and counted.
 
 use std::collections::VecDeque;
 
@@ -16,8 +14,6 @@ use crate::sensor::{ImuReading, OdometryReading, Timestamp};
 
 /// Shortest time span a velocity is estimated over, seconds.
 const MIN_VELOCITY_WINDOW_S: f64 = 0.05;
-/// Shortest span a velocity is estimated over, as a share of the time it is carried ahead.
-const MIN_VELOCITY_SPAN_PER_HORIZON: f64 = 0.5;
 /// How long odometry may be held past its last reading before it is considered stale, seconds.
 const MAX_ODOMETRY_HOLD_S: f64 = 0.5;
 /// How much history is kept before the last matched pose, seconds.
@@ -162,27 +158,15 @@ impl PoseExtrapolator {
         Some(angle)
     }
 
-    /// The motion over `dt` seconds at the velocity of the matched poses, measured over at least the last
-    /// `dt / 2` seconds (at least [`MIN_VELOCITY_WINDOW_S`], at most the history kept; from the oldest
-    /// pose kept when the history is shorter).
     fn constant_velocity_motion(&self, dt: f64) -> Rigid2 {
         let Some(&(t1, p1)) = self.poses.back() else {
             return Rigid2::identity();
         };
-        // A velocity is never carried more than twice the span it was measured over: one from the last
-        // 0.05 s carried 0.6 s ahead multiplies one scan's error twelvefold (Intel: a pose matched 11°
-        // off, then a 0.65-s gap in the odometry, predicted a 68° turn that never happened).
-        let window = (MIN_VELOCITY_SPAN_PER_HORIZON * dt).clamp(MIN_VELOCITY_WINDOW_S, HISTORY_S);
         let Some(&(t0, p0)) = self
             .poses
             .iter()
             .rev()
-            .find(|(t, _)| t1.seconds_since(*t) >= window)
-            .or_else(|| {
-                self.poses
-                    .front()
-                    .filter(|(t, _)| t1.seconds_since(*t) >= MIN_VELOCITY_WINDOW_S)
-            })
+            .find(|(t, _)| t1.seconds_since(*t) >= MIN_VELOCITY_WINDOW_S)
         else {
             return Rigid2::identity();
         };
@@ -278,24 +262,6 @@ mod tests {
         e.add_pose(s(0.1002), rigid2(0.11, 0.0, 0.0));
         let p = e.extrapolate(s(0.2002));
         assert!((p.x() - 0.21).abs() < 0.02, "{p:?}");
-    }
-
-    #[test]
-    fn constant_velocity_is_measured_over_the_horizon_it_is_carried() {
-        // Straight at 1 m/s, then one pose matched 10° off; odometry absent. Carried 0.6 s ahead, the
-        // velocity of the last 0.1 s alone would turn the prediction by 60° (70° in all); measured over
-        // the last 0.3 s, by 20°.
-        let mut e = PoseExtrapolator::new();
-        for k in 0..=10 {
-            e.add_pose(s(0.1 * f64::from(k)), rigid2(0.1 * f64::from(k), 0.0, 0.0));
-        }
-        e.add_pose(s(1.1), rigid2(1.1, 0.0, 10f64.to_radians()));
-        let p = e.extrapolate(s(1.7));
-        assert!((p.theta().to_degrees() - 30.0).abs() < 1.0, "{p:?}");
-        assert!((p.x() - 1.7).abs() < 0.1, "{p:?}");
-        // One scan interval ahead the last interval still counts.
-        let near = e.extrapolate(s(1.2));
-        assert!((near.theta().to_degrees() - 20.0).abs() < 1.0, "{near:?}");
     }
 
     #[test]
