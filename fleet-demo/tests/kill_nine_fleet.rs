@@ -359,14 +359,14 @@ struct StoredSession {
 // Reference: issue 16 §1 "Kill -9, anywhere".
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn server_and_agents_killed_anywhere_lose_nothing_and_duplicate_nothing() {
-    chaos("grpc", 4, ROBOTS.len(), 0.5).await;
+    chaos("grpc", 4, ROBOTS.len(), 0.5, false).await;
 }
 
 // Reference: issue 16 §1 "the same for the zenoh path: the link ... drop[s] mid-session; nothing is lost
 // or duplicated".
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn zenoh_links_dropping_with_a_killed_server_lose_nothing_and_duplicate_nothing() {
-    chaos("zenoh", 2, ROBOTS.len(), 0.5).await;
+    chaos("zenoh", 2, ROBOTS.len(), 0.5, false).await;
 }
 
 // Reference: issue 34 item 3 "kill -9 at random points during checkpoint writing and compaction ...
@@ -376,12 +376,19 @@ async fn zenoh_links_dropping_with_a_killed_server_lose_nothing_and_duplicate_no
 // for a checkpoint write.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn server_killed_while_writing_checkpoints_loses_nothing_and_restarts_from_one() {
-    chaos("grpc", 6, 1, 0.8).await;
+    chaos("grpc", 6, 1, 0.8, true).await;
 }
 
 /// `robots`: the first this many of [`ROBOTS`] map the site; `timed_kills`: the share of server kills
-/// timed for a checkpoint write.
-async fn chaos(transport: &str, default_kills: usize, robots: usize, timed_kills: f64) {
+/// timed for a checkpoint write; `require_checkpoint_restart`: at least one restart must start from a
+/// checkpoint (with few kills all may land before the first checkpoint is stored).
+async fn chaos(
+    transport: &str,
+    default_kills: usize,
+    robots: usize,
+    timed_kills: f64,
+    require_checkpoint_restart: bool,
+) {
     let mapping_robots = &ROBOTS[..robots];
     let server_kills: usize = env_or("EVERMAP_CHAOS_SERVER_KILLS", default_kills);
     let seed: u64 = env_or("EVERMAP_CHAOS_SEED", 16);
@@ -537,6 +544,7 @@ async fn chaos(transport: &str, default_kills: usize, robots: usize, timed_kills
     let mut restart_s = Vec::new();
     let mut next_kill = Instant::now() + seconds(rng.random_range(0.3..1.2));
     let (mut targeted_kills, mut kills_in_checkpoint) = (0, 0);
+    let (mut checkpointed_before_kill, mut restart_log_from) = (Vec::new(), Vec::new());
     // Where the log of the server run that the next kill ends begins.
     let mut run_from = 0;
     while agents.iter().any(|a| a.exit.is_none()) {
@@ -572,6 +580,9 @@ async fn chaos(transport: &str, default_kills: usize, robots: usize, timed_kills
             kill(&mut server);
             kills_in_checkpoint += usize::from(inside_checkpoint(&log_from(&server_log, run_from)));
             run_from = std::fs::metadata(&server_log).map_or(0, |m| m.len() as usize);
+            // Whether a checkpoint was stored before this kill: the restart must then start from one.
+            checkpointed_before_kill.push(log_from(&server_log, 0).contains(CHECKPOINT_ENDS[0]));
+            restart_log_from.push(run_from);
             kills += 1;
             tokio::time::sleep(seconds(rng.random_range(0.05..0.5))).await;
             server = start_server();
@@ -621,13 +632,22 @@ async fn chaos(transport: &str, default_kills: usize, robots: usize, timed_kills
         .collect();
     let checkpoints_written = checkpoint_s.len();
     let checkpoint_max_s = checkpoint_s.iter().copied().fold(0.0, f64::max);
-    let restored_from: Vec<u64> = log
-        .lines()
-        .filter(|line| line.contains("site log replayed"))
-        .filter_map(|line| {
-            line.split_whitespace()
-                .find_map(|word| word.strip_prefix("checkpoint="))
-                .and_then(|index| index.parse().ok())
+    // Each restart's start: from a checkpoint (the log after it replayed, or the site left unloaded
+    // because the checkpoint covers its whole log) or from the whole log.
+    let restarted_from_checkpoint: Vec<bool> = restart_log_from
+        .iter()
+        .map(|&from| {
+            let run = log.get(from..).unwrap_or_default();
+            let start = run
+                .lines()
+                .find(|line| {
+                    line.contains("site log replayed") || line.contains("site starts unloaded")
+                })
+                .unwrap_or_default();
+            start.contains("site starts unloaded")
+                || start
+                    .split_whitespace()
+                    .any(|w| w.starts_with("checkpoint="))
         })
         .collect();
     assert!(
@@ -635,11 +655,17 @@ async fn chaos(transport: &str, default_kills: usize, robots: usize, timed_kills
         "a checkpoint failed:\n{}",
         tail(&server_log)
     );
-    assert!(
-        checkpoints_written > 0 && !restored_from.is_empty(),
-        "the server must checkpoint the site and restart from a checkpoint: {checkpoints_written} \
-         written, restarts from {restored_from:?}"
+    assert_eq!(
+        restarted_from_checkpoint, checkpointed_before_kill,
+        "each restart after a stored checkpoint starts from one (and none before the first)"
     );
+    if require_checkpoint_restart {
+        assert!(
+            checkpoints_written > 0 && restarted_from_checkpoint.contains(&true),
+            "the server must checkpoint the site and restart from a checkpoint: \
+             {checkpoints_written} written, restarts from one: {restarted_from_checkpoint:?}"
+        );
+    }
 
     // The live server: no session open, no version lost.
     let _ = stop_watching.send(true);
@@ -893,7 +919,7 @@ async fn chaos(transport: &str, default_kills: usize, robots: usize, timed_kills
     eprintln!(
         "kill -9 chaos ({transport}, seed {seed}): {kills} server kills ({kills_while_streaming} while robots \
          streamed, {targeted_kills} timed for a checkpoint write, {kills_in_checkpoint} inside one), \
-         {checkpoints_written} checkpoints written (at most {checkpoint_max_s:.3} s each), restarts from checkpoints {restored_from:?}, 2 agent kills ({} mid-session), {run_s:.1} s; restarts answered after {restart_s:.2?} s; final \
+         {checkpoints_written} checkpoints written (at most {checkpoint_max_s:.3} s each), restarts from a checkpoint {restarted_from_checkpoint:?}, 2 agent kills ({} mid-session), {run_s:.1} s; restarts answered after {restart_s:.2?} s; final \
          version {}, {} sessions, {} nodes ({:?} per complete session), {} constraints, {} finished \
          submaps, {} trimmed, {} dropped; versions seen {}",
         agents.iter().filter(|a| !a.ended_at_kill).count(),
