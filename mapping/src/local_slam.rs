@@ -10,7 +10,7 @@ mod voxel_filter;
 
 pub use active_submaps::{ActiveSubmaps, SubmapsOptions};
 pub use local_trajectory_builder::{
-    InsertionResult, LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions,
+    CorrelativeBranch, InsertionResult, LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions,
     LocalTrajectoryBuilderOptionsError, MatchingResult, NodeParts, TrajectoryNodeData,
 };
 pub use motion_filter::{MotionFilter, MotionFilterOptions};

@@ -17,7 +17,9 @@ use mapping::global_slam::{
 };
 use mapping::grid::{MapLimits, ProbabilityGrid, RangeDataInserter, RangeDataInserterOptions};
 use mapping::lifelong::{PlacedGrid, RelocalizationOptions, render_submaps_max};
-use mapping::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
+use mapping::local_slam::{
+    CorrelativeBranch, LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions,
+};
 use mapping::pose_graph::{NodeId, OptimizationSummary};
 use mapping::sensor::{OdometryReading, RangeData, RangeStats, SensorEvent, Timestamp};
 use nalgebra::Point2;
@@ -65,10 +67,25 @@ struct ScanAnchor {
     node: Option<NodeId>,
 }
 
+/// How LLO placed one scan, as it happened (before any optimization).
+#[derive(Clone, Copy, Debug)]
+pub struct LloScan {
+    /// Scan time.
+    pub time: Timestamp,
+    /// `local_from_tracking` as LLO matched it.
+    pub local_pose: Rigid2,
+    /// The correlative search that placed it.
+    pub branch: CorrelativeBranch,
+    /// Whether it became a node (inserted into the submaps).
+    pub inserted: bool,
+}
+
 /// What an offline run produced.
 pub struct SlamRun {
     /// The final global pose of every scan that LLO matched, in time order.
     pub scan_poses: Vec<(Timestamp, Rigid2)>,
+    /// How LLO placed each of those scans, in the same order.
+    pub llo_scans: Vec<LloScan>,
     /// Global SLAM state after the final optimization.
     pub global: GlobalSlam,
     /// Each node's full range data in its tracking frame (for rendering the map).
@@ -185,6 +202,7 @@ pub fn run_slam(
 
         let mut llo = LocalTrajectoryBuilder::new(config.local.clone());
         let mut anchors = Vec::new();
+        let mut llo_scans = Vec::new();
         let mut node_range_data = BTreeMap::new();
         let mut range_stats = RangeStats::default();
         let mut scans_done = 0;
@@ -217,6 +235,12 @@ pub fn run_slam(
                         continue;
                     };
                     observer.scan_matched(result.time, &result.local_pose, &map_from_local);
+                    llo_scans.push(LloScan {
+                        time: result.time,
+                        local_pose: result.local_pose,
+                        branch: result.branch,
+                        inserted: result.insertion.is_some(),
+                    });
                     if let Some(insertion) = result.insertion {
                         let id = NodeId {
                             trajectory: 0,
@@ -298,6 +322,7 @@ pub fn run_slam(
             .collect();
         Ok(SlamRun {
             scan_poses,
+            llo_scans,
             global,
             node_range_data,
             range_stats,

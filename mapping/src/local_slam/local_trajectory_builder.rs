@@ -49,12 +49,25 @@ pub struct LocalTrajectoryBuilderOptions {
     /// How much better (paired statistic, see [`paired_z`]) a match outside the trusted window must fit
     /// than the best one inside it to be taken. Default 4.
     pub min_deviation_z: f64,
+    /// Apply the paired test (`min_deviation_z`) where the trusted window's best match scores below
+    /// `min_recovery_score` too. Default false: there a fit of the wider windows of at least
+    /// `min_recovery_score` wins without it. Why: `docs/TUNING.md#llo-min-recovery-score`.
+    pub paired_test_where_trusted_misfits: bool,
     /// Below this best correlative score (mean probability) the search is repeated over every rotation; also
     /// the floor of a fit in the trusted window. Default 0.35. Why: `docs/TUNING.md#llo-min-recovery-score`.
     pub min_recovery_score: f64,
-    /// How much better (paired statistic) the search over every rotation must fit than the best match
-    /// near the prediction. Default 6. Why: `docs/TUNING.md#llo-min-recovery-z`.
+    /// How much better (paired statistic) a recovery search (over every rotation, or the shifted window)
+    /// must fit than the best match near the prediction. Default 6. Why: `docs/TUNING.md#llo-min-recovery-z`.
     pub min_recovery_z: f64,
+    /// Half-width (metres) of a translation window searched, in the trusted angular window, where nothing
+    /// near the prediction fits (best score below `min_recovery_score`); 0 = off. Default 0 (off; 0.5 m
+    /// measured). Why: `docs/TUNING.md#llo-recovery-linear-window`.
+    pub recovery_linear_window: f64,
+    /// Insert a scan placed by a recovery search (over every rotation, or the shifted window) into the
+    /// submaps at once. Default true. False: it steers the next prediction and is held back until the next
+    /// scan fits near that prediction, which confirms it (a wrong recovery is never drawn into the submap
+    /// the next scans match). Why: `docs/TUNING.md#llo-insert-recovered-scans`.
+    pub insert_recovered_scans: bool,
     /// Least-squares refinement weights.
     pub least_squares: LeastSquaresScanMatcherOptions,
     /// The least-squares refinement pulls the translation toward the prediction unless the correlative search
@@ -79,8 +92,11 @@ impl Default for LocalTrajectoryBuilderOptions {
             trusted_angular_window: 10f64.to_radians(),
             trusted_window_per_radian: 0.25,
             min_deviation_z: 4.0,
+            paired_test_where_trusted_misfits: false,
             min_recovery_score: 0.35,
             min_recovery_z: 6.0,
+            recovery_linear_window: 0.0,
+            insert_recovered_scans: true,
             least_squares: LeastSquaresScanMatcherOptions::default(),
             max_odometry_target_disagreement: 1f64.to_radians(),
             motion_filter: MotionFilterOptions::default(),
@@ -105,6 +121,7 @@ impl LocalTrajectoryBuilderOptions {
         for (name, value) in [
             ("min_recovery_score", self.min_recovery_score),
             ("min_recovery_z", self.min_recovery_z),
+            ("recovery_linear_window", self.recovery_linear_window),
             ("trusted_angular_window", self.trusted_angular_window),
             ("trusted_window_per_radian", self.trusted_window_per_radian),
             ("min_deviation_z", self.min_deviation_z),
@@ -200,6 +217,28 @@ impl InsertionResult {
     }
 }
 
+/// Which search of the correlative match placed a scan.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum CorrelativeBranch {
+    /// No correlative search: the first scan, or `use_correlative_scan_matching` off.
+    Prediction,
+    /// The trusted angular window around the prediction.
+    Trusted,
+    /// The wide window around the prediction, or the base window around the constant-velocity one.
+    Alternative,
+    /// The search over every rotation, where nothing near the prediction fitted.
+    EveryRotation,
+    /// The `recovery_linear_window` search, where nothing near the prediction fitted.
+    Shifted,
+}
+
+impl CorrelativeBranch {
+    /// Whether a recovery search (nothing near the prediction fitted) placed the scan.
+    pub fn is_recovery(self) -> bool {
+        matches!(self, Self::EveryRotation | Self::Shifted)
+    }
+}
+
 /// The outcome of one matched scan.
 #[derive(Clone, Debug)]
 pub struct MatchingResult {
@@ -207,6 +246,8 @@ pub struct MatchingResult {
     pub time: Timestamp,
     /// `local_from_tracking`.
     pub local_pose: Rigid2,
+    /// Which search placed it.
+    pub branch: CorrelativeBranch,
     /// Present when the scan passed the motion filter and was inserted.
     pub insertion: Option<InsertionResult>,
 }
@@ -221,6 +262,8 @@ pub struct LocalTrajectoryBuilder {
     least_squares: LeastSquaresScanMatcher,
     last_pose: Option<Rigid2>,
     dropped: usize,
+    /// A scan placed by a recovery search, in the local frame, waiting for the next scan to confirm it.
+    unconfirmed: Option<RangeData>,
 }
 
 impl LocalTrajectoryBuilder {
@@ -234,6 +277,7 @@ impl LocalTrajectoryBuilder {
             options,
             last_pose: None,
             dropped: 0,
+            unconfirmed: None,
         }
     }
 
@@ -257,8 +301,9 @@ impl LocalTrajectoryBuilder {
         self.dropped + self.extrapolator.rejected()
     }
 
-    /// The correlative search: returns the initial pose for least squares and the centre of the search
-    /// it came from (the odometry prediction, or the constant-velocity one when odometry stalled).
+    /// The correlative search: returns the initial pose for least squares, the centre of the search
+    /// it came from (the odometry prediction, or the constant-velocity one when odometry stalled) and the
+    /// search that found it.
     ///
     /// The best match within the trusted window around the prediction is the answer unless a match
     /// elsewhere in the wide window (or around the constant-velocity prediction) fits the scan clearly
@@ -269,7 +314,7 @@ impl LocalTrajectoryBuilder {
         time: Timestamp,
         points: &[Point2<f32>],
         grid: &ProbabilityGrid,
-    ) -> (Rigid2, Rigid2) {
+    ) -> (Rigid2, Rigid2, CorrelativeBranch) {
         let o = &self.options;
         let base = &o.real_time_correlative;
         let claimed_rotation = self.last_pose.map_or(0.0, |last| {
@@ -310,23 +355,48 @@ impl LocalTrajectoryBuilder {
         };
         let best_score = best_alternative.map_or(trusted.1, |((_, s), _)| s.max(trusted.1));
         if f64::from(best_score) < o.min_recovery_score {
-            // Nothing near the prediction fits: search every rotation.
+            // Nothing near the prediction fits: the robot may have slipped farther than the base window
+            // reaches, or turned where the odometry did not see it. Search both ways; the better fit wins.
+            let shifted = (o.recovery_linear_window > base.linear_search_window)
+                .then(|| {
+                    RealTimeCorrelativeScanMatcher::new(RealTimeCorrelativeScanMatcherOptions {
+                        linear_search_window: o.recovery_linear_window,
+                        angular_search_window: trusted_window.min(std::f64::consts::PI),
+                        ..base.clone()
+                    })
+                    .match_pose(predicted, points, grid)
+                })
+                .filter(|shifted| {
+                    f64::from(shifted.1) >= o.min_recovery_score
+                        && clearly_better(shifted, o.min_recovery_z)
+                });
             let recovery = search(predicted, std::f64::consts::PI);
-            if clearly_better(&recovery, o.min_recovery_z) {
-                return (recovery.0, *predicted);
+            let recovery = clearly_better(&recovery, o.min_recovery_z).then_some(recovery);
+            match (shifted, recovery) {
+                // A shifted match is its own refinement target: the prediction's translation is what
+                // it corrects.
+                (Some(shifted), recovery) if recovery.is_none_or(|r| shifted.1 >= r.1) => {
+                    return (shifted.0, shifted.0, CorrelativeBranch::Shifted);
+                }
+                (_, Some(recovery)) => {
+                    return (recovery.0, *predicted, CorrelativeBranch::EveryRotation);
+                }
+                _ => {}
             }
         }
-        // The paired test protects a fit near the prediction from a slightly better one farther away. Where
-        // the trusted window found no fit at all, there is nothing to protect: a fit farther away wins.
-        let trusted_fits = f64::from(trusted.1) >= o.min_recovery_score;
+        // The paired test protects a fit near the prediction from a slightly better one farther away.
+        // Where the trusted window found no fit at all, a fit farther away wins without it unless
+        // `paired_test_where_trusted_misfits`.
+        let misfit_wins =
+            !o.paired_test_where_trusted_misfits && f64::from(trusted.1) < o.min_recovery_score;
         match best_alternative {
             Some((alternative, center))
-                if (!trusted_fits && f64::from(alternative.1) >= o.min_recovery_score)
+                if (misfit_wins && f64::from(alternative.1) >= o.min_recovery_score)
                     || clearly_better(&alternative, o.min_deviation_z) =>
             {
-                (alternative.0, center)
+                (alternative.0, center, CorrelativeBranch::Alternative)
             }
-            _ => (trusted.0, *predicted),
+            _ => (trusted.0, *predicted, CorrelativeBranch::Trusted),
         }
     }
 
@@ -345,9 +415,9 @@ impl LocalTrajectoryBuilder {
         let predicted = self.extrapolator.extrapolate(time);
         let filtered =
             adaptive_voxel_filter(&range_data.returns, &self.options.adaptive_voxel_filter);
-        let pose = match self.active.matching_submap() {
+        let (pose, branch) = match self.active.matching_submap() {
             Some(submap) => {
-                let (initial, center) = if self.options.use_correlative_scan_matching {
+                let (initial, center, branch) = if self.options.use_correlative_scan_matching {
                     let max_range = self.options.correlative_max_range;
                     let near: Vec<Point2<f32>>;
                     let correlative_points = if max_range > 0.0 {
@@ -367,7 +437,7 @@ impl LocalTrajectoryBuilder {
                     };
                     self.correlative_match(&predicted, time, correlative_points, &submap.grid)
                 } else {
-                    (predicted, predicted)
+                    (predicted, predicted, CorrelativeBranch::Prediction)
                 };
                 // Like Cartographer, the refinement is pulled toward the predicted translation (the
                 // centre of the correlative search): where the scan cannot see the motion (along a
@@ -385,23 +455,45 @@ impl LocalTrajectoryBuilder {
                         .match_pose(&target, &initial, &filtered, &submap.grid);
                 let finite = refined.translation.vector.iter().all(|v| v.is_finite())
                     && refined.theta().is_finite();
-                if finite { refined } else { initial }
+                (if finite { refined } else { initial }, branch)
             }
-            None => predicted,
+            None => (predicted, CorrelativeBranch::Prediction),
         };
         self.extrapolator.add_pose(time, pose);
         self.last_pose = Some(pose);
-        if self.motion_filter.is_similar(time, &pose) {
+        // A recovered pose steers the next prediction but waits for the next scan to fit near that
+        // prediction before it is drawn into the submaps: a wrong recovery must not become part of the
+        // map the next scans match. Another recovery replaces it; a confirming scan inserts both.
+        if branch.is_recovery() && !self.options.insert_recovered_scans {
+            self.unconfirmed = Some(range_data.transformed(&pose));
             return Some(MatchingResult {
                 time,
                 local_pose: pose,
+                branch,
                 insertion: None,
             });
         }
-        let (inserted, finished) = self.active.insert(&range_data.transformed(&pose));
+        let confirmed = self.unconfirmed.take();
+        if confirmed.is_none() && self.motion_filter.is_similar(time, &pose) {
+            return Some(MatchingResult {
+                time,
+                local_pose: pose,
+                branch,
+                insertion: None,
+            });
+        }
+        let mut finished = Vec::new();
+        if let Some(confirmed) = confirmed {
+            // Not a node of its own: its points are in the submaps, and this scan's node follows.
+            finished = self.active.insert(&confirmed).1;
+            self.motion_filter.accept(time, &pose);
+        }
+        let (inserted, finished_now) = self.active.insert(&range_data.transformed(&pose));
+        finished.extend(finished_now);
         Some(MatchingResult {
             time,
             local_pose: pose,
+            branch,
             insertion: Some(InsertionResult {
                 node: TrajectoryNodeData {
                     time,
@@ -536,15 +628,119 @@ mod tests {
         // Where the trusted window fits (its floor lowered to 0), the paired test decides, and fails.
         let trusted_always_fits = wrong_way_turn_error(LocalTrajectoryBuilderOptions {
             min_recovery_score: 0.0,
-            ..unpassable
+            ..unpassable.clone()
         });
         assert!(
             trusted_always_fits > 10.0,
             "heading error {trusted_always_fits}°"
         );
-        // The defaults take the right rotation too.
+        // Asked to, the paired test decides there too, and fails.
+        let paired_everywhere = wrong_way_turn_error(LocalTrajectoryBuilderOptions {
+            paired_test_where_trusted_misfits: true,
+            min_recovery_z: 1e9,
+            ..unpassable
+        });
+        assert!(
+            paired_everywhere > 10.0,
+            "heading error {paired_everywhere}°"
+        );
+        // The defaults take the right rotation, and so does the paired test where it can pass.
         let default = wrong_way_turn_error(LocalTrajectoryBuilderOptions::default());
         assert!(default < 1.5, "heading error {default}°");
+        let passable = wrong_way_turn_error(LocalTrajectoryBuilderOptions {
+            paired_test_where_trusted_misfits: true,
+            ..LocalTrajectoryBuilderOptions::default()
+        });
+        assert!(passable < 1.5, "heading error {passable}°");
+    }
+
+    /// The robot drives +0.2 m along x per scan from (3, 4); at the last scan it slips `slip` metres
+    /// forward and as many to the left and turns 6°, and the odometry sees none of it (the robustness
+    /// suite's slips: 0.2–0.5 m, 3–8°). Returns the position error (metres) at that scan.
+    fn unseen_slip_error(options: LocalTrajectoryBuilderOptions, slip: f64) -> f64 {
+        unseen_slip(options, slip, 11)[10].0
+    }
+
+    /// [`unseen_slip_error`]'s run over `scans` scans (the slip stays, the odometry never sees it): each
+    /// scan's position error (metres), the search that placed it and whether it was inserted.
+    fn unseen_slip(
+        options: LocalTrajectoryBuilderOptions,
+        slip: f64,
+        scans: u32,
+    ) -> Vec<(f64, CorrelativeBranch, bool)> {
+        let room = room();
+        let mut llo = LocalTrajectoryBuilder::new(options);
+        let mut results = Vec::new();
+        for k in 0..scans {
+            let time = Timestamp::from_secs_f64(f64::from(k));
+            let forward = 0.2 * f64::from(k);
+            llo.add_odometry(&OdometryReading {
+                time,
+                pose: rigid2(forward, 0.0, 0.0),
+            });
+            let (slipped, turn) = if k >= 10 {
+                (slip, if slip > 0.0 { 6f64.to_radians() } else { 0.0 })
+            } else {
+                (0.0, 0.0)
+            };
+            let world_from_tracking = rigid2(3.0 + forward + slipped, 4.0 + slipped, turn);
+            let result = llo
+                .add_range_data(time, &scan(&room, &world_from_tracking))
+                .expect("scan matched");
+            // The local frame starts at the first scan's pose (3, 4), heading 0.
+            let truth = Vector2::new(forward + slipped, slipped);
+            let error = (result.local_pose.translation.vector - truth).norm();
+            results.push((error, result.branch, result.insertion.is_some()));
+        }
+        results
+    }
+
+    /// The shifted search and held-back recovered scans, as measured (both off by default).
+    fn shifted_search() -> LocalTrajectoryBuilderOptions {
+        LocalTrajectoryBuilderOptions {
+            recovery_linear_window: 0.5,
+            insert_recovered_scans: false,
+            ..LocalTrajectoryBuilderOptions::default()
+        }
+    }
+
+    #[test]
+    fn a_slip_beyond_the_base_window_is_found_by_the_recovery_translation_window() {
+        // 0.3 m forward and 0.3 m aside: every wall misses the prediction's ±0.1-m window.
+        let error = unseen_slip_error(shifted_search(), 0.3);
+        assert!(error < 0.05, "position error {error} m");
+        let without = unseen_slip_error(LocalTrajectoryBuilderOptions::default(), 0.3);
+        assert!(
+            without > 0.15,
+            "position error without the window {without} m"
+        );
+        // A scan that fits near the prediction never searches farther.
+        let small = unseen_slip_error(shifted_search(), 0.0);
+        assert!(small < 0.05, "position error {small} m");
+    }
+
+    #[test]
+    fn a_recovered_scan_is_inserted_once_the_next_scan_confirms_it() {
+        let run = unseen_slip(shifted_search(), 0.3, 12);
+        let (error, branch, inserted) = run[10];
+        assert_eq!(branch, CorrelativeBranch::Shifted);
+        assert!(!inserted, "held back until confirmed");
+        assert!(error < 0.05, "position error {error} m");
+        // The next scan fits near the prediction made from it: both go into the submaps.
+        let (error, branch, inserted) = run[11];
+        assert_eq!(branch, CorrelativeBranch::Trusted);
+        assert!(inserted, "confirmed");
+        assert!(error < 0.05, "position error {error} m");
+        // Inserted at once when asked.
+        let at_once = unseen_slip(
+            LocalTrajectoryBuilderOptions {
+                insert_recovered_scans: true,
+                ..shifted_search()
+            },
+            0.3,
+            11,
+        );
+        assert!(at_once[10].2);
     }
 
     #[test]

@@ -44,6 +44,11 @@ impl MotionFilter {
         }
     }
 
+    /// Makes `pose` at `time` the last accepted one (a scan inserted whatever the filter says).
+    pub fn accept(&mut self, time: Timestamp, pose: &Rigid2) {
+        self.last = Some((time, *pose));
+    }
+
     /// Whether `pose` at `time` is too close to the last accepted one; if not, it becomes the last one.
     pub fn is_similar(&mut self, time: Timestamp, pose: &Rigid2) -> bool {
         if let Some((t, p)) = &self.last {

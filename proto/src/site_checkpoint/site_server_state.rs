@@ -43,27 +43,30 @@ pub struct PublishedSubmapState {
     pub pose: Rigid2,
 }
 
-/// The session-start decisions a site counted (the server's `SessionStartCounts`).
+/// The decisions of a site's session starts (`mapping::lifelong::SessionStart`, every session but the
+/// first) since the site began, counted as the site acts on them; kept in its checkpoint.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct SessionStartCountsState {
-    /// Sessions that came with their robot's placement.
+pub struct SessionStartCounts {
+    /// Sessions that came with their robot's placement (a `SessionStartPrior`), put on probation (or
+    /// committed at once when no match is asked for).
     pub priors: u64,
-    /// Server searches that placed their session.
+    /// Whole-map searches by the server that placed their session, on probation
+    /// (`SessionStartEvent::Placed`).
     pub placed: u64,
-    /// Server searches that did not.
+    /// Whole-map searches by the server that did not place their session (`SessionStartEvent::Refused`).
     pub refused: u64,
-    /// Server searches after a session's first.
+    /// Whole-map searches by the server after a session's first one (placed or refused).
     pub retries: u64,
-    /// Placements committed.
+    /// Placements committed (`SessionStartEvent::Committed`), a robot's prior or the server's own.
     pub committed: u64,
-    /// Placements revoked.
+    /// Placements revoked (`SessionStartEvent::Revoked`).
     pub revoked: u64,
-    /// Sessions that stopped searching unplaced.
+    /// Sessions that stopped searching unplaced (`SessionStartEvent::GaveUp`).
     pub gave_up: u64,
 }
 
-impl From<SessionStartCountsState> for pb::SessionStartCountsState {
-    fn from(c: SessionStartCountsState) -> Self {
+impl From<SessionStartCounts> for pb::SessionStartCountsState {
+    fn from(c: SessionStartCounts) -> Self {
         Self {
             priors: c.priors,
             placed: c.placed,
@@ -76,7 +79,7 @@ impl From<SessionStartCountsState> for pb::SessionStartCountsState {
     }
 }
 
-impl From<&pb::SessionStartCountsState> for SessionStartCountsState {
+impl From<&pb::SessionStartCountsState> for SessionStartCounts {
     fn from(c: &pb::SessionStartCountsState) -> Self {
         Self {
             priors: c.priors,
@@ -108,7 +111,7 @@ pub struct SiteServerState {
     /// The session that started the map.
     pub base: Option<u32>,
     /// What the session starts decided.
-    pub session_starts: SessionStartCountsState,
+    pub session_starts: SessionStartCounts,
 }
 
 pub(super) fn site_to_pb(s: &SiteServerState) -> pb::SiteServerState {

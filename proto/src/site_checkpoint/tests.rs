@@ -154,7 +154,7 @@ fn the_servers_part_of_a_checkpoint_round_trips_bit_for_bit() {
         dropped_sessions: 2,
         robot_revoked: [3, 5].into_iter().collect(),
         base: Some(0),
-        session_starts: SessionStartCountsState {
+        session_starts: SessionStartCounts {
             priors: 1,
             placed: 2,
             refused: 3,

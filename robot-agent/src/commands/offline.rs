@@ -2,6 +2,7 @@
 //! ROS 2 robot over zenoh (rmw_zenoh's keys, no ROS install) mapped as it drives, its map and pose
 //! published back to ROS 2, until no scan has come for `--until-idle-s` seconds: the same outputs.
 
+use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -9,12 +10,12 @@ use std::time::Instant;
 use anyhow::Context as _;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use mapping::geometry::Rigid2;
+use mapping::geometry::{Rigid2, Rigid2Ext as _};
 use mapping::global_slam::{GlobalSlam, LoopClosureCheck, loop_closure_precision};
 use mapping::io::relations::Relation;
 use mapping::sensor::Timestamp;
 use robot_agent::line_chart::{LineChart, Series};
-use robot_agent::offline_slam::{SlamConfig, render_map, run_offline, run_slam};
+use robot_agent::offline_slam::{SlamConfig, SlamRun, render_map, run_offline, run_slam};
 use robot_agent::ros2_publisher::{Ros2Publisher, Ros2SlamPublisher};
 use robot_agent::{map_image, process_stats, source};
 use serde_json::json;
@@ -152,6 +153,7 @@ pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
     mapping::io::tum::write_tum(std::io::BufWriter::new(tum), &run.scan_poses)
         .with_context(|| format!("cannot write {}", tum_path.display()))?;
 
+    write_llo_scans(&args.out.join("llo_scans.csv"), &run)?;
     let map = render_map(&run, config.local.submaps.resolution);
     let (w, h, pixels) = map_image::grid_to_gray(&map);
     map_image::write_gray_png(&args.out.join("map.png"), w, h, &pixels)?;
@@ -189,6 +191,7 @@ pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
         "input": input,
         "scans": run.scans,
         "scans_dropped": run.scans_dropped,
+        "llo_scans_by_branch": llo_branch_counts(&run),
         "data_duration_s": run.data_duration_s,
         "wall_time_s": wall_time_s,
         "read_time_s": read_time_s,
@@ -310,6 +313,36 @@ fn map_live(
 struct NoopObserver;
 
 impl robot_agent::offline_slam::SlamObserver for NoopObserver {}
+
+/// Writes `llo_scans.csv`: how LLO placed each scan as it happened, `t_s` from the first scan, the
+/// correlative search that placed it, whether it became a node, and its local pose (m, m, degrees).
+fn write_llo_scans(path: &Path, run: &SlamRun) -> anyhow::Result<()> {
+    let mut csv = String::from("t_s,branch,inserted,x_m,y_m,theta_deg\n");
+    let start = run.llo_scans.first().map(|s| s.time);
+    for scan in &run.llo_scans {
+        let t = start.map_or(0.0, |start| scan.time.seconds_since(start));
+        let p = &scan.local_pose;
+        let _ = writeln!(
+            csv,
+            "{t:.3},{:?},{},{:.4},{:.4},{:.3}",
+            scan.branch,
+            u8::from(scan.inserted),
+            p.x(),
+            p.y(),
+            p.theta().to_degrees()
+        );
+    }
+    std::fs::write(path, csv).with_context(|| format!("cannot write {}", path.display()))
+}
+
+/// How many scans each correlative search placed (`llo_scans_by_branch` in `report.json`).
+fn llo_branch_counts(run: &SlamRun) -> BTreeMap<String, usize> {
+    let mut counts = BTreeMap::new();
+    for scan in &run.llo_scans {
+        *counts.entry(format!("{:?}", scan.branch)).or_default() += 1;
+    }
+    counts
+}
 
 /// Writes `relations.csv` (every relation's error, by time) and `relations_error.png` (translational error
 /// against the time of the relation's first stamp: where the trajectory tears).

@@ -28,6 +28,7 @@ use mapping::lifelong::{
     StartSearch,
 };
 use mapping::pose_graph::{NodeId, SubmapId};
+pub use proto::SessionStartCounts;
 use proto::{MapDelta, NodeAdded, SubmapSnapshot, UploadBatch, UploadItem};
 
 use super::map_history::{HistoryEntry, MapHistory};
@@ -110,56 +111,6 @@ pub struct MapCounts {
     pub session_starts: SessionStartCounts,
     /// Sessions opened and not ended yet.
     pub open_sessions: u64,
-}
-
-/// The decisions of the site's session starts ([`SessionStart`], every session but the first) since
-/// the site began, counted as the site acts on them.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct SessionStartCounts {
-    /// Sessions that came with their robot's placement (a `SessionStartPrior`), put on probation (or
-    /// committed at once when no match is asked for).
-    pub priors: u64,
-    /// Whole-map searches by the server that placed their session, on probation
-    /// (`SessionStartEvent::Placed`).
-    pub placed: u64,
-    /// Whole-map searches by the server that did not place their session (`SessionStartEvent::Refused`).
-    pub refused: u64,
-    /// Whole-map searches by the server after a session's first one (placed or refused).
-    pub retries: u64,
-    /// Placements committed (`SessionStartEvent::Committed`), a robot's prior or the server's own.
-    pub committed: u64,
-    /// Placements revoked (`SessionStartEvent::Revoked`).
-    pub revoked: u64,
-    /// Sessions that stopped searching unplaced (`SessionStartEvent::GaveUp`).
-    pub gave_up: u64,
-}
-
-impl From<SessionStartCounts> for proto::SessionStartCountsState {
-    fn from(c: SessionStartCounts) -> Self {
-        Self {
-            priors: c.priors,
-            placed: c.placed,
-            refused: c.refused,
-            retries: c.retries,
-            committed: c.committed,
-            revoked: c.revoked,
-            gave_up: c.gave_up,
-        }
-    }
-}
-
-impl From<proto::SessionStartCountsState> for SessionStartCounts {
-    fn from(c: proto::SessionStartCountsState) -> Self {
-        Self {
-            priors: c.priors,
-            placed: c.placed,
-            refused: c.refused,
-            retries: c.retries,
-            committed: c.committed,
-            revoked: c.revoked,
-            gave_up: c.gave_up,
-        }
-    }
 }
 
 #[derive(Clone, Debug)]

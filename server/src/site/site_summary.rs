@@ -106,7 +106,7 @@ impl SiteSummary {
                 loop_closures_outvoted: c.loop_closures_outvoted,
                 loop_closures_beyond_drift: c.loop_closures_beyond_drift,
                 loop_closures_retracted: c.loop_closures_retracted,
-                session_starts: Some(proto::SessionStartCountsState::from(c.session_starts).into()),
+                session_starts: Some(c.session_starts.into()),
                 open_sessions: c.open_sessions,
             }),
             sessions: self.sessions.iter().map(session_to_pb).collect(),
@@ -144,7 +144,7 @@ impl SiteSummary {
             loop_closures_outvoted: c.loop_closures_outvoted,
             loop_closures_beyond_drift: c.loop_closures_beyond_drift,
             loop_closures_retracted: c.loop_closures_retracted,
-            session_starts: proto::SessionStartCountsState::from(session_starts).into(),
+            session_starts: session_starts.into(),
             open_sessions: c.open_sessions,
         };
         let sessions = message

@@ -83,7 +83,7 @@ impl SiteMap {
             dropped_sessions: self.dropped_sessions,
             robot_revoked: self.robot_revoked.clone(),
             base: self.base,
-            session_starts: self.session_starts.into(),
+            session_starts: self.session_starts,
         };
         Some(checkpoint)
     }
@@ -168,7 +168,7 @@ impl SiteMap {
             robot_revoked: state.robot_revoked,
             history: MapHistory::default(),
             base: state.base,
-            session_starts: state.session_starts.into(),
+            session_starts: state.session_starts,
             searched: std::collections::BTreeSet::new(),
         };
         for id in restored.submap_versions.keys() {
