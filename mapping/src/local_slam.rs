@@ -14,6 +14,6 @@ pub use local_trajectory_builder::{
     LocalTrajectoryBuilderOptionsError, MatchingResult, NodeParts, TrajectoryNodeData,
 };
 pub use motion_filter::{MotionFilter, MotionFilterOptions};
-pub use pose_extrapolator::PoseExtrapolator;
+pub use pose_extrapolator::{PoseExtrapolator, PoseExtrapolatorOptions};
 pub use submap::{Submap, SubmapRef};
 pub use voxel_filter::{AdaptiveVoxelFilterOptions, adaptive_voxel_filter, voxel_filter};

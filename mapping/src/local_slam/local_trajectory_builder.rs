@@ -12,7 +12,7 @@ use serde::{Deserialize, Serialize};
 
 use super::{
     ActiveSubmaps, AdaptiveVoxelFilterOptions, MotionFilter, MotionFilterOptions, PoseExtrapolator,
-    Submap, SubmapRef, SubmapsOptions, adaptive_voxel_filter,
+    PoseExtrapolatorOptions, Submap, SubmapRef, SubmapsOptions, adaptive_voxel_filter,
 };
 use crate::geometry::{Rigid2, Rigid2Ext as _, normalize_angle};
 use crate::grid::ProbabilityGrid;
@@ -74,6 +74,8 @@ pub struct LocalTrajectoryBuilderOptions {
     /// turned the pose more than this (radians) away from it: 0 = always the correlative result, π = always
     /// the prediction. Default 1°. Why: `docs/TUNING.md#llo-max-odometry-target-disagreement`.
     pub max_odometry_target_disagreement: f64,
+    /// How the next scan's pose is predicted.
+    pub pose_extrapolator: PoseExtrapolatorOptions,
     /// When a scan becomes a node.
     pub motion_filter: MotionFilterOptions,
     /// Submap size and resolution.
@@ -99,6 +101,7 @@ impl Default for LocalTrajectoryBuilderOptions {
             insert_recovered_scans: true,
             least_squares: LeastSquaresScanMatcherOptions::default(),
             max_odometry_target_disagreement: 1f64.to_radians(),
+            pose_extrapolator: PoseExtrapolatorOptions::default(),
             motion_filter: MotionFilterOptions::default(),
             submaps: SubmapsOptions::default(),
         }
@@ -125,6 +128,10 @@ impl LocalTrajectoryBuilderOptions {
             ("trusted_angular_window", self.trusted_angular_window),
             ("trusted_window_per_radian", self.trusted_window_per_radian),
             ("min_deviation_z", self.min_deviation_z),
+            (
+                "pose_extrapolator.min_velocity_span_per_horizon",
+                self.pose_extrapolator.min_velocity_span_per_horizon,
+            ),
         ] {
             if !(value.is_finite() && value >= 0.0) {
                 return Err(LocalTrajectoryBuilderOptionsError(format!(
@@ -270,7 +277,7 @@ impl LocalTrajectoryBuilder {
     /// A builder with no submaps; the first scan defines the local frame's origin.
     pub fn new(options: LocalTrajectoryBuilderOptions) -> Self {
         Self {
-            extrapolator: PoseExtrapolator::new(),
+            extrapolator: PoseExtrapolator::with_options(options.pose_extrapolator.clone()),
             active: ActiveSubmaps::new(options.submaps.clone()),
             motion_filter: MotionFilter::new(options.motion_filter.clone()),
             least_squares: LeastSquaresScanMatcher::new(options.least_squares.clone()),

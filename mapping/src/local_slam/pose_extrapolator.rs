@@ -9,6 +9,8 @@
 
 use std::collections::VecDeque;
 
+use serde::{Deserialize, Serialize};
+
 use crate::geometry::{Rigid2, Rigid2Ext as _, normalize_angle, rigid2};
 use crate::sensor::{ImuReading, OdometryReading, Timestamp};
 
@@ -19,9 +21,21 @@ const MAX_ODOMETRY_HOLD_S: f64 = 0.5;
 /// How much history is kept before the last matched pose, seconds.
 const HISTORY_S: f64 = 2.0;
 
+/// How the extrapolator predicts.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct PoseExtrapolatorOptions {
+    /// Shortest span a constant velocity is measured over, as a share of the time it is carried ahead
+    /// (at least `MIN_VELOCITY_WINDOW_S`); 0 = only that floor. Default 0 (0.5 measured: across a gap in
+    /// the odometry, one scan's error is otherwise multiplied). Why:
+    /// `docs/TUNING.md#llo-min-velocity-span-per-horizon`.
+    pub min_velocity_span_per_horizon: f64,
+}
+
 /// Predicts poses from matched poses, odometry and IMU.
 #[derive(Clone, Debug, Default)]
 pub struct PoseExtrapolator {
+    options: PoseExtrapolatorOptions,
     poses: VecDeque<(Timestamp, Rigid2)>,
     odometry: VecDeque<OdometryReading>,
     imu: VecDeque<ImuReading>,
@@ -40,9 +54,17 @@ fn interpolate(a: &OdometryReading, b: &OdometryReading, t: Timestamp) -> Rigid2
 }
 
 impl PoseExtrapolator {
-    /// An extrapolator with no data.
+    /// An extrapolator with no data and the default options.
     pub fn new() -> Self {
         Self::default()
+    }
+
+    /// An extrapolator with no data.
+    pub fn with_options(options: PoseExtrapolatorOptions) -> Self {
+        Self {
+            options,
+            ..Self::default()
+        }
     }
 
     /// Readings and poses refused because their time went backwards or they were not finite.
@@ -162,11 +184,21 @@ impl PoseExtrapolator {
         let Some(&(t1, p1)) = self.poses.back() else {
             return Rigid2::identity();
         };
+        // With `min_velocity_span_per_horizon`, a velocity is not carried far beyond the span it was
+        // measured over (Intel: a pose matched 11° off, then a 0.65-s gap in the odometry; the velocity
+        // of the last 0.08 s predicted a 68° turn that never happened).
+        let window = (self.options.min_velocity_span_per_horizon * dt)
+            .clamp(MIN_VELOCITY_WINDOW_S, HISTORY_S.max(MIN_VELOCITY_WINDOW_S));
         let Some(&(t0, p0)) = self
             .poses
             .iter()
             .rev()
-            .find(|(t, _)| t1.seconds_since(*t) >= MIN_VELOCITY_WINDOW_S)
+            .find(|(t, _)| t1.seconds_since(*t) >= window)
+            .or_else(|| {
+                self.poses
+                    .front()
+                    .filter(|(t, _)| t1.seconds_since(*t) >= MIN_VELOCITY_WINDOW_S)
+            })
         else {
             return Rigid2::identity();
         };
@@ -262,6 +294,33 @@ mod tests {
         e.add_pose(s(0.1002), rigid2(0.11, 0.0, 0.0));
         let p = e.extrapolate(s(0.2002));
         assert!((p.x() - 0.21).abs() < 0.02, "{p:?}");
+    }
+
+    #[test]
+    fn constant_velocity_is_measured_over_the_horizon_it_is_carried_when_asked() {
+        // Straight at 1 m/s, then one pose matched 10° off; odometry absent. Carried 0.6 s ahead, the
+        // velocity of the last 0.1 s alone turns the prediction by 60° (70° in all); measured over the
+        // last 0.3 s, by 20°.
+        let mut e = PoseExtrapolator::with_options(PoseExtrapolatorOptions {
+            min_velocity_span_per_horizon: 0.5,
+        });
+        let mut plain = PoseExtrapolator::new();
+        for k in 0..=10 {
+            let pose = rigid2(0.1 * f64::from(k), 0.0, 0.0);
+            e.add_pose(s(0.1 * f64::from(k)), pose);
+            plain.add_pose(s(0.1 * f64::from(k)), pose);
+        }
+        e.add_pose(s(1.1), rigid2(1.1, 0.0, 10f64.to_radians()));
+        plain.add_pose(s(1.1), rigid2(1.1, 0.0, 10f64.to_radians()));
+        let p = e.extrapolate(s(1.7));
+        assert!((p.theta().to_degrees() - 30.0).abs() < 1.0, "{p:?}");
+        assert!((p.x() - 1.7).abs() < 0.1, "{p:?}");
+        // One scan interval ahead the last interval still counts.
+        let near = e.extrapolate(s(1.2));
+        assert!((near.theta().to_degrees() - 20.0).abs() < 1.0, "{near:?}");
+        // By default the last interval's velocity is carried.
+        let far = plain.extrapolate(s(1.7));
+        assert!((far.theta().to_degrees() - 70.0).abs() < 1.0, "{far:?}");
     }
 
     #[test]
