@@ -655,9 +655,14 @@ async fn chaos(
         "a checkpoint failed:\n{}",
         tail(&server_log)
     );
-    assert_eq!(
-        restarted_from_checkpoint, checkpointed_before_kill,
-        "each restart after a stored checkpoint starts from one (and none before the first)"
+    // One way only: a kill may land after a checkpoint is stored and before its line is logged.
+    assert!(
+        checkpointed_before_kill
+            .iter()
+            .zip(&restarted_from_checkpoint)
+            .all(|(&logged, &restored)| !logged || restored),
+        "each restart after a stored checkpoint starts from one: checkpoints logged before each kill \
+         {checkpointed_before_kill:?}, restarts from one {restarted_from_checkpoint:?}"
     );
     if require_checkpoint_restart {
         assert!(

@@ -180,6 +180,9 @@ impl PoseExtrapolator {
         Some(angle)
     }
 
+    /// The motion over `dt` seconds at the velocity of the matched poses, measured over at least
+    /// [`MIN_VELOCITY_WINDOW_S`] (and `min_velocity_span_per_horizon` × `dt`, at most the history kept;
+    /// from the oldest pose kept when the history is shorter).
     fn constant_velocity_motion(&self, dt: f64) -> Rigid2 {
         let Some(&(t1, p1)) = self.poses.back() else {
             return Rigid2::identity();
@@ -188,7 +191,7 @@ impl PoseExtrapolator {
         // measured over (Intel: a pose matched 11° off, then a 0.65-s gap in the odometry; the velocity
         // of the last 0.08 s predicted a 68° turn that never happened).
         let window = (self.options.min_velocity_span_per_horizon * dt)
-            .clamp(MIN_VELOCITY_WINDOW_S, HISTORY_S.max(MIN_VELOCITY_WINDOW_S));
+            .clamp(MIN_VELOCITY_WINDOW_S, HISTORY_S);
         let Some(&(t0, p0)) = self
             .poses
             .iter()
