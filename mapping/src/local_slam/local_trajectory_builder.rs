@@ -64,9 +64,11 @@ pub struct LocalTrajectoryBuilderOptions {
     /// measured). Why: `docs/TUNING.md#llo-recovery-linear-window`.
     pub recovery_linear_window: f64,
     /// Insert a scan placed by a recovery search (over every rotation, or the shifted window) into the
-    /// submaps at once. Default true. False: it steers the next prediction and is held back until the next
-    /// scan fits near that prediction, which confirms it (a wrong recovery is never drawn into the submap
-    /// the next scans match). Why: `docs/TUNING.md#llo-insert-recovered-scans`.
+    /// submaps at once. Default true. False: it steers the next prediction and is held back; the next scan
+    /// is placed both from it and from the odometry's prediction, and the recovery stands (both scans go
+    /// in) only if its placement fits better by `min_deviation_z` ([`paired_z`]), or the odometry's needs
+    /// a recovery too and fits no better by as much; else it is dropped and the odometry's placement
+    /// taken. Why: `docs/TUNING.md#llo-insert-recovered-scans`.
     pub insert_recovered_scans: bool,
     /// Least-squares refinement weights.
     pub least_squares: LeastSquaresScanMatcherOptions,
@@ -255,6 +257,9 @@ pub struct MatchingResult {
     pub local_pose: Rigid2,
     /// Which search placed it.
     pub branch: CorrelativeBranch,
+    /// This scan retracted a held recovered scan (`insert_recovered_scans` false): placed from the
+    /// odometry's hypothesis, it won (see `insert_recovered_scans`), and the held scan was dropped.
+    pub retracted: bool,
     /// Present when the scan passed the motion filter and was inserted.
     pub insertion: Option<InsertionResult>,
 }
@@ -269,8 +274,20 @@ pub struct LocalTrajectoryBuilder {
     least_squares: LeastSquaresScanMatcher,
     last_pose: Option<Rigid2>,
     dropped: usize,
-    /// A scan placed by a recovery search, in the local frame, waiting for the next scan to confirm it.
-    unconfirmed: Option<RangeData>,
+    /// A scan placed by a recovery search, waiting for the next scan to decide between it and odometry.
+    held: Option<HeldRecovery>,
+}
+
+/// A scan placed by a recovery search and held out of the submaps (`insert_recovered_scans` false), with
+/// the odometry's hypothesis it contradicts: the prediction state as it was before the first held scan.
+#[derive(Debug)]
+struct HeldRecovery {
+    /// The held scan in the local frame.
+    range_data: RangeData,
+    /// The extrapolator before the recovered pose was added (still fed odometry and IMU).
+    extrapolator: PoseExtrapolator,
+    /// The last pose before it.
+    last_pose: Option<Rigid2>,
 }
 
 impl LocalTrajectoryBuilder {
@@ -284,18 +301,24 @@ impl LocalTrajectoryBuilder {
             options,
             last_pose: None,
             dropped: 0,
-            unconfirmed: None,
+            held: None,
         }
     }
 
     /// Adds a wheel-odometry reading.
     pub fn add_odometry(&mut self, reading: &OdometryReading) {
         self.extrapolator.add_odometry(reading);
+        if let Some(held) = &mut self.held {
+            held.extrapolator.add_odometry(reading);
+        }
     }
 
     /// Adds an IMU reading.
     pub fn add_imu(&mut self, reading: &ImuReading) {
         self.extrapolator.add_imu(reading);
+        if let Some(held) = &mut self.held {
+            held.extrapolator.add_imu(reading);
+        }
     }
 
     /// The active submaps (for rendering an unfinished map).
@@ -317,6 +340,7 @@ impl LocalTrajectoryBuilder {
     /// better (see [`LocalTrajectoryBuilderOptions::trusted_angular_window`]).
     fn correlative_match(
         &self,
+        (extrapolator, last_pose): (&PoseExtrapolator, Option<Rigid2>),
         predicted: &Rigid2,
         time: Timestamp,
         points: &[Point2<f32>],
@@ -324,7 +348,7 @@ impl LocalTrajectoryBuilder {
     ) -> (Rigid2, Rigid2, CorrelativeBranch) {
         let o = &self.options;
         let base = &o.real_time_correlative;
-        let claimed_rotation = self.last_pose.map_or(0.0, |last| {
+        let claimed_rotation = last_pose.map_or(0.0, |last| {
             normalize_angle(predicted.theta() - last.theta()).abs()
         });
         let search = |center: &Rigid2, angular_search_window: f64| {
@@ -348,7 +372,7 @@ impl LocalTrajectoryBuilder {
         // Wheel odometry sometimes stalls and then jumps (CSAIL: frozen for 0.8 s in a turn, then +85° at
         // once). When the constant-velocity prediction disagrees by more than half the base window, search
         // around it too.
-        let velocity = self.extrapolator.extrapolate_constant_velocity(time);
+        let velocity = extrapolator.extrapolate_constant_velocity(time);
         if normalize_angle(velocity.theta() - predicted.theta()).abs()
             > 0.5 * base.angular_search_window
         {
@@ -407,6 +431,56 @@ impl LocalTrajectoryBuilder {
         }
     }
 
+    /// Places a scan against `grid` from one prediction state (`extrapolator` and the last pose): the
+    /// correlative search around the prediction, then least-squares refinement.
+    fn place(
+        &self,
+        state: (&PoseExtrapolator, Option<Rigid2>),
+        time: Timestamp,
+        filtered: &[Point2<f32>],
+        grid: &ProbabilityGrid,
+    ) -> (Rigid2, CorrelativeBranch) {
+        let predicted = state.0.extrapolate(time);
+        let (initial, center, branch) = if self.options.use_correlative_scan_matching {
+            let max_range = self.options.correlative_max_range;
+            let near: Vec<Point2<f32>>;
+            let correlative_points = if max_range > 0.0 {
+                let max_squared = max_range * max_range;
+                near = filtered
+                    .iter()
+                    .copied()
+                    .filter(|p| p.coords.norm_squared() <= max_squared)
+                    .collect();
+                if near.len() >= self.options.min_num_returns {
+                    &near[..]
+                } else {
+                    filtered
+                }
+            } else {
+                filtered
+            };
+            self.correlative_match(state, &predicted, time, correlative_points, grid)
+        } else {
+            (predicted, predicted, CorrelativeBranch::Prediction)
+        };
+        // Like Cartographer, the refinement is pulled toward the predicted translation (the centre of the
+        // correlative search): where the scan cannot see the motion (along a corridor) odometry carries
+        // it. Where the scan turned the pose away from the prediction, odometry is wrong at this scan
+        // (CSAIL: yaw jumps in turns) and so is its translation: the correlative result is the target then.
+        let disagreement = normalize_angle(initial.theta() - center.theta()).abs();
+        let target = if disagreement > self.options.max_odometry_target_disagreement {
+            initial.translation.vector
+        } else {
+            center.translation.vector
+        };
+        let (refined, _) = self
+            .least_squares
+            .match_pose(&target, &initial, filtered, grid);
+        let finite =
+            refined.translation.vector.iter().all(|v| v.is_finite()) && refined.theta().is_finite();
+        (if finite { refined } else { initial }, branch)
+    }
+
     /// Matches and maybe inserts one scan given in the tracking frame. `None` when the scan was dropped.
     pub fn add_range_data(
         &mut self,
@@ -419,73 +493,93 @@ impl LocalTrajectoryBuilder {
             self.dropped += 1;
             return None;
         }
-        let predicted = self.extrapolator.extrapolate(time);
         let filtered =
             adaptive_voxel_filter(&range_data.returns, &self.options.adaptive_voxel_filter);
+        let mut retracted = false;
         let (pose, branch) = match self.active.matching_submap() {
             Some(submap) => {
-                let (initial, center, branch) = if self.options.use_correlative_scan_matching {
-                    let max_range = self.options.correlative_max_range;
-                    let near: Vec<Point2<f32>>;
-                    let correlative_points = if max_range > 0.0 {
-                        let max_squared = max_range * max_range;
-                        near = filtered
-                            .iter()
-                            .copied()
-                            .filter(|p| p.coords.norm_squared() <= max_squared)
-                            .collect();
-                        if near.len() >= self.options.min_num_returns {
-                            &near[..]
+                let steered = self.place(
+                    (&self.extrapolator, self.last_pose),
+                    time,
+                    &filtered,
+                    &submap.grid,
+                );
+                match &self.held {
+                    // The first scan after a held recovery decides between it and the odometry's
+                    // hypothesis, placed from each. The odometry's placement wins unless the recovered
+                    // one fits clearly better (the paired test every match away from the odometry
+                    // passes); where the odometry's placement needs a recovery itself, the held one
+                    // stands unless the odometry's fits clearly better.
+                    Some(held) if !steered.1.is_recovery() => {
+                        let plain = self.place(
+                            (&held.extrapolator, held.last_pose),
+                            time,
+                            &filtered,
+                            &submap.grid,
+                        );
+                        let z = |better: &Rigid2, other: &Rigid2| {
+                            paired_z(&submap.grid, &filtered, better, other)
+                        };
+                        let min_z = self.options.min_deviation_z;
+                        let stands = if plain.1.is_recovery() {
+                            z(&plain.0, &steered.0) < min_z
                         } else {
-                            &filtered[..]
+                            z(&steered.0, &plain.0) >= min_z
+                        };
+                        if stands {
+                            steered
+                        } else {
+                            retracted = true;
+                            plain
                         }
-                    } else {
-                        &filtered[..]
-                    };
-                    self.correlative_match(&predicted, time, correlative_points, &submap.grid)
-                } else {
-                    (predicted, predicted, CorrelativeBranch::Prediction)
-                };
-                // Like Cartographer, the refinement is pulled toward the predicted translation (the
-                // centre of the correlative search): where the scan cannot see the motion (along a
-                // corridor) odometry carries it. Where the scan turned the pose away from the prediction,
-                // odometry is wrong at this scan (CSAIL: yaw jumps in turns) and so is its translation:
-                // the correlative result is the target then.
-                let disagreement = normalize_angle(initial.theta() - center.theta()).abs();
-                let target = if disagreement > self.options.max_odometry_target_disagreement {
-                    initial.translation.vector
-                } else {
-                    center.translation.vector
-                };
-                let (refined, _) =
-                    self.least_squares
-                        .match_pose(&target, &initial, &filtered, &submap.grid);
-                let finite = refined.translation.vector.iter().all(|v| v.is_finite())
-                    && refined.theta().is_finite();
-                (if finite { refined } else { initial }, branch)
+                    }
+                    _ => steered,
+                }
             }
-            None => (predicted, CorrelativeBranch::Prediction),
+            None => (
+                self.extrapolator.extrapolate(time),
+                CorrelativeBranch::Prediction,
+            ),
         };
-        self.extrapolator.add_pose(time, pose);
-        self.last_pose = Some(pose);
-        // A recovered pose steers the next prediction but waits for the next scan to fit near that
-        // prediction before it is drawn into the submaps: a wrong recovery must not become part of the
-        // map the next scans match. Another recovery replaces it; a confirming scan inserts both.
+        if retracted && let Some(held) = self.held.take() {
+            self.extrapolator = held.extrapolator;
+            self.last_pose = held.last_pose;
+        }
+        // A recovered pose steers the next prediction but is held out of the submaps until the next scan
+        // decides between it and the odometry: a wrong recovery must not become part of the map the next
+        // scans match. Another recovery replaces the held scan; the odometry's hypothesis stays the one
+        // from before the first.
         if branch.is_recovery() && !self.options.insert_recovered_scans {
-            self.unconfirmed = Some(range_data.transformed(&pose));
+            let transformed = range_data.transformed(&pose);
+            match &mut self.held {
+                Some(held) => held.range_data = transformed,
+                None => {
+                    self.held = Some(HeldRecovery {
+                        range_data: transformed,
+                        extrapolator: self.extrapolator.clone(),
+                        last_pose: self.last_pose,
+                    });
+                }
+            }
+            self.extrapolator.add_pose(time, pose);
+            self.last_pose = Some(pose);
             return Some(MatchingResult {
                 time,
                 local_pose: pose,
                 branch,
+                retracted,
                 insertion: None,
             });
         }
-        let confirmed = self.unconfirmed.take();
+        self.extrapolator.add_pose(time, pose);
+        self.last_pose = Some(pose);
+        let confirmed = self.held.take().map(|held| held.range_data);
         if confirmed.is_none() && self.motion_filter.is_similar(time, &pose) {
             return Some(MatchingResult {
                 time,
                 local_pose: pose,
                 branch,
+                retracted,
                 insertion: None,
             });
         }
@@ -501,6 +595,7 @@ impl LocalTrajectoryBuilder {
             time,
             local_pose: pose,
             branch,
+            retracted,
             insertion: Some(InsertionResult {
                 node: TrajectoryNodeData {
                     time,
@@ -748,6 +843,71 @@ mod tests {
             11,
         );
         assert!(at_once[10].2);
+    }
+
+    /// The robot turns in place at (4, 3), +10° per scan, and odometry sees every turn; scan 4 holds what
+    /// the scanner saw at −50° (a scan stamped 0.5 s late, as Intel's bursts deliver some). Returns each
+    /// scan's heading error (degrees), search, whether it retracted a held scan and whether it was inserted.
+    fn late_stamped_scan(
+        options: LocalTrajectoryBuilderOptions,
+    ) -> Vec<(f64, CorrelativeBranch, bool, bool)> {
+        let room = room();
+        let mut llo = LocalTrajectoryBuilder::new(options);
+        (0..8)
+            .map(|k| {
+                let time = Timestamp::from_secs_f64(f64::from(k));
+                let heading = 10.0 * f64::from(k);
+                llo.add_odometry(&OdometryReading {
+                    time,
+                    pose: rigid2(4.0, 3.0, heading.to_radians()),
+                });
+                let seen = if k == 4 { -50.0 } else { heading };
+                let result = llo
+                    .add_range_data(time, &scan(&room, &rigid2(4.0, 3.0, seen.to_radians())))
+                    .expect("scan matched");
+                let error = normalize_angle(result.local_pose.theta() - heading.to_radians())
+                    .to_degrees()
+                    .abs();
+                (
+                    error,
+                    result.branch,
+                    result.retracted,
+                    result.insertion.is_some(),
+                )
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_held_recovery_the_odometry_explains_as_well_is_dropped() {
+        let held_back = LocalTrajectoryBuilderOptions {
+            insert_recovered_scans: false,
+            ..LocalTrajectoryBuilderOptions::default()
+        };
+        let run = late_stamped_scan(held_back);
+        // The late scan is placed where it was seen (90° from the prediction) and held out of the map.
+        let (error, branch, _, inserted) = run[4];
+        assert_eq!(branch, CorrelativeBranch::EveryRotation);
+        assert!((error - 90.0).abs() < 1.5, "late scan at {error}° from now");
+        assert!(!inserted);
+        // The scans after it are where the odometry says, and the one that decided retracted the
+        // recovery: from the odometry's hypothesis it needed none.
+        assert!(run[5..].iter().any(|r| r.2), "{run:?}");
+        for (k, (error, ..)) in run.iter().enumerate().skip(5) {
+            assert!(*error < 1.5, "scan {k}: heading error {error}°");
+        }
+        // A recovery the odometry's hypothesis also needs stands (the slip above) and nothing is
+        // retracted where nothing is held.
+        assert!(
+            unseen_slip(shifted_search(), 0.3, 12)
+                .iter()
+                .all(|r| r.0 < 0.05 || r.1 != CorrelativeBranch::Trusted)
+        );
+        assert!(
+            !late_stamped_scan(LocalTrajectoryBuilderOptions::default())
+                .iter()
+                .any(|r| r.2)
+        );
     }
 
     #[test]
