@@ -23,7 +23,7 @@ use anyhow::Context as _;
 use clap::Parser;
 use mapping::geometry::Rigid2;
 use mapping::lifelong::{SessionStart, SessionStartEvent, StartSearch};
-use mapping::local_slam::LocalTrajectoryBuilder;
+use mapping::local_slam::{LloDriver, LloEvent};
 use mapping::metrics::{pose_error, truth_at};
 use mapping::sensor::{SensorEvent, Timestamp};
 use robot_agent::lifelong_run::SessionsConfig;
@@ -81,7 +81,7 @@ fn main() -> anyhow::Result<()> {
         let prepared = Instant::now();
         start.set_search(StartSearch::new(&map, relocalization));
         prepare_ms.push(prepared.elapsed().as_secs_f64() * 1e3);
-        let mut llo = LocalTrajectoryBuilder::new(config.local.clone());
+        let mut llo = LloDriver::new(config.local.clone());
         let first_time = session.events.first().map(SensorEvent::time);
         let mut node_times: Vec<Timestamp> = Vec::new();
         let mut node_poses: Vec<Rigid2> = Vec::new();
@@ -90,62 +90,56 @@ fn main() -> anyhow::Result<()> {
         let mut outcome = json!(null);
         let mut refusals = 0usize;
         'events: for event in mapping::sensor::collate_for_llo(&session.events) {
-            match event {
-                SensorEvent::Odometry(o) => llo.add_odometry(o),
-                SensorEvent::Imu(i) => llo.add_imu(i),
-                SensorEvent::Scan(scan) => {
-                    let (range_data, _) = scan.to_range_data(&config.local.range_conversion);
-                    let range_data = range_data.transformed(&session.base_from_laser);
-                    let Some(result) = llo.add_range_data(scan.time, &range_data) else {
-                        continue;
-                    };
-                    let Some(insertion) = result.insertion else {
-                        continue;
-                    };
-                    node_times.push(result.time);
-                    node_poses.push(result.local_pose);
-                    let searches = start.searches();
-                    let began = Instant::now();
-                    let cpu_before = thread_cpu_ms();
-                    let events = start.add_node(result.local_pose, insertion.node.filtered_points);
-                    if start.searches() > searches {
-                        searches_ms.push(began.elapsed().as_secs_f64() * 1e3);
-                        if let (Some(before), Some(after)) = (cpu_before, thread_cpu_ms()) {
-                            searches_cpu_ms.push(after - before);
-                        }
+            let LloEvent::ScanMatched { result, .. } =
+                llo.add_event(event, &session.base_from_laser)
+            else {
+                continue;
+            };
+            let Some(insertion) = result.insertion else {
+                continue;
+            };
+            node_times.push(result.time);
+            node_poses.push(result.local_pose);
+            let searches = start.searches();
+            let began = Instant::now();
+            let cpu_before = thread_cpu_ms();
+            let events = start.add_node(result.local_pose, insertion.node.filtered_points);
+            if start.searches() > searches {
+                searches_ms.push(began.elapsed().as_secs_f64() * 1e3);
+                if let (Some(before), Some(after)) = (cpu_before, thread_cpu_ms()) {
+                    searches_cpu_ms.push(after - before);
+                }
+            }
+            for event in events {
+                match event {
+                    SessionStartEvent::Refused { .. } => refusals += 1,
+                    SessionStartEvent::Placed(placement) => {
+                        let node = placement.node;
+                        let time = node_times[node];
+                        let truth = truth_at(&session.ground_truth, time)
+                            .context("no truth for the placed node")?;
+                        let (error_m, error_deg) = pose_error(
+                            &Rigid2::identity(),
+                            &(placement.global_from_local * node_poses[node]),
+                            &truth,
+                        );
+                        let is_correct = scoring.correct.accepts(error_m, error_deg);
+                        let is_wrong = !scoring.wrong_placement.accepts(error_m, error_deg);
+                        placed += 1;
+                        correct += usize::from(is_correct);
+                        wrong += usize::from(is_wrong);
+                        outcome = json!({
+                            "placed_after_s": first_time.map(|t| time.seconds_since(t)),
+                            "node": node,
+                            "error_m": error_m,
+                            "error_deg": error_deg,
+                            "correct": is_correct,
+                            "wrong": is_wrong,
+                            "score": placement.score,
+                        });
+                        break 'events;
                     }
-                    for event in events {
-                        match event {
-                            SessionStartEvent::Refused { .. } => refusals += 1,
-                            SessionStartEvent::Placed(placement) => {
-                                let node = placement.node;
-                                let time = node_times[node];
-                                let truth = truth_at(&session.ground_truth, time)
-                                    .context("no truth for the placed node")?;
-                                let (error_m, error_deg) = pose_error(
-                                    &Rigid2::identity(),
-                                    &(placement.global_from_local * node_poses[node]),
-                                    &truth,
-                                );
-                                let is_correct = scoring.correct.accepts(error_m, error_deg);
-                                let is_wrong = !scoring.wrong_placement.accepts(error_m, error_deg);
-                                placed += 1;
-                                correct += usize::from(is_correct);
-                                wrong += usize::from(is_wrong);
-                                outcome = json!({
-                                    "placed_after_s": first_time.map(|t| time.seconds_since(t)),
-                                    "node": node,
-                                    "error_m": error_m,
-                                    "error_deg": error_deg,
-                                    "correct": is_correct,
-                                    "wrong": is_wrong,
-                                    "score": placement.score,
-                                });
-                                break 'events;
-                            }
-                            _ => {}
-                        }
-                    }
+                    _ => {}
                 }
             }
         }

@@ -2,6 +2,7 @@
 //! odometry and IMU yaw rate (Cartographer's `LocalTrajectoryBuilder2D`).
 
 mod active_submaps;
+mod llo_driver;
 mod local_trajectory_builder;
 mod motion_filter;
 mod pose_extrapolator;
@@ -9,6 +10,7 @@ mod submap;
 mod voxel_filter;
 
 pub use active_submaps::{ActiveSubmaps, SubmapsOptions};
+pub use llo_driver::{LloDriver, LloEvent};
 pub use local_trajectory_builder::{
     CorrelativeBranch, InsertionResult, LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions,
     LocalTrajectoryBuilderOptionsError, MatchingResult, NodeParts, TrajectoryNodeData,

@@ -22,7 +22,9 @@ use mapping::lifelong::{
     GraphCounts, LifelongError, LifelongEvent, LifelongMap, LifelongOptions, RelocalizationOutcome,
     SessionStart, SessionStartEvent, StartSearch, render_submaps_max,
 };
-use mapping::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
+use mapping::local_slam::{
+    LloDriver, LloEvent, LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions,
+};
 use mapping::metrics::{MatchScorer, Placement, ScoringOptions, SessionTrack};
 use mapping::pose_graph::NodeId;
 use mapping::sensor::{RangeData, SensorEvent, Timestamp};
@@ -482,7 +484,7 @@ pub fn run_session_inputs(
             boundaries.push(first.time());
             data_duration_s += last.time().seconds_since(first.time());
             let mut scans = 0usize;
-            let mut llo = LocalTrajectoryBuilder::new(config.local.clone());
+            let mut llo = LloDriver::new(config.local.clone());
             let mut next_index = 0u32;
             let mut last_node: Option<NodeId> = None;
             let mut alive = send(Message::Start {
@@ -491,58 +493,54 @@ pub fn run_session_inputs(
                 from_dock: input.from_dock,
             });
             for event in mapping::sensor::collate_for_llo(&input.events) {
-                match event {
-                    SensorEvent::Odometry(o) => llo.add_odometry(o),
-                    SensorEvent::Imu(i) => llo.add_imu(i),
-                    SensorEvent::Scan(scan) => {
-                        scans_done += 1;
-                        scans += 1;
-                        let (range_data, _) = scan.to_range_data(&config.local.range_conversion);
-                        let range_data = range_data.transformed(&input.base_from_laser);
-                        let Some(result) = llo.add_range_data(scan.time, &range_data) else {
-                            continue;
-                        };
-                        if let Some(insertion) = result.insertion {
-                            let id = NodeId {
-                                trajectory: session,
-                                index: next_index,
-                            };
-                            next_index += 1;
-                            last_node = Some(id);
-                            node_data.insert(id, (result.local_pose, range_data));
-                            let (points, insertion_submaps, finished_submaps) =
-                                insertion.into_node_parts();
-                            let message = Message::Node {
-                                session,
-                                time: result.time,
-                                local_pose: result.local_pose,
-                                points,
-                                insertion_submaps,
-                                finished_submaps,
-                            };
-                            alive = alive && send(message);
-                            if !alive {
-                                break;
-                            }
-                        }
-                        let anchor = ScanAnchor {
-                            time: result.time,
-                            local_pose: result.local_pose,
-                            node: last_node,
-                        };
-                        anchors.push((session, anchor));
-                        session_anchors.push(anchor);
-                        if scans_done % 64 == 0 {
-                            progress(scans_done);
-                        }
+                if matches!(event, SensorEvent::Scan(_)) {
+                    scans_done += 1;
+                    scans += 1;
+                }
+                let LloEvent::ScanMatched {
+                    result, range_data, ..
+                } = llo.add_event(event, &input.base_from_laser)
+                else {
+                    continue;
+                };
+                if let Some(insertion) = result.insertion {
+                    let id = NodeId {
+                        trajectory: session,
+                        index: next_index,
+                    };
+                    next_index += 1;
+                    last_node = Some(id);
+                    node_data.insert(id, (result.local_pose, range_data));
+                    let (points, insertion_submaps, finished_submaps) = insertion.into_node_parts();
+                    let message = Message::Node {
+                        session,
+                        time: result.time,
+                        local_pose: result.local_pose,
+                        points,
+                        insertion_submaps,
+                        finished_submaps,
+                    };
+                    alive = alive && send(message);
+                    if !alive {
+                        break;
                     }
+                }
+                let anchor = ScanAnchor {
+                    time: result.time,
+                    local_pose: result.local_pose,
+                    node: last_node,
+                };
+                anchors.push((session, anchor));
+                session_anchors.push(anchor);
+                if scans_done % 64 == 0 {
+                    progress(scans_done);
                 }
             }
             scans_per_session.push(scans);
             alive = alive
                 && send(Message::Finish {
                     session,
-                    active_submaps: active_grids(&llo),
+                    active_submaps: active_grids(llo.builder()),
                     scans: std::mem::take(&mut session_anchors),
                 });
             if !alive {

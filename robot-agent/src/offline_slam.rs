@@ -17,9 +17,7 @@ use mapping::global_slam::{
 };
 use mapping::grid::{MapLimits, ProbabilityGrid, RangeDataInserter, RangeDataInserterOptions};
 use mapping::lifelong::{PlacedGrid, RelocalizationOptions, render_submaps_max};
-use mapping::local_slam::{
-    CorrelativeBranch, LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions,
-};
+use mapping::local_slam::{CorrelativeBranch, LloDriver, LloEvent, LocalTrajectoryBuilderOptions};
 use mapping::pose_graph::{NodeId, OptimizationSummary};
 use mapping::sensor::{OdometryReading, RangeData, RangeStats, SensorEvent, Timestamp};
 use nalgebra::Point2;
@@ -200,7 +198,7 @@ pub fn run_slam(
             })
             .map_err(OfflineError::Spawn)?;
 
-        let mut llo = LocalTrajectoryBuilder::new(config.local.clone());
+        let mut llo = LloDriver::new(config.local.clone());
         let mut anchors = Vec::new();
         let mut llo_scans = Vec::new();
         let mut node_range_data = BTreeMap::new();
@@ -219,58 +217,61 @@ pub fn run_slam(
                 map_from_local = update.global_from_local;
                 observer.optimized(update.optimizations, update.map.as_ref());
             }
-            match event {
-                SensorEvent::Odometry(o) => {
-                    observer.odometry(&o);
-                    llo.add_odometry(&o);
-                }
-                SensorEvent::Imu(i) => llo.add_imu(&i),
-                SensorEvent::Scan(scan) => {
+            if let SensorEvent::Odometry(o) = &event {
+                observer.odometry(o);
+            }
+            let (result, range_data) = match llo.add_event(&event, &stream.base_from_laser()) {
+                LloEvent::ReadingAdded => continue,
+                LloEvent::ScanDropped { stats } => {
                     scans_done += 1;
-                    let (range_data, stats) = scan.to_range_data(&config.local.range_conversion);
                     range_stats += stats;
-                    let range_data = range_data.transformed(&stream.base_from_laser());
-                    let Some(result) = llo.add_range_data(scan.time, &range_data) else {
-                        scans_dropped += 1;
-                        continue;
-                    };
-                    observer.scan_matched(result.time, &result.local_pose, &map_from_local);
-                    llo_scans.push(LloScan {
-                        time: result.time,
-                        local_pose: result.local_pose,
-                        branch: result.branch,
-                        inserted: result.insertion.is_some(),
-                    });
-                    if let Some(insertion) = result.insertion {
-                        let id = NodeId {
-                            trajectory: 0,
-                            index: next_node_index,
-                        };
-                        next_node_index += 1;
-                        last_node = Some(id);
-                        node_range_data.insert(id, range_data);
-                        let (points, insertion_submaps, finished_submaps) =
-                            insertion.into_node_parts();
-                        let message = WorkerMessage::Node {
-                            time: result.time,
-                            local_pose: result.local_pose,
-                            points,
-                            insertion_submaps,
-                            finished_submaps,
-                        };
-                        if sender.send(message).is_err() {
-                            break; // the worker died; its join below reports why
-                        }
-                    }
-                    anchors.push(ScanAnchor {
-                        time: result.time,
-                        local_pose: result.local_pose,
-                        node: last_node,
-                    });
-                    if scans_done % 64 == 0 {
-                        progress(scans_done);
-                    }
+                    scans_dropped += 1;
+                    continue;
                 }
+                LloEvent::ScanMatched {
+                    result,
+                    range_data,
+                    stats,
+                } => {
+                    scans_done += 1;
+                    range_stats += stats;
+                    (result, range_data)
+                }
+            };
+            observer.scan_matched(result.time, &result.local_pose, &map_from_local);
+            llo_scans.push(LloScan {
+                time: result.time,
+                local_pose: result.local_pose,
+                branch: result.branch,
+                inserted: result.insertion.is_some(),
+            });
+            if let Some(insertion) = result.insertion {
+                let id = NodeId {
+                    trajectory: 0,
+                    index: next_node_index,
+                };
+                next_node_index += 1;
+                last_node = Some(id);
+                node_range_data.insert(id, range_data);
+                let (points, insertion_submaps, finished_submaps) = insertion.into_node_parts();
+                let message = WorkerMessage::Node {
+                    time: result.time,
+                    local_pose: result.local_pose,
+                    points,
+                    insertion_submaps,
+                    finished_submaps,
+                };
+                if sender.send(message).is_err() {
+                    break; // the worker died; its join below reports why
+                }
+            }
+            anchors.push(ScanAnchor {
+                time: result.time,
+                local_pose: result.local_pose,
+                node: last_node,
+            });
+            if scans_done % 64 == 0 {
+                progress(scans_done);
             }
         }
         progress(scans_done);

@@ -3,7 +3,9 @@
 
 use std::time::{Duration, Instant};
 
-use mapping::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
+use mapping::local_slam::{
+    LloDriver, LloEvent, LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions,
+};
 use mapping::sensor::{SensorEvent, Timestamp};
 use proto::{NodeAdded, UploadItem};
 
@@ -55,7 +57,7 @@ pub fn run_llo_stream(
     max_scans: Option<usize>,
     sink: &mut dyn FnMut(Vec<UploadItem>) -> bool,
 ) -> LloStats {
-    let mut llo = LocalTrajectoryBuilder::new(options.clone());
+    let mut llo = LloDriver::new(options.clone());
     let mut stats = LloStats::default();
     let mut held: Option<Vec<UploadItem>> = None;
     let started = Instant::now();
@@ -68,54 +70,52 @@ pub fn run_llo_stream(
                 std::thread::sleep(wait);
             }
         }
-        match event {
-            SensorEvent::Odometry(o) => llo.add_odometry(&o),
-            SensorEvent::Imu(i) => llo.add_imu(&i),
-            SensorEvent::Scan(scan) => {
-                if max_scans.is_some_and(|m| stats.scans >= m) {
-                    break;
-                }
-                stats.scans += 1;
-                let (range_data, _) = scan.to_range_data(&options.range_conversion);
-                let range_data = range_data.transformed(&stream.base_from_laser());
-                let Some(result) = llo.add_range_data(scan.time, &range_data) else {
-                    stats.scans_dropped += 1;
-                    continue;
-                };
-                let Some(insertion) = result.insertion else {
-                    continue;
-                };
-                stats.nodes += 1;
-                let mut items = vec![UploadItem::NodeAdded(NodeAdded {
-                    time: result.time,
-                    local_pose: result.local_pose,
-                    points: insertion.node.filtered_points,
-                    insertion_submaps: insertion
-                        .insertion_submaps
-                        .iter()
-                        .map(|s| (s.index as u32, s.local_pose))
-                        .collect(),
-                })];
-                for (index, submap) in insertion.finished_submaps {
-                    stats.submaps_finished += 1;
-                    items.push(UploadItem::SubmapFinished {
-                        index: index as u32,
-                        grid: submap.grid,
-                    });
-                }
-                // Each node is handed over one node late, so that the session's last node can carry the
-                // submaps still active when the recording ends.
-                if let Some(previous) = held.replace(items)
-                    && !sink(previous)
-                {
-                    stats.stopped = true;
-                    return stats;
-                }
+        if matches!(event, SensorEvent::Scan(_)) {
+            if max_scans.is_some_and(|m| stats.scans >= m) {
+                break;
             }
+            stats.scans += 1;
+        }
+        let result = match llo.add_event(&event, &stream.base_from_laser()) {
+            LloEvent::ReadingAdded => continue,
+            LloEvent::ScanDropped { .. } => {
+                stats.scans_dropped += 1;
+                continue;
+            }
+            LloEvent::ScanMatched { result, .. } => result,
+        };
+        let Some(insertion) = result.insertion else {
+            continue;
+        };
+        stats.nodes += 1;
+        let mut items = vec![UploadItem::NodeAdded(NodeAdded {
+            time: result.time,
+            local_pose: result.local_pose,
+            points: insertion.node.filtered_points,
+            insertion_submaps: insertion
+                .insertion_submaps
+                .iter()
+                .map(|s| (s.index as u32, s.local_pose))
+                .collect(),
+        })];
+        for (index, submap) in insertion.finished_submaps {
+            stats.submaps_finished += 1;
+            items.push(UploadItem::SubmapFinished {
+                index: index as u32,
+                grid: submap.grid,
+            });
+        }
+        // Each node is handed over one node late, so that the session's last node can carry the
+        // submaps still active when the recording ends.
+        if let Some(previous) = held.replace(items)
+            && !sink(previous)
+        {
+            stats.stopped = true;
+            return stats;
         }
     }
     if let Some(mut last) = held {
-        finish_active_submaps(&llo, &mut last, &mut stats);
+        finish_active_submaps(llo.builder(), &mut last, &mut stats);
         if !sink(last) {
             stats.stopped = true;
         }

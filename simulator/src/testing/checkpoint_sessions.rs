@@ -8,8 +8,8 @@ use mapping::geometry::Rigid2;
 use mapping::global_slam::LoopClosure;
 use mapping::grid::ProbabilityGrid;
 use mapping::lifelong::{LifelongEvent, LifelongMap, LifelongOptions, TrimPolicy};
-use mapping::local_slam::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions};
-use mapping::sensor::{SensorEvent, Timestamp, collate_for_llo};
+use mapping::local_slam::{LloDriver, LloEvent, LocalTrajectoryBuilderOptions};
+use mapping::sensor::{Timestamp, collate_for_llo};
 use nalgebra::Point2;
 
 use crate::{SessionOptions, Store, StoreOptions};
@@ -67,34 +67,28 @@ pub fn session_inputs() -> Vec<SessionInput> {
         .map(|session| {
             let simulated = store.session(session, &sim).expect("session");
             let world_from_map = *world_from_map.get_or_insert(simulated.start_pose);
-            let mut llo = LocalTrajectoryBuilder::new(llo_options.clone());
+            let mut llo = LloDriver::new(llo_options.clone());
             let mut nodes = Vec::new();
             for event in collate_for_llo(&simulated.events) {
-                match event {
-                    SensorEvent::Odometry(o) => llo.add_odometry(o),
-                    SensorEvent::Imu(i) => llo.add_imu(i),
-                    SensorEvent::Scan(scan) => {
-                        let (range_data, _) = scan.to_range_data(&llo_options.range_conversion);
-                        let range_data = range_data.transformed(&simulated.base_from_laser);
-                        let Some(result) = llo.add_range_data(scan.time, &range_data) else {
-                            continue;
-                        };
-                        let Some(insertion) = result.insertion else {
-                            continue;
-                        };
-                        let (points, insertion_submaps, finished_submaps) =
-                            insertion.into_node_parts();
-                        nodes.push(NodeInput {
-                            time: result.time,
-                            local_pose: result.local_pose,
-                            points,
-                            insertion_submaps,
-                            finished_submaps,
-                        });
-                    }
-                }
+                let LloEvent::ScanMatched { result, .. } =
+                    llo.add_event(event, &simulated.base_from_laser)
+                else {
+                    continue;
+                };
+                let Some(insertion) = result.insertion else {
+                    continue;
+                };
+                let (points, insertion_submaps, finished_submaps) = insertion.into_node_parts();
+                nodes.push(NodeInput {
+                    time: result.time,
+                    local_pose: result.local_pose,
+                    points,
+                    insertion_submaps,
+                    finished_submaps,
+                });
             }
             let active_submaps = llo
+                .builder()
                 .active_submaps()
                 .submaps()
                 .iter()
