@@ -76,6 +76,8 @@ pub struct LloScan {
     pub branch: CorrelativeBranch,
     /// Whether it became a node (inserted into the submaps).
     pub inserted: bool,
+    /// Whether it retracted a held recovered scan (`insert_recovered_scans` false).
+    pub retracted: bool,
 }
 
 /// What an offline run produced.
@@ -244,6 +246,7 @@ pub fn run_slam(
                 local_pose: result.local_pose,
                 branch: result.branch,
                 inserted: result.insertion.is_some(),
+                retracted: result.retracted,
             });
             if let Some(insertion) = result.insertion {
                 let id = NodeId {

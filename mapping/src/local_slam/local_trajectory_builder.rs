@@ -46,6 +46,15 @@ pub struct LocalTrajectoryBuilderOptions {
     pub trusted_angular_window: f64,
     /// Growth of the trusted window with the claimed rotation (radians per radian). Default 0.25.
     pub trusted_window_per_radian: f64,
+    /// Half-width (radians) of the window around the predicted rotation, plus `trusted_window_per_radian` ×
+    /// the claimed rotation, where odometry is the answer unless the scan says otherwise: the trusted
+    /// window's best match replaces the best one inside this window only when it fits better by
+    /// `min_anchored_z` ([`paired_z`]). 0 = off (the trusted window's best is taken). Default 0 (off).
+    /// Why: `docs/TUNING.md#llo-anchored-angular-window`.
+    pub anchored_angular_window: f64,
+    /// How much better (paired statistic) the trusted window's best match must fit than the best one in the
+    /// anchored window to be taken. Default 2.
+    pub min_anchored_z: f64,
     /// How much better (paired statistic, see [`paired_z`]) a match outside the trusted window must fit
     /// than the best one inside it to be taken. Default 4.
     pub min_deviation_z: f64,
@@ -95,6 +104,8 @@ impl Default for LocalTrajectoryBuilderOptions {
             correlative_max_range: 10.0,
             trusted_angular_window: 10f64.to_radians(),
             trusted_window_per_radian: 0.25,
+            anchored_angular_window: 0.0,
+            min_anchored_z: 2.0,
             min_deviation_z: 4.0,
             paired_test_where_trusted_misfits: false,
             min_recovery_score: 0.35,
@@ -129,6 +140,8 @@ impl LocalTrajectoryBuilderOptions {
             ("recovery_linear_window", self.recovery_linear_window),
             ("trusted_angular_window", self.trusted_angular_window),
             ("trusted_window_per_radian", self.trusted_window_per_radian),
+            ("anchored_angular_window", self.anchored_angular_window),
+            ("min_anchored_z", self.min_anchored_z),
             ("min_deviation_z", self.min_deviation_z),
             (
                 "pose_extrapolator.min_velocity_span_per_horizon",
@@ -233,6 +246,9 @@ pub enum CorrelativeBranch {
     Prediction,
     /// The trusted angular window around the prediction.
     Trusted,
+    /// The anchored window at the predicted rotation, where the trusted window's best match did not fit
+    /// clearly better (`anchored_angular_window`).
+    Anchored,
     /// The wide window around the prediction, or the base window around the constant-velocity one.
     Alternative,
     /// The search over every rotation, where nothing near the prediction fitted.
@@ -365,6 +381,28 @@ impl LocalTrajectoryBuilder {
             + o.trusted_window_per_radian * claimed_rotation)
             .min(wide_window);
         let trusted = search(predicted, trusted_window);
+        // Odometry is evidence too: a rotation away from its prediction, inside the trusted window, needs
+        // the scan's support over the best match at the predicted rotation (a scan that sees little, a
+        // 4-m scanner in a hall, otherwise turns LLO by a few degrees a scan where it barely constrains
+        // the rotation).
+        let anchored_window = (o.anchored_angular_window
+            + o.trusted_window_per_radian * claimed_rotation)
+            .min(trusted_window);
+        let (trusted, trusted_branch) = if o.anchored_angular_window > 0.0
+            && anchored_window < trusted_window
+            && normalize_angle(trusted.0.theta() - predicted.theta()).abs() > anchored_window
+        {
+            let anchored = search(predicted, anchored_window);
+            if trusted.1 > anchored.1
+                && paired_z(grid, points, &trusted.0, &anchored.0) >= o.min_anchored_z
+            {
+                (trusted, CorrelativeBranch::Trusted)
+            } else {
+                (anchored, CorrelativeBranch::Anchored)
+            }
+        } else {
+            (trusted, CorrelativeBranch::Trusted)
+        };
         let mut alternatives = Vec::with_capacity(2);
         if wide_window > trusted_window {
             alternatives.push((search(predicted, wide_window), *predicted));
@@ -427,7 +465,7 @@ impl LocalTrajectoryBuilder {
             {
                 (alternative.0, center, CorrelativeBranch::Alternative)
             }
-            _ => (trusted.0, *predicted, CorrelativeBranch::Trusted),
+            _ => (trusted.0, *predicted, trusted_branch),
         }
     }
 
@@ -907,6 +945,55 @@ mod tests {
                 .iter()
                 .any(|r| r.2)
         );
+    }
+
+    /// Heading errors (degrees) of a scan of every `every_nth` beam with ±10 cm of range noise, matched
+    /// against a submap of one full clean scan from the same pose while odometry reports no motion: one
+    /// error per noise seed.
+    fn sparse_noisy_scan_errors(
+        options: &LocalTrajectoryBuilderOptions,
+        every_nth: usize,
+    ) -> Vec<f64> {
+        use rand::{Rng as _, SeedableRng as _};
+        let room = room();
+        let pose = rigid2(4.0, 4.5, 0.0);
+        (0..20)
+            .map(|seed| {
+                let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
+                let mut llo = LocalTrajectoryBuilder::new(options.clone());
+                let mut add = |k: u32, data: RangeData| {
+                    let time = Timestamp::from_secs_f64(f64::from(k) * 0.2);
+                    llo.add_odometry(&OdometryReading { time, pose });
+                    llo.add_range_data(time, &data).expect("scan matched")
+                };
+                add(0, scan(&room, &pose));
+                let mut data = scan(&room, &pose);
+                data.returns = data.returns.into_iter().step_by(every_nth).collect();
+                for p in &mut data.returns {
+                    let noise: f32 = rng.random_range(-0.1..0.1);
+                    p.coords *= 1.0 + noise / p.coords.norm();
+                }
+                let result = add(1, data);
+                normalize_angle(result.local_pose.theta())
+                    .to_degrees()
+                    .abs()
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_rotation_the_scan_barely_supports_does_not_outweigh_the_odometry() {
+        // Exact odometry, a scan of 15 points with ±10 cm of noise: on some seeds the trusted window's best
+        // match lies 1.7–2° away by chance; the anchored window keeps the odometry's rotation there.
+        let anchored = LocalTrajectoryBuilderOptions {
+            anchored_angular_window: 1f64.to_radians(),
+            ..LocalTrajectoryBuilderOptions::default()
+        };
+        let with = sparse_noisy_scan_errors(&anchored, 12);
+        let without = sparse_noisy_scan_errors(&LocalTrajectoryBuilderOptions::default(), 12);
+        let far = |errors: &[f64]| errors.iter().filter(|e| **e > 1.6).count();
+        assert_eq!(far(&with), 0, "anchored: {with:.2?}");
+        assert!(far(&without) >= 2, "trusted window only: {without:.2?}");
     }
 
     #[test]

@@ -315,21 +315,23 @@ struct NoopObserver;
 impl robot_agent::offline_slam::SlamObserver for NoopObserver {}
 
 /// Writes `llo_scans.csv`: how LLO placed each scan as it happened, `t_s` from the first scan, the
-/// correlative search that placed it, whether it became a node, and its local pose (m, m, degrees).
+/// correlative search that placed it, whether it became a node, its local pose (m, m, degrees) and whether
+/// it retracted a held recovered scan.
 fn write_llo_scans(path: &Path, run: &SlamRun) -> anyhow::Result<()> {
-    let mut csv = String::from("t_s,branch,inserted,x_m,y_m,theta_deg\n");
+    let mut csv = String::from("t_s,branch,inserted,x_m,y_m,theta_deg,retracted\n");
     let start = run.llo_scans.first().map(|s| s.time);
     for scan in &run.llo_scans {
         let t = start.map_or(0.0, |start| scan.time.seconds_since(start));
         let p = &scan.local_pose;
         let _ = writeln!(
             csv,
-            "{t:.3},{:?},{},{:.4},{:.4},{:.3}",
+            "{t:.3},{:?},{},{:.4},{:.4},{:.3},{}",
             scan.branch,
             u8::from(scan.inserted),
             p.x(),
             p.y(),
-            p.theta().to_degrees()
+            p.theta().to_degrees(),
+            u8::from(scan.retracted)
         );
     }
     std::fs::write(path, csv).with_context(|| format!("cannot write {}", path.display()))
