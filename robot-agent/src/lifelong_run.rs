@@ -943,6 +943,7 @@ fn act_on_start(
     };
     let mut from_dock = false;
     for decision in decisions {
+        map.apply_start_decision(session, decision)?;
         match decision {
             SessionStartEvent::DockChecked {
                 agreed,
@@ -1012,8 +1013,6 @@ fn act_on_start(
                 }
             }
             SessionStartEvent::Placed(placement) => {
-                map.place_session(session, placement.global_from_local)?;
-                map.begin_probation(session)?;
                 if let Some(record) = record.as_deref_mut() {
                     let placed = (|| {
                         Some(Placement {
@@ -1054,7 +1053,6 @@ fn act_on_start(
                 }
             }
             SessionStartEvent::Committed { placement, node } => {
-                map.commit_session(session);
                 if let Some(summary) = summary.as_deref_mut() {
                     summary.committed_at_node = Some(*node);
                 }
@@ -1072,7 +1070,6 @@ fn act_on_start(
                 }
             }
             SessionStartEvent::Revoked { reason, .. } => {
-                map.revoke_placement(session)?;
                 priors.remove(&session);
                 if let Some(summary) = summary.as_deref_mut() {
                     summary.revoked.push(reason.as_str().into());

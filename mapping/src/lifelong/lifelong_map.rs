@@ -10,7 +10,10 @@ use std::sync::Arc;
 use nalgebra::Point2;
 use thiserror::Error;
 
-use super::{LifelongOptions, LifelongOptionsError, PlacedGrid, TrimPolicy, covered_fraction};
+use super::{
+    LifelongOptions, LifelongOptionsError, PlacedGrid, SessionStartEvent, TrimPolicy,
+    covered_fraction,
+};
 use crate::geometry::Rigid2;
 use crate::global_slam::{
     ConstraintBuilder, GlobalSlam, GlobalSlamError, GlobalSlamEvent, LoopClosure, SearchJob,
@@ -229,6 +232,30 @@ impl LifelongMap {
         self.active(session)?;
         self.probation.remove(&session);
         Ok(self.global.unplace_trajectory(session))
+    }
+
+    /// Does to the map what one of a session's [`SessionStartEvent`] decisions says: `Placed` places it
+    /// on probation, `Committed` ends its probation, `Revoked` unplaces it; the other decisions change
+    /// nothing in the map. Every shell that runs a [`super::SessionStart`] acts on it through this.
+    pub fn apply_start_decision(
+        &mut self,
+        session: u32,
+        decision: &SessionStartEvent,
+    ) -> Result<(), LifelongError> {
+        match decision {
+            SessionStartEvent::Placed(placement) => {
+                self.place_session(session, placement.global_from_local)?;
+                self.begin_probation(session)
+            }
+            SessionStartEvent::Committed { .. } => {
+                self.commit_session(session);
+                Ok(())
+            }
+            SessionStartEvent::Revoked { .. } => self.revoke_placement(session).map(|_| ()),
+            SessionStartEvent::Refused { .. }
+            | SessionStartEvent::DockChecked { .. }
+            | SessionStartEvent::GaveUp { .. } => Ok(()),
+        }
     }
 
     /// Whether a session is placed tentatively (on probation).

@@ -12,7 +12,7 @@
 //! chance together — a shelf section's goods, a parked cart — count as one piece of evidence, so the
 //! statistic does not grow merely because a growing cloud holds more points of the same chance fit.
 
-use std::collections::HashMap;
+use std::collections::BTreeMap;
 
 use nalgebra::Point2;
 
@@ -59,7 +59,8 @@ pub fn blocked_paired_z(
     if block_m <= 0.0 {
         return paired_z(grid, cloud, better, other);
     }
-    let mut blocks: HashMap<(i64, i64), f64> = HashMap::new();
+    // Ordered, so that the sums, and every decision on them, are the same in every run.
+    let mut blocks: BTreeMap<(i64, i64), f64> = BTreeMap::new();
     for p in cloud {
         let d = probability_at(grid, better, *p) - probability_at(grid, other, *p);
         let key = (

@@ -437,23 +437,11 @@ impl SiteMap {
     ) -> Result<(), SiteError> {
         for decision in decisions {
             self.count_start_decision(trajectory, decision);
+            self.map
+                .apply_start_decision(trajectory, decision)
+                .map_err(SiteError::Map)?;
             match decision {
-                SessionStartEvent::Placed(placement) => {
-                    self.map
-                        .place_session(trajectory, placement.global_from_local)
-                        .map_err(SiteError::Map)?;
-                    self.map
-                        .begin_probation(trajectory)
-                        .map_err(SiteError::Map)?;
-                }
-                SessionStartEvent::Committed { .. } => {
-                    self.map.commit_session(trajectory);
-                    self.drop_final_start(trajectory);
-                }
                 SessionStartEvent::Revoked { .. } => {
-                    self.map
-                        .revoke_placement(trajectory)
-                        .map_err(SiteError::Map)?;
                     // The robot's frame is wrong: its matches say nothing more; search here.
                     self.map.set_matched_here(trajectory);
                     self.robot_revoked.insert(trajectory);
@@ -468,8 +456,12 @@ impl SiteMap {
                         start.set_search(search);
                     }
                 }
-                SessionStartEvent::GaveUp { .. } => self.drop_final_start(trajectory),
-                SessionStartEvent::Refused { .. } | SessionStartEvent::DockChecked { .. } => {}
+                SessionStartEvent::Committed { .. } | SessionStartEvent::GaveUp { .. } => {
+                    self.drop_final_start(trajectory);
+                }
+                SessionStartEvent::Placed(_)
+                | SessionStartEvent::Refused { .. }
+                | SessionStartEvent::DockChecked { .. } => {}
             }
         }
         Ok(())
