@@ -23,7 +23,7 @@ use anyhow::Context as _;
 use clap::Parser;
 use mapping::geometry::Rigid2;
 use mapping::lifelong::{SessionStart, SessionStartEvent, StartSearch};
-use mapping::local_slam::{LloDriver, LloEvent};
+use mapping::local_slam::LloDriver;
 use mapping::metrics::{pose_error, truth_at};
 use mapping::sensor::{SensorEvent, Timestamp};
 use robot_agent::lifelong_run::SessionsConfig;
@@ -90,12 +90,9 @@ fn main() -> anyhow::Result<()> {
         let mut outcome = json!(null);
         let mut refusals = 0usize;
         'events: for event in mapping::sensor::collate_for_llo(&session.events) {
-            let LloEvent::ScanMatched { result, .. } =
-                llo.add_event(event, &session.base_from_laser)
+            let Some((result, insertion)) =
+                llo.add_event(event, &session.base_from_laser).into_node()
             else {
-                continue;
-            };
-            let Some(insertion) = result.insertion else {
                 continue;
             };
             node_times.push(result.time);

@@ -7,6 +7,8 @@ mod local_trajectory_builder;
 mod motion_filter;
 mod pose_extrapolator;
 mod submap;
+#[cfg(test)]
+mod test_support;
 mod voxel_filter;
 
 pub use active_submaps::{ActiveSubmaps, SubmapsOptions};

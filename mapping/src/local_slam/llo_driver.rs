@@ -5,7 +5,9 @@
 //! into the tracking frame by `base_from_laser`, and matched by the [`LocalTrajectoryBuilder`]. The
 //! caller gets an [`LloEvent`] back and keeps its own bookkeeping (counts, nodes, uploads). No I/O.
 
-use super::{LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions, MatchingResult};
+use super::{
+    InsertionResult, LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions, MatchingResult,
+};
 use crate::geometry::Rigid2;
 use crate::sensor::{RangeConversionOptions, RangeData, RangeStats, SensorEvent};
 
@@ -32,6 +34,20 @@ pub enum LloEvent {
         /// What became of its beams.
         stats: RangeStats,
     },
+}
+
+impl LloEvent {
+    /// A matched scan that became a node: its result (with `insertion` taken out) and the insertion;
+    /// `None` for every other event.
+    pub fn into_node(self) -> Option<(MatchingResult, InsertionResult)> {
+        match self {
+            Self::ScanMatched { mut result, .. } => {
+                let insertion = result.insertion.take()?;
+                Some((result, insertion))
+            }
+            Self::ReadingAdded | Self::ScanDropped { .. } => None,
+        }
+    }
 }
 
 /// LLO for one trajectory, fed [`SensorEvent`]s: a [`LocalTrajectoryBuilder`] and the range conversion
@@ -87,28 +103,12 @@ impl LloDriver {
 #[cfg(test)]
 mod tests {
     use nalgebra::{Point2, Vector2};
-    // The simulator links this crate's non-test build: only its ray caster is used here.
-    use simulator::{Aabb, RayCaster};
+    use simulator::RayCaster;
 
     use super::*;
     use crate::geometry::rigid2;
+    use crate::local_slam::test_support::room;
     use crate::sensor::{ImuReading, LaserScan, OdometryReading, Timestamp};
-
-    /// A closed 10 m × 6 m room with two pillars.
-    fn room() -> RayCaster {
-        let wall = 0.2;
-        RayCaster::new(
-            vec![
-                Aabb::new(0.0, 0.0, 10.0, wall),
-                Aabb::new(0.0, 6.0 - wall, 10.0, 6.0),
-                Aabb::new(0.0, 0.0, wall, 6.0),
-                Aabb::new(10.0 - wall, 0.0, 10.0, 6.0),
-                Aabb::new(6.0, 1.0, 6.4, 1.4),
-                Aabb::new(7.5, 4.2, 7.9, 4.8),
-            ],
-            1.0,
-        )
-    }
 
     /// A 181-beam 180° scan (30 m) from `world_from_laser`, in the laser frame.
     fn scan(room: &RayCaster, time: Timestamp, world_from_laser: &Rigid2) -> LaserScan {

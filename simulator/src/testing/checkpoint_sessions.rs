@@ -8,7 +8,7 @@ use mapping::geometry::Rigid2;
 use mapping::global_slam::LoopClosure;
 use mapping::grid::ProbabilityGrid;
 use mapping::lifelong::{LifelongEvent, LifelongMap, LifelongOptions, TrimPolicy};
-use mapping::local_slam::{LloDriver, LloEvent, LocalTrajectoryBuilderOptions};
+use mapping::local_slam::{LloDriver, LocalTrajectoryBuilderOptions};
 use mapping::sensor::{Timestamp, collate_for_llo};
 use nalgebra::Point2;
 
@@ -70,12 +70,9 @@ pub fn session_inputs() -> Vec<SessionInput> {
             let mut llo = LloDriver::new(llo_options.clone());
             let mut nodes = Vec::new();
             for event in collate_for_llo(&simulated.events) {
-                let LloEvent::ScanMatched { result, .. } =
-                    llo.add_event(event, &simulated.base_from_laser)
+                let Some((result, insertion)) =
+                    llo.add_event(event, &simulated.base_from_laser).into_node()
                 else {
-                    continue;
-                };
-                let Some(insertion) = result.insertion else {
                     continue;
                 };
                 let (points, insertion_submaps, finished_submaps) = insertion.into_node_parts();
