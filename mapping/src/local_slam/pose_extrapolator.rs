@@ -22,14 +22,22 @@ const MAX_ODOMETRY_HOLD_S: f64 = 0.5;
 const HISTORY_S: f64 = 2.0;
 
 /// How the extrapolator predicts.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct PoseExtrapolatorOptions {
     /// Shortest span a constant velocity is measured over, as a share of the time it is carried ahead
-    /// (at least `MIN_VELOCITY_WINDOW_S`); 0 = only that floor. Default 0 (0.5 measured: across a gap in
-    /// the odometry, one scan's error is otherwise multiplied). Why:
+    /// (at least `MIN_VELOCITY_WINDOW_S`); 0 = only that floor. Default 0.5 (across a gap in the
+    /// odometry, one scan's error is otherwise multiplied). Why:
     /// `docs/TUNING.md#llo-min-velocity-span-per-horizon`.
     pub min_velocity_span_per_horizon: f64,
+}
+
+impl Default for PoseExtrapolatorOptions {
+    fn default() -> Self {
+        Self {
+            min_velocity_span_per_horizon: 0.5,
+        }
+    }
 }
 
 /// Predicts poses from matched poses, odometry and IMU.
@@ -157,6 +165,17 @@ impl PoseExtrapolator {
         }
     }
 
+    /// Whether the wheel odometry reported exactly no motion between two times although a reading arrived
+    /// in between: a stalled stream repeats its last pose, then carries the backlog at once (MIT CSAIL,
+    /// 68 s after its first scan: frozen for 0.86 s in a 50°/s turn). A robot standing still looks the same.
+    pub fn odometry_frozen(&self, from: Timestamp, to: Timestamp) -> bool {
+        let arrived = self.odometry.iter().any(|o| o.time > from && o.time <= to);
+        match (self.odometry_at(from), self.odometry_at(to)) {
+            (Some(a), Some(b)) => arrived && a == b,
+            _ => false,
+        }
+    }
+
     /// Integrated IMU yaw between two times, if the IMU covers the span.
     fn imu_rotation(&self, from: Timestamp, to: Timestamp) -> Option<f64> {
         let first = self.imu.front()?;
@@ -267,6 +286,24 @@ mod tests {
     }
 
     #[test]
+    fn odometry_is_frozen_only_when_readings_arrived_and_repeat_the_pose() {
+        let reading = |t: f64, x: f64| OdometryReading {
+            time: s(t),
+            pose: rigid2(x, 0.0, 0.0),
+        };
+        let mut e = PoseExtrapolator::new();
+        e.add_pose(s(0.0), Rigid2::identity());
+        e.add_odometry(&reading(0.0, 1.0));
+        // Nothing arrived since: missing, not frozen.
+        assert!(!e.odometry_frozen(s(0.0), s(0.3)));
+        e.add_odometry(&reading(0.2, 1.0));
+        e.add_odometry(&reading(0.4, 1.0));
+        assert!(e.odometry_frozen(s(0.0), s(0.4)));
+        e.add_odometry(&reading(0.6, 1.5));
+        assert!(!e.odometry_frozen(s(0.0), s(0.6)));
+    }
+
+    #[test]
     fn time_going_backwards_is_rejected() {
         let mut e = PoseExtrapolator::new();
         e.add_odometry(&OdometryReading {
@@ -307,7 +344,9 @@ mod tests {
         let mut e = PoseExtrapolator::with_options(PoseExtrapolatorOptions {
             min_velocity_span_per_horizon: 0.5,
         });
-        let mut plain = PoseExtrapolator::new();
+        let mut plain = PoseExtrapolator::with_options(PoseExtrapolatorOptions {
+            min_velocity_span_per_horizon: 0.0,
+        });
         for k in 0..=10 {
             let pose = rigid2(0.1 * f64::from(k), 0.0, 0.0);
             e.add_pose(s(0.1 * f64::from(k)), pose);
