@@ -83,8 +83,8 @@ pub struct LocalTrajectoryBuilderOptions {
     /// taken. Why: `docs/TUNING.md#llo-insert-recovered-scans`.
     pub insert_recovered_scans: bool,
     /// Insert a scan into the submaps when the wheel odometry reported exactly no motion since the previous
-    /// scan although readings arrived (a stalled stream repeats its last pose, then carries the backlog at
-    /// once). Default false: such a scan was matched from a prediction that misses the motion, and a wrong
+    /// scan although readings arrived and the two scans before it moved apart by more than the motion
+    /// filter's thresholds (a stalled stream repeats its last pose, then carries the backlog at once). Default false: such a scan was matched from a prediction that misses the motion, and a wrong
     /// placement must not enter the map the next scans match; its pose is still reported, and the next
     /// scan, predicted across the backlog, goes in as usual. Why: `docs/TUNING.md#llo-insert-while-odometry-stalls`.
     pub insert_while_odometry_stalls: bool,
@@ -619,7 +619,14 @@ impl LocalTrajectoryBuilder {
                 insertion: None,
             });
         }
+        // A stall: the odometry froze although the robot was moving (the last two scans moved farther
+        // apart than the motion filter's thresholds); a robot standing still is not stalled.
+        let filter = &self.options.motion_filter;
         let stalled = !self.options.insert_while_odometry_stalls
+            && self.extrapolator.last_motion().is_some_and(|m| {
+                m.translation.vector.norm() > filter.max_distance_meters
+                    || normalize_angle(m.theta()).abs() > filter.max_angle_radians
+            })
             && self
                 .extrapolator
                 .last_pose_time()
@@ -1025,6 +1032,23 @@ mod tests {
             ..LocalTrajectoryBuilderOptions::default()
         });
         assert_eq!(inserted, [true; 6]);
+        // A robot standing still is not stalled: the motion filter still lets a scan in every 5 s.
+        let room = room();
+        let mut llo = LocalTrajectoryBuilder::new(LocalTrajectoryBuilderOptions::default());
+        let still: Vec<bool> = (0..7)
+            .map(|k| {
+                let time = Timestamp::from_secs_f64(f64::from(k));
+                llo.add_odometry(&OdometryReading {
+                    time,
+                    pose: rigid2(4.0, 3.0, 0.0),
+                });
+                llo.add_range_data(time, &scan(&room, &rigid2(4.0, 3.0, 0.0)))
+                    .expect("scan matched")
+                    .insertion
+                    .is_some()
+            })
+            .collect();
+        assert_eq!(still, [true, false, false, false, false, false, true]);
     }
 
     #[test]

@@ -132,6 +132,14 @@ impl PoseExtrapolator {
         self.poses.back().map(|(t, _)| *t)
     }
 
+    /// The motion between the last two matched poses, in the frame of the earlier one.
+    pub fn last_motion(&self) -> Option<Rigid2> {
+        let n = self.poses.len();
+        let (_, before) = self.poses.get(n.checked_sub(2)?)?;
+        let (_, last) = self.poses.back()?;
+        Some(before.inverse() * last)
+    }
+
     fn trim(&mut self) {
         let Some(&(last, _)) = self.poses.back() else {
             return;
