@@ -6,6 +6,20 @@ use serde::{Deserialize, Serialize};
 /// Integer cell coordinates `(ix, iy)`; `ix` grows with world x, `iy` with world y.
 pub type CellIndex = Vector2<i32>;
 
+/// `x.floor() as i32`, without the `floor` call: on the baseline x86-64 target (no SSE4.1) `f64::floor` is
+/// a libm call, and it is in the correlative search's hot loop (5 % of Intel offline's samples). The
+/// truncating cast rounds toward zero; one less where that rounded a negative non-integer up. Equal to
+/// `x.floor() as i32` for every `f64`, NaN and beyond `i32`'s range included (both saturate).
+#[inline]
+fn floor_to_i32(x: f64) -> i32 {
+    let t = x as i32;
+    if f64::from(t) > x {
+        t.saturating_sub(1)
+    } else {
+        t
+    }
+}
+
 /// Where a grid's cells are in the world: cell `(ix, iy)` covers
 /// `[origin.x + ix·r, origin.x + (ix+1)·r) × [origin.y + iy·r, origin.y + (iy+1)·r)`, r = `resolution`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -34,7 +48,7 @@ impl MapLimits {
     /// The cell containing the world point `p` (may be outside the grid).
     pub fn cell_index(&self, p: &Point2<f64>) -> CellIndex {
         let v = (p.coords - self.origin) / self.resolution;
-        CellIndex::new(v.x.floor() as i32, v.y.floor() as i32)
+        CellIndex::new(floor_to_i32(v.x), floor_to_i32(v.y))
     }
 
     /// World coordinates of the centre of a cell.
@@ -65,7 +79,33 @@ mod tests {
 
     use super::*;
 
+    #[test]
+    fn floor_to_i32_equals_floor_then_cast_at_the_edges() {
+        for x in [
+            0.0,
+            -0.0,
+            -0.5,
+            -1.0,
+            -2.000_001,
+            -1e-300,
+            2147483647.5,
+            -2147483648.5,
+            1e20,
+            -1e20,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::NAN,
+        ] {
+            assert_eq!(floor_to_i32(x), x.floor() as i32, "{x}");
+        }
+    }
+
     proptest! {
+        #[test]
+        fn floor_to_i32_equals_floor_then_cast(x in proptest::num::f64::ANY) {
+            prop_assert_eq!(floor_to_i32(x), x.floor() as i32);
+        }
+
         #[test]
         fn center_of_cell_maps_back_to_cell(ix in -500..500i32, iy in -500..500i32, res in 0.01..1.0f64,
                                             ox in -50.0..50.0f64, oy in -50.0..50.0f64) {

@@ -84,9 +84,10 @@ pub struct LocalTrajectoryBuilderOptions {
     pub insert_recovered_scans: bool,
     /// Insert a scan into the submaps when the wheel odometry reported exactly no motion since the previous
     /// scan although readings arrived and the two scans before it moved apart by more than the motion
-    /// filter's thresholds (a stalled stream repeats its last pose, then carries the backlog at once). Default false: such a scan was matched from a prediction that misses the motion, and a wrong
-    /// placement must not enter the map the next scans match; its pose is still reported, and the next
-    /// scan, predicted across the backlog, goes in as usual. Why: `docs/TUNING.md#llo-insert-while-odometry-stalls`.
+    /// filter's thresholds (a stalled stream repeats its last pose, then carries the backlog at once).
+    /// Default true. False: such a scan, matched from a prediction that misses the motion, is reported but
+    /// kept out of the map the next scans match, and the next scan, predicted across the backlog, goes in
+    /// as usual (measured, refused). Why: `docs/TUNING.md#llo-insert-while-odometry-stalls`.
     pub insert_while_odometry_stalls: bool,
     /// Least-squares refinement weights.
     pub least_squares: LeastSquaresScanMatcherOptions,
@@ -121,7 +122,7 @@ impl Default for LocalTrajectoryBuilderOptions {
             min_recovery_z: 6.0,
             recovery_linear_window: 0.5,
             insert_recovered_scans: false,
-            insert_while_odometry_stalls: false,
+            insert_while_odometry_stalls: true,
             least_squares: LeastSquaresScanMatcherOptions::default(),
             max_odometry_target_disagreement: 1f64.to_radians(),
             pose_extrapolator: PoseExtrapolatorOptions::default(),
@@ -390,7 +391,6 @@ impl LocalTrajectoryBuilder {
         let trusted_window = (o.trusted_angular_window
             + o.trusted_window_per_radian * claimed_rotation)
             .min(wide_window);
-        let trusted = search(predicted, trusted_window);
         // Odometry is evidence too: a rotation away from its prediction, inside the trusted window, needs
         // the scan's support over the best match at the predicted rotation (a scan that sees little, a
         // 4-m scanner in a hall, otherwise turns LLO by a few degrees a scan where it barely constrains
@@ -398,11 +398,19 @@ impl LocalTrajectoryBuilder {
         let anchored_window = (o.anchored_angular_window
             + o.trusted_window_per_radian * claimed_rotation)
             .min(trusted_window);
+        // The three windows share their centre: one pass over the widest scores all three.
+        let pi = std::f64::consts::PI;
+        let [wide, trusted, anchored] = RealTimeCorrelativeScanMatcher::new(base.clone())
+            .match_pose_nested(
+                predicted,
+                points,
+                grid,
+                [wide_window, trusted_window, anchored_window].map(|w| w.min(pi)),
+            );
         let (trusted, trusted_branch) = if o.anchored_angular_window > 0.0
             && anchored_window < trusted_window
             && normalize_angle(trusted.0.theta() - predicted.theta()).abs() > anchored_window
         {
-            let anchored = search(predicted, anchored_window);
             if trusted.1 > anchored.1
                 && paired_z(grid, points, &trusted.0, &anchored.0) >= o.min_anchored_z
             {
@@ -415,7 +423,7 @@ impl LocalTrajectoryBuilder {
         };
         let mut alternatives = Vec::with_capacity(2);
         if wide_window > trusted_window {
-            alternatives.push((search(predicted, wide_window), *predicted));
+            alternatives.push((wide, *predicted));
         }
         // Wheel odometry sometimes stalls and then jumps (CSAIL: frozen for 0.8 s in a turn, then +85° at
         // once). When the constant-velocity prediction disagrees by more than half the base window, search
@@ -851,7 +859,6 @@ mod tests {
             paired_test_where_trusted_misfits: false,
             recovery_linear_window: 0.0,
             insert_recovered_scans: true,
-            insert_while_odometry_stalls: true,
             pose_extrapolator: PoseExtrapolatorOptions {
                 min_velocity_span_per_horizon: 0.0,
             },
@@ -1024,17 +1031,18 @@ mod tests {
     }
 
     #[test]
-    fn a_scan_matched_while_the_odometry_stalls_stays_out_of_the_map() {
-        let inserted = inserted_through_a_stall(LocalTrajectoryBuilderOptions::default());
-        assert_eq!(inserted, [true, true, true, false, true, true]);
-        let inserted = inserted_through_a_stall(LocalTrajectoryBuilderOptions {
-            insert_while_odometry_stalls: true,
+    fn a_scan_matched_while_the_odometry_stalls_stays_out_of_the_map_when_asked() {
+        let held_out = LocalTrajectoryBuilderOptions {
+            insert_while_odometry_stalls: false,
             ..LocalTrajectoryBuilderOptions::default()
-        });
+        };
+        let inserted = inserted_through_a_stall(held_out.clone());
+        assert_eq!(inserted, [true, true, true, false, true, true]);
+        let inserted = inserted_through_a_stall(LocalTrajectoryBuilderOptions::default());
         assert_eq!(inserted, [true; 6]);
         // A robot standing still is not stalled: the motion filter still lets a scan in every 5 s.
         let room = room();
-        let mut llo = LocalTrajectoryBuilder::new(LocalTrajectoryBuilderOptions::default());
+        let mut llo = LocalTrajectoryBuilder::new(held_out);
         let still: Vec<bool> = (0..7)
             .map(|k| {
                 let time = Timestamp::from_secs_f64(f64::from(k));

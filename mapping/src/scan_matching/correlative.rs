@@ -68,9 +68,15 @@ impl SearchSpace {
         angular_window: f64,
     ) -> Self {
         let step = angular_step(points, limits.resolution);
-        let n = (angular_window / step).ceil().max(0.0) as i64;
+        let n = Self::rotations_reach(points, limits, angular_window);
         let angles = (-n..=n).map(|k| k as f64 * step).collect();
         Self::new(center, points, limits, linear_window, angles)
+    }
+
+    /// The `n` of [`Self::around`]: rotations `k · step` for `|k| ≤ n` cover `angular_window`.
+    pub fn rotations_reach(points: &[Point2<f32>], limits: &MapLimits, angular_window: f64) -> i64 {
+        let step = angular_step(points, limits.resolution);
+        (angular_window / step).ceil().max(0.0) as i64
     }
 
     /// Rotations covering the whole circle once, `center.θ + k·2π/m` for `k < m` with the step no larger than

@@ -91,23 +91,38 @@ impl RealTimeCorrelativeScanMatcher {
         points: &[Point2<f32>],
         grid: &ProbabilityGrid,
     ) -> (Rigid2, f32) {
+        let [result] =
+            self.match_pose_nested(initial, points, grid, [self.options.angular_search_window]);
+        result
+    }
+
+    /// [`Self::match_pose`] for several angular windows (radians, each at most π; the options' own is not
+    /// used) around the same `initial`, in one pass over the widest: one result per window, each equal to
+    /// `match_pose` with that window. A narrower window's candidates are a subset of the widest's (the
+    /// same rotations `k · step`, the same translations), scored the same and visited in the same order.
+    pub fn match_pose_nested<const N: usize>(
+        &self,
+        initial: &Rigid2,
+        points: &[Point2<f32>],
+        grid: &ProbabilityGrid,
+        angular_windows: [f64; N],
+    ) -> [(Rigid2, f32); N] {
         if points.is_empty() {
-            return (*initial, 0.0);
+            return [(*initial, 0.0); N];
         }
         let o = &self.options;
         let limits = grid.limits();
-        let space = SearchSpace::around(
-            initial,
-            points,
-            limits,
-            o.linear_search_window,
-            o.angular_search_window,
-        );
+        let widest = angular_windows.iter().copied().fold(0.0, f64::max);
+        let space = SearchSpace::around(initial, points, limits, o.linear_search_window, widest);
+        // Rotation k of the space is `(k − reach[widest]) · step`; it belongs to window i when within reach[i].
+        let reach = angular_windows.map(|w| SearchSpace::rotations_reach(points, limits, w));
+        let widest_reach = reach.iter().copied().max().unwrap_or(0);
         let (width, height) = (limits.width, limits.height);
         let values = grid.values();
         let inv_n = 1.0 / points.len() as f64;
-        let mut best = (0usize, 0i32, 0i32, f64::NEG_INFINITY);
+        let mut best = [(0usize, 0i32, 0i32, f64::NEG_INFINITY); N];
         for k in 0..space.num_scans() {
+            let offset = (k as i64 - widest_reach).abs();
             let scan = space.scan(k);
             let bounds = space.bounds(k);
             let rotation_cost = o.rotation_delta_cost_weight * space.angle(k).abs();
@@ -126,13 +141,15 @@ impl RealTimeCorrelativeScanMatcher {
                     let cost = o.translation_delta_cost_weight * space.offset_metres(dx, dy).norm()
                         + rotation_cost;
                     let score = f64::from(sum) * inv_n * (-cost * cost).exp();
-                    if score > best.3 {
-                        best = (k, dx, dy, score);
+                    for (b, &r) in best.iter_mut().zip(&reach) {
+                        if offset <= r && score > b.3 {
+                            *b = (k, dx, dy, score);
+                        }
                     }
                 }
             }
         }
-        (space.pose(best.0, best.1, best.2), best.3 as f32)
+        best.map(|(k, dx, dy, score)| (space.pose(k, dx, dy), score as f32))
     }
 }
 
@@ -187,6 +204,41 @@ mod tests {
             }
         }
         best
+    }
+
+    #[test]
+    fn nested_windows_equal_separate_searches_bit_for_bit() {
+        for seed in 0..6 {
+            let mut rng = Pcg64::seed_from_u64(seed);
+            let grid = random_grid(&mut rng, 30, 25);
+            let points: Vec<Point2<f32>> = (0..12)
+                .map(|_| Point2::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)))
+                .collect();
+            let initial = rigid2(
+                rng.random_range(0.0..1.5),
+                rng.random_range(0.0..1.5),
+                rng.random_range(-1.0..1.0),
+            );
+            let windows = [0.7, 0.25, 0.02];
+            let matcher = |w: f64| {
+                RealTimeCorrelativeScanMatcher::new(RealTimeCorrelativeScanMatcherOptions {
+                    linear_search_window: 0.3,
+                    angular_search_window: w,
+                    translation_delta_cost_weight: 0.5,
+                    rotation_delta_cost_weight: 0.3,
+                })
+            };
+            let nested = matcher(0.0).match_pose_nested(&initial, &points, &grid, windows);
+            for (w, (pose, score)) in windows.iter().zip(nested) {
+                let (alone, alone_score) = matcher(*w).match_pose(&initial, &points, &grid);
+                assert_eq!(pose, alone, "seed {seed}, window {w}");
+                assert_eq!(
+                    score.to_bits(),
+                    alone_score.to_bits(),
+                    "seed {seed}, window {w}"
+                );
+            }
+        }
     }
 
     #[test]
