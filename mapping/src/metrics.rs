@@ -10,7 +10,7 @@ mod session_score;
 mod trajectory_metric;
 
 pub use map_world_agreement::{MAP_WORLD_TOLERANCE_M, MapWorldAgreement, map_world_agreement};
-pub use match_score::{MatchScorer, match_score};
+pub use match_score::MatchScorer;
 pub use placement_verdict::{
     PLACEMENT_WINDOW_S, PlacementVerdict, SpanVerdict, Verdict, judge_placements,
 };

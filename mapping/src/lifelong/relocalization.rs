@@ -23,7 +23,7 @@ use crate::local_slam::voxel_filter;
 use crate::scan_matching::{
     LeastSquaresScanMatcher, LeastSquaresScanMatcherOptions, RealTimeCorrelativeScanMatcher,
     RealTimeCorrelativeScanMatcherOptions, Relocalizer, RelocalizerOptions, blocked_paired_z,
-    clearly_different, max_filtered, probability_at,
+    clearly_different, max_filtered, mean_probability,
 };
 
 /// Options of [`relocalize_session_start`].
@@ -895,12 +895,6 @@ struct Decision {
     min_z: f64,
     /// The first scan's shift from the cloud's pose, if asked.
     max_first_scan_shift: Option<f64>,
-}
-
-/// Mean probability of `grid` at `cloud` placed at `pose`.
-fn mean_probability(grid: &ProbabilityGrid, cloud: &[Point2<f32>], pose: &Rigid2) -> f64 {
-    let sum: f64 = cloud.iter().map(|&p| probability_at(grid, pose, p)).sum();
-    sum / cloud.len().max(1) as f64
 }
 
 /// `cloud` (already thinned to `voxel_size` metres, or not at all when 0) thinned with ever coarser voxels

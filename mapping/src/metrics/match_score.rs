@@ -11,26 +11,6 @@ use crate::geometry::Rigid2;
 use crate::grid::ProbabilityGrid;
 use crate::scan_matching::{FastCorrelativeScanMatcher, FastCorrelativeScanMatcherOptions};
 
-/// Mean probability of `map`'s cells at `points` (tracking frame) placed at `map_from_tracking`; unknown
-/// and out-of-map cells read as the least probability, as in branch and bound. 0 for no points.
-pub fn match_score(
-    map: &ProbabilityGrid,
-    points: &[Point2<f32>],
-    map_from_tracking: &Rigid2,
-) -> f64 {
-    if points.is_empty() {
-        return 0.0;
-    }
-    let sum: f64 = points
-        .iter()
-        .map(|p| {
-            let world = map_from_tracking * Point2::new(f64::from(p.x), f64::from(p.y));
-            f64::from(map.probability(&map.limits().cell_index(&world)))
-        })
-        .sum();
-    sum / points.len() as f64
-}
-
 /// Scores scans against one map by branch and bound within a window around an estimate. Building it
 /// precomputes the map's bound grids once (a few bytes per cell); scoring is then a small search.
 #[derive(Clone, Debug)]
@@ -81,6 +61,7 @@ mod tests {
     use super::*;
     use crate::geometry::rigid2;
     use crate::grid::{CellIndex, MIN_PROBABILITY, MapLimits};
+    use crate::scan_matching::mean_probability;
 
     /// 10 × 10 cells of 0.1 m from (0, 0); a wall of 0.9 along x = 0.55 and cells of 0.2 at x = 0.25.
     fn map() -> ProbabilityGrid {
@@ -100,21 +81,21 @@ mod tests {
     fn scores_the_cells_the_points_land_in() {
         let (map, points) = (map(), points());
         // Placed with the points on the wall (x 0.55).
-        let on_wall = match_score(&map, &points, &rigid2(0.05, 0.25, 0.0));
+        let on_wall = mean_probability(&map, &points, &rigid2(0.05, 0.25, 0.0));
         assert!((on_wall - 0.9).abs() < 1e-3, "{on_wall}");
         // Three cells to the left: the 0.2 cells.
-        let off = match_score(&map, &points, &rigid2(-0.25, 0.25, 0.0));
+        let off = mean_probability(&map, &points, &rigid2(-0.25, 0.25, 0.0));
         assert!((off - 0.2).abs() < 1e-3, "{off}");
         // Outside the map: the least probability.
-        let outside = match_score(&map, &points, &rigid2(5.0, 5.0, 0.0));
+        let outside = mean_probability(&map, &points, &rigid2(5.0, 5.0, 0.0));
         assert!((outside - f64::from(MIN_PROBABILITY)).abs() < 1e-6);
         // Half on the wall, half out of the map.
-        let half = match_score(&map, &points, &rigid2(0.05, 0.85, 0.0));
+        let half = mean_probability(&map, &points, &rigid2(0.05, 0.85, 0.0));
         assert!(
             (half - 0.5 * (0.9 + f64::from(MIN_PROBABILITY))).abs() < 1e-3,
             "{half}"
         );
-        assert!(match_score(&map, &[], &Rigid2::identity()).abs() < f64::EPSILON);
+        assert!(mean_probability(&map, &[], &Rigid2::identity()).abs() < f64::EPSILON);
     }
 
     #[test]
@@ -130,7 +111,7 @@ mod tests {
         assert!((near - 0.9).abs() < 1e-3, "{near}");
         // At the wall it is the plain score.
         let at = scorer.score(&points, &rigid2(0.05, 0.25, 0.0));
-        let plain = match_score(&map, &points, &rigid2(0.05, 0.25, 0.0));
+        let plain = mean_probability(&map, &points, &rigid2(0.05, 0.25, 0.0));
         assert!((at - plain).abs() < 1e-3, "{at} {plain}");
         // Three cells off: the wall is out of reach, and the best within reach is below it (a brute-force
         // oracle over the window's whole-cell shifts agrees).
@@ -140,7 +121,7 @@ mod tests {
             .flat_map(|dx| (-1..=1).map(move |dy| (dx, dy)))
             .map(|(dx, dy)| {
                 let shifted = rigid2(-0.25 + 0.1 * f64::from(dx), 0.25 + 0.1 * f64::from(dy), 0.0);
-                match_score(&map, &points, &shifted)
+                mean_probability(&map, &points, &shifted)
             })
             .fold(f64::MIN, f64::max);
         assert!(far < 0.9 - 0.1, "{far}");

@@ -26,6 +26,24 @@ pub fn probability_at(grid: &ProbabilityGrid, pose: &Rigid2, p: Point2<f32>) -> 
     f64::from(grid.probability(&grid.limits().cell_index(&world)))
 }
 
+/// The score of `points` (tracking frame) placed at `grid_from_tracking`: the mean of
+/// [`probability_at`] over them, in their order (unknown and out-of-grid cells read as the least
+/// probability). 0 for no points. Searches maximize it; the paper's AMS averages it.
+pub fn mean_probability(
+    grid: &ProbabilityGrid,
+    points: &[Point2<f32>],
+    grid_from_tracking: &Rigid2,
+) -> f64 {
+    if points.is_empty() {
+        return 0.0;
+    }
+    let sum: f64 = points
+        .iter()
+        .map(|&p| probability_at(grid, grid_from_tracking, p))
+        .sum();
+    sum / points.len() as f64
+}
+
 /// `Σd / √(Σd²)` over `cloud`, with `d` the probability at `better` minus that at `other`: positive when
 /// `better` fits better, 0 when both fit identically.
 pub fn paired_z(

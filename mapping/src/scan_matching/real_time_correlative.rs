@@ -162,7 +162,8 @@ mod tests {
     use super::*;
     use crate::geometry::{Rigid2Ext as _, rigid2};
     use crate::grid::MapLimits;
-    use crate::scan_matching::test_support::{mean_probability, room_grid, room_scan};
+    use crate::scan_matching::mean_probability;
+    use crate::scan_matching::test_support::{room_grid, room_scan};
 
     fn random_grid(rng: &mut Pcg64, w: i32, h: i32) -> ProbabilityGrid {
         let mut grid = ProbabilityGrid::new(MapLimits::new(0.1, Vector2::new(-1.0, -0.5), w, h));
@@ -199,7 +200,7 @@ mod tests {
                     let dtheta = space.angle(k).abs();
                     let cost = options.translation_delta_cost_weight * dt
                         + options.rotation_delta_cost_weight * dtheta;
-                    best = best.max(mean_probability(grid, &pose, points) * (-cost * cost).exp());
+                    best = best.max(mean_probability(grid, points, &pose) * (-cost * cost).exp());
                 }
             }
         }
@@ -273,7 +274,7 @@ mod tests {
             let dtheta = dtheta.min(std::f64::consts::TAU - dtheta);
             let cost = options.translation_delta_cost_weight * dt
                 + options.rotation_delta_cost_weight * dtheta;
-            let rescored = mean_probability(&grid, &pose, &points) * (-cost * cost).exp();
+            let rescored = mean_probability(&grid, &points, &pose) * (-cost * cost).exp();
             assert!((rescored - f64::from(score)).abs() < 1e-5);
         }
     }
@@ -293,7 +294,7 @@ mod tests {
         );
         assert!((pose.theta() - truth.theta()).abs() < 0.01, "{pose:?}");
         assert!(score > 0.6, "score {score}");
-        let (_, initial_score) = (initial, mean_probability(&grid, &initial, &points));
+        let (_, initial_score) = (initial, mean_probability(&grid, &points, &initial));
         assert!(f64::from(score) > initial_score);
     }
 

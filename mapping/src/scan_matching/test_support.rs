@@ -95,22 +95,6 @@ pub(crate) fn room_scan(world_from_robot: &Rigid2) -> Vec<Point2<f32>> {
     wall_points(&ROOM_WALLS, world_from_robot, 0.037, 0.15, f64::INFINITY)
 }
 
-/// Mean grid probability at the points transformed by `grid_from_tracking`, computed naively in f64.
-pub(crate) fn mean_probability(
-    grid: &ProbabilityGrid,
-    grid_from_tracking: &Rigid2,
-    points: &[Point2<f32>],
-) -> f64 {
-    let sum: f64 = points
-        .iter()
-        .map(|p| {
-            let q = grid_from_tracking * Point2::new(f64::from(p.x), f64::from(p.y));
-            f64::from(grid.probability(&grid.limits().cell_index(&q)))
-        })
-        .sum();
-    sum / points.len() as f64
-}
-
 /// A segment `(a, b)` in world coordinates, metres.
 pub(crate) type Wall = ([f64; 2], [f64; 2]);
 

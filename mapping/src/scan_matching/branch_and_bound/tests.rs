@@ -3,13 +3,15 @@
 //! `FastCorrelativeScanMatcherTest.CorrectPose`.
 
 use nalgebra::Vector2;
+
+use crate::scan_matching::mean_probability;
 use rand::{Rng as _, SeedableRng as _};
 use rand_pcg::Pcg64;
 
 use super::*;
 use crate::geometry::Rigid2Ext as _;
 use crate::scan_matching::test_support::{
-    draw_walls, mean_probability, random_world, raycast_scan, room_grid, room_scan,
+    draw_walls, random_world, raycast_scan, room_grid, room_scan,
 };
 use crate::scan_matching::{LeastSquaresScanMatcher, LeastSquaresScanMatcherOptions};
 
@@ -48,7 +50,7 @@ fn brute_force(space: &SearchSpace, grid: &ProbabilityGrid, points: &[Point2<f32
         let b = space.bounds(k);
         for dy in b.min_y..=b.max_y {
             for dx in b.min_x..=b.max_x {
-                best = best.max(mean_probability(grid, &space.pose(k, dx, dy), points));
+                best = best.max(mean_probability(grid, points, &space.pose(k, dx, dy)));
             }
         }
     }
@@ -67,7 +69,7 @@ fn check_match(
         "B&B {} vs exhaustive {expected}",
         result.score
     );
-    let rescored = mean_probability(grid, &result.pose, points);
+    let rescored = mean_probability(grid, points, &result.pose);
     assert!(
         (rescored - expected).abs() < 1e-5,
         "returned pose scores {rescored}"
