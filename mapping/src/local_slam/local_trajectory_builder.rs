@@ -73,7 +73,8 @@ pub struct LocalTrajectoryBuilderOptions {
     /// must fit than the best match near the prediction. Default 6. Why: `docs/TUNING.md#llo-min-recovery-z`.
     pub min_recovery_z: f64,
     /// Half-width (metres) of a translation window searched, in the trusted angular window, where nothing
-    /// near the prediction fits (best score below `min_recovery_score`); 0 = off. Default 0.5 m. Why: `docs/TUNING.md#llo-recovery-linear-window`.
+    /// near the prediction fits (best score below `min_recovery_score`); 0 = off. Default 0.5 m.
+    /// Why: `docs/TUNING.md#llo-recovery-linear-window`.
     pub recovery_linear_window: f64,
     /// Insert a scan placed by a recovery search (over every rotation, or the shifted window) into the
     /// submaps at once. Default false: it steers the next prediction and is held back; the next scan

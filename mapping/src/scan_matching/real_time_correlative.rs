@@ -207,19 +207,26 @@ mod tests {
         best
     }
 
+    /// A random 30 × 25 grid, 12 points within 1 m and an initial pose with its heading within
+    /// ±`max_heading` radians, drawn from `seed`.
+    fn random_case(seed: u64, max_heading: f64) -> (ProbabilityGrid, Vec<Point2<f32>>, Rigid2) {
+        let mut rng = Pcg64::seed_from_u64(seed);
+        let grid = random_grid(&mut rng, 30, 25);
+        let points: Vec<Point2<f32>> = (0..12)
+            .map(|_| Point2::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)))
+            .collect();
+        let initial = rigid2(
+            rng.random_range(0.0..1.5),
+            rng.random_range(0.0..1.5),
+            rng.random_range(-max_heading..max_heading),
+        );
+        (grid, points, initial)
+    }
+
     #[test]
     fn nested_windows_equal_separate_searches_bit_for_bit() {
         for seed in 0..6 {
-            let mut rng = Pcg64::seed_from_u64(seed);
-            let grid = random_grid(&mut rng, 30, 25);
-            let points: Vec<Point2<f32>> = (0..12)
-                .map(|_| Point2::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)))
-                .collect();
-            let initial = rigid2(
-                rng.random_range(0.0..1.5),
-                rng.random_range(0.0..1.5),
-                rng.random_range(-1.0..1.0),
-            );
+            let (grid, points, initial) = random_case(seed, 1.0);
             let windows = [0.7, 0.25, 0.02];
             let matcher = |w: f64| {
                 RealTimeCorrelativeScanMatcher::new(RealTimeCorrelativeScanMatcherOptions {
@@ -245,22 +252,13 @@ mod tests {
     #[test]
     fn equals_brute_force_on_random_grids() {
         for seed in 0..4 {
-            let mut rng = Pcg64::seed_from_u64(seed);
-            let grid = random_grid(&mut rng, 30, 25);
-            let points: Vec<Point2<f32>> = (0..12)
-                .map(|_| Point2::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)))
-                .collect();
+            let (grid, points, initial) = random_case(seed, 3.0);
             let options = RealTimeCorrelativeScanMatcherOptions {
                 linear_search_window: 0.35,
                 angular_search_window: 0.3,
                 translation_delta_cost_weight: 0.5,
                 rotation_delta_cost_weight: 0.3,
             };
-            let initial = rigid2(
-                rng.random_range(0.0..1.5),
-                rng.random_range(0.0..1.5),
-                rng.random_range(-3.0..3.0),
-            );
             let matcher = RealTimeCorrelativeScanMatcher::new(options.clone());
             let (pose, score) = matcher.match_pose(&initial, &points, &grid);
             let expected = brute_force(&options, &initial, &points, &grid);
