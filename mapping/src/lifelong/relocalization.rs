@@ -681,6 +681,11 @@ impl StartSearch {
             .min_by(f64::total_cmp)
     }
 
+    /// Whether a fit (a [`CloudFit::sharp_score`]) reaches `min_unfiltered_score`.
+    pub fn fits(&self, fit: f32) -> bool {
+        fit >= self.options.min_unfiltered_score
+    }
+
     /// Searches the whole map for `scans` like [`Self::search_again`] and returns the evidence behind a
     /// decision instead of a decision: the best pose, its margin over the best clearly different pose and
     /// the weakest paired test against any other distinct candidate. `None` when nothing reaches

@@ -41,6 +41,11 @@
 //!    `probation_timeout_m` of route without a commit, revoke the placement and searching resumes (a
 //!    search that finds a revoked placement again is refused, unless its paired test reaches
 //!    `probation_min_z`: matches revoked it, and the whole route now says it is the place).
+//!    That test is made only once matches agree, and a wrong placement gets no match near a pose the robot
+//!    is not at: while no match has agreed with a placement and the latest nodes fit the map below its
+//!    floor there, the whole map is searched again every `retry_every_n_nodes` nodes
+//!    ([`SessionStartOptions::search_while_unconfirmed`]), and an answer elsewhere that the route fits
+//!    decisively better replaces it.
 //!
 //! The trade-off: a correct placement waits a few metres before its submaps update the map (the robot
 //! still navigates with it), and matches searched near a wrong estimate in a look-alike aisle can agree
@@ -118,6 +123,12 @@ pub struct SessionStartOptions {
     /// ranked below it by this paired test ([`StartSearch::contest`]); a rival as much better revokes it.
     /// Unitless (about standard errors; 0 = no test). Default 4. Why: `docs/TUNING.md#ss-probation-min-z`.
     pub probation_min_z: f64,
+    /// While a placement is on probation, no match has agreed with it yet and the latest
+    /// `recent_search_nodes` nodes fit the map below `min_unfiltered_score` there, search the whole map
+    /// again every `retry_every_n_nodes` nodes (the route since the start, decided as a retry); an answer
+    /// elsewhere that the route fits better by `probation_min_z` replaces the placement. Default true.
+    /// Why: `docs/TUNING.md#ss-search-while-unconfirmed`.
+    pub search_while_unconfirmed: bool,
 }
 
 impl Default for SessionStartOptions {
@@ -140,6 +151,7 @@ impl Default for SessionStartOptions {
             probation_timeout_m: 0.0,
             revoked_radius_m: 1.0,
             probation_min_z: 4.0,
+            search_while_unconfirmed: true,
         }
     }
 }
@@ -473,8 +485,17 @@ impl SessionStart {
                 self.keep_cloud(local_pose, points);
                 let timeout = self.options.probation_timeout_m;
                 let past = path_m - self.path_at(placement.node).unwrap_or(path_m);
+                let every = self.options.retry_every_n_nodes;
                 if timeout > 0.0 && past > timeout {
                     self.revoke(placement, RevokeReason::Timeout, node)
+                } else if self.options.search_while_unconfirmed
+                    && self.agreeing.is_empty()
+                    && every > 0
+                    && node > placement.node
+                    && (node - placement.node).is_multiple_of(every)
+                    && self.misfits(&placement)
+                {
+                    self.second_opinion(placement, node)
                 } else {
                     Vec::new()
                 }
@@ -559,6 +580,85 @@ impl SessionStart {
             }
         }
         Vec::new()
+    }
+
+    /// Whether the latest `recent_search_nodes` nodes fit the unfiltered map below its floor at `placement`
+    /// ([`StartSearch::fit`], unrefined): the robot does not see what the map shows where the placement
+    /// puts it.
+    fn misfits(&mut self, placement: &StartPlacement) -> bool {
+        let Some(search) = &self.search else {
+            return false;
+        };
+        let scans = self.cloud.make_contiguous();
+        let latest = &scans[scans
+            .len()
+            .saturating_sub(self.options.recent_search_nodes.max(1))..];
+        search
+            .fit(latest, &placement.global_from_local)
+            .is_some_and(|fit| !search.fits(fit.sharp_score))
+    }
+
+    /// While no match has agreed with `placement` yet, a whole-map search of the route since the start
+    /// (of its latest `recent_search_nodes` where that finds nothing), decided as a retry. An answer away
+    /// from the placement that the route fits decisively better ([`StartSearch::contest`],
+    /// `probation_min_z`) replaces it: the placement is revoked (`Rival`) and the answer placed, on
+    /// probation, with the revoked placement among its rivals.
+    fn second_opinion(&mut self, placement: StartPlacement, node: usize) -> Vec<SessionStartEvent> {
+        let Some(search) = &self.search else {
+            return Vec::new();
+        };
+        let recent = self.options.recent_search_nodes;
+        let scans = self.cloud.make_contiguous();
+        let mut answer = search.search_again(scans);
+        if matches!(answer.outcome, RelocalizationOutcome::NotFound)
+            && recent > 0
+            && recent < scans.len()
+        {
+            answer = search.search_again(&scans[scans.len() - recent..]);
+        }
+        self.searches += 1;
+        let RelocalizationOutcome::Found(found) = answer.outcome else {
+            return Vec::new();
+        };
+        let Some(&(local, _)) = self.nodes.last() else {
+            return Vec::new();
+        };
+        let (here, there) = (
+            placement.global_from_local * local,
+            found.global_from_local * local,
+        );
+        let same_place = (here.translation.vector - there.translation.vector).norm()
+            <= self.options.agreement_translation_m
+            && normalize_angle(here.theta() - there.theta()).abs()
+                <= self.options.agreement_rotation_rad;
+        if same_place
+            || (self.repeats_revoked(&found.global_from_local)
+                && !self.overrules_revocation(answer.weakest_z))
+        {
+            return Vec::new();
+        }
+        let z = search.contest(
+            self.cloud.make_contiguous(),
+            &found.global_from_local,
+            &[placement.global_from_local],
+        );
+        if !z.is_some_and(|z| z >= self.options.probation_min_z) {
+            return Vec::new();
+        }
+        let mut events = self.revoke(placement, RevokeReason::Rival, node);
+        let replacement = StartPlacement {
+            global_from_local: found.global_from_local,
+            node,
+            score: Some(found.score),
+            weakest_z: answer.weakest_z,
+            fit: answer.fit,
+        };
+        self.rivals = answer.rivals;
+        self.rivals.push(placement.global_from_local);
+        self.candidates.clear();
+        events.push(SessionStartEvent::Placed(replacement));
+        events.extend(self.place(replacement, node));
+        events
     }
 
     /// Tests `placement` against its search's rivals with the session's cloud (`probation_min_z`), at

@@ -233,10 +233,15 @@ fn independent_disagreeing_matches_revoke_a_placement_and_searching_resumes() {
 }
 
 /// A session that truly started at `truth` in the room, on probation at `placed` with its search's
-/// `rivals`, after 12 nodes.
+/// `rivals`, after 12 nodes. (Without the searches made while a placement misfits, which would replace
+/// a wrong one before the matches come: this is about the test the matches bring.)
 fn contested(placed: Rigid2, rivals: Vec<Rigid2>, truth: Rigid2) -> SessionStart {
+    let options = SessionStartOptions {
+        search_while_unconfirmed: false,
+        ..options()
+    };
     let (mut start, _) =
-        SessionStart::with_placement(options(), Some(room_search()), placed, 0).unwrap();
+        SessionStart::with_placement(options, Some(room_search()), placed, 0).unwrap();
     start.rivals = rivals;
     for k in 0..12 {
         assert!(
@@ -547,4 +552,51 @@ fn a_dock_check_at_or_after_the_hold_back_searches_at_once_when_refused() {
         ),
         "{events:?}"
     );
+}
+
+/// A session placed at `placed` (node 0) while the robot creeps along +x in the room from `truth`: the
+/// events of its next 12 nodes.
+fn creeping_from(
+    options: SessionStartOptions,
+    truth: Rigid2,
+    placed: Rigid2,
+) -> Vec<SessionStartEvent> {
+    let (mut start, events) =
+        SessionStart::with_placement(options, Some(room_search()), placed, 0).unwrap();
+    assert!(events.is_empty(), "{events:?}");
+    (0..12)
+        .flat_map(|k| {
+            let world = truth * rigid2(0.05 * f64::from(k), 0.0, 0.0);
+            start.add_node(truth.inverse() * world, room_scan(&world))
+        })
+        .collect()
+}
+
+#[test]
+fn an_unconfirmed_wrong_placement_is_replaced_by_what_the_route_fits() {
+    let truth = rigid2(2.7, 2.2, 0.4);
+    let wrong = rigid2(4.0, 1.0, 2.0);
+    let asked = options();
+    let events = creeping_from(asked.clone(), truth, wrong);
+    let [
+        SessionStartEvent::Revoked {
+            reason: RevokeReason::Rival,
+            node: 4,
+            ..
+        },
+        SessionStartEvent::Placed(replacement),
+    ] = events[..]
+    else {
+        panic!("replaced at the first search due (node 4): {events:?}");
+    };
+    let error =
+        (replacement.global_from_local.translation.vector - truth.translation.vector).norm();
+    assert!(error < 0.05, "replaced {error} m off");
+    // Off, nothing but matches can undo it; and a right placement is left alone.
+    let off = SessionStartOptions {
+        search_while_unconfirmed: false,
+        ..options()
+    };
+    assert!(creeping_from(off, truth, wrong).is_empty());
+    assert!(creeping_from(asked, truth, truth).is_empty());
 }
