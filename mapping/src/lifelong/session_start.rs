@@ -57,7 +57,10 @@ use std::collections::VecDeque;
 use nalgebra::Point2;
 use serde::Deserialize;
 
-use super::{LifelongOptionsError, PriorCheck, RelocalizationOutcome, StartAnswer, StartSearch};
+use super::{
+    LifelongOptionsError, PriorCheck, RelocalizationOutcome, SessionRelocalization, StartAnswer,
+    StartSearch,
+};
 use crate::geometry::{Rigid2, Rigid2Ext as _, normalize_angle};
 use crate::pose_graph::SubmapId;
 
@@ -620,17 +623,11 @@ impl SessionStart {
         let RelocalizationOutcome::Found(found) = answer.outcome else {
             return Vec::new();
         };
-        let Some(&(local, _)) = self.nodes.last() else {
-            return Vec::new();
-        };
-        let (here, there) = (
-            placement.global_from_local * local,
-            found.global_from_local * local,
+        let same_place = self.same_place(
+            &placement.global_from_local,
+            &found.global_from_local,
+            self.options.agreement_translation_m,
         );
-        let same_place = (here.translation.vector - there.translation.vector).norm()
-            <= self.options.agreement_translation_m
-            && normalize_angle(here.theta() - there.theta()).abs()
-                <= self.options.agreement_rotation_rad;
         if same_place
             || (self.repeats_revoked(&found.global_from_local)
                 && !self.overrules_revocation(answer.weakest_z))
@@ -646,18 +643,33 @@ impl SessionStart {
             return Vec::new();
         }
         let mut events = self.revoke(placement, RevokeReason::Rival, node);
-        let replacement = StartPlacement {
+        let mut rivals = answer.rivals;
+        rivals.push(placement.global_from_local);
+        events.extend(self.place_answer(&found, answer.weakest_z, answer.fit, rivals, node));
+        events
+    }
+
+    /// Places the session on probation at a search's answer `found`, decided at `node`, with the
+    /// search's other candidates as its `rivals`: the `Placed` event and what placing decides.
+    fn place_answer(
+        &mut self,
+        found: &SessionRelocalization,
+        weakest_z: Option<f64>,
+        fit: Option<f32>,
+        rivals: Vec<Rigid2>,
+        node: usize,
+    ) -> Vec<SessionStartEvent> {
+        let placement = StartPlacement {
             global_from_local: found.global_from_local,
             node,
             score: Some(found.score),
-            weakest_z: answer.weakest_z,
-            fit: answer.fit,
+            weakest_z,
+            fit,
         };
-        self.rivals = answer.rivals;
-        self.rivals.push(placement.global_from_local);
+        self.rivals = rivals;
         self.candidates.clear();
-        events.push(SessionStartEvent::Placed(replacement));
-        events.extend(self.place(replacement, node));
+        let mut events = vec![SessionStartEvent::Placed(placement)];
+        events.extend(self.place(placement, node));
         events
     }
 
@@ -763,18 +775,7 @@ impl SessionStart {
                 if !self.repeats_revoked(&found.global_from_local)
                     || self.overrules_revocation(answer.weakest_z) =>
             {
-                let placement = StartPlacement {
-                    global_from_local: found.global_from_local,
-                    node,
-                    score: Some(found.score),
-                    weakest_z: answer.weakest_z,
-                    fit: answer.fit,
-                };
-                self.rivals = answer.rivals;
-                self.candidates.clear();
-                let mut events = vec![SessionStartEvent::Placed(placement)];
-                events.extend(self.place(placement, node));
-                events
+                self.place_answer(&found, answer.weakest_z, answer.fit, answer.rivals, node)
             }
             outcome => {
                 // A revoked placement is no candidate: the recheck would bring it back every time.
@@ -879,17 +880,21 @@ impl SessionStart {
     /// Whether `global_from_local` puts the latest node within `revoked_radius_m` and
     /// `agreement_rotation_rad` of where a revoked placement put it.
     fn repeats_revoked(&self, global_from_local: &Rigid2) -> bool {
+        self.revoked.iter().any(|revoked| {
+            self.same_place(global_from_local, revoked, self.options.revoked_radius_m)
+        })
+    }
+
+    /// Whether two placements (`global_from_local`) put the latest node within `radius_m` and
+    /// `agreement_rotation_rad` of each other.
+    fn same_place(&self, a: &Rigid2, b: &Rigid2, radius_m: f64) -> bool {
         let Some(&(local, _)) = self.nodes.last() else {
             return false;
         };
-        let here = global_from_local * local;
-        self.revoked.iter().any(|revoked| {
-            let there = revoked * local;
-            (here.translation.vector - there.translation.vector).norm()
-                <= self.options.revoked_radius_m
-                && normalize_angle(here.theta() - there.theta()).abs()
-                    <= self.options.agreement_rotation_rad
-        })
+        let (here, there) = (a * local, b * local);
+        (here.translation.vector - there.translation.vector).norm() <= radius_m
+            && normalize_angle(here.theta() - there.theta()).abs()
+                <= self.options.agreement_rotation_rad
     }
 }
 

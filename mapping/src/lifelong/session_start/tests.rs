@@ -476,10 +476,17 @@ fn from_dock(dock: Rigid2, truth: Rigid2) -> Vec<Vec<SessionStartEvent>> {
     let mut start = SessionStart::from_dock(options, Some(room_search()), dock).unwrap();
     (0..3)
         .map(|k| {
-            let world = truth * rigid2(0.05 * f64::from(k), 0.0, 0.0);
-            start.add_node(truth.inverse() * world, room_scan(&world))
+            let (local_pose, points) = creeping(truth, k);
+            start.add_node(local_pose, points)
         })
         .collect()
+}
+
+/// Node `k` of a robot creeping 5 cm a node along +x in the room from `truth`, where its LLO frame
+/// starts: `local_from_tracking` and the scan's points.
+fn creeping(truth: Rigid2, k: u32) -> (Rigid2, Vec<Point2<f32>>) {
+    let world = truth * rigid2(0.05 * f64::from(k), 0.0, 0.0);
+    (truth.inverse() * world, room_scan(&world))
 }
 
 #[test]
@@ -566,8 +573,8 @@ fn creeping_from(
     assert!(events.is_empty(), "{events:?}");
     (0..12)
         .flat_map(|k| {
-            let world = truth * rigid2(0.05 * f64::from(k), 0.0, 0.0);
-            start.add_node(truth.inverse() * world, room_scan(&world))
+            let (local_pose, points) = creeping(truth, k);
+            start.add_node(local_pose, points)
         })
         .collect()
 }
