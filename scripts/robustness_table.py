@@ -4,7 +4,7 @@
 Each cell: mean translational relation error (m), and in brackets the largest relation error (m) and
 the number of relations torn (over 0.3 m or 3 degrees). A cell is marked ✘ where it breaks a bound of
 issue 32: a relation over 1 m; a mean over 0.10 m (hard: 0.15 m); for a mild variant, a mean over twice
-the clean run's. `slow` (scans at least 0.7 s apart) is scored on the scans the engine had
+the clean run's. `slow` (scans at least 0.7 s apart) and `thin` (`sparse` + `slow`) are scored on the scans the engine had
 (`relations_at_scans` of report.json: relations whose two stamps both have a scan), since at the stamps it
 has no scan for, the interpolated pose's own error is a floor no engine goes below; the cell names the
 relations scored.  Usage: robustness_table.py OUT_DIR
@@ -14,7 +14,8 @@ import sys
 from pathlib import Path
 
 MILD = {"range8", "sparse", "odom", "slow", "clutter", "late", "noise", "stall"}
-ORDER = ["clean", "range8", "range4", "sparse", "odom", "slip", "slow", "clutter", "late", "noise", "stall", "hard"]
+ORDER = ["clean", "range8", "range4", "sparse", "odom", "slip", "slow", "clutter", "late", "noise", "stall", "hard", "thin"]
+AT_SCANS = {"slow", "thin"}
 
 
 def main() -> int:
@@ -40,7 +41,7 @@ def main() -> int:
             if rep is None:
                 cells.append("")
                 continue
-            at_scans = v == "slow" and rep.get("relations_at_scans") is not None
+            at_scans = v in AT_SCANS and rep.get("relations_at_scans") is not None
             rel = rep["relations_at_scans"] if at_scans else rep["relations"]
             mean, worst, torn = rel["trans_abs_mean_m"], rel["trans_abs_max_m"], rel["torn"]
             bound = 0.15 if v == "hard" else 0.10

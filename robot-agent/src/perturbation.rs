@@ -21,6 +21,7 @@
 //! | `noise` | Gaussian range noise, σ = 3 cm (a low-cost scanner) |
 //! | `stall` | odometry stalls for 0.4–1.0 s every 20–60 m of driving: readings repeat the last pose, then one carries the backlog |
 //! | `hard` | `range4` + `slip` + `clutter` + `slow` |
+//! | `thin` | `sparse` + `slow`: a low-cost scanner, few beams at a low rate (90 beams at 2° and 1.4 scans/s on Intel) |
 
 use mapping::geometry::{Rigid2, Rigid2Ext as _, rigid2};
 use mapping::sensor::{LaserScan, OdometryReading, SensorEvent, Timestamp};
@@ -33,7 +34,7 @@ use crate::source::Recording;
 /// Every variant name [`Perturbation::parse`] knows, in the suite's order.
 pub const VARIANTS: &[&str] = &[
     "clean", "range8", "range4", "sparse", "odom", "slip", "slow", "clutter", "late", "noise",
-    "stall", "hard",
+    "stall", "hard", "thin",
 ];
 
 /// Odometry that is wrong the way wheel odometry is: a scale error, a heading drift with distance, and
@@ -122,6 +123,8 @@ pub struct PerturbationReport {
     pub odometry_out: usize,
     /// Slips injected.
     pub slips: usize,
+    /// When each slip happened: the stamp (seconds) of the odometry reading that missed it.
+    pub slip_stamps_s: Vec<f64>,
     /// Odometry stalls injected.
     pub stalls: usize,
     /// Odometry readings that repeated a stalled pose.
@@ -184,6 +187,11 @@ impl Perturbation {
                     self.add(part)?;
                 }
             }
+            "thin" => {
+                for part in ["sparse", "slow"] {
+                    self.add(part)?;
+                }
+            }
             other => return Err(UnknownPerturbation(other.to_owned())),
         }
         Ok(())
@@ -220,7 +228,8 @@ impl Perturbation {
             });
         }
         if self.odometry.is_some() || self.slips.is_some() {
-            report.slips = self.perturb_odometry(&mut events, &mut rng(1), &mut rng(2));
+            report.slip_stamps_s = self.perturb_odometry(&mut events, &mut rng(1), &mut rng(2));
+            report.slips = report.slip_stamps_s.len();
         }
         if let Some(stalls) = self.stalls {
             (report.stalls, report.stalled_readings) =
@@ -250,13 +259,13 @@ impl Perturbation {
 
     /// Rewrites the odometry poses step by step: each step as recorded, then scaled, drifted and
     /// noised, and at a slip composed with the slip's inverse (the robot moved by the slip, the wheels
-    /// did not report it). Returns the number of slips.
+    /// did not report it). Returns the stamps (seconds) of the slips.
     fn perturb_odometry(
         &self,
         events: &mut [SensorEvent],
         error_rng: &mut Pcg64,
         slip_rng: &mut Pcg64,
-    ) -> usize {
+    ) -> Vec<f64> {
         let unit = Normal::new(0.0, 1.0).expect("unit normal");
         let draw_slip_gap = |rng: &mut Pcg64| {
             self.slips.map_or(f64::INFINITY, |s| {
@@ -265,10 +274,10 @@ impl Perturbation {
         };
         let mut next_slip_m = draw_slip_gap(slip_rng);
         let mut driven_m = 0.0;
-        let mut slips = 0;
+        let mut slips = Vec::new();
         let mut previous: Option<(Rigid2, Rigid2)> = None; // (recorded, perturbed)
         for event in events.iter_mut() {
-            let SensorEvent::Odometry(OdometryReading { pose, .. }) = event else {
+            let SensorEvent::Odometry(OdometryReading { pose, time }) = event else {
                 continue;
             };
             let recorded = *pose;
@@ -298,7 +307,7 @@ impl Perturbation {
                 let turn = sign * slip_rng.random_range(s.rotation_rad.0..=s.rotation_rad.1);
                 let slip = rigid2(size * direction.cos(), size * direction.sin(), turn);
                 step *= slip.inverse();
-                slips += 1;
+                slips.push(time.as_secs_f64());
                 driven_m = 0.0;
                 next_slip_m = draw_slip_gap(slip_rng);
             }
@@ -484,6 +493,10 @@ mod tests {
             hard,
             Perturbation::parse("range4,slip,clutter,slow").unwrap()
         );
+        assert_eq!(
+            Perturbation::parse("thin").unwrap(),
+            Perturbation::parse("sparse,slow").unwrap()
+        );
         let error = Perturbation::parse("range4,wet").unwrap_err();
         assert!(error.to_string().contains("`wet`"), "{error}");
     }
@@ -539,6 +552,16 @@ mod tests {
         let (slipped, report) = Perturbation::parse("slip").unwrap().apply(&recording, 3);
         // One slip every 20–60 m: between 8 and 25 in 500 m.
         assert!((8..=25).contains(&report.slips), "{} slips", report.slips);
+        // Each slip is reported with its stamp: 20–60 m apart is 20–60 s at 1 m/s.
+        assert_eq!(report.slip_stamps_s.len(), report.slips);
+        assert!(
+            report
+                .slip_stamps_s
+                .windows(2)
+                .all(|w| (19.9..=60.1).contains(&(w[1] - w[0]))),
+            "{:?}",
+            report.slip_stamps_s
+        );
         // Between slips the odometry moves exactly as recorded.
         let steps: Vec<Rigid2> = slipped
             .events
