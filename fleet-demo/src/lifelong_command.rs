@@ -102,6 +102,8 @@ struct SessionRow {
     /// Levenberg-Marquardt steps of every optimization `pgr_ms` covers.
     pgr_iterations: usize,
     peak_rss_mb: Option<f64>,
+    /// Resident memory when the session ended, MB (the peak never falls; this does).
+    rss_mb: Option<f64>,
     /// Scans LLO matched.
     scans: usize,
     closures: usize,
@@ -222,6 +224,7 @@ impl Reporter<'_> {
             pgr_cpu_ms: s.finish_cpu_ms,
             pgr_iterations: s.finish_iterations(),
             peak_rss_mb: s.peak_rss_mb,
+            rss_mb: s.rss_mb,
             scans: end.record.smoothed.len(),
             closures: s.closures,
             cross_session_closures: s.cross_session_closures,

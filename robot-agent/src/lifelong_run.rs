@@ -247,6 +247,9 @@ pub struct SessionSummary {
     pub relocalized_first_pose: Option<[f64; 3]>,
     /// Peak resident memory of the process when the session ended, MB (Linux only).
     pub peak_rss_mb: Option<f64>,
+    /// Resident memory of the process when the session ended, MB (Linux only): unlike the peak, it
+    /// falls when memory is given back, so a trend over sessions shows in it.
+    pub rss_mb: Option<f64>,
 }
 
 /// One session's sensor data.
@@ -896,6 +899,7 @@ fn worker(
                         .collect();
                     summary.relocalization_offset_m = offset;
                     summary.peak_rss_mb = crate::process_stats::peak_rss_mb();
+                    summary.rss_mb = crate::process_stats::current_rss_mb();
                 }
                 probes.add_ended_session(&scans, &node_local);
                 if let (Some(summary), Some(record)) = (sessions.last(), records.last_mut()) {
