@@ -6,7 +6,7 @@
 //! results back to [`super::GlobalSlam::add_search_results`].
 
 use std::collections::BTreeMap;
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 
 use nalgebra::{Matrix2, Matrix3, Point2};
 use serde::Deserialize;
@@ -349,7 +349,9 @@ pub struct SearchJob {
 struct SubmapMatcher {
     local_from_submap: Rigid2,
     grid: Arc<ProbabilityGrid>,
-    matcher: FastCorrelativeScanMatcher,
+    /// The branch-and-bound grids, built at the submap's first search: a site restored to answer a
+    /// query, or a submap no node comes near, never pays for them.
+    matcher: OnceLock<FastCorrelativeScanMatcher>,
 }
 
 /// Branch-and-bound matchers of the finished submaps, and the search itself. `Sync`: jobs can run in
@@ -376,21 +378,20 @@ impl ConstraintBuilder {
         &self.options
     }
 
-    /// Precomputes the branch-and-bound grids of a finished submap. `grid` is in the submap's trajectory
-    /// local frame; `local_from_submap` is the submap's local pose.
+    /// Adds a finished submap to match against; its branch-and-bound grids are built at its first search.
+    /// `grid` is in the submap's trajectory local frame; `local_from_submap` is the submap's local pose.
     pub fn add_finished_submap(
         &mut self,
         id: SubmapId,
         local_from_submap: Rigid2,
         grid: Arc<ProbabilityGrid>,
     ) {
-        let matcher = FastCorrelativeScanMatcher::new(&grid, self.options.fast_correlative.clone());
         self.matchers.insert(
             id,
             SubmapMatcher {
                 local_from_submap,
                 grid,
-                matcher,
+                matcher: OnceLock::new(),
             },
         );
     }
@@ -409,6 +410,9 @@ impl ConstraintBuilder {
     /// peak scores within `min_score_margin` of the best.
     pub fn run(&self, job: &SearchJob) -> Option<LoopClosure> {
         let entry = self.matchers.get(&job.submap)?;
+        let matcher = entry.matcher.get_or_init(|| {
+            FastCorrelativeScanMatcher::new(&entry.grid, self.options.fast_correlative.clone())
+        });
         let default_window = SearchWindow {
             linear_m: self.options.fast_correlative.linear_search_window,
             angular_rad: self.options.fast_correlative.angular_search_window,
@@ -417,7 +421,7 @@ impl ConstraintBuilder {
         // First the best pose alone (most searches find nothing and stop here, pruned as hard as one
         // search can be), then, for a match, its rivals: other peaks within `RUNNER_UP_RANGE` of it.
         let search = |min_score: f32, count: usize| match &job.submap_from_node_estimate {
-            Some(estimate) => entry.matcher.match_within_candidates(
+            Some(estimate) => matcher.match_within_candidates(
                 &(entry.local_from_submap * estimate),
                 &job.points,
                 min_score,
@@ -425,11 +429,7 @@ impl ConstraintBuilder {
                 window.angular_rad.min(std::f64::consts::PI),
                 count,
             ),
-            None => {
-                entry
-                    .matcher
-                    .match_full_candidates(&job.points, min_score, count, f32::INFINITY)
-            }
+            None => matcher.match_full_candidates(&job.points, min_score, count, f32::INFINITY),
         };
         let min_score = if job.submap_from_node_estimate.is_some() {
             self.options.min_score
