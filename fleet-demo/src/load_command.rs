@@ -117,7 +117,8 @@ pub struct LoadArgs {
     /// measured; default 0): the sites start the soak with the map a store has after that many
     /// cleaning days instead of a fresh one. A fresh site's map grows until the fresh submaps over its
     /// routes form one layer (here about 4 sessions of 300 s per site; about a dozen of 120 s in the
-    /// lifelong experiment); a server in production mostly holds sites past that.
+    /// lifelong experiment); a server in production mostly holds sites past that. At most 100 (issue 34's
+    /// site age).
     #[arg(long, default_value_t = 0)]
     mature_sessions: usize,
     /// Run the server without site checkpoints (`[checkpoints] enabled = false`): the store keeps its
@@ -214,8 +215,8 @@ pub fn run(args: &LoadArgs) -> anyhow::Result<()> {
         "--mapping-duration-s must be at least 30"
     );
     anyhow::ensure!(
-        args.mature_sessions <= 50,
-        "--mature-sessions must be at most 50"
+        args.mature_sessions <= 100,
+        "--mature-sessions must be at most 100"
     );
     block_on(load(args))
 }

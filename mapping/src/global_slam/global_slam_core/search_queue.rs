@@ -1,0 +1,148 @@
+//! Which loop-closure searches GLM queues: each new node against the finished submaps near its estimate
+//! (sampled), each newly finished submap against the nodes near it, and the search window, grown by the
+//! drift LLO may have accumulated since the trajectory last closed a loop.
+
+use std::sync::Arc;
+
+use super::{GlobalSlam, NodeRecord, SubmapRecord};
+use crate::global_slam::{ConstraintBuilder, FixedRatioSampler, SearchJob, SearchWindow};
+use crate::pose_graph::{NodeId, SubmapId, VariableId};
+
+impl GlobalSlam {
+    /// The loop-closure searches queued since the last call. Run them with
+    /// [`ConstraintBuilder::run`] (from [`Self::constraint_builder`], in parallel if you like) and hand
+    /// the accepted ones to [`Self::add_search_results`].
+    pub fn take_search_jobs(&mut self) -> Vec<SearchJob> {
+        std::mem::take(&mut self.pending_jobs)
+    }
+
+    /// The matcher that runs search jobs.
+    pub fn constraint_builder(&self) -> &ConstraintBuilder {
+        &self.builder
+    }
+
+    pub(super) fn queue_searches_for_node(&mut self, node: NodeId) {
+        let finished: Vec<SubmapId> = self
+            .submaps
+            .iter()
+            .filter(|(_, s)| s.grid.is_some())
+            .map(|(id, _)| *id)
+            .collect();
+        for sid in finished {
+            self.maybe_queue_search(node, sid);
+        }
+    }
+
+    pub(super) fn maybe_queue_search(&mut self, node: NodeId, sid: SubmapId) {
+        let (Some(record), Some(submap)) = (self.nodes.get(&node), self.submaps.get(&sid)) else {
+            return;
+        };
+        if record.submaps.contains(&sid) {
+            return;
+        }
+        if node.trajectory != sid.trajectory
+            && (self.matched_elsewhere.contains(&node.trajectory)
+                || self.matched_elsewhere.contains(&sid.trajectory))
+        {
+            return;
+        }
+        if node.trajectory != sid.trajectory
+            && (self.unanchored.contains(&node.trajectory)
+                || self.unanchored.contains(&sid.trajectory))
+        {
+            // Estimates of an unanchored trajectory mean nothing in the map frame: match its nodes
+            // against whole submaps of placed trajectories, now and then, until one match places it.
+            let every = self.options.unanchored_search_every_n_nodes;
+            if self.unanchored.contains(&sid.trajectory)
+                || every == 0
+                || !(node.index as usize).is_multiple_of(every)
+            {
+                return;
+            }
+            self.searches_queued += 1;
+            self.pending_jobs.push(SearchJob {
+                submap: sid,
+                node,
+                points: Arc::clone(&record.points),
+                submap_from_node_estimate: None,
+                window: None,
+            });
+            return;
+        }
+        let window = self.search_window(node, record, sid, submap);
+        let cb = &self.options.constraint_builder;
+        let growth = window.linear_m - cb.fast_correlative.linear_search_window;
+        let (Some(global_node), Some(global_submap)) = (
+            self.graph.pose(VariableId::Node(node)),
+            self.graph.pose(VariableId::Submap(sid)),
+        ) else {
+            return;
+        };
+        let submap_from_node = global_submap.inverse() * global_node;
+        if submap_from_node.translation.vector.norm() > cb.max_constraint_distance + growth {
+            return;
+        }
+        debug_assert!(submap.grid.is_some());
+        if !self
+            .samplers
+            .get_mut(&sid)
+            .is_some_and(FixedRatioSampler::pulse)
+        {
+            return;
+        }
+        self.searches_queued += 1;
+        self.pending_jobs.push(SearchJob {
+            submap: sid,
+            node,
+            points: Arc::clone(&record.points),
+            submap_from_node_estimate: Some(submap_from_node),
+            window: Some(window),
+        });
+    }
+
+    /// The search window for `node` against `submap`: the default one grown by the drift LLO may have
+    /// accumulated over the path since the node's trajectory last closed a loop (or, within one
+    /// trajectory, over the path between the submap and the node, if shorter).
+    pub(super) fn search_window(
+        &self,
+        node: NodeId,
+        record: &NodeRecord,
+        sid: SubmapId,
+        submap: &SubmapRecord,
+    ) -> SearchWindow {
+        let cb = &self.options.constraint_builder;
+        let drift_path = self.drift_path(node, record, sid, submap);
+        let base = &cb.fast_correlative;
+        SearchWindow {
+            linear_m: (base.linear_search_window + cb.linear_window_growth * drift_path)
+                .min(cb.max_linear_search_window.max(base.linear_search_window)),
+            angular_rad: (base.angular_search_window + cb.angular_window_growth * drift_path)
+                .min(std::f64::consts::PI),
+        }
+    }
+
+    /// The path (m) over which LLO's drift separates `node`'s estimate from `submap`'s: the path since the
+    /// node's trajectory last closed a loop or, within one trajectory, the path between the submap and the
+    /// node, if shorter.
+    pub(super) fn drift_path(
+        &self,
+        node: NodeId,
+        record: &NodeRecord,
+        sid: SubmapId,
+        submap: &SubmapRecord,
+    ) -> f64 {
+        let since_loop = record.path_m
+            - self
+                .last_loop_path
+                .get(&node.trajectory)
+                .copied()
+                .unwrap_or(0.0);
+        let mut drift_path = since_loop.max(0.0);
+        if sid.trajectory == node.trajectory
+            && let Some(first) = submap.nodes.first().and_then(|n| self.nodes.get(n))
+        {
+            drift_path = drift_path.min((record.path_m - first.path_m).abs());
+        }
+        drift_path
+    }
+}
