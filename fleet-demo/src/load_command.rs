@@ -32,6 +32,7 @@
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -62,6 +63,7 @@ use crate::command_runtime::{block_on, recreate_dir};
 use crate::demo_command::MAX_MESSAGE_BYTES;
 use crate::memory_attribution::MemoryAttribution;
 use crate::minute_figures::{self, MinuteInputs, MinuteSample};
+use crate::site_growth::{site_growth_until, site_sizes};
 
 /// Nodes per upload batch (a batch holding a finished submap goes at once).
 const NODES_PER_BATCH: usize = 10;
@@ -181,7 +183,7 @@ impl StreamOutcome {
     }
 }
 
-fn site_id(s: usize) -> String {
+pub(crate) fn site_id(s: usize) -> String {
     format!("store-{}", s + 1)
 }
 
@@ -473,6 +475,7 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
     );
 
     // 2b. Not measured: the sites mature.
+    let mut maturing_growth = Vec::new();
     if args.mature_sessions > 0 {
         let maturing_started = Instant::now();
         eprintln!(
@@ -480,6 +483,7 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
             args.mature_sessions
         );
         let mut streams = Vec::new();
+        let maturing_done = AtomicBool::new(false);
         for (robot, sessions) in robots.iter().zip(maturing) {
             let (uplink, site, id) = (robot.uplink.clone(), robot.site, robot.id.clone());
             let glm_on_server = args.glm_on_server;
@@ -501,14 +505,28 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
                 anyhow::Ok(left)
             }));
         }
-        for stream in streams {
-            let left = stream.await.context("robot task")??;
-            anyhow::ensure!(
-                left == 0,
-                "a maturing session could not deliver everything ({left} batches left)"
-            );
-        }
+        let streamed = async {
+            let result = async {
+                for stream in streams {
+                    let left = stream.await.context("robot task")??;
+                    anyhow::ensure!(
+                        left == 0,
+                        "a maturing session could not deliver everything ({left} batches left)"
+                    );
+                }
+                anyhow::Ok(())
+            }
+            .await;
+            maturing_done.store(true, Ordering::Relaxed);
+            result
+        };
+        let growth = site_growth_until(&server, args.sites, store.path(), &maturing_done);
+        let (streamed, growth) = tokio::join!(streamed, growth);
+        streamed?;
         wait_caught_up(&server, &robots, args.sites).await;
+        maturing_growth = growth;
+        maturing_growth
+            .extend((0..args.sites).filter_map(|s| site_sizes(&server, s, store.path())));
         eprintln!(
             "  matured in {:.0} s; site sessions {:?}",
             maturing_started.elapsed().as_secs_f64(),
@@ -812,6 +830,7 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
         "resync_after_offline": resync,
         "per_minute_of_robot_time": per_minute,
         "sites_final": sites,
+        "maturing_growth": maturing_growth,
         "robot_data_s": data_seconds,
         "wall_time_s": started.elapsed().as_secs_f64(),
     });

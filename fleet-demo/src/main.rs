@@ -11,6 +11,7 @@ mod load_command;
 mod memory_attribution;
 mod minute_figures;
 mod simulate_command;
+mod site_growth;
 
 use clap::{Parser, Subcommand};
 use peak_alloc::PeakAlloc;

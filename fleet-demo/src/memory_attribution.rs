@@ -153,7 +153,7 @@ fn grid_mb<'a>(grids: impl Iterator<Item = &'a Arc<ProbabilityGrid>>) -> f64 {
 }
 
 /// Bytes of the files under `dir`, `depth` folders deep at most (0 when unreadable).
-fn folder_bytes(dir: &Path, depth: usize) -> u64 {
+pub(crate) fn folder_bytes(dir: &Path, depth: usize) -> u64 {
     let Ok(entries) = std::fs::read_dir(dir) else {
         return 0;
     };

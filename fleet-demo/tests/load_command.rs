@@ -48,6 +48,16 @@ fn the_load_benchmark_streams_everything_and_reports_it() {
         report["sites_final"]["store-1"]["sessions"].as_u64(),
         Some(7)
     );
+    // The maturing phase's growth: a sample each time the site's session count went up, and one at its
+    // end (the mapping session and both robots' maturing sessions).
+    let growth = report["maturing_growth"].as_array().expect("growth");
+    let last = growth.last().expect("a sample at the end of maturing");
+    assert_eq!(last["sessions"].as_u64(), Some(3), "{growth:?}");
+    assert!(last["nodes"].as_u64().expect("nodes") > 0, "{last}");
+    assert!(
+        last["store_disk_mb"].as_f64().expect("disk") > 0.0,
+        "{last}"
+    );
     // A row per minute of robot time, each with the memory at its end and the batches of that minute.
     let minutes = report["per_minute_of_robot_time"]["minutes"]
         .as_array()

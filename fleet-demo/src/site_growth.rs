@@ -1,0 +1,58 @@
+//! How a site grows with its age while the load benchmark matures it (`maturing_growth` in the load
+//! report, issue 34): its sessions, graph and the store's bytes on disk, sampled each time its session
+//! count goes up.
+
+use std::path::Path;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Duration;
+
+use serde_json::json;
+use server::RunningServer;
+
+use crate::load_command::site_id;
+use crate::memory_attribution::folder_bytes;
+
+/// A site's sizes now (`None` for a site the server does not hold): its sessions, graph and the whole
+/// store's bytes on disk, for the maturing phase's growth (`maturing_growth` in the report).
+pub(crate) fn site_sizes(
+    server: &RunningServer,
+    site: usize,
+    store_dir: &Path,
+) -> Option<serde_json::Value> {
+    let counts = server.site(&site_id(site))?.current().counts;
+    Some(json!({
+        "site": site_id(site),
+        "sessions": counts.sessions,
+        "nodes": counts.nodes,
+        "submaps": counts.submaps,
+        "finished_submaps": counts.finished_submaps,
+        "constraints": counts.constraints,
+        "trimmed_submaps": counts.trimmed_submaps,
+        "store_disk_mb": folder_bytes(store_dir, 4) as f64 / (1024.0 * 1024.0),
+    }))
+}
+
+/// Samples every site's sizes each time its session count goes up, until `done`: how a site grows with
+/// its age while it matures (issue 34).
+pub(crate) async fn site_growth_until(
+    server: &RunningServer,
+    sites: usize,
+    store_dir: &Path,
+    done: &AtomicBool,
+) -> Vec<serde_json::Value> {
+    let mut samples = Vec::new();
+    let mut seen = vec![0u64; sites];
+    while !done.load(Ordering::Relaxed) {
+        for (site, seen) in seen.iter_mut().enumerate() {
+            let sessions = server
+                .site(&site_id(site))
+                .map_or(0, |h| h.current().counts.sessions);
+            if sessions > *seen {
+                *seen = sessions;
+                samples.extend(site_sizes(server, site, store_dir));
+            }
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    samples
+}
