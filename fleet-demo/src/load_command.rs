@@ -525,8 +525,9 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
         streamed?;
         wait_caught_up(&server, &robots, args.sites).await;
         maturing_growth = growth;
-        maturing_growth
-            .extend((0..args.sites).filter_map(|s| site_sizes(&server, s, store.path())));
+        for site in 0..args.sites {
+            maturing_growth.extend(site_sizes(&server, site, store.path()).await);
+        }
         eprintln!(
             "  matured in {:.0} s; site sessions {:?}",
             maturing_started.elapsed().as_secs_f64(),

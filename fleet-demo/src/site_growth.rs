@@ -14,12 +14,17 @@ use crate::memory_attribution::folder_bytes;
 
 /// A site's sizes now (`None` for a site the server does not hold): its sessions, graph and the whole
 /// store's bytes on disk, for the maturing phase's growth (`maturing_growth` in the report).
-pub(crate) fn site_sizes(
+pub(crate) async fn site_sizes(
     server: &RunningServer,
     site: usize,
     store_dir: &Path,
 ) -> Option<serde_json::Value> {
     let counts = server.site(&site_id(site))?.current().counts;
+    // Walking the store's folders is blocking file I/O: off the async threads.
+    let dir = store_dir.to_path_buf();
+    let store_bytes = tokio::task::spawn_blocking(move || folder_bytes(&dir, 4))
+        .await
+        .unwrap_or(0);
     Some(json!({
         "site": site_id(site),
         "sessions": counts.sessions,
@@ -28,7 +33,7 @@ pub(crate) fn site_sizes(
         "finished_submaps": counts.finished_submaps,
         "constraints": counts.constraints,
         "trimmed_submaps": counts.trimmed_submaps,
-        "store_disk_mb": folder_bytes(store_dir, 4) as f64 / (1024.0 * 1024.0),
+        "store_disk_mb": store_bytes as f64 / (1024.0 * 1024.0),
     }))
 }
 
@@ -49,7 +54,7 @@ pub(crate) async fn site_growth_until(
                 .map_or(0, |h| h.current().counts.sessions);
             if sessions > *seen {
                 *seen = sessions;
-                samples.extend(site_sizes(server, site, store_dir));
+                samples.extend(site_sizes(server, site, store_dir).await);
             }
         }
         tokio::time::sleep(Duration::from_millis(200)).await;

@@ -4,7 +4,10 @@
 
 use std::sync::Arc;
 
+use nalgebra::Point2;
+
 use super::{GlobalSlam, NodeRecord, SubmapRecord};
+use crate::geometry::Rigid2;
 use crate::global_slam::{ConstraintBuilder, FixedRatioSampler, SearchJob, SearchWindow};
 use crate::pose_graph::{NodeId, SubmapId, VariableId};
 
@@ -59,14 +62,8 @@ impl GlobalSlam {
             {
                 return;
             }
-            self.searches_queued += 1;
-            self.pending_jobs.push(SearchJob {
-                submap: sid,
-                node,
-                points: Arc::clone(&record.points),
-                submap_from_node_estimate: None,
-                window: None,
-            });
+            let points = Arc::clone(&record.points);
+            self.queue_search(node, sid, points, None);
             return;
         }
         let window = self.search_window(node, record, sid, submap);
@@ -90,13 +87,26 @@ impl GlobalSlam {
         {
             return;
         }
+        let points = Arc::clone(&record.points);
+        self.queue_search(node, sid, points, Some((submap_from_node, window)));
+    }
+
+    /// Queues a search of `node`'s `points` against `sid`: near the estimate `submap_from_node` within
+    /// the window, or over the whole submap (`None`).
+    fn queue_search(
+        &mut self,
+        node: NodeId,
+        sid: SubmapId,
+        points: Arc<Vec<Point2<f32>>>,
+        near: Option<(Rigid2, SearchWindow)>,
+    ) {
         self.searches_queued += 1;
         self.pending_jobs.push(SearchJob {
             submap: sid,
             node,
-            points: Arc::clone(&record.points),
-            submap_from_node_estimate: Some(submap_from_node),
-            window: Some(window),
+            points,
+            submap_from_node_estimate: near.map(|(estimate, _)| estimate),
+            window: near.map(|(_, window)| window),
         });
     }
 
