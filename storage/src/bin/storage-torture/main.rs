@@ -27,7 +27,7 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use storage::{
-    BatchOutcome, CheckpointRetention, CheckpointStep, MapStore as _, SledStore, StorageError,
+    BatchOutcome, CheckpointRetention, FileStep, MapStore as _, SledStore, StorageError,
 };
 
 type Error = Box<dyn std::error::Error>;
@@ -106,10 +106,12 @@ fn checkpoint_and_compact(
 /// the first one `pause_at` names.
 fn report_checkpoint_steps(store: &SledStore, pause_at: Option<&str>) {
     let pause_at = pause_at.map(str::to_owned);
-    store.on_checkpoint_step(move |step| {
+    store.on_file_step(move |step| {
         let (tag, index, name) = match step {
-            CheckpointStep::FileDurable { log_index } => ('F', log_index, "file-durable"),
-            CheckpointStep::IndexRemoved { log_index } => ('D', log_index, "index-removed"),
+            FileStep::CheckpointFileDurable { log_index } => ('F', log_index, "file-durable"),
+            FileStep::CheckpointIndexRemoved { log_index } => ('D', log_index, "index-removed"),
+            FileStep::ValueFilesDurable { files } => ('V', files as u64, "value-files-durable"),
+            FileStep::ValueEntriesRemoved { files } => ('U', files as u64, "value-entries-removed"),
         };
         let mut stdout = std::io::stdout().lock();
         let _ = writeln!(stdout, "{tag} {index}").and_then(|()| stdout.flush());
