@@ -774,9 +774,13 @@ mod tests {
 
     /// The files under the store's checkpoint directory, relative to it, sorted.
     fn checkpoint_files_on_disk(db: &Path) -> Vec<String> {
-        let root = db.join(CHECKPOINT_DIR);
+        files_on_disk(&db.join(CHECKPOINT_DIR))
+    }
+
+    /// The files under a directory of site directories, relative to it, sorted.
+    fn files_on_disk(root: &Path) -> Vec<String> {
         let mut names = Vec::new();
-        for site in std::fs::read_dir(&root).unwrap() {
+        for site in std::fs::read_dir(root).unwrap() {
             let site = site.unwrap();
             for file in std::fs::read_dir(site.path()).unwrap() {
                 names.push(format!(
@@ -874,6 +878,150 @@ mod tests {
             "{error}"
         );
         assert_eq!(store.checkpoint_indexes("depot").unwrap(), [2, 1]);
+    }
+
+    #[test]
+    fn large_values_live_in_files_and_sled_stays_small() {
+        let dir = tempfile::tempdir().unwrap();
+        let db = dir.path().join("db");
+        let store = SledStore::open(&SledStoreOptions::at(&db)).unwrap();
+        let entry = |index: u64| vec![index as u8; 30_000];
+        for index in 1..=200_u64 {
+            let mut batch = WriteBatch::new("Halle 7");
+            batch
+                .put(RecordKind::Trajectory, index, entry(index))
+                .put(RecordKind::SiteMeta, "summary", vec![index as u8; 300])
+                .bump_map_version();
+            store.apply_durable(&batch).unwrap();
+        }
+        let files = files_on_disk(&db.join(VALUE_DIR));
+        assert_eq!(files.len(), 200);
+        assert!(
+            files.iter().all(|file| file.starts_with("Halle%207/")
+                && Path::new(file).extension() == Some("val".as_ref())),
+            "{files:?}"
+        );
+        assert_eq!(store.value_files_bytes().unwrap(), 200 * 30_000);
+        assert_eq!(
+            store
+                .get("Halle 7", RecordKind::Trajectory, &RecordId::from(123))
+                .unwrap(),
+            Some(entry(123))
+        );
+        // 6 MB of values written, sled holds none of them: no value over a few hundred bytes, no blob.
+        let largest = store
+            .raw_db()
+            .iter()
+            .map(|item| item.unwrap().1.len())
+            .max()
+            .unwrap();
+        assert!(largest < 1024, "a {largest}-byte value in sled");
+        let blobs = std::fs::read_dir(db.join("blobs")).map_or(0, Iterator::count);
+        assert_eq!(blobs, 0, "sled wrote blobs");
+        let sled_bytes = store.size_on_disk().unwrap() - store.value_files_bytes().unwrap();
+        assert!(sled_bytes < 4 << 20, "sled's files take {sled_bytes} bytes");
+    }
+
+    #[test]
+    fn opening_removes_orphan_value_files_and_a_missing_one_reads_as_corrupt() {
+        let dir = tempfile::tempdir().unwrap();
+        let db = dir.path().join("db");
+        let options = SledStoreOptions::at(&db);
+        let value = |n: u8| vec![n; 10_000];
+        {
+            let store = SledStore::open(&options).unwrap();
+            for n in 1..=3 {
+                store
+                    .put(
+                        "depot",
+                        RecordKind::Submap,
+                        &RecordId::from(u64::from(n)),
+                        &value(n),
+                    )
+                    .unwrap();
+            }
+            store
+                .delete("depot", RecordKind::Submap, &RecordId::from(3))
+                .unwrap();
+            store.flush().unwrap();
+            // Dropped with a deletion pending: its file is left for the next open.
+            store
+                .delete("depot", RecordKind::Submap, &RecordId::from(2))
+                .unwrap();
+        }
+        let root = db.join(VALUE_DIR);
+        assert_eq!(files_on_disk(&root).len(), 2);
+        // What crashes leave: a temporary file, a file whose batch never landed, a deleted site's dir.
+        std::fs::write(root.join("depot/.x.val.7-0.tmp"), b"half").unwrap();
+        std::fs::write(root.join("depot/00000000000000ff-00000000.val"), b"?").unwrap();
+        std::fs::create_dir(root.join("gone")).unwrap();
+        std::fs::write(root.join("gone/0000000000000001-00000000.val"), b"1").unwrap();
+        let store = SledStore::open(&options).unwrap();
+        let kept = files_on_disk(&root);
+        assert_eq!(kept.len(), 1, "{kept:?}");
+        assert!(!root.join("gone").exists());
+        assert_eq!(
+            store
+                .get("depot", RecordKind::Submap, &RecordId::from(1))
+                .unwrap(),
+            Some(value(1))
+        );
+        // New files are numbered past the orphans.
+        store
+            .put("depot", RecordKind::Submap, &RecordId::from(4), &value(4))
+            .unwrap();
+        assert!(
+            files_on_disk(&root)
+                .iter()
+                .any(|file| file.starts_with("depot/0000000000000100-")),
+            "{:?}",
+            files_on_disk(&root)
+        );
+        // A file deleted behind the store's back: the record is corrupt, named by its file.
+        std::fs::remove_file(root.join(&kept[0])).unwrap();
+        let error = store
+            .get("depot", RecordKind::Submap, &RecordId::from(1))
+            .unwrap_err();
+        assert!(
+            matches!(&error, StorageError::Corrupt { reason, .. } if reason.contains(&kept[0])),
+            "{error}"
+        );
+    }
+
+    #[test]
+    fn a_store_of_an_earlier_build_opens_unchanged() {
+        let dir = tempfile::tempdir().unwrap();
+        let db = dir.path().join("db");
+        let options = SledStoreOptions::at(&db);
+        let big = vec![0x5A; 200_000];
+        {
+            // As an earlier build left it: large values inline, checkpoints in files, no value directory.
+            let store = SledStore::open(&options).unwrap();
+            let mut batch = WriteBatch::new("depot");
+            batch.bump_map_version();
+            store.apply_durable(&batch).unwrap();
+            store.put_checkpoint("depot", 1, b"state 1").unwrap();
+            let key = key::record_key("depot", RecordKind::Submap.as_byte(), &[7]);
+            store
+                .raw_db()
+                .insert(&key, crate::envelope::seal(&key, &big))
+                .unwrap();
+            store.flush().unwrap();
+        }
+        std::fs::remove_dir(db.join(VALUE_DIR)).unwrap();
+        let store = SledStore::open(&options).unwrap();
+        assert!(db.join(VALUE_DIR).is_dir());
+        assert_eq!(
+            store
+                .get("depot", RecordKind::Submap, &RecordId::new(vec![7]))
+                .unwrap(),
+            Some(big)
+        );
+        assert_eq!(
+            store.checkpoint("depot", 1).unwrap().as_deref(),
+            Some(&b"state 1"[..])
+        );
+        assert_eq!(checkpoint_files_on_disk(&db).len(), 1);
     }
 
     #[test]
