@@ -31,7 +31,8 @@
 //!
 //! Compaction ([`compact`]) keeps the newest [`CheckpointRetention::checkpoints`] checkpoints that
 //! verify and deletes older ones, then deletes the log entries up to the *oldest* retained checkpoint's
-//! position (less [`CheckpointRetention::log_entries`] kept for audit): if the newest checkpoint later
+//! position (less [`CheckpointRetention::log_entries`] kept for audit; the files of those in value files
+//! go after the flush that ends it, as `value_files` describes): if the newest checkpoint later
 //! proves unreadable, the one before it and the log after it are still there. With fewer verified
 //! checkpoints than it keeps, it deletes no log entry. Each step is its own atomic write, and every
 //! state between them is a valid store (log entries are deleted oldest first, and only ones that every
