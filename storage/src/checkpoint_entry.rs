@@ -11,8 +11,8 @@
 
 use std::path::Path;
 
-use crate::checkpoint_files::{file_name, is_file_name};
 use crate::key::{self, KIND_CHECKPOINT};
+use crate::side_files::{is_file_name, site_dir};
 use crate::{Result, StorageError};
 
 /// Format byte of the entries this build writes and reads.
@@ -40,6 +40,12 @@ fn checksum(site: &str, log_index: u64, bytes: &[u8]) -> u32 {
     ));
     hasher.update(bytes);
     hasher.finalize()
+}
+
+/// The file name of a site's checkpoint at `log_index` whose checksum is `crc` (relative to the checkpoint
+/// directory; see `side_files`).
+fn file_name(site: &str, log_index: u64, crc: u32) -> String {
+    format!("{}/{log_index:020}-{crc:08x}.ckpt", site_dir(site))
 }
 
 impl CheckpointEntry {
@@ -135,6 +141,10 @@ mod tests {
     #[test]
     fn entries_round_trip_and_malformed_ones_are_corrupt() {
         let entry = CheckpointEntry::of("depot", 7, b"state 7");
+        assert_eq!(
+            entry.file,
+            format!("depot/00000000000000000007-{:08x}.ckpt", entry.crc)
+        );
         assert_eq!(
             CheckpointEntry::decode(b"k", &entry.encode()).unwrap(),
             entry

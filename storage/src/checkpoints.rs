@@ -2,7 +2,7 @@
 //! checkpoint files like the rest of [`crate::MapStore`]'s semantics.
 //!
 //! A checkpoint is an opaque value (the caller's encoding of the site's whole state) covering the site's
-//! log up to a position. Its bytes go to a file of their own (`checkpoint_files`: sled would keep the space
+//! log up to a position. Its bytes go to a file of their own (`side_files`: sled would keep the space
 //! of every large value it ever held); the key-value store holds only its index entry (length, CRC32, file
 //! name: `checkpoint_entry`) under the position it covers, `site/checkpoint-file/<log index, u64
 //! big-endian>`. Storing the index *as the key* makes the checkpoint and the position it covers one
@@ -31,7 +31,8 @@
 //!
 //! Compaction ([`compact`]) keeps the newest [`CheckpointRetention::checkpoints`] checkpoints that
 //! verify and deletes older ones, then deletes the log entries up to the *oldest* retained checkpoint's
-//! position (less [`CheckpointRetention::log_entries`] kept for audit): if the newest checkpoint later
+//! position (less [`CheckpointRetention::log_entries`] kept for audit; the files of those in value files
+//! go after the flush that ends it, as `value_files` describes): if the newest checkpoint later
 //! proves unreadable, the one before it and the log after it are still there. With fewer verified
 //! checkpoints than it keeps, it deletes no log entry. Each step is its own atomic write, and every
 //! state between them is a valid store (log entries are deleted oldest first, and only ones that every
@@ -40,10 +41,12 @@
 use std::collections::BTreeSet;
 
 use crate::checkpoint_entry::CheckpointEntry;
-use crate::checkpoint_files::{CheckpointStep, site_dir};
 use crate::envelope;
+use crate::file_step::FileStep;
 use crate::key::{self, KIND_CHECKPOINT, KIND_CHECKPOINT_FILE, KIND_MAP_VERSION};
-use crate::raw_kv::{RawKv, site_must_be_complete};
+use crate::raw_kv::{self, RawKv, site_must_be_complete};
+use crate::side_files::site_dir;
+use crate::value_files;
 use crate::{MAX_VALUE_BYTES, RecordKind, Result, StorageError, validate_site_id};
 
 /// Log entries deleted per transaction.
@@ -149,7 +152,7 @@ fn check_position(site: &str, log_index: u64, get: &mut Get<'_>) -> Result<()> {
 /// orphan sweep at the next open decides).
 fn remove_unless_named(kv: &impl RawKv, site: &str, key: &[u8], file: &str) -> Result<()> {
     let files = kv.checkpoint_files();
-    let _lock = files.lock();
+    let _alone = files.exclusive();
     let named = match kv.raw_get(key) {
         Ok(None) => false,
         Ok(Some(stored)) => decode_entry(key, &stored).map_or(true, |entry| entry.file == file),
@@ -183,9 +186,9 @@ pub(crate) fn put_checkpoint(
     let sealed = envelope::seal(&key, &entry.encode());
     let inline = inline_key(site, log_index);
     let files = kv.checkpoint_files();
-    let lock = files.lock();
+    let lock = files.exclusive();
     files.write(site, &entry.file, checkpoint)?;
-    files.step(CheckpointStep::FileDurable { log_index });
+    kv.step(FileStep::CheckpointFileDurable { log_index });
     let stored = kv.transact(&|txn| {
         check_position(site, log_index, &mut |k| txn.get(k))?;
         let replaced = txn.get(&key)?;
@@ -202,12 +205,12 @@ pub(crate) fn put_checkpoint(
             return Err(error);
         }
     };
-    kv.raw_flush()?;
+    raw_kv::flush(kv)?;
     // A checkpoint rewritten at the same position with other bytes: the file of the one it replaced.
     if let Some(old) = replaced.and_then(|stored| decode_entry(&key, &stored).ok())
         && old.file != entry.file
     {
-        files.step(CheckpointStep::IndexRemoved { log_index });
+        kv.step(FileStep::CheckpointIndexRemoved { log_index });
         remove_unless_named(kv, site, &key, &old.file)?;
     }
     Ok(())
@@ -305,7 +308,7 @@ pub(crate) fn compact(
         kv.transact(&|txn| {
             older.iter().try_for_each(|&index| {
                 txn.remove(&entry_key(site, index))?;
-                txn.remove(&inline_key(site, index))
+                txn.remove(&inline_key(site, index)).map(drop)
             })
         })?;
         compaction.checkpoints_removed = older.len() as u64;
@@ -330,26 +333,39 @@ pub(crate) fn compact(
         if keys.is_empty() {
             break;
         }
-        kv.transact(&|txn| keys.iter().try_for_each(|key| txn.remove(key)))?;
+        // The removed entries that named value files: their files go after the flush below.
+        let removed: Vec<(&Vec<u8>, Vec<u8>)> = kv.transact(&|txn| {
+            let mut removed = Vec::new();
+            for key in &keys {
+                if let Some(old) = txn
+                    .remove(key)?
+                    .filter(|old| value_files::names_a_file(old))
+                {
+                    removed.push((key, old));
+                }
+            }
+            Ok(removed)
+        })?;
+        for (key, old) in removed {
+            kv.value_files().unname(site, key, &old);
+        }
         compaction.log_entries_removed += keys.len() as u64;
     }
     compaction.log_compacted_through = through;
-    kv.raw_flush()?;
+    raw_kv::flush(kv)?;
     // Only now that no durable entry names them: the files.
     for (log_index, key, file) in unnamed_files {
-        kv.checkpoint_files()
-            .step(CheckpointStep::IndexRemoved { log_index });
+        kv.step(FileStep::CheckpointIndexRemoved { log_index });
         remove_unless_named(kv, site, &key, &file)?;
     }
     Ok(compaction)
 }
 
-/// Deletes a site's checkpoint files once its records are gone (deleted or purged for an import): flushes
-/// first, so no durable entry names a deleted file.
+/// Deletes a site's checkpoint files once its records are gone (deleted or purged for an import) and
+/// their removal is durable (the caller flushed).
 pub(crate) fn remove_site_files(kv: &impl RawKv, site: &str) -> Result<()> {
-    kv.raw_flush()?;
     let files = kv.checkpoint_files();
-    let _lock = files.lock();
+    let _alone = files.exclusive();
     files.remove_dir(site, &site_dir(site))
 }
 
@@ -370,7 +386,7 @@ pub(crate) fn import_file(
 }
 
 /// Deletes every checkpoint file no index entry names (see the module docs); returns how many. Run when the
-/// store opens, before anything writes to it.
+/// store opens, before anything writes to it (`value_files` sweeps the value files).
 pub(crate) fn remove_orphan_files(kv: &impl RawKv) -> Result<u64> {
     let mut named = BTreeSet::new();
     for item in kv.raw_scan(&[key::NS_SITE]) {

@@ -1,23 +1,28 @@
 //! The behaviour every [`MapStore`] must show, as one generic suite that each store's tests run
 //! (`mem_store.rs`, `sled_store.rs`). `run_all` returns how many cases ran, which the callers check against
-//! [`MIN_CASES`] so the suite cannot pass by running nothing.
+//! [`MIN_CASES`] so the suite cannot pass by running nothing. The cases on large values look at the value
+//! files and damage them through the stores' private [`RawKv`] interface, which both implement.
 
 use std::collections::BTreeSet;
 use std::thread;
 
+use crate::envelope;
+use crate::key;
+use crate::raw_kv::RawKv;
+use crate::value_files;
 use crate::{
-    BatchOutcome, CheckpointRetention, MAX_ID_BYTES, MapStore, RecordId, RecordKind, StorageError,
-    WriteBatch,
+    BatchOutcome, CheckpointRetention, MAX_ID_BYTES, MAX_INLINE_VALUE_BYTES, MapStore, RecordId,
+    RecordKind, StorageError, WriteBatch,
 };
 
 /// Cases `run_all` must run.
-pub(crate) const MIN_CASES: usize = 16;
+pub(crate) const MIN_CASES: usize = 22;
 
 type Case<S> = fn(&S);
 
 /// Runs every case on a fresh store from `make`; returns the number of cases run.
-pub(crate) fn run_all<S: MapStore>(make: &dyn Fn() -> S) -> usize {
-    let cases: [(&str, Case<S>); 16] = [
+pub(crate) fn run_all<S: MapStore + RawKv>(make: &dyn Fn() -> S) -> usize {
+    let cases: [(&str, Case<S>); 22] = [
         ("put_get_overwrite_delete", put_get_overwrite_delete),
         (
             "scan_is_per_site_and_kind_in_id_order",
@@ -60,6 +65,30 @@ pub(crate) fn run_all<S: MapStore>(make: &dyn Fn() -> S) -> usize {
         (
             "export_import_carries_checkpoints",
             export_import_carries_checkpoints,
+        ),
+        (
+            "large_values_are_kept_apart_and_freed",
+            large_values_are_kept_apart_and_freed,
+        ),
+        (
+            "compaction_frees_the_files_of_large_log_entries",
+            compaction_frees_the_files_of_large_log_entries,
+        ),
+        (
+            "export_import_carries_large_values_inline",
+            export_import_carries_large_values_inline,
+        ),
+        (
+            "a_missing_or_damaged_value_file_reads_as_corrupt_naming_it",
+            a_missing_or_damaged_value_file_reads_as_corrupt_naming_it,
+        ),
+        (
+            "orphan_value_files_are_removed_at_open",
+            orphan_value_files_are_removed_at_open,
+        ),
+        (
+            "large_values_stored_inline_by_earlier_builds_still_work",
+            large_values_stored_inline_by_earlier_builds_still_work,
         ),
     ];
     let mut ran = 0;
@@ -691,4 +720,292 @@ fn export_import_carries_checkpoints(store: &impl MapStore) {
     );
     assert_eq!(log_indexes(store, "annex"), [4, 5, 6]);
     assert_eq!(store.map_version("annex").unwrap(), 6);
+}
+
+/// A value stored in a file: one byte over the inline limit plus `extra`, its bytes derived from `n`.
+fn large(n: u64, extra: usize) -> Vec<u8> {
+    (0..MAX_INLINE_VALUE_BYTES + 1 + extra)
+        .map(|i| (i as u64).wrapping_mul(n | 1).wrapping_add(n) as u8)
+        .collect()
+}
+
+/// The names of the store's value files, sorted.
+fn value_files(store: &impl RawKv) -> Vec<String> {
+    store.value_files().files().names().unwrap()
+}
+
+/// The value file the record names (it names one).
+fn value_file_of(store: &impl RawKv, site: &str, kind: RecordKind, id: &RecordId) -> String {
+    let key = key::record_key(site, kind.as_byte(), id.as_bytes());
+    let stored = store.raw_get(&key).unwrap().unwrap();
+    let envelope::Opened::Entry(payload) = envelope::open_record(&key, &stored).unwrap() else {
+        panic!("{} holds its value inline", key::describe(&key));
+    };
+    crate::value_entry::ValueEntry::decode(&key, payload)
+        .unwrap()
+        .file
+}
+
+fn large_values_are_kept_apart_and_freed(store: &(impl MapStore + RawKv)) {
+    let get = |n: u64| store.get("depot", RecordKind::Submap, &id(n)).unwrap();
+    let at_limit = vec![7; MAX_INLINE_VALUE_BYTES];
+    let mut batch = WriteBatch::new("depot");
+    batch
+        .put(RecordKind::Submap, 1, at_limit.clone())
+        .put(RecordKind::Submap, 2, large(2, 0))
+        .put(RecordKind::Submap, 3, large(3, 300_000))
+        .put(RecordKind::Submap, 4, b"small".to_vec())
+        .bump_map_version();
+    store.apply_durable(&batch).unwrap();
+    assert_eq!(get(1), Some(at_limit), "up to the limit: inline");
+    assert_eq!(get(2), Some(large(2, 0)));
+    assert_eq!(get(3), Some(large(3, 300_000)));
+    assert_eq!(value_files(store).len(), 2, "one file per large value");
+    // Scans return the values, wherever they are.
+    let scanned = scan_all(store, "depot", RecordKind::Submap);
+    assert_eq!(
+        scanned
+            .iter()
+            .map(|(_, value)| value.len())
+            .collect::<Vec<_>>(),
+        [
+            MAX_INLINE_VALUE_BYTES,
+            MAX_INLINE_VALUE_BYTES + 1,
+            MAX_INLINE_VALUE_BYTES + 300_001,
+            5
+        ]
+    );
+    assert_eq!(scanned[2].1, large(3, 300_000));
+    // Overwritten large by large, large by small, small by large; deleted: after the flush, one file
+    // per large value left.
+    let mut batch = WriteBatch::new("depot");
+    batch
+        .put(RecordKind::Submap, 2, large(20, 5))
+        .put(RecordKind::Submap, 3, b"now small".to_vec())
+        .put(RecordKind::Submap, 4, large(40, 0))
+        .put(RecordKind::Submap, 5, large(50, 0));
+    store.apply(&batch).unwrap();
+    store.delete("depot", RecordKind::Submap, &id(5)).unwrap();
+    store.flush().unwrap();
+    assert_eq!(get(2), Some(large(20, 5)));
+    assert_eq!(get(3).as_deref(), Some(&b"now small"[..]));
+    assert_eq!(get(4), Some(large(40, 0)));
+    assert_eq!(get(5), None);
+    let mut expected = vec![
+        value_file_of(store, "depot", RecordKind::Submap, &id(2)),
+        value_file_of(store, "depot", RecordKind::Submap, &id(4)),
+    ];
+    expected.sort();
+    assert_eq!(value_files(store), expected);
+    // Other sites keep theirs when a site is deleted, whose files go.
+    store
+        .put("yard", RecordKind::Node, &id(1), &large(9, 0))
+        .unwrap();
+    store.delete_site("depot").unwrap();
+    assert_eq!(
+        value_files(store),
+        [value_file_of(store, "yard", RecordKind::Node, &id(1))]
+    );
+    assert_eq!(
+        store.get("yard", RecordKind::Node, &id(1)).unwrap(),
+        Some(large(9, 0))
+    );
+}
+
+fn compaction_frees_the_files_of_large_log_entries(store: &(impl MapStore + RawKv)) {
+    // A site log of 30-kB entries, as the server writes, checkpointed every 5 entries.
+    for index in 1..=20 {
+        let mut batch = WriteBatch::new("depot");
+        batch
+            .put(RecordKind::Trajectory, index, large(index, 25_000))
+            .bump_map_version();
+        store.apply_durable(&batch).unwrap();
+        if index % 5 == 0 {
+            store
+                .put_checkpoint("depot", index, format!("state {index}").as_bytes())
+                .unwrap();
+            store
+                .compact(
+                    "depot",
+                    RecordKind::Trajectory,
+                    &CheckpointRetention::DEFAULT,
+                )
+                .unwrap();
+        }
+    }
+    // Kept: checkpoints 15 and 20, the log after 15.
+    assert_eq!(log_indexes(store, "depot"), [16, 17, 18, 19, 20]);
+    let mut expected: Vec<String> = (16..=20)
+        .map(|n| value_file_of(store, "depot", RecordKind::Trajectory, &id(n)))
+        .collect();
+    expected.sort();
+    assert_eq!(
+        value_files(store),
+        expected,
+        "the compacted entries' files are gone"
+    );
+    for (n, value) in scan_all(store, "depot", RecordKind::Trajectory) {
+        assert_eq!(value, large(n.as_u64().unwrap(), 25_000));
+    }
+}
+
+fn export_import_carries_large_values_inline(store: &(impl MapStore + RawKv)) {
+    let mut batch = WriteBatch::new("depot");
+    batch
+        .put(RecordKind::Submap, 1, large(1, 100_000))
+        .put(RecordKind::Node, 2, b"small".to_vec())
+        .bump_map_version();
+    store.apply_durable(&batch).unwrap();
+    let mut archive = Vec::new();
+    store.export_site("depot", &mut archive).unwrap();
+    // The archive holds the value's bytes themselves, not its entry.
+    assert!(
+        archive
+            .windows(64)
+            .any(|window| window == &large(1, 100_000)[1000..1064])
+    );
+    store.import_site("annex", &mut archive.as_slice()).unwrap();
+    assert_eq!(site_contents(store, "annex"), site_contents(store, "depot"));
+    assert_eq!(
+        value_files(store).len(),
+        2,
+        "imported into a file of its own"
+    );
+    let copy = value_file_of(store, "annex", RecordKind::Submap, &id(1));
+    assert!(copy.starts_with("annex/"), "{copy}");
+    // Exports of the two sites are the same records.
+    let mut again = Vec::new();
+    store.export_site("annex", &mut again).unwrap();
+    let header = 8 + 2 + 8 + 1;
+    assert_eq!(
+        again[header + "annex".len()..],
+        archive[header + "depot".len()..]
+    );
+}
+
+fn a_missing_or_damaged_value_file_reads_as_corrupt_naming_it(store: &(impl MapStore + RawKv)) {
+    let mut batch = WriteBatch::new("depot");
+    for n in 1..=3 {
+        batch.put(RecordKind::Submap, n, large(n, 10));
+    }
+    batch.bump_map_version();
+    store.apply_durable(&batch).unwrap();
+    let files = store.value_files().files();
+    let damaged = value_file_of(store, "depot", RecordKind::Submap, &id(1));
+    let mut bytes = files.read("depot", &damaged).unwrap().unwrap();
+    bytes[100] ^= 0x04;
+    files.write("depot", &damaged, &bytes).unwrap();
+    let short = value_file_of(store, "depot", RecordKind::Submap, &id(2));
+    files.write("depot", &short, &large(2, 10)[..4000]).unwrap();
+    let missing = value_file_of(store, "depot", RecordKind::Submap, &id(3));
+    files.remove("depot", &missing).unwrap();
+    for (n, file, what) in [
+        (1, &damaged, "CRC32 mismatch"),
+        (2, &short, "4000 bytes, its entry says 4107"),
+        (3, &missing, "missing"),
+    ] {
+        let error = store.get("depot", RecordKind::Submap, &id(n)).unwrap_err();
+        let message = error.to_string();
+        assert!(matches!(error, StorageError::Corrupt { .. }), "{message}");
+        assert!(
+            message.contains("depot/submap/")
+                && message.contains(file.as_str())
+                && message.contains(what),
+            "{message}"
+        );
+    }
+    // Scans report each one and go on; exports refuse.
+    let scanned: Vec<_> = store.scan("depot", RecordKind::Submap).unwrap().collect();
+    assert_eq!(scanned.len(), 3);
+    assert!(
+        scanned
+            .iter()
+            .all(|item| matches!(item, Err(StorageError::Corrupt { .. })))
+    );
+    assert!(matches!(
+        store.export_site("depot", &mut Vec::new()),
+        Err(StorageError::Corrupt { .. })
+    ));
+    // Rewritten, the record is whole again.
+    store
+        .put("depot", RecordKind::Submap, &id(3), &large(33, 0))
+        .unwrap();
+    assert_eq!(
+        store.get("depot", RecordKind::Submap, &id(3)).unwrap(),
+        Some(large(33, 0))
+    );
+}
+
+fn orphan_value_files_are_removed_at_open(store: &(impl MapStore + RawKv)) {
+    store
+        .put("depot", RecordKind::Node, &id(1), &large(1, 0))
+        .unwrap();
+    let named = value_file_of(store, "depot", RecordKind::Node, &id(1));
+    let files = store.value_files().files();
+    // What crashes leave: a file whose batch never landed, a deleted site's file.
+    files
+        .write(
+            "depot",
+            "depot/7fffffffffffffff-00000000.val",
+            b"never named",
+        )
+        .unwrap();
+    files
+        .write(
+            "gone",
+            "gone/0000000000000001-00000000.val",
+            b"deleted site",
+        )
+        .unwrap();
+    assert_eq!(value_files::remove_orphan_files(store).unwrap(), 2);
+    assert_eq!(value_files(store), [named]);
+    assert_eq!(
+        store.get("depot", RecordKind::Node, &id(1)).unwrap(),
+        Some(large(1, 0))
+    );
+    // New files are numbered past the orphans found.
+    store
+        .put("depot", RecordKind::Node, &id(2), &large(2, 0))
+        .unwrap();
+    let newer = value_file_of(store, "depot", RecordKind::Node, &id(2));
+    assert!(newer.starts_with("depot/8000000000000000-"), "{newer}");
+}
+
+fn large_values_stored_inline_by_earlier_builds_still_work(store: &(impl MapStore + RawKv)) {
+    store.put("depot", RecordKind::Node, &id(9), b"x").unwrap();
+    let old = |n: u64| {
+        let key = key::record_key("depot", RecordKind::Submap.as_byte(), id(n).as_bytes());
+        let sealed = envelope::seal(&key, &large(n, 50_000));
+        store
+            .transact(&|txn| txn.insert(&key, sealed.clone()))
+            .unwrap();
+    };
+    old(1);
+    old(2);
+    assert!(value_files(store).is_empty());
+    assert_eq!(
+        store.get("depot", RecordKind::Submap, &id(1)).unwrap(),
+        Some(large(1, 50_000))
+    );
+    assert_eq!(scan_all(store, "depot", RecordKind::Submap).len(), 2);
+    let mut archive = Vec::new();
+    store.export_site("depot", &mut archive).unwrap();
+    store.import_site("annex", &mut archive.as_slice()).unwrap();
+    assert_eq!(site_contents(store, "annex"), site_contents(store, "depot"));
+    assert_eq!(value_files(store).len(), 2, "imported into files");
+    // Overwritten, the value goes to a file; deleted, nothing is left.
+    store
+        .put("depot", RecordKind::Submap, &id(1), &large(11, 0))
+        .unwrap();
+    store.delete("depot", RecordKind::Submap, &id(2)).unwrap();
+    store.flush().unwrap();
+    assert_eq!(
+        store.get("depot", RecordKind::Submap, &id(1)).unwrap(),
+        Some(large(11, 0))
+    );
+    assert_eq!(
+        store.get("depot", RecordKind::Submap, &id(2)).unwrap(),
+        None
+    );
+    assert_eq!(value_files(store).len(), 3);
 }

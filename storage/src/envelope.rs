@@ -1,50 +1,94 @@
 //! The envelope every stored value is wrapped in (private: part of the on-disk format).
 //!
 //! ```text
-//! [format version: u8 = RECORD_FORMAT_VERSION][crc32 (IEEE), u32 LE][payload]
-//! crc32 = CRC32(format version byte ‖ raw key ‖ payload)
+//! [format: u8][crc32 (IEEE), u32 LE][payload]
+//! crc32 = CRC32(format byte ‖ raw key ‖ payload)
 //! ```
 //! The key is covered too, so a value that ends up under the wrong key (a misdirected write or a flipped key
 //! byte) fails verification instead of being read as another record.
+//!
+//! The format byte says what the payload is:
+//! - [`RECORD_FORMAT_VERSION`] (1): the value itself. Every value but large record values, and every value
+//!   of builds before value files.
+//! - [`VALUE_ENTRY_FORMAT`] (`0x81`): the entry of a record value stored in a file of its own (length,
+//!   CRC32, file name: `value_entry`), written for record values longer than
+//!   [`crate::MAX_INLINE_VALUE_BYTES`]. Only records of a [`crate::RecordKind`] may hold one.
+//!
+//! Format bytes from `0x80` up are entries, below it versions of the inline value, so the two can never be
+//! taken for each other; the CRC covers the format byte, so a flipped one fails verification. A build that
+//! predates a format reports its records as [`StorageError::UnsupportedFormat`], never misreads them.
 
 use crate::{Result, StorageError, key};
 
-/// Version of the record envelope this build writes and reads.
+/// Version of the record envelope this build writes and reads (the format byte of a value stored inline).
 pub const RECORD_FORMAT_VERSION: u8 = 1;
+/// The format byte of a record whose value is in a file: the payload is the value's entry.
+pub(crate) const VALUE_ENTRY_FORMAT: u8 = 0x81;
 const HEADER_BYTES: usize = 5;
 
-fn checksum(key: &[u8], payload: &[u8]) -> u32 {
+fn checksum(format: u8, key: &[u8], payload: &[u8]) -> u32 {
     let mut hasher = crc32fast::Hasher::new();
-    hasher.update(&[RECORD_FORMAT_VERSION]);
+    hasher.update(&[format]);
     hasher.update(key);
     hasher.update(payload);
     hasher.finalize()
 }
 
-/// Wraps `payload` for storage under `key`.
-pub(crate) fn seal(key: &[u8], payload: &[u8]) -> Vec<u8> {
+fn seal_as(format: u8, key: &[u8], payload: &[u8]) -> Vec<u8> {
     let mut stored = Vec::with_capacity(HEADER_BYTES + payload.len());
-    stored.push(RECORD_FORMAT_VERSION);
-    stored.extend_from_slice(&checksum(key, payload).to_le_bytes());
+    stored.push(format);
+    stored.extend_from_slice(&checksum(format, key, payload).to_le_bytes());
     stored.extend_from_slice(payload);
     stored
 }
 
-/// Verifies a stored value read under `key` and returns its payload.
+/// Wraps `payload` for storage under `key`.
+pub(crate) fn seal(key: &[u8], payload: &[u8]) -> Vec<u8> {
+    seal_as(RECORD_FORMAT_VERSION, key, payload)
+}
+
+/// Wraps the entry of a value in a file (`value_entry`) for storage under the value's `key`.
+pub(crate) fn seal_entry(key: &[u8], entry: &[u8]) -> Vec<u8> {
+    seal_as(VALUE_ENTRY_FORMAT, key, entry)
+}
+
+/// What a record's stored value holds, verified.
+#[derive(Debug, PartialEq, Eq)]
+pub(crate) enum Opened<'a> {
+    /// The value itself.
+    Value(&'a [u8]),
+    /// The entry of a value in a file (`value_entry`).
+    Entry(&'a [u8]),
+}
+
+/// Verifies a stored value read under `key` and returns its payload; the entry of a value in a file is
+/// [`StorageError::UnsupportedFormat`] (see [`open_record`]).
 pub(crate) fn open<'a>(key: &[u8], stored: &'a [u8]) -> Result<&'a [u8]> {
+    match open_record(key, stored)? {
+        Opened::Value(payload) => Ok(payload),
+        Opened::Entry(_) => Err(unsupported(key, VALUE_ENTRY_FORMAT)),
+    }
+}
+
+fn unsupported(key: &[u8], found: u8) -> StorageError {
+    StorageError::UnsupportedFormat {
+        key: key::describe(key),
+        found,
+        supported: RECORD_FORMAT_VERSION,
+    }
+}
+
+/// Verifies a record's stored value read under `key`: the value itself or the entry of a value in a file.
+pub(crate) fn open_record<'a>(key: &[u8], stored: &'a [u8]) -> Result<Opened<'a>> {
     let corrupt = |reason: String| StorageError::Corrupt {
         key: key::describe(key),
         reason,
     };
-    let Some((&version, rest)) = stored.split_first() else {
+    let Some((&format, rest)) = stored.split_first() else {
         return Err(corrupt("empty value".to_owned()));
     };
-    if version != RECORD_FORMAT_VERSION {
-        return Err(StorageError::UnsupportedFormat {
-            key: key::describe(key),
-            found: version,
-            supported: RECORD_FORMAT_VERSION,
-        });
+    if format != RECORD_FORMAT_VERSION && format != VALUE_ENTRY_FORMAT {
+        return Err(unsupported(key, format));
     }
     if rest.len() < 4 {
         return Err(corrupt(format!(
@@ -56,14 +100,18 @@ pub(crate) fn open<'a>(key: &[u8], stored: &'a [u8]) -> Result<&'a [u8]> {
     let mut crc = [0_u8; 4];
     crc.copy_from_slice(crc_bytes);
     let expected = u32::from_le_bytes(crc);
-    let actual = checksum(key, payload);
+    let actual = checksum(format, key, payload);
     if expected != actual {
         return Err(corrupt(format!(
             "CRC32 mismatch (stored {expected:#010x}, computed {actual:#010x} over {} payload bytes)",
             payload.len()
         )));
     }
-    Ok(payload)
+    Ok(if format == VALUE_ENTRY_FORMAT {
+        Opened::Entry(payload)
+    } else {
+        Opened::Value(payload)
+    })
 }
 
 /// Decodes an 8-byte little-endian counter payload (map version, session sequence number).
@@ -125,6 +173,37 @@ mod tests {
         assert!(matches!(
             open(b"key", &newer),
             Err(StorageError::UnsupportedFormat { found: 2, .. })
+        ));
+    }
+
+    #[test]
+    fn entries_and_values_are_told_apart_and_a_flipped_format_byte_is_detected() {
+        let entry = seal_entry(b"key", b"entry bytes");
+        assert_eq!(
+            open_record(b"key", &entry).unwrap(),
+            Opened::Entry(b"entry bytes")
+        );
+        let value = seal(b"key", b"entry bytes");
+        assert_eq!(
+            open_record(b"key", &value).unwrap(),
+            Opened::Value(b"entry bytes")
+        );
+        // Where only values are expected, an entry is a format this reader does not take.
+        assert!(matches!(
+            open(b"key", &entry),
+            Err(StorageError::UnsupportedFormat { found: 0x81, .. })
+        ));
+        let mut flipped = entry;
+        flipped[0] = RECORD_FORMAT_VERSION;
+        assert!(matches!(
+            open_record(b"key", &flipped),
+            Err(StorageError::Corrupt { .. })
+        ));
+        let mut flipped = value;
+        flipped[0] = VALUE_ENTRY_FORMAT;
+        assert!(matches!(
+            open_record(b"key", &flipped),
+            Err(StorageError::Corrupt { .. })
         ));
     }
 

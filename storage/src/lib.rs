@@ -5,7 +5,9 @@
 //! (site id, [`RecordKind`], [`RecordId`]), holding opaque bytes that the callers encode (the `proto` crate).
 //!
 //! - Every stored value carries a format version byte and a CRC32 over version, key and value. Reads verify
-//!   both; a damaged record is reported as [`StorageError::Corrupt`], never used.
+//!   both; a damaged record is reported as [`StorageError::Corrupt`], never used. A value longer than
+//!   [`MAX_INLINE_VALUE_BYTES`] is kept in a file of its own, the database holding only its entry
+//!   (length, CRC32 over key and value, file name), written and freed crash-safely.
 //! - Writes are [`WriteBatch`]es, applied all or nothing. A batch can bump the site's map version and be
 //!   conditional on an upload's session sequence number (exactly-once uploads), atomically with its records.
 //! - [`MapStore::apply_durable`] returns only after the batch is on disk.
@@ -34,27 +36,30 @@
 //! ```
 
 mod checkpoint_entry;
-mod checkpoint_files;
 mod checkpoints;
 #[cfg(test)]
 mod conformance;
 mod disk_full_store;
 mod envelope;
+mod file_step;
 mod key;
 mod map_store;
 mod mem_store;
 mod raw_kv;
 mod record;
+mod side_files;
 mod site_archive;
 mod sled_store;
 mod sled_store_options;
 mod storage_error;
+mod value_entry;
+mod value_files;
 mod write_batch;
 
-pub use checkpoint_files::CheckpointStep;
 pub use checkpoints::{CheckpointRetention, Compaction};
 pub use disk_full_store::{DiskFullStore, FailAt, out_of_space};
 pub use envelope::RECORD_FORMAT_VERSION;
+pub use file_step::FileStep;
 pub use map_store::{MapStore, RecordIter};
 pub use mem_store::MemStore;
 pub use record::{
@@ -67,4 +72,5 @@ pub use site_archive::{
 pub use sled_store::SledStore;
 pub use sled_store_options::{DEFAULT_REOPEN_AFTER_BYTES, SledStoreOptions};
 pub use storage_error::{Result, StorageError};
+pub use value_files::MAX_INLINE_VALUE_BYTES;
 pub use write_batch::{BatchOp, BatchOutcome, WriteBatch};

@@ -15,7 +15,10 @@ pub type RecordIter<'a> = Box<dyn Iterator<Item = Result<(RecordId, Vec<u8>)>> +
 ///
 /// Records are addressed by (site id, [`RecordKind`], [`RecordId`]) and hold opaque bytes. Every value is
 /// stored with a format version byte and a CRC32 (over version, key and value); every read verifies both and
-/// returns [`crate::StorageError::Corrupt`] rather than a damaged value.
+/// returns [`crate::StorageError::Corrupt`] rather than a damaged value. A value longer than
+/// [`crate::MAX_INLINE_VALUE_BYTES`] is kept in a file of its own ([`crate::SledStore`]: under
+/// `<database dir>/values/`), the record holding its length, CRC32 and file name: a missing or damaged file
+/// reads as corrupt too.
 ///
 /// Writes go through [`WriteBatch`]es, applied all or nothing. A batch can bump the site's map version (stored
 /// atomically with the batch) and be conditional on an upload's session sequence number (exactly-once
@@ -35,7 +38,9 @@ pub trait MapStore: Send + Sync {
     /// sequence number was already applied.
     fn apply(&self, batch: &WriteBatch) -> Result<BatchOutcome>;
 
-    /// Makes every batch applied so far durable (on disk, fsynced). A no-op for in-memory stores.
+    /// Makes every batch applied so far durable (on disk, fsynced), then deletes the files of the large
+    /// values that batches before it overwrote or deleted (until a flush, a crash must find them). Only
+    /// that for in-memory stores.
     fn flush(&self) -> Result<()>;
 
     /// How many times the store has been reopened in place since it was opened (0 for backends that never
@@ -118,9 +123,9 @@ pub trait MapStore: Send + Sync {
     /// Deletes the checkpoints older than the newest `retention.checkpoints` that verify, then the
     /// records of `log_kind` (the site's log, ids from [`RecordId::from_u64`]) up to the oldest kept
     /// checkpoint's index less `retention.log_entries` — none while fewer checkpoints verify than are
-    /// kept. The files of the removed checkpoints are deleted once their removal is durable. Crash-safe
-    /// at every step (see the `checkpoints` module; a file a crash leaves behind is deleted when the store
-    /// next opens); durable when it returns.
+    /// kept. The files of the removed checkpoints and log entries are deleted once their removal is
+    /// durable. Crash-safe at every step (see the `checkpoints` module; a file a crash leaves behind is
+    /// deleted when the store next opens); durable when it returns.
     fn compact(
         &self,
         site: &str,

@@ -4,19 +4,35 @@ use std::collections::BTreeMap;
 use std::sync::{Mutex, MutexGuard, PoisonError};
 
 use crate::Result;
-use crate::checkpoint_files::{CheckpointFiles, MemCheckpointFiles};
+use crate::file_step::{FileStep, StepHook};
 use crate::raw_kv::{RawIter, RawKv, RawTxn, impl_map_store_via_raw_kv};
+use crate::side_files::{MemFiles, SideFiles};
+use crate::value_files::ValueFiles;
 
 type Map = BTreeMap<Vec<u8>, Vec<u8>>;
 
 /// A [`crate::MapStore`] in memory, with exactly the semantics of [`crate::SledStore`] except durability
-/// ([`crate::MapStore::flush`] does nothing and everything is lost on drop). Values are sealed and verified
-/// like on disk, and checkpoints are index entries in the map with their bytes beside it, as sled's are
-/// with their bytes in files. Transactions run under one mutex; scans return a copy taken when they start.
-#[derive(Debug, Default)]
+/// ([`crate::MapStore::flush`] makes nothing more durable and everything is lost on drop). Values are
+/// sealed and verified like on disk, and checkpoints and large values are entries in the map with their
+/// bytes beside it, as sled's are with their bytes in files (a replaced large value's bytes go at the
+/// next flush). Transactions run under one mutex; scans return a copy taken when they start.
+#[derive(Debug)]
 pub struct MemStore {
     map: Mutex<Map>,
-    checkpoint_files: MemCheckpointFiles,
+    checkpoint_files: MemFiles,
+    value_files: ValueFiles<MemFiles>,
+    hook: StepHook,
+}
+
+impl Default for MemStore {
+    fn default() -> Self {
+        Self {
+            map: Mutex::default(),
+            checkpoint_files: MemFiles::new("checkpoints"),
+            value_files: ValueFiles::new(MemFiles::new("values")),
+            hook: StepHook::default(),
+        }
+    }
 }
 
 impl MemStore {
@@ -38,8 +54,20 @@ impl MemStore {
 
     /// Test hook: the checkpoint files, e.g. to damage or delete one.
     #[cfg(test)]
-    pub(crate) fn files(&self) -> &MemCheckpointFiles {
+    pub(crate) fn files(&self) -> &MemFiles {
         &self.checkpoint_files
+    }
+
+    /// Test hook: the value files, e.g. to damage or delete one.
+    #[cfg(test)]
+    pub(crate) fn values(&self) -> &MemFiles {
+        self.value_files.files()
+    }
+
+    /// Test hook: sets the hook [`RawKv::step`] calls.
+    #[cfg(test)]
+    pub(crate) fn hook(&self) -> &StepHook {
+        &self.hook
     }
 }
 
@@ -56,20 +84,30 @@ impl RawTxn for MemTxn<'_> {
         })
     }
 
-    fn insert(&mut self, key: &[u8], value: Vec<u8>) -> Result<()> {
+    fn insert(&mut self, key: &[u8], value: Vec<u8>) -> Result<Option<Vec<u8>>> {
+        let old = self.get(key)?;
         self.staged.insert(key.to_vec(), Some(value));
-        Ok(())
+        Ok(old)
     }
 
-    fn remove(&mut self, key: &[u8]) -> Result<()> {
+    fn remove(&mut self, key: &[u8]) -> Result<Option<Vec<u8>>> {
+        let old = self.get(key)?;
         self.staged.insert(key.to_vec(), None);
-        Ok(())
+        Ok(old)
     }
 }
 
 impl RawKv for MemStore {
-    fn checkpoint_files(&self) -> &dyn CheckpointFiles {
+    fn checkpoint_files(&self) -> &dyn SideFiles {
         &self.checkpoint_files
+    }
+
+    fn value_files(&self) -> &ValueFiles {
+        &self.value_files
+    }
+
+    fn step(&self, step: FileStep) {
+        self.hook.call(step);
     }
 
     fn raw_get(&self, key: &[u8]) -> Result<Option<Vec<u8>>> {

@@ -3,17 +3,19 @@
 
 use std::io::{Read, Write};
 
-use crate::checkpoint_files::CheckpointFiles;
 use crate::checkpoints;
 use crate::envelope::{self, decode_u64};
+use crate::file_step::FileStep;
 use crate::key::{
     self, INTERNAL_KIND_MIN, KIND_CHECKPOINT, KIND_CHECKPOINT_FILE, KIND_MAP_VERSION,
     KIND_SESSION_SEQ,
 };
+use crate::side_files::SideFiles;
 use crate::site_archive::{ArchiveReader, ArchiveWriter, Chunk};
+use crate::value_files::{self, ValueFiles};
 use crate::{
-    BatchOp, BatchOutcome, RecordId, RecordIter, RecordKind, Result, StorageError, TransferSummary,
-    WriteBatch, validate_session_id, validate_site_id,
+    BatchOp, BatchOutcome, MAX_INLINE_VALUE_BYTES, RecordId, RecordIter, RecordKind, Result,
+    StorageError, TransferSummary, WriteBatch, validate_session_id, validate_site_id,
 };
 
 /// Raw (key, value) pairs under a prefix, in key order.
@@ -22,14 +24,21 @@ pub(crate) type RawIter<'a> = Box<dyn Iterator<Item = Result<(Vec<u8>, Vec<u8>)>
 /// Reads and writes inside one atomic transaction.
 pub(crate) trait RawTxn {
     fn get(&mut self, key: &[u8]) -> Result<Option<Vec<u8>>>;
-    fn insert(&mut self, key: &[u8], value: Vec<u8>) -> Result<()>;
-    fn remove(&mut self, key: &[u8]) -> Result<()>;
+    /// Stores `value` under `key`; returns the value it replaced.
+    fn insert(&mut self, key: &[u8], value: Vec<u8>) -> Result<Option<Vec<u8>>>;
+    /// Removes `key`; returns the value it held.
+    fn remove(&mut self, key: &[u8]) -> Result<Option<Vec<u8>>>;
 }
 
-/// A transactional ordered key-value store, with files beside it for the bytes of checkpoints.
+/// A transactional ordered key-value store, with files beside it for the bytes of checkpoints and of
+/// large record values.
 pub(crate) trait RawKv: Send + Sync {
     /// Where the bytes of checkpoints go (see the `checkpoints` module).
-    fn checkpoint_files(&self) -> &dyn CheckpointFiles;
+    fn checkpoint_files(&self) -> &dyn SideFiles;
+    /// Where large record values go (see the `value_files` module).
+    fn value_files(&self) -> &ValueFiles;
+    /// Reports a step between a file and its entry to the hook, if one is set.
+    fn step(&self, step: FileStep);
     fn raw_get(&self, key: &[u8]) -> Result<Option<Vec<u8>>>;
     fn raw_scan(&self, prefix: &[u8]) -> RawIter<'_>;
     /// Runs `body` atomically and serializably: its writes all land if it returns `Ok`, none otherwise.
@@ -101,6 +110,19 @@ fn txn_counter(txn: &mut dyn RawTxn, key: &[u8]) -> Result<Option<u64>> {
         .transpose()
 }
 
+/// Makes every change so far durable, then deletes the value files that changes made before it unnamed
+/// (see the `value_files` module). Every flush of the crate's semantics goes through here.
+pub(crate) fn flush(kv: &impl RawKv) -> Result<()> {
+    let values = kv.value_files();
+    let due = values.take_unnamed();
+    if let Err(error) = kv.raw_flush() {
+        values.restore_unnamed(due);
+        return Err(error);
+    }
+    value_files::remove_unnamed(kv, due);
+    Ok(())
+}
+
 pub(crate) fn apply(kv: &impl RawKv, batch: &WriteBatch) -> Result<BatchOutcome> {
     batch.validate()?;
     let site = batch.site();
@@ -112,22 +134,49 @@ pub(crate) fn apply(kv: &impl RawKv, batch: &WriteBatch) -> Result<BatchOutcome>
             seq,
         )
     });
-    // Seal outside the transaction: it may be retried, and sealing is the costly part.
-    let writes: Vec<(Vec<u8>, Option<Vec<u8>>)> = batch
+    let values = kv.value_files();
+    // Held from the first value file until the entries naming them are stored: a site's value directory
+    // is not deleted under them.
+    let writing = batch
         .ops()
         .iter()
-        .map(|op| match op {
+        .any(|op| matches!(op, BatchOp::Put { value, .. } if value.len() > MAX_INLINE_VALUE_BYTES))
+        .then(|| values.files().shared());
+    // Seal outside the transaction: it may be retried, and sealing is the costly part. Large values go to
+    // their files now, durably, before any entry can name them.
+    let mut writes: Vec<(Vec<u8>, Option<Vec<u8>>)> = Vec::with_capacity(batch.len());
+    let mut written: Vec<(Vec<u8>, String)> = Vec::new();
+    for op in batch.ops() {
+        match op {
             BatchOp::Put { kind, id, value } => {
                 let key = key::record_key(site, kind.as_byte(), id.as_bytes());
-                let sealed = envelope::seal(&key, value);
-                (key, Some(sealed))
+                match values.seal(site, &key, value) {
+                    Ok((sealed, file)) => {
+                        if let Some(file) = file {
+                            written.push((key.clone(), file));
+                        }
+                        writes.push((key, Some(sealed)));
+                    }
+                    Err(error) => {
+                        // Best effort: an orphan left here goes at the next open.
+                        for (_, file) in &written {
+                            let _ = values.files().remove(site, file);
+                        }
+                        return Err(error);
+                    }
+                }
             }
             BatchOp::Delete { kind, id } => {
-                (key::record_key(site, kind.as_byte(), id.as_bytes()), None)
+                writes.push((key::record_key(site, kind.as_byte(), id.as_bytes()), None));
             }
-        })
-        .collect();
-    kv.transact(&|txn| {
+        }
+    }
+    if !written.is_empty() {
+        kv.step(FileStep::ValueFilesDurable {
+            files: written.len(),
+        });
+    }
+    let outcome = kv.transact(&|txn| {
         let state = site_state(&site_key, txn.get(&site_key)?.as_deref())?;
         if state == Some(SiteState::Incomplete) {
             return Err(StorageError::SiteIncomplete {
@@ -138,15 +187,21 @@ pub(crate) fn apply(kv: &impl RawKv, batch: &WriteBatch) -> Result<BatchOutcome>
             && let Some(last_applied) = txn_counter(txn, session_key)?
             && *seq <= last_applied
         {
-            return Ok(BatchOutcome::Duplicate { last_applied });
+            return Ok((BatchOutcome::Duplicate { last_applied }, Vec::new()));
         }
         if state.is_none() {
             txn.insert(&site_key, sealed_state(&site_key, SiteState::Complete))?;
         }
+        // The values the batch replaces or removes that name files (a later op on the same key replaces
+        // an earlier one's, whose file is then unnamed too).
+        let mut replaced = Vec::new();
         for (key, value) in &writes {
-            match value {
+            let old = match value {
                 Some(sealed) => txn.insert(key, sealed.clone())?,
                 None => txn.remove(key)?,
+            };
+            if let Some(old) = old.filter(|old| value_files::names_a_file(old)) {
+                replaced.push((key.clone(), old));
             }
         }
         let mut map_version = txn_counter(txn, &version_key)?.unwrap_or(0);
@@ -160,8 +215,31 @@ pub(crate) fn apply(kv: &impl RawKv, batch: &WriteBatch) -> Result<BatchOutcome>
         if let Some((session_key, seq)) = &session_key {
             txn.insert(session_key, envelope::seal(session_key, &seq.to_le_bytes()))?;
         }
-        Ok(BatchOutcome::Applied { map_version })
-    })
+        Ok((BatchOutcome::Applied { map_version }, replaced))
+    });
+    drop(writing);
+    match outcome {
+        Ok((applied @ BatchOutcome::Applied { .. }, replaced)) => {
+            for (key, old) in replaced {
+                values.unname(site, &key, &old);
+            }
+            Ok(applied)
+        }
+        Ok((duplicate, _)) => {
+            // Nothing was written: no entry names the files (best effort, as below).
+            for (_, file) in &written {
+                let _ = values.files().remove(site, file);
+            }
+            Ok(duplicate)
+        }
+        Err(error) => {
+            // Best effort: an orphan left here goes at the next open.
+            for (key, file) in &written {
+                let _ = value_files::remove_unless_named(kv, site, key, file);
+            }
+            Err(error)
+        }
+    }
 }
 
 pub(crate) fn get(
@@ -173,7 +251,7 @@ pub(crate) fn get(
     validate_site_id(site)?;
     let key = key::record_key(site, kind.as_byte(), id.as_bytes());
     kv.raw_get(&key)?
-        .map(|stored| Ok(envelope::open(&key, &stored)?.to_vec()))
+        .map(|stored| kv.value_files().read(site, &key, &stored))
         .transpose()
 }
 
@@ -181,9 +259,10 @@ pub(crate) fn scan<'a>(kv: &'a impl RawKv, site: &str, kind: RecordKind) -> Resu
     validate_site_id(site)?;
     let prefix = key::kind_prefix(site, kind.as_byte());
     let prefix_len = prefix.len();
+    let site = site.to_owned();
     Ok(Box::new(kv.raw_scan(&prefix).map(move |item| {
         let (key, stored) = item?;
-        let payload = envelope::open(&key, &stored)?.to_vec();
+        let payload = kv.value_files().read(&site, &key, &stored)?;
         Ok((RecordId::new(&key[prefix_len..]), payload))
     })))
 }
@@ -218,16 +297,24 @@ pub(crate) fn last_applied_seq(kv: &impl RawKv, site: &str, session: &str) -> Re
     )
 }
 
-/// Marks the site incomplete, then removes its records chunk by chunk, its checkpoint files, then its
-/// registry entry.
+/// Marks the site incomplete, then removes its records chunk by chunk, its checkpoint and value files, then
+/// its registry entry.
 pub(crate) fn delete_site(kv: &impl RawKv, site: &str) -> Result<()> {
     validate_site_id(site)?;
     let site_key = key::site_key(site);
     kv.transact(&|txn| txn.insert(&site_key, sealed_state(&site_key, SiteState::Incomplete)))?;
     purge_records(kv, site)?;
-    checkpoints::remove_site_files(kv, site)?;
+    remove_site_files(kv, site)?;
     kv.transact(&|txn| txn.remove(&site_key))?;
-    kv.raw_flush()
+    flush(kv)
+}
+
+/// Deletes a site's checkpoint and value files once its records are gone (deleted or purged for an
+/// import): flushes first, so no durable entry names a deleted file.
+fn remove_site_files(kv: &impl RawKv, site: &str) -> Result<()> {
+    flush(kv)?;
+    checkpoints::remove_site_files(kv, site)?;
+    value_files::remove_site_files(kv, site)
 }
 
 fn purge_records(kv: &impl RawKv, site: &str) -> Result<()> {
@@ -241,7 +328,8 @@ fn purge_records(kv: &impl RawKv, site: &str) -> Result<()> {
         if keys.is_empty() {
             return Ok(());
         }
-        kv.transact(&|txn| keys.iter().try_for_each(|key| txn.remove(key)))?;
+        // Their value files go with the site's directory.
+        kv.transact(&|txn| keys.iter().try_for_each(|key| txn.remove(key).map(drop)))?;
     }
 }
 
@@ -279,6 +367,9 @@ pub(crate) fn export_site(
             // A checkpoint in a file travels as the checkpoint record it stands for.
             let bytes = checkpoints::file_bytes(kv, site, &key, &stored)?;
             writer.record(KIND_CHECKPOINT, id, &bytes)?;
+        } else if kind < INTERNAL_KIND_MIN {
+            // A record travels with its value, in a file or not.
+            writer.record(kind, id, &kv.value_files().read(site, &key, &stored)?)?;
         } else {
             writer.record(kind, id, envelope::open(&key, &stored)?)?;
         }
@@ -314,13 +405,13 @@ pub(crate) fn import_site(
         },
     )?;
     purge_records(kv, site)?;
-    checkpoints::remove_site_files(kv, site)?;
+    remove_site_files(kv, site)?;
     match import_records(kv, site, input) {
         Ok(summary) => {
             kv.transact(&|txn| {
                 txn.insert(&site_key, sealed_state(&site_key, SiteState::Complete))
             })?;
-            kv.raw_flush()?;
+            flush(kv)?;
             Ok(summary)
         }
         Err(error) => {
@@ -340,11 +431,15 @@ fn import_records(kv: &impl RawKv, site: &str, input: &mut dyn Read) -> Result<T
     let mut summary = TransferSummary::default();
     let mut pending: Vec<(Vec<u8>, Vec<u8>)> = Vec::new();
     let mut pending_bytes = 0;
+    let values = kv.value_files();
+    // Held while value files are written until their entries are stored (see `apply`); the caller
+    // cleans up after a failure only once it is released.
+    let _writing = values.files().shared();
     let write = |pending: &mut Vec<(Vec<u8>, Vec<u8>)>| {
         kv.transact(&|txn| {
             pending
                 .iter()
-                .try_for_each(|(key, sealed)| txn.insert(key, sealed.clone()))
+                .try_for_each(|(key, sealed)| txn.insert(key, sealed.clone()).map(drop))
         })?;
         pending.clear();
         Ok::<_, StorageError>(())
@@ -359,6 +454,11 @@ fn import_records(kv: &impl RawKv, site: &str, input: &mut dyn Read) -> Result<T
                 pending_bytes += payload.len();
                 if kind == KIND_CHECKPOINT {
                     pending.push(checkpoints::import_file(kv, site, &id, &payload)?);
+                } else if kind < INTERNAL_KIND_MIN {
+                    // A large value goes to its file, as a batch's does.
+                    let key = key::record_key(site, kind, &id);
+                    let (sealed, _) = values.seal(site, &key, &payload)?;
+                    pending.push((key, sealed));
                 } else {
                     let key = key::record_key(site, kind, &id);
                     pending.push((key.clone(), envelope::seal(&key, &payload)));
@@ -409,7 +509,7 @@ macro_rules! impl_map_store_via_raw_kv {
             }
 
             fn flush(&self) -> $crate::Result<()> {
-                $crate::raw_kv::RawKv::raw_flush(self)
+                $crate::raw_kv::flush(self)
             }
 
             fn generation(&self) -> u64 {

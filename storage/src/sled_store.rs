@@ -29,12 +29,24 @@
 //! reopen follows a successful flush, so it loses nothing and leaves
 //! [`crate::MapStore::generation`] unchanged; it is counted by [`SledStore::memory_reopens`].
 //!
-//! **Checkpoints in files.** The bytes of site checkpoints are not sled values: each is a file under
-//! `<database dir>/checkpoints/<site>/` (see [`crate::MapStore::put_checkpoint`]), written crash-safely,
-//! and sled holds only its index entry (log index, length, CRC32, file name). sled 0.34 keeps the space of
-//! the large values it held long after they are overwritten or removed (a 16-session site's checkpoints
-//! made its store 1.6 GB against 22 MB without), a deleted file frees its space at once. Opening the
-//! store deletes the files no entry names (left by a crash between a file and its entry).
+//! **Checkpoints and large values in files.** sled 0.34 keeps the space of the large values it held long
+//! after they are overwritten or removed, so large bytes are not sled values:
+//! - each site checkpoint is a file under `<database dir>/checkpoints/<site>/` (see
+//!   [`crate::MapStore::put_checkpoint`]), and sled holds only its index entry (log index, length, CRC32,
+//!   file name). As sled values, a 16-session site's checkpoints made its store 1.6 GB against 22 MB
+//!   without.
+//! - each record value longer than [`crate::MAX_INLINE_VALUE_BYTES`] (4 KiB) is a file under
+//!   `<database dir>/values/<site>/`, and sled holds only its entry (length, CRC32, file name) under the
+//!   record's key. sled writes a tree page over a quarter of its segment (128 KiB) as a blob file, a leaf
+//!   of 16 site log entries of 25–30 kB is one, and sled forgets the deletion of a rewritten page's old
+//!   blob when the database is dropped — at every reopen above: such a site's `blobs/` grew with its age
+//!   (420 files, 107 MB, for 0.75 MB of live entries in `tests/sled_blobs.rs`). Pages of values up to
+//!   4 KiB stay under the blob size.
+//!
+//! Both are written crash-safely (a temporary file, fsync, rename, directory fsync) before the entry
+//! naming them, and deleted only once the removal of their entry is durable; a deleted file frees its
+//! space at once. Opening the store deletes the files no entry names (left by a crash between a file and
+//! its entry). [`SledStore::size_on_disk`] counts them.
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -46,12 +58,16 @@ use sled::transaction::{
     ConflictableTransactionError, TransactionError, TransactionalTree, UnabortableTransactionError,
 };
 
-use crate::checkpoint_files::{CheckpointDir, CheckpointFiles, CheckpointStep};
+use crate::file_step::{FileStep, StepHook};
 use crate::raw_kv::{RawIter, RawKv, RawTxn, impl_map_store_via_raw_kv};
+use crate::side_files::{FileDir, SideFiles};
+use crate::value_files::{self, ValueFiles};
 use crate::{Result, SledStoreOptions, StorageError, checkpoints};
 
 /// The checkpoint directory's name inside the database directory.
 const CHECKPOINT_DIR: &str = "checkpoints";
+/// The value directory's name inside the database directory.
+const VALUE_DIR: &str = "values";
 
 /// A [`crate::MapStore`] persisted in a sled database directory (one process at a time: sled locks it).
 #[derive(Debug)]
@@ -71,7 +87,11 @@ pub struct SledStore {
     /// Reopens that bounded the memory (see the module docs).
     memory_reopens: AtomicU64,
     /// The files of the checkpoints' bytes (see the module docs).
-    checkpoint_files: CheckpointDir,
+    checkpoint_files: FileDir,
+    /// The files of large record values (see the module docs).
+    value_files: ValueFiles<FileDir>,
+    /// Called at each [`FileStep`].
+    hook: StepHook,
 }
 
 /// Why and since when the database refuses writes.
@@ -84,13 +104,14 @@ struct Wedge {
 }
 
 impl SledStore {
-    /// Opens (creating if needed) the database at `options.path`, and its checkpoint directory
-    /// `options.path/checkpoints`, from which it deletes the files no checkpoint uses. While another
-    /// process holds the lock, retries up to `options.open_attempts` times, `options.open_retry_interval_ms`
-    /// apart, then fails with [`StorageError::Locked`].
+    /// Opens (creating if needed) the database at `options.path`, and its checkpoint and value
+    /// directories `options.path/checkpoints` and `options.path/values`, from which it deletes the files
+    /// no entry names (it reads every record to know). While another process holds the lock, retries up
+    /// to `options.open_attempts` times, `options.open_retry_interval_ms` apart, then fails with
+    /// [`StorageError::Locked`].
     pub fn open(options: &SledStoreOptions) -> Result<Self> {
         options.validate()?;
-        // sled creates the database directory; the checkpoint directory goes inside it, under its lock.
+        // sled creates the database directory; the file directories go inside it, under its lock.
         let db = open_db(options)?;
         let store = Self {
             db: RwLock::new(Some(Arc::new(db))),
@@ -99,9 +120,12 @@ impl SledStore {
             generation: AtomicU64::new(0),
             held_bytes: Arc::new(AtomicU64::new(0)),
             memory_reopens: AtomicU64::new(0),
-            checkpoint_files: CheckpointDir::open(options.path.join(CHECKPOINT_DIR))?,
+            checkpoint_files: FileDir::open(options.path.join(CHECKPOINT_DIR), "checkpoint")?,
+            value_files: ValueFiles::new(FileDir::open(options.path.join(VALUE_DIR), "value")?),
+            hook: StepHook::default(),
         };
         checkpoints::remove_orphan_files(&store)?;
+        value_files::remove_orphan_files(&store)?;
         Ok(store)
     }
 
@@ -115,9 +139,12 @@ impl SledStore {
         &self.options.path
     }
 
-    /// Bytes the store occupies on disk: sled's files as sled reports them, and the checkpoint files.
+    /// Bytes the store occupies on disk: sled's files as sled reports them (its `blobs/` included), the
+    /// checkpoint files and the value files.
     pub fn size_on_disk(&self) -> Result<u64> {
-        Ok(self.db_for_read()?.size_on_disk()? + self.checkpoint_files.total_bytes()?)
+        Ok(self.db_for_read()?.size_on_disk()?
+            + self.checkpoint_files.total_bytes()?
+            + self.value_files.files().total_bytes()?)
     }
 
     /// Bytes of the checkpoint files (included in [`SledStore::size_on_disk`]).
@@ -125,11 +152,16 @@ impl SledStore {
         self.checkpoint_files.total_bytes()
     }
 
-    /// Calls `hook` at each step between a checkpoint's file and its index entry (see
-    /// [`CheckpointStep`]), on the thread storing or compacting; replaces any earlier hook. For crash
+    /// Bytes of the files of large record values (included in [`SledStore::size_on_disk`]).
+    pub fn value_files_bytes(&self) -> Result<u64> {
+        self.value_files.files().total_bytes()
+    }
+
+    /// Calls `hook` at each step between a file (a checkpoint's, a large value's) and its entry (see
+    /// [`FileStep`]), on the thread storing, flushing or compacting; replaces any earlier hook. For crash
     /// tests (`tests/kill_nine.rs` stops the writer there and kills it).
-    pub fn on_checkpoint_step(&self, hook: impl Fn(CheckpointStep) + Send + Sync + 'static) {
-        self.checkpoint_files.hook().set(Box::new(hook));
+    pub fn on_file_step(&self, hook: impl Fn(FileStep) + Send + Sync + 'static) {
+        self.hook.set(Box::new(hook));
     }
 
     /// Whether the database refuses writes after a failed one (until it is reopened).
@@ -300,16 +332,20 @@ fn open_db(options: &SledStoreOptions) -> Result<sled::Db> {
     })
 }
 
-/// fsyncs every file of the database directory and of its subdirectories (sled keeps large values in
-/// `blobs/`), and the directories themselves.
+/// fsyncs every file of sled in the database directory and its subdirectories (sled keeps large pages in
+/// `blobs/`), and the directories themselves. The checkpoint and value directories are left out: their
+/// files were durable before any entry named them.
 fn sync_files(dir: &Path) -> Result<()> {
+    let ours = [dir.join(CHECKPOINT_DIR), dir.join(VALUE_DIR)];
     let mut dirs = vec![dir.to_path_buf()];
     while let Some(dir) = dirs.pop() {
         for entry in std::fs::read_dir(&dir)? {
             let entry = entry?;
             let kind = entry.file_type()?;
             if kind.is_dir() {
-                dirs.push(entry.path());
+                if !ours.contains(&entry.path()) {
+                    dirs.push(entry.path());
+                }
             } else if kind.is_file() {
                 std::fs::File::open(entry.path())?.sync_all()?;
             }
@@ -361,15 +397,15 @@ impl RawTxn for SledTxn<'_> {
         Ok(value)
     }
 
-    fn insert(&mut self, key: &[u8], value: Vec<u8>) -> Result<()> {
+    fn insert(&mut self, key: &[u8], value: Vec<u8>) -> Result<Option<Vec<u8>>> {
         count_held(self.held_bytes, key.len() + value.len());
         let result = self.tree.insert(key, value);
-        self.note(result).map(drop)
+        Ok(self.note(result)?.map(|old| old.to_vec()))
     }
 
-    fn remove(&mut self, key: &[u8]) -> Result<()> {
+    fn remove(&mut self, key: &[u8]) -> Result<Option<Vec<u8>>> {
         let result = self.tree.remove(key);
-        self.note(result).map(drop)
+        Ok(self.note(result)?.map(|old| old.to_vec()))
     }
 }
 
@@ -397,8 +433,16 @@ impl Iterator for SledScan {
 }
 
 impl RawKv for SledStore {
-    fn checkpoint_files(&self) -> &dyn CheckpointFiles {
+    fn checkpoint_files(&self) -> &dyn SideFiles {
         &self.checkpoint_files
+    }
+
+    fn value_files(&self) -> &ValueFiles {
+        &self.value_files
+    }
+
+    fn step(&self, step: FileStep) {
+        self.hook.call(step);
     }
 
     fn raw_get(&self, key: &[u8]) -> Result<Option<Vec<u8>>> {
@@ -548,14 +592,16 @@ mod tests {
     fn past_its_bound_the_store_reopens_at_a_flush_when_unused_losing_nothing() {
         let dir = tempfile::tempdir().unwrap();
         let store = SledStore::open(&SledStoreOptions {
-            reopen_after_bytes: 64 << 10,
+            reopen_after_bytes: 27 << 10,
             ..SledStoreOptions::at(dir.path().join("db"))
         })
         .unwrap();
+        // The largest values sled holds (longer ones go to files): about 4.3 kB of sled I/O per batch.
+        let value = |version: u64| vec![version as u8; crate::MAX_INLINE_VALUE_BYTES];
         let write = |version: u64| {
             let mut batch = WriteBatch::new("depot");
             batch
-                .put(RecordKind::Trajectory, version, vec![version as u8; 10_000])
+                .put(RecordKind::Trajectory, version, value(version))
                 .bump_map_version()
                 .for_session("robot", version);
             store.apply(&batch).unwrap();
@@ -564,7 +610,7 @@ mod tests {
         for version in 1..=6 {
             write(version);
         }
-        assert_eq!(store.memory_reopens(), 0, "60 kB is within the bound");
+        assert_eq!(store.memory_reopens(), 0, "26 kB is within the bound");
         write(7);
         assert_eq!(store.memory_reopens(), 1);
         assert_eq!(store.held_bytes(), 0);
@@ -586,11 +632,11 @@ mod tests {
         assert_eq!(store.map_version("depot").unwrap(), 15);
         assert_eq!(store.last_applied_seq("depot", "robot").unwrap(), Some(15));
         for version in 1..=15u64 {
-            let value = store
+            let stored = store
                 .get("depot", RecordKind::Trajectory, &RecordId::from(version))
                 .unwrap()
                 .unwrap();
-            assert_eq!(value, vec![version as u8; 10_000]);
+            assert_eq!(stored, value(version));
         }
     }
 
@@ -728,9 +774,13 @@ mod tests {
 
     /// The files under the store's checkpoint directory, relative to it, sorted.
     fn checkpoint_files_on_disk(db: &Path) -> Vec<String> {
-        let root = db.join(CHECKPOINT_DIR);
+        files_on_disk(&db.join(CHECKPOINT_DIR))
+    }
+
+    /// The files under a directory of site directories, relative to it, sorted.
+    fn files_on_disk(root: &Path) -> Vec<String> {
         let mut names = Vec::new();
-        for site in std::fs::read_dir(&root).unwrap() {
+        for site in std::fs::read_dir(root).unwrap() {
             let site = site.unwrap();
             for file in std::fs::read_dir(site.path()).unwrap() {
                 names.push(format!(
@@ -828,6 +878,150 @@ mod tests {
             "{error}"
         );
         assert_eq!(store.checkpoint_indexes("depot").unwrap(), [2, 1]);
+    }
+
+    #[test]
+    fn large_values_live_in_files_and_sled_stays_small() {
+        let dir = tempfile::tempdir().unwrap();
+        let db = dir.path().join("db");
+        let store = SledStore::open(&SledStoreOptions::at(&db)).unwrap();
+        let entry = |index: u64| vec![index as u8; 30_000];
+        for index in 1..=200_u64 {
+            let mut batch = WriteBatch::new("Halle 7");
+            batch
+                .put(RecordKind::Trajectory, index, entry(index))
+                .put(RecordKind::SiteMeta, "summary", vec![index as u8; 300])
+                .bump_map_version();
+            store.apply_durable(&batch).unwrap();
+        }
+        let files = files_on_disk(&db.join(VALUE_DIR));
+        assert_eq!(files.len(), 200);
+        assert!(
+            files.iter().all(|file| file.starts_with("Halle%207/")
+                && Path::new(file).extension() == Some("val".as_ref())),
+            "{files:?}"
+        );
+        assert_eq!(store.value_files_bytes().unwrap(), 200 * 30_000);
+        assert_eq!(
+            store
+                .get("Halle 7", RecordKind::Trajectory, &RecordId::from(123))
+                .unwrap(),
+            Some(entry(123))
+        );
+        // 6 MB of values written, sled holds none of them: no value over a few hundred bytes, no blob.
+        let largest = store
+            .raw_db()
+            .iter()
+            .map(|item| item.unwrap().1.len())
+            .max()
+            .unwrap();
+        assert!(largest < 1024, "a {largest}-byte value in sled");
+        let blobs = std::fs::read_dir(db.join("blobs")).map_or(0, Iterator::count);
+        assert_eq!(blobs, 0, "sled wrote blobs");
+        let sled_bytes = store.size_on_disk().unwrap() - store.value_files_bytes().unwrap();
+        assert!(sled_bytes < 4 << 20, "sled's files take {sled_bytes} bytes");
+    }
+
+    #[test]
+    fn opening_removes_orphan_value_files_and_a_missing_one_reads_as_corrupt() {
+        let dir = tempfile::tempdir().unwrap();
+        let db = dir.path().join("db");
+        let options = SledStoreOptions::at(&db);
+        let value = |n: u8| vec![n; 10_000];
+        {
+            let store = SledStore::open(&options).unwrap();
+            for n in 1..=3 {
+                store
+                    .put(
+                        "depot",
+                        RecordKind::Submap,
+                        &RecordId::from(u64::from(n)),
+                        &value(n),
+                    )
+                    .unwrap();
+            }
+            store
+                .delete("depot", RecordKind::Submap, &RecordId::from(3))
+                .unwrap();
+            store.flush().unwrap();
+            // Dropped with a deletion pending: its file is left for the next open.
+            store
+                .delete("depot", RecordKind::Submap, &RecordId::from(2))
+                .unwrap();
+        }
+        let root = db.join(VALUE_DIR);
+        assert_eq!(files_on_disk(&root).len(), 2);
+        // What crashes leave: a temporary file, a file whose batch never landed, a deleted site's dir.
+        std::fs::write(root.join("depot/.x.val.7-0.tmp"), b"half").unwrap();
+        std::fs::write(root.join("depot/00000000000000ff-00000000.val"), b"?").unwrap();
+        std::fs::create_dir(root.join("gone")).unwrap();
+        std::fs::write(root.join("gone/0000000000000001-00000000.val"), b"1").unwrap();
+        let store = SledStore::open(&options).unwrap();
+        let kept = files_on_disk(&root);
+        assert_eq!(kept.len(), 1, "{kept:?}");
+        assert!(!root.join("gone").exists());
+        assert_eq!(
+            store
+                .get("depot", RecordKind::Submap, &RecordId::from(1))
+                .unwrap(),
+            Some(value(1))
+        );
+        // New files are numbered past the orphans.
+        store
+            .put("depot", RecordKind::Submap, &RecordId::from(4), &value(4))
+            .unwrap();
+        assert!(
+            files_on_disk(&root)
+                .iter()
+                .any(|file| file.starts_with("depot/0000000000000100-")),
+            "{:?}",
+            files_on_disk(&root)
+        );
+        // A file deleted behind the store's back: the record is corrupt, named by its file.
+        std::fs::remove_file(root.join(&kept[0])).unwrap();
+        let error = store
+            .get("depot", RecordKind::Submap, &RecordId::from(1))
+            .unwrap_err();
+        assert!(
+            matches!(&error, StorageError::Corrupt { reason, .. } if reason.contains(&kept[0])),
+            "{error}"
+        );
+    }
+
+    #[test]
+    fn a_store_of_an_earlier_build_opens_unchanged() {
+        let dir = tempfile::tempdir().unwrap();
+        let db = dir.path().join("db");
+        let options = SledStoreOptions::at(&db);
+        let big = vec![0x5A; 200_000];
+        {
+            // As an earlier build left it: large values inline, checkpoints in files, no value directory.
+            let store = SledStore::open(&options).unwrap();
+            let mut batch = WriteBatch::new("depot");
+            batch.bump_map_version();
+            store.apply_durable(&batch).unwrap();
+            store.put_checkpoint("depot", 1, b"state 1").unwrap();
+            let key = key::record_key("depot", RecordKind::Submap.as_byte(), &[7]);
+            store
+                .raw_db()
+                .insert(&key, crate::envelope::seal(&key, &big))
+                .unwrap();
+            store.flush().unwrap();
+        }
+        std::fs::remove_dir(db.join(VALUE_DIR)).unwrap();
+        let store = SledStore::open(&options).unwrap();
+        assert!(db.join(VALUE_DIR).is_dir());
+        assert_eq!(
+            store
+                .get("depot", RecordKind::Submap, &RecordId::new(vec![7]))
+                .unwrap(),
+            Some(big)
+        );
+        assert_eq!(
+            store.checkpoint("depot", 1).unwrap().as_deref(),
+            Some(&b"state 1"[..])
+        );
+        assert_eq!(checkpoint_files_on_disk(&db).len(), 1);
     }
 
     #[test]

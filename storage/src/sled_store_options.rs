@@ -25,7 +25,8 @@ pub struct SledStoreOptions {
     pub cache_capacity_bytes: u64,
     /// Bytes of values (and keys) written or read since the database was opened after which the store
     /// reopens it, at its next successful flush when no operation holds it (0: never). Default 16 MiB.
-    /// Why: `docs/TUNING.md#sled-reopen-after-bytes`.
+    /// Values longer than [`crate::MAX_INLINE_VALUE_BYTES`] are files, not sled values: only their small
+    /// entries count. Why: `docs/TUNING.md#sled-reopen-after-bytes`.
     pub reopen_after_bytes: u64,
     /// Period of sled's background flush, in milliseconds; 0 disables it (then only
     /// [`crate::MapStore::flush`] and [`crate::MapStore::apply_durable`] make data durable). Default 500.

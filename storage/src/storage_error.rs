@@ -135,9 +135,12 @@ pub enum StorageError {
         /// The site's map version.
         map_version: u64,
     },
-    /// A checkpoint's file (see [`crate::SledStore`]) could not be written, read or removed.
-    #[error("cannot {action} checkpoint file {} of site {site:?}: {source}", file.display())]
-    CheckpointFile {
+    /// A file beside the database (a checkpoint's or a large record value's, see [`crate::SledStore`])
+    /// could not be written, read or removed.
+    #[error("cannot {action} {what} file {} of site {site:?}: {source}", file.display())]
+    File {
+        /// What the file holds: `"checkpoint"`, `"value"`.
+        what: &'static str,
         /// The site.
         site: String,
         /// The file.
@@ -147,13 +150,15 @@ pub enum StorageError {
         /// The failure.
         source: std::io::Error,
     },
-    /// The directory of checkpoint files, or a file in it that no checkpoint uses, could not be created,
-    /// listed or removed.
-    #[error("cannot {action} {}: {source}", path.display())]
-    CheckpointDir {
+    /// A directory of files beside the database, or a file in it that no entry names, could not be
+    /// created, listed, measured or removed.
+    #[error("cannot {action} {} ({what} files): {source}", path.display())]
+    FileDir {
+        /// What the directory's files hold: `"checkpoint"`, `"value"`.
+        what: &'static str,
         /// The directory or file.
         path: PathBuf,
-        /// What was being done, e.g. `"list the checkpoint directory"`.
+        /// What was being done, e.g. `"list"`.
         action: &'static str,
         /// The failure.
         source: std::io::Error,
@@ -172,8 +177,8 @@ impl StorageError {
         }
         let (Self::Io(io)
         | Self::Sled(sled::Error::Io(io))
-        | Self::CheckpointFile { source: io, .. }
-        | Self::CheckpointDir { source: io, .. }) = self
+        | Self::File { source: io, .. }
+        | Self::FileDir { source: io, .. }) = self
         else {
             return false;
         };

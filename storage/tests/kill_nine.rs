@@ -3,7 +3,9 @@
 //! it at a random moment — while it applies batches, while it opens and restores the site, or just after
 //! it began a checkpoint write or a compaction, or exactly between a checkpoint's file becoming durable
 //! and its index entry being stored, or between a compaction removing an entry durably and deleting its
-//! file (the writer pauses there, `PAUSE_AT`) — reopen the store and check:
+//! file, or between a batch's value files becoming durable and the batch being applied, or between a
+//! compaction removing log entries with value files durably and deleting the files (the writer pauses
+//! there, `PAUSE_AT`) — reopen the store and check:
 //! - every acknowledged batch is present whole, no batch is present in part, and no record is corrupt
 //!   (the batches' Node records are never compacted: all of them, exactly);
 //! - every acknowledged batch is still readable: in the log, or covered by a checkpoint that verifies;
@@ -17,7 +19,10 @@
 //!   compaction that returned (a kill between a checkpoint and its compaction leaves it for the next);
 //! - the checkpoint directory holds exactly one file per stored checkpoint, named by its index (the
 //!   orphans a kill left were deleted when the store opened), and a checkpoint killed between its file
-//!   and its entry, or between its entry's removal and its file's, is not listed.
+//!   and its entry, or between its entry's removal and its file's, is not listed;
+//! - the value directory holds exactly one file per stored value longer than `MAX_INLINE_VALUE_BYTES`
+//!   (nodes and log entries), and a batch killed between its value files and its transaction is not
+//!   applied.
 //!
 //! Repeated over many cycles on the same database, which keeps growing across kills.
 //!
@@ -40,7 +45,7 @@ use std::thread;
 use std::time::{Duration, Instant};
 
 use rand::{Rng as _, SeedableRng as _};
-use storage::{MapStore as _, RecordId, RecordKind, SledStore};
+use storage::{MAX_INLINE_VALUE_BYTES, MapStore as _, RecordId, RecordKind, SledStore};
 
 /// Batches one child may write before exiting by itself (a safety bound; kills come much earlier).
 const MAX_BATCHES_PER_CHILD: u64 = 5_000;
@@ -58,6 +63,8 @@ enum Event {
     Compacted { micros: u64, removed: u64 },
     FileDurable(u64),
     IndexRemoved(u64),
+    ValueFilesDurable,
+    ValueEntriesRemoved,
 }
 
 impl Event {
@@ -77,6 +84,8 @@ impl Event {
             "K" => Self::CompactionBegins(next()?),
             "F" => Self::FileDurable(next()?),
             "D" => Self::IndexRemoved(next()?),
+            "V" => Self::ValueFilesDurable,
+            "U" => Self::ValueEntriesRemoved,
             "k" => {
                 let _index = next()?;
                 Self::Compacted {
@@ -105,6 +114,11 @@ enum Moment {
     /// Between a compaction removing a checkpoint's entry durably and deleting its file (the writer
     /// pauses).
     IndexRemoved,
+    /// Between a batch's value files being durable and the batch being applied (the writer pauses).
+    ValueFilesDurable,
+    /// Between a compaction removing log entries that name value files durably and deleting the files
+    /// (the writer pauses).
+    ValueEntriesRemoved,
 }
 
 impl Moment {
@@ -113,6 +127,8 @@ impl Moment {
         match self {
             Self::FileDurable => Some("file-durable"),
             Self::IndexRemoved => Some("index-removed"),
+            Self::ValueFilesDurable => Some("value-files-durable"),
+            Self::ValueEntriesRemoved => Some("value-entries-removed"),
             Self::Start | Self::Batches | Self::Checkpoint | Self::Compaction => None,
         }
     }
@@ -131,6 +147,12 @@ struct Tally {
     killed_between_file_and_entry: u64,
     /// Kills between an index entry's removal and its file's deletion.
     killed_between_entry_and_file_removal: u64,
+    /// Kills between a batch's value files and the batch.
+    killed_between_value_files_and_batch: u64,
+    /// Kills between the durable removal of log entries naming value files and the files' deletion.
+    killed_between_value_entries_and_files: u64,
+    /// Value files found at the last verification.
+    value_files: usize,
     acked_batches: u64,
     unacked_but_applied: u64,
     acked_checkpoints: u64,
@@ -192,6 +214,8 @@ struct Verified {
     checkpoints: Vec<u64>,
     /// The first log entry (`last + 1`: an empty log).
     log_begins_at: u64,
+    /// The value files (one per stored large value).
+    value_files: usize,
 }
 
 /// Checks the whole database against the workload, every acknowledged batch up to `max_acked` and the
@@ -204,6 +228,7 @@ fn verify(
     unlisted: Option<u64>,
     digests: &mut Digests,
 ) -> Verified {
+    let large = |value: &[u8]| usize::from(value.len() > MAX_INLINE_VALUE_BYTES);
     let store = SledStore::open_path(path).unwrap();
     let last = store
         .last_applied_seq(workload::SITE, workload::SESSION)
@@ -221,10 +246,12 @@ fn verify(
     if last == 0 {
         assert!(store.list_sites().unwrap().is_empty());
         assert!(store.checkpoint_indexes(workload::SITE).unwrap().is_empty());
+        assert_eq!(value_files(path), 0, "value files of no batch");
         return Verified {
             last,
             checkpoints: Vec::new(),
             log_begins_at: 1,
+            value_files: 0,
         };
     }
     let latest = store
@@ -253,6 +280,8 @@ fn verify(
 
     let mut expected =
         (1..=last).flat_map(|seq| (0..workload::node_count(seq)).map(move |i| (seq, i)));
+    // Values stored in files: one file each.
+    let mut large_values = 0;
     for item in store.scan(workload::SITE, RecordKind::Node).unwrap() {
         let (id, value) = item.unwrap_or_else(|error| panic!("corrupt record after kill: {error}"));
         let (seq, i) = expected
@@ -268,6 +297,7 @@ fn verify(
             workload::node_value(seq, i),
             "wrong value of node ({seq}, {i})"
         );
+        large_values += large(&value);
     }
     assert_eq!(
         expected.next(),
@@ -358,7 +388,13 @@ fn verify(
             *value == workload::log_value(*seq),
             "log entry {seq} holds the wrong value"
         );
+        large_values += large(value);
     }
+    assert_eq!(
+        value_files(path),
+        large_values,
+        "the value files are not one per stored large value (nodes and log entries up to {last})"
+    );
     assert_eq!(
         log_begins_at + log.len() as u64,
         last + 1,
@@ -401,7 +437,30 @@ fn verify(
         last,
         checkpoints,
         log_begins_at,
+        value_files: large_values,
     }
+}
+
+/// How many files the store's value directory holds; panics on a file not named
+/// `<serial, 16 hex digits>-<CRC32, 8 hex digits>.val` (temporary files of interrupted writes included:
+/// opening the store deletes them).
+fn value_files(db: &Path) -> usize {
+    let Ok(sites) = std::fs::read_dir(db.join("values")) else {
+        return 0;
+    };
+    let mut count = 0;
+    for site in sites {
+        for file in std::fs::read_dir(site.unwrap().path()).unwrap() {
+            let name = file.unwrap().file_name().to_string_lossy().into_owned();
+            let named = name
+                .strip_suffix(".val")
+                .and_then(|stem| stem.split_once('-'))
+                .is_some_and(|(serial, crc)| serial.len() == 16 && crc.len() == 8);
+            assert!(named, "a stray file {name:?} in the value directory");
+            count += 1;
+        }
+    }
+    count
 }
 
 /// The log indexes (20 digits) of the files in the store's checkpoint directory, sorted; panics on a
@@ -461,13 +520,15 @@ fn torture(cycles: u64, seed: u64, budget: Duration) -> Tally {
     while tally.cycles < cycles && start.elapsed() < budget {
         // Checkpoint writes are short (under a millisecond here, about the time the kill takes to land
         // after the writer said it began one): they get more cycles than compactions.
-        let moment = match rng.random_range(0..8) {
+        let moment = match rng.random_range(0..10) {
             0 => Moment::Start,
             1 | 2 => Moment::Batches,
             3 | 4 => Moment::Checkpoint,
             5 => Moment::Compaction,
             6 => Moment::FileDurable,
-            _ => Moment::IndexRemoved,
+            7 => Moment::IndexRemoved,
+            8 => Moment::ValueFilesDurable,
+            _ => Moment::ValueEntriesRemoved,
         };
         let mut child = Command::new(binary)
             .arg(&path)
@@ -497,6 +558,12 @@ fn torture(cycles: u64, seed: u64, budget: Duration) -> Tally {
             Moment::IndexRemoved => {
                 wait_for(&events, &mut seen, |e| matches!(e, Event::IndexRemoved(_)))
             }
+            Moment::ValueFilesDurable => {
+                wait_for(&events, &mut seen, |e| *e == Event::ValueFilesDurable)
+            }
+            Moment::ValueEntriesRemoved => {
+                wait_for(&events, &mut seen, |e| *e == Event::ValueEntriesRemoved)
+            }
         };
         if !reached {
             let _ = child.kill();
@@ -507,7 +574,11 @@ fn torture(cycles: u64, seed: u64, budget: Duration) -> Tally {
             );
         }
         let delay = match moment {
-            Moment::Start | Moment::FileDurable | Moment::IndexRemoved => 0,
+            Moment::Start
+            | Moment::FileDurable
+            | Moment::IndexRemoved
+            | Moment::ValueFilesDurable
+            | Moment::ValueEntriesRemoved => 0,
             Moment::Batches => rng.random_range(0..150_000),
             Moment::Checkpoint => rng.random_range(0..=checkpoint_micros / 2),
             Moment::Compaction => rng.random_range(0..=compaction_micros / 2),
@@ -529,7 +600,16 @@ fn torture(cycles: u64, seed: u64, budget: Duration) -> Tally {
         // A writer that paused between a checkpoint's file and its entry was killed there: the
         // checkpoint whose entry it kept from landing, or removed, must not be listed.
         let mut unlisted = None;
+        let mut unapplied_batch = false;
         match (seen.last(), moment.pause_at()) {
+            (Some(Event::ValueFilesDurable), Some(_)) => {
+                tally.killed_between_value_files_and_batch += 1;
+                unapplied_batch = true;
+            }
+            (Some(Event::ValueEntriesRemoved), Some(_)) => {
+                tally.killed_in_compaction += 1;
+                tally.killed_between_value_entries_and_files += 1;
+            }
             (Some(&Event::FileDurable(index)), Some(_)) => {
                 tally.killed_in_checkpoint += 1;
                 tally.killed_between_file_and_entry += 1;
@@ -543,7 +623,14 @@ fn torture(cycles: u64, seed: u64, budget: Duration) -> Tally {
             (Some(Event::CheckpointBegins(_) | Event::FileDurable(_)), _) => {
                 tally.killed_in_checkpoint += 1;
             }
-            (Some(Event::CompactionBegins(_) | Event::IndexRemoved(_)), _) => {
+            (
+                Some(
+                    Event::CompactionBegins(_)
+                    | Event::IndexRemoved(_)
+                    | Event::ValueEntriesRemoved,
+                ),
+                _,
+            ) => {
                 tally.killed_in_compaction += 1;
             }
             _ => {}
@@ -578,7 +665,11 @@ fn torture(cycles: u64, seed: u64, budget: Duration) -> Tally {
                     tally.log_entries_removed += removed;
                     compaction_micros = micros.clamp(100, 200_000);
                 }
-                Event::CompactionBegins(_) | Event::FileDurable(_) | Event::IndexRemoved(_) => {}
+                Event::CompactionBegins(_)
+                | Event::FileDurable(_)
+                | Event::IndexRemoved(_)
+                | Event::ValueFilesDurable
+                | Event::ValueEntriesRemoved => {}
             }
         }
         if max_acked == 0 {
@@ -592,7 +683,15 @@ fn torture(cycles: u64, seed: u64, budget: Duration) -> Tally {
             unlisted,
             &mut digests,
         );
+        if unapplied_batch {
+            assert_eq!(
+                verified.last,
+                max_acked.max(tally.last_seq),
+                "the batch killed between its value files and its transaction was applied"
+            );
+        }
         tally.unacked_but_applied += verified.last - max_acked.max(tally.last_seq);
+        tally.value_files = verified.value_files;
         tally.last_seq = verified.last;
         tally.newest_checkpoint = verified.checkpoints.first().copied().unwrap_or(0);
         tally.log_begins_at = verified.log_begins_at;
@@ -641,6 +740,12 @@ fn assert_exercised(tally: &Tally) {
             && tally.killed_between_entry_and_file_removal >= 1,
         "no kill landed between a checkpoint's file and its index entry, or between an entry's \
          removal and its file's: {tally:?}"
+    );
+    assert!(
+        tally.killed_between_value_files_and_batch >= 1
+            && tally.killed_between_value_entries_and_files >= 1,
+        "no kill landed between a batch's value files and the batch, or between the removal of \
+         entries naming value files and the files' deletion: {tally:?}"
     );
     assert!(
         tally.restored_from_checkpoint * 2 >= tally.cycles && tally.log_begins_at > 1,

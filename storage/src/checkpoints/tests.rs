@@ -58,14 +58,14 @@ fn file_names(store: &MemStore) -> Vec<String> {
 }
 
 /// Runs `step` with a hook that stops it (a panic) at `at`, as a crash there would.
-fn crash_at(store: &MemStore, at: CheckpointStep, step: impl FnOnce()) {
-    store.files().hook().set(Box::new(move |reached| {
+fn crash_at(store: &MemStore, at: FileStep, step: impl FnOnce()) {
+    store.hook().set(Box::new(move |reached| {
         if reached == at {
             std::panic::panic_any("crash");
         }
     }));
     let crashed = std::panic::catch_unwind(std::panic::AssertUnwindSafe(step));
-    store.files().hook().set(Box::new(|_| {}));
+    store.hook().set(Box::new(|_| {}));
     assert!(crashed.is_err(), "the step did not reach {at:?}");
 }
 
@@ -162,7 +162,7 @@ fn a_crash_between_the_file_and_its_entry_leaves_an_orphan_the_next_open_removes
     store.put_checkpoint("depot", 10, b"state 10").unwrap();
     crash_at(
         &store,
-        CheckpointStep::FileDurable { log_index: 20 },
+        FileStep::CheckpointFileDurable { log_index: 20 },
         || {
             let _ = store.put_checkpoint("depot", 20, b"state 20");
         },
@@ -187,7 +187,7 @@ fn a_crash_between_removing_entries_and_their_files_leaves_orphans_the_next_open
     put_states(&store, &[10, 20, 30]);
     crash_at(
         &store,
-        CheckpointStep::IndexRemoved { log_index: 10 },
+        FileStep::CheckpointIndexRemoved { log_index: 10 },
         || {
             compact(&store);
         },

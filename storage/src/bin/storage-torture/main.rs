@@ -14,11 +14,14 @@
 //! - `C INDEX` a checkpoint write begins, `c INDEX MICROS` it is durable (acknowledged);
 //! - `K INDEX` a compaction begins, `k INDEX MICROS LOG_ENTRIES_REMOVED` it returned;
 //! - `F INDEX` the file of the checkpoint at INDEX is durable, its index entry not stored yet;
-//! - `D INDEX` the index entry of the checkpoint at INDEX is removed durably, its file not deleted yet.
+//! - `D INDEX` the index entry of the checkpoint at INDEX is removed durably, its file not deleted yet;
+//! - `V FILES` the value files of the next batch are durable, the batch not applied yet;
+//! - `U FILES` the removal of entries naming FILES value files is durable (a compaction's), the files not
+//!   deleted yet.
 //!
-//! With `PAUSE_AT` `file-durable` or `index-removed` it stops for good after the first `F` or `D` line,
-//! for the kill to land exactly between the two steps. The test SIGKILLs it at random, just after a `C`
-//! or a `K`, or in such a pause.
+//! With `PAUSE_AT` `file-durable`, `index-removed`, `value-files-durable` or `value-entries-removed` it
+//! stops for good after the first `F`, `D`, `V` or `U` line, for the kill to land exactly between the two
+//! steps. The test SIGKILLs it at random, just after a `C` or a `K`, or in such a pause.
 
 mod workload;
 
@@ -27,7 +30,7 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use storage::{
-    BatchOutcome, CheckpointRetention, CheckpointStep, MapStore as _, SledStore, StorageError,
+    BatchOutcome, CheckpointRetention, FileStep, MapStore as _, SledStore, StorageError,
 };
 
 type Error = Box<dyn std::error::Error>;
@@ -102,14 +105,24 @@ fn checkpoint_and_compact(
     Ok(())
 }
 
-/// Reports each step between a checkpoint's file and its index entry (`F`, `D`), and stops for good at
-/// the first one `pause_at` names.
-fn report_checkpoint_steps(store: &SledStore, pause_at: Option<&str>) {
+/// The `PAUSE_AT` names, one per [`FileStep`].
+const PAUSE_POINTS: [&str; 4] = [
+    "file-durable",
+    "index-removed",
+    "value-files-durable",
+    "value-entries-removed",
+];
+
+/// Reports each step between a file and its entry (`F`, `D`, `V`, `U`), and stops for good at the first
+/// one `pause_at` names.
+fn report_file_steps(store: &SledStore, pause_at: Option<&str>) {
     let pause_at = pause_at.map(str::to_owned);
-    store.on_checkpoint_step(move |step| {
+    store.on_file_step(move |step| {
         let (tag, index, name) = match step {
-            CheckpointStep::FileDurable { log_index } => ('F', log_index, "file-durable"),
-            CheckpointStep::IndexRemoved { log_index } => ('D', log_index, "index-removed"),
+            FileStep::CheckpointFileDurable { log_index } => ('F', log_index, PAUSE_POINTS[0]),
+            FileStep::CheckpointIndexRemoved { log_index } => ('D', log_index, PAUSE_POINTS[1]),
+            FileStep::ValueFilesDurable { files } => ('V', files as u64, PAUSE_POINTS[2]),
+            FileStep::ValueEntriesRemoved { files } => ('U', files as u64, PAUSE_POINTS[3]),
         };
         let mut stdout = std::io::stdout().lock();
         let _ = writeln!(stdout, "{tag} {index}").and_then(|()| stdout.flush());
@@ -123,7 +136,7 @@ fn report_checkpoint_steps(store: &SledStore, pause_at: Option<&str>) {
 
 fn run(path: &str, max_batches: u64, pause_at: Option<&str>) -> Result<(), Error> {
     let store = SledStore::open_path(path)?;
-    report_checkpoint_steps(&store, pause_at);
+    report_file_steps(&store, pause_at);
     let last = store
         .last_applied_seq(workload::SITE, workload::SESSION)?
         .unwrap_or(0);
@@ -159,12 +172,18 @@ fn main() -> ExitCode {
     let args: Vec<String> = std::env::args().collect();
     let (Some(path), Some(max_batches)) = (args.get(1), args.get(2).and_then(|n| n.parse().ok()))
     else {
-        eprintln!("usage: storage-torture DB_PATH MAX_BATCHES [file-durable|index-removed]");
+        eprintln!(
+            "usage: storage-torture DB_PATH MAX_BATCHES [{}]",
+            PAUSE_POINTS.join("|")
+        );
         return ExitCode::from(2);
     };
     let pause_at = args.get(3).map(String::as_str);
-    if pause_at.is_some_and(|at| !["file-durable", "index-removed"].contains(&at)) {
-        eprintln!("storage-torture: PAUSE_AT is file-durable or index-removed");
+    if pause_at.is_some_and(|at| !PAUSE_POINTS.contains(&at)) {
+        eprintln!(
+            "storage-torture: PAUSE_AT is one of {}",
+            PAUSE_POINTS.join(", ")
+        );
         return ExitCode::from(2);
     }
     match run(path, max_batches, pause_at) {

@@ -3,10 +3,11 @@
 //!
 //! Batch `seq` (1, 2, ...) of site [`SITE`], conditional on session [`SESSION`] sequence number `seq`:
 //! - puts `node_count(seq)` Node records `(seq, i)` with `node_value(seq, i)` (16 B to 1 KiB, one in 128 of 20-100 KiB
-//!   so sled's large-value path is exercised too);
+//!   so the store's value files are exercised too);
 //! - overwrites SiteMeta `"latest"` with `seq`;
 //! - puts Outbox `seq` and deletes Outbox `seq - 1`;
-//! - appends the site log entry [`LOG_KIND`] `seq` with `log_value(seq)`;
+//! - appends the site log entry [`LOG_KIND`] `seq` with `log_value(seq)` (one in 4 large enough for a value
+//!   file, so compactions free value files);
 //! - bumps the map version.
 //!
 //! So after batches 1..=n exactly: map version n, session n, latest n, a single Outbox record `n`, and the
@@ -69,10 +70,14 @@ pub fn outbox_value(seq: u64) -> Vec<u8> {
     format!("upload {seq}").into_bytes()
 }
 
-/// Value of the site log entry `seq` (24-280 bytes).
+/// Value of the site log entry `seq`: 24-280 bytes, or one in 4 5-20 kB (in a value file).
 pub fn log_value(seq: u64) -> Vec<u8> {
     let seed = mix(seq ^ 0x0106_0106);
-    let len = 24 + (seed % 257) as usize;
+    let len = if seed.is_multiple_of(4) {
+        5_000 + (seed % 15_000) as usize
+    } else {
+        24 + (seed % 257) as usize
+    };
     let mut state = seed;
     (0..len)
         .map(|_| {

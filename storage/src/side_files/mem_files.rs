@@ -1,25 +1,35 @@
-//! Checkpoint files in memory: the [`crate::MemStore`]'s, so that it runs the same checkpoint code as
-//! [`crate::SledStore`] (index entries in the key-value map, bytes beside it).
+//! Files in memory: the [`crate::MemStore`]'s, so that it runs the same checkpoint and large-value code
+//! as [`crate::SledStore`] (entries in the key-value map, bytes beside it).
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::PathBuf;
-use std::sync::{Mutex, MutexGuard, PoisonError};
+use std::sync::{Mutex, MutexGuard, PoisonError, RwLock, RwLockReadGuard, RwLockWriteGuard};
 
-use super::{CheckpointFiles, CheckpointStep, StepHook};
+use super::SideFiles;
 use crate::Result;
 
 /// File name → bytes.
 type Files = BTreeMap<String, Vec<u8>>;
 
-/// Checkpoint files held in memory; never fails.
-#[derive(Debug, Default)]
-pub(crate) struct MemCheckpointFiles {
+/// Files held in memory; never fails.
+#[derive(Debug)]
+pub(crate) struct MemFiles {
+    /// The directory they would be in on disk (`"checkpoints"`, `"values"`), for messages.
+    dir: &'static str,
     files: Mutex<Files>,
-    lock: Mutex<()>,
-    hook: StepHook,
+    lock: RwLock<()>,
 }
 
-impl MemCheckpointFiles {
+impl MemFiles {
+    /// No files; `dir` names where they would be on disk, for messages.
+    pub(crate) fn new(dir: &'static str) -> Self {
+        Self {
+            dir,
+            files: Mutex::default(),
+            lock: RwLock::default(),
+        }
+    }
+
     fn files(&self) -> MutexGuard<'_, Files> {
         self.files.lock().unwrap_or_else(PoisonError::into_inner)
     }
@@ -29,15 +39,9 @@ impl MemCheckpointFiles {
     pub(crate) fn with_files(&self, f: impl FnOnce(&mut Files)) {
         f(&mut self.files());
     }
-
-    /// Test hook: sets the hook [`CheckpointFiles::step`] calls.
-    #[cfg(test)]
-    pub(crate) fn hook(&self) -> &StepHook {
-        &self.hook
-    }
 }
 
-impl CheckpointFiles for MemCheckpointFiles {
+impl SideFiles for MemFiles {
     fn write(&self, _site: &str, name: &str, bytes: &[u8]) -> Result<()> {
         self.files().insert(name.to_owned(), bytes.to_vec());
         Ok(())
@@ -58,6 +62,10 @@ impl CheckpointFiles for MemCheckpointFiles {
         Ok(())
     }
 
+    fn names(&self) -> Result<Vec<String>> {
+        Ok(self.files().keys().cloned().collect())
+    }
+
     fn retain(&self, keep: &BTreeSet<String>) -> Result<u64> {
         let mut files = self.files();
         let before = files.len();
@@ -70,14 +78,14 @@ impl CheckpointFiles for MemCheckpointFiles {
     }
 
     fn path(&self, name: &str) -> PathBuf {
-        PathBuf::from("<memory>/checkpoints").join(name)
+        PathBuf::from("<memory>").join(self.dir).join(name)
     }
 
-    fn lock(&self) -> MutexGuard<'_, ()> {
-        self.lock.lock().unwrap_or_else(PoisonError::into_inner)
+    fn shared(&self) -> RwLockReadGuard<'_, ()> {
+        self.lock.read().unwrap_or_else(PoisonError::into_inner)
     }
 
-    fn step(&self, step: CheckpointStep) {
-        self.hook.call(step);
+    fn exclusive(&self) -> RwLockWriteGuard<'_, ()> {
+        self.lock.write().unwrap_or_else(PoisonError::into_inner)
     }
 }

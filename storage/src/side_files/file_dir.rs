@@ -1,55 +1,83 @@
-//! Checkpoint files on disk, written crash-safely: each to a temporary file in its final directory,
+//! Files beside the database, on disk, written crash-safely: each to a temporary file in its final directory,
 //! fsynced, renamed over its name, the directory fsynced (the way etcd writes its snapshots). A crash at
 //! any point leaves either the old name or the whole new file; a temporary file it leaves behind is an
-//! orphan, deleted by [`CheckpointFiles::retain`] when the store next opens.
+//! orphan, deleted by [`SideFiles::retain`] when the store next opens.
 
 use std::collections::BTreeSet;
 use std::fs::{self, File};
 use std::io::{self, Write as _};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Mutex, MutexGuard, PoisonError};
+use std::sync::{PoisonError, RwLock, RwLockReadGuard, RwLockWriteGuard};
 
-use super::{CheckpointFiles, CheckpointStep, StepHook};
+use super::SideFiles;
 use crate::{Result, StorageError};
 
-/// The checkpoint directory of a [`crate::SledStore`] (see the parent module for its layout).
+/// A directory of files beside a [`crate::SledStore`]'s database (see the parent module for its layout).
 #[derive(Debug)]
-pub(crate) struct CheckpointDir {
+pub(crate) struct FileDir {
     root: PathBuf,
-    lock: Mutex<()>,
-    hook: StepHook,
+    /// What the files hold, for messages: `"checkpoint"`, `"value"`.
+    what: &'static str,
+    lock: RwLock<()>,
     /// Temporary files begun by this process (their names are unique with it).
     temp_files: AtomicU64,
 }
 
-impl CheckpointDir {
-    /// The directory `root`, created (durably) if missing.
-    pub(crate) fn open(root: PathBuf) -> Result<Self> {
+impl FileDir {
+    /// The directory `root` of `what` files (`"checkpoint"`, `"value"`: for messages), created (durably)
+    /// if missing.
+    pub(crate) fn open(root: PathBuf, what: &'static str) -> Result<Self> {
         if !root.is_dir() {
-            create_dir_durably(&root).map_err(|source| StorageError::CheckpointDir {
+            create_dir_durably(&root).map_err(|source| StorageError::FileDir {
+                what,
                 path: root.clone(),
-                action: "create the checkpoint directory",
+                action: "create",
                 source,
             })?;
         }
         Ok(Self {
             root,
-            lock: Mutex::new(()),
-            hook: StepHook::default(),
+            what,
+            lock: RwLock::new(()),
             temp_files: AtomicU64::new(0),
         })
     }
 
-    /// Sets the hook [`CheckpointFiles::step`] calls.
-    pub(crate) fn hook(&self) -> &StepHook {
-        &self.hook
+    fn dir_error(
+        &self,
+        path: PathBuf,
+        action: &'static str,
+    ) -> impl FnOnce(io::Error) -> StorageError {
+        let what = self.what;
+        move |source| StorageError::FileDir {
+            what,
+            path,
+            action,
+            source,
+        }
+    }
+
+    fn file_error(
+        &self,
+        site: &str,
+        file: PathBuf,
+        action: &'static str,
+    ) -> impl FnOnce(io::Error) -> StorageError {
+        let (what, site) = (self.what, site.to_owned());
+        move |source| StorageError::File {
+            what,
+            site,
+            file,
+            action,
+            source,
+        }
     }
 
     fn write_durably(&self, path: &Path, bytes: &[u8]) -> io::Result<()> {
         let dir = path
             .parent()
-            .ok_or_else(|| io::Error::other("a checkpoint file has no directory"))?;
+            .ok_or_else(|| io::Error::other("a file has no directory"))?;
         if !dir.is_dir() {
             create_dir_durably(dir)?;
         }
@@ -74,16 +102,11 @@ impl CheckpointDir {
 
     /// Every file under the root and the site directories.
     fn walk(&self) -> Result<Listing> {
-        let list_error = |path: &Path, source| StorageError::CheckpointDir {
-            path: path.to_path_buf(),
-            action: "list the checkpoint directory",
-            source,
-        };
         let (mut files, mut dirs) = (Vec::new(), Vec::new());
         let entries = |dir: &Path| {
             fs::read_dir(dir)
                 .and_then(Iterator::collect::<io::Result<Vec<_>>>)
-                .map_err(|source| list_error(dir, source))
+                .map_err(self.dir_error(dir.to_path_buf(), "list"))
         };
         for entry in entries(&self.root)? {
             let path = entry.path();
@@ -104,7 +127,7 @@ impl CheckpointDir {
     }
 }
 
-/// What [`CheckpointDir::walk`] found.
+/// What [`FileDir::walk`] found.
 struct Listing {
     /// Every file: its name relative to the root, its path.
     files: Vec<(String, PathBuf)>,
@@ -135,16 +158,11 @@ fn absent_is_fine(result: io::Result<()>) -> io::Result<()> {
     }
 }
 
-impl CheckpointFiles for CheckpointDir {
+impl SideFiles for FileDir {
     fn write(&self, site: &str, name: &str, bytes: &[u8]) -> Result<()> {
         let path = self.path(name);
         self.write_durably(&path, bytes)
-            .map_err(|source| StorageError::CheckpointFile {
-                site: site.to_owned(),
-                file: path,
-                action: "write",
-                source,
-            })
+            .map_err(self.file_error(site, path, "write"))
     }
 
     fn read(&self, site: &str, name: &str) -> Result<Option<Vec<u8>>> {
@@ -152,33 +170,31 @@ impl CheckpointFiles for CheckpointDir {
         match fs::read(&path) {
             Ok(bytes) => Ok(Some(bytes)),
             Err(error) if error.kind() == io::ErrorKind::NotFound => Ok(None),
-            Err(source) => Err(StorageError::CheckpointFile {
-                site: site.to_owned(),
-                file: path,
-                action: "read",
-                source,
-            }),
+            Err(source) => Err(self.file_error(site, path, "read")(source)),
         }
     }
 
     fn remove(&self, site: &str, name: &str) -> Result<()> {
         let path = self.path(name);
-        absent_is_fine(fs::remove_file(&path)).map_err(|source| StorageError::CheckpointFile {
-            site: site.to_owned(),
-            file: path,
-            action: "remove",
-            source,
-        })
+        absent_is_fine(fs::remove_file(&path)).map_err(self.file_error(site, path, "remove"))
     }
 
     fn remove_dir(&self, site: &str, dir: &str) -> Result<()> {
         let path = self.root.join(dir);
-        absent_is_fine(fs::remove_dir_all(&path)).map_err(|source| StorageError::CheckpointFile {
-            site: site.to_owned(),
-            file: path,
-            action: "remove the directory of",
-            source,
-        })
+        absent_is_fine(fs::remove_dir_all(&path)).map_err(self.file_error(
+            site,
+            path,
+            "remove the directory of",
+        ))
+    }
+
+    fn names(&self) -> Result<Vec<String>> {
+        Ok(self
+            .walk()?
+            .files
+            .into_iter()
+            .map(|(name, _)| name)
+            .collect())
     }
 
     fn retain(&self, keep: &BTreeSet<String>) -> Result<u64> {
@@ -193,11 +209,7 @@ impl CheckpointFiles for CheckpointDir {
             } else {
                 fs::remove_file(&path)
             };
-            absent_is_fine(result).map_err(|source| StorageError::CheckpointDir {
-                path,
-                action: "remove the orphan checkpoint file",
-                source,
-            })?;
+            absent_is_fine(result).map_err(self.dir_error(path, "remove the orphan"))?;
             removed += 1;
         }
         for dir in dirs {
@@ -213,13 +225,7 @@ impl CheckpointFiles for CheckpointDir {
             match fs::metadata(&path) {
                 Ok(meta) => total += meta.len(),
                 Err(error) if error.kind() == io::ErrorKind::NotFound => {}
-                Err(source) => {
-                    return Err(StorageError::CheckpointDir {
-                        path,
-                        action: "measure the checkpoint file",
-                        source,
-                    });
-                }
+                Err(source) => return Err(self.dir_error(path, "measure")(source)),
             }
         }
         Ok(total)
@@ -229,12 +235,12 @@ impl CheckpointFiles for CheckpointDir {
         self.root.join(name)
     }
 
-    fn lock(&self) -> MutexGuard<'_, ()> {
-        self.lock.lock().unwrap_or_else(PoisonError::into_inner)
+    fn shared(&self) -> RwLockReadGuard<'_, ()> {
+        self.lock.read().unwrap_or_else(PoisonError::into_inner)
     }
 
-    fn step(&self, step: CheckpointStep) {
-        self.hook.call(step);
+    fn exclusive(&self) -> RwLockWriteGuard<'_, ()> {
+        self.lock.write().unwrap_or_else(PoisonError::into_inner)
     }
 }
 
@@ -245,7 +251,7 @@ mod tests {
     #[test]
     fn files_are_written_whole_listed_and_orphans_removed() {
         let temp = tempfile::tempdir().unwrap();
-        let dir = CheckpointDir::open(temp.path().join("checkpoints")).unwrap();
+        let dir = FileDir::open(temp.path().join("checkpoints"), "checkpoint").unwrap();
         dir.write("depot", "depot/1.ckpt", b"one").unwrap();
         dir.write("depot", "depot/1.ckpt", b"one again").unwrap();
         dir.write("depot", "depot/2.ckpt", b"two").unwrap();
@@ -256,6 +262,10 @@ mod tests {
         );
         assert_eq!(dir.read("depot", "depot/3.ckpt").unwrap(), None);
         assert_eq!(dir.total_bytes().unwrap(), 9 + 3 + 4);
+        assert_eq!(
+            dir.names().unwrap(),
+            ["depot/1.ckpt", "depot/2.ckpt", "yard/1.ckpt"]
+        );
         // What a crash between writing and renaming leaves.
         fs::write(temp.path().join("checkpoints/depot/.2.ckpt.1-0.tmp"), b"tw").unwrap();
         fs::write(temp.path().join("checkpoints/stray"), b"?").unwrap();
@@ -276,7 +286,7 @@ mod tests {
     #[test]
     fn a_failed_write_names_the_site_and_file_and_leaves_nothing() {
         let temp = tempfile::tempdir().unwrap();
-        let dir = CheckpointDir::open(temp.path().join("checkpoints")).unwrap();
+        let dir = FileDir::open(temp.path().join("checkpoints"), "checkpoint").unwrap();
         // The site "directory" is a file: nothing can be created in it.
         fs::write(temp.path().join("checkpoints/depot"), b"").unwrap();
         let error = dir.write("depot", "depot/1.ckpt", b"one").unwrap_err();
