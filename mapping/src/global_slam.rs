@@ -19,8 +19,8 @@ pub use constraint_builder::{
 };
 pub use fixed_ratio_sampler::FixedRatioSampler;
 pub use global_slam_core::{
-    Acceptance, ClosureState, GlobalSlam, GlobalSlamError, GlobalSlamEvent, GlobalSlamState,
-    NodeRecord, SubmapRecord,
+    Acceptance, ClosureState, CorrectionProbation, GlobalSlam, GlobalSlamError, GlobalSlamEvent,
+    GlobalSlamState, NodeRecord, SubmapRecord,
 };
 pub use global_slam_options::{GlobalSlamOptions, GlobalSlamOptionsError};
 pub use loop_closure_check::{

@@ -12,8 +12,8 @@ use std::sync::Arc;
 
 use mapping::geometry::Rigid2;
 use mapping::global_slam::{
-    Acceptance, ClosureState, FixedRatioSampler, GlobalSlamState, LoopClosure, NodeRecord,
-    SearchJob, SearchWindow, SubmapRecord,
+    Acceptance, ClosureState, CorrectionProbation, FixedRatioSampler, GlobalSlamState, LoopClosure,
+    NodeRecord, SearchJob, SearchWindow, SubmapRecord,
 };
 use mapping::lifelong::{
     LifelongError, LifelongMap, LifelongMapState, LifelongOptions, SessionProgress,
@@ -498,7 +498,62 @@ fn global_to_pb(g: &GlobalSlamState) -> pb::GlobalSlamState {
         settled: g.settled.iter().copied().collect(),
         new_constraints_from: g.new_constraints_from.0,
         changed: g.changed.iter().map(|v| variable_to_pb(*v)).collect(),
+        correction_probations: g
+            .correction_probations
+            .iter()
+            .map(probation_to_pb)
+            .collect(),
     }
+}
+
+fn probation_to_pb(p: &CorrectionProbation) -> pb::CorrectionProbationState {
+    pb::CorrectionProbationState {
+        closures: p
+            .closures
+            .iter()
+            .map(|(node, submap)| pb::ClosureRef {
+                node: Some((*node).into()),
+                submap: Some((*submap).into()),
+            })
+            .collect(),
+        newest: Some(closure_to_pb(&p.newest)),
+        after_node: p.after_node,
+        old_submaps_to: p.old_submaps_to,
+        agreeing: p.agreeing.iter().map(|n| (*n).into()).collect(),
+        disagreeing: p.disagreeing.iter().map(|n| (*n).into()).collect(),
+        nodes_judging: p.nodes_judging as u64,
+        kept: p.kept,
+    }
+}
+
+fn probation_from_pb(
+    p: &pb::CorrectionProbationState,
+) -> Result<CorrectionProbation, ConversionError> {
+    const M: &str = "CorrectionProbationState";
+    let nodes = |ids: &[pb::NodeId], field| {
+        ids.iter()
+            .map(|id| node_in(Some(id), M, field))
+            .collect::<Result<BTreeSet<NodeId>, ConversionError>>()
+    };
+    Ok(CorrectionProbation {
+        closures: p
+            .closures
+            .iter()
+            .map(|c| {
+                Ok((
+                    node_in(c.node.as_ref(), "ClosureRef", "node")?,
+                    submap_in(c.submap.as_ref(), "ClosureRef", "submap")?,
+                ))
+            })
+            .collect::<Result<Vec<_>, ConversionError>>()?,
+        newest: closure_from_pb(p.newest.as_ref())?,
+        after_node: p.after_node,
+        old_submaps_to: p.old_submaps_to,
+        agreeing: nodes(&p.agreeing, "agreeing")?,
+        disagreeing: nodes(&p.disagreeing, "disagreeing")?,
+        nodes_judging: to_usize(p.nodes_judging, M, "nodes_judging")?,
+        kept: p.kept,
+    })
 }
 
 fn global_from_pb(g: Option<&pb::GlobalSlamState>) -> Result<GlobalSlamState, ConversionError> {
@@ -656,6 +711,11 @@ fn global_from_pb(g: Option<&pb::GlobalSlamState>) -> Result<GlobalSlamState, Co
             .iter()
             .map(|v| variable_in(Some(v), M, "changed"))
             .collect::<Result<BTreeSet<VariableId>, ConversionError>>()?,
+        correction_probations: g
+            .correction_probations
+            .iter()
+            .map(probation_from_pb)
+            .collect::<Result<Vec<_>, ConversionError>>()?,
     })
 }
 

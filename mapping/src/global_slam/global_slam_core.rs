@@ -1,6 +1,7 @@
 //! The global SLAM state machine.
 
 mod closure_acceptance;
+mod correction_probation;
 mod global_slam_state;
 mod search_queue;
 
@@ -22,6 +23,7 @@ use crate::pose_graph::{
     PoseGraphError, RobustLoss, SubmapId, VariableId,
 };
 use crate::sensor::Timestamp;
+pub use correction_probation::CorrectionProbation;
 
 /// What global SLAM knows about a node.
 #[derive(Clone, Debug, PartialEq)]
@@ -158,6 +160,9 @@ pub struct GlobalSlam {
     /// Variables whose constraints changed since the last optimization other than by an addition (a
     /// retracted closure, a deleted neighbour): optimizations move them and their neighbourhood.
     changed: BTreeSet<VariableId>,
+    /// Confirmed corrections the nodes after them are judging, or have kept (see
+    /// [`CorrectionProbation`]).
+    probations: Vec<CorrectionProbation>,
 }
 
 pub(super) fn information(translation_sigma: f64, rotation_sigma: f64) -> Matrix3<f64> {
@@ -203,6 +208,7 @@ impl GlobalSlam {
             new_constraints_from: ConstraintId(0),
             changed: BTreeSet::new(),
             closures_outvoted: 0,
+            probations: Vec::new(),
         })
     }
 
@@ -360,6 +366,7 @@ impl GlobalSlam {
             },
         );
         self.last_node.insert(trajectory, id);
+        self.judge_corrections_by_node(id);
 
         events.extend(self.add_finished_submaps(trajectory, finished_submaps));
         self.queue_searches_for_node(id);
@@ -467,6 +474,8 @@ impl GlobalSlam {
             }
         }
         self.pending_jobs.retain(|j| !crosses(j.node, j.submap));
+        self.probations
+            .retain(|p| !p.closures.iter().any(|&(n, s)| crosses(n, s)));
         self.pending_unconfirmed
             .retain(|(c, _)| !crosses(c.node, c.submap));
         self.pending_beyond_drift
@@ -618,7 +627,15 @@ impl GlobalSlam {
             return 0;
         }
         let mut changed = 0;
-        for state in &mut self.closure_states {
+        let on_probation = self.closures_on_probation();
+        for (closure, state) in self
+            .accepted_loop_closures
+            .iter()
+            .zip(&mut self.closure_states)
+        {
+            if on_probation.contains(&(closure.node, closure.submap)) {
+                continue;
+            }
             let constraint = match state {
                 ClosureState::InGraph(id) => {
                     let Some(c) = self.graph.constraint(*id) else {
@@ -751,6 +768,7 @@ impl GlobalSlam {
                 self.acceptances.push(acceptance);
                 self.closure_states.push(state);
             }
+            self.forget_probations();
         }
     }
 
@@ -856,7 +874,7 @@ mod tests {
     use crate::grid::MapLimits;
 
     /// One trajectory driving along x in 0.2 m steps; submap 0 holds its first 11 nodes and is finished.
-    fn straight_run(nodes: u32) -> GlobalSlam {
+    pub(super) fn straight_run(nodes: u32) -> GlobalSlam {
         let options = GlobalSlamOptions {
             optimize_every_n_nodes: 0,
             constraint_builder: ConstraintBuilderOptions {
@@ -866,7 +884,13 @@ mod tests {
             ..Default::default()
         };
         let mut global = GlobalSlam::new(options).expect("valid options");
-        for i in 0..nodes {
+        drive_on(&mut global, 0..nodes);
+        global
+    }
+
+    /// Adds the nodes `indices` of [`straight_run`]'s trajectory.
+    pub(super) fn drive_on(global: &mut GlobalSlam, indices: std::ops::Range<u32>) {
+        for i in indices {
             let submaps: &[(usize, Rigid2)] = if i <= 10 {
                 &[(0, Rigid2::identity())]
             } else {
@@ -896,10 +920,9 @@ mod tests {
                 )
                 .expect("node added");
         }
-        global
     }
 
-    fn wide_closure(node: u32, error: Rigid2) -> LoopClosure {
+    pub(super) fn wide_closure(node: u32, error: Rigid2) -> LoopClosure {
         LoopClosure {
             submap: SubmapId {
                 trajectory: 0,

@@ -51,6 +51,15 @@ pub struct GlobalSlamOptions {
     /// Retract an accepted loop closure whose χ² (`eᵀΩe`, unitless) exceeds this after an optimization (put
     /// back once it fits); 0 = never. Default 6. Why: `docs/TUNING.md#gs-loop-closure-retraction-chi2`.
     pub loop_closure_retraction_chi2: f64,
+    /// A correction confirmed by agreement (matches far from their estimates) stays in the graph, whatever
+    /// retraction says, while this many of its trajectory's next nodes judge it by their own matches
+    /// (count; 0 = never: retraction alone judges it). Default 20.
+    /// Why: `docs/TUNING.md#gs-correction-probation-nodes`.
+    pub correction_probation_nodes: usize,
+    /// Later nodes whose matches agree with a correction on probation to keep it for good (never
+    /// retracted), or, with none agreeing, disagree with it to retract it at once (count, at least 1).
+    /// Default 2.
+    pub correction_probation_matches: usize,
     /// For a trajectory started with no prior (`GlobalSlam::start_trajectory`), match a node against every
     /// placed finished submap every this many nodes (count; 0 = never). Default 0.
     /// Why: `docs/TUNING.md#gs-unanchored-search-every-n-nodes`.
@@ -74,6 +83,8 @@ impl Default for GlobalSlamOptions {
             odometry_translation_sigma: 0.02,
             odometry_rotation_sigma: 0.01,
             loop_closure_retraction_chi2: 6.0,
+            correction_probation_nodes: 20,
+            correction_probation_matches: 2,
             unanchored_search_every_n_nodes: 0,
             settled_region_hops: None,
             constraint_builder: ConstraintBuilderOptions::default(),
@@ -124,6 +135,11 @@ impl GlobalSlamOptions {
                 "loop_closure_retraction_chi2 must be a finite number >= 0, got {}",
                 self.loop_closure_retraction_chi2
             )));
+        }
+        if self.correction_probation_matches == 0 {
+            return Err(GlobalSlamOptionsError::Invalid(
+                "correction_probation_matches must be at least 1".to_owned(),
+            ));
         }
         self.constraint_builder.validate()?;
         self.optimizer

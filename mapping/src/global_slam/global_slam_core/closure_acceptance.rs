@@ -71,6 +71,7 @@ impl GlobalSlam {
         let mut accepted: Vec<(LoopClosure, Acceptance)> = Vec::new();
         let mut confirmed_any = false;
         for (closure, outvoted) in results.into_iter().zip(outvoted) {
+            self.judge_corrections_by_match(&closure);
             if outvoted {
                 self.closures_outvoted += 1;
                 continue;
@@ -109,7 +110,10 @@ impl GlobalSlam {
                 }
                 confirmed_any = true;
                 self.closures_beyond_drift -= agreeing.len();
-                accepted.extend(confirmed(agreeing, closure, acceptance));
+                let group: Vec<(LoopClosure, Acceptance)> =
+                    confirmed(agreeing, closure, acceptance).collect();
+                self.start_probation(group.iter().map(|(c, _)| c));
+                accepted.extend(group);
                 continue;
             }
             if self.needs_confirmation(&closure, &acceptance) {
@@ -119,7 +123,10 @@ impl GlobalSlam {
                     continue;
                 }
                 confirmed_any = true;
-                accepted.extend(confirmed(agreeing, closure, acceptance));
+                let group: Vec<(LoopClosure, Acceptance)> =
+                    confirmed(agreeing, closure, acceptance).collect();
+                self.start_probation(group.iter().map(|(c, _)| c));
+                accepted.extend(group);
                 continue;
             }
             accepted.push((closure, acceptance));
@@ -312,7 +319,7 @@ impl GlobalSlam {
     /// Whether two matches of different nodes of one trajectory close a consistent cycle: the relative
     /// pose of their nodes through the two submaps equals the one along the trajectory, within
     /// `agreement_translation` (plus 2 % of the path between them) and `agreement_rotation`.
-    fn agree(&self, a: &LoopClosure, b: &LoopClosure) -> bool {
+    pub(super) fn agree(&self, a: &LoopClosure, b: &LoopClosure) -> bool {
         let cb = &self.options.constraint_builder;
         if a.node == b.node || a.node.trajectory != b.node.trajectory {
             return false;

@@ -9,7 +9,7 @@
 //!   trajectory's `global_from_local` and last node, the queued searches, the accepted loop closures
 //!   with how they were accepted and where each stands, the matches waiting for agreement, the
 //!   unanchored, matched-elsewhere and settled trajectories, each trajectory's last loop's path, the
-//!   optimization bookkeeping (nodes since the last optimization, the first constraint new to the next
+//!   corrections on probation or kept, the optimization bookkeeping (nodes since the last optimization, the first constraint new to the next
 //!   one, the variables changed since) and the counters;
 //! - rebuilt: the branch-and-bound matchers of the constraint builder (from the finished submaps' grids
 //!   and local poses, as [`GlobalSlam`] built them), the optimizers (from the options; their cached
@@ -23,7 +23,10 @@
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
 
-use super::{Acceptance, ClosureState, GlobalSlam, GlobalSlamError, NodeRecord, SubmapRecord};
+use super::{
+    Acceptance, ClosureState, CorrectionProbation, GlobalSlam, GlobalSlamError, NodeRecord,
+    SubmapRecord,
+};
 use crate::geometry::Rigid2;
 use crate::global_slam::{
     ConstraintBuilder, FixedRatioSampler, GlobalSlamOptions, GlobalSlamOptionsError, LoopClosure,
@@ -82,6 +85,8 @@ pub struct GlobalSlamState {
     pub new_constraints_from: ConstraintId,
     /// Variables whose constraints changed since the last optimization other than by an addition.
     pub changed: BTreeSet<VariableId>,
+    /// Confirmed corrections on probation or kept, in confirmation order.
+    pub correction_probations: Vec<CorrectionProbation>,
 }
 
 impl GlobalSlam {
@@ -112,6 +117,7 @@ impl GlobalSlam {
             settled: self.settled.clone(),
             new_constraints_from: self.new_constraints_from,
             changed: self.changed.clone(),
+            correction_probations: self.probations.clone(),
         }
     }
 
@@ -157,6 +163,7 @@ impl GlobalSlam {
             settled,
             new_constraints_from,
             changed,
+            correction_probations,
         } = state;
         // A queued search matches its node's points: share them again (a decoded state has copies).
         for job in &mut pending_jobs {
@@ -188,6 +195,7 @@ impl GlobalSlam {
             closures_beyond_drift,
             pending_beyond_drift,
             closures_outvoted,
+            probations: correction_probations,
             pending_unconfirmed,
             settled,
             new_constraints_from,
@@ -228,6 +236,21 @@ fn validate(state: &GlobalSlamState) -> Result<(), GlobalSlamError> {
             "{closures} accepted loop closures, {} acceptances, {} closure states",
             state.acceptances.len(),
             state.closure_states.len()
+        ));
+    }
+    let accepted: BTreeSet<(NodeId, SubmapId)> = state
+        .accepted_loop_closures
+        .iter()
+        .map(|c| (c.node, c.submap))
+        .collect();
+    if let Some((node, submap)) = state
+        .correction_probations
+        .iter()
+        .flat_map(|p| &p.closures)
+        .find(|c| !accepted.contains(c))
+    {
+        return inconsistent(format!(
+            "correction on probation holds the match of node {node:?} against submap {submap:?}, not an accepted closure"
         ));
     }
     if state.new_constraints_from > state.graph.next_constraint_id() {
