@@ -673,6 +673,38 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
         let _ = follower.await;
     }
 
+    // A robot of site 0 last seen halfway through the site's life (its session count then half of what it
+    // is now, from the maturing samples) catches up: one delta holding every submap changed since.
+    let catch_up = match half_life_version(&maturing_growth) {
+        Some((sessions_then, from_version)) => {
+            let mut uplink = robots[0].uplink.clone();
+            let before = metrics.bytes_out();
+            let t = Instant::now();
+            let delta = uplink.delta_since(from_version).await?;
+            let ms = t.elapsed().as_secs_f64() * 1e3;
+            let bytes = metrics.bytes_out() - before;
+            let before_full = metrics.bytes_out();
+            let _ = uplink.delta_since(0).await?;
+            let whole_map_bytes = metrics.bytes_out() - before_full;
+            let sessions_now = server
+                .site(&site_id(0))
+                .map_or(0, |h| h.current().counts.sessions);
+            json!({
+                "site": site_id(0),
+                "sessions_missed": sessions_now.saturating_sub(sessions_then),
+                "from_version": from_version,
+                "to_version": delta.to_version,
+                "submaps_added": delta.submaps_added.len(),
+                "trimmed": delta.trimmed.len(),
+                "ms": ms,
+                "bytes": bytes,
+                "whole_map_bytes": whole_map_bytes,
+                "bytes_per_whole_map": bytes as f64 / whole_map_bytes.max(1) as f64,
+            })
+        }
+        None => serde_json::Value::Null,
+    };
+
     // The offline robot catches up by delta.
     let resync = {
         let mut uplink = robots[0].uplink.clone();
@@ -829,6 +861,7 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
             "to_every_robot_of_the_site": quantiles(&mut to_all),
         },
         "resync_after_offline": resync,
+        "catch_up_after_half_the_sites_life": catch_up,
         "per_minute_of_robot_time": per_minute,
         "sites_final": sites,
         "maturing_growth": maturing_growth,
@@ -1107,4 +1140,19 @@ mod tests {
         );
         assert_eq!(session_lengths(100.0, Some(300.0)), vec![100.0]);
     }
+}
+
+/// Site 0's session count and map version at the maturing sample where its session count first reached
+/// half its final one (`None` without maturing samples of it).
+fn half_life_version(growth: &[serde_json::Value]) -> Option<(u64, u64)> {
+    let site = site_id(0);
+    let samples: Vec<(u64, u64)> = growth
+        .iter()
+        .filter(|s| s["site"] == site.as_str())
+        .filter_map(|s| Some((s["sessions"].as_u64()?, s["version"].as_u64()?)))
+        .collect();
+    let last = samples.iter().map(|(sessions, _)| *sessions).max()?;
+    samples
+        .into_iter()
+        .find(|(sessions, _)| *sessions >= last.div_ceil(2))
 }

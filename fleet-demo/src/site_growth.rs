@@ -12,14 +12,15 @@ use server::RunningServer;
 use crate::load_command::site_id;
 use crate::memory_attribution::folder_bytes;
 
-/// A site's sizes now (`None` for a site the server does not hold): its sessions, graph and the whole
-/// store's bytes on disk, for the maturing phase's growth (`maturing_growth` in the report).
+/// A site's sizes now (`None` for a site the server does not hold): its sessions, map version, graph and
+/// the whole store's bytes on disk, for the maturing phase's growth (`maturing_growth` in the report).
 pub(crate) async fn site_sizes(
     server: &RunningServer,
     site: usize,
     store_dir: &Path,
 ) -> Option<serde_json::Value> {
-    let counts = server.site(&site_id(site))?.current().counts;
+    let current = server.site(&site_id(site))?.current();
+    let counts = current.counts;
     // Walking the store's folders is blocking file I/O: off the async threads.
     let dir = store_dir.to_path_buf();
     let store_bytes = tokio::task::spawn_blocking(move || folder_bytes(&dir, 4))
@@ -28,6 +29,7 @@ pub(crate) async fn site_sizes(
     Some(json!({
         "site": site_id(site),
         "sessions": counts.sessions,
+        "version": current.version,
         "nodes": counts.nodes,
         "submaps": counts.submaps,
         "finished_submaps": counts.finished_submaps,

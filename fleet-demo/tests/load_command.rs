@@ -58,6 +58,20 @@ fn the_load_benchmark_streams_everything_and_reports_it() {
         last["store_disk_mb"].as_f64().expect("disk") > 0.0,
         "{last}"
     );
+    assert!(last["version"].as_u64().expect("version") > 0, "{last}");
+    // A robot last seen when the site had half its sessions catches up in one delta no larger than the
+    // whole map by more than the ids of what was trimmed since (issue 34: at most 1.2×).
+    let catch_up = &report["catch_up_after_half_the_sites_life"];
+    assert!(
+        catch_up["sessions_missed"].as_u64().expect("missed") >= 4,
+        "{catch_up}"
+    );
+    assert!(
+        catch_up["submaps_added"].as_u64().expect("added") > 0,
+        "{catch_up}"
+    );
+    let ratio = catch_up["bytes_per_whole_map"].as_f64().expect("ratio");
+    assert!(ratio > 0.0 && ratio <= 1.2, "{catch_up}");
     // A row per minute of robot time, each with the memory at its end and the batches of that minute.
     let minutes = report["per_minute_of_robot_time"]["minutes"]
         .as_array()
