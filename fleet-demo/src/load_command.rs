@@ -63,7 +63,7 @@ use crate::command_runtime::{block_on, recreate_dir};
 use crate::demo_command::MAX_MESSAGE_BYTES;
 use crate::memory_attribution::MemoryAttribution;
 use crate::minute_figures::{self, MinuteInputs, MinuteSample};
-use crate::site_growth::{site_growth_until, site_sizes};
+use crate::site_growth::{half_life_version, site_growth_until, site_sizes};
 
 /// Nodes per upload batch (a batch holding a finished submap goes at once).
 const NODES_PER_BATCH: usize = 10;
@@ -1140,19 +1140,4 @@ mod tests {
         );
         assert_eq!(session_lengths(100.0, Some(300.0)), vec![100.0]);
     }
-}
-
-/// Site 0's session count and map version at the maturing sample where its session count first reached
-/// half its final one (`None` without maturing samples of it).
-fn half_life_version(growth: &[serde_json::Value]) -> Option<(u64, u64)> {
-    let site = site_id(0);
-    let samples: Vec<(u64, u64)> = growth
-        .iter()
-        .filter(|s| s["site"] == site.as_str())
-        .filter_map(|s| Some((s["sessions"].as_u64()?, s["version"].as_u64()?)))
-        .collect();
-    let last = samples.iter().map(|(sessions, _)| *sessions).max()?;
-    samples
-        .into_iter()
-        .find(|(sessions, _)| *sessions >= last.div_ceil(2))
 }

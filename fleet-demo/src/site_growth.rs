@@ -63,3 +63,40 @@ pub(crate) async fn site_growth_until(
     }
     samples
 }
+
+/// Site 0's session count and map version at the maturing sample where its session count first reached
+/// half its final one (`None` without maturing samples of it).
+pub(crate) fn half_life_version(growth: &[serde_json::Value]) -> Option<(u64, u64)> {
+    let site = site_id(0);
+    let samples: Vec<(u64, u64)> = growth
+        .iter()
+        .filter(|s| s["site"] == site.as_str())
+        .filter_map(|s| Some((s["sessions"].as_u64()?, s["version"].as_u64()?)))
+        .collect();
+    let last = samples.iter().map(|(sessions, _)| *sessions).max()?;
+    samples
+        .into_iter()
+        .find(|(sessions, _)| *sessions >= last.div_ceil(2))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_half_life_version_is_the_first_sample_at_half_the_final_session_count() {
+        let sample = |site: usize, sessions: u64, version: u64| {
+            json!({"site": site_id(site), "sessions": sessions, "version": version})
+        };
+        let growth = [
+            sample(0, 1, 10),
+            sample(1, 4, 99),
+            sample(0, 2, 20),
+            sample(0, 3, 30),
+            sample(0, 4, 40),
+            sample(0, 5, 50),
+        ];
+        assert_eq!(half_life_version(&growth), Some((3, 30)));
+        assert_eq!(half_life_version(&growth[1..2]), None);
+    }
+}
