@@ -85,9 +85,7 @@ mod tests {
 
     #[test]
     fn the_half_life_version_is_the_first_sample_at_half_the_final_session_count() {
-        let sample = |site: usize, sessions: u64, version: u64| {
-            json!({"site": site_id(site), "sessions": sessions, "version": version})
-        };
+        let sample = |site: usize, sessions: u64, version: u64| json!({"site": site_id(site), "sessions": sessions, "version": version});
         let growth = [
             sample(0, 1, 10),
             sample(1, 4, 99),

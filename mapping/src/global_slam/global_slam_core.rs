@@ -553,9 +553,14 @@ impl GlobalSlam {
     /// trajectories' variables, the endpoints of constraints added or changed since the last
     /// optimization, and what lies within `settled_region_hops` constraints of them, when that is set (see
     /// [`optimization_region`]); the rest holds still. A lifelong map settles a session when it ends.
+    /// Settling a trajectory also ends the probation of its corrections, kept ones included (see
+    /// [`CorrectionProbation`]): its route is over, and from then on retraction judges their matches as
+    /// any, against what later trajectories add.
     pub fn set_trajectory_settled(&mut self, trajectory: u32, settled: bool) {
         if settled {
             self.settled.insert(trajectory);
+            self.probations
+                .retain(|p| p.newest.node.trajectory != trajectory);
         } else {
             self.settled.remove(&trajectory);
         }

@@ -56,9 +56,9 @@ pub struct GlobalSlamOptions {
     /// (count; 0 = never: retraction alone judges it). Default 20.
     /// Why: `docs/TUNING.md#gs-correction-probation-nodes`.
     pub correction_probation_nodes: usize,
-    /// Later nodes whose matches agree with a correction on probation to keep it for good (never
-    /// retracted), or, with none agreeing, disagree with it to retract it at once (count, at least 1).
-    /// Default 2.
+    /// Later nodes whose matches agree with a correction on probation to keep it (never retracted while
+    /// its trajectory runs), or, with none agreeing, disagree with it to retract it at once (count, at
+    /// least 1). Default 2.
     pub correction_probation_matches: usize,
     /// For a trajectory started with no prior (`GlobalSlam::start_trajectory`), match a node against every
     /// placed finished submap every this many nodes (count; 0 = never). Default 0.
