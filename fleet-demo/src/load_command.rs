@@ -48,8 +48,8 @@ use robot_agent::outbox::Outbox;
 use robot_agent::process_stats::{cpu_seconds, current_rss_mb, peak_rss_mb};
 use robot_agent::source::{ReadReport, Recording};
 use robot_agent::uplink::{
-    GlobalSubmapCache, GrpcUplink, MapUplink as _, SessionOptions, Uploader, cached_submaps,
-    follow_site_with, match_node, relocalize_nodes, run_llo, stream_recording, sync_matcher,
+    GlobalSubmapCache, GrpcUplink, SessionOptions, Uploader, cached_submaps, follow_site_with,
+    match_node, relocalize_nodes, run_llo, stream_recording, sync_matcher,
 };
 use serde_json::json;
 use server::{RobotConfig, RunningServer, ServerConfig, SiteConfig};
@@ -59,6 +59,7 @@ use storage::{SledStore, SledStoreOptions};
 use tokio::sync::watch;
 use tracing::Instrument as _;
 
+use crate::catch_up::catch_up_since;
 use crate::command_runtime::{block_on, recreate_dir};
 use crate::demo_command::MAX_MESSAGE_BYTES;
 use crate::memory_attribution::MemoryAttribution;
@@ -677,15 +678,7 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
     // is now, from the maturing samples) catches up: one delta holding every submap changed since.
     let catch_up = match half_life_version(&maturing_growth) {
         Some((sessions_then, from_version)) => {
-            let mut uplink = robots[0].uplink.clone();
-            let before = metrics.bytes_out();
-            let t = Instant::now();
-            let delta = uplink.delta_since(from_version).await?;
-            let ms = t.elapsed().as_secs_f64() * 1e3;
-            let bytes = metrics.bytes_out() - before;
-            let before_full = metrics.bytes_out();
-            let _ = uplink.delta_since(0).await?;
-            let whole_map_bytes = metrics.bytes_out() - before_full;
+            let caught = catch_up_since(robots[0].uplink.clone(), &metrics, from_version).await?;
             let sessions_now = server
                 .site(&site_id(0))
                 .map_or(0, |h| h.current().counts.sessions);
@@ -693,13 +686,13 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
                 "site": site_id(0),
                 "sessions_missed": sessions_now.saturating_sub(sessions_then),
                 "from_version": from_version,
-                "to_version": delta.to_version,
-                "submaps_added": delta.submaps_added.len(),
-                "trimmed": delta.trimmed.len(),
-                "ms": ms,
-                "bytes": bytes,
-                "whole_map_bytes": whole_map_bytes,
-                "bytes_per_whole_map": bytes as f64 / whole_map_bytes.max(1) as f64,
+                "to_version": caught.delta.to_version,
+                "submaps_added": caught.delta.submaps_added.len(),
+                "trimmed": caught.delta.trimmed.len(),
+                "ms": caught.ms,
+                "bytes": caught.bytes,
+                "whole_map_bytes": caught.whole_map_bytes,
+                "bytes_per_whole_map": caught.bytes as f64 / caught.whole_map_bytes.max(1) as f64,
             })
         }
         None => serde_json::Value::Null,
@@ -707,26 +700,17 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
 
     // The offline robot catches up by delta.
     let resync = {
-        let mut uplink = robots[0].uplink.clone();
-        let before = metrics.bytes_out();
-        let t = Instant::now();
-        let delta = uplink.delta_since(offline_version).await?;
-        let ms = t.elapsed().as_secs_f64() * 1e3;
-        let bytes = metrics.bytes_out() - before;
-        let before_full = metrics.bytes_out();
-        let t = Instant::now();
-        let _ = uplink.delta_since(0).await?;
-        let full_ms = t.elapsed().as_secs_f64() * 1e3;
+        let caught = catch_up_since(robots[0].uplink.clone(), &metrics, offline_version).await?;
         json!({
             "site": site_id(0),
             "offline_s": measured_s,
             "from_version": offline_version,
-            "to_version": delta.to_version,
-            "submaps_added": delta.submaps_added.len(),
-            "ms": ms,
-            "bytes": bytes,
-            "whole_map_ms": full_ms,
-            "whole_map_bytes": metrics.bytes_out() - before_full,
+            "to_version": caught.delta.to_version,
+            "submaps_added": caught.delta.submaps_added.len(),
+            "ms": caught.ms,
+            "bytes": caught.bytes,
+            "whole_map_ms": caught.whole_map_ms,
+            "whole_map_bytes": caught.whole_map_bytes,
         })
     };
 

@@ -4,6 +4,7 @@
 //! `evermap-server` and `evermap-agent`, so the server that runs in a data centre links no robot code
 //! and neither binary links the simulator.
 
+mod catch_up;
 mod command_runtime;
 mod demo_command;
 mod lifelong_command;

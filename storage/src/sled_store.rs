@@ -518,6 +518,16 @@ mod tests {
     use super::*;
     use crate::{MapStore as _, RecordId, RecordKind, WriteBatch, conformance, key};
 
+    /// The length of the longest value sled itself holds (checkpoint and value files apart).
+    fn largest_sled_value(store: &SledStore) -> usize {
+        store
+            .raw_db()
+            .iter()
+            .map(|item| item.unwrap().1.len())
+            .max()
+            .unwrap()
+    }
+
     fn temp_store() -> (tempfile::TempDir, SledStore) {
         let dir = tempfile::tempdir().unwrap();
         let store = SledStore::open(&SledStoreOptions::at(dir.path().join("db"))).unwrap();
@@ -830,12 +840,7 @@ mod tests {
         assert_eq!(store.checkpoint_files_bytes().unwrap(), 2 * (2 << 20));
         assert_eq!(store.checkpoint("depot", 12).unwrap(), Some(checkpoint(12)));
         // No checkpoint bytes in sled: 24 MiB of checkpoints written, sled holds kilobytes of values.
-        let largest = store
-            .raw_db()
-            .iter()
-            .map(|item| item.unwrap().1.len())
-            .max()
-            .unwrap();
+        let largest = largest_sled_value(&store);
         assert!(largest < 1024, "a {largest}-byte value in sled");
         let sled_bytes = store.size_on_disk().unwrap() - store.checkpoint_files_bytes().unwrap();
         assert!(sled_bytes < 8 << 20, "sled's files take {sled_bytes} bytes");
@@ -909,12 +914,7 @@ mod tests {
             Some(entry(123))
         );
         // 6 MB of values written, sled holds none of them: no value over a few hundred bytes, no blob.
-        let largest = store
-            .raw_db()
-            .iter()
-            .map(|item| item.unwrap().1.len())
-            .max()
-            .unwrap();
+        let largest = largest_sled_value(&store);
         assert!(largest < 1024, "a {largest}-byte value in sled");
         let blobs = std::fs::read_dir(db.join("blobs")).map_or(0, Iterator::count);
         assert_eq!(blobs, 0, "sled wrote blobs");

@@ -13,6 +13,7 @@ use std::path::Path;
 use storage::{
     CheckpointRetention, MapStore as _, RecordKind, SledStore, SledStoreOptions, WriteBatch,
 };
+use test_support::noise;
 
 /// (files, bytes) under `<db>/blobs`.
 fn blobs(db: &Path) -> (usize, u64) {
@@ -25,18 +26,6 @@ fn blobs(db: &Path) -> (usize, u64) {
         .fold((0, 0), |(files, bytes), meta| {
             (files + 1, bytes + meta.len())
         })
-}
-
-/// `len` bytes of xorshift noise.
-fn noise(state: &mut u64, len: usize) -> Vec<u8> {
-    (0..len)
-        .map(|_| {
-            *state ^= *state << 13;
-            *state ^= *state >> 7;
-            *state ^= *state << 17;
-            state.to_le_bytes()[0]
-        })
-        .collect()
 }
 
 /// 1000 versions of a site log of 30-kB entries, written durably as the server does, checkpointed every

@@ -12,24 +12,13 @@ use storage::{
     DEFAULT_REOPEN_AFTER_BYTES, MAX_INLINE_VALUE_BYTES, MapStore as _, RecordKind, SledStore,
     SledStoreOptions, WriteBatch,
 };
+use test_support::noise;
 
 #[global_allocator]
 static HEAP: PeakAlloc = PeakAlloc;
 
 /// Bytes per MiB.
 const MIB: usize = 1 << 20;
-
-/// `len` bytes of xorshift noise (sled does not compress, but keep the values honest anyway).
-fn noise(state: &mut u64, len: usize) -> Vec<u8> {
-    (0..len)
-        .map(|_| {
-            *state ^= *state << 13;
-            *state ^= *state >> 7;
-            *state ^= *state << 17;
-            state.to_le_bytes()[0]
-        })
-        .collect()
-}
 
 #[test]
 fn a_growing_site_log_does_not_stay_in_memory() {

@@ -1,9 +1,9 @@
 //! # test-support — helpers the evermap test suites share
 //!
 //! The few helpers that integration and unit tests across the workspace need alike, written once:
-//! [`datasets_dir`] (the shared recordings and pose graphs) and [`free_port`] (a loopback port for
-//! endpoints that cannot take port 0). No workspace crate is a dependency, so any crate can take this one
-//! as a dev-dependency.
+//! [`datasets_dir`] (the shared recordings and pose graphs), [`free_port`] (a loopback port for
+//! endpoints that cannot take port 0) and [`noise`] (incompressible values). No workspace crate is a
+//! dependency, so any crate can take this one as a dev-dependency.
 
 use std::path::PathBuf;
 
@@ -28,4 +28,17 @@ pub fn free_port() -> u16 {
     std::net::TcpListener::bind("127.0.0.1:0")
         .and_then(|l| l.local_addr())
         .map_or(0, |a| a.port())
+}
+
+/// `len` bytes of xorshift noise from `state` (advanced): incompressible test values, the same for the
+/// same seed.
+pub fn noise(state: &mut u64, len: usize) -> Vec<u8> {
+    (0..len)
+        .map(|_| {
+            *state ^= *state << 13;
+            *state ^= *state >> 7;
+            *state ^= *state << 17;
+            state.to_le_bytes()[0]
+        })
+        .collect()
 }

@@ -238,3 +238,71 @@ fn the_servers_part_of_a_checkpoint_round_trips_bit_for_bit() {
         })
     ));
 }
+
+/// Corrections on probation and kept ones (none arise in the simulated sessions above) come back field for
+/// field, and a checkpoint of a build without them decodes as having none.
+#[test]
+fn corrections_on_probation_round_trip() {
+    use mapping::geometry::rigid2;
+    use mapping::global_slam::CorrectionProbation;
+
+    let mut map = LifelongMap::new(options()).expect("map");
+    feed(
+        &mut map,
+        &session_inputs(),
+        Position {
+            session: 0,
+            nodes: 0,
+            started: false,
+        },
+        Position {
+            session: 1,
+            nodes: 0,
+            started: false,
+        },
+        &mut Log::new(),
+    );
+    let mut state = SiteCheckpoint::of(&map, 1, 1).map.global;
+    let node = |index| NodeId {
+        trajectory: 0,
+        index,
+    };
+    let submap = SubmapId {
+        trajectory: 0,
+        index: 1,
+    };
+    let on_probation = CorrectionProbation {
+        closures: vec![(node(7), submap), (node(9), submap)],
+        newest: LoopClosure {
+            submap,
+            node: node(9),
+            submap_from_node: rigid2(1.5, -0.25, 0.3),
+            score: 0.71,
+            runner_up_score: Some(0.6),
+            information: None,
+        },
+        after_node: 12,
+        old_submaps_to: 1,
+        agreeing: [node(14)].into_iter().collect(),
+        disagreeing: [node(15), node(16)].into_iter().collect(),
+        nodes_judging: 4,
+        kept: false,
+    };
+    let kept = CorrectionProbation {
+        agreeing: [node(20), node(21)].into_iter().collect(),
+        disagreeing: std::collections::BTreeSet::new(),
+        kept: true,
+        ..on_probation.clone()
+    };
+    state.correction_probations = vec![on_probation, kept];
+    let decoded = global_from_pb(Some(&global_to_pb(&state))).expect("decode");
+    assert_eq!(decoded.correction_probations, state.correction_probations);
+    let mut older = global_to_pb(&state);
+    older.correction_probations.clear();
+    assert!(
+        global_from_pb(Some(&older))
+            .expect("decode")
+            .correction_probations
+            .is_empty()
+    );
+}
