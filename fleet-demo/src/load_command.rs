@@ -76,7 +76,8 @@ const MATURING_SPEED: f64 = 1e4;
 /// Arguments of `load`.
 #[derive(Args)]
 pub struct LoadArgs {
-    /// Output folder (deleted and recreated): `data/` (the server's sled) and `report.json`.
+    /// Output folder (deleted and recreated): `data/` (the server's sled), `report.json` and
+    /// `submap_latencies.csv` (one line per finished submap: when, its site and version, its latencies).
     #[arg(long, default_value = "out/load")]
     out: PathBuf,
     /// Robots streaming at once, spread evenly over the sites.
@@ -724,6 +725,8 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
     let mut undelivered = 0usize;
     // (when the submap was finished, its latency to every robot of the site).
     let mut latencies_by_finish: Vec<(Instant, f64)> = Vec::new();
+    // One line per submap for `submap_latencies.csv`: when it was finished, its site, its latencies.
+    let mut latency_lines = vec!["finished_s,site,version,to_ack_s,to_every_robot_s".to_owned()];
     for timing in outcomes.iter().flat_map(|o| &o.submaps) {
         to_ack.push(timing.acked.duration_since(timing.finished).as_secs_f64());
         let reached: Option<Vec<Instant>> = robots
@@ -736,16 +739,28 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
                     .map(|(_, at)| *at)
             })
             .collect();
-        match reached.and_then(|r| r.into_iter().max()) {
-            Some(last) => {
-                let latency = last
-                    .saturating_duration_since(timing.finished)
-                    .as_secs_f64();
+        let to_every_robot = reached.and_then(|r| r.into_iter().max()).map(|last| {
+            last.saturating_duration_since(timing.finished)
+                .as_secs_f64()
+        });
+        match to_every_robot {
+            Some(latency) => {
                 to_all.push(latency);
                 latencies_by_finish.push((timing.finished, latency));
             }
             None => undelivered += 1,
         }
+        latency_lines.push(format!(
+            "{:.3},{},{},{:.3},{}",
+            timing
+                .finished
+                .saturating_duration_since(stream_started)
+                .as_secs_f64(),
+            site_id(timing.site),
+            timing.version,
+            timing.acked.duration_since(timing.finished).as_secs_f64(),
+            to_every_robot.map_or_else(|| "undelivered".to_owned(), |l| format!("{l:.3}"))
+        ));
     }
     // Figures per minute of robot time.
     let robot_minute = |at: Instant| {
@@ -852,6 +867,11 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
         "robot_data_s": data_seconds,
         "wall_time_s": started.elapsed().as_secs_f64(),
     });
+    std::fs::write(
+        args.out.join("submap_latencies.csv"),
+        latency_lines.join("\n") + "\n",
+    )
+    .context("writing submap_latencies.csv")?;
     let path = args.out.join("report.json");
     std::fs::write(&path, serde_json::to_string_pretty(&report)? + "\n")
         .with_context(|| format!("cannot write {}", path.display()))?;

@@ -115,6 +115,30 @@ fn the_load_benchmark_streams_everything_and_reports_it() {
     }
     let batches: u64 = minutes.iter().filter_map(|m| m["batches"].as_u64()).sum();
     assert!(batches <= report["batches"].as_u64().expect("batches"));
+    // One line per finished submap, as many as the report's latencies count, each with its latencies.
+    let latencies = std::fs::read_to_string(out.join("submap_latencies.csv")).expect("latencies");
+    let mut lines = latencies.lines();
+    assert_eq!(
+        lines.next(),
+        Some("finished_s,site,version,to_ack_s,to_every_robot_s")
+    );
+    let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
+    assert_eq!(
+        rows.len() as u64,
+        report["submap_latency_s"]["submaps"]
+            .as_u64()
+            .expect("submaps")
+    );
+    for row in &rows {
+        assert_eq!(row.len(), 5, "{row:?}");
+        assert!(row[1].starts_with("store-"), "{row:?}");
+        let to_ack: f64 = row[3].parse().expect("to ack");
+        assert!(to_ack >= 0.0, "{row:?}");
+        if row[4] != "undelivered" {
+            let to_every: f64 = row[4].parse().expect("to every robot");
+            assert!(to_every >= 0.0, "{row:?}");
+        }
+    }
     let chart = std::fs::read(out.join("minutes.png")).expect("chart");
     assert_eq!(&chart[1..4], b"PNG");
     let resync = &report["resync_after_offline"];
