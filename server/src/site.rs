@@ -7,6 +7,8 @@
 
 mod checkpoint_options;
 mod map_history;
+mod published_submaps;
+mod request_clock;
 mod session_view;
 mod site_error;
 mod site_handle;
@@ -20,6 +22,7 @@ pub use map_history::{
     DEFAULT_HISTORY_CAPACITY, DEFAULT_HISTORY_PAST_GRID_BUDGET_BYTES, HistoryEntry, MapHistory,
     PlacedGrids,
 };
+pub use published_submaps::PublishedSubmaps;
 pub use session_view::{PlacementState, SessionView};
 pub use site_error::SiteError;
 pub use site_handle::{RenderedMap, SiteHandle, UploadAck, VersionInfo};

@@ -9,7 +9,10 @@ use mapping::pose_graph::{NodeId, SubmapId};
 use proto::{MapDelta, SubmapSnapshot, UploadBatch};
 use tokio::sync::{mpsc, oneshot, watch};
 
-use super::{HistoryEntry, MapCounts, SessionOpened, SessionView, SiteError, SiteView};
+use super::request_clock::RequestClock;
+use super::{
+    HistoryEntry, MapCounts, PublishedSubmaps, SessionOpened, SessionView, SiteError, SiteView,
+};
 
 /// A published version of a site map.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -132,6 +135,7 @@ pub struct SiteHandle {
     commands: mpsc::Sender<Command>,
     versions: watch::Receiver<VersionInfo>,
     views: watch::Receiver<Arc<SiteView>>,
+    requests: Arc<RequestClock>,
 }
 
 impl SiteHandle {
@@ -140,13 +144,22 @@ impl SiteHandle {
         commands: mpsc::Sender<Command>,
         versions: watch::Receiver<VersionInfo>,
         views: watch::Receiver<Arc<SiteView>>,
+        requests: Arc<RequestClock>,
     ) -> Self {
         Self {
             site: site.into(),
             commands,
             versions,
             views,
+            requests,
         }
+    }
+
+    /// The published version's submaps, if the site is loaded (a request: the site's idle time restarts).
+    fn published_submaps(&self) -> Option<Arc<PublishedSubmaps>> {
+        let submaps = self.views.borrow().submaps.clone()?;
+        self.requests.touch();
+        Some(submaps)
     }
 
     /// The site id.
@@ -204,13 +217,20 @@ impl SiteHandle {
         .await?
     }
 
-    /// What changed after version `since`.
+    /// What changed after version `since`: from the published version, beside the site task's queue,
+    /// while the site is loaded; else the task restores it first.
     pub async fn delta_since(&self, since: u64) -> Result<MapDelta, SiteError> {
+        if let Some(submaps) = self.published_submaps() {
+            return submaps.delta_since(since);
+        }
         self.ask(|reply| Command::Delta { since, reply }).await?
     }
 
-    /// One finished submap (`revision` 0: the current one).
+    /// One finished submap (`revision` 0: the current one), answered as [`Self::delta_since`] is.
     pub async fn submap(&self, id: SubmapId, revision: u64) -> Result<SubmapSnapshot, SiteError> {
+        if let Some(submaps) = self.published_submaps() {
+            return submaps.submap(id, revision);
+        }
         self.ask(|reply| Command::Submap {
             id,
             revision,

@@ -32,6 +32,7 @@ pub use proto::SessionStartCounts;
 use proto::{MapDelta, NodeAdded, SubmapSnapshot, UploadBatch, UploadItem};
 
 use super::map_history::{HistoryEntry, MapHistory};
+use super::published_submaps::{PublishedSubmap, PublishedSubmaps};
 use super::session_view::{PlacementState, SessionView, thin_poses};
 use super::{SiteError, SiteView};
 
@@ -129,7 +130,8 @@ pub struct SiteMap {
     map: LifelongMap,
     sessions: BTreeMap<String, Session>,
     submap_versions: BTreeMap<SubmapId, SubmapVersions>,
-    trimmed: BTreeMap<SubmapId, u64>,
+    /// Every submap trimmed so far and the version that trimmed it (shared with the published versions).
+    trimmed: Arc<BTreeMap<SubmapId, u64>>,
     version: u64,
     optimizations: u64,
     dropped_sessions: u64,
@@ -155,7 +157,7 @@ impl SiteMap {
             map: LifelongMap::new(options)?,
             sessions: BTreeMap::new(),
             submap_versions: BTreeMap::new(),
-            trimmed: BTreeMap::new(),
+            trimmed: Arc::default(),
             version: 0,
             optimizations: 0,
             dropped_sessions: 0,
@@ -662,7 +664,7 @@ impl SiteMap {
             if let LifelongEvent::SubmapTrimmed { submap, .. } = event {
                 // Only published submaps are news to a client; a dropped unplaced session's never were.
                 if self.submap_versions.remove(submap).is_some() {
-                    self.trimmed.insert(*submap, version);
+                    Arc::make_mut(&mut self.trimmed).insert(*submap, version);
                     changed = true;
                 }
             }
@@ -715,6 +717,7 @@ impl SiteMap {
             version: self.version,
             sessions: Arc::new(self.session_views()),
             history: Arc::new(self.history.entries().cloned().collect()),
+            submaps: Some(Arc::new(self.published_submaps())),
             unloaded: false,
         }
     }
@@ -815,55 +818,33 @@ impl SiteMap {
         })
     }
 
-    /// What changed after version `since` (0: the whole map): finished submaps stored after it (with
-    /// grids and current poses), current poses of older finished submaps that moved after it, and the
-    /// submaps trimmed after it.
-    pub fn delta_since(&self, since: u64) -> Result<MapDelta, SiteError> {
-        if since > self.version {
-            return Err(SiteError::NotFound(format!(
-                "version {since} is ahead of site {:?} (at {})",
-                self.site, self.version
-            )));
-        }
-        let mut delta = MapDelta {
-            site: self.site.clone(),
-            from_version: since,
-            to_version: self.version,
-            submaps_added: Vec::new(),
-            pose_updates: Vec::new(),
-            trimmed: Vec::new(),
-        };
-        for (id, versions) in &self.submap_versions {
-            if versions.revision > since {
-                delta.submaps_added.extend(self.snapshot(*id, versions));
-            } else if versions.pose_version > since {
-                delta
-                    .pose_updates
-                    .extend(self.map.global().submap_pose(*id).map(|p| (*id, p)));
-            }
-        }
-        delta.trimmed = self
-            .trimmed
+    /// The finished submaps of this version as robots fetch them ([`PublishedSubmaps`]).
+    pub fn published_submaps(&self) -> PublishedSubmaps {
+        let submaps = self
+            .submap_versions
             .iter()
-            .filter(|(_, v)| **v > since)
-            .map(|(id, _)| *id)
+            .filter_map(|(id, versions)| {
+                Some((
+                    *id,
+                    PublishedSubmap {
+                        revision: versions.revision,
+                        pose_version: versions.pose_version,
+                        snapshot: self.snapshot(*id, versions)?,
+                    },
+                ))
+            })
             .collect();
-        Ok(delta)
+        PublishedSubmaps::new(&self.site, self.version, submaps, Arc::clone(&self.trimmed))
+    }
+
+    /// What changed after version `since` (0: the whole map): see [`PublishedSubmaps::delta_since`].
+    pub fn delta_since(&self, since: u64) -> Result<MapDelta, SiteError> {
+        self.published_submaps().delta_since(since)
     }
 
     /// One finished submap; `revision` 0 means the current one.
     pub fn submap(&self, id: SubmapId, revision: u64) -> Result<SubmapSnapshot, SiteError> {
-        let not_found = || {
-            SiteError::NotFound(format!(
-                "submap ({}, {}) revision {revision} is not in site {:?}",
-                id.trajectory, id.index, self.site
-            ))
-        };
-        let versions = self.submap_versions.get(&id).ok_or_else(not_found)?;
-        if revision != 0 && revision != versions.revision {
-            return Err(not_found());
-        }
-        self.snapshot(id, versions).ok_or_else(not_found)
+        self.published_submaps().submap(id, revision)
     }
 
     /// Every finished submap as (`global_from_grid`, grid), where the grid frame is its session's local

@@ -49,6 +49,7 @@ impl SiteSummary {
             version: self.info.version,
             sessions: Arc::new(self.sessions.clone()),
             history: Arc::new(Vec::new()),
+            submaps: None,
             unloaded: true,
         }
     }
@@ -251,6 +252,7 @@ mod tests {
                 session(2, PlacementState::Dropped, None),
             ]),
             history: Arc::new(Vec::new()),
+            submaps: None,
             unloaded: false,
         };
         let counts = MapCounts {

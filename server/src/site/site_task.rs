@@ -1,5 +1,7 @@
 //! The task that owns a site map: it applies requests one at a time, persists every accepted change
-//! before answering, and publishes each new version.
+//! before answering, and publishes each new version. Robots fetch what a version published
+//! ([`super::PublishedSubmaps`]) without queueing behind the task's work; a fetch of an unloaded site
+//! is a request to the task, which restores it first.
 //!
 //! Persistence is a log: change number `v` (which makes site version `v`) is stored as an encoded
 //! `SiteLogEntry` under record id `v` of kind [`SITE_LOG_KIND`], in the same atomic, fsynced write that
@@ -81,6 +83,7 @@ use tokio::sync::{mpsc, watch};
 use tokio::task::JoinHandle;
 use tracing::Instrument as _;
 
+use super::request_clock::RequestClock;
 use super::site_handle::Command;
 use super::site_summary::SiteSummary;
 use super::{
@@ -136,7 +139,7 @@ pub struct SiteTask {
     unloaded: bool,
     unload_after: Option<Duration>,
     /// When the last request (any command but an unload) arrived, or the task started.
-    last_request: tokio::time::Instant,
+    last_request: Arc<RequestClock>,
     /// The map's options (a rebuild replays with them).
     options: LifelongOptions,
     /// The store's generation the map is known to agree with (see the module docs).
@@ -218,13 +221,12 @@ impl SiteTask {
             .await
             .map_err(SiteError::Worker)??
         };
-        let now = tokio::time::Instant::now();
         let mut task = Self {
             site: site.into(),
             map: None,
             unloaded: false,
             unload_after: task_options.unload_after,
-            last_request: now,
+            last_request: Arc::new(RequestClock::new()),
             options,
             generation,
             store,
@@ -283,6 +285,7 @@ impl SiteTask {
             commands,
             task.versions.subscribe(),
             task.views.subscribe(),
+            Arc::clone(&task.last_request),
         );
         if unload_now {
             // A site a checkpoint covers starts unloaded; this one had no summary yet (or a log after
@@ -318,7 +321,7 @@ impl SiteTask {
             };
             let Some(command) = command else { break };
             if command.needs_map() {
-                self.last_request = tokio::time::Instant::now();
+                self.last_request.touch();
                 if self.unloaded
                     && let Err(e) = self.restore().await
                 {
@@ -475,12 +478,12 @@ impl SiteTask {
         let Some(after) = self.unload_after else {
             return;
         };
-        if self.unloaded || self.last_request.elapsed() < after {
+        if self.unloaded || self.last_request.idle() < after {
             return;
         }
         if !self.unload().await {
             // Not now (a session open, no checkpoint possible): look again after another idle period.
-            self.last_request = tokio::time::Instant::now();
+            self.last_request.touch();
         }
     }
 
@@ -536,7 +539,7 @@ impl SiteTask {
         self.metrics.site_unloaded();
         tracing::info!(
             version,
-            idle_s = self.last_request.elapsed().as_secs_f64(),
+            idle_s = self.last_request.idle().as_secs_f64(),
             "site unloaded: its map dropped from memory until the next request"
         );
         // Freeing a big map takes a while: beside the task, then the pages go back to the system.
@@ -1351,6 +1354,49 @@ mod tests {
         ] {
             assert!(text.lines().any(|l| l == line), "{line:?} in\n{text}");
         }
+        site.shutdown().await;
+        task.await.unwrap();
+    }
+
+    // Reference: issue 34 — "from a submap finished on a robot to its version in every cache of its
+    // site": robots fetch the published version beside the task's queue, and their fetches keep the
+    // site as busy as any request.
+    #[tokio::test(start_paused = true)]
+    async fn robots_fetch_the_published_version_and_their_fetches_keep_the_site_loaded() {
+        let store: Arc<dyn MapStore> = Arc::new(MemStore::new());
+        let metrics = Arc::new(ServerMetrics::default());
+        let (site, task) = spawn_unloading(&store, &metrics, CheckpointOptions::DEFAULT).await;
+        site.open_session("r", "a").await.unwrap();
+        site.upload(node_batch("a", 1)).await.unwrap();
+        let closed = site.close_session("r", "a").await.unwrap();
+        let published = site
+            .view()
+            .submaps
+            .clone()
+            .expect("a loaded site publishes its submaps");
+        let delta = site.delta_since(0).await.unwrap();
+        assert_eq!(delta.to_version, closed);
+        assert_eq!(delta, published.delta_since(0).unwrap());
+        assert!(
+            site.delta_since(closed + 1).await.is_err(),
+            "a version ahead"
+        );
+        // Fetching every 20 s for 100 s: never idle for the 60 s it takes to unload.
+        for _ in 0..5 {
+            let_time_pass(20).await;
+            assert_eq!(site.delta_since(0).await.unwrap(), delta);
+        }
+        assert!(site.is_loaded());
+        let_time_pass(70).await;
+        assert!(!site.is_loaded(), "no fetch for 70 s");
+        assert!(
+            site.view().submaps.is_none(),
+            "an unloaded site publishes no grids"
+        );
+        // A fetch of an unloaded site waits for its restore, and answers the same.
+        assert_eq!(site.delta_since(0).await.unwrap(), delta);
+        assert!(site.is_loaded());
+        assert_eq!(metrics.site_unloads_and_restores(), (1, 1));
         site.shutdown().await;
         task.await.unwrap();
     }

@@ -8,7 +8,7 @@
 
 use std::sync::Arc;
 
-use super::{HistoryEntry, SessionView};
+use super::{HistoryEntry, PublishedSubmaps, SessionView};
 
 /// A site as of one version: its sessions and its map history.
 #[derive(Clone, Debug, Default)]
@@ -21,6 +21,9 @@ pub struct SiteView {
     /// The published map at past versions, oldest first ([`super::MapHistory`]); empty while the site
     /// is unloaded.
     pub history: Arc<Vec<HistoryEntry>>,
+    /// The finished submaps robots fetch at this version (`Delta`, `Submap`); `None` while the site is
+    /// unloaded and before its first version is published (then the site task answers).
+    pub submaps: Option<Arc<PublishedSubmaps>>,
     /// The site's map is out of memory (idle past `site_unload_after_s`): the next request restores it
     /// from its checkpoint first.
     pub unloaded: bool,
@@ -43,6 +46,7 @@ impl SiteView {
             version: self.version,
             sessions: Arc::new(sessions),
             history: Arc::new(Vec::new()),
+            submaps: None,
             unloaded: true,
         }
     }

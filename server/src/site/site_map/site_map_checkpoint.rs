@@ -78,7 +78,7 @@ impl SiteMap {
                     )
                 })
                 .collect(),
-            trimmed: self.trimmed.clone(),
+            trimmed: std::collections::BTreeMap::clone(&self.trimmed),
             optimizations: self.optimizations,
             dropped_sessions: self.dropped_sessions,
             robot_revoked: self.robot_revoked.clone(),
@@ -160,7 +160,7 @@ impl SiteMap {
                     )
                 })
                 .collect(),
-            trimmed: state.trimmed,
+            trimmed: Arc::new(state.trimmed),
             version,
             optimizations: state.optimizations,
             dropped_sessions: state.dropped_sessions,
