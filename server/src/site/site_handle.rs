@@ -328,3 +328,56 @@ impl SiteHandle {
         let _ = self.commands.send(Command::Shutdown).await;
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use std::time::Duration;
+
+    use mapping::lifelong::LifelongOptions;
+
+    use super::*;
+    use crate::site::SiteMap;
+
+    /// A handle whose site task never reads its queue, publishing `view`.
+    fn handle_without_a_task(view: SiteView) -> (SiteHandle, mpsc::Receiver<Command>) {
+        let (commands, queue) = mpsc::channel(1);
+        let (_, versions) = watch::channel(VersionInfo::default());
+        let (_, views) = watch::channel(Arc::new(view));
+        let handle = SiteHandle::new(
+            "s",
+            commands,
+            versions,
+            views,
+            Arc::new(RequestClock::new()),
+        );
+        (handle, queue)
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_loaded_site_answers_fetches_without_its_task_and_an_unloaded_one_waits_for_it() {
+        let map = SiteMap::new("s", LifelongOptions::default()).unwrap();
+        let (loaded, _queue) = handle_without_a_task(map.view());
+        let wait = Duration::from_secs(1);
+        let delta = tokio::time::timeout(wait, loaded.delta_since(0))
+            .await
+            .expect("answered from the published version, not the task's queue")
+            .unwrap();
+        assert_eq!(delta, map.delta_since(0).unwrap());
+        assert!(loaded.delta_since(1).await.is_err(), "a version ahead");
+        let missing = SubmapId {
+            trajectory: 0,
+            index: 0,
+        };
+        assert!(matches!(
+            loaded.submap(missing, 0).await,
+            Err(SiteError::NotFound(_))
+        ));
+        // Unloaded, the same fetch is the task's: it waits in the queue.
+        let (unloaded, _queue) = handle_without_a_task(map.view().unloaded());
+        assert!(
+            tokio::time::timeout(wait, unloaded.delta_since(0))
+                .await
+                .is_err()
+        );
+    }
+}
