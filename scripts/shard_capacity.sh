@@ -8,7 +8,8 @@
 #
 # A point is SITESxROBOTS_PER_SITE. Environment: BIN (default target/release/evermap-demo; build it
 # with `cargo build --release --workspace`), DURATION (seconds of cleaning streamed per robot, default
-# 60), OUT (default out/shard_capacity; each run writes OUT/POINT/report.json and OUT/POINT.log).
+# 60), SPREAD (seconds over which the robots start, `load --start-spread-s`, default 2: every session
+# ends in the same 2 s), OUT (default out/shard_capacity; each run writes OUT/POINT/report.json and OUT/POINT.log).
 # Memory per site: the difference of peak RSS between two points with the same robots per site, divided
 # by the difference in sites (it includes those robots' prepared sessions and caches, which live in the
 # same process: an upper bound for the server's share).
@@ -16,6 +17,7 @@ set -euo pipefail
 
 BIN=${BIN:-target/release/evermap-demo}
 DURATION=${DURATION:-60}
+SPREAD=${SPREAD:-2}
 OUT=${OUT:-out/shard_capacity}
 POINTS=${POINTS:-"10x2 20x2 5x5"}
 
@@ -29,7 +31,7 @@ for point in $POINTS; do
     sites=${point%x*}
     per_site=${point#*x}
     agents=$((sites * per_site))
-    "$BIN" load --sites "$sites" --agents "$agents" --duration-s "$DURATION" --out "$OUT/$point" \
+    "$BIN" load --sites "$sites" --agents "$agents" --duration-s "$DURATION" --start-spread-s "$SPREAD" --out "$OUT/$point" \
         >"$OUT/$point.log" 2>&1
     python3 - "$OUT/$point/report.json" "$point" "$sites" "$agents" <<'PY'
 import json, sys

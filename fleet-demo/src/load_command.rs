@@ -129,6 +129,12 @@ pub struct LoadArgs {
     /// whole log and a restart replays it (the figure checkpoints are compared with).
     #[arg(long)]
     no_checkpoints: bool,
+    /// Wall-clock seconds over which the robots start their first session, evenly spread (0..=3600).
+    /// At the default every robot's sessions start and end within 2 s of each other's — the worst case:
+    /// every site ends its sessions, and LLO finishes every robot's last submaps, in the same second. A
+    /// fleet whose robots start cleaning at different times is a spread of a session's length or more.
+    #[arg(long, default_value_t = 2.0)]
+    start_spread_s: f64,
 }
 
 /// One robot of the benchmark.
@@ -221,6 +227,10 @@ pub fn run(args: &LoadArgs) -> anyhow::Result<()> {
     anyhow::ensure!(
         args.mature_sessions <= 100,
         "--mature-sessions must be at most 100"
+    );
+    anyhow::ensure!(
+        args.start_spread_s.is_finite() && (0.0..=3600.0).contains(&args.start_spread_s),
+        "--start-spread-s must be in 0..=3600"
     );
     block_on(load(args))
 }
@@ -630,7 +640,8 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
     let prepared: Vec<Arc<Vec<PreparedSession>>> = prepared.into_iter().map(Arc::new).collect();
     let mut streams = Vec::new();
     for (r, (robot, sessions)) in robots.iter().zip(&prepared).enumerate() {
-        let robot_start = stream_started + seconds(2.0 * r as f64 / args.agents as f64);
+        let robot_start =
+            stream_started + seconds(args.start_spread_s * r as f64 / args.agents as f64);
         let (uplink, site, id) = (robot.uplink.clone(), robot.site, robot.id.clone());
         let sessions = Arc::clone(sessions);
         let glm_on_server = args.glm_on_server;
@@ -831,6 +842,7 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
         "session_s": session_plan.first(),
         "sessions_per_robot": session_plan.len(),
         "mature_sessions_per_robot": args.mature_sessions,
+        "start_spread_s": args.start_spread_s,
         "speed": args.speed,
         "streaming_wall_s": streaming_s,
         "measured_wall_s": measured_s,

@@ -6,6 +6,7 @@
 //! later) talks to it.
 
 mod checkpoint_options;
+mod maintenance_thread;
 mod map_history;
 mod published_submaps;
 mod request_clock;

@@ -607,8 +607,13 @@ pub async fn stream_session_from<U: MapUplink>(
     // After the short-session path above, which may start GLM too.
     trace.glm_on_robot = glm.is_some();
     trace.glm_matches = glm.as_ref().map_or(0, |g| g.matches);
-    batch.push(UploadItem::SessionEnd);
-    uploader.enqueue(&batch)?;
+    // The last data, then the session end in a batch of its own: the server publishes the data (the
+    // submaps LLO finished at the end) at once, and ends the session — its heavy maintenance — after.
+    if !batch.is_empty() {
+        uploader.enqueue(&batch)?;
+        report.batches += 1;
+    }
+    uploader.enqueue(&[UploadItem::SessionEnd])?;
     report.batches += 1;
     let deadline = Instant::now() + options.final_flush_timeout;
     while flush(uploader, &mut report).await? {

@@ -6,7 +6,7 @@ use std::sync::Arc;
 use mapping::geometry::Rigid2;
 use mapping::grid::ProbabilityGrid;
 use mapping::pose_graph::{NodeId, SubmapId};
-use proto::{MapDelta, SubmapSnapshot, UploadBatch};
+use proto::{MapDelta, SubmapSnapshot, UploadBatch, UploadItem};
 use tokio::sync::{mpsc, oneshot, watch};
 
 use super::request_clock::RequestClock;
@@ -90,6 +90,37 @@ impl Command {
     /// Whether the command needs the site's map in memory (everything but unloading and stopping).
     pub(crate) fn needs_map(&self) -> bool {
         !matches!(self, Self::Unload { .. } | Self::Shutdown)
+    }
+
+    /// Whether handling the command ends a session (a close, or an upload whose batch ends it): the
+    /// session-end maintenance it sets off may wait behind other robots' data (see `SiteTask`).
+    pub(crate) fn ends_session(&self) -> bool {
+        match self {
+            Self::CloseSession { .. } => true,
+            Self::Upload { batch, .. } => batch
+                .items
+                .iter()
+                .any(|i| matches!(i, UploadItem::SessionEnd)),
+            _ => false,
+        }
+    }
+
+    /// Whether the command is an upload of another session than `session` that does not end its own:
+    /// robots' data, which goes before a session end (see [`Command::ends_session`]).
+    pub(crate) fn is_data_of_another_session(&self, session: &str) -> bool {
+        matches!(self, Self::Upload { batch, .. } if batch.session_uuid != session)
+            && !self.ends_session()
+    }
+
+    /// The session the command is about, if any.
+    pub(crate) fn session(&self) -> Option<&str> {
+        match self {
+            Self::OpenSession { session_uuid, .. } | Self::CloseSession { session_uuid, .. } => {
+                Some(session_uuid)
+            }
+            Self::Upload { batch, .. } => Some(&batch.session_uuid),
+            _ => None,
+        }
     }
 
     /// Answers the command with `error` (a map of no nodes for `NodePoses`, which cannot fail).

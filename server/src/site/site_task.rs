@@ -15,11 +15,20 @@
 //! ([`SiteMap::checkpoint`]: only while no session is mid-start, else at a later change) as a
 //! `SiteCheckpoint` covering the log up to its version, atomically with that position
 //! ([`storage::MapStore::put_checkpoint`]), then compacts the log behind the older kept checkpoint
-//! ([`storage::MapStore::compact`]). Both run after the change is acknowledged and published. A start
+//! ([`storage::MapStore::compact`]). Both run after the change is acknowledged and published, and
+//! beside the task: it waits only while the site's state is copied, then goes on with its requests
+//! while the copy is encoded and written (one write at a time; a due checkpoint waits while requests
+//! are queued, for at most 64 changes; the task's end waits for a write in flight). A start
 //! (and a rebuild) is the newest checkpoint that reads back, plus the log after it: one that fails its
 //! CRC or does not decode is skipped for the one before it (whose log compaction kept); one of a format
 //! version this build does not read, or written under other lifelong options, stops the site with
 //! [`SiteError::CheckpointRefused`] — never rebuilt behind it.
+//!
+//! **Robots' data first** (issue 34: a fleet's sessions all end in the same second). Ending a session
+//! (its final optimization, trimming and sparsification) and checkpoints are *maintenance*: they run
+//! on threads of lower CPU priority (`maintenance_thread`), and a session end waits behind another
+//! session's upload queued after it (at most 16 times in a row), so the submaps the fleet waits for are
+//! not held up by work nobody waits for in real time.
 //!
 //! A session whose robot falls silent (no open, upload or close of it) for longer than
 //! [`SiteTaskOptions::session_idle_timeout`] is ended by the task itself, exactly as if its robot had
@@ -71,7 +80,7 @@
 //! with a retryable refusal: the robot's retry is applied once, or acknowledged as a duplicate. The
 //! rebuilt version is never below the published one (what was published was durable).
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, VecDeque};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -83,6 +92,7 @@ use tokio::sync::{mpsc, watch};
 use tokio::task::JoinHandle;
 use tracing::Instrument as _;
 
+use super::maintenance_thread::run_as_maintenance;
 use super::request_clock::RequestClock;
 use super::site_handle::Command;
 use super::site_summary::SiteSummary;
@@ -130,6 +140,49 @@ impl Default for SiteTaskOptions {
 /// timeout).
 const IDLE_CHECK_INTERVAL: Duration = Duration::from_secs(1);
 
+/// Most times in a row a session end is put behind another robot's upload (see
+/// [`SiteTask::data_before_session_end`]).
+const MAX_SESSION_END_DEFERRALS: u32 = 16;
+
+/// Most commands taken off the queue into the backlog (the queue's own capacity).
+const MAX_BACKLOG: usize = 64;
+
+/// Most changes a due checkpoint waits for the queue to empty (see [`SiteTask::checkpoint_if_due`]).
+const MAX_CHECKPOINT_DEFERRALS: u32 = 64;
+
+/// A checkpoint written beside the task (see [`SiteTask::checkpoint_if_due`]).
+struct CheckpointWritten {
+    version: u64,
+    bytes: usize,
+    compaction: storage::Compaction,
+    /// The summary's write, if one was stored with it.
+    summary: Option<Result<(), SiteError>>,
+    /// From the start of the checkpoint to its durability.
+    seconds: f64,
+    /// The part the task waited for: the copy of the site's state.
+    copy_s: f64,
+}
+
+/// The checkpoint write in flight.
+type CheckpointWriting = JoinHandle<Result<CheckpointWritten, SiteError>>;
+
+/// What the task's loop wakes up for.
+enum Wake {
+    Command(Command),
+    CheckpointWritten(Result<Result<CheckpointWritten, SiteError>, tokio::task::JoinError>),
+    IdleCheck,
+}
+
+/// The in-flight checkpoint write's outcome (never, if there is none).
+async fn written(
+    writing: &mut Option<CheckpointWriting>,
+) -> Result<Result<CheckpointWritten, SiteError>, tokio::task::JoinError> {
+    match writing {
+        Some(handle) => handle.await,
+        None => std::future::pending().await,
+    }
+}
+
 /// Owns one site's [`SiteMap`]; see the module docs.
 pub struct SiteTask {
     site: Arc<str>,
@@ -160,6 +213,14 @@ pub struct SiteTask {
     checkpointed_version: u64,
     /// The version of the last summary stored or read (0: none; see [`SiteSummary`]).
     summary_version: u64,
+    /// The checkpoint being encoded and written beside the task, if any.
+    checkpoint_writing: Option<CheckpointWriting>,
+    /// Changes a due checkpoint has waited for the queue to empty.
+    checkpoint_deferrals: u32,
+    /// Commands taken off the queue ahead of their turn, handled before the queue.
+    backlog: VecDeque<Command>,
+    /// Times in a row the session end at the head of the backlog was put behind robots' data.
+    session_end_deferrals: u32,
 }
 
 /// How [`SiteTask::spawn`] starts a site.
@@ -240,6 +301,10 @@ impl SiteTask {
             checkpoint_due: false,
             checkpointed_version: 0,
             summary_version: 0,
+            checkpoint_writing: None,
+            checkpoint_deferrals: 0,
+            backlog: VecDeque::new(),
+            session_end_deferrals: 0,
         };
         let mut unload_now = false;
         match start {
@@ -308,18 +373,36 @@ impl SiteTask {
         let mut idle_check = tokio::time::interval(check_every);
         idle_check.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         loop {
-            let command = tokio::select! {
-                command = commands.recv() => command,
-                _ = idle_check.tick(), if timers => {
+            let wake = if let Some(command) = self.backlog.pop_front() {
+                Wake::Command(command)
+            } else {
+                tokio::select! {
+                    command = commands.recv() => match command {
+                        Some(command) => Wake::Command(command),
+                        None => break,
+                    },
+                    outcome = written(&mut self.checkpoint_writing) => Wake::CheckpointWritten(outcome),
+                    _ = idle_check.tick(), if timers => Wake::IdleCheck,
+                }
+            };
+            let command = match wake {
+                Wake::Command(command) => command,
+                Wake::CheckpointWritten(outcome) => {
+                    self.checkpoint_writing = None;
+                    self.checkpoint_written(outcome);
+                    self.checkpoint_if_due(commands.is_empty()).await;
+                    continue;
+                }
+                Wake::IdleCheck => {
                     if !self.unloaded {
                         self.end_silent_sessions().await;
-                        self.checkpoint_if_due().await;
+                        self.checkpoint_if_due(commands.is_empty()).await;
                         self.unload_if_idle().await;
                     }
                     continue;
                 }
             };
-            let Some(command) = command else { break };
+            let command = self.data_before_session_end(command, &mut commands);
             if command.needs_map() {
                 self.last_request.touch();
                 if self.unloaded
@@ -342,14 +425,12 @@ impl SiteTask {
                         .await;
                     let _ = reply.send(opened);
                     self.heard(&session_uuid);
-                    self.checkpoint_if_due().await;
                 }
                 Command::Upload { batch, reply } => {
                     let session = batch.session_uuid.clone();
                     let span = session_span(&batch.robot_id, &session);
                     let _ = reply.send(self.upload(*batch).instrument(span).await);
                     self.heard(&session);
-                    self.checkpoint_if_due().await;
                 }
                 Command::CloseSession {
                     robot_id,
@@ -361,7 +442,6 @@ impl SiteTask {
                         .instrument(session_span(&robot_id, &session_uuid))
                         .await;
                     let _ = reply.send(closed);
-                    self.checkpoint_if_due().await;
                 }
                 Command::Delta { since, reply } => {
                     let _ = reply.send(self.map().and_then(|m| m.delta_since(since)));
@@ -404,7 +484,50 @@ impl SiteTask {
                 }
                 Command::Shutdown => break,
             }
+            let queue_idle = self.backlog.is_empty() && commands.is_empty();
+            self.checkpoint_if_due(queue_idle).await;
         }
+        // A checkpoint write in flight finishes before the task ends.
+        self.finish_checkpoint().await;
+    }
+
+    /// Robots' data before session-end maintenance: if `command` ends a session and another session's
+    /// upload that does not is queued, that upload is handled now and `command` waits at the head of
+    /// the backlog — at most [`MAX_SESSION_END_DEFERRALS`] times in a row, so a busy site still ends its
+    /// sessions. Ending a session (the final optimization, trimming, sparsification: seconds of CPU when
+    /// a fleet's sessions end together) answers nobody in real time; another robot's upload carries
+    /// submaps the fleet waits for. The log records the order the changes were applied in, so a replay
+    /// rebuilds the same map.
+    fn data_before_session_end(
+        &mut self,
+        command: Command,
+        commands: &mut mpsc::Receiver<Command>,
+    ) -> Command {
+        let Some(session) = command.session().filter(|_| command.ends_session()) else {
+            return command;
+        };
+        if self.session_end_deferrals >= MAX_SESSION_END_DEFERRALS {
+            self.session_end_deferrals = 0;
+            return command;
+        }
+        while self.backlog.len() < MAX_BACKLOG {
+            match commands.try_recv() {
+                Ok(queued) => self.backlog.push_back(queued),
+                Err(_) => break,
+            }
+        }
+        let Some(data) = self
+            .backlog
+            .iter()
+            .position(|queued| queued.is_data_of_another_session(session))
+            .and_then(|i| self.backlog.remove(i))
+        else {
+            self.session_end_deferrals = 0;
+            return command;
+        };
+        self.session_end_deferrals += 1;
+        self.backlog.push_front(command);
+        data
     }
 
     /// Notes a request of `session`'s robot (only sessions the map knows and has not closed are kept).
@@ -500,9 +623,11 @@ impl SiteTask {
         if !self.checkpoints.enabled || !map.open_sessions().is_empty() {
             return false;
         }
+        self.finish_checkpoint().await;
         if self.checkpointed_version != version {
             self.checkpoint_due = true;
-            self.checkpoint_if_due().await;
+            self.checkpoint_if_due(true).await;
+            self.finish_checkpoint().await;
         }
         if self.checkpointed_version != version
             || self.unflushed
@@ -755,6 +880,25 @@ impl SiteTask {
         Ok(result)
     }
 
+    /// [`Self::with_map_blocking`] on a maintenance thread (see `maintenance_thread`): a session's end,
+    /// which yields the CPU to robots' data. `what` names the work in errors.
+    async fn with_map_in_maintenance<T: Send + 'static>(
+        &mut self,
+        what: &'static str,
+        f: impl FnOnce(&mut SiteMap) -> T + Send + 'static,
+    ) -> Result<T, SiteError> {
+        let mut map = self.map.take().ok_or_else(|| {
+            SiteError::Internal("the site map was lost by a failed worker".into())
+        })?;
+        let (map, result) = run_as_maintenance(what, move || {
+            let result = f(&mut map);
+            (map, result)
+        })
+        .await?;
+        self.map = Some(map);
+        Ok(result)
+    }
+
     /// What the site publishes now, as its [`SiteSummary`] (`None` while unloaded).
     fn summary(&self) -> Option<SiteSummary> {
         if self.unloaded || self.map.is_none() {
@@ -778,10 +922,17 @@ impl SiteTask {
         }
     }
 
-    /// Writes a checkpoint of the site when one is due and can be taken (see the module docs), then
-    /// compacts the log. A failure is logged and retried after a later change: the log stays whole
-    /// until a checkpoint is durable, so nothing depends on it.
-    async fn checkpoint_if_due(&mut self) {
+    /// Starts a checkpoint of the site when one is due and can be taken (see the module docs): the
+    /// site's state is copied ([`SiteMap::checkpoint`]) while the task waits, then encoded, written and
+    /// the log compacted on a maintenance thread beside the task, which goes on with its
+    /// requests ([`Self::checkpoint_written`] records the outcome). One write at a time; and robots'
+    /// requests first: while commands are queued (`queue_idle` false) a due checkpoint waits, for at
+    /// most [`MAX_CHECKPOINT_DEFERRALS`] changes. A failure is logged and retried after a later change:
+    /// the log stays whole until a checkpoint is durable, so nothing depends on it.
+    async fn checkpoint_if_due(&mut self, queue_idle: bool) {
+        if self.checkpoint_writing.is_some() {
+            return;
+        }
         let Ok(version) = self.map().map(SiteMap::version) else {
             return;
         };
@@ -796,58 +947,97 @@ impl SiteTask {
         {
             return;
         }
+        if !queue_idle && self.checkpoint_deferrals < MAX_CHECKPOINT_DEFERRALS {
+            self.checkpoint_deferrals += 1;
+            return;
+        }
+        self.checkpoint_deferrals = 0;
         let started = Instant::now();
-        let encoded = self
-            .with_map_blocking(|map| {
-                map.checkpoint()
-                    .map(|c| pb::SiteCheckpoint::from(&c).encode_to_vec())
-            })
-            .await;
-        let bytes = match encoded {
-            Ok(Some(bytes)) => bytes,
+        // The task waits for the copy (at the priority of the requests behind it), not for the rest.
+        let copied = self.with_map_blocking(|map| map.checkpoint()).await;
+        let checkpoint = match copied {
+            Ok(Some(checkpoint)) => checkpoint,
             Ok(None) => return, // a session is mid-start: at a later change
             Err(e) => {
                 tracing::warn!(version, "cannot checkpoint the site: {e}");
                 return;
             }
         };
-        let (store, site, size) = (Arc::clone(&self.store), self.site(), bytes.len());
+        let copy_s = started.elapsed().as_secs_f64();
+        // Due again only if a later change makes it so (or this write fails).
+        self.checkpoint_due = false;
+        let (store, site) = (Arc::clone(&self.store), self.site());
         let retention = options.retention();
         // Stored only once the checkpoint at its version is durable, and only if a start could use it.
         let summary = self
             .summary()
             .filter(|s| s.info.version == version && s.info.counts.open_sessions == 0);
-        let summarized = summary.is_some();
-        // What the kill -9 chaos test times its kills by (`fleet-demo/tests/kill_nine_fleet.rs`).
-        tracing::debug!(version, bytes = size, "writing the site's checkpoint");
-        let written = tokio::task::spawn_blocking(move || {
+        let span = tracing::Span::current();
+        let write = move || {
+            let _entered = span.enter();
+            let bytes = pb::SiteCheckpoint::from(&checkpoint).encode_to_vec();
+            drop(checkpoint);
+            // What the kill -9 chaos test times its kills by (`fleet-demo/tests/kill_nine_fleet.rs`).
+            tracing::debug!(
+                version,
+                bytes = bytes.len(),
+                "writing the site's checkpoint"
+            );
             store.put_checkpoint(&site, version, &bytes)?;
             let compaction = store.compact(&site, SITE_LOG_KIND, &retention)?;
             let summary = summary.map(|s| s.store(store.as_ref(), &site));
-            Ok::<_, SiteError>((compaction, summary))
-        })
-        .await;
-        match written {
-            Ok(Ok((compaction, summary))) => {
-                self.checkpoint_due = false;
-                self.checkpointed_version = version;
-                match summary {
-                    Some(Ok(())) => self.summary_version = version,
-                    Some(Err(e)) => tracing::warn!(version, "cannot store the site's summary: {e}"),
-                    None => {}
-                }
-                tracing::info!(
-                    version,
-                    bytes = size,
-                    seconds = started.elapsed().as_secs_f64(),
-                    log_compacted_through = compaction.log_compacted_through,
-                    log_entries_removed = compaction.log_entries_removed,
-                    summarized,
-                    "site checkpointed"
-                );
+            Ok(CheckpointWritten {
+                version,
+                bytes: bytes.len(),
+                compaction,
+                summary,
+                seconds: started.elapsed().as_secs_f64(),
+                copy_s,
+            })
+        };
+        self.checkpoint_writing = Some(tokio::spawn(async move {
+            run_as_maintenance("checkpoint", write).await?
+        }));
+    }
+
+    /// Records the outcome of the checkpoint write [`Self::checkpoint_if_due`] started.
+    fn checkpoint_written(
+        &mut self,
+        outcome: Result<Result<CheckpointWritten, SiteError>, tokio::task::JoinError>,
+    ) {
+        let written = match outcome.map_err(SiteError::Worker).and_then(|w| w) {
+            Ok(written) => written,
+            Err(e) => {
+                self.checkpoint_due = true;
+                tracing::warn!("cannot store the site's checkpoint: {e}");
+                return;
             }
-            Ok(Err(e)) => tracing::warn!(version, "cannot store the site's checkpoint: {e}"),
-            Err(e) => tracing::warn!(version, "cannot store the site's checkpoint: {e}"),
+        };
+        let version = written.version;
+        self.checkpointed_version = self.checkpointed_version.max(version);
+        let summarized = written.summary.is_some();
+        match written.summary {
+            Some(Ok(())) => self.summary_version = self.summary_version.max(version),
+            Some(Err(e)) => tracing::warn!(version, "cannot store the site's summary: {e}"),
+            None => {}
+        }
+        tracing::info!(
+            version,
+            bytes = written.bytes,
+            seconds = written.seconds,
+            copy_s = written.copy_s,
+            log_compacted_through = written.compaction.log_compacted_through,
+            log_entries_removed = written.compaction.log_entries_removed,
+            summarized,
+            "site checkpointed"
+        );
+    }
+
+    /// Waits for the checkpoint write in flight, if any, and records it.
+    async fn finish_checkpoint(&mut self) {
+        if let Some(writing) = self.checkpoint_writing.take() {
+            let outcome = writing.await;
+            self.checkpoint_written(outcome);
         }
     }
 
@@ -896,6 +1086,7 @@ impl SiteTask {
             });
         }
         let version = map.version() + 1;
+        let received = Instant::now();
         // The map applies exactly what replay will: the batch decoded from its stored form (a pose's
         // angle goes through `atan2` and `sin`/`cos` once more, which can move its last bit), so a
         // restart rebuilds this map bit for bit. A batch whose stored form does not decode is refused
@@ -910,10 +1101,24 @@ impl SiteTask {
         .await?;
         let (seq, session) = (batch.seq, batch.session_uuid.clone());
         let started = Instant::now();
-        let applied = self
-            .with_map_blocking(move |map| map.apply_upload(&batch, version))
-            .await?;
-        self.metrics.record_pgr(started.elapsed());
+        let ends_session = batch
+            .items
+            .iter()
+            .any(|item| matches!(item, proto::UploadItem::SessionEnd));
+        let apply = move |map: &mut SiteMap| map.apply_upload(&batch, version);
+        let applied = if ends_session {
+            self.with_map_in_maintenance("session end", apply).await?
+        } else {
+            self.with_map_blocking(apply).await?
+        };
+        let applying = started.elapsed();
+        self.metrics.record_pgr(applying);
+        tracing::debug!(
+            version,
+            store_seconds = (started - received).as_secs_f64(),
+            apply_seconds = applying.as_secs_f64(),
+            "upload applied"
+        );
         if let Err(e) = applied {
             // Stored but not fully applied: a bug (check_upload accepted it). Replay will hit it again.
             tracing::error!(version, "stored upload failed to apply: {e}");
@@ -959,11 +1164,19 @@ impl SiteTask {
         .await?;
         let (robot, session) = (robot_id.to_owned(), session_uuid.to_owned());
         let started = Instant::now();
-        self.with_map_blocking(move |map| map.close_session(&robot, &session, version))
-            .await??;
+        self.with_map_in_maintenance("session end", move |map| {
+            map.close_session(&robot, &session, version)
+        })
+        .await??;
         self.last_heard.remove(session_uuid);
         self.checkpoint_due = true;
-        self.metrics.record_pgr(started.elapsed());
+        let closing = started.elapsed();
+        self.metrics.record_pgr(closing);
+        tracing::info!(
+            version,
+            seconds = closing.as_secs_f64(),
+            "session closed: trimmed, sparsified and optimized"
+        );
         self.durable().await?;
         self.publish();
         Ok(version)
@@ -1200,6 +1413,36 @@ mod tests {
         }
     }
 
+    #[tokio::test]
+    async fn another_sessions_data_goes_before_a_session_end_queued_ahead_of_it() {
+        let store: Arc<dyn MapStore> = Arc::new(MemStore::new());
+        let (site, task) = spawn_with(&store, None).await.unwrap();
+        for session in ["ending", "mapping"] {
+            site.open_session("r", session).await.unwrap();
+            site.upload(node_batch(session, 1)).await.unwrap();
+        }
+        let mut end = node_batch("ending", 2);
+        end.items.push(proto::UploadItem::SessionEnd);
+        // Both are queued before the task takes either (the test's runtime has one thread).
+        let (ended, data) = tokio::join!(site.upload(end), site.upload(node_batch("mapping", 2)));
+        let (ended, data) = (ended.unwrap(), data.unwrap());
+        assert!(
+            data.map_version < ended.map_version,
+            "the other robot's data ({}) before the session end ({})",
+            data.map_version,
+            ended.map_version
+        );
+        // Applied in that order, logged in that order: a restart rebuilds the same map.
+        let poses = site.node_poses().await.unwrap();
+        site.shutdown().await;
+        task.await.unwrap();
+        let (site, task) = spawn_with(&store, None).await.unwrap();
+        assert_eq!(site.current().version, ended.map_version);
+        assert_eq!(site.node_poses().await.unwrap(), poses);
+        site.shutdown().await;
+        task.await.unwrap();
+    }
+
     /// Sleeps `seconds` of (paused, virtual) time in steps, letting the site task run between them.
     async fn let_time_pass(seconds: u64) {
         for _ in 0..seconds {
@@ -1413,11 +1656,11 @@ mod tests {
         site.upload(node_batch("a", 1)).await.unwrap();
         let closed = site.close_session("r", "a").await.unwrap();
         let (info, view) = (site.current(), site.view());
-        // Answered after the close's checkpoint was written (the task takes one command at a time).
         let poses = site.node_poses().await.unwrap();
-        assert_eq!(store.checkpoint_indexes("s").unwrap(), vec![closed]);
+        // The close's checkpoint is written beside the task; the task's end waits for it.
         site.shutdown().await;
         task.await.unwrap();
+        assert_eq!(store.checkpoint_indexes("s").unwrap(), vec![closed]);
 
         let metrics = Arc::new(ServerMetrics::default());
         let (site, task) = spawn_unloading(&store, &metrics, CheckpointOptions::DEFAULT).await;
