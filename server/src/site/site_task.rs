@@ -17,16 +17,18 @@
 //! ([`storage::MapStore::put_checkpoint`]), then compacts the log behind the older kept checkpoint
 //! ([`storage::MapStore::compact`]). Both run after the change is acknowledged and published, and
 //! beside the task: it waits only while the site's state is copied, then goes on with its requests
-//! while the copy is encoded and written (one write at a time; a due checkpoint waits while requests
-//! are queued, for at most 64 changes; the task's end waits for a write in flight). A start
+//! while the copy is encoded and written (one write at a time; a checkpoint due while another session's
+//! end is already queued waits for it, so one covers both; the task's end waits for a write in
+//! flight). A start
 //! (and a rebuild) is the newest checkpoint that reads back, plus the log after it: one that fails its
 //! CRC or does not decode is skipped for the one before it (whose log compaction kept); one of a format
 //! version this build does not read, or written under other lifelong options, stops the site with
 //! [`SiteError::CheckpointRefused`] — never rebuilt behind it.
 //!
 //! **Robots' data first** (issue 34: a fleet's sessions all end in the same second). Ending a session
-//! (its final optimization, trimming and sparsification) and checkpoints are *maintenance*: they run
-//! on threads of lower CPU priority (`maintenance_thread`), and a session end waits behind another
+//! (its final optimization, trimming and sparsification) and encoding and writing checkpoints are
+//! *maintenance*: they run on threads of lower CPU priority (`maintenance_thread`), and a session end
+//! waits behind another
 //! session's upload queued after it (at most 16 times in a row), so the submaps the fleet waits for are
 //! not held up by work nobody waits for in real time.
 //!
@@ -147,9 +149,6 @@ const MAX_SESSION_END_DEFERRALS: u32 = 16;
 /// Most commands taken off the queue into the backlog (the queue's own capacity).
 const MAX_BACKLOG: usize = 64;
 
-/// Most changes a due checkpoint waits for the queue to empty (see [`SiteTask::checkpoint_if_due`]).
-const MAX_CHECKPOINT_DEFERRALS: u32 = 64;
-
 /// A checkpoint written beside the task (see [`SiteTask::checkpoint_if_due`]).
 struct CheckpointWritten {
     version: u64,
@@ -215,8 +214,6 @@ pub struct SiteTask {
     summary_version: u64,
     /// The checkpoint being encoded and written beside the task, if any.
     checkpoint_writing: Option<CheckpointWriting>,
-    /// Changes a due checkpoint has waited for the queue to empty.
-    checkpoint_deferrals: u32,
     /// Commands taken off the queue ahead of their turn, handled before the queue.
     backlog: VecDeque<Command>,
     /// Times in a row the session end at the head of the backlog was put behind robots' data.
@@ -302,7 +299,6 @@ impl SiteTask {
             checkpointed_version: 0,
             summary_version: 0,
             checkpoint_writing: None,
-            checkpoint_deferrals: 0,
             backlog: VecDeque::new(),
             session_end_deferrals: 0,
         };
@@ -390,13 +386,13 @@ impl SiteTask {
                 Wake::CheckpointWritten(outcome) => {
                     self.checkpoint_writing = None;
                     self.checkpoint_written(outcome);
-                    self.checkpoint_if_due(commands.is_empty()).await;
+                    self.checkpoint_if_due().await;
                     continue;
                 }
                 Wake::IdleCheck => {
                     if !self.unloaded {
                         self.end_silent_sessions().await;
-                        self.checkpoint_if_due(commands.is_empty()).await;
+                        self.checkpoint_if_due().await;
                         self.unload_if_idle().await;
                     }
                     continue;
@@ -484,8 +480,11 @@ impl SiteTask {
                 }
                 Command::Shutdown => break,
             }
-            let queue_idle = self.backlog.is_empty() && commands.is_empty();
-            self.checkpoint_if_due(queue_idle).await;
+            // A session end already queued (taken into the backlog by `data_before_session_end`) comes
+            // first: one checkpoint then covers both ends.
+            if !self.backlog.iter().any(Command::ends_session) {
+                self.checkpoint_if_due().await;
+            }
         }
         // A checkpoint write in flight finishes before the task ends.
         self.finish_checkpoint().await;
@@ -626,7 +625,7 @@ impl SiteTask {
         self.finish_checkpoint().await;
         if self.checkpointed_version != version {
             self.checkpoint_due = true;
-            self.checkpoint_if_due(true).await;
+            self.checkpoint_if_due().await;
             self.finish_checkpoint().await;
         }
         if self.checkpointed_version != version
@@ -925,11 +924,10 @@ impl SiteTask {
     /// Starts a checkpoint of the site when one is due and can be taken (see the module docs): the
     /// site's state is copied ([`SiteMap::checkpoint`]) while the task waits, then encoded, written and
     /// the log compacted on a maintenance thread beside the task, which goes on with its
-    /// requests ([`Self::checkpoint_written`] records the outcome). One write at a time; and robots'
-    /// requests first: while commands are queued (`queue_idle` false) a due checkpoint waits, for at
-    /// most [`MAX_CHECKPOINT_DEFERRALS`] changes. A failure is logged and retried after a later change:
+    /// requests ([`Self::checkpoint_written`] records the outcome). One write at a time: a checkpoint
+    /// due meanwhile starts when the write ends. A failure is logged and retried after a later change:
     /// the log stays whole until a checkpoint is durable, so nothing depends on it.
-    async fn checkpoint_if_due(&mut self, queue_idle: bool) {
+    async fn checkpoint_if_due(&mut self) {
         if self.checkpoint_writing.is_some() {
             return;
         }
@@ -947,11 +945,6 @@ impl SiteTask {
         {
             return;
         }
-        if !queue_idle && self.checkpoint_deferrals < MAX_CHECKPOINT_DEFERRALS {
-            self.checkpoint_deferrals += 1;
-            return;
-        }
-        self.checkpoint_deferrals = 0;
         let started = Instant::now();
         // The task waits for the copy (at the priority of the requests behind it), not for the rest.
         let copied = self.with_map_blocking(|map| map.checkpoint()).await;
