@@ -8,7 +8,8 @@
 //! bumps the store's map version (and, for uploads, records the session's sequence number). On start the
 //! task replays the log in order, which rebuilds the same map (the core is deterministic), and continues
 //! the version sequence. Heavy work (replay, GLM searches and optimization, rendering) and blocking
-//! storage calls run on tokio's blocking pool, never on the async workers.
+//! storage calls run on tokio's blocking pool, or on maintenance threads (a session's end, checkpoint
+//! writes: below), never on the async workers.
 //!
 //! **Checkpoints** (issue 34; [`CheckpointOptions`]). After a change that ended a session, or
 //! `every_n_versions` versions after the last checkpoint, the task writes the site's whole state
