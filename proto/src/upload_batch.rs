@@ -74,6 +74,15 @@ pub struct UploadBatch {
     pub items: Vec<UploadItem>,
 }
 
+impl UploadBatch {
+    /// Whether the batch carries its session's end.
+    pub fn ends_session(&self) -> bool {
+        self.items
+            .iter()
+            .any(|item| matches!(item, UploadItem::SessionEnd))
+    }
+}
+
 impl From<&UploadItem> for pb::UploadItem {
     fn from(item: &UploadItem) -> Self {
         use pb::upload_item::Item;

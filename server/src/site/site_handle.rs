@@ -6,7 +6,7 @@ use std::sync::Arc;
 use mapping::geometry::Rigid2;
 use mapping::grid::ProbabilityGrid;
 use mapping::pose_graph::{NodeId, SubmapId};
-use proto::{MapDelta, SubmapSnapshot, UploadBatch, UploadItem};
+use proto::{MapDelta, SubmapSnapshot, UploadBatch};
 use tokio::sync::{mpsc, oneshot, watch};
 
 use super::request_clock::RequestClock;
@@ -97,10 +97,7 @@ impl Command {
     pub(crate) fn ends_session(&self) -> bool {
         match self {
             Self::CloseSession { .. } => true,
-            Self::Upload { batch, .. } => batch
-                .items
-                .iter()
-                .any(|i| matches!(i, UploadItem::SessionEnd)),
+            Self::Upload { batch, .. } => batch.ends_session(),
             _ => false,
         }
     }

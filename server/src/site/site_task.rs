@@ -1095,10 +1095,7 @@ impl SiteTask {
         .await?;
         let (seq, session) = (batch.seq, batch.session_uuid.clone());
         let started = Instant::now();
-        let ends_session = batch
-            .items
-            .iter()
-            .any(|item| matches!(item, proto::UploadItem::SessionEnd));
+        let ends_session = batch.ends_session();
         let apply = move |map: &mut SiteMap| map.apply_upload(&batch, version);
         let applied = if ends_session {
             self.with_map_in_maintenance("session end", apply).await?
