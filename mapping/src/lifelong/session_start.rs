@@ -25,9 +25,12 @@
 //! 3. **Probation.** A placement is tentative: the shell places the session so that GLM can match its
 //!    nodes near their estimates, but its submaps stay out of the map robots relocalize against and it
 //!    trims nothing. It is committed once [`SessionStartOptions::probation_matches`] *independent*
-//!    matches agree with it: matches of nodes at least [`SessionStartOptions::probation_min_separation_m`]
-//!    apart along the route (and that far past the node the placement was decided at, whose cloud placed
-//!    it), against at least [`SessionStartOptions::probation_min_submaps`] different submaps (a finished
+//!    matches agree with it: matches of nodes that saw different things — at least
+//!    [`SessionStartOptions::probation_min_separation_m`] apart along the route, or whose scans share at
+//!    most [`SessionStartOptions::probation_max_view_overlap`] of what the other saw (a robot that turns
+//!    sees new walls without driving) — and that saw something the cloud that placed it did not (that far
+//!    past the node the placement was decided at, or as little overlap with that cloud), against at least
+//!    [`SessionStartOptions::probation_min_submaps`] different submaps (a finished
 //!    submap spans tens of metres of an aisle, so one per match would wait for most of a session). A
 //!    match agrees when the node pose it implies lies within `agreement_translation_m` (+
 //!    `agreement_growth` per metre of route from the placement's node, for LLO's drift) and
@@ -57,6 +60,7 @@ use std::collections::VecDeque;
 use nalgebra::Point2;
 use serde::Deserialize;
 
+use self::scan_view::ScanView;
 use super::{
     LifelongOptionsError, PriorCheck, RelocalizationOutcome, SessionRelocalization, StartAnswer,
     StartSearch,
@@ -100,6 +104,11 @@ pub struct SessionStartOptions {
     /// agreeing match must also lie this far past the node the placement was decided at. Metres ≥ 0.
     /// Default 3 m.
     pub probation_min_separation_m: f64,
+    /// ... or when less than this share of one node's scan (in cells of 0.3 m of the session's frame) was
+    /// seen by the other's; an agreeing match is also past the placement when less than this share of its
+    /// scan was seen by the cloud that placed it. Share 0–1 (0 = the route alone decides). Default 0.5:
+    /// most of what it sees is new. Why: `docs/TUNING.md#ss-probation-max-view-overlap`.
+    pub probation_max_view_overlap: f64,
     /// The agreeing matches that commit a placement must be of at least this many different submaps
     /// (count ≥ 1; capped by `probation_matches`). Default 2.
     pub probation_min_submaps: usize,
@@ -146,6 +155,7 @@ impl Default for SessionStartOptions {
             give_up_after_nodes: 0,
             probation_matches: 3,
             probation_min_separation_m: 3.0,
+            probation_max_view_overlap: 0.5,
             probation_min_submaps: 2,
             agreement_translation_m: 1.0,
             agreement_rotation_rad: 5f64.to_radians(),
@@ -181,6 +191,9 @@ impl SessionStartOptions {
                 "probation_min_separation_m",
                 "must be a non-negative number of metres",
             );
+        }
+        if !(0.0..=1.0).contains(&self.probation_max_view_overlap) {
+            return out_of_range("probation_max_view_overlap", "must be a share from 0 to 1");
         }
         if self.probation_min_submaps == 0 {
             return out_of_range("probation_min_submaps", "must be at least 1");
@@ -329,10 +342,12 @@ pub enum SessionStartState {
     GaveUp,
 }
 
-/// A match counted toward (or against) a placement: its node's route position and its submap.
-#[derive(Clone, Copy, Debug)]
+/// A match counted toward (or against) a placement: its node's route position, what its node saw (when
+/// the node's scan is still held) and its submap.
+#[derive(Clone, Debug)]
 struct Counted {
     path_m: f64,
+    view: Option<ScanView>,
     submap: SubmapId,
 }
 
@@ -358,6 +373,8 @@ pub struct SessionStart {
     candidates: Vec<Rigid2>,
     /// While searching: the last search answered `NotFound`.
     found_nothing: bool,
+    /// What the cloud that made the current placement saw.
+    placing_view: ScanView,
     /// Route position (metres) of the latest undecided contest of the current placement.
     contested_at_m: Option<f64>,
     /// Until it is checked: `map_from_tracking` where the robot believes its first node is (its dock).
@@ -387,6 +404,7 @@ impl SessionStart {
             rivals: Vec::new(),
             candidates: Vec::new(),
             found_nothing: false,
+            placing_view: ScanView::default(),
             contested_at_m: None,
             dock: None,
         })
@@ -545,12 +563,20 @@ impl SessionStart {
         let agrees = translation
             <= self.options.agreement_translation_m + self.options.agreement_growth * route
             && rotation <= self.options.agreement_rotation_rad;
-        let counted = Counted { path_m, submap };
+        let counted = Counted {
+            path_m,
+            view: self.view_of(node),
+            submap,
+        };
         let separation = self.options.probation_min_separation_m;
+        let max_overlap = self.options.probation_max_view_overlap;
         if agrees {
-            if path_m - placed_path >= separation
-                && independent(&self.agreeing, counted, separation)
-            {
+            let past_placement = path_m - placed_path >= separation
+                || counted
+                    .view
+                    .as_ref()
+                    .is_some_and(|view| view.overlap(&self.placing_view) < max_overlap);
+            if past_placement && independent(&self.agreeing, &counted, separation, max_overlap) {
                 self.agreeing.push(counted);
             }
             let mut submaps: Vec<SubmapId> = self.agreeing.iter().map(|c| c.submap).collect();
@@ -575,7 +601,7 @@ impl SessionStart {
                     Contest::Undecided => Vec::new(),
                 };
             }
-        } else if independent(&self.disagreeing, counted, separation) {
+        } else if independent(&self.disagreeing, &counted, separation, max_overlap) {
             self.disagreeing.push(counted);
             if self.disagreeing.len() >= self.options.probation_disagreements {
                 let last = self.nodes.len().saturating_sub(1);
@@ -697,6 +723,14 @@ impl SessionStart {
                 Contest::Undecided
             }
         }
+    }
+
+    /// What node `node` saw, while its scan is among the latest held in the cloud (`None` for a scan
+    /// without points: it is no view of anything).
+    fn view_of(&self, node: usize) -> Option<ScanView> {
+        let first_held = self.nodes.len().checked_sub(self.cloud.len())?;
+        let (pose, points) = self.cloud.get(node.checked_sub(first_held)?)?;
+        (!points.is_empty()).then(|| ScanView::of([(pose, points.as_slice())]))
     }
 
     fn path_at(&self, node: usize) -> Option<f64> {
@@ -837,6 +871,11 @@ impl SessionStart {
     fn place(&mut self, placement: StartPlacement, node: usize) -> Vec<SessionStartEvent> {
         self.agreeing.clear();
         self.disagreeing.clear();
+        self.placing_view = ScanView::of(
+            self.cloud
+                .iter()
+                .map(|(pose, points)| (pose, points.as_slice())),
+        );
         self.contested_at_m = None;
         if self.options.probation_matches == 0 {
             self.state = SessionStartState::Committed(placement);
@@ -908,12 +947,20 @@ enum Contest {
     Undecided,
 }
 
-/// Whether `candidate` is at least `separation` metres along the route from every match in `counted`.
-fn independent(counted: &[Counted], candidate: Counted, separation: f64) -> bool {
-    counted
-        .iter()
-        .all(|c| (c.path_m - candidate.path_m).abs() >= separation)
+/// Whether `candidate` is independent of every match in `counted`: at least `separation` metres from it
+/// along the route, or less than `max_overlap` of its view seen by that match's node.
+fn independent(
+    counted: &[Counted],
+    candidate: &Counted,
+    separation: f64,
+    max_overlap: f64,
+) -> bool {
+    counted.iter().all(|c| {
+        (c.path_m - candidate.path_m).abs() >= separation
+            || matches!((&candidate.view, &c.view), (Some(a), Some(b)) if a.overlap(b) < max_overlap)
+    })
 }
 
+mod scan_view;
 #[cfg(test)]
 mod tests;

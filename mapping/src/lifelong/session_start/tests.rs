@@ -199,6 +199,63 @@ fn a_placement_is_committed_after_independent_agreeing_matches() {
 }
 
 #[test]
+fn matches_of_a_robot_turning_in_place_are_independent_when_they_see_different_walls() {
+    let placed = rigid2(10.0, 5.0, 0.3);
+    let (mut start, _) = SessionStart::with_placement(options(), None, placed, 0).unwrap();
+    // A scanner that sees a 2-m wall 2 m ahead, on a robot that turns a quarter turn a node where it
+    // stands: no route at all.
+    let wall: Vec<Point2<f32>> = (0..=40)
+        .map(|i| Point2::new(2.0, -1.0 + 0.05 * i as f32))
+        .collect();
+    let turned = |k: usize| rigid2(0.0, 0.0, std::f64::consts::FRAC_PI_2 * k as f64);
+    for k in 0..6 {
+        assert!(start.add_node(turned(k), wall.clone()).is_empty());
+    }
+    let agreeing = |k: usize| placed * turned(k) * rigid2(0.05, -0.05, 0.01);
+    assert!(start.add_match(1, agreeing(1), submap(0)).is_empty());
+    // A full turn later the robot sees node 1's wall again: the same view, not independent of it.
+    assert!(start.add_match(5, agreeing(5), submap(1)).is_empty());
+    let events = start.add_match(2, agreeing(2), submap(1));
+    assert!(
+        matches!(events[..], [SessionStartEvent::Committed { node: 2, .. }]),
+        "committed by a match of another wall: {events:?}"
+    );
+}
+
+#[test]
+fn a_match_sees_nothing_new_when_the_cloud_that_placed_the_session_saw_it() {
+    let placed = rigid2(10.0, 5.0, 0.3);
+    let wall: Vec<Point2<f32>> = (0..=40)
+        .map(|i| Point2::new(2.0, -1.0 + 0.05 * i as f32))
+        .collect();
+    let turned = |k: usize| rigid2(0.0, 0.0, std::f64::consts::FRAC_PI_2 * k as f64);
+    // Placed by a whole-map search at node 3 (`SessionStart::place_answer`'s path): its cloud is the
+    // four walls of nodes 0–3. The robot then turns on and sees only those walls again.
+    let mut start = SessionStart::new(options(), None).unwrap();
+    for k in 0..4 {
+        start.add_node(turned(k), wall.clone());
+    }
+    let found = SessionRelocalization {
+        global_from_local: placed,
+        score: 0.8,
+    };
+    let events = start.place_answer(&found, None, None, Vec::new(), 3);
+    assert!(
+        matches!(events[..], [SessionStartEvent::Placed(_)]),
+        "{events:?}"
+    );
+    for k in 4..8 {
+        assert!(start.add_node(turned(k), wall.clone()).is_empty());
+    }
+    let agreeing = |k: usize| placed * turned(k) * rigid2(0.05, -0.05, 0.01);
+    for (k, index) in [(4, 0), (5, 1), (6, 2), (7, 3)] {
+        let events = start.add_match(k, agreeing(k), submap(index));
+        assert!(events.is_empty(), "node {k}: {events:?}");
+    }
+    assert!(!start.is_committed());
+}
+
+#[test]
 fn independent_disagreeing_matches_revoke_a_placement_and_searching_resumes() {
     let placed = rigid2(10.0, 5.0, 0.3);
     let mut start = on_probation(options(), placed, 12);
@@ -457,6 +514,10 @@ fn invalid_options_are_refused() {
         },
         SessionStartOptions {
             dock_check_nodes: 0,
+            ..SessionStartOptions::default()
+        },
+        SessionStartOptions {
+            probation_max_view_overlap: 1.5,
             ..SessionStartOptions::default()
         },
     ];
