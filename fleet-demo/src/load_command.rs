@@ -13,8 +13,8 @@
 //!    takes it.
 //! 2. *Preparation* (not measured): every robot's cleaning sessions (one, or `--duration-s` over
 //!    `--session-s` of them, each on a later simulated day) are simulated and run through LLO ahead of
-//!    time, and their first nodes are relocalized against the robot's cache of the site map (the prior a
-//!    session opens with, as in `demo`). Robots run LLO on their own CPUs; doing it ahead keeps the 50
+//!    time, and the robot's session start (`SessionStart`, as in `demo`) places each against the robot's
+//!    cache of the site map from its first nodes (the prior a session opens with). Robots run LLO on their own CPUs; doing it ahead keeps the 50
 //!    robots' LLO off the server's two cores, so the figures are the server's. The prepared sessions stay
 //!    in memory until the end, so memory growth during the measured phase is the server's (and its
 //!    clients').
@@ -40,7 +40,7 @@ use anyhow::Context as _;
 use clap::Args;
 use mapping::geometry::Rigid2;
 use mapping::global_slam::GlobalSlamOptions;
-use mapping::lifelong::{MapMatcher, RelocalizationOptions};
+use mapping::lifelong::{MapMatcher, RelocalizationOptions, SessionStartOptions};
 use mapping::local_slam::LocalTrajectoryBuilderOptions;
 use proto::{SubmapSnapshot, UploadItem};
 use robot_agent::map_image;
@@ -49,7 +49,7 @@ use robot_agent::process_stats::{cpu_seconds, current_rss_mb, peak_rss_mb};
 use robot_agent::source::{ReadReport, Recording};
 use robot_agent::uplink::{
     GlobalSubmapCache, GrpcUplink, SessionOptions, Uploader, cached_submaps, follow_site_with,
-    match_node, relocalize_nodes, run_llo, stream_recording, sync_matcher,
+    match_node, place_ahead, run_llo, stream_recording, sync_matcher,
 };
 use serde_json::json;
 use server::{RobotConfig, RunningServer, ServerConfig, SiteConfig};
@@ -68,8 +68,6 @@ use crate::site_growth::{half_life_version, site_growth_until, site_sizes};
 
 /// Nodes per upload batch (a batch holding a finished submap goes at once).
 const NODES_PER_BATCH: usize = 10;
-/// Nodes merged for the session-start relocalization.
-const RELOCALIZATION_NODES: usize = 10;
 /// Robot time per wall-clock time of the unmeasured maturing sessions: as fast as the server takes them.
 const MATURING_SPEED: f64 = 1e4;
 
@@ -151,7 +149,8 @@ struct Robot {
 struct PreparedSession {
     /// One entry per node: its items (the node, then the submaps it finished).
     steps: Vec<Vec<UploadItem>>,
-    prior: Option<(Rigid2, f32)>,
+    /// `global_from_local` where the robot's session start placed it.
+    prior: Option<Rigid2>,
     duration_s: f64,
 }
 
@@ -387,7 +386,7 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
             .collect::<Vec<_>>()
     );
 
-    // 2. LLO and start relocalization of every cleaning session, ahead of time.
+    // 2. LLO and the session start of every cleaning session, ahead of time.
     eprintln!(
         "phase 2/3: LLO of the cleaning sessions of {} robots ahead of time",
         robots.len()
@@ -439,13 +438,17 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
     for (r, task) in preparing {
         let robot = &robots[r];
         let (mut steps, duration_s) = task.await.context("LLO thread")??;
-        let held = steps.iter().take(RELOCALIZATION_NODES).flatten();
-        let prior = relocalize_nodes(&robot.cache, &RelocalizationOptions::default(), held)
-            .await
-            .flatten();
+        let prior = place_ahead(
+            &robot.cache,
+            &RelocalizationOptions::default(),
+            &SessionStartOptions::default(),
+            steps.iter().flatten(),
+        )
+        .await
+        .flatten();
         // GLM on the robot, also ahead of time (robots match on their own CPUs), against the robot's
         // cache of the site as it was when the session started (session 0's map).
-        if let (false, Some((global_from_local, _))) = (args.glm_on_server, prior) {
+        if let (false, Some(global_from_local)) = (args.glm_on_server, prior) {
             let submaps = cached_submaps(
                 &*robot
                     .cache
@@ -472,10 +475,10 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
         .map(|sessions| sessions.drain(..args.mature_sessions).collect())
         .collect();
     let sessions = || prepared.iter().flatten();
-    let relocalized = sessions().filter(|p| p.prior.is_some()).count();
+    let placed = sessions().filter(|p| p.prior.is_some()).count();
     let data_seconds: f64 = sessions().map(|p| p.duration_s).sum();
     eprintln!(
-        "  prepared in {:.0} s: {} nodes, {relocalized}/{} sessions relocalized at their start, {}",
+        "  prepared in {:.0} s: {} nodes, {placed}/{} sessions placed at their start, {}",
         prepare_started.elapsed().as_secs_f64(),
         sessions().map(|p| p.steps.len()).sum::<usize>(),
         sessions().count(),
@@ -846,7 +849,7 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
         "speed": args.speed,
         "streaming_wall_s": streaming_s,
         "measured_wall_s": measured_s,
-        "sessions_relocalized": relocalized,
+        "sessions_placed": placed,
         "server_process": {
             "cpu_s": cpu_s,
             "cores_busy": cpu_s.map(|c| c / measured_s),
@@ -1008,7 +1011,7 @@ async fn stream_prepared_session(
         _ => None,
     });
     let mut batch: Vec<UploadItem> = Vec::new();
-    if let Some((prior, _)) = session.prior {
+    if let Some(prior) = session.prior {
         batch.push(UploadItem::SessionStartPrior {
             global_from_local: prior,
             glm_on_robot: !glm_on_server,

@@ -23,7 +23,7 @@ use std::pin::Pin;
 
 pub use agent_session::{
     SessionInput, SessionOptions, SessionReport, SessionStart, SessionTrace, follow_site,
-    follow_site_with, relocalize_nodes, session_span, stream_recording, stream_session,
+    follow_site_with, place_ahead, session_span, stream_recording, stream_session,
     stream_session_from,
 };
 pub use fleet_uplink::FleetUplink;

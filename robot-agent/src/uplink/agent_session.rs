@@ -8,7 +8,7 @@ use mapping::geometry::Rigid2;
 use mapping::global_slam::{ConstraintBuilderOptions, GlobalSlamOptions};
 use mapping::lifelong::{
     PlacedGrid, RelocalizationOptions, SessionStart as StartDecision, SessionStartEvent,
-    SessionStartOptions, StartSearch, relocalize_scans_in_grid, render_relocalization_map,
+    SessionStartOptions, StartSearch, render_relocalization_map,
 };
 use mapping::local_slam::LocalTrajectoryBuilderOptions;
 use mapping::metrics::Placement;
@@ -339,34 +339,49 @@ fn placement_at(
     })
 }
 
-/// Relocalizes the nodes among `items` (merged in their local frame) with no prior against the cached
-/// site submaps, on a blocking thread. `None` when there is nothing to relocalize against (no submaps or
-/// no nodes); `Some(None)` when nothing matched; `Some(Some((global_from_local, score)))` otherwise.
-pub async fn relocalize_nodes<'a>(
+/// Where the robot's session start ([`StartDecision`], as [`stream_session`] runs it) places a session
+/// whose nodes are known ahead of streaming (a benchmark's prepared session): the nodes among `items` are
+/// fed in order, on a blocking thread, until it places the session, gives up, or has been fed
+/// `max_search_nodes` nodes (what a streaming session holds back at most). `None` when there is nothing
+/// to search (no cached submaps) or no node; `Some(None)` when it did not place the session;
+/// `Some(Some(global_from_local))` otherwise.
+pub async fn place_ahead<'a>(
     cache: &Mutex<GlobalSubmapCache>,
-    options: &RelocalizationOptions,
+    relocalization: &RelocalizationOptions,
+    session_start: &SessionStartOptions,
     items: impl IntoIterator<Item = &'a UploadItem>,
-) -> Option<Option<(Rigid2, f32)>> {
-    let scans: Vec<(Rigid2, Vec<Point2<f32>>)> = items
+) -> Option<Option<Rigid2>> {
+    let nodes: Vec<(Rigid2, Vec<Point2<f32>>)> = items
         .into_iter()
         .filter_map(|item| match item {
             UploadItem::NodeAdded(node) => Some((node.local_pose, node.points.clone())),
             _ => None,
         })
+        .take(session_start.max_search_nodes)
         .collect();
-    let submaps = cached_grids(cache);
-    if submaps.is_empty() || scans.is_empty() {
+    if nodes.is_empty() {
         return None;
     }
-    let options = options.clone();
-    let found = tokio::task::spawn_blocking(move || {
-        let grid = render_cached(&submaps, &options)?;
-        relocalize_scans_in_grid(&grid, &scans, &options).found()
+    let search = prepare_search(cache, relocalization).await?;
+    let session_start = session_start.clone();
+    tokio::task::spawn_blocking(move || {
+        let mut decision = StartDecision::new(session_start, Some(search)).ok()?;
+        for (local_pose, points) in nodes {
+            for event in decision.add_node(local_pose, points) {
+                match event {
+                    SessionStartEvent::Placed(placement) => {
+                        return Some(Some(placement.global_from_local));
+                    }
+                    SessionStartEvent::GaveUp { .. } => return Some(None),
+                    _ => {}
+                }
+            }
+        }
+        Some(None)
     })
     .await
     .ok()
-    .flatten();
-    Some(found.map(|f| (f.global_from_local, f.score)))
+    .flatten()
 }
 
 /// What a session maps.
