@@ -14,8 +14,10 @@
 //! 2. *Preparation* (not measured): every robot's cleaning sessions (one, or `--duration-s` over
 //!    `--session-s` of them, each on a later simulated day) are simulated and run through LLO ahead of
 //!    time, and the robot's session start (`SessionStart`, as in `demo`) places each against the robot's
-//!    cache of the site map from its first nodes (the prior a session opens with). Robots run LLO on their own CPUs; doing it ahead keeps the 50
-//!    robots' LLO off the server's two cores, so the figures are the server's. The prepared sessions stay
+//!    cache of the site map from its first nodes; the placement goes with the session's first batch, as
+//!    if decided at once (a streaming robot holds its nodes back until it is). Robots run LLO on their
+//!    own CPUs; doing it ahead keeps the 50 robots' LLO off the server's two cores, so the figures are
+//!    the server's. The prepared sessions stay
 //!    in memory until the end, so memory growth during the measured phase is the server's (and its
 //!    clients').
 //!    With `--mature-sessions K`, K more sessions per robot are prepared, on earlier days, and streamed
@@ -444,8 +446,7 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
             &SessionStartOptions::default(),
             steps.iter().flatten(),
         )
-        .await
-        .flatten();
+        .await;
         // GLM on the robot, also ahead of time (robots match on their own CPUs), against the robot's
         // cache of the site as it was when the session started (session 0's map).
         if let (false, Some(global_from_local)) = (args.glm_on_server, prior) {

@@ -60,6 +60,8 @@ use std::collections::VecDeque;
 use nalgebra::Point2;
 use serde::Deserialize;
 
+mod scan_view;
+
 use self::scan_view::ScanView;
 use super::{
     LifelongOptionsError, PriorCheck, RelocalizationOutcome, SessionRelocalization, StartAnswer,
@@ -961,6 +963,5 @@ fn independent(
     })
 }
 
-mod scan_view;
 #[cfg(test)]
 mod tests;

@@ -342,15 +342,15 @@ fn placement_at(
 /// Where the robot's session start ([`StartDecision`], as [`stream_session`] runs it) places a session
 /// whose nodes are known ahead of streaming (a benchmark's prepared session): the nodes among `items` are
 /// fed in order, on a blocking thread, until it places the session, gives up, or has been fed
-/// `max_search_nodes` nodes (what a streaming session holds back at most). `None` when there is nothing
-/// to search (no cached submaps) or no node; `Some(None)` when it did not place the session;
-/// `Some(Some(global_from_local))` otherwise.
+/// `max_search_nodes` nodes (what a streaming session holds back at most). `global_from_local` of the
+/// placement; `None` when it did not place the session or had nothing to search (no cached submaps, no
+/// node).
 pub async fn place_ahead<'a>(
     cache: &Mutex<GlobalSubmapCache>,
     relocalization: &RelocalizationOptions,
     session_start: &SessionStartOptions,
     items: impl IntoIterator<Item = &'a UploadItem>,
-) -> Option<Option<Rigid2>> {
+) -> Option<Rigid2> {
     let nodes: Vec<(Rigid2, Vec<Point2<f32>>)> = items
         .into_iter()
         .filter_map(|item| match item {
@@ -370,14 +370,14 @@ pub async fn place_ahead<'a>(
             for event in decision.add_node(local_pose, points) {
                 match event {
                     SessionStartEvent::Placed(placement) => {
-                        return Some(Some(placement.global_from_local));
+                        return Some(placement.global_from_local);
                     }
-                    SessionStartEvent::GaveUp { .. } => return Some(None),
+                    SessionStartEvent::GaveUp { .. } => return None,
                     _ => {}
                 }
             }
         }
-        Some(None)
+        None
     })
     .await
     .ok()
