@@ -9,10 +9,14 @@ mod command_runtime;
 mod demo_command;
 mod lifelong_command;
 mod load_command;
+mod load_fleet;
 mod memory_attribution;
 mod minute_figures;
+mod prepared_session;
+mod prepared_stream;
 mod simulate_command;
 mod site_growth;
+mod submap_latency;
 
 use clap::{Parser, Subcommand};
 use peak_alloc::PeakAlloc;

@@ -9,7 +9,7 @@ use std::time::Duration;
 use serde_json::json;
 use server::RunningServer;
 
-use crate::load_command::site_id;
+use crate::load_fleet::site_id;
 use crate::memory_attribution::folder_bytes;
 
 /// A site's sizes now (`None` for a site the server does not hold): its sessions, map version, graph and
