@@ -211,6 +211,22 @@ impl PoseGraph {
         self.variables.iter().map(|(id, v)| (*id, v.pose, v.fixed))
     }
 
+    /// The largest translation (metres) and rotation (radians) between this graph's and `other`'s
+    /// estimates of the variables both hold: how far re-optimizing, sparsifying or deleting moved the map.
+    pub fn largest_shift(&self, other: &PoseGraph) -> (f64, f64) {
+        let mut shift = (0.0f64, 0.0f64);
+        for (id, pose, _) in self.variables() {
+            if let Some(moved) = other.pose(id) {
+                let d = pose.inverse() * moved;
+                shift.0 = shift
+                    .0
+                    .max((moved.translation.vector - pose.translation.vector).norm());
+                shift.1 = shift.1.max(d.rotation.angle().abs());
+            }
+        }
+        shift
+    }
+
     /// Constraints in id (insertion) order.
     pub fn constraints(&self) -> impl Iterator<Item = (ConstraintId, &Constraint)> + '_ {
         self.constraints.iter().map(|(id, c)| (*id, c))

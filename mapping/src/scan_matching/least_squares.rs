@@ -406,30 +406,4 @@ mod tests {
         };
         assert!(bad.validate().is_err());
     }
-
-    /// Release micro-benchmark: `cargo test --release -p mapping least_squares_benchmark -- --ignored --nocapture`.
-    #[test]
-    #[ignore = "benchmark; run in release with --ignored --nocapture"]
-    fn least_squares_benchmark() {
-        let grid = room_grid();
-        let truth = rigid2(2.5, 2.0, 0.2);
-        let points = room_scan(&truth);
-        let initial = rigid2(2.53, 1.98, 0.22);
-        let matcher = LeastSquaresScanMatcher::new(LeastSquaresScanMatcherOptions::default());
-        let runs = 2000;
-        let start = std::time::Instant::now();
-        let mut iterations = 0;
-        for _ in 0..runs {
-            let (_, summary) =
-                matcher.match_pose(&truth.translation.vector, &initial, &points, &grid);
-            iterations += summary.iterations;
-        }
-        let elapsed = start.elapsed();
-        println!(
-            "least squares: {} points, {:.1} µs per match, {:.1} iterations per match",
-            points.len(),
-            elapsed.as_secs_f64() * 1e6 / f64::from(runs),
-            f64::from(iterations) / f64::from(runs)
-        );
-    }
 }

@@ -1,9 +1,5 @@
 //! Tests of sparsification against the dense marginal (the oracle), brute force over trees, the
-//! `delete` baseline and re-optimization; plus the `#[ignore]`d real-data benchmark.
-
-use std::collections::BTreeSet;
-use std::fs::File;
-use std::io::BufReader;
+//! `delete` baseline and re-optimization (the real-data benchmark is `benches/sparsification.rs`).
 
 use nalgebra::{Matrix3, Vector3};
 use rand::{Rng as _, SeedableRng as _};
@@ -11,7 +7,6 @@ use rand_pcg::Pcg64;
 
 use super::*;
 use crate::geometry::rigid2;
-use crate::io::g2o::read_pose_graph;
 use crate::pose_graph::{NodeId, Optimizer, OptimizerOptions, SubmapId};
 
 fn node(index: u32) -> VariableId {
@@ -547,21 +542,6 @@ fn submap_two() -> Vec<VariableId> {
         .collect()
 }
 
-/// Largest translation (m) and rotation (rad) between two graphs' common variables.
-fn pose_shift(a: &PoseGraph, b: &PoseGraph) -> (f64, f64) {
-    let mut shift = (0.0f64, 0.0f64);
-    for (id, pose, _) in a.variables() {
-        if let Some(other) = b.pose(id) {
-            let d = pose.inverse() * other;
-            shift.0 = shift
-                .0
-                .max((other.translation.vector - pose.translation.vector).norm());
-            shift.1 = shift.1.max(d.rotation.angle().abs());
-        }
-    }
-    shift
-}
-
 // Design notes §5: KLD(clt) ≪ KLD(delete) on a realistic small graph. Four second-lap loop closures
 // to the eliminated submap make its marginal a star around a hidden hub, which no tree represents
 // well: measured 0.41 nats (relative-marginal) vs 1.73 (delete). The root-shifted conditional recipe
@@ -610,7 +590,7 @@ fn reoptimized_sparsified_graph_stays_near_the_full_optimum() {
         );
         optimizer.optimize(&mut sparsified);
         (
-            pose_shift(&graph, &sparsified),
+            graph.largest_shift(&sparsified),
             result.removed_constraints.len(),
         )
     };
@@ -619,7 +599,7 @@ fn reoptimized_sparsified_graph_stays_near_the_full_optimum() {
     let mut deleted = graph.clone();
     assert_eq!(delete(&mut deleted, &eliminate).unwrap().len(), removed);
     optimizer.optimize(&mut deleted);
-    let del = pose_shift(&graph, &deleted);
+    let del = graph.largest_shift(&deleted);
     // Measured: matching the gradient keeps the optimum stationary (0.12 mm / 7 µrad); the marginal's
     // own mean (the default, see `TreeMean`) moves poses by 1.2 cm / 1.4 mrad; deletion by 5.3 cm /
     // 4.3 mrad.
@@ -664,157 +644,6 @@ fn apply_checks_before_editing() {
             (VariableId::Node(_), VariableId::Submap(_)) => {
                 panic!("mixed edge must start at the submap")
             }
-        }
-    }
-}
-
-fn dataset(name: &str) -> PoseGraph {
-    let path = test_support::datasets_dir().join("posegraphs").join(name);
-    let file = File::open(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    read_pose_graph(BufReader::new(file)).unwrap().graph
-}
-
-/// The subgraph induced by nodes `0..n`, node 0 fixed, optimized.
-fn optimized_prefix(graph: &PoseGraph, n: u32) -> PoseGraph {
-    let keep = |id: VariableId| matches!(id, VariableId::Node(NodeId { index, .. }) if index < n);
-    let mut sub = PoseGraph::new();
-    for (id, pose, _) in graph.variables().filter(|(id, _, _)| keep(*id)) {
-        sub.add_variable(id, pose).unwrap();
-    }
-    for (_, c) in graph
-        .constraints()
-        .filter(|(_, c)| keep(c.from) && keep(c.to))
-    {
-        sub.add_constraint(c.clone()).unwrap();
-    }
-    sub.set_fixed(node(0), true).unwrap();
-    let mut optimizer = Optimizer::new(OptimizerOptions {
-        rotation_first_initialization: true,
-        ..OptimizerOptions::DEFAULT
-    })
-    .unwrap();
-    let summary = optimizer.optimize(&mut sub);
-    assert!(summary.termination.is_converged(), "{summary:?}");
-    sub
-}
-
-/// Benchmark (release): on prefixes of Intel and M3500, eliminate runs of consecutive nodes (a
-/// "submap" and its nodes) one at a time from the optimized graph, and all of them in sequence.
-/// Prints, per run: blanket size, marginal rank, the blanket-local KLD of the tree (what Chow–Liu
-/// minimises) for both edge models, the whole-graph KLD for both models and for deletion, and the
-/// largest pose shift after re-optimizing against the full optimum.
-/// `cargo nextest run --workspace --release --run-ignored only --no-capture -E 'test(sparsification_benchmark)'`
-#[test]
-#[ignore = "real-data benchmark; run in release"]
-fn sparsification_benchmark() {
-    let ratio = |a: f64, b: f64| {
-        if b.is_finite() {
-            format!("{:5.3}", a / b)
-        } else {
-            "  n/a".to_owned()
-        }
-    };
-    for (name, prefix) in [("intel_sesync1728.g2o", 600u32), ("M3500.g2o", 600)] {
-        let full = dataset(name);
-        let graph = optimized_prefix(&full, prefix);
-        println!(
-            "{name}: first {prefix} nodes, {} constraints, chi2 {:.3}",
-            graph.num_constraints(),
-            graph.chi2()
-        );
-        for run_length in [10u32, 15, 20] {
-            println!(
-                "run length {run_length}\nrun        |B| rank/dim  local(rel) local(cond) | KLD(rel) KLD(cond) KLD(delete) rel/del | shift rel (m, rad)  shift cond        shift delete     | ms"
-            );
-            let starts: Vec<u32> = (1..=6).map(|k| k * prefix / 7).collect();
-            let o = SparsificationOptions::DEFAULT;
-            let mut sequential = graph.clone();
-            let mut all_eliminated = Vec::new();
-            let mut ratios = Vec::new();
-            for &start in &starts {
-                let eliminate: Vec<VariableId> = (start..start + run_length).map(node).collect();
-                let timer = std::time::Instant::now();
-                let rel = sparsify(&graph, &eliminate, &o).unwrap();
-                let ms = timer.elapsed().as_secs_f64() * 1e3;
-                let cond = sparsify(&graph, &eliminate, &options(EdgeModel::Conditional)).unwrap();
-                let kld_rel = kl_divergence(&graph, &eliminate, &rel.new_constraints, &o).unwrap();
-                let kld_cond =
-                    kl_divergence(&graph, &eliminate, &cond.new_constraints, &o).unwrap();
-                let kld_delete = kl_divergence(&graph, &eliminate, &[], &o).unwrap();
-                if kld_delete.is_finite() {
-                    ratios.push(kld_rel / kld_delete);
-                }
-                let shift = |result: Option<&SparsificationResult>| {
-                    let mut g = graph.clone();
-                    match result {
-                        Some(r) => {
-                            apply(&mut g, r).unwrap();
-                        }
-                        None => {
-                            delete(&mut g, &eliminate).unwrap();
-                        }
-                    }
-                    Optimizer::new(OptimizerOptions::default())
-                        .unwrap()
-                        .optimize(&mut g);
-                    pose_shift(&graph, &g)
-                };
-                let (s_rel, s_cond, s_del) = (shift(Some(&rel)), shift(Some(&cond)), shift(None));
-                println!(
-                    "{start:4}..{:<4} {:3} {:3}/{:<3}  {:9.4}  {:9.4}  | {kld_rel:8.4} {kld_cond:8.4} {kld_delete:11.3}   {} | ({:.1e}, {:.1e})  ({:.1e}, {:.1e})  ({:.1e}, {:.1e}) | {ms:.1}",
-                    start + run_length,
-                    rel.blanket.len(),
-                    rel.diagnostics.marginal_rank,
-                    rel.diagnostics.marginal_dimension,
-                    rel.diagnostics.kl_divergence,
-                    cond.diagnostics.kl_divergence,
-                    ratio(kld_rel, kld_delete),
-                    s_rel.0,
-                    s_rel.1,
-                    s_cond.0,
-                    s_cond.1,
-                    s_del.0,
-                    s_del.1,
-                );
-                let seq = sparsify(&sequential, &eliminate, &o).unwrap();
-                apply(&mut sequential, &seq).unwrap();
-                all_eliminated.extend(eliminate);
-            }
-            ratios.sort_by(f64::total_cmp);
-            println!(
-                "KLD(rel)/KLD(delete) over runs with finite KLD(delete): {:?}",
-                ratios
-                    .iter()
-                    .map(|r| (r * 1000.0).round() / 1000.0)
-                    .collect::<Vec<_>>()
-            );
-            // All runs eliminated one after the other: the trees (some re-sparsified) against the
-            // exact marginal of all of them.
-            let original: BTreeSet<ConstraintId> = graph.constraints().map(|(id, _)| id).collect();
-            let added: Vec<Constraint> = sequential
-                .constraints()
-                .filter(|(id, _)| !original.contains(id))
-                .map(|(_, c)| c.clone())
-                .collect();
-            let kld_seq = kl_divergence(&graph, &all_eliminated, &added, &o).unwrap();
-            let kld_del = kl_divergence(&graph, &all_eliminated, &[], &o).unwrap();
-            let mut deleted = graph.clone();
-            delete(&mut deleted, &all_eliminated).unwrap();
-            let mut optimizer = Optimizer::new(OptimizerOptions::default()).unwrap();
-            optimizer.optimize(&mut sequential);
-            optimizer.optimize(&mut deleted);
-            let (s_seq, s_del) = (
-                pose_shift(&graph, &sequential),
-                pose_shift(&graph, &deleted),
-            );
-            println!(
-                "all {} runs in sequence: KLD(rel) {kld_seq:.4}  KLD(delete) {kld_del:.3}  shift rel ({:.1e}, {:.1e})  shift delete ({:.1e}, {:.1e})",
-                starts.len(),
-                s_seq.0,
-                s_seq.1,
-                s_del.0,
-                s_del.1
-            );
         }
     }
 }

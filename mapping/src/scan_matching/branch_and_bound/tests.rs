@@ -10,9 +10,7 @@ use rand_pcg::Pcg64;
 
 use super::*;
 use crate::geometry::Rigid2Ext as _;
-use crate::scan_matching::test_support::{
-    draw_walls, random_world, raycast_scan, room_grid, room_scan,
-};
+use crate::scan_matching::test_support::{room_grid, room_scan};
 use crate::scan_matching::{LeastSquaresScanMatcher, LeastSquaresScanMatcherOptions};
 
 fn random_grid(rng: &mut Pcg64) -> ProbabilityGrid {
@@ -252,82 +250,6 @@ fn validate_rejects_bad_options() {
         },
     ] {
         assert!(bad.validate().is_err(), "{bad:?}");
-    }
-}
-
-/// Release micro-benchmark, a 20 m × 20 m 5 cm submap and a 180-beam 180° scan:
-/// `cargo test --release -p mapping branch_and_bound_benchmark -- --ignored --nocapture`.
-#[test]
-#[ignore = "benchmark; run in release with --ignored --nocapture"]
-fn branch_and_bound_benchmark() {
-    let walls = random_world(5, 20.0, 40);
-    let limits = MapLimits::new(0.05, Vector2::new(-0.5, -0.5), 420, 420);
-    let grid = draw_walls(&limits, &walls);
-    let start = std::time::Instant::now();
-    let matcher =
-        FastCorrelativeScanMatcher::new(&grid, FastCorrelativeScanMatcherOptions::default());
-    println!(
-        "precomputation: {:.1} ms, {:.1} MB",
-        start.elapsed().as_secs_f64() * 1e3,
-        matcher.memory_bytes() as f64 / 1e6
-    );
-    let mut rng = Pcg64::seed_from_u64(6);
-    let (mut full_total, mut near_total, mut correct, runs) = (0.0, 0.0, 0, 10);
-    for _ in 0..runs {
-        let truth = rigid2(
-            rng.random_range(2.0..18.0),
-            rng.random_range(2.0..18.0),
-            rng.random_range(-3.1..3.1),
-        );
-        let points = raycast_scan(&walls, &truth, 180, std::f64::consts::PI, 15.0);
-        let start = std::time::Instant::now();
-        let full = matcher.match_full(&points, 0.55);
-        let full_time = start.elapsed().as_secs_f64() * 1e3;
-        let initial = rigid2(truth.x() + 1.0, truth.y() - 1.0, truth.theta() + 0.2);
-        let start = std::time::Instant::now();
-        let near = matcher.match_near(&initial, &points, 0.55);
-        let near_time = start.elapsed().as_secs_f64() * 1e3;
-        full_total += full_time;
-        near_total += near_time;
-        let ok = full.is_some_and(|m| (m.pose.inverse() * truth).translation.vector.norm() < 0.1);
-        correct += usize::from(ok);
-        println!(
-            "{} points: match_full {full_time:.1} ms (score {:?}), match_near {near_time:.1} ms (score {:?})",
-            points.len(),
-            full.map(|m| m.score),
-            near.map(|m| m.score)
-        );
-    }
-    println!(
-        "mean match_full {:.1} ms, mean match_near {:.1} ms, {correct}/{runs} full matches within 10 cm",
-        full_total / f64::from(runs),
-        near_total / f64::from(runs)
-    );
-    // The depth trades precomputation memory against useless coarse bounds in cluttered maps.
-    for depth in [4, 5, 6, 7, 8] {
-        let matcher = FastCorrelativeScanMatcher::new(
-            &grid,
-            FastCorrelativeScanMatcherOptions {
-                branch_and_bound_depth: depth,
-                ..Default::default()
-            },
-        );
-        let mut rng = Pcg64::seed_from_u64(6);
-        let start = std::time::Instant::now();
-        for _ in 0..runs {
-            let truth = rigid2(
-                rng.random_range(2.0..18.0),
-                rng.random_range(2.0..18.0),
-                rng.random_range(-3.1..3.1),
-            );
-            let points = raycast_scan(&walls, &truth, 180, std::f64::consts::PI, 15.0);
-            assert!(matcher.match_full(&points, 0.55).is_some());
-        }
-        println!(
-            "depth {depth}: mean match_full {:.1} ms, {:.1} MB",
-            start.elapsed().as_secs_f64() * 1e3 / f64::from(runs),
-            matcher.memory_bytes() as f64 / 1e6
-        );
     }
 }
 
