@@ -814,3 +814,20 @@ fn a_graph_from_parts_with_repeated_or_stale_ids_is_refused() {
         Err(PoseGraphError::ConstraintIdOutOfOrder(ConstraintId(2)))
     ));
 }
+
+#[test]
+fn the_largest_shift_is_over_the_variables_both_graphs_hold() {
+    let mut a = PoseGraph::new();
+    let mut b = PoseGraph::new();
+    a.add_variable(node(0), rigid2(0.0, 0.0, 0.0)).unwrap();
+    a.add_variable(node(1), rigid2(1.0, 0.0, 0.1)).unwrap();
+    a.add_variable(node(2), rigid2(2.0, 0.0, 0.0)).unwrap();
+    b.add_variable(node(0), rigid2(0.0, 0.2, 0.0)).unwrap();
+    b.add_variable(node(1), rigid2(1.0, 0.1, -0.2)).unwrap();
+    // Only in `b`: far off, and not compared.
+    b.add_variable(node(3), rigid2(50.0, 0.0, 3.0)).unwrap();
+    let (translation, rotation) = a.largest_shift(&b);
+    assert_relative_eq!(translation, 0.2, epsilon = 1e-12);
+    assert_relative_eq!(rotation, 0.3, epsilon = 1e-12);
+    assert_eq!(a.largest_shift(&a), (0.0, 0.0));
+}
