@@ -92,7 +92,7 @@ pub(crate) async fn prepare_sessions(
             &SessionStartOptions::default(),
             steps.iter().flatten(),
         )
-        .await;
+        .await?;
         // GLM on the robot, also ahead of time (robots match on their own CPUs), against the robot's
         // cache of the site as it was when the session started (session 0's map).
         if let (false, Some(global_from_local)) = (glm_on_server, prior) {

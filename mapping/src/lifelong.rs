@@ -49,8 +49,7 @@ pub use options::{
 };
 pub use relocalization::{
     CloudFit, PriorCheck, RelocalizationOptions, RelocalizationOutcome, SearchEvidence,
-    SessionRelocalization, StartAnswer, StartSearch, relocalize_scans_in_grid,
-    relocalize_session_start,
+    SessionRelocalization, StartAnswer, StartSearch, relocalize_session_start,
 };
 pub use relocalization_map::{MapCells, render_relocalization_map};
 pub use session_start::{

@@ -314,11 +314,10 @@ pub fn relocalize_session_start(
     }
 }
 
-/// The core of [`relocalize_session_start`] against any map-frame grid (for example one rendered from an
-/// agent's cache of the site's submaps): merges `scans` (`(local_from_tracking, points in the tracking
+/// The core of [`relocalize_session_start`] against a map-frame grid: merges `scans` (`(local_from_tracking, points in the tracking
 /// frame)`, first scan first) into one cloud in the first scan's frame and relocalizes it with no prior.
 /// Returns `global_from_local` of the scans' local frame.
-pub fn relocalize_scans_in_grid(
+fn relocalize_scans_in_grid(
     grid: &ProbabilityGrid,
     scans: &[(Rigid2, Vec<Point2<f32>>)],
     options: &RelocalizationOptions,

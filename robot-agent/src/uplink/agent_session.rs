@@ -7,8 +7,8 @@ use std::time::{Duration, Instant};
 use mapping::geometry::Rigid2;
 use mapping::global_slam::{ConstraintBuilderOptions, GlobalSlamOptions};
 use mapping::lifelong::{
-    PlacedGrid, RelocalizationOptions, SessionStart as StartDecision, SessionStartEvent,
-    SessionStartOptions, StartSearch, render_relocalization_map,
+    LifelongOptionsError, PlacedGrid, RelocalizationOptions, SessionStart as StartDecision,
+    SessionStartEvent, SessionStartOptions, StartSearch, render_relocalization_map,
 };
 use mapping::local_slam::LocalTrajectoryBuilderOptions;
 use mapping::metrics::Placement;
@@ -344,13 +344,13 @@ fn placement_at(
 /// fed in order, on a blocking thread, until it places the session, gives up, or has been fed
 /// `max_search_nodes` nodes (what a streaming session holds back at most). `global_from_local` of the
 /// placement; `None` when it did not place the session or had nothing to search (no cached submaps, no
-/// node).
+/// node); an error when `session_start` is invalid.
 pub async fn place_ahead<'a>(
     cache: &Mutex<GlobalSubmapCache>,
     relocalization: &RelocalizationOptions,
     session_start: &SessionStartOptions,
     items: impl IntoIterator<Item = &'a UploadItem>,
-) -> Option<Rigid2> {
+) -> Result<Option<Rigid2>, LifelongOptionsError> {
     let nodes: Vec<(Rigid2, Vec<Point2<f32>>)> = items
         .into_iter()
         .filter_map(|item| match item {
@@ -360,12 +360,13 @@ pub async fn place_ahead<'a>(
         .take(session_start.max_search_nodes)
         .collect();
     if nodes.is_empty() {
-        return None;
+        return Ok(None);
     }
-    let search = prepare_search(cache, relocalization).await?;
-    let session_start = session_start.clone();
-    tokio::task::spawn_blocking(move || {
-        let mut decision = StartDecision::new(session_start, Some(search)).ok()?;
+    let Some(search) = prepare_search(cache, relocalization).await else {
+        return Ok(None);
+    };
+    let mut decision = StartDecision::new(session_start.clone(), Some(search))?;
+    let placed = tokio::task::spawn_blocking(move || {
         for (local_pose, points) in nodes {
             for event in decision.add_node(local_pose, points) {
                 match event {
@@ -379,9 +380,11 @@ pub async fn place_ahead<'a>(
         }
         None
     })
-    .await
-    .ok()
-    .flatten()
+    .await;
+    match placed {
+        Ok(placed) => Ok(placed),
+        Err(e) => panic!("the session start's search panicked: {e}"),
+    }
 }
 
 /// What a session maps.
