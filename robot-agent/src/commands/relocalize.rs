@@ -339,9 +339,29 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
                 "not_found"
             }
         };
+        // The stack's own shape: its newest node's offset from the first as LLO made it minus the truth's,
+        // in the first node's frame (x ahead, y left, degrees), and the true distance between them. LLO's first seconds, matched against a submap that
+        // has seen its free space once or twice, come out short (BENCHMARKS "Session 43").
+        let stack_end = sampled.offset_by(stack_s_used);
+        let stack_shape_error = nodes
+            .iter()
+            .rfind(|(t, _, _)| *t <= stack_end)
+            .filter(|_| scans.len() > 1)
+            .and_then(|(t, last_local, _)| {
+                let truth_last = truth.get(t)?;
+                let estimated = first_local.inverse() * last_local;
+                let true_offset = truth_pose.inverse() * truth_last;
+                Some([
+                    estimated.translation.x - true_offset.translation.x,
+                    estimated.translation.y - true_offset.translation.y,
+                    normalize_angle(estimated.theta() - true_offset.theta()).to_degrees(),
+                    true_offset.translation.vector.norm(),
+                ])
+            });
         results.push(json!({
             "time": sampled.to_string(),
             "scored_time": scored_time.to_string(),
+            "stack_shape_error": stack_shape_error,
             "answer": answer,
             "success": answer == "right",
             "translation_error_m": best_error.map(|e| e.0),
@@ -403,6 +423,7 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
         "success_translation_m": SUCCESS_TRANSLATION_M,
         "success_rotation_deg": SUCCESS_ROTATION_DEG,
         "on_observed_ground": observed_ground_summary(&results),
+        "stack_shape_along_error_m": stack_shape_summary(&results),
         "results": results,
     });
     let path = args.out.join("report.json");
@@ -634,6 +655,26 @@ fn median(mut values: Vec<f64>) -> Option<f64> {
     (!values.is_empty()).then(|| percentile(&values, 0.5))
 }
 
+/// Quantiles (p10, median, p90, metres) and count of the stacks' along-track shape error
+/// (`stack_shape_error[0]`: the newest node's offset from the first as LLO made it, ahead of the truth's
+/// when positive); `None` without stacks.
+fn stack_shape_summary(results: &[serde_json::Value]) -> Option<serde_json::Value> {
+    let mut along: Vec<f64> = results
+        .iter()
+        .filter_map(|r| r["stack_shape_error"][0].as_f64())
+        .collect();
+    if along.is_empty() {
+        return None;
+    }
+    along.sort_by(f64::total_cmp);
+    Some(json!({
+        "stacks": along.len(),
+        "p10": percentile(&along, 0.1),
+        "median": percentile(&along, 0.5),
+        "p90": percentile(&along, 0.9),
+    }))
+}
+
 /// The share of answers that were right (1 with no answer: nothing wrong was said).
 fn precision(right: usize, wrong: usize) -> f64 {
     if right + wrong > 0 {
@@ -781,5 +822,23 @@ mod tests {
             observed_ground_summary(&[])["success_rate"],
             serde_json::Value::Null
         );
+    }
+
+    #[test]
+    fn the_stack_shape_summary_counts_only_stacks() {
+        let results = [
+            json!({"stack_shape_error": [-0.3, 0.01, 0.2, 2.5]}),
+            json!({"stack_shape_error": [0.02, 0.0, 0.0, 2.0]}),
+            json!({"stack_shape_error": [-0.01, 0.0, 0.0, 1.0]}),
+            // A single scan, or a stack without the truth of its newest node.
+            json!({"stack_shape_error": null}),
+            json!({"answer": "no_scan"}),
+        ];
+        let summary = stack_shape_summary(&results).expect("three stacks");
+        assert_eq!(summary["stacks"], 3);
+        assert_eq!(summary["median"], -0.01);
+        assert_eq!(summary["p10"], -0.3);
+        assert_eq!(summary["p90"], 0.02);
+        assert_eq!(stack_shape_summary(&results[3..]), None);
     }
 }
