@@ -250,7 +250,11 @@ impl Reporter<'_> {
         });
         let mut details = s.clone();
         // Each session-start search's best candidate against the truth (for calibrating its tests).
-        for (search, best) in details.searches.iter_mut().zip(&end.record.search_bests) {
+        for (search, best) in details
+            .searches
+            .iter_mut()
+            .zip(&end.record.start.search_bests)
+        {
             search.best_error_m = best.as_ref().and_then(|b| {
                 let truth = truth_at(&truth, b.time)?;
                 Some(pose_error(&world_from_map, &b.map_from_base, &truth).0)

@@ -7,6 +7,7 @@ mod relations_metric;
 mod run_score;
 mod scoring_options;
 mod session_score;
+mod start_record;
 mod trajectory_metric;
 
 pub use map_world_agreement::{MAP_WORLD_TOLERANCE_M, MapWorldAgreement, map_world_agreement};
@@ -23,6 +24,7 @@ pub use scoring_options::{ScoringOptions, ScoringOptionsError};
 pub use session_score::{
     Placement, SessionScore, SessionTrack, average_match_score, score_session, truth_at,
 };
+pub use start_record::StartRecord;
 pub use trajectory_metric::{
     PoseTolerance, TrajectoryAccuracy, align_to_truth, pose_error, rigid_alignment,
     trajectory_accuracy,

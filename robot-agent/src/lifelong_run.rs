@@ -25,7 +25,7 @@ use mapping::lifelong::{
 use mapping::local_slam::{
     LloDriver, LloEvent, LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions,
 };
-use mapping::metrics::{MatchScorer, Placement, ScoringOptions, SessionTrack};
+use mapping::metrics::{MatchScorer, ScoringOptions, SessionTrack, StartRecord};
 use mapping::pose_graph::NodeId;
 use mapping::sensor::{RangeData, SensorEvent, Timestamp};
 use nalgebra::Point2;
@@ -280,20 +280,14 @@ pub struct SessionRecord {
     pub online: Vec<(Timestamp, Rigid2)>,
     /// `map_from_base` of each matched scan when the session ended (after its final optimization).
     pub smoothed: Vec<(Timestamp, Rigid2)>,
-    /// Every placement the robot acted on, in order: each [`SessionStartEvent::Placed`] (tentative,
-    /// on probation), decided at the scan that placed it. Empty for session 0 (it defines the map).
-    pub placements: Vec<Placement>,
-    /// The placement the session committed to (`None`: never committed, and session 0, which defines
-    /// the map): [`SessionStartEvent::Committed`]'s, decided at the scan whose match committed it.
-    pub committed: Option<Placement>,
+    /// What its session start decided: the placements the robot acted on, the one it committed to and
+    /// each whole-map search's best (empty for session 0, which defines the map).
+    pub start: StartRecord,
     /// Per node, in order, its branch-and-bound score ([`MatchScorer`], within the scoring's match window
     /// of the robot's estimate) against the map of the finished sessions rendered when the session
     /// started; 0 while the session was not placed.
     /// Empty for session 0 (no map before it).
     pub match_scores: Vec<f64>,
-    /// Per whole-map search of the session start, in the order of [`SessionSummary::searches`]: where
-    /// its best candidate put the node it was made at (`None` without a candidate).
-    pub search_bests: Vec<Option<Placement>>,
 }
 
 impl SessionRecord {
@@ -304,10 +298,10 @@ impl SessionRecord {
             start_time: self.start_time,
             online: &self.online,
             smoothed: &self.smoothed,
-            placements: &self.placements,
-            committed: self.committed,
+            placements: &self.start.placements,
+            committed: self.start.committed,
             match_scores: &self.match_scores,
-            search_bests: &self.search_bests,
+            search_bests: &self.start.search_bests,
         }
     }
 }
@@ -948,6 +942,11 @@ fn act_on_start(
     let mut from_dock = false;
     for decision in decisions {
         map.apply_start_decision(session, decision)?;
+        if let Some(record) = record.as_deref_mut() {
+            record
+                .start
+                .record(decision, node_times, &|node| local(node).copied());
+        }
         match decision {
             SessionStartEvent::DockChecked {
                 agreed,
@@ -968,19 +967,9 @@ fn act_on_start(
                 node,
                 outcome,
                 weakest_z,
-                best,
                 fit,
+                ..
             } => {
-                if let Some(record) = record.as_deref_mut() {
-                    let best = best.and_then(|global_from_local| {
-                        Some(Placement {
-                            decided_at: *node_times.last()?,
-                            time: *node_times.get(*node)?,
-                            map_from_base: global_from_local * local(*node)?,
-                        })
-                    });
-                    record.search_bests.push(best);
-                }
                 if let Some(summary) = summary.as_deref_mut() {
                     summary.searches.push(SearchFigures {
                         node: *node,
@@ -1017,17 +1006,6 @@ fn act_on_start(
                 }
             }
             SessionStartEvent::Placed(placement) => {
-                if let Some(record) = record.as_deref_mut() {
-                    let placed = (|| {
-                        Some(Placement {
-                            decided_at: *node_times.last()?,
-                            time: *node_times.get(placement.node)?,
-                            map_from_base: placement.global_from_local * local(placement.node)?,
-                        })
-                    })();
-                    record.placements.extend(placed);
-                    record.search_bests.push(placed);
-                }
                 if let Some(summary) = summary.as_deref_mut() {
                     summary.searches.push(SearchFigures {
                         node: placement.node,
@@ -1056,21 +1034,9 @@ fn act_on_start(
                     }
                 }
             }
-            SessionStartEvent::Committed { placement, node } => {
+            SessionStartEvent::Committed { node, .. } => {
                 if let Some(summary) = summary.as_deref_mut() {
                     summary.committed_at_node = Some(*node);
-                }
-                if let (Some(record), Some(decided_at), Some(time), Some(placed_local)) = (
-                    record.as_deref_mut(),
-                    node_times.last(),
-                    node_times.get(placement.node),
-                    local(placement.node),
-                ) {
-                    record.committed = Some(Placement {
-                        decided_at: *decided_at,
-                        time: *time,
-                        map_from_base: placement.global_from_local * placed_local,
-                    });
                 }
             }
             SessionStartEvent::Revoked { reason, .. } => {

@@ -22,7 +22,7 @@ fn csail_in_two_sessions_localizes_across_sessions() -> anyhow::Result<()> {
     let online = &run.records[1].online;
     let at_the_time = relation_errors_at_the_time(&cross, &probes, &run.probe_poses, online);
     let verdicts = judge_placements(
-        &run.records[1].placements,
+        &run.records[1].start.placements,
         &at_the_time,
         config.scoring.wrong_placement,
     );

@@ -165,7 +165,7 @@ pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
                     .filter(|e| session_of(e.t1.max(e.t2)) == r.session as usize + 1)
                     .copied()
                     .collect();
-                judge_placements(&r.placements, &errors, config.scoring.wrong_placement)
+                judge_placements(&r.start.placements, &errors, config.scoring.wrong_placement)
             });
             for v in verdicts.iter().flatten() {
                 verdict_counts[0][index(v.placed.verdict)] += 1;
@@ -184,8 +184,8 @@ pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
                 "session": r.session,
                 "ams": average_match_score(&r.match_scores),
                 "scored_nodes": r.match_scores.len(),
-                "placed_after_s": r.placements.first().map(|p| p.decided_at.seconds_since(r.start_time)),
-                "committed_after_s": r.committed.map(|p| p.decided_at.seconds_since(r.start_time)),
+                "placed_after_s": r.start.placements.first().map(|p| p.decided_at.seconds_since(r.start_time)),
+                "committed_after_s": r.start.committed.map(|p| p.decided_at.seconds_since(r.start_time)),
                 "placements": verdicts,
                 "refused_searches": refusals,
                 "scans_localized_at_the_time": r.online.len(),

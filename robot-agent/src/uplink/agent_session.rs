@@ -11,7 +11,7 @@ use mapping::lifelong::{
     SessionStartEvent, SessionStartOptions, StartSearch, render_relocalization_map,
 };
 use mapping::local_slam::LocalTrajectoryBuilderOptions;
-use mapping::metrics::Placement;
+use mapping::metrics::StartRecord;
 use mapping::sensor::Timestamp;
 use nalgebra::Point2;
 use proto::UploadItem;
@@ -129,14 +129,10 @@ pub struct SessionTrace {
     pub relocalization_ms: f64,
     /// Whole-map searches made.
     pub searches: usize,
-    /// Every placement the robot acted on (its tentative start placements), decided at the node that
-    /// placed it.
-    pub placements: Vec<Placement>,
-    /// The placement the robot committed to (probation passed on its own GLM matches): decided at the
-    /// node whose match committed it.
-    pub committed: Option<Placement>,
-    /// Whether the robot's placement was revoked (its GLM stopped then).
-    pub revoked: bool,
+    /// What its session start decided: every placement the robot acted on (its tentative start
+    /// placements), the one it committed to (probation passed on its own GLM matches), each search's
+    /// best, and whether a placement was revoked (its GLM stopped then).
+    pub start: StartRecord,
     /// Scan time of every node, in node order (node `i` of the session has `node_times[i]`).
     pub node_times: Vec<Timestamp>,
     /// The robot's own estimate of every node's global pose (`world_from_tracking`) at the time of the
@@ -325,20 +321,6 @@ fn feed_matches(
     events
 }
 
-/// A session-start placement as the scores take it: decided at the latest node, placing the node the
-/// placement was decided at.
-fn placement_at(
-    trace: &SessionTrace,
-    placement: &mapping::lifelong::StartPlacement,
-    local_poses: &[Option<Rigid2>],
-) -> Option<Placement> {
-    Some(Placement {
-        decided_at: *trace.node_times.last()?,
-        time: *trace.node_times.get(placement.node)?,
-        map_from_base: placement.global_from_local * local_poses.get(placement.node).copied()??,
-    })
-}
-
 /// Where the robot's session start ([`StartDecision`], as [`stream_session`] runs it) places a session
 /// whose nodes are known ahead of streaming (a benchmark's prepared session): the nodes among `items` are
 /// fed in order, on a blocking thread, until it places the session, gives up, or has been fed
@@ -496,26 +478,22 @@ pub async fn stream_session_from<U: MapUplink>(
                             .unwrap_or_default();
                         events.extend(feed_matches(d, start.cache, node, &items));
                         for event in events {
-                            match event {
-                                SessionStartEvent::Committed { placement, .. } => {
-                                    trace.committed = placement_at(&trace, &placement, &held_local);
-                                }
-                                SessionStartEvent::Revoked { .. } => {
-                                    // The robot cannot take its prior back: it stops matching, and the
-                                    // server (which revokes it on the same matches) searches for it.
-                                    trace.revoked = true;
-                                    glm = None;
-                                }
-                                _ => {}
+                            trace.start.record(&event, &trace.node_times, &|node| {
+                                held_local.get(node).copied().flatten()
+                            });
+                            if let SessionStartEvent::Revoked { .. } = event {
+                                // The robot cannot take its prior back: it stops matching, and the
+                                // server (which revokes it on the same matches) searches for it.
+                                glm = None;
                             }
                         }
-                        if trace.revoked || d.is_committed() {
+                        if trace.start.revoked || d.is_committed() {
                             decision = None;
                         }
                     }
                     let local = node_local_pose(&items);
                     held_local.push(local);
-                    let estimate = if trace.revoked {
+                    let estimate = if trace.start.revoked {
                         None
                     } else {
                         estimate.or_else(|| Some(trace.prior? * local?))
@@ -557,17 +535,14 @@ pub async fn stream_session_from<U: MapUplink>(
                             }
                         }
                         for event in &events {
+                            trace.start.record(event, &trace.node_times, &|node| {
+                                held_local.get(node).copied().flatten()
+                            });
                             match event {
                                 SessionStartEvent::Placed(placement) => {
                                     trace.prior = Some(placement.global_from_local);
                                     trace.score = placement.score;
-                                    trace
-                                        .placements
-                                        .extend(placement_at(&trace, placement, &held_local));
                                     decided = true;
-                                }
-                                SessionStartEvent::Committed { placement, .. } => {
-                                    trace.committed = placement_at(&trace, placement, &held_local);
                                 }
                                 SessionStartEvent::GaveUp { .. } => decided = true,
                                 _ => {}
