@@ -358,10 +358,33 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
                     true_offset.translation.vector.norm(),
                 ])
             });
+        // The answer judged where the robot is when it arrives: at the newest stacked node (the scored
+        // node itself for one scan), by the same tolerances. The scored first node carries LLO's start of
+        // the stack; the newest one, the answer the robot goes on with.
+        let newest_node_error = match &outcome {
+            RelocalizationOutcome::Found(found) => nodes
+                .iter()
+                .rfind(|(t, _, _)| *t <= stack_end)
+                .and_then(|(t, local, _)| {
+                    let truth_newest = truth.get(t)?;
+                    let p = found.global_from_local * local;
+                    Some((
+                        (p.translation.vector - truth_newest.translation.vector).norm(),
+                        normalize_angle(p.theta() - truth_newest.theta())
+                            .abs()
+                            .to_degrees(),
+                    ))
+                }),
+            _ => None,
+        };
         results.push(json!({
             "time": sampled.to_string(),
             "scored_time": scored_time.to_string(),
             "stack_shape_error": stack_shape_error,
+            "newest_node_error_m": newest_node_error.map(|e| e.0),
+            "newest_node_answer": newest_node_error.map(|(dt, dth)| {
+                if dt <= SUCCESS_TRANSLATION_M && dth <= SUCCESS_ROTATION_DEG { "right" } else { "wrong" }
+            }),
             "answer": answer,
             "success": answer == "right",
             "translation_error_m": best_error.map(|e| e.0),
@@ -705,6 +728,13 @@ fn observed_ground_summary(results: &[serde_json::Value]) -> serde_json::Value {
     let n = observed.len();
     let mut ms: Vec<f64> = observed.iter().filter_map(|r| r["ms"].as_f64()).collect();
     ms.sort_by(f64::total_cmp);
+    let newest = |answer: &str| {
+        observed
+            .iter()
+            .filter(|r| r["newest_node_answer"] == answer)
+            .count()
+    };
+    let (newest_right, newest_wrong) = (newest("right"), newest("wrong"));
     json!({
         "min_known_share": OBSERVED_GROUND_SHARE,
         "samples": n,
@@ -714,6 +744,13 @@ fn observed_ground_summary(results: &[serde_json::Value]) -> serde_json::Value {
         "success_rate": (n > 0).then(|| right as f64 / n as f64),
         "precision": precision(right, wrong),
         "median_ms": (!ms.is_empty()).then(|| percentile(&ms, 0.5)),
+        // The same answers judged at the newest stacked node (where the robot is when it arrives).
+        "newest_node": {
+            "right": newest_right,
+            "wrong": newest_wrong,
+            "success_rate": (n > 0).then(|| newest_right as f64 / n as f64),
+            "precision": precision(newest_right, newest_wrong),
+        },
     })
 }
 
@@ -804,8 +841,8 @@ mod tests {
     #[test]
     fn the_observed_ground_summary_judges_only_samples_the_map_shows() {
         let results = [
-            json!({"answer": "right", "truth_known_fraction": 0.95, "ms": 300.0}),
-            json!({"answer": "wrong", "truth_known_fraction": 0.85, "ms": 500.0}),
+            json!({"answer": "right", "truth_known_fraction": 0.95, "ms": 300.0, "newest_node_answer": "wrong"}),
+            json!({"answer": "wrong", "truth_known_fraction": 0.85, "ms": 500.0, "newest_node_answer": "right"}),
             json!({"answer": "ambiguous", "truth_known_fraction": 0.9, "ms": 900.0}),
             // Off the map's observed ground, or with no truth: not judged here.
             json!({"answer": "wrong", "truth_known_fraction": 0.4, "ms": 100.0}),
@@ -818,6 +855,8 @@ mod tests {
         assert_eq!(summary["refused"], 1);
         assert_eq!(summary["precision"], 0.5);
         assert_eq!(summary["median_ms"], 500.0);
+        assert_eq!(summary["newest_node"]["right"], 1);
+        assert_eq!(summary["newest_node"]["wrong"], 1);
         assert_eq!(
             observed_ground_summary(&[])["success_rate"],
             serde_json::Value::Null
