@@ -339,42 +339,42 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
                 "not_found"
             }
         };
-        // The stack's own shape: its newest node's offset from the first as LLO made it minus the truth's,
-        // in the first node's frame (x ahead, y left, degrees), and the true distance between them. LLO's first seconds, matched against a submap that
-        // has seen its free space once or twice, come out short (BENCHMARKS "Session 43").
+        // The newest stacked node (the scored node itself for one scan): its local pose and its truth.
         let stack_end = sampled.offset_by(stack_s_used);
-        let stack_shape_error = nodes
+        let newest = nodes
             .iter()
             .rfind(|(t, _, _)| *t <= stack_end)
-            .filter(|_| scans.len() > 1)
-            .and_then(|(t, last_local, _)| {
-                let truth_last = truth.get(t)?;
-                let estimated = first_local.inverse() * last_local;
-                let true_offset = truth_pose.inverse() * truth_last;
-                Some([
-                    estimated.translation.x - true_offset.translation.x,
-                    estimated.translation.y - true_offset.translation.y,
-                    normalize_angle(estimated.theta() - true_offset.theta()).to_degrees(),
-                    true_offset.translation.vector.norm(),
-                ])
-            });
-        // The answer judged where the robot is when it arrives: at the newest stacked node (the scored
-        // node itself for one scan), by the same tolerances. The scored first node carries LLO's start of
-        // the stack; the newest one, the answer the robot goes on with.
-        let newest_node_error = match &outcome {
-            RelocalizationOutcome::Found(found) => nodes
-                .iter()
-                .rfind(|(t, _, _)| *t <= stack_end)
-                .and_then(|(t, local, _)| {
-                    let truth_newest = truth.get(t)?;
-                    let p = found.global_from_local * local;
-                    Some((
-                        (p.translation.vector - truth_newest.translation.vector).norm(),
-                        normalize_angle(p.theta() - truth_newest.theta())
-                            .abs()
-                            .to_degrees(),
-                    ))
-                }),
+            .and_then(|(t, local, _)| Some((*local, *truth.get(t)?)));
+        // The stack's own shape: the newest node's offset from the first as LLO made it minus the truth's,
+        // in the first node's frame (x ahead, y left, degrees), and the true distance between them. LLO's
+        // first seconds, matched against a submap that has seen its free space once or twice, come out
+        // short (BENCHMARKS "Session 43").
+        let stack_shape_error =
+            newest
+                .filter(|_| scans.len() > 1)
+                .map(|(newest_local, truth_newest)| {
+                    let estimated = first_local.inverse() * newest_local;
+                    let true_offset = truth_pose.inverse() * truth_newest;
+                    [
+                        estimated.translation.x - true_offset.translation.x,
+                        estimated.translation.y - true_offset.translation.y,
+                        normalize_angle(estimated.theta() - true_offset.theta()).to_degrees(),
+                        true_offset.translation.vector.norm(),
+                    ]
+                });
+        // The answer judged where the robot is when it arrives, at the newest stacked node, by the same
+        // tolerances: the scored first node carries LLO's start of the stack, the newest one is the pose
+        // the robot goes on with.
+        let newest_node_error = match (&outcome, newest) {
+            (RelocalizationOutcome::Found(found), Some((newest_local, truth_newest))) => {
+                let p = found.global_from_local * newest_local;
+                Some((
+                    (p.translation.vector - truth_newest.translation.vector).norm(),
+                    normalize_angle(p.theta() - truth_newest.theta())
+                        .abs()
+                        .to_degrees(),
+                ))
+            }
             _ => None,
         };
         results.push(json!({
