@@ -27,6 +27,7 @@ use mapping::geometry::Rigid2;
 use mapping::geometry::{Rigid2Ext as _, normalize_angle};
 use mapping::io::relations::{Relation, read_relations};
 use mapping::lifelong::{RelocalizationOutcome, SearchEvidence, StartSearch};
+use mapping::metrics::{PoseTolerance, pose_error};
 use mapping::sensor::{SensorEvent, Timestamp};
 use nalgebra::Point2;
 use proto::UploadItem;
@@ -100,10 +101,11 @@ pub enum Truth {
     Aligned,
 }
 
-/// A relocalization counts as correct within this distance of the truth, metres.
-const SUCCESS_TRANSLATION_M: f64 = 0.15;
-/// … and this rotation, degrees.
-const SUCCESS_ROTATION_DEG: f64 = 3.0;
+/// A relocalization counts as correct within 0.15 m and 3° of the truth.
+const SUCCESS: PoseTolerance = PoseTolerance {
+    translation_m: 0.15,
+    rotation_deg: 3.0,
+};
 
 fn percentile(sorted: &[f64], q: f64) -> f64 {
     if sorted.is_empty() {
@@ -287,14 +289,8 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
                 .collect(),
         );
         // The evidence's best pose is reported even when refused, to show what a refusal avoided.
-        let error = |global_from_local: &Rigid2| {
-            let p = global_from_local * first_local;
-            let dt = (p.translation.vector - truth_pose.translation.vector).norm();
-            let dth = normalize_angle(p.theta() - truth_pose.theta())
-                .abs()
-                .to_degrees();
-            (dt, dth)
-        };
+        let error =
+            |global_from_local: &Rigid2| pose_error(global_from_local, &first_local, &truth_pose);
         let best_error = evidence.as_ref().map(|e| error(&e.global_from_local));
         // The error in the scan's own frame (x ahead, y left): along a corridor or across it.
         let error_in_scan_frame = |global_from_local: &Rigid2| {
@@ -317,12 +313,12 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
             RelocalizationOutcome::Found(found) => {
                 if let Some(e) = relations_error(&found.global_from_local) {
                     tally.relations_checked += 1;
-                    if e > SUCCESS_TRANSLATION_M {
+                    if e > SUCCESS.translation_m {
                         tally.relations_wrong += 1;
                     }
                 }
                 let (dt, dth) = error(&found.global_from_local);
-                if dt <= SUCCESS_TRANSLATION_M && dth <= SUCCESS_ROTATION_DEG {
+                if SUCCESS.accepts(dt, dth) {
                     tally.right += 1;
                     "right"
                 } else {
@@ -366,15 +362,9 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
         // tolerances: the scored first node carries LLO's start of the stack, the newest one is the pose
         // the robot goes on with.
         let newest_node_error = match (&outcome, newest) {
-            (RelocalizationOutcome::Found(found), Some((newest_local, truth_newest))) => {
-                let p = found.global_from_local * newest_local;
-                Some((
-                    (p.translation.vector - truth_newest.translation.vector).norm(),
-                    normalize_angle(p.theta() - truth_newest.theta())
-                        .abs()
-                        .to_degrees(),
-                ))
-            }
+            (RelocalizationOutcome::Found(found), Some((newest_local, truth_newest))) => Some(
+                pose_error(&found.global_from_local, &newest_local, &truth_newest),
+            ),
             _ => None,
         };
         results.push(json!({
@@ -383,7 +373,7 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
             "stack_shape_error": stack_shape_error,
             "newest_node_error_m": newest_node_error.map(|e| e.0),
             "newest_node_answer": newest_node_error.map(|(dt, dth)| {
-                if dt <= SUCCESS_TRANSLATION_M && dth <= SUCCESS_ROTATION_DEG { "right" } else { "wrong" }
+                if SUCCESS.accepts(dt, dth) { "right" } else { "wrong" }
             }),
             "answer": answer,
             "success": answer == "right",
@@ -443,8 +433,8 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
         "truth_alignment_radius_m": (args.truth == Truth::Aligned).then_some(LOCAL_ALIGNMENT_RADIUS_M),
         "answers_checked_by_relations": tally.relations_checked,
         "answers_off_by_relations": tally.relations_wrong,
-        "success_translation_m": SUCCESS_TRANSLATION_M,
-        "success_rotation_deg": SUCCESS_ROTATION_DEG,
+        "success_translation_m": SUCCESS.translation_m,
+        "success_rotation_deg": SUCCESS.rotation_deg,
         "on_observed_ground": observed_ground_summary(&results),
         "stack_shape_along_error_m": stack_shape_summary(&results),
         "results": results,
