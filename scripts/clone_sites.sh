@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# A store of many sites made of copies of a few mapped ones (BENCHMARKS.md, "Idle sites leave memory":
+# A store of many sites made of copies of a few mapped ones (docs/BENCHMARK-HISTORY.md, "Idle sites leave memory":
 # one instance holding 500 sites, issue 34).
 #
 #   scripts/clone_sites.sh out/sites5/data 500 out/sites500/data   # a store an `evermap-demo load` run left

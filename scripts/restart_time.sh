@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # How long `evermap-server serve` takes to come back on a store: from start to "gRPC serving", i.e. the
-# replay of every site's log (BENCHMARKS.md, "Restart time grows with a site's log").
+# replay of every site's log (docs/BENCHMARK-HISTORY.md, "Restart time grows with a site's log").
 #
 #   scripts/restart_time.sh out/soak60m/data         # a store an `evermap-demo load` run left
 #

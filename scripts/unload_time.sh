@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # How long a request to an unloaded (idle) site waits for its restore, and the memory unloading gives
-# back (BENCHMARKS.md, "Idle sites leave memory", issue 34 item 4).
+# back (docs/BENCHMARK-HISTORY.md, "Idle sites leave memory", issue 34 item 4).
 #
 #   scripts/unload_time.sh out/restart27/data      # a store an `evermap-demo load` run left
 #

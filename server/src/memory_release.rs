@@ -4,7 +4,7 @@
 //! precomputations — hundreds of MiB on a busy site. glibc's allocator keeps what is freed in its arenas
 //! (one per thread that allocated, up to 8 per core) for reuse and returns it to the system only from the
 //! top of each heap, so after the blocking pool's threads have built and freed a few maps the process's
-//! RSS sat 680–900 MiB above its live heap in the 60-minute soak (BENCHMARKS.md, issue 16 §5).
+//! RSS sat 680–900 MiB above its live heap in the 60-minute soak (docs/BENCHMARK-HISTORY.md, issue 16 §5).
 //! [`release_freed_memory`] runs glibc's `malloc_trim`, which returns every arena's free pages; a site
 //! calls it after each session end, on a thread of its own ([`release_freed_memory_in_background`]):
 //! with a GiB freed it takes 0.1–0.5 s, which the site's next change should not wait for.
@@ -12,7 +12,7 @@
 //! sites that went idle together free their maps on several threads at once, and what one finishes
 //! freeing while another's release runs must still go back (with the first function, five sites
 //! unloaded at once left 24–52 MiB of RSS, depending on the order the frees ended in; with this one
-//! 23–30 MiB, BENCHMARKS.md).
+//! 23–30 MiB, docs/BENCHMARK-HISTORY.md).
 //! Elsewhere (musl, other systems) it does nothing.
 
 use std::sync::atomic::{AtomicBool, Ordering};

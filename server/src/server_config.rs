@@ -138,8 +138,8 @@ pub struct ServerConfig {
     /// Unload a site that has had no open session and no request (a robot's, a map query, the
     /// console's) for this long, seconds: its map leaves memory once a checkpoint covering its version
     /// is durable, and the next request restores it from that checkpoint first (it waits for the
-    /// restore: 0.4–0.7 s for sites of 16–36 sessions, BENCHMARKS.md). Versions, counts and the session
-    /// list stay answerable without it. Never with `[checkpoints] enabled = false`. 0 = never.
+    /// restore: 0.4–0.7 s for sites of 16–36 sessions, docs/BENCHMARK-HISTORY.md). Versions, counts and
+    /// the session list stay answerable without it. Never with `[checkpoints] enabled = false`. 0 = never.
     /// Default 600 (10 minutes).
     pub site_unload_after_s: f64,
     /// On-disk storage.

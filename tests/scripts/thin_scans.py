@@ -1,5 +1,6 @@
 """Writes a copy of a ROS1 bag keeping /scan messages at least PERIOD s apart (header stamp), all else
-unchanged: a recording at 1-2 scans per second made from a shared one (BENCHMARKS.md, "low scan rate").
+unchanged: a recording at 1-2 scans per second made from a shared one (docs/BENCHMARK-HISTORY.md,
+"low scan rate").
 
     pip install rosbags
     python3 tests/scripts/thin_scans.py IN.bag OUT.bag 0.7

@@ -2,8 +2,8 @@
 //! and PGR with the default configuration, scored against the benchmark's ground-truth relations
 //! (Kümmerle et al. 2009) and by loop-closure precision (Hess et al. 2016, Table IV).
 //!
-//! The bounds are the figures measured with the release build (BENCHMARKS.md, session 15) plus a margin
-//! for floating-point differences between builds, not for regressions.
+//! The bounds are the figures measured with the release build (docs/BENCHMARK-HISTORY.md, session 15)
+//! plus a margin for floating-point differences between builds, not for regressions.
 
 use mapping::geometry::Rigid2;
 use mapping::global_slam::loop_closure_precision;

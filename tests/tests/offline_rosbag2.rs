@@ -1,7 +1,7 @@
 //! The same recording read from ROS1 and from rosbag2 gives the same trajectory: the first 60 s of MIT
 //! CSAIL (about 280 scans, with loop closures) from the ROS1 bag and from its MCAP copy
 //! (`../shared/datasets/rosbag2-derived/`) through the offline pipeline with the default configuration.
-//! The full recordings run in release in BENCHMARKS.md (session "rosbag2").
+//! The full recordings run in release in docs/BENCHMARK-HISTORY.md (session "rosbag2").
 
 use mapping::sensor::SensorEvent;
 use robot_agent::offline_slam::{SlamConfig, run_offline};

@@ -639,7 +639,8 @@ impl LifelongMap {
     /// two trims of a batch (χ² 508 → 506 and 497 → 493 in the two optimizations inside session 10's
     /// seven trims, store seed 1), while a step on a graph this size costs tens of milliseconds (a session
     /// end without trims: 170–380 ms of CPU for 2–7 steps): with the optimizations inside the batch, store
-    /// seed 3's session 20 spent 18 steps and 1.8 s on its 16 trims (BENCHMARKS.md, session 18).
+    /// seed 3's session 20 spent 18 steps and 1.8 s on its 16 trims (docs/BENCHMARK-HISTORY.md,
+    /// session 18).
     fn optimize_if_sparsified_enough(&mut self) -> Option<LifelongEvent> {
         if self.sparsifications_since_optimization < self.options.optimize_every_n_sparsifications {
             return None;

@@ -18,7 +18,8 @@ use super::SensorEvent;
 /// scan still waiting then is handed over as it is (odometry stopped or lags), and a live robot whose
 /// odometry stops localizes this much late. 3 s spans every odometry gap of the recordings (Intel: up to
 /// 1.3 s, some in fast turns, where a prediction carried across the gap at the matched poses' velocity
-/// missed 56° of a turn in the `thin` variant; 0.5 s until session 37, see BENCHMARKS.md "Session 37").
+/// missed 56° of a turn in the `thin` variant; 0.5 s until session 37, see docs/BENCHMARK-HISTORY.md
+/// "Session 37").
 pub const MAX_ODOMETRY_WAIT_S: f64 = 3.0;
 
 /// `events` (in stamp order) in the order LLO should take them: each scan moved after the first

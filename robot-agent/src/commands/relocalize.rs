@@ -344,7 +344,7 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
         // The stack's own shape: the newest node's offset from the first as LLO made it minus the truth's,
         // in the first node's frame (x ahead, y left, degrees), and the true distance between them. LLO's
         // first seconds, matched against a submap that has seen its free space once or twice, come out
-        // short (BENCHMARKS "Session 43").
+        // short (docs/BENCHMARK-HISTORY.md "Session 43").
         let stack_shape_error =
             newest
                 .filter(|_| scans.len() > 1)
