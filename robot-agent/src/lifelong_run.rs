@@ -829,6 +829,21 @@ fn worker(
                     }
                 };
                 note_poses(&map);
+                // What the session's end decides of its start (a dock placement never disputed).
+                if let Some(start) = start.as_mut() {
+                    let decisions = start.finish();
+                    act_on_start(
+                        &mut map,
+                        session,
+                        false,
+                        &decisions,
+                        &node_times,
+                        &node_local,
+                        sessions.last_mut(),
+                        records.last_mut(),
+                        &mut priors,
+                    )?;
+                }
                 let on_probation = map.is_on_probation(session);
                 let start_ms = Instant::now();
                 let start_cpu_ms = thread_cpu_ms();

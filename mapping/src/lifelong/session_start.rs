@@ -34,7 +34,8 @@
 //!    submap spans tens of metres of an aisle, so one per match would wait for most of a session). A
 //!    match agrees when the node pose it implies lies within `agreement_translation_m` (+
 //!    `agreement_growth` per metre of route from the placement's node, for LLO's drift) and
-//!    `agreement_rotation_rad` of the node's pose under the placement: the same place at the scale of
+//!    `agreement_rotation_rad` (+ `agreement_rotation_growth` per metre) of the node's pose under the
+//!    placement: the same place at the scale of
 //!    the look-alike places it must tell apart (an aisle pitch), while GLM refines the pose. Those matches
 //!    are searched near the placement, so in a look-alike aisle they agree with a wrong one too: before
 //!    committing, the session's route since the start must also fit the placement decisively better than
@@ -49,6 +50,11 @@
 //!    floor there, the whole map is searched again every `retry_every_n_nodes` nodes
 //!    ([`SessionStartOptions::search_while_unconfirmed`]), and an answer elsewhere that the route fits
 //!    decisively better replaces it.
+//!
+//! 4. **The session's end.** A placement still on probation is dropped with the session, unless it was
+//!    the dock's and nothing disputed it ([`SessionStart::finish`],
+//!    [`SessionStartOptions::commit_dock_placement_at_end`]): a robot that leaves its charger for ground
+//!    the map does not show yet gets no match to confirm it, and what it mapped joins the map.
 //!
 //! The trade-off: a correct placement waits a few metres before its submaps update the map (the robot
 //! still navigates with it), and matches searched near a wrong estimate in a look-alike aisle can agree
@@ -123,6 +129,10 @@ pub struct SessionStartOptions {
     /// Growth of the translation tolerance per metre of route between the placement's node and the
     /// matched node (LLO's drift), metres per metre ≥ 0. Default 0.01.
     pub agreement_growth: f64,
+    /// Growth of the rotation tolerance per metre of route between the placement's node and the matched
+    /// node (LLO's heading drift), radians per metre ≥ 0. Default 0.2°/m, GLM's
+    /// `angular_window_growth`. Why: `docs/TUNING.md#ss-agreement-rotation-growth`.
+    pub agreement_rotation_growth: f64,
     /// Independent disagreeing matches that revoke a placement (count ≥ 1). Default 2: one false match
     /// does not undo a placement, two independent ones do.
     pub probation_disagreements: usize,
@@ -143,6 +153,14 @@ pub struct SessionStartOptions {
     /// elsewhere that the route fits better by `probation_min_z` replaces the placement. Default true.
     /// Why: `docs/TUNING.md#ss-search-while-unconfirmed`.
     pub search_while_unconfirmed: bool,
+    /// A session placed at its dock ([`SessionStart::from_dock`], the check agreed) that ends still on
+    /// probation, with no disagreeing match and no rival fitting its route decisively better, is committed
+    /// at its end ([`SessionStart::finish`]). Default true. Why: `docs/TUNING.md#ss-commit-dock-at-end`.
+    pub commit_dock_placement_at_end: bool,
+    /// A dock check made before the hold-back whose dock a rival of the whole map fits better (paired z
+    /// below 0, short of refusing it) is made again at `hold_back_nodes`, with that larger cloud, instead
+    /// of placing the session at once. Default true. Why: `docs/TUNING.md#ss-defer-contested-dock-check`.
+    pub defer_contested_dock_check: bool,
 }
 
 impl Default for SessionStartOptions {
@@ -162,11 +180,14 @@ impl Default for SessionStartOptions {
             agreement_translation_m: 1.0,
             agreement_rotation_rad: 5f64.to_radians(),
             agreement_growth: 0.01,
+            agreement_rotation_growth: 0.2f64.to_radians(),
             probation_disagreements: 2,
             probation_timeout_m: 0.0,
             revoked_radius_m: 1.0,
             probation_min_z: 4.0,
             search_while_unconfirmed: true,
+            commit_dock_placement_at_end: true,
+            defer_contested_dock_check: true,
         }
     }
 }
@@ -214,6 +235,9 @@ impl SessionStartOptions {
         }
         if !non_negative(self.agreement_growth) {
             return out_of_range("agreement_growth", "must be non-negative");
+        }
+        if !non_negative(self.agreement_rotation_growth) {
+            return out_of_range("agreement_rotation_growth", "must be non-negative");
         }
         if self.probation_disagreements == 0 {
             return out_of_range("probation_disagreements", "must be at least 1");
@@ -381,6 +405,11 @@ pub struct SessionStart {
     contested_at_m: Option<f64>,
     /// Until it is checked: `map_from_tracking` where the robot believes its first node is (its dock).
     dock: Option<Rigid2>,
+    /// The node count at which the dock is checked: `dock_check_nodes`, or `hold_back_nodes` once a
+    /// contested check was deferred.
+    dock_check_at: usize,
+    /// The current placement is the dock's (its check agreed).
+    placed_at_dock: bool,
 }
 
 impl SessionStart {
@@ -409,12 +438,15 @@ impl SessionStart {
             placing_view: ScanView::default(),
             contested_at_m: None,
             dock: None,
+            dock_check_at: 0,
+            placed_at_dock: false,
         })
     }
 
     /// A session that starts where the robot believes it is: `map_from_tracking` of its first node (where
     /// its last session ended, at its dock). That pose is checked with the first `dock_check_nodes` nodes
-    /// ([`StartSearch::check_prior`]) and placed there on probation where the evidence agrees; elsewhere
+    /// ([`StartSearch::check_prior`]; with the first `hold_back_nodes` when a rival fits those few better:
+    /// `defer_contested_dock_check`) and placed there on probation where the evidence agrees; elsewhere
     /// (the robot was carried, the dock moved) the session searches the whole map as [`Self::new`]'s does.
     pub fn from_dock(
         options: SessionStartOptions,
@@ -423,6 +455,7 @@ impl SessionStart {
     ) -> Result<Self, LifelongOptionsError> {
         let mut start = Self::new(options, search)?;
         start.dock = Some(map_from_tracking);
+        start.dock_check_at = start.options.dock_check_nodes;
         Ok(start)
     }
 
@@ -526,7 +559,7 @@ impl SessionStart {
             SessionStartState::Searching => {
                 self.keep_cloud(local_pose, points);
                 match self.dock {
-                    Some(dock) if node + 1 >= self.options.dock_check_nodes => {
+                    Some(dock) if node + 1 >= self.dock_check_at => {
                         self.dock = None;
                         let mut events = self.check_dock(dock, node);
                         if events.len() == 1 {
@@ -564,7 +597,9 @@ impl SessionStart {
         let rotation = normalize_angle(map_from_node.theta() - expected.theta()).abs();
         let agrees = translation
             <= self.options.agreement_translation_m + self.options.agreement_growth * route
-            && rotation <= self.options.agreement_rotation_rad;
+            && rotation
+                <= self.options.agreement_rotation_rad
+                    + self.options.agreement_rotation_growth * route;
         let counted = Counted {
             path_m,
             view: self.view_of(node),
@@ -611,6 +646,42 @@ impl SessionStart {
             }
         }
         Vec::new()
+    }
+
+    /// The session ends. A placement still on probation that was the dock's
+    /// (`commit_dock_placement_at_end`), with no disagreeing match and no rival of the dock check that the
+    /// route fits decisively better (`probation_min_z`), is committed: the robot left its charger for
+    /// ground the map does not show yet, and what it mapped there joins the map instead of being dropped.
+    /// Any other placement on probation stays as it is (the shell drops it with the session). Returns the
+    /// `Committed` event, decided at the last node, or nothing.
+    pub fn finish(&mut self) -> Vec<SessionStartEvent> {
+        let SessionStartState::Probation(placement) = self.state else {
+            return Vec::new();
+        };
+        if !(self.options.commit_dock_placement_at_end
+            && self.placed_at_dock
+            && self.disagreeing.is_empty())
+        {
+            return Vec::new();
+        }
+        let min_z = self.options.probation_min_z;
+        if let Some(search) = &self.search
+            && min_z > 0.0
+            && !self.rivals.is_empty()
+            && search
+                .contest(
+                    self.cloud.make_contiguous(),
+                    &placement.global_from_local,
+                    &self.rivals,
+                )
+                .is_some_and(|z| z <= -min_z)
+        {
+            return Vec::new();
+        }
+        let node = self.nodes.len().saturating_sub(1);
+        self.state = SessionStartState::Committed(placement);
+        self.cloud.clear();
+        vec![SessionStartEvent::Committed { placement, node }]
     }
 
     /// Whether the latest `recent_search_nodes` nodes fit the unfiltered map below its floor at `placement`
@@ -849,6 +920,11 @@ impl SessionStart {
             fit: check.as_ref().map(|c| c.fit),
             weakest_z: check.as_ref().and_then(|c| c.weakest_z),
         };
+        if check.as_ref().is_some_and(|check| self.defers(check, node)) {
+            self.dock = Some(map_from_tracking);
+            self.dock_check_at = self.options.hold_back_nodes;
+            return Vec::new();
+        }
         match check {
             Some(check) if check.agrees => {
                 let placement = StartPlacement {
@@ -862,15 +938,27 @@ impl SessionStart {
                 self.candidates.clear();
                 let mut events = vec![checked, SessionStartEvent::Placed(placement)];
                 events.extend(self.place(placement, node));
+                self.placed_at_dock = true;
                 events
             }
             _ => vec![checked],
         }
     }
 
+    /// Whether a dock `check` made at node `node` waits for the hold-back's cloud
+    /// (`defer_contested_dock_check`): it agreed, a rival fits the few nodes better (short of refusing
+    /// the dock), and the hold-back is still ahead.
+    fn defers(&self, check: &PriorCheck, node: usize) -> bool {
+        check.agrees
+            && self.options.defer_contested_dock_check
+            && check.weakest_z.is_some_and(|z| z < 0.0)
+            && node + 1 < self.options.hold_back_nodes
+    }
+
     /// Enters probation on `placement` (or commits it when no match is asked for); the `Placed` event
     /// is the caller's to emit.
     fn place(&mut self, placement: StartPlacement, node: usize) -> Vec<SessionStartEvent> {
+        self.placed_at_dock = false;
         self.agreeing.clear();
         self.disagreeing.clear();
         self.placing_view = ScanView::of(

@@ -517,6 +517,14 @@ impl SiteMap {
         let trajectory = session.trajectory;
         let mut events = Vec::new();
         let mut dropped = false;
+        // What the session's end decides of its start (a dock placement never disputed).
+        if let Some(mut start) = self.starts.remove(&trajectory)
+            && self.map.is_started(trajectory)
+            && !self.map.is_finished(trajectory)
+        {
+            let decisions = start.finish();
+            self.act_on_start(trajectory, &decisions)?;
+        }
         self.starts.remove(&trajectory);
         self.searched.remove(&trajectory);
         if self.map.is_started(trajectory) && !self.map.is_finished(trajectory) {

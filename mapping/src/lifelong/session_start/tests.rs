@@ -520,6 +520,10 @@ fn invalid_options_are_refused() {
             probation_max_view_overlap: 1.5,
             ..SessionStartOptions::default()
         },
+        SessionStartOptions {
+            agreement_rotation_growth: -0.01,
+            ..SessionStartOptions::default()
+        },
     ];
     for options in bad {
         assert!(options.validate().is_err(), "{options:?}");
@@ -667,4 +671,132 @@ fn an_unconfirmed_wrong_placement_is_replaced_by_what_the_route_fits() {
     };
     assert!(creeping_from(off, truth, wrong).is_empty());
     assert!(creeping_from(asked, truth, truth).is_empty());
+}
+
+/// A session placed at its dock (the robot stands at `truth`, a little off its last pose) after 6 nodes.
+fn placed_at_dock(options: &SessionStartOptions) -> SessionStart {
+    let truth = rigid2(2.7, 2.2, 0.4);
+    let dock = truth * rigid2(0.12, -0.08, 2f64.to_radians());
+    let mut start = SessionStart::from_dock(
+        SessionStartOptions {
+            dock_check_nodes: 2,
+            ..options.clone()
+        },
+        Some(room_search()),
+        dock,
+    )
+    .unwrap();
+    for k in 0..6 {
+        let (local_pose, points) = creeping(truth, k);
+        start.add_node(local_pose, points);
+    }
+    assert!(matches!(start.state(), SessionStartState::Probation(_)));
+    start
+}
+
+#[test]
+fn a_dock_placement_nothing_disputed_is_committed_when_the_session_ends() {
+    let mut start = placed_at_dock(&options());
+    let events = start.finish();
+    let [SessionStartEvent::Committed { placement, node: 5 }] = events[..] else {
+        panic!("committed at the last node: {events:?}");
+    };
+    assert_eq!(start.state(), SessionStartState::Committed(placement));
+    assert!(start.finish().is_empty(), "decided once");
+    // Switched off, it ends on probation as any placement.
+    let mut start = placed_at_dock(&SessionStartOptions {
+        commit_dock_placement_at_end: false,
+        ..options()
+    });
+    assert!(start.finish().is_empty());
+    assert!(matches!(start.state(), SessionStartState::Probation(_)));
+}
+
+#[test]
+fn only_an_undisputed_dock_placement_is_committed_when_the_session_ends() {
+    // A disagreeing match: the placement stays on probation (the shell drops it with the session).
+    let mut start = placed_at_dock(&options());
+    let placement = start.placement().unwrap();
+    let elsewhere = rigid2(0.0, 4.0, 0.0) * placement.global_from_local * local(4);
+    assert!(start.add_match(4, elsewhere, submap(0)).is_empty());
+    assert!(start.finish().is_empty());
+    assert!(matches!(start.state(), SessionStartState::Probation(_)));
+    // A placement a search or a robot's prior made is never committed by the session's end.
+    let mut start = on_probation(options(), rigid2(10.0, 5.0, 0.3), 12);
+    assert!(start.finish().is_empty());
+    assert!(matches!(start.state(), SessionStartState::Probation(_)));
+}
+
+#[test]
+fn the_heading_a_match_may_differ_by_grows_with_the_route_as_llo_drifts() {
+    let placed = rigid2(10.0, 5.0, 0.3);
+    let turned = |k: usize| placed * local(k) * rigid2(0.0, 0.0, 7f64.to_radians());
+    // Near the placement 7° is another place: two independent such matches revoke it (3° + 0.2°/m).
+    let mut start = on_probation(options(), placed, 100);
+    assert!(start.add_match(2, turned(2), submap(0)).is_empty());
+    let events = start.add_match(8, turned(8), submap(1));
+    assert!(
+        matches!(
+            events[..],
+            [SessionStartEvent::Revoked {
+                reason: RevokeReason::Disagreement,
+                ..
+            }]
+        ),
+        "{events:?}"
+    );
+    // 40 m of route later it is LLO's heading drift: the same matches agree and commit it.
+    let mut start = on_probation(options(), placed, 100);
+    assert!(start.add_match(80, turned(80), submap(0)).is_empty());
+    let events = start.add_match(90, turned(90), submap(1));
+    assert!(
+        matches!(events[..], [SessionStartEvent::Committed { node: 90, .. }]),
+        "{events:?}"
+    );
+    // Without the growth they disagree.
+    let mut start = on_probation(
+        SessionStartOptions {
+            agreement_rotation_growth: 0.0,
+            ..options()
+        },
+        placed,
+        100,
+    );
+    assert!(start.add_match(80, turned(80), submap(0)).is_empty());
+    assert!(matches!(
+        start.add_match(90, turned(90), submap(1))[..],
+        [SessionStartEvent::Revoked { .. }]
+    ));
+}
+
+#[test]
+fn a_dock_check_a_rival_fits_better_waits_for_the_hold_back() {
+    let start =
+        SessionStart::from_dock(options(), Some(room_search()), rigid2(1.0, 1.0, 0.0)).unwrap();
+    let check = |agrees, weakest_z| PriorCheck {
+        agrees,
+        global_from_local: rigid2(1.0, 1.0, 0.0),
+        fit: 0.45,
+        weakest_z,
+        rivals: Vec::new(),
+    };
+    // Before the hold-back (node 2 of 3): a rival that fits better, short of refusing, defers.
+    assert!(start.defers(&check(true, Some(-1.25)), 1));
+    // The dock fits at least as well as every rival, or there is none: placed at once.
+    assert!(!start.defers(&check(true, Some(0.4)), 1));
+    assert!(!start.defers(&check(true, None), 1));
+    // Refused anyway; or already at the hold-back, where the larger cloud decides as it is.
+    assert!(!start.defers(&check(false, Some(-4.0)), 1));
+    assert!(!start.defers(&check(true, Some(-1.25)), 2));
+    // Switched off.
+    let start = SessionStart::from_dock(
+        SessionStartOptions {
+            defer_contested_dock_check: false,
+            ..options()
+        },
+        Some(room_search()),
+        rigid2(1.0, 1.0, 0.0),
+    )
+    .unwrap();
+    assert!(!start.defers(&check(true, Some(-1.25)), 1));
 }
