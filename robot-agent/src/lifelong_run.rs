@@ -652,6 +652,23 @@ fn worker(
     // The current session's start (none for session 0, which defines the map) and its nodes' times.
     let mut start: Option<SessionStart> = None;
     let mut node_times: Vec<Timestamp> = Vec::new();
+    // Acts on session `$session`'s start decisions `$decisions` with this worker's books
+    // (`$first_search`: they come from its first whole-map search); see `act_on_start`.
+    macro_rules! act_on_start {
+        ($session:expr, $first_search:expr, $decisions:expr) => {
+            act_on_start(
+                &mut map,
+                $session,
+                $first_search,
+                $decisions,
+                &node_times,
+                &node_local,
+                sessions.last_mut(),
+                records.last_mut(),
+                &mut priors,
+            )?
+        };
+    }
     for message in receiver {
         match message {
             Message::Start {
@@ -740,17 +757,7 @@ fn worker(
                         }
                     }
                 }
-                act_on_start(
-                    &mut map,
-                    session,
-                    first_search,
-                    &decisions,
-                    &node_times,
-                    &node_local,
-                    sessions.last_mut(),
-                    records.last_mut(),
-                    &mut priors,
-                )?;
+                act_on_start!(session, first_search, &decisions);
                 let jobs = map.take_search_jobs();
                 let results = run_searches(map.constraint_builder(), &jobs);
                 let mut events_after = map.add_search_results(results);
@@ -771,17 +778,7 @@ fn worker(
                             ));
                         }
                     }
-                    act_on_start(
-                        &mut map,
-                        session,
-                        false,
-                        &decisions,
-                        &node_times,
-                        &node_local,
-                        sessions.last_mut(),
-                        records.last_mut(),
-                        &mut priors,
-                    )?;
+                    act_on_start!(session, false, &decisions);
                 }
                 if let Some(summary) = sessions.last_mut() {
                     summary.nodes_added += 1;
@@ -832,17 +829,7 @@ fn worker(
                 // What the session's end decides of its start (a dock placement never disputed).
                 if let Some(start) = start.as_mut() {
                     let decisions = start.finish();
-                    act_on_start(
-                        &mut map,
-                        session,
-                        false,
-                        &decisions,
-                        &node_times,
-                        &node_local,
-                        sessions.last_mut(),
-                        records.last_mut(),
-                        &mut priors,
-                    )?;
+                    act_on_start!(session, false, &decisions);
                 }
                 let on_probation = map.is_on_probation(session);
                 let start_ms = Instant::now();

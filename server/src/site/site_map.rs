@@ -525,7 +525,6 @@ impl SiteMap {
             let decisions = start.finish();
             self.act_on_start(trajectory, &decisions)?;
         }
-        self.starts.remove(&trajectory);
         self.searched.remove(&trajectory);
         if self.map.is_started(trajectory) && !self.map.is_finished(trajectory) {
             let unplaced = self.map.is_unplaced(trajectory) || self.map.is_on_probation(trajectory);
