@@ -467,6 +467,8 @@ async fn run_session(
         cache: &agent.cache,
         relocalization: RelocalizationOptions::default(),
         session_start: mapping::lifelong::SessionStartOptions::default(),
+        // The simulated robots start wherever the session generator puts them.
+        dock: None,
     });
     let (report, trace) = stream_session(recording, &options, &mut uploader, start)
         .instrument(session_span(SITE, &robot, &uuid))

@@ -94,6 +94,7 @@ pub(crate) async fn stream_prepared(
             batch.push(UploadItem::SessionStartPrior {
                 global_from_local: prior,
                 glm_on_robot: !glm_on_server,
+                at_dock: false,
             });
         }
         let mut nodes_in_batch = 0;

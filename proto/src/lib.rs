@@ -42,7 +42,7 @@ pub use convert::{
 pub use map_delta::{MapDelta, SubmapSnapshot};
 pub use png_image::{PngCompression, PngError, PngPixels, encode_png};
 pub use site_checkpoint::{
-    CHECKPOINT_FORMAT_VERSION, PublishedSubmapState, RestoreError, SessionStartCounts,
+    CHECKPOINT_FORMAT_VERSION, PublishedSubmapState, RestoreError, RobotPrior, SessionStartCounts,
     SiteCheckpoint, SiteServerState, SiteSessionState, options_fingerprint, pose_from_exact,
     pose_to_exact,
 };

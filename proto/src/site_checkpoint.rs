@@ -31,7 +31,7 @@ use crate::{ConversionError, grid_from_pb, grid_to_pb, pb};
 mod site_server_state;
 
 pub use site_server_state::{
-    PublishedSubmapState, SessionStartCounts, SiteServerState, SiteSessionState,
+    PublishedSubmapState, RobotPrior, SessionStartCounts, SiteServerState, SiteSessionState,
 };
 use site_server_state::{site_from_pb, site_to_pb};
 

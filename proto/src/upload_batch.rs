@@ -44,6 +44,9 @@ pub enum UploadItem {
         /// The robot runs GLM and sends [`UploadItem::GlobalMatch`] items: the server searches only
         /// within the session.
         glm_on_robot: bool,
+        /// The prior is the robot's dock placement: where its last session ended, checked against the
+        /// site map by the session's first nodes (see [`UploadItem::DockPlacementKept`]).
+        at_dock: bool,
     },
     /// GLM on the robot: the node before it (after that node's `SubmapFinished` items) matched a global
     /// submap of the site.
@@ -55,6 +58,11 @@ pub enum UploadItem {
         /// Branch-and-bound score in `[0, 1]`.
         score: f32,
     },
+    /// The robot's dock placement ([`UploadItem::SessionStartPrior`] with `at_dock`), still on probation
+    /// at the session's end, stands: no match disputed it and no rival of its check fits the route
+    /// decisively better (`mapping::lifelong::SessionStart::finish`), so the session is committed there
+    /// instead of being dropped. Sent once, before [`UploadItem::SessionEnd`].
+    DockPlacementKept,
     /// The session ended.
     SessionEnd,
 }
@@ -109,9 +117,11 @@ impl From<&UploadItem> for pb::UploadItem {
             UploadItem::SessionStartPrior {
                 global_from_local,
                 glm_on_robot,
+                at_dock,
             } => Item::SessionStartPrior(pb::SessionStartPrior {
                 global_from_local: Some(pose_to_pb(global_from_local)),
                 glm_on_robot: *glm_on_robot,
+                at_dock: *at_dock,
             }),
             UploadItem::GlobalMatch {
                 submap,
@@ -122,6 +132,7 @@ impl From<&UploadItem> for pb::UploadItem {
                 submap_from_node: Some(pose_to_pb(submap_from_node)),
                 score: *score,
             }),
+            UploadItem::DockPlacementKept => Item::DockPlacementKept(pb::DockPlacementKept {}),
             UploadItem::SessionEnd => Item::SessionEnd(pb::SessionEnd {}),
         };
         Self { item: Some(item) }
@@ -175,6 +186,7 @@ impl TryFrom<&pb::UploadItem> for UploadItem {
                     "global_from_local",
                 )?,
                 glm_on_robot: prior.glm_on_robot,
+                at_dock: prior.at_dock,
             }),
             Some(Item::GlobalMatch(m)) => {
                 const M: &str = "GlobalMatch";
@@ -199,6 +211,7 @@ impl TryFrom<&pb::UploadItem> for UploadItem {
                     score: m.score,
                 })
             }
+            Some(Item::DockPlacementKept(_)) => Ok(Self::DockPlacementKept),
             Some(Item::SessionEnd(_)) => Ok(Self::SessionEnd),
             None => Err(ConversionError::MissingField {
                 message: "UploadItem",
@@ -321,6 +334,7 @@ mod tests {
                 UploadItem::SessionStartPrior {
                     global_from_local: rigid2(1.0, 2.0, 0.5),
                     glm_on_robot: true,
+                    at_dock: true,
                 },
                 UploadItem::NodeAdded(NodeAdded {
                     time: Timestamp(42),
@@ -337,6 +351,7 @@ mod tests {
                     submap_from_node: rigid2(0.5, -0.25, 0.0625),
                     score: 0.75,
                 },
+                UploadItem::DockPlacementKept,
                 UploadItem::SessionEnd,
             ],
         }
@@ -351,7 +366,7 @@ mod tests {
     fn batches_round_trip() {
         let batch = sample_batch();
         let once = normalized(&batch);
-        assert_eq!(once.items.len(), 5);
+        assert_eq!(once.items.len(), 6);
         assert!(matches!(
             once.items[3],
             UploadItem::GlobalMatch { score: 0.75, .. }

@@ -9,6 +9,7 @@
 //! source = "../shared/datasets/rosbag1/mit-csail.orig.bag"
 //! replay_speed = 1.0        # multiple of real time; 0 = as fast as possible
 //! outbox_dir = "./evermap-outbox"
+//! dock_starts = true        # check first where the robot's last session in the site ended
 //!
 //! # Optional, gRPC over TLS: server_url = "https://..." and the CA that signed the server's certificate.
 //! # tls_ca_pem = "/etc/evermap/ca.pem"
@@ -100,8 +101,14 @@ pub struct AgentConfig {
     pub replay_speed: f64,
     /// Stop after this many scans (all by default).
     pub max_scans: Option<usize>,
-    /// Outbox database directory. Default `./evermap-outbox`.
+    /// Outbox database directory. Default `./evermap-outbox`. It also keeps the robot's dock per site
+    /// (see `dock_starts`).
     pub outbox_dir: PathBuf,
+    /// Start each session where the robot's last session in the site ended (its dock, as it estimated it
+    /// then): the session's first nodes check that pose against the site map and place it there at once
+    /// where they agree; elsewhere (carried, the dock moved, the last session never placed) it searches
+    /// the whole map. `false`: every session searches. Default true.
+    pub dock_starts: bool,
     /// Session uuid; a random one by default. A uuid is used once: a session interrupted by a crash is
     /// ended by the next run, which maps a new one.
     pub session_uuid: Option<String>,
@@ -139,6 +146,7 @@ impl Default for AgentConfig {
             replay_speed: 1.0,
             max_scans: None,
             outbox_dir: PathBuf::from("./evermap-outbox"),
+            dock_starts: true,
             session_uuid: None,
             nodes_per_batch: 10,
             max_message_bytes: 64 << 20,

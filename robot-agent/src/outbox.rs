@@ -12,9 +12,15 @@
 //! A marker that survives a restart of the agent is an interrupted session: its acknowledged batches may
 //! all be gone from the outbox, but the server still holds it open, and the restarted agent ends it
 //! (see `uplink::Uploader`).
+//!
+//! The same store keeps the robot's dock in the site (a `RecordKind::SiteMeta` record `dock`): where its
+//! last session ended, as it estimated it then, which the next session checks first
+//! ([`Outbox::dock`], [`Outbox::set_dock`]).
 
 use std::path::Path;
 use std::sync::Arc;
+
+use mapping::geometry::{Rigid2, rigid2};
 
 use prost::Message as _;
 use proto::pb;
@@ -50,6 +56,9 @@ pub struct Outbox {
     store: Arc<dyn MapStore>,
     site: String,
 }
+
+/// The `RecordKind::SiteMeta` record of the robot's dock: x, y (m) and heading (rad), little-endian f64.
+const DOCK_RECORD: &str = "dock";
 
 fn record_id(session: &str, seq: u64) -> RecordId {
     // Session ids contain no control characters, so the NUL separator keeps sessions apart and the
@@ -154,6 +163,61 @@ impl Outbox {
         Ok(removed)
     }
 
+    /// The robot's dock in the site (`map_from_tracking` where its last session ended, as it estimated it
+    /// then), if one was stored.
+    pub fn dock(&self) -> Result<Option<Rigid2>, OutboxError> {
+        let Some(bytes) = self.store.get(
+            &self.site,
+            RecordKind::SiteMeta,
+            &RecordId::from(DOCK_RECORD),
+        )?
+        else {
+            return Ok(None);
+        };
+        let corrupt = |reason: String| OutboxError::Corrupt {
+            id: DOCK_RECORD.into(),
+            reason,
+        };
+        let values: Vec<f64> = bytes
+            .chunks_exact(8)
+            .map(|c| f64::from_le_bytes(c.try_into().expect("chunks of 8 bytes")))
+            .collect();
+        match values[..] {
+            [x, y, theta] if bytes.len() == 24 && values.iter().all(|v| v.is_finite()) => {
+                Ok(Some(rigid2(x, y, theta)))
+            }
+            _ => Err(corrupt(format!(
+                "expected 3 finite little-endian f64 (24 bytes), got {} bytes",
+                bytes.len()
+            ))),
+        }
+    }
+
+    /// Stores the robot's dock in the site, durably, or removes it (`None`: the robot does not know where
+    /// it is, e.g. while a session runs or after one that was never placed). A non-finite pose is
+    /// removed too: it is no place to check.
+    pub fn set_dock(&self, dock: Option<Rigid2>) -> Result<(), OutboxError> {
+        let mut write = WriteBatch::new(&self.site);
+        let values = dock.map(|d| [d.translation.x, d.translation.y, d.rotation.angle()]);
+        match values.filter(|v| v.iter().all(|x| x.is_finite())) {
+            Some(values) => {
+                write.put(
+                    RecordKind::SiteMeta,
+                    DOCK_RECORD,
+                    values
+                        .iter()
+                        .flat_map(|v| v.to_le_bytes())
+                        .collect::<Vec<u8>>(),
+                );
+            }
+            None => {
+                write.delete(RecordKind::SiteMeta, DOCK_RECORD);
+            }
+        }
+        self.store.apply_durable(&write)?;
+        Ok(())
+    }
+
     /// Every pending batch, ordered by session then sequence number.
     pub fn pending(&self) -> Result<Vec<pb::UploadBatch>, OutboxError> {
         self.store
@@ -226,6 +290,40 @@ mod tests {
             seq,
             items: vec![],
         }
+    }
+
+    #[test]
+    fn the_dock_is_kept_per_site_until_replaced_or_removed() {
+        let store: Arc<dyn MapStore> = Arc::new(MemStore::new());
+        let here = Outbox::with_store(Arc::clone(&store), "store-1");
+        let elsewhere = Outbox::with_store(store, "store-2");
+        assert_eq!(here.dock().unwrap(), None);
+        here.set_dock(Some(rigid2(1.5, -2.0, 0.75))).unwrap();
+        let dock = here.dock().unwrap().unwrap();
+        assert_eq!(
+            (
+                dock.translation.x,
+                dock.translation.y,
+                dock.rotation.angle()
+            ),
+            (1.5, -2.0, 0.75)
+        );
+        assert_eq!(elsewhere.dock().unwrap(), None);
+        here.set_dock(Some(rigid2(f64::NAN, 0.0, 0.0))).unwrap();
+        assert_eq!(here.dock().unwrap(), None);
+        here.set_dock(Some(rigid2(1.0, 1.0, 0.0))).unwrap();
+        here.set_dock(None).unwrap();
+        assert_eq!(here.dock().unwrap(), None);
+    }
+
+    #[test]
+    fn a_damaged_dock_record_is_an_error_not_a_place() {
+        let store: Arc<dyn MapStore> = Arc::new(MemStore::new());
+        let mut write = WriteBatch::new("store-1");
+        write.put(RecordKind::SiteMeta, DOCK_RECORD, vec![0u8; 17]);
+        store.apply_durable(&write).unwrap();
+        let error = Outbox::with_store(store, "store-1").dock().unwrap_err();
+        assert!(error.to_string().contains("17 bytes"), "{error}");
     }
 
     #[test]

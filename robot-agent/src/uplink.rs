@@ -22,8 +22,8 @@ use std::future::Future;
 use std::pin::Pin;
 
 pub use agent_session::{
-    SessionInput, SessionOptions, SessionReport, SessionStart, SessionTrace, follow_site,
-    follow_site_with, place_ahead, session_span, stream_recording, stream_session,
+    DockOutcome, SessionInput, SessionOptions, SessionReport, SessionStart, SessionTrace,
+    follow_site, follow_site_with, place_ahead, session_span, stream_recording, stream_session,
     stream_session_from,
 };
 pub use fleet_uplink::FleetUplink;

@@ -436,6 +436,7 @@ mod tests {
         let mut b = vec![UploadItem::SessionStartPrior {
             global_from_local: Rigid2::identity(),
             glm_on_robot: true,
+            at_dock: false,
         }];
         for k in 0..6 {
             b.extend(node_and_submap(k));

@@ -18,8 +18,8 @@ use proto::{FORMAT_VERSION, UploadItem, pb};
 use robot_agent::outbox::Outbox;
 use robot_agent::source::{Recording, read_recording};
 use robot_agent::uplink::{
-    GlobalSubmapCache, GrpcUplink, MapUplink as _, SessionOptions, Uploader, follow_site, run_llo,
-    stream_recording,
+    DockOutcome, GlobalSubmapCache, GrpcUplink, MapUplink as _, SessionOptions, Uploader,
+    follow_site, run_llo, stream_recording,
 };
 use server::{RobotConfig, RunningServer, ServerConfig, SiteConfig};
 use storage::{MapStore, MemStore, SledStore, SledStoreOptions};
@@ -873,6 +873,19 @@ impl Robot {
         relocalize: bool,
         glm_on_robot: bool,
     ) -> robot_agent::uplink::SessionTrace {
+        self.session_from(recording, uuid, relocalize, None, glm_on_robot)
+            .await
+    }
+
+    /// [`Self::session`], relocalizing first at `dock` when one is given.
+    async fn session_from(
+        &self,
+        recording: Recording,
+        uuid: &str,
+        relocalize: bool,
+        dock: Option<mapping::geometry::Rigid2>,
+        glm_on_robot: bool,
+    ) -> robot_agent::uplink::SessionTrace {
         let options = SessionOptions {
             nodes_per_batch: 6,
             replay_speed: 0.0,
@@ -892,6 +905,7 @@ impl Robot {
             cache: &self.cache,
             relocalization: mapping::lifelong::RelocalizationOptions::default(),
             session_start: mapping::lifelong::SessionStartOptions::default(),
+            dock,
         });
         let (report, trace) = bounded(
             "a session",
@@ -1082,6 +1096,62 @@ async fn glm_on_the_robot_places_a_session_where_glm_on_the_server_does() {
             .await
             .unwrap();
     }
+    server.shutdown().await.unwrap();
+}
+
+// Reference: issue 33 item 4, "the agent keeps its last placed pose; a new session is first checked
+// there by the same evidence test and falls back to the whole-map search when the evidence disagrees".
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_session_that_starts_at_its_dock_is_placed_there_at_once_and_kept() {
+    let csail = csail();
+    let server = RunningServer::start(&config(), Arc::new(MemStore::new()))
+        .await
+        .unwrap();
+    let (stop, stopped) = tokio::sync::watch::channel(false);
+    let r1 = Robot::start(&server, "r1", SITE, TOKEN, &stopped);
+    r1.session(scan_range(&csail, 0, 300), "d-0", false, false)
+        .await;
+    let site = server.site(SITE).unwrap();
+    caught_up("r1's cache", &r1.cache, site.current().version).await;
+    // Where the first session ended, in the site map: the robot's dock.
+    let poses = site.node_poses().await.unwrap();
+    let (_, &dock) = poses
+        .iter()
+        .filter(|(id, _)| id.trajectory == 0)
+        .max_by_key(|(id, _)| id.index)
+        .unwrap();
+    let options = mapping::lifelong::SessionStartOptions::default();
+    let docked = r1
+        .session_from(scan_range(&csail, 300, 600), "d-1", true, Some(dock), true)
+        .await;
+    assert_ne!(docked.dock, DockOutcome::NotPlaced, "{:?}", docked.start);
+    let placed = docked.start.placements.first().expect("placed");
+    assert!(
+        placed.decided_at <= docked.node_times[options.hold_back_nodes - 1],
+        "placed by the dock check, by the hold-back at the latest"
+    );
+    let served = site.node_poses().await.unwrap();
+    let first = served[&mapping::pose_graph::NodeId {
+        trajectory: 1,
+        index: 0,
+    }];
+    let off = (first.translation.vector - dock.translation.vector).norm();
+    assert!(off < 0.3, "the session starts {off} m from its dock");
+    let counts = site.current().counts;
+    assert_eq!(
+        (counts.dropped_sessions, counts.session_starts.committed),
+        (0, 1),
+        "the dock placement is committed, by the robot's matches or at its end ({:?}): {counts:?}",
+        docked.dock
+    );
+    // A dock the robot was carried away from: its first nodes disagree and it searches instead.
+    let far = dock * mapping::geometry::rigid2(0.0, 0.0, std::f64::consts::FRAC_PI_2);
+    let carried = r1
+        .session_from(scan_range(&csail, 300, 600), "d-2", true, Some(far), true)
+        .await;
+    assert_eq!(carried.dock, DockOutcome::NotPlaced, "{:?}", carried.start);
+    let _ = stop.send(true);
+    bounded("a follower stopping", r1.follower).await.unwrap();
     server.shutdown().await.unwrap();
 }
 

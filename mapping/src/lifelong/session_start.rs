@@ -479,6 +479,19 @@ impl SessionStart {
         Ok((start, events))
     }
 
+    /// [`Self::with_placement`] for a robot's dock placement (its own [`Self::from_dock`] check agreed
+    /// there): [`Self::finish`] may commit it at the session's end, when the robot says it stands.
+    pub fn with_dock_placement(
+        options: SessionStartOptions,
+        search: Option<StartSearch>,
+        global_from_local: Rigid2,
+        node: usize,
+    ) -> Result<(Self, Vec<SessionStartEvent>), LifelongOptionsError> {
+        let (mut start, events) = Self::with_placement(options, search, global_from_local, node)?;
+        start.placed_at_dock = matches!(start.state, SessionStartState::Probation(_));
+        Ok((start, events))
+    }
+
     /// Hands over the map to search when the session was created without one.
     pub fn set_search(&mut self, search: StartSearch) {
         self.search = Some(search);

@@ -11,6 +11,15 @@ use mapping::pose_graph::SubmapId;
 use super::{pose_from_exact, pose_to_exact, required, submap_in};
 use crate::{ConversionError, pb};
 
+/// A robot's `SessionStartPrior` as the server keeps it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RobotPrior {
+    /// Where the session's local frame sits in the site frame.
+    pub global_from_local: Rigid2,
+    /// It is the robot's dock placement (`SessionStartPrior.at_dock`).
+    pub at_dock: bool,
+}
+
 /// One session of a site as the server keeps it.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SiteSessionState {
@@ -22,8 +31,8 @@ pub struct SiteSessionState {
     pub last_seq: u64,
     /// Whether it has ended.
     pub closed: bool,
-    /// The robot's `global_from_local` prior, if it sent one.
-    pub prior: Option<Rigid2>,
+    /// The robot's prior, if it sent one.
+    pub prior: Option<RobotPrior>,
     /// The robot matches its nodes against the map itself.
     pub glm_on_robot: bool,
     /// Nodes applied.
@@ -126,10 +135,14 @@ pub(super) fn site_to_pb(s: &SiteServerState) -> pb::SiteServerState {
                 trajectory: session.trajectory,
                 last_seq: session.last_seq,
                 closed: session.closed,
-                prior: session.prior.as_ref().map(pose_to_exact),
+                prior: session
+                    .prior
+                    .as_ref()
+                    .map(|p| pose_to_exact(&p.global_from_local)),
                 glm_on_robot: session.glm_on_robot,
                 nodes: session.nodes,
                 dropped: session.dropped,
+                prior_at_dock: session.prior.is_some_and(|p| p.at_dock),
             })
             .collect(),
         published: s
@@ -190,7 +203,12 @@ pub(super) fn site_from_pb(s: &pb::SiteServerState) -> Result<SiteServerState, C
             prior: session
                 .prior
                 .as_ref()
-                .map(|p| pose_from_exact(Some(p), S, "prior"))
+                .map(|p| {
+                    Ok::<_, ConversionError>(RobotPrior {
+                        global_from_local: pose_from_exact(Some(p), S, "prior")?,
+                        at_dock: session.prior_at_dock,
+                    })
+                })
                 .transpose()?,
             glm_on_robot: session.glm_on_robot,
             nodes: session.nodes,

@@ -172,7 +172,10 @@ fn the_servers_part_of_a_checkpoint_round_trips_bit_for_bit() {
             trajectory: 1,
             last_seq: 42,
             closed: false,
-            prior: Some(odd_pose),
+            prior: Some(RobotPrior {
+                global_from_local: odd_pose,
+                at_dock: true,
+            }),
             glm_on_robot: true,
             nodes: 99,
             dropped: false,

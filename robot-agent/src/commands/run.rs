@@ -91,6 +91,20 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
          session_uuid from {} (or choose a new one); the next run ends the interrupted session",
         args.config.display()
     );
+    // The robot's dock: where its last session in the site ended. It is forgotten while this session
+    // runs (the robot is moving; a session that dies leaves no stale dock) and stored again at its end.
+    let dock = if config.dock_starts {
+        outbox.dock().with_context(|| {
+            format!(
+                "cannot read the robot's dock from {} (remove its outbox to forget it)",
+                config.outbox_dir.display()
+            )
+        })?
+    } else {
+        None
+    };
+    outbox.set_dock(None)?;
+    let dock_store = outbox.clone();
     let call_timeout = config.call_timeout()?;
     let retry_interval = config.retry_interval()?;
     let (node_poses, node_pose_receiver) = tokio::sync::mpsc::channel(64);
@@ -174,6 +188,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
             cache: &cache,
             relocalization: RelocalizationOptions::default(),
             session_start: mapping::lifelong::SessionStartOptions::default(),
+            dock,
         };
         let map_publisher = match live_session {
             Some((session, ros2, odometry)) if ros2.publish.enabled => Some(tokio::spawn(
@@ -190,8 +205,11 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         };
         let (report, trace) =
             stream_session_from(input, &options, &mut uploader, Some(start)).await?;
+        dock_store.set_dock(trace.end_pose())?;
         tracing::info!(
             relocalized = trace.prior.is_some(),
+            from_dock = dock.is_some(),
+            dock_outcome = ?trace.dock,
             score = trace.score,
             glm_on_robot = trace.glm_on_robot,
             glm_matches = trace.glm_matches,

@@ -106,7 +106,10 @@ pub enum SessionError {
 /// its `SessionStartPrior`. The robot holds at most `session_start.max_search_nodes` nodes back (it gives
 /// up searching there when `give_up_after_nodes` is 0 or larger): a session it cannot place streams
 /// without a prior and the server searches for it. The robot's GLM matches then judge the placement on
-/// probation (the server judges it the same way); a revoked placement stops GLM on the robot.
+/// probation (the server judges it the same way); a revoked placement stops GLM on the robot. With a
+/// `dock`, the session is first checked there (`mapping::lifelong::SessionStart::from_dock`): placed at
+/// once where its first nodes agree, else searched for as without one; a dock placement nothing
+/// disputed is kept at the session's end (`UploadItem::DockPlacementKept`).
 pub struct SessionStart<'a> {
     /// The agent's cache of the site's global submaps.
     pub cache: &'a Mutex<GlobalSubmapCache>,
@@ -114,6 +117,9 @@ pub struct SessionStart<'a> {
     pub relocalization: RelocalizationOptions,
     /// Hold-back, retries and probation.
     pub session_start: SessionStartOptions,
+    /// The robot's dock: where its last session in the site ended, as it estimated it then
+    /// (`map_from_tracking`; see [`SessionTrace::end_pose`]). `None`: search the whole map.
+    pub dock: Option<Rigid2>,
 }
 
 /// What a session's start relocalization found and which nodes the session made.
@@ -141,10 +147,33 @@ pub struct SessionTrace {
     pub node_estimates: Vec<Option<Rigid2>>,
     /// The first node's local pose (`local_from_tracking`).
     pub first_local_pose: Option<Rigid2>,
+    /// What became of [`SessionStart::dock`].
+    pub dock: DockOutcome,
     /// Whether GLM ran on the robot for this session.
     pub glm_on_robot: bool,
     /// GLM matches the robot sent.
     pub glm_matches: u64,
+}
+
+/// What became of a session's dock ([`SessionStart::dock`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum DockOutcome {
+    /// No dock, or its check disagreed (the session searched instead).
+    #[default]
+    NotPlaced,
+    /// Placed at the dock; committed by matches, or dropped with the session if still on probation.
+    Placed,
+    /// Placed at the dock and kept at the session's end (sent as `UploadItem::DockPlacementKept`).
+    Kept,
+}
+
+impl SessionTrace {
+    /// Where the session ended, as the robot estimated it at its last node (`map_from_tracking`): the
+    /// next session's dock. `None` when the robot did not know its place then (never placed, or its
+    /// placement revoked).
+    pub fn end_pose(&self) -> Option<Rigid2> {
+        self.node_estimates.last().copied().flatten()
+    }
 }
 
 /// The span a robot session runs in, `session{site, robot, session}`: the shell that runs a session
@@ -519,7 +548,13 @@ pub async fn stream_session_from<U: MapUplink>(
                             session_start.give_up_after_nodes = session_start.max_search_nodes;
                         }
                         if let Some(search) = prepare_search(start.cache, &start.relocalization).await {
-                            decision = StartDecision::new(session_start, Some(search)).ok();
+                            decision = match start.dock {
+                                Some(dock) => {
+                                    StartDecision::from_dock(session_start, Some(search), dock)
+                                }
+                                None => StartDecision::new(session_start, Some(search)),
+                            }
+                            .ok();
                         }
                     }
                     let mut decided = decision.is_none();
@@ -539,6 +574,13 @@ pub async fn stream_session_from<U: MapUplink>(
                                 held_local.get(node).copied().flatten()
                             });
                             match event {
+                                SessionStartEvent::DockChecked { agreed, .. } => {
+                                    trace.dock = if *agreed {
+                                        DockOutcome::Placed
+                                    } else {
+                                        DockOutcome::NotPlaced
+                                    };
+                                }
                                 SessionStartEvent::Placed(placement) => {
                                     trace.prior = Some(placement.global_from_local);
                                     trace.score = placement.score;
@@ -564,6 +606,7 @@ pub async fn stream_session_from<U: MapUplink>(
                         batch.push(UploadItem::SessionStartPrior {
                             global_from_local: prior,
                             glm_on_robot: glm.is_some(),
+                            at_dock: trace.dock == DockOutcome::Placed,
                         });
                     }
                     nodes_in_batch += held.len();
@@ -593,9 +636,23 @@ pub async fn stream_session_from<U: MapUplink>(
             batch.push(UploadItem::SessionStartPrior {
                 global_from_local: prior,
                 glm_on_robot: glm.is_some(),
+                at_dock: trace.dock == DockOutcome::Placed,
             });
         }
         batch.extend(held.drain(..).flatten());
+    }
+    // What the session's end decides of its start: a dock placement still on probation that nothing
+    // disputed is kept (the server commits it on this word, after its own judging agrees).
+    if let Some(d) = decision.as_mut().filter(|_| trace.prior.is_some()) {
+        for event in d.finish() {
+            trace.start.record(&event, &trace.node_times, &|node| {
+                held_local.get(node).copied().flatten()
+            });
+            if let SessionStartEvent::Committed { .. } = event {
+                trace.dock = DockOutcome::Kept;
+                batch.push(UploadItem::DockPlacementKept);
+            }
+        }
     }
     // After the short-session path above, which may start GLM too.
     trace.glm_on_robot = glm.is_some();

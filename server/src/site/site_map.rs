@@ -29,7 +29,7 @@ use mapping::lifelong::{
 };
 use mapping::pose_graph::{NodeId, SubmapId};
 pub use proto::SessionStartCounts;
-use proto::{MapDelta, NodeAdded, SubmapSnapshot, UploadBatch, UploadItem};
+use proto::{MapDelta, NodeAdded, RobotPrior, SubmapSnapshot, UploadBatch, UploadItem};
 
 use super::map_history::{HistoryEntry, MapHistory};
 use super::published_submaps::{PublishedSubmap, PublishedSubmaps};
@@ -45,8 +45,8 @@ struct Session {
     trajectory: u32,
     last_seq: u64,
     closed: bool,
-    /// The agent's relocalized `global_from_local`, if it sent one.
-    prior: Option<Rigid2>,
+    /// The agent's relocalized `global_from_local` (its dock placement or a search's), if it sent one.
+    prior: Option<RobotPrior>,
     /// The agent matches the session's nodes against the map itself (GLM on the robot).
     glm_on_robot: bool,
     nodes: u64,
@@ -280,6 +280,7 @@ impl SiteMap {
             ));
         }
         let mut nodes = session.nodes;
+        let mut at_dock = session.prior.is_some_and(|p| p.at_dock);
         let mut last_insertion: &[(u32, Rigid2)] = &[];
         let mut ended = false;
         for (i, item) in batch.items.iter().enumerate() {
@@ -300,10 +301,18 @@ impl SiteMap {
                         )));
                     }
                 }
-                UploadItem::SessionStartPrior { .. } => {
+                UploadItem::SessionStartPrior { at_dock: dock, .. } => {
                     if nodes > 0 {
                         return Err(SiteError::InvalidBatch(format!(
                             "item {i}: SessionStartPrior after the session's first node"
+                        )));
+                    }
+                    at_dock = *dock;
+                }
+                UploadItem::DockPlacementKept => {
+                    if !at_dock {
+                        return Err(SiteError::InvalidBatch(format!(
+                            "item {i}: DockPlacementKept in a session whose prior is not a dock placement"
                         )));
                     }
                 }
@@ -335,10 +344,15 @@ impl SiteMap {
                 UploadItem::SessionStartPrior {
                     global_from_local,
                     glm_on_robot: on_robot,
+                    at_dock,
                 } => {
-                    prior = Some(*global_from_local);
+                    prior = Some(RobotPrior {
+                        global_from_local: *global_from_local,
+                        at_dock: *at_dock,
+                    });
                     glm_on_robot = *on_robot;
                 }
+                UploadItem::DockPlacementKept => self.keep_dock_placement(trajectory)?,
                 UploadItem::SessionEnd => ended = true,
                 // check_upload guarantees these follow a node; they were handed over with it.
                 UploadItem::SubmapFinished { .. } | UploadItem::GlobalMatch { .. } => {}
@@ -382,16 +396,17 @@ impl SiteMap {
     }
 
     /// Starts a session in the lifelong map. Every session but the first gets a [`SessionStart`]: on
-    /// probation at the robot's `prior`, or searching the map for itself without one.
+    /// probation at the robot's `prior` (its dock placement or a search's), or searching the map for
+    /// itself without one.
     fn start_session(
         &mut self,
         trajectory: u32,
-        prior: Option<Rigid2>,
+        prior: Option<RobotPrior>,
         glm_on_robot: bool,
     ) -> Result<(), SiteError> {
         let is_first = self.map.counts().nodes == 0;
         self.map
-            .start_session(trajectory, prior)
+            .start_session(trajectory, prior.map(|p| p.global_from_local))
             .map_err(SiteError::Rejected)?;
         // Only a placed session can be matched on the robot: it needs the prior.
         if glm_on_robot && prior.is_some() {
@@ -410,9 +425,16 @@ impl SiteMap {
                 self.map
                     .begin_probation(trajectory)
                     .map_err(SiteError::Rejected)?;
-                let (start, events) =
-                    SessionStart::with_placement(options, None, prior, decided_at)
-                        .map_err(SiteError::Options)?;
+                let RobotPrior {
+                    global_from_local,
+                    at_dock,
+                } = prior;
+                let (start, events) = if at_dock {
+                    SessionStart::with_dock_placement(options, None, global_from_local, decided_at)
+                } else {
+                    SessionStart::with_placement(options, None, global_from_local, decided_at)
+                }
+                .map_err(SiteError::Options)?;
                 self.starts.insert(trajectory, start);
                 self.act_on_start(trajectory, &events)?;
                 return Ok(());
@@ -469,6 +491,17 @@ impl SiteMap {
         Ok(())
     }
 
+    /// The robot says its dock placement stands at the session's end (`UploadItem::DockPlacementKept`):
+    /// [`SessionStart::finish`] commits it where this server's judging agrees (the placement is still the
+    /// robot's, on probation, and no match disputed it).
+    fn keep_dock_placement(&mut self, trajectory: u32) -> Result<(), SiteError> {
+        let Some(start) = self.starts.get_mut(&trajectory) else {
+            return Ok(());
+        };
+        let decisions = start.finish();
+        self.act_on_start(trajectory, &decisions)
+    }
+
     /// Drops `trajectory`'s start once it has decided for good (committed, or gave up): a final
     /// [`SessionStart`] ignores every node and match and decides nothing more, so keeping it changes no
     /// output, and with no start left mid-way the site can be checkpointed (see `site_map_checkpoint`).
@@ -517,14 +550,8 @@ impl SiteMap {
         let trajectory = session.trajectory;
         let mut events = Vec::new();
         let mut dropped = false;
-        // What the session's end decides of its start (a dock placement never disputed).
-        if let Some(mut start) = self.starts.remove(&trajectory)
-            && self.map.is_started(trajectory)
-            && !self.map.is_finished(trajectory)
-        {
-            let decisions = start.finish();
-            self.act_on_start(trajectory, &decisions)?;
-        }
+        // A dock placement is kept only on the robot's word (`keep_dock_placement`), before this.
+        self.starts.remove(&trajectory);
         self.searched.remove(&trajectory);
         if self.map.is_started(trajectory) && !self.map.is_finished(trajectory) {
             let unplaced = self.map.is_unplaced(trajectory) || self.map.is_on_probation(trajectory);

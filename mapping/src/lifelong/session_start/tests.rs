@@ -728,6 +728,35 @@ fn only_an_undisputed_dock_placement_is_committed_when_the_session_ends() {
 }
 
 #[test]
+fn a_robots_dock_placement_is_judged_at_the_end_as_the_robot_judged_it() {
+    // The server's start of a robot's dock placement (`with_dock_placement`): kept at the end with
+    // nothing disputed, on probation after a disagreeing match, as on the robot.
+    let placed = rigid2(10.0, 5.0, 0.3);
+    let dock = |nodes: usize| {
+        let (mut start, events) =
+            SessionStart::with_dock_placement(options(), None, placed, 0).unwrap();
+        assert!(events.is_empty(), "{events:?}");
+        for k in 0..nodes {
+            assert!(start.add_node(local(k), Vec::new()).is_empty());
+        }
+        start
+    };
+    let mut start = dock(12);
+    assert!(
+        matches!(
+            start.finish()[..],
+            [SessionStartEvent::Committed { node: 11, .. }]
+        ),
+        "kept"
+    );
+    let mut start = dock(12);
+    let elsewhere = rigid2(0.0, 4.0, 0.0) * placed * local(4);
+    assert!(start.add_match(4, elsewhere, submap(0)).is_empty());
+    assert!(start.finish().is_empty(), "a match disputed it");
+    assert!(matches!(start.state(), SessionStartState::Probation(_)));
+}
+
+#[test]
 fn the_heading_a_match_may_differ_by_grows_with_the_route_as_llo_drifts() {
     let placed = rigid2(10.0, 5.0, 0.3);
     let turned = |k: usize| placed * local(k) * rigid2(0.0, 0.0, 7f64.to_radians());

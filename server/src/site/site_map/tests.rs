@@ -112,6 +112,7 @@ fn uploads_must_come_in_sequence_and_fit_the_session() {
         vec![UploadItem::SessionStartPrior {
             global_from_local: Rigid2::identity(),
             glm_on_robot: false,
+            at_dock: false,
         }],
     );
     assert!(matches!(
@@ -197,6 +198,7 @@ fn a_start_prior_places_the_session() {
                 UploadItem::SessionStartPrior {
                     global_from_local: prior,
                     glm_on_robot: false,
+                    at_dock: false,
                 },
                 node(3, &[0]),
             ],
@@ -232,6 +234,7 @@ fn a_prior_placed_sessions_grids_are_drawn_at_the_prior() {
                 UploadItem::SessionStartPrior {
                     global_from_local: prior,
                     glm_on_robot: false,
+                    at_dock: false,
                 },
                 node(3, &[0]),
                 UploadItem::SubmapFinished {
@@ -276,6 +279,7 @@ fn covering_session(submaps: u32, prior: Option<Rigid2>, end: bool) -> Vec<Uploa
         .map(|global_from_local| UploadItem::SessionStartPrior {
             global_from_local,
             glm_on_robot: false,
+            at_dock: false,
         })
         .into_iter()
         .collect();
@@ -403,6 +407,7 @@ fn a_robot_matched_session_gets_the_robots_matches_and_no_cross_session_search()
             UploadItem::SessionStartPrior {
                 global_from_local: Rigid2::identity(),
                 glm_on_robot,
+                at_dock: false,
             },
             node(0, &[0]),
         ];
@@ -463,6 +468,66 @@ fn a_prior_on_probation_is_not_published_trims_nothing_and_is_dropped_if_never_c
 }
 
 #[test]
+fn a_robots_dock_placement_is_kept_at_the_end_only_on_its_word() {
+    // Issue 33 item 4: the robot's dock placement, still on probation when the session ends, is
+    // committed where the robot says it stands (`DockPlacementKept`); without that word it is dropped as
+    // any placement on probation is.
+    let run = |kept: bool| {
+        let mut map = SiteMap::new("s", LifelongOptions::default()).unwrap();
+        open(&mut map, "a");
+        apply(&mut map, &batch("a", 1, covering_session(6, None, true)));
+        open(&mut map, "b");
+        let mut items = covering_session(6, None, false);
+        items.insert(
+            0,
+            UploadItem::SessionStartPrior {
+                global_from_local: Rigid2::identity(),
+                glm_on_robot: true,
+                at_dock: true,
+            },
+        );
+        apply(&mut map, &batch("b", 1, items));
+        assert_eq!(map.counts().finished_submaps, 6, "b is on probation");
+        let mut end = vec![UploadItem::SessionEnd];
+        if kept {
+            end.insert(0, UploadItem::DockPlacementKept);
+        }
+        apply(&mut map, &batch("b", 2, end));
+        map.counts()
+    };
+    let kept = run(true);
+    assert_eq!(
+        (
+            kept.dropped_sessions,
+            kept.finished_submaps,
+            kept.session_starts.committed
+        ),
+        (0, 12, 1),
+        "{kept:?}"
+    );
+    let not_kept = run(false);
+    assert_eq!(
+        (not_kept.dropped_sessions, not_kept.finished_submaps),
+        (1, 6),
+        "{not_kept:?}"
+    );
+}
+
+#[test]
+fn only_a_dock_placement_can_be_kept() {
+    let mut map = SiteMap::new("s", LifelongOptions::default()).unwrap();
+    open(&mut map, "a");
+    apply(&mut map, &batch("a", 1, covering_session(2, None, true)));
+    open(&mut map, "b");
+    let mut items = covering_session(2, Some(Rigid2::identity()), false);
+    items.push(UploadItem::DockPlacementKept);
+    match map.check_upload(&batch("b", 1, items)) {
+        Err(SiteError::InvalidBatch(why)) => assert!(why.contains("DockPlacementKept"), "{why}"),
+        other => panic!("a prior that is not the dock's cannot be kept: {other:?}"),
+    }
+}
+
+#[test]
 fn agreeing_robot_matches_commit_a_prior_and_publish_its_submaps() {
     let mut options = LifelongOptions::default();
     options.session_start.probation_matches = 2;
@@ -476,6 +541,7 @@ fn agreeing_robot_matches_commit_a_prior_and_publish_its_submaps() {
     let mut items = vec![UploadItem::SessionStartPrior {
         global_from_local: Rigid2::identity(),
         glm_on_robot: true,
+        at_dock: false,
     }];
     for k in 0..6u32 {
         items.push(node(k, &[k]));
@@ -575,6 +641,7 @@ fn session_start_decisions_are_counted_and_replay_counts_them_alike() {
     let mut c = vec![UploadItem::SessionStartPrior {
         global_from_local: Rigid2::identity(),
         glm_on_robot: false,
+        at_dock: false,
     }];
     c.extend((0..5).map(|i| node(i, &[0])));
     changes.push(("c", c));

@@ -42,6 +42,7 @@ pub(super) fn sample_upload_batch() -> UploadBatch {
             UploadItem::SessionStartPrior {
                 global_from_local: rigid2(1.0, 2.0, 0.5),
                 glm_on_robot: true,
+                at_dock: true,
             },
             UploadItem::NodeAdded(NodeAdded {
                 time: Timestamp(1_700_000_000_123_456_789),
@@ -63,6 +64,7 @@ pub(super) fn sample_upload_batch() -> UploadBatch {
                 submap_from_node: rigid2(0.5, -0.25, 0.0625),
                 score: 0.75,
             },
+            UploadItem::DockPlacementKept,
             UploadItem::SessionEnd,
         ],
     }

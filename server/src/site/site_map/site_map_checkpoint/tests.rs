@@ -38,6 +38,7 @@ fn batches(session: usize, input: &SessionInput) -> Vec<UploadBatch> {
             batch.push(UploadItem::SessionStartPrior {
                 global_from_local: input.map_from_local,
                 glm_on_robot: false,
+                at_dock: false,
             });
         }
         for node in chunk {
