@@ -47,6 +47,7 @@ use simulator::{Store, World};
 
 use crate::catch_up::catch_up_since;
 use crate::command_runtime::{block_on, recreate_dir};
+use crate::idle_sites::{self, IdleProbe};
 use crate::load_fleet::{Fleet, site_id};
 use crate::memory_attribution::MemoryAttribution;
 use crate::minute_figures::{self, MinuteInputs, MinuteSample};
@@ -120,6 +121,17 @@ pub struct LoadArgs {
     /// fleet whose robots start cleaning at different times is a spread of a session's length or more.
     #[arg(long, default_value_t = 2.0)]
     pub(crate) start_spread_s: f64,
+    /// A sled store of other sites (hundreds of copies of mapped ones: `scripts/clone_sites.sh`) that the
+    /// server opens instead of a fresh `data/` and serves beside the load's sites: they start unloaded
+    /// and stay idle but for `--idle-probes` requests (issue 34: 500 sites on one instance, 40 active).
+    /// The load's sites are written into it: give a copy. Default none.
+    #[arg(long)]
+    pub(crate) idle_store: Option<PathBuf>,
+    /// With `--idle-store`: requests to idle sites during the measured phase, one at a time, spread
+    /// evenly over it, each to another site and timed (how long an unloaded site takes to answer while
+    /// the active ones stream). 0..=1000.
+    #[arg(long, default_value_t = 10)]
+    pub(crate) idle_probes: usize,
 }
 
 /// Runs the command.
@@ -159,6 +171,17 @@ pub fn run(args: &LoadArgs) -> anyhow::Result<()> {
         args.start_spread_s.is_finite() && (0.0..=3600.0).contains(&args.start_spread_s),
         "--start-spread-s must be in 0..=3600"
     );
+    anyhow::ensure!(
+        args.idle_probes <= 1000,
+        "--idle-probes must be at most 1000"
+    );
+    if let Some(store) = &args.idle_store {
+        anyhow::ensure!(
+            store.is_dir(),
+            "--idle-store {}: no store there (make one with scripts/clone_sites.sh)",
+            store.display()
+        );
+    }
     block_on(load(args))
 }
 
@@ -237,7 +260,28 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
         session_plan.len(),
         args.speed
     );
+    // Validated in `run`: 10..=3600 s of robot time at 0.1..=20× real time.
+    let measured_wall =
+        Duration::try_from_secs_f64(args.duration_s / args.speed).unwrap_or(Duration::ZERO);
+    let idle_probes = (!fleet.idle_sites.is_empty() && args.idle_probes > 0).then(|| {
+        let handles: BTreeMap<String, server::site::SiteHandle> = fleet
+            .idle_sites
+            .iter()
+            .filter_map(|s| Some((s.id.clone(), fleet.server.site(&s.id)?.clone())))
+            .collect();
+        tokio::spawn(idle_sites::probe_idle_sites(
+            fleet.url.clone(),
+            fleet.idle_sites.clone(),
+            args.idle_probes,
+            measured_wall / u32::try_from(args.idle_probes + 1).unwrap_or(u32::MAX),
+            move |site| handles.get(site).is_some_and(|h| !h.is_loaded()),
+        ))
+    });
     let window = stream_measured(args, &mut fleet, prepared).await?;
+    let idle_probes = match idle_probes {
+        Some(task) => task.await.context("idle probes task")??,
+        None => Vec::new(),
+    };
     let metrics = Arc::clone(fleet.server.metrics());
 
     // A robot of site 0 last seen halfway through the site's life (its session count then half of what it
@@ -386,6 +430,7 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
         "submap_latency_s": latencies.report(),
         "resync_after_offline": resync,
         "catch_up_after_half_the_sites_life": catch_up,
+        "idle_sites": idle_report(&fleet, &idle_probes),
         "per_minute_of_robot_time": per_minute,
         "sites_final": sites,
         "maturing_growth": maturing_growth,
@@ -403,6 +448,35 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
     fleet.server.shutdown().await?;
     print_summary(args, &report, &path);
     Ok(())
+}
+
+/// The idle sites (`--idle-store`): how many, how many the server held unloaded at the end, and the
+/// timed requests to them.
+fn idle_report(fleet: &Fleet, probes: &[IdleProbe]) -> serde_json::Value {
+    if fleet.idle_sites.is_empty() {
+        return serde_json::Value::Null;
+    }
+    let unloaded = fleet
+        .idle_sites
+        .iter()
+        .filter(|s| fleet.server.site(&s.id).is_some_and(|h| !h.is_loaded()))
+        .count();
+    let mut answered: Vec<f64> = probes
+        .iter()
+        .filter(|p| p.was_unloaded)
+        .map(|p| p.answered_s)
+        .collect();
+    answered.sort_by(f64::total_cmp);
+    json!({
+        "sites": fleet.idle_sites.len(),
+        "unloaded_at_the_end": unloaded,
+        "probes": probes,
+        "unloaded_answered_s": {
+            "count": answered.len(),
+            "p50": answered.get(answered.len() / 2),
+            "max": answered.last(),
+        },
+    })
 }
 
 /// Phase 2b (not measured): every robot streams its `maturing` sessions as fast as the server takes

@@ -19,6 +19,7 @@ use tokio::task::JoinHandle;
 use tracing::Instrument as _;
 
 use crate::demo_command::MAX_MESSAGE_BYTES;
+use crate::idle_sites::{IdleSite, idle_sites};
 use crate::load_command::LoadArgs;
 
 /// One robot of the benchmark.
@@ -36,6 +37,10 @@ pub(crate) struct Fleet {
     pub server: RunningServer,
     pub store: Arc<SledStore>,
     pub robots: Vec<Robot>,
+    /// The server's gRPC URL.
+    pub url: String,
+    /// The sites of `--idle-store`, served beside the load's.
+    pub idle_sites: Vec<IdleSite>,
     /// Every robot's follower, until [`Fleet::stop_following`].
     followers: Vec<JoinHandle<()>>,
     stop: watch::Sender<bool>,
@@ -52,7 +57,10 @@ impl Fleet {
     /// `args.agents` robots (robot r belongs to site r % sites), and starts every robot's follower.
     pub async fn start(args: &LoadArgs) -> anyhow::Result<Self> {
         let store_options = SledStoreOptions {
-            path: args.out.join("data"),
+            path: args
+                .idle_store
+                .clone()
+                .unwrap_or_else(|| args.out.join("data")),
             cache_capacity_bytes: args.store_cache_mib << 20,
             ..SledStoreOptions::default()
         };
@@ -71,6 +79,8 @@ impl Fleet {
                 token: format!("load-token-{}-{k}", s + 1),
             });
         }
+        let active: Vec<String> = (0..args.sites).map(site_id).collect();
+        let idle_sites = idle_sites(&store, &active)?;
         let config = ServerConfig {
             listen: "127.0.0.1:0".parse()?,
             metrics_listen: None,
@@ -82,6 +92,7 @@ impl Fleet {
                     id: site_id(s),
                     robots: robots.clone(),
                 })
+                .chain(idle_sites.iter().map(IdleSite::config))
                 .collect(),
             checkpoints: if args.no_checkpoints {
                 server::site::CheckpointOptions::DISABLED
@@ -94,10 +105,14 @@ impl Fleet {
         let server = RunningServer::start(&config, Arc::clone(&store) as Arc<_>).await?;
         let url = format!("http://{}", server.grpc_addr());
         eprintln!(
-            "evermap load: server on {url} (sled in {}), {} robots on {} sites, {} s of robot time each at {}x real time",
-            args.out.join("data").display(),
+            "evermap load: server on {url} (sled in {}), {} robots on {} sites ({} idle sites beside them), {} s of robot time each at {}x real time",
+            args.idle_store
+                .as_ref()
+                .map_or_else(|| args.out.join("data"), Clone::clone)
+                .display(),
             args.agents,
             args.sites,
+            idle_sites.len(),
             args.duration_s,
             args.speed
         );
@@ -141,6 +156,8 @@ impl Fleet {
             server,
             store,
             robots,
+            url,
+            idle_sites,
             followers,
             stop,
             stopped,

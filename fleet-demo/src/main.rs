@@ -7,6 +7,7 @@
 mod catch_up;
 mod command_runtime;
 mod demo_command;
+mod idle_sites;
 mod lifelong_command;
 mod load_command;
 mod load_fleet;
