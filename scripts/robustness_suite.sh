@@ -12,7 +12,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 out=${1:-out/robustness}
 recordings=${RECORDINGS:-"mit-csail aces intel"}
-variants=${VARIANTS:-"clean range8 range4 sparse odom slip slow clutter late noise stall hard thin"}
+variants=${VARIANTS:-"clean range8 range4 sparse odom slip slow clutter late noise stall hard thin lag"}
 seed=${SEED:-1}
 jobs=${JOBS:-2}
 agent=${AGENT:-target/release/evermap-agent}

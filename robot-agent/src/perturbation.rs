@@ -22,6 +22,7 @@
 //! | `stall` | odometry stalls for 0.4–1.0 s every 20–60 m of driving: readings repeat the last pose, then one carries the backlog |
 //! | `hard` | `range4` + `slip` + `clutter` + `slow` |
 //! | `thin` | `sparse` + `slow`: a low-cost scanner, few beams at a low rate (90 beams at 2° and 1.4 scans/s on Intel) |
+//! | `lag` | every odometry reading stamped 0.1 s late (the odometry's clock behind the scanner's; ACES's own odometry already lags by about 0.08 s, MIT CSAIL's by 0.12–0.16 s) |
 
 use mapping::geometry::{Rigid2, Rigid2Ext as _, rigid2};
 use mapping::sensor::{LaserScan, OdometryReading, SensorEvent, Timestamp};
@@ -34,7 +35,7 @@ use crate::source::Recording;
 /// Every variant name [`Perturbation::parse`] knows, in the suite's order.
 pub const VARIANTS: &[&str] = &[
     "clean", "range8", "range4", "sparse", "odom", "slip", "slow", "clutter", "late", "noise",
-    "stall", "hard", "thin",
+    "stall", "hard", "thin", "lag",
 ];
 
 /// Odometry that is wrong the way wheel odometry is: a scale error, a heading drift with distance, and
@@ -105,6 +106,9 @@ pub struct Perturbation {
     pub drop_first_share: Option<f64>,
     /// Gaussian range noise (σ, metres) on every return.
     pub range_noise_m: Option<f32>,
+    /// Every odometry reading's stamp moved this much later (seconds): the pose it reports is older than
+    /// its stamp says.
+    pub odometry_lag_s: Option<f64>,
 }
 
 /// A variant name [`Perturbation::parse`] does not know.
@@ -176,6 +180,7 @@ impl Perturbation {
             }
             "late" => self.drop_first_share = Some(0.2),
             "noise" => self.range_noise_m = Some(0.03),
+            "lag" => self.odometry_lag_s = Some(0.1),
             "stall" => {
                 self.stalls = Some(OdometryStalls {
                     every_m: (20.0, 60.0),
@@ -234,6 +239,15 @@ impl Perturbation {
         if let Some(stalls) = self.stalls {
             (report.stalls, report.stalled_readings) =
                 stall_odometry(&stalls, &mut events, &mut rng(5));
+        }
+        if let Some(lag) = self.odometry_lag_s {
+            for event in &mut events {
+                if let SensorEvent::Odometry(reading) = event {
+                    reading.time = reading.time.offset_by(lag);
+                }
+            }
+            // Stable: readings and scans at the same stamp keep their order.
+            events.sort_by_key(SensorEvent::time);
         }
         let mut clutter_rng = rng(3);
         let mut noise_rng = rng(4);
@@ -499,6 +513,29 @@ mod tests {
         );
         let error = Perturbation::parse("range4,wet").unwrap_err();
         assert!(error.to_string().contains("`wet`"), "{error}");
+    }
+
+    #[test]
+    fn lag_stamps_every_odometry_reading_later_and_keeps_the_events_in_time_order() {
+        let recording = drive(10);
+        let (lagged, _) = Perturbation::parse("lag").unwrap().apply(&recording, 1);
+        let odometry = |r: &Recording| -> Vec<(Timestamp, Rigid2)> {
+            r.events
+                .iter()
+                .filter_map(|e| match e {
+                    SensorEvent::Odometry(o) => Some((o.time, o.pose)),
+                    _ => None,
+                })
+                .collect()
+        };
+        let (before, after) = (odometry(&recording), odometry(&lagged));
+        assert_eq!(before.len(), after.len());
+        for ((t0, p0), (t1, p1)) in before.iter().zip(&after) {
+            assert!((t1.seconds_since(*t0) - 0.1).abs() < 1e-6);
+            assert_eq!(p0, p1);
+        }
+        assert_eq!(scans(&lagged).len(), scans(&recording).len());
+        assert!(lagged.events.windows(2).all(|w| w[0].time() <= w[1].time()));
     }
 
     #[test]
