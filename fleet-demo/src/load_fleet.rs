@@ -56,11 +56,12 @@ impl Fleet {
     /// Opens the server's store under `args.out/data`, starts the server with `args.sites` sites and
     /// `args.agents` robots (robot r belongs to site r % sites), and starts every robot's follower.
     pub async fn start(args: &LoadArgs) -> anyhow::Result<Self> {
+        let store_path = args
+            .idle_store
+            .clone()
+            .unwrap_or_else(|| args.out.join("data"));
         let store_options = SledStoreOptions {
-            path: args
-                .idle_store
-                .clone()
-                .unwrap_or_else(|| args.out.join("data")),
+            path: store_path.clone(),
             cache_capacity_bytes: args.store_cache_mib << 20,
             ..SledStoreOptions::default()
         };
@@ -106,10 +107,7 @@ impl Fleet {
         let url = format!("http://{}", server.grpc_addr());
         eprintln!(
             "evermap load: server on {url} (sled in {}), {} robots on {} sites ({} idle sites beside them), {} s of robot time each at {}x real time",
-            args.idle_store
-                .as_ref()
-                .map_or_else(|| args.out.join("data"), Clone::clone)
-                .display(),
+            store_path.display(),
             args.agents,
             args.sites,
             idle_sites.len(),

@@ -20,8 +20,7 @@
 use std::path::Path;
 use std::sync::Arc;
 
-use mapping::geometry::{Rigid2, rigid2};
-
+use mapping::geometry::Rigid2;
 use prost::Message as _;
 use proto::pb;
 use storage::{MapStore, MemStore, RecordId, RecordKind, SledStore, SledStoreOptions, WriteBatch};
@@ -57,7 +56,8 @@ pub struct Outbox {
     site: String,
 }
 
-/// The `RecordKind::SiteMeta` record of the robot's dock: x, y (m) and heading (rad), little-endian f64.
+/// The `RecordKind::SiteMeta` record of the robot's dock: an encoded `ExactPose2`, as checkpoints store
+/// poses.
 const DOCK_RECORD: &str = "dock";
 
 fn record_id(session: &str, seq: u64) -> RecordId {
@@ -176,21 +176,12 @@ impl Outbox {
         };
         let corrupt = |reason: String| OutboxError::Corrupt {
             id: DOCK_RECORD.into(),
-            reason,
+            reason: format!("{} bytes: {reason}", bytes.len()),
         };
-        let values: Vec<f64> = bytes
-            .chunks_exact(8)
-            .map(|c| f64::from_le_bytes(c.try_into().expect("chunks of 8 bytes")))
-            .collect();
-        match values[..] {
-            [x, y, theta] if bytes.len() == 24 && values.iter().all(|v| v.is_finite()) => {
-                Ok(Some(rigid2(x, y, theta)))
-            }
-            _ => Err(corrupt(format!(
-                "expected 3 finite little-endian f64 (24 bytes), got {} bytes",
-                bytes.len()
-            ))),
-        }
+        let exact = pb::ExactPose2::decode(bytes.as_slice()).map_err(|e| corrupt(e.to_string()))?;
+        proto::pose_from_exact(Some(&exact), "ExactPose2", "dock")
+            .map(Some)
+            .map_err(|e| corrupt(e.to_string()))
     }
 
     /// Stores the robot's dock in the site, durably, or removes it (`None`: the robot does not know where
@@ -198,16 +189,16 @@ impl Outbox {
     /// removed too: it is no place to check.
     pub fn set_dock(&self, dock: Option<Rigid2>) -> Result<(), OutboxError> {
         let mut write = WriteBatch::new(&self.site);
-        let values = dock.map(|d| [d.translation.x, d.translation.y, d.rotation.angle()]);
-        match values.filter(|v| v.iter().all(|x| x.is_finite())) {
-            Some(values) => {
+        let finite = |d: &Rigid2| {
+            let (t, r) = (d.translation.vector, d.rotation);
+            [t.x, t.y, r.re, r.im].iter().all(|v| v.is_finite())
+        };
+        match dock.filter(finite) {
+            Some(dock) => {
                 write.put(
                     RecordKind::SiteMeta,
                     DOCK_RECORD,
-                    values
-                        .iter()
-                        .flat_map(|v| v.to_le_bytes())
-                        .collect::<Vec<u8>>(),
+                    proto::pose_to_exact(&dock).encode_to_vec(),
                 );
             }
             None => {
@@ -279,6 +270,8 @@ impl Outbox {
 
 #[cfg(test)]
 mod tests {
+    use mapping::geometry::rigid2;
+
     use super::*;
 
     fn batch(session: &str, seq: u64) -> pb::UploadBatch {
@@ -299,15 +292,7 @@ mod tests {
         let elsewhere = Outbox::with_store(store, "store-2");
         assert_eq!(here.dock().unwrap(), None);
         here.set_dock(Some(rigid2(1.5, -2.0, 0.75))).unwrap();
-        let dock = here.dock().unwrap().unwrap();
-        assert_eq!(
-            (
-                dock.translation.x,
-                dock.translation.y,
-                dock.rotation.angle()
-            ),
-            (1.5, -2.0, 0.75)
-        );
+        assert_eq!(here.dock().unwrap(), Some(rigid2(1.5, -2.0, 0.75)));
         assert_eq!(elsewhere.dock().unwrap(), None);
         here.set_dock(Some(rigid2(f64::NAN, 0.0, 0.0))).unwrap();
         assert_eq!(here.dock().unwrap(), None);
