@@ -222,6 +222,16 @@ fn push_held_estimates(trace: &mut SessionTrace, held: &[Vec<UploadItem>]) {
     }
 }
 
+/// The session's `SessionStartPrior`, when its start was placed: where, whether GLM runs on the robot,
+/// and whether the placement is its dock's.
+fn start_prior(trace: &SessionTrace, glm_on_robot: bool) -> Option<UploadItem> {
+    Some(UploadItem::SessionStartPrior {
+        global_from_local: trace.prior?,
+        glm_on_robot,
+        at_dock: trace.dock == DockOutcome::Placed,
+    })
+}
+
 /// Starts GLM on the robot when the session was relocalized (and GLM is on), matching the held-back
 /// nodes right away.
 async fn begin_glm(
@@ -602,13 +612,7 @@ pub async fn stream_session_from<U: MapUplink>(
                     }
                     started = true;
                     push_held_estimates(&mut trace, &held);
-                    if let Some(prior) = trace.prior {
-                        batch.push(UploadItem::SessionStartPrior {
-                            global_from_local: prior,
-                            glm_on_robot: glm.is_some(),
-                            at_dock: trace.dock == DockOutcome::Placed,
-                        });
-                    }
+                    batch.extend(start_prior(&trace, glm.is_some()));
                     nodes_in_batch += held.len();
                     batch.extend(held.drain(..).flatten());
                 }
@@ -632,13 +636,7 @@ pub async fn stream_session_from<U: MapUplink>(
         // Shorter than the hold-back, or still searching: the session streams without a prior and the
         // server searches for it.
         push_held_estimates(&mut trace, &held);
-        if let Some(prior) = trace.prior {
-            batch.push(UploadItem::SessionStartPrior {
-                global_from_local: prior,
-                glm_on_robot: glm.is_some(),
-                at_dock: trace.dock == DockOutcome::Placed,
-            });
-        }
+        batch.extend(start_prior(&trace, glm.is_some()));
         batch.extend(held.drain(..).flatten());
     }
     // What the session's end decides of its start: a dock placement still on probation that nothing
