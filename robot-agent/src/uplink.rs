@@ -31,13 +31,14 @@ pub use global_submap_cache::{CacheError, GlobalSubmapCache};
 pub use grpc_uplink::{ClientTls, GrpcUplink};
 pub use in_memory_uplink::InMemoryUplink;
 pub use llo_stream::{LloStats, run_llo, run_llo_stream};
+use mapping::geometry::Rigid2;
 pub use proto::MapDelta;
 use proto::pb;
 pub use proto::{
     ZenohLinkOptions, ZenohLinkOptionsError, ZenohTlsOptions, zenoh_api_key, zenoh_version_key,
 };
 pub use robot_glm::{cached_submaps, match_node, sync_matcher};
-pub use uploader::{FlushStats, Uploader};
+pub use uploader::{FlushStats, SessionEnded, Uploader};
 pub use zenoh_uplink::ZenohUplink;
 
 /// Why an uplink call failed.
@@ -94,7 +95,7 @@ pub struct OpenedSession {
 }
 
 /// The server's acknowledgement of one batch.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Acked {
     /// The batch's sequence number.
     pub seq: u64,
@@ -102,6 +103,25 @@ pub struct Acked {
     pub map_version: u64,
     /// The server already had it.
     pub duplicate: bool,
+    /// For a batch that ended its session: the session's last node in the site map, when the session
+    /// is placed there (the robot's next dock).
+    pub session_end_pose: Option<Rigid2>,
+}
+
+impl Acked {
+    /// The server's ack as it came over the wire (gRPC or zenoh); a malformed end pose is refused.
+    pub fn from_wire(ack: &pb::Ack) -> Result<Self, UplinkError> {
+        Ok(Self {
+            seq: ack.seq,
+            map_version: ack.map_version,
+            duplicate: ack.duplicate,
+            session_end_pose: ack
+                .session_end_pose
+                .as_ref()
+                .map(|pose| proto::pose_from_pb(Some(pose), "Ack", "session_end_pose"))
+                .transpose()?,
+        })
+    }
 }
 
 /// A stream of site versions.

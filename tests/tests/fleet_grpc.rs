@@ -837,6 +837,8 @@ struct Robot {
     uplink: GrpcUplink,
     cache: Arc<Mutex<GlobalSubmapCache>>,
     follower: tokio::task::JoinHandle<()>,
+    /// What the server's ack of the last session's end said ([`Uploader::session_end`]).
+    last_end: Mutex<Option<robot_agent::uplink::SessionEnded>>,
 }
 
 impl Robot {
@@ -861,6 +863,7 @@ impl Robot {
             uplink,
             cache,
             follower,
+            last_end: Mutex::new(None),
         }
     }
 
@@ -919,6 +922,7 @@ impl Robot {
         .await
         .unwrap();
         assert_eq!(report.left_in_outbox, 0, "{report:?}");
+        *self.last_end.lock().unwrap() = uploader.session_end();
         trace
     }
 }
@@ -1113,13 +1117,26 @@ async fn a_session_that_starts_at_its_dock_is_placed_there_at_once_and_kept() {
         .await;
     let site = server.site(SITE).unwrap();
     caught_up("r1's cache", &r1.cache, site.current().version).await;
-    // Where the first session ended, in the site map: the robot's dock.
+    // The first session built the site's map, so the robot never placed itself: the server's ack of
+    // its end says where it ended in the site map, which is the robot's dock.
     let poses = site.node_poses().await.unwrap();
-    let (_, &dock) = poses
+    let (_, &last) = poses
         .iter()
         .filter(|(id, _)| id.trajectory == 0)
         .max_by_key(|(id, _)| id.index)
         .unwrap();
+    let dock = r1
+        .last_end
+        .lock()
+        .unwrap()
+        .expect("the session's end was acknowledged")
+        .pose
+        .expect("the base session is placed");
+    assert!(
+        (dock.translation.vector - last.translation.vector).norm() < 1e-9
+            && (dock.rotation.angle() - last.rotation.angle()).abs() < 1e-9,
+        "the dock {dock:?} is the session's last node {last:?}"
+    );
     let options = mapping::lifelong::SessionStartOptions::default();
     let docked = r1
         .session_from(scan_range(&csail, 300, 600), "d-1", true, Some(dock), true)

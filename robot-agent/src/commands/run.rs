@@ -205,7 +205,12 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         };
         let (report, trace) =
             stream_session_from(input, &options, &mut uploader, Some(start)).await?;
-        dock_store.set_dock(trace.end_pose())?;
+        // The dock is where the server put the session's end (the base session's too, which the robot
+        // never had to place); the robot's own estimate only if the end was not acknowledged.
+        let end = uploader
+            .session_end()
+            .map_or_else(|| trace.end_pose(), |ended| ended.pose);
+        dock_store.set_dock(end)?;
         tracing::info!(
             relocalized = trace.prior.is_some(),
             from_dock = dock.is_some(),

@@ -190,11 +190,7 @@ impl MapUplink for GrpcUplink {
     async fn upload(&mut self, batch: &pb::UploadBatch) -> Result<Acked, UplinkError> {
         let mut client = self.agent.clone();
         let ack = self.bounded(client.upload(batch.clone())).await?;
-        Ok(Acked {
-            seq: ack.seq,
-            map_version: ack.map_version,
-            duplicate: ack.duplicate,
-        })
+        Acked::from_wire(&ack)
     }
 
     async fn close_session(

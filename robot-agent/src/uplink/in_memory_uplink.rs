@@ -129,6 +129,7 @@ impl MapUplink for InMemoryUplink {
                 seq: batch.seq,
                 map_version: state.version,
                 duplicate: true,
+                session_end_pose: None,
             });
         }
         if batch.seq != last + 1 {
@@ -149,6 +150,7 @@ impl MapUplink for InMemoryUplink {
             seq: batch.seq,
             map_version,
             duplicate: false,
+            session_end_pose: None,
         })
     }
 

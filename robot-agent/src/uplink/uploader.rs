@@ -17,6 +17,7 @@
 
 use std::collections::{BTreeSet, VecDeque};
 
+use mapping::geometry::Rigid2;
 use proto::{FORMAT_VERSION, UploadItem, pb};
 
 use super::{MapUplink, UplinkError};
@@ -42,6 +43,14 @@ pub struct FlushStats {
     pub dropped_after_server_end: usize,
     /// Site version after the last ack.
     pub map_version: u64,
+}
+
+/// What the server's ack of a session's end said.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SessionEnded {
+    /// Where the server put the session's last node in the site map after the end (`site_from_tracking`);
+    /// `None` when the session ended unplaced.
+    pub pose: Option<Rigid2>,
 }
 
 /// Whether a batch carries its session's end.
@@ -80,6 +89,8 @@ pub struct Uploader<U> {
     unstored: VecDeque<pb::UploadBatch>,
     /// The last outbox write failed for lack of space.
     outbox_full: bool,
+    /// Set when the server acknowledged this session's end.
+    session_end: Option<SessionEnded>,
 }
 
 impl<U: MapUplink> Uploader<U> {
@@ -102,6 +113,7 @@ impl<U: MapUplink> Uploader<U> {
             next_seq,
             opened: BTreeSet::new(),
             last_version: 0,
+            session_end: None,
             trajectory: None,
             unstored: VecDeque::new(),
             outbox_full: false,
@@ -188,6 +200,11 @@ impl<U: MapUplink> Uploader<U> {
         self.next_seq += 1;
         self.store_unstored()?;
         Ok(seq)
+    }
+
+    /// The server's acknowledgement of this session's end, once it came.
+    pub fn session_end(&self) -> Option<SessionEnded> {
+        self.session_end
     }
 
     /// Sends every pending batch in order (opening each session first on a new connection, and dropping
@@ -321,6 +338,11 @@ impl<U: MapUplink> Uploader<U> {
                 continue;
             }
             let ack = self.uplink.upload(&batch).await?;
+            if batch.session_uuid == self.session_uuid && ends_session(&batch) {
+                self.session_end = Some(SessionEnded {
+                    pose: ack.session_end_pose,
+                });
+            }
             if ack.duplicate {
                 stats.duplicates += 1;
             } else {
@@ -350,6 +372,45 @@ mod tests {
             points: vec![],
             insertion_submaps: vec![(0, rigid2(0.0, 0.0, 0.0))],
         })]
+    }
+
+    #[tokio::test]
+    async fn the_acknowledged_end_of_the_session_is_kept_and_only_its_own() {
+        let server = InMemoryUplink::new("s");
+        let outbox = Outbox::in_memory("s");
+        let mut uploader = Uploader::new(server.clone(), outbox.clone(), "s", "r", "sess").unwrap();
+        uploader.enqueue(&items(1)).unwrap();
+        uploader.flush().await.unwrap();
+        assert_eq!(uploader.session_end(), None, "not ended yet");
+        uploader.enqueue(&[UploadItem::SessionEnd]).unwrap();
+        uploader.flush().await.unwrap();
+        // The in-memory server places nothing: the end is acknowledged, with no pose.
+        assert_eq!(uploader.session_end(), Some(SessionEnded { pose: None }));
+        // A later session's uploader does not take the earlier session's end as its own.
+        let next = Uploader::new(server, outbox, "s", "r", "next").unwrap();
+        assert_eq!(next.session_end(), None);
+    }
+
+    #[test]
+    fn an_ack_with_a_malformed_end_pose_is_refused() {
+        let ack = |theta: f64| pb::Ack {
+            format_version: FORMAT_VERSION,
+            session_uuid: "sess".into(),
+            seq: 2,
+            map_version: 7,
+            duplicate: false,
+            session_end_pose: Some(pb::Pose2 {
+                x: 1.0,
+                y: 2.0,
+                theta,
+            }),
+        };
+        let acked = super::super::Acked::from_wire(&ack(0.5)).unwrap();
+        assert_eq!(acked.session_end_pose, Some(rigid2(1.0, 2.0, 0.5)));
+        assert!(matches!(
+            super::super::Acked::from_wire(&ack(f64::NAN)),
+            Err(UplinkError::Malformed(_))
+        ));
     }
 
     #[tokio::test]

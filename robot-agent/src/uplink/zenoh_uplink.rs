@@ -195,11 +195,7 @@ impl MapUplink for ZenohUplink {
     async fn upload(&mut self, batch: &pb::UploadBatch) -> Result<Acked, UplinkError> {
         let request = pb::zenoh_request::Request::Upload(batch.clone());
         match self.call_one(request).await? {
-            pb::zenoh_reply::Reply::Ack(ack) => Ok(Acked {
-                seq: ack.seq,
-                map_version: ack.map_version,
-                duplicate: ack.duplicate,
-            }),
+            pb::zenoh_reply::Reply::Ack(ack) => Acked::from_wire(&ack),
             other => Err(unexpected("Ack", &other)),
         }
     }

@@ -98,6 +98,7 @@ impl pb::agent_service_server::AgentService for AgentApi {
                 seq: ack.seq,
                 map_version: ack.map_version,
                 duplicate: ack.duplicate,
+                session_end_pose: ack.session_end_pose.as_ref().map(proto::pose_to_pb),
             }))
         }
         .instrument(span)

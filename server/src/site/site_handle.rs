@@ -24,7 +24,7 @@ pub struct VersionInfo {
 }
 
 /// The answer to an upload, sent once the batch is durably stored and applied.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct UploadAck {
     /// The batch's sequence number.
     pub seq: u64,
@@ -32,6 +32,9 @@ pub struct UploadAck {
     pub map_version: u64,
     /// The batch had already been applied and was not applied again.
     pub duplicate: bool,
+    /// For a batch that ended its session: the session's last node in the site map, if the session is
+    /// placed ([`super::SiteMap::session_end_pose`]).
+    pub session_end_pose: Option<Rigid2>,
 }
 
 /// A rendered site map.

@@ -684,6 +684,30 @@ impl SiteMap {
             .collect()
     }
 
+    /// Where a session's last node is in the site map (`site_from_tracking`), if the session is placed
+    /// and still has nodes: what a robot keeps as its dock when its session ends.
+    pub fn session_end_pose(&self, session_uuid: &str) -> Option<Rigid2> {
+        let trajectory = self.sessions.get(session_uuid)?.trajectory;
+        if !self.map.is_placed(trajectory) {
+            return None;
+        }
+        let (last, _) = self
+            .map
+            .global()
+            .nodes()
+            .range(
+                NodeId {
+                    trajectory,
+                    index: 0,
+                }..=NodeId {
+                    trajectory,
+                    index: u32::MAX,
+                },
+            )
+            .next_back()?;
+        self.map.global().node_pose(*last)
+    }
+
     /// Whether the session is known and closed.
     pub fn is_closed(&self, session_uuid: &str) -> bool {
         self.sessions.get(session_uuid).is_some_and(|s| s.closed)

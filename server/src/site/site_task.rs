@@ -1073,10 +1073,15 @@ impl SiteTask {
         if let UploadCheck::Duplicate { .. } = map.check_upload(&batch)? {
             self.durable().await?;
             self.metrics.upload_duplicate();
+            let map = self.map()?;
             return Ok(UploadAck {
                 seq: batch.seq,
-                map_version: self.map()?.version(),
+                map_version: map.version(),
                 duplicate: true,
+                session_end_pose: batch
+                    .ends_session()
+                    .then(|| map.session_end_pose(&batch.session_uuid))
+                    .flatten(),
             });
         }
         let version = map.version() + 1;
@@ -1122,10 +1127,14 @@ impl SiteTask {
         }
         self.durable().await?;
         self.publish();
+        let session_end_pose = ends_session
+            .then(|| self.map().ok()?.session_end_pose(&session))
+            .flatten();
         Ok(UploadAck {
             seq,
             map_version: version,
             duplicate: false,
+            session_end_pose,
         })
     }
 

@@ -389,6 +389,14 @@ fn an_unplaced_session_is_not_published_and_is_dropped_when_it_ends() {
     assert_eq!((counts.dropped_sessions, counts.trimmed_submaps), (1, 0));
     assert!(map.delta_since(before_end).unwrap().trimmed.is_empty());
     assert!(map.node_poses().keys().all(|n| n.trajectory == 0));
+    // The robot's next dock: the base session ended at its last node; the dropped one nowhere.
+    let last = map.node_poses()[&NodeId {
+        trajectory: 0,
+        index: 5,
+    }];
+    assert_eq!(map.session_end_pose("a"), Some(last));
+    assert_eq!(map.session_end_pose("b"), None);
+    assert_eq!(map.session_end_pose("unknown"), None);
 }
 
 #[test]

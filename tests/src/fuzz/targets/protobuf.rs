@@ -242,6 +242,11 @@ fn seeds() -> Vec<Vec<u8>> {
                 seq: 3,
                 map_version: 8,
                 duplicate: false,
+                session_end_pose: Some(pb::Pose2 {
+                    x: 1.0,
+                    y: 2.0,
+                    theta: 0.5,
+                }),
             },
         ),
         tagged(12, &close),
