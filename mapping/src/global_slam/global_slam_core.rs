@@ -508,16 +508,7 @@ impl GlobalSlam {
         self.global_from_local.insert(trajectory, global_from_local);
         self.unanchored.remove(&trajectory);
         let nodes: Vec<NodeId> = self
-            .nodes
-            .range(
-                NodeId {
-                    trajectory,
-                    index: 0,
-                }..=NodeId {
-                    trajectory,
-                    index: u32::MAX,
-                },
-            )
+            .trajectory_nodes(trajectory)
             .map(|(id, _)| *id)
             .collect();
         for node in nodes {
@@ -805,6 +796,22 @@ impl GlobalSlam {
     /// All nodes, by id.
     pub fn nodes(&self) -> &BTreeMap<NodeId, NodeRecord> {
         &self.nodes
+    }
+
+    /// The nodes of one trajectory, in index order.
+    pub fn trajectory_nodes(
+        &self,
+        trajectory: u32,
+    ) -> std::collections::btree_map::Range<'_, NodeId, NodeRecord> {
+        self.nodes.range(
+            NodeId {
+                trajectory,
+                index: 0,
+            }..=NodeId {
+                trajectory,
+                index: u32::MAX,
+            },
+        )
     }
 
     /// All submaps, by id.

@@ -691,20 +691,7 @@ impl SiteMap {
         if !self.map.is_placed(trajectory) {
             return None;
         }
-        let (last, _) = self
-            .map
-            .global()
-            .nodes()
-            .range(
-                NodeId {
-                    trajectory,
-                    index: 0,
-                }..=NodeId {
-                    trajectory,
-                    index: u32::MAX,
-                },
-            )
-            .next_back()?;
+        let (last, _) = self.map.global().trajectory_nodes(trajectory).next_back()?;
         self.map.global().node_pose(*last)
     }
 
