@@ -27,6 +27,7 @@ pub use published_submaps::PublishedSubmaps;
 pub use session_view::{PlacementState, SessionView};
 pub use site_error::SiteError;
 pub use site_handle::{RenderedMap, SiteHandle, UploadAck, VersionInfo};
+pub(crate) use site_map::copy_counts;
 pub use site_map::{MapCounts, SessionOpened, SessionStartCounts, SiteMap, UploadCheck};
 pub(crate) use site_task::site_span;
 pub use site_task::{DEFAULT_SITE_UNLOAD_AFTER, SITE_LOG_KIND, SiteTask, SiteTaskOptions};

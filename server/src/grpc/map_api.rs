@@ -9,7 +9,7 @@ use tonic::{Request, Response, Status};
 
 use super::{ApiContext, status};
 use crate::map_image_bytes::encode_map;
-use crate::site::VersionInfo;
+use crate::site::{VersionInfo, copy_counts};
 
 /// The `MapService` implementation.
 #[derive(Clone)]
@@ -31,17 +31,7 @@ pub fn version_to_pb(site: &str, info: &VersionInfo) -> pb::MapVersion {
         format_version: FORMAT_VERSION,
         site: site.to_owned(),
         version: info.version,
-        counts: Some(pb::MapCounts {
-            sessions: c.sessions,
-            nodes: c.nodes,
-            submaps: c.submaps,
-            finished_submaps: c.finished_submaps,
-            constraints: c.constraints,
-            trimmed_submaps: c.trimmed_submaps,
-            dropped_sessions: c.dropped_sessions,
-            loop_closures: c.loop_closures,
-            open_sessions: c.open_sessions,
-        }),
+        counts: Some(copy_counts!(c => pb::MapCounts {})),
     }
 }
 

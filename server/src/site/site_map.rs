@@ -29,7 +29,10 @@ use mapping::lifelong::{
 };
 use mapping::pose_graph::{NodeId, SubmapId};
 pub use proto::SessionStartCounts;
-use proto::{MapDelta, NodeAdded, RobotPrior, SubmapSnapshot, UploadBatch, UploadItem};
+use proto::{
+    MapDelta, NodeAdded, PublishedSubmapState, RobotPrior, SiteSessionState, SubmapSnapshot,
+    UploadBatch, UploadItem,
+};
 
 use super::map_history::{HistoryEntry, MapHistory};
 use super::published_submaps::{PublishedSubmap, PublishedSubmaps};
@@ -38,21 +41,6 @@ use super::{SiteError, SiteView};
 
 /// Two poses closer than this (m, rad) are the same pose for delta purposes.
 const POSE_EPSILON: f64 = 1e-9;
-
-#[derive(Clone, Debug)]
-struct Session {
-    robot_id: String,
-    trajectory: u32,
-    last_seq: u64,
-    closed: bool,
-    /// The agent's relocalized `global_from_local` (its dock placement or a search's), if it sent one.
-    prior: Option<RobotPrior>,
-    /// The agent matches the session's nodes against the map itself (GLM on the robot).
-    glm_on_robot: bool,
-    nodes: u64,
-    /// It ended unplaced or on probation and was dropped.
-    dropped: bool,
-}
 
 /// What opening a session gave.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -114,22 +102,34 @@ pub struct MapCounts {
     pub open_sessions: u64,
 }
 
-#[derive(Clone, Debug)]
-struct SubmapVersions {
-    /// Version at which the grid was stored.
-    revision: u64,
-    /// Version at which the global pose last changed.
-    pose_version: u64,
-    /// The global pose at `pose_version`.
-    pose: Rigid2,
+/// A struct literal of type `$to` with the counts every form of a site's counts carries ([`MapCounts`],
+/// the wire's `MapCounts`, the stored summary's `SiteCounts`) copied from `$from`, then `$rest`: the
+/// fields only some forms have. The shared fields are listed here once.
+macro_rules! copy_counts {
+    ($from:expr => $to:path { $($rest:tt)* }) => {{
+        let from = &$from;
+        $to {
+            sessions: from.sessions,
+            nodes: from.nodes,
+            submaps: from.submaps,
+            finished_submaps: from.finished_submaps,
+            constraints: from.constraints,
+            trimmed_submaps: from.trimmed_submaps,
+            dropped_sessions: from.dropped_sessions,
+            loop_closures: from.loop_closures,
+            open_sessions: from.open_sessions,
+            $($rest)*
+        }
+    }};
 }
+pub(crate) use copy_counts;
 
 /// One site's map, its sessions and its version history.
 pub struct SiteMap {
     site: String,
     map: LifelongMap,
-    sessions: BTreeMap<String, Session>,
-    submap_versions: BTreeMap<SubmapId, SubmapVersions>,
+    sessions: BTreeMap<String, SiteSessionState>,
+    submap_versions: BTreeMap<SubmapId, PublishedSubmapState>,
     /// Every submap trimmed so far and the version that trimmed it (shared with the published versions).
     trimmed: Arc<BTreeMap<SubmapId, u64>>,
     version: u64,
@@ -225,7 +225,7 @@ impl SiteMap {
         }
         self.sessions.insert(
             session_uuid.to_owned(),
-            Session {
+            SiteSessionState {
                 robot_id: robot_id.to_owned(),
                 trajectory,
                 last_seq: 0,
@@ -240,7 +240,7 @@ impl SiteMap {
         Ok(())
     }
 
-    fn session(&self, robot_id: &str, session_uuid: &str) -> Result<&Session, SiteError> {
+    fn session(&self, robot_id: &str, session_uuid: &str) -> Result<&SiteSessionState, SiteError> {
         let session = self
             .sessions
             .get(session_uuid)
@@ -722,7 +722,7 @@ impl SiteMap {
                 None => {
                     self.submap_versions.insert(
                         id,
-                        SubmapVersions {
+                        PublishedSubmapState {
                             revision: version,
                             pose_version: version,
                             pose,
@@ -851,7 +851,7 @@ impl SiteMap {
         self.optimizations
     }
 
-    fn snapshot(&self, id: SubmapId, versions: &SubmapVersions) -> Option<SubmapSnapshot> {
+    fn snapshot(&self, id: SubmapId, versions: &PublishedSubmapState) -> Option<SubmapSnapshot> {
         let global = self.map.global();
         let record = global.submaps().get(&id)?;
         Some(SubmapSnapshot {

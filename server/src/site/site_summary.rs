@@ -17,7 +17,9 @@ use prost::Message as _;
 use proto::{ConversionError, FORMAT_VERSION, pb};
 use storage::{MapStore, RecordId, RecordKind};
 
-use super::{MapCounts, PlacementState, SessionView, SiteError, SiteView, VersionInfo};
+use super::{
+    MapCounts, PlacementState, SessionView, SiteError, SiteView, VersionInfo, copy_counts,
+};
 
 /// The record kind a site's summary is stored under.
 pub(crate) const SUMMARY_KIND: RecordKind = RecordKind::SiteMeta;
@@ -94,22 +96,13 @@ impl SiteSummary {
         pb::SiteSummary {
             format_version: FORMAT_VERSION,
             version: self.info.version,
-            counts: Some(pb::SiteCounts {
-                sessions: c.sessions,
-                nodes: c.nodes,
-                submaps: c.submaps,
-                finished_submaps: c.finished_submaps,
-                constraints: c.constraints,
-                trimmed_submaps: c.trimmed_submaps,
-                dropped_sessions: c.dropped_sessions,
-                loop_closures: c.loop_closures,
+            counts: Some(copy_counts!(c => pb::SiteCounts {
                 loop_closure_searches: c.loop_closure_searches,
                 loop_closures_outvoted: c.loop_closures_outvoted,
                 loop_closures_beyond_drift: c.loop_closures_beyond_drift,
                 loop_closures_retracted: c.loop_closures_retracted,
                 session_starts: Some(c.session_starts.into()),
-                open_sessions: c.open_sessions,
-            }),
+            })),
             sessions: self.sessions.iter().map(session_to_pb).collect(),
         }
         .encode_to_vec()
@@ -132,22 +125,13 @@ impl SiteSummary {
                 message: "SiteCounts",
                 field: "session_starts",
             })?;
-        let counts = MapCounts {
-            sessions: c.sessions,
-            nodes: c.nodes,
-            submaps: c.submaps,
-            finished_submaps: c.finished_submaps,
-            constraints: c.constraints,
-            trimmed_submaps: c.trimmed_submaps,
-            dropped_sessions: c.dropped_sessions,
-            loop_closures: c.loop_closures,
+        let counts = copy_counts!(c => MapCounts {
             loop_closure_searches: c.loop_closure_searches,
             loop_closures_outvoted: c.loop_closures_outvoted,
             loop_closures_beyond_drift: c.loop_closures_beyond_drift,
             loop_closures_retracted: c.loop_closures_retracted,
             session_starts: session_starts.into(),
-            open_sessions: c.open_sessions,
-        };
+        });
         let sessions = message
             .sessions
             .iter()

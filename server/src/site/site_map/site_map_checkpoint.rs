@@ -22,11 +22,9 @@
 use std::sync::Arc;
 
 use mapping::lifelong::LifelongOptions;
-use proto::{
-    PublishedSubmapState, RestoreError, SiteCheckpoint, SiteServerState, SiteSessionState,
-};
+use proto::{RestoreError, SiteCheckpoint, SiteServerState};
 
-use super::{MapHistory, Session, SiteMap, SubmapVersions};
+use super::{MapHistory, SiteMap};
 use crate::site::SiteError;
 use crate::site::map_history::HistoryEntry;
 
@@ -45,39 +43,8 @@ impl SiteMap {
         debug_assert!(self.searched.is_empty(), "searched without a running start");
         let mut checkpoint = SiteCheckpoint::of(&self.map, self.version, self.version);
         checkpoint.site = SiteServerState {
-            sessions: self
-                .sessions
-                .iter()
-                .map(|(uuid, s)| {
-                    (
-                        uuid.clone(),
-                        SiteSessionState {
-                            robot_id: s.robot_id.clone(),
-                            trajectory: s.trajectory,
-                            last_seq: s.last_seq,
-                            closed: s.closed,
-                            prior: s.prior,
-                            glm_on_robot: s.glm_on_robot,
-                            nodes: s.nodes,
-                            dropped: s.dropped,
-                        },
-                    )
-                })
-                .collect(),
-            published: self
-                .submap_versions
-                .iter()
-                .map(|(id, v)| {
-                    (
-                        *id,
-                        PublishedSubmapState {
-                            revision: v.revision,
-                            pose_version: v.pose_version,
-                            pose: v.pose,
-                        },
-                    )
-                })
-                .collect(),
+            sessions: self.sessions.clone(),
+            published: self.submap_versions.clone(),
             trimmed: std::collections::BTreeMap::clone(&self.trimmed),
             optimizations: self.optimizations,
             dropped_sessions: self.dropped_sessions,
@@ -127,39 +94,8 @@ impl SiteMap {
         let mut restored = Self {
             site: site.into(),
             map,
-            sessions: state
-                .sessions
-                .into_iter()
-                .map(|(uuid, s)| {
-                    (
-                        uuid,
-                        Session {
-                            robot_id: s.robot_id,
-                            trajectory: s.trajectory,
-                            last_seq: s.last_seq,
-                            closed: s.closed,
-                            prior: s.prior,
-                            glm_on_robot: s.glm_on_robot,
-                            nodes: s.nodes,
-                            dropped: s.dropped,
-                        },
-                    )
-                })
-                .collect(),
-            submap_versions: state
-                .published
-                .into_iter()
-                .map(|(id, p)| {
-                    (
-                        id,
-                        SubmapVersions {
-                            revision: p.revision,
-                            pose_version: p.pose_version,
-                            pose: p.pose,
-                        },
-                    )
-                })
-                .collect(),
+            sessions: state.sessions,
+            submap_versions: state.published,
             trimmed: Arc::new(state.trimmed),
             version,
             optimizations: state.optimizations,
