@@ -55,6 +55,8 @@ pub(crate) enum Command {
     },
     Upload {
         batch: Box<UploadBatch>,
+        /// When the request reached the site (the task's queue wait is logged).
+        sent: std::time::Instant,
         reply: oneshot::Sender<Result<UploadAck, SiteError>>,
     },
     CloseSession {
@@ -229,6 +231,7 @@ impl SiteHandle {
     pub async fn upload(&self, batch: UploadBatch) -> Result<UploadAck, SiteError> {
         self.ask(|reply| Command::Upload {
             batch: Box::new(batch),
+            sent: std::time::Instant::now(),
             reply,
         })
         .await?

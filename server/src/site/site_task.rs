@@ -89,7 +89,9 @@ use std::time::{Duration, Instant};
 
 use mapping::lifelong::{LifelongOptions, render_submaps_log_odds};
 use prost::Message as _;
-use proto::{CHECKPOINT_FORMAT_VERSION, FORMAT_VERSION, SiteCheckpoint, UploadBatch, pb};
+use proto::{
+    CHECKPOINT_FORMAT_VERSION, FORMAT_VERSION, SiteCheckpoint, UploadBatch, UploadItem, pb,
+};
 use storage::{BatchOutcome, MapStore, RecordKind, WriteBatch};
 use tokio::sync::{mpsc, watch};
 use tokio::task::JoinHandle;
@@ -423,10 +425,10 @@ impl SiteTask {
                     let _ = reply.send(opened);
                     self.heard(&session_uuid);
                 }
-                Command::Upload { batch, reply } => {
+                Command::Upload { batch, sent, reply } => {
                     let session = batch.session_uuid.clone();
                     let span = session_span(&batch.robot_id, &session);
-                    let _ = reply.send(self.upload(*batch).instrument(span).await);
+                    let _ = reply.send(self.upload(*batch, sent).instrument(span).await);
                     self.heard(&session);
                 }
                 Command::CloseSession {
@@ -1067,7 +1069,7 @@ impl SiteTask {
         Ok((opened, version))
     }
 
-    async fn upload(&mut self, batch: UploadBatch) -> Result<UploadAck, SiteError> {
+    async fn upload(&mut self, batch: UploadBatch, sent: Instant) -> Result<UploadAck, SiteError> {
         self.check_store().await?;
         let map = self.map()?;
         if let UploadCheck::Duplicate { .. } = map.check_upload(&batch)? {
@@ -1099,6 +1101,12 @@ impl SiteTask {
         )
         .await?;
         let (seq, session) = (batch.seq, batch.session_uuid.clone());
+        let (nodes, submaps_finished) =
+            batch.items.iter().fold((0, 0), |(n, s), item| match item {
+                UploadItem::NodeAdded(_) => (n + 1, s),
+                UploadItem::SubmapFinished { .. } => (n, s + 1),
+                _ => (n, s),
+            });
         let started = Instant::now();
         let ends_session = batch.ends_session();
         let apply = move |map: &mut SiteMap| map.apply_upload(&batch, version);
@@ -1111,6 +1119,11 @@ impl SiteTask {
         self.metrics.record_pgr(applying);
         tracing::debug!(
             version,
+            nodes,
+            submaps_finished,
+            ends_session,
+            optimizations = applied.as_ref().ok(),
+            queue_seconds = (received - sent).as_secs_f64(),
             store_seconds = (started - received).as_secs_f64(),
             apply_seconds = applying.as_secs_f64(),
             "upload applied"
