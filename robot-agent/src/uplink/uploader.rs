@@ -386,8 +386,21 @@ mod tests {
         uploader.flush().await.unwrap();
         // The in-memory server places nothing: the end is acknowledged, with no pose.
         assert_eq!(uploader.session_end(), Some(SessionEnded { pose: None }));
-        // A later session's uploader does not take the earlier session's end as its own.
-        let next = Uploader::new(server, outbox, "s", "r", "next").unwrap();
+        // An interrupted session's end, delivered by the next run's uploader, is not that run's own.
+        let mut interrupted =
+            Uploader::new(server.clone(), outbox.clone(), "s", "r", "old").unwrap();
+        interrupted.enqueue(&items(2)).unwrap();
+        interrupted.enqueue(&[UploadItem::SessionEnd]).unwrap();
+        let mut next = Uploader::new(server.clone(), outbox, "s", "r", "next").unwrap();
+        next.enqueue(&items(3)).unwrap();
+        let stats = next.flush().await.unwrap();
+        assert_eq!(stats.interrupted_ended, 1);
+        let ends = server
+            .applied()
+            .iter()
+            .filter(|b| b.session_uuid == "old" && ends_session(b))
+            .count();
+        assert_eq!(ends, 1, "the interrupted session's end reached the server");
         assert_eq!(next.session_end(), None);
     }
 
