@@ -52,55 +52,9 @@ pub struct PublishedSubmapState {
     pub pose: Rigid2,
 }
 
-/// The decisions of a site's session starts (`mapping::lifelong::SessionStart`, every session but the
-/// first) since the site began, counted as the site acts on them; kept in its checkpoint.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct SessionStartCounts {
-    /// Sessions that came with their robot's placement (a `SessionStartPrior`), put on probation (or
-    /// committed at once when no match is asked for).
-    pub priors: u64,
-    /// Whole-map searches by the server that placed their session, on probation
-    /// (`SessionStartEvent::Placed`).
-    pub placed: u64,
-    /// Whole-map searches by the server that did not place their session (`SessionStartEvent::Refused`).
-    pub refused: u64,
-    /// Whole-map searches by the server after a session's first one (placed or refused).
-    pub retries: u64,
-    /// Placements committed (`SessionStartEvent::Committed`), a robot's prior or the server's own.
-    pub committed: u64,
-    /// Placements revoked (`SessionStartEvent::Revoked`).
-    pub revoked: u64,
-    /// Sessions that stopped searching unplaced (`SessionStartEvent::GaveUp`).
-    pub gave_up: u64,
-}
-
-impl From<SessionStartCounts> for pb::SessionStartCountsState {
-    fn from(c: SessionStartCounts) -> Self {
-        Self {
-            priors: c.priors,
-            placed: c.placed,
-            refused: c.refused,
-            retries: c.retries,
-            committed: c.committed,
-            revoked: c.revoked,
-            gave_up: c.gave_up,
-        }
-    }
-}
-
-impl From<&pb::SessionStartCountsState> for SessionStartCounts {
-    fn from(c: &pb::SessionStartCountsState) -> Self {
-        Self {
-            priors: c.priors,
-            placed: c.placed,
-            refused: c.refused,
-            retries: c.retries,
-            committed: c.committed,
-            revoked: c.revoked,
-            gave_up: c.gave_up,
-        }
-    }
-}
+/// The decisions of a site's session starts, counted as the site acts on them (the proto message itself:
+/// one set of fields, documented in `site_checkpoint.proto`).
+pub type SessionStartCounts = pb::SessionStartCountsState;
 
 /// The server's part of a site's state (see the module docs).
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -167,7 +121,7 @@ pub(super) fn site_to_pb(s: &SiteServerState) -> pb::SiteServerState {
         dropped_sessions: s.dropped_sessions,
         robot_revoked: s.robot_revoked.iter().copied().collect(),
         base: s.base,
-        session_starts: Some(c.into()),
+        session_starts: Some(c),
     }
 }
 
@@ -255,6 +209,6 @@ pub(super) fn site_from_pb(s: &pb::SiteServerState) -> Result<SiteServerState, C
         dropped_sessions: s.dropped_sessions,
         robot_revoked: s.robot_revoked.iter().copied().collect(),
         base: s.base,
-        session_starts: c.into(),
+        session_starts: *c,
     })
 }

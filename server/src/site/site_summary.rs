@@ -101,7 +101,7 @@ impl SiteSummary {
                 loop_closures_outvoted: c.loop_closures_outvoted,
                 loop_closures_beyond_drift: c.loop_closures_beyond_drift,
                 loop_closures_retracted: c.loop_closures_retracted,
-                session_starts: Some(c.session_starts.into()),
+                session_starts: Some(c.session_starts),
             })),
             sessions: self.sessions.iter().map(session_to_pb).collect(),
         }
@@ -130,7 +130,7 @@ impl SiteSummary {
             loop_closures_outvoted: c.loop_closures_outvoted,
             loop_closures_beyond_drift: c.loop_closures_beyond_drift,
             loop_closures_retracted: c.loop_closures_retracted,
-            session_starts: session_starts.into(),
+            session_starts: *session_starts,
         });
         let sessions = message
             .sessions
