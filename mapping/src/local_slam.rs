@@ -14,8 +14,9 @@ mod voxel_filter;
 pub use active_submaps::{ActiveSubmaps, SubmapsOptions};
 pub use llo_driver::{LloDriver, LloEvent};
 pub use local_trajectory_builder::{
-    CorrelativeBranch, InsertionResult, LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions,
-    LocalTrajectoryBuilderOptionsError, MatchingResult, NodeParts, TrajectoryNodeData,
+    CorrelativeBranch, InsertionResult, LloNode, LocalTrajectoryBuilder,
+    LocalTrajectoryBuilderOptions, LocalTrajectoryBuilderOptionsError, MatchingResult,
+    TrajectoryNodeData,
 };
 pub use motion_filter::{MotionFilter, MotionFilterOptions};
 pub use pose_extrapolator::{PoseExtrapolator, PoseExtrapolatorOptions};

@@ -40,7 +40,8 @@ use site_server_state::{site_from_pb, site_to_pb};
 /// `LifelongMapState` added, removed or reinterpreted).
 ///
 /// Version 2: the server's part of the site ([`SiteServerState`], field 6) added and required.
-pub const CHECKPOINT_FORMAT_VERSION: u32 = 2;
+/// Version 3: `GlobalSlamState.recovery_path` (the heading doubt of LLO recoveries) added.
+pub const CHECKPOINT_FORMAT_VERSION: u32 = 3;
 
 /// A site's map state and the log position it covers.
 #[derive(Clone, Debug, PartialEq)]
@@ -483,14 +484,8 @@ fn global_to_pb(g: &GlobalSlamState) -> pb::GlobalSlamState {
         searches_queued: g.searches_queued as u64,
         unanchored: g.unanchored.iter().copied().collect(),
         matched_elsewhere: g.matched_elsewhere.iter().copied().collect(),
-        last_loop_path: g
-            .last_loop_path
-            .iter()
-            .map(|(t, path_m)| pb::TrajectoryPath {
-                trajectory: *t,
-                path_m: *path_m,
-            })
-            .collect(),
+        last_loop_path: trajectory_paths_to_pb(&g.last_loop_path),
+        recovery_path: trajectory_paths_to_pb(&g.recovery_path),
         closures_beyond_drift: g.closures_beyond_drift as u64,
         pending_beyond_drift: pending_to_pb(&g.pending_beyond_drift),
         closures_outvoted: g.closures_outvoted as u64,
@@ -669,16 +664,8 @@ fn global_from_pb(g: Option<&pb::GlobalSlamState>) -> Result<GlobalSlamState, Co
             }
         });
     }
-    let last_loop_path = g
-        .last_loop_path
-        .iter()
-        .map(|t| {
-            Ok((
-                t.trajectory,
-                check_finite(t.path_m, "TrajectoryPath", "path_m")?,
-            ))
-        })
-        .collect::<Result<BTreeMap<_, _>, ConversionError>>()?;
+    let last_loop_path = trajectory_paths_from_pb(&g.last_loop_path)?;
+    let recovery_path = trajectory_paths_from_pb(&g.recovery_path)?;
     Ok(GlobalSlamState {
         graph: graph_from_pb(g.graph.as_ref())?,
         nodes,
@@ -700,6 +687,7 @@ fn global_from_pb(g: Option<&pb::GlobalSlamState>) -> Result<GlobalSlamState, Co
         unanchored: g.unanchored.iter().copied().collect(),
         matched_elsewhere: g.matched_elsewhere.iter().copied().collect(),
         last_loop_path,
+        recovery_path,
         closures_beyond_drift: to_usize(g.closures_beyond_drift, M, "closures_beyond_drift")?,
         pending_beyond_drift: pending_from_pb(&g.pending_beyond_drift)?,
         closures_outvoted: to_usize(g.closures_outvoted, M, "closures_outvoted")?,
@@ -770,3 +758,27 @@ fn map_from_pb(m: &pb::LifelongMapState) -> Result<LifelongMapState, ConversionE
 
 #[cfg(test)]
 mod tests;
+
+fn trajectory_paths_to_pb(paths: &BTreeMap<u32, f64>) -> Vec<pb::TrajectoryPath> {
+    paths
+        .iter()
+        .map(|(t, path_m)| pb::TrajectoryPath {
+            trajectory: *t,
+            path_m: *path_m,
+        })
+        .collect()
+}
+
+fn trajectory_paths_from_pb(
+    paths: &[pb::TrajectoryPath],
+) -> Result<BTreeMap<u32, f64>, ConversionError> {
+    paths
+        .iter()
+        .map(|t| {
+            Ok((
+                t.trajectory,
+                check_finite(t.path_m, "TrajectoryPath", "path_m")?,
+            ))
+        })
+        .collect()
+}

@@ -2,6 +2,7 @@
 
 use mapping::geometry::Rigid2;
 use mapping::grid::ProbabilityGrid;
+use mapping::local_slam::LloNode;
 use mapping::pose_graph::SubmapId;
 use mapping::sensor::Timestamp;
 use nalgebra::Point2;
@@ -23,6 +24,27 @@ pub struct NodeAdded {
     pub points: Vec<Point2<f32>>,
     /// `(index, local_from_submap)` of each submap the node was inserted into.
     pub insertion_submaps: Vec<(u32, Rigid2)>,
+    /// See `mapping::local_slam::TrajectoryNodeData::recovered`.
+    pub recovered: bool,
+}
+
+impl NodeAdded {
+    /// The node as global SLAM takes it, with the submaps its insertion finished (`(index, grid)`, the
+    /// `SubmapFinished` items after it).
+    pub fn to_llo_node(&self, finished_submaps: Vec<(usize, ProbabilityGrid)>) -> LloNode {
+        LloNode {
+            time: self.time,
+            local_pose: self.local_pose,
+            points: self.points.clone(),
+            insertion_submaps: self
+                .insertion_submaps
+                .iter()
+                .map(|(index, pose)| (*index as usize, *pose))
+                .collect(),
+            finished_submaps,
+            recovered: self.recovered,
+        }
+    }
 }
 
 /// One item of an [`UploadBatch`].
@@ -107,6 +129,7 @@ impl From<&UploadItem> for pb::UploadItem {
                         local_pose: Some(pose_to_pb(pose)),
                     })
                     .collect(),
+                recovered: node.recovered,
             }),
             UploadItem::SubmapFinished { index, grid } => {
                 Item::SubmapFinished(pb::SubmapFinished {
@@ -170,6 +193,7 @@ impl TryFrom<&pb::UploadItem> for UploadItem {
                     local_pose: pose_from_pb(node.local_pose.as_ref(), M, "local_pose")?,
                     points: points_from_pb(&node.points_xy, M, "points_xy")?,
                     insertion_submaps,
+                    recovered: node.recovered,
                 }))
             }
             Some(Item::SubmapFinished(submap)) => Ok(Self::SubmapFinished {
@@ -341,6 +365,7 @@ mod tests {
                     local_pose: rigid2(0.25, 0.5, 0.125),
                     points: vec![Point2::new(1.0, 2.0)],
                     insertion_submaps: vec![(0, rigid2(0.0, 0.0, 0.0)), (1, rigid2(0.5, 0.0, 0.0))],
+                    recovered: true,
                 }),
                 UploadItem::SubmapFinished { index: 0, grid },
                 UploadItem::GlobalMatch {

@@ -23,12 +23,11 @@ use mapping::lifelong::{
     SessionStart, SessionStartEvent, StartSearch, render_submaps_max,
 };
 use mapping::local_slam::{
-    LloDriver, LloEvent, LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions,
+    LloDriver, LloEvent, LloNode, LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions,
 };
 use mapping::metrics::{MatchScorer, ScoringOptions, SessionTrack, StartRecord};
 use mapping::pose_graph::NodeId;
 use mapping::sensor::{RangeData, SensorEvent, Timestamp};
-use nalgebra::Point2;
 use serde::{Deserialize, Serialize};
 
 use crate::map_probes::{MapProbe, MapProbes};
@@ -347,11 +346,7 @@ enum Message {
     },
     Node {
         session: u32,
-        time: Timestamp,
-        local_pose: Rigid2,
-        points: Vec<Point2<f32>>,
-        insertion_submaps: Vec<(usize, Rigid2)>,
-        finished_submaps: Vec<(usize, ProbabilityGrid)>,
+        node: LloNode,
     },
     Finish {
         session: u32,
@@ -508,14 +503,9 @@ pub fn run_session_inputs(
                     next_index += 1;
                     last_node = Some(id);
                     node_data.insert(id, (result.local_pose, range_data));
-                    let (points, insertion_submaps, finished_submaps) = insertion.into_node_parts();
                     let message = Message::Node {
                         session,
-                        time: result.time,
-                        local_pose: result.local_pose,
-                        points,
-                        insertion_submaps,
-                        finished_submaps,
+                        node: insertion.into_llo_node(),
                     };
                     alive = alive && send(message);
                     if !alive {
@@ -716,26 +706,13 @@ fn worker(
                     ..SessionRecord::default()
                 });
             }
-            Message::Node {
-                session,
-                time,
-                local_pose,
-                points,
-                insertion_submaps,
-                finished_submaps,
-            } => {
+            Message::Node { session, node } => {
+                let (time, local_pose) = (node.time, node.local_pose);
                 // The scans before this node were estimated from the map as it stands now.
                 probes.answer_before(time, |id| map.global().node_pose(id));
-                let scored_points = (session > 0).then(|| points.clone());
-                let start_points = start.as_ref().map(|_| points.clone());
-                let (id, events) = map.add_node(
-                    session,
-                    time,
-                    local_pose,
-                    points,
-                    &insertion_submaps,
-                    finished_submaps,
-                )?;
+                let scored_points = (session > 0).then(|| node.points.clone());
+                let start_points = start.as_ref().map(|_| node.points.clone());
+                let (id, events) = map.add_node(session, node)?;
                 node_local.insert(id, local_pose);
                 node_times.push(time);
                 let mut decisions = Vec::new();

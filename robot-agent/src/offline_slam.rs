@@ -17,10 +17,11 @@ use mapping::global_slam::{
 };
 use mapping::grid::{MapLimits, ProbabilityGrid, RangeDataInserter, RangeDataInserterOptions};
 use mapping::lifelong::{PlacedGrid, RelocalizationOptions, render_submaps_max};
-use mapping::local_slam::{CorrelativeBranch, LloDriver, LloEvent, LocalTrajectoryBuilderOptions};
+use mapping::local_slam::{
+    CorrelativeBranch, LloDriver, LloEvent, LloNode, LocalTrajectoryBuilderOptions,
+};
 use mapping::pose_graph::{NodeId, OptimizationSummary};
 use mapping::sensor::{OdometryReading, RangeData, RangeStats, SensorEvent, Timestamp};
-use nalgebra::Point2;
 use serde::Deserialize;
 
 use crate::source::{Recording, RecordingStream, SensorStream};
@@ -105,13 +106,7 @@ pub struct SlamRun {
 }
 
 enum WorkerMessage {
-    Node {
-        time: Timestamp,
-        local_pose: Rigid2,
-        points: Vec<Point2<f32>>,
-        insertion_submaps: Vec<(usize, Rigid2)>,
-        finished_submaps: Vec<(usize, ProbabilityGrid)>,
-    },
+    Node(LloNode),
 }
 
 /// What the worker tells the LLO thread after an optimization.
@@ -256,14 +251,7 @@ pub fn run_slam(
                 next_node_index += 1;
                 last_node = Some(id);
                 node_range_data.insert(id, range_data);
-                let (points, insertion_submaps, finished_submaps) = insertion.into_node_parts();
-                let message = WorkerMessage::Node {
-                    time: result.time,
-                    local_pose: result.local_pose,
-                    points,
-                    insertion_submaps,
-                    finished_submaps,
-                };
+                let message = WorkerMessage::Node(insertion.into_llo_node());
                 if sender.send(message).is_err() {
                     break; // the worker died; its join below reports why
                 }
@@ -389,21 +377,8 @@ fn global_worker(
     let mut optimizations = 0;
     for message in receiver {
         match message {
-            WorkerMessage::Node {
-                time,
-                local_pose,
-                points,
-                insertion_submaps,
-                finished_submaps,
-            } => {
-                global.add_node(
-                    0,
-                    time,
-                    local_pose,
-                    points,
-                    &insertion_submaps,
-                    finished_submaps,
-                )?;
+            WorkerMessage::Node(node) => {
+                global.add_node(0, node)?;
                 let jobs = global.take_search_jobs();
                 let results = run_searches(global.constraint_builder(), &jobs);
                 let events = global.add_search_results(results);

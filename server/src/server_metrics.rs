@@ -393,6 +393,7 @@ mod tests {
                 local_pose: rigid2(0.1 * f64::from(k), 0.0, 0.0),
                 points: vec![[1.0, 0.5].into(), [1.0, -0.5].into()],
                 insertion_submaps: vec![(k, rigid2(f64::from(k), 0.0, 0.0))],
+                recovered: false,
             }),
             UploadItem::SubmapFinished { index: k, grid },
         ]

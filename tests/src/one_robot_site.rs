@@ -35,6 +35,7 @@ impl OneRobotSite {
             local_pose: rigid2(0.1 * i as f64, 0.0, 0.0),
             points: vec![Point2::new(1.0, 0.5), Point2::new(2.0, 0.0)],
             insertion_submaps: vec![(0, rigid2(0.0, 0.0, 0.0))],
+            recovered: false,
         })]
     }
 

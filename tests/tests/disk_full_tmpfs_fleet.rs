@@ -105,6 +105,7 @@ fn node(i: i64) -> Vec<UploadItem> {
             .map(|k| Point2::new(1.0 + 0.01 * k as f32, 0.5))
             .collect(),
         insertion_submaps: vec![(0, rigid2(0.0, 0.0, 0.0))],
+        recovered: false,
     })]
 }
 

@@ -134,6 +134,7 @@ fn synthetic_batch(session: &str, seq: u64, nodes: u32) -> pb::UploadBatch {
                         theta: 0.0,
                     }),
                 }],
+                recovered: false,
             })),
         })
         .collect();
@@ -176,15 +177,8 @@ fn llo_groups(recording: &Recording, scans: usize) -> Vec<Vec<UploadItem>> {
     groups
 }
 
-type NodeGroup<'a> = (
-    &'a proto::NodeAdded,
-    Vec<(usize, mapping::geometry::Rigid2)>,
-    Vec<(usize, mapping::grid::ProbabilityGrid)>,
-);
-
-/// One node's LLO output as the map takes it: the node, its insertions `(index, local_from_submap)` and
-/// the submaps it finished.
-fn node_group(group: &[UploadItem]) -> NodeGroup<'_> {
+/// One node's LLO output as the map takes it: the node and the submaps it finished.
+fn node_group(group: &[UploadItem]) -> mapping::local_slam::LloNode {
     let Some(UploadItem::NodeAdded(node)) = group.first() else {
         panic!("a group starts with its node");
     };
@@ -195,12 +189,7 @@ fn node_group(group: &[UploadItem]) -> NodeGroup<'_> {
             other => panic!("unexpected {other:?}"),
         })
         .collect();
-    let insertion = node
-        .insertion_submaps
-        .iter()
-        .map(|(i, p)| (*i as usize, *p))
-        .collect();
-    (node, insertion, finished)
+    node.to_llo_node(finished)
 }
 
 /// The same nodes added in-process, node by node, as trajectory 0 of a fresh map, then optimized (the
@@ -208,16 +197,7 @@ fn node_group(group: &[UploadItem]) -> NodeGroup<'_> {
 fn reference_map(groups: &[Vec<UploadItem>]) -> GlobalSlam {
     let mut slam = GlobalSlam::new(GlobalSlamOptions::default()).unwrap();
     for group in groups {
-        let (node, insertion, finished) = node_group(group);
-        slam.add_node(
-            0,
-            node.time,
-            node.local_pose,
-            node.points.clone(),
-            &insertion,
-            finished,
-        )
-        .unwrap();
+        slam.add_node(0, node_group(group)).unwrap();
         slam.run_pending_searches();
     }
     slam.optimize();
@@ -938,16 +918,7 @@ fn reference_lifelong(
         let session = u32::try_from(session).unwrap();
         map.start_session(session, *prior).unwrap();
         for group in groups {
-            let (node, insertion, finished) = node_group(group);
-            map.add_node(
-                session,
-                node.time,
-                node.local_pose,
-                node.points.clone(),
-                &insertion,
-                finished,
-            )
-            .unwrap();
+            map.add_node(session, node_group(group)).unwrap();
             map.run_pending_searches([]);
         }
         map.finish_session(session).unwrap();

@@ -121,6 +121,7 @@ fn batch(k: i64) -> Vec<UploadItem> {
                 local_pose: rigid2(0.05 * i as f64, 0.0, 0.0),
                 points: vec![Point2::new(1.0, 0.5), Point2::new(2.0, 0.0)],
                 insertion_submaps: vec![(0, rigid2(0.0, 0.0, 0.0))],
+                recovered: false,
             })
         })
         .collect()

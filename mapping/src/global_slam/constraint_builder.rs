@@ -57,6 +57,12 @@ pub struct ConstraintBuilderOptions {
     pub angular_window_growth: f64,
     /// The translation window never grows beyond this (m). Default 20 m.
     pub max_linear_search_window: f64,
+    /// Heading doubt (rad) an LLO recovery adds to the drift model: after LLO placed a scan by a recovery
+    /// search (nothing near the prediction fitted), until the trajectory's next loop closure, the search
+    /// window and the drift bound of its later nodes against submaps begun before the recovery grow by
+    /// this rotation and by this much times the path since the recovery (m per m). 0 = off. Default
+    /// 0.26 rad (15°, GLM's own angular window). Why: `docs/TUNING.md#cb-recovery-heading-doubt`.
+    pub recovery_heading_doubt: f64,
     /// A loop closure only resets the window growth when its submap lies at least this far back along the
     /// trajectory (m). Default 20 m. Why: `docs/TUNING.md#cb-min-loop-length`.
     pub min_loop_length: f64,
@@ -121,6 +127,7 @@ impl Default for ConstraintBuilderOptions {
             linear_window_growth: 0.05,
             angular_window_growth: 0.0035,
             max_linear_search_window: 20.0,
+            recovery_heading_doubt: 0.26,
             min_loop_length: 20.0,
             max_innovation_translation: 0.5,
             max_innovation_rotation: 0.052,
@@ -179,6 +186,7 @@ impl ConstraintBuilderOptions {
             ("angular_window_growth", "rad/m", self.angular_window_growth),
             ("min_loop_length", "m", self.min_loop_length),
             ("agreement_path_length", "m", self.agreement_path_length),
+            ("recovery_heading_doubt", "rad", self.recovery_heading_doubt),
         ] {
             if !(value.is_finite() && value >= 0.0) {
                 return Err(GlobalSlamOptionsError::Invalid(format!(

@@ -18,6 +18,7 @@ use super::{
 };
 use crate::geometry::Rigid2;
 use crate::grid::ProbabilityGrid;
+use crate::local_slam::LloNode;
 use crate::pose_graph::{
     Constraint, ConstraintId, ConstraintKind, NodeId, OptimizationSummary, Optimizer, PoseGraph,
     PoseGraphError, RobustLoss, SubmapId, VariableId,
@@ -143,6 +144,9 @@ pub struct GlobalSlam {
     /// Per trajectory, the path length (m) of its latest node with an accepted loop closure that closed a
     /// loop (see `min_loop_length`): drift, and so the search window, grows from there.
     last_loop_path: BTreeMap<u32, f64>,
+    /// Per trajectory, the path length (m) of the node before its first LLO recovery since its last loop
+    /// closure (see `recovery_heading_doubt`).
+    recovery_path: BTreeMap<u32, f64>,
     /// Matches refused because they moved their node farther than drift can explain: those still waiting
     /// for a chorus or given up, not those a chorus confirmed later.
     closures_beyond_drift: usize,
@@ -201,6 +205,7 @@ impl GlobalSlam {
             capped_optimizer: None,
             matched_elsewhere: BTreeSet::new(),
             last_loop_path: BTreeMap::new(),
+            recovery_path: BTreeMap::new(),
             pending_unconfirmed: Vec::new(),
             closures_beyond_drift: 0,
             pending_beyond_drift: Vec::new(),
@@ -252,19 +257,24 @@ impl GlobalSlam {
         self.unanchored.contains(&trajectory)
     }
 
-    /// Adds a node that LLO inserted into the submaps `insertion_submaps` (`(index, local_from_submap)`
-    /// per submap, indices per trajectory), together with the submaps this insertion finished
-    /// (`(index, grid)`). Queues the loop-closure searches it makes possible (see
-    /// [`Self::take_search_jobs`]).
+    /// Adds a node of `trajectory` as LLO inserted it, together with the submaps its insertion finished.
+    /// Queues the loop-closure searches it makes possible (see [`Self::take_search_jobs`]).
     pub fn add_node(
         &mut self,
         trajectory: u32,
-        time: Timestamp,
-        local_pose: Rigid2,
-        points: Vec<Point2<f32>>,
-        insertion_submaps: &[(usize, Rigid2)],
-        finished_submaps: Vec<(usize, ProbabilityGrid)>,
+        node: LloNode,
     ) -> Result<(NodeId, Vec<GlobalSlamEvent>), GlobalSlamError> {
+        let LloNode {
+            time,
+            local_pose,
+            points,
+            insertion_submaps,
+            finished_submaps,
+            recovered,
+        } = node;
+        if recovered {
+            self.note_llo_recovery(trajectory);
+        }
         let mut events = Vec::new();
         let index = self.last_node.get(&trajectory).map_or(0, |n| n.index + 1);
         let id = NodeId { trajectory, index };
@@ -280,7 +290,7 @@ impl GlobalSlam {
         }
 
         let mut node_submaps = Vec::with_capacity(insertion_submaps.len());
-        for &(submap_index, local_from_submap) in insertion_submaps {
+        for &(submap_index, local_from_submap) in &insertion_submaps {
             let sid = SubmapId {
                 trajectory,
                 index: submap_index as u32,
@@ -481,6 +491,7 @@ impl GlobalSlam {
         self.pending_beyond_drift
             .retain(|(c, _)| !crosses(c.node, c.submap));
         self.last_loop_path.remove(&trajectory);
+        self.recovery_path.remove(&trajectory);
         self.unanchored.insert(trajectory);
         true
     }
@@ -902,11 +913,20 @@ mod tests {
 
     /// Adds the nodes `indices` of [`straight_run`]'s trajectory.
     pub(super) fn drive_on(global: &mut GlobalSlam, indices: std::ops::Range<u32>) {
+        drive_on_recovering(global, indices, None);
+    }
+
+    /// [`drive_on`], LLO having placed a scan by a recovery search just before node `recovered_at`.
+    fn drive_on_recovering(
+        global: &mut GlobalSlam,
+        indices: std::ops::Range<u32>,
+        recovered_at: Option<u32>,
+    ) {
         for i in indices {
-            let submaps: &[(usize, Rigid2)] = if i <= 10 {
-                &[(0, Rigid2::identity())]
+            let submaps = if i <= 10 {
+                vec![(0, Rigid2::identity())]
             } else {
-                &[(1, rigid2(2.2, 0.0, 0.0))]
+                vec![(1, rigid2(2.2, 0.0, 0.0))]
             };
             let finished = if i == 11 {
                 vec![(
@@ -921,16 +941,15 @@ mod tests {
             } else {
                 Vec::new()
             };
-            global
-                .add_node(
-                    0,
-                    Timestamp(i64::from(i) * 100_000_000),
-                    rigid2(0.2 * f64::from(i), 0.0, 0.0),
-                    vec![Point2::new(1.0, 0.0)],
-                    submaps,
-                    finished,
-                )
-                .expect("node added");
+            let node = LloNode {
+                time: Timestamp(i64::from(i) * 100_000_000),
+                local_pose: rigid2(0.2 * f64::from(i), 0.0, 0.0),
+                points: vec![Point2::new(1.0, 0.0)],
+                insertion_submaps: submaps,
+                finished_submaps: finished,
+                recovered: recovered_at == Some(i),
+            };
+            global.add_node(0, node).expect("node added");
         }
     }
 
@@ -1131,6 +1150,56 @@ mod tests {
         assert_eq!(checks.len(), 2);
         assert!(checks.iter().all(|c| c.acceptance.confirmed_by_agreement));
         assert_eq!(global.closures_beyond_drift(), 0);
+    }
+
+    #[test]
+    fn an_llo_recovery_adds_its_heading_doubt_to_the_nodes_after_it() {
+        let turned = rigid2(0.0, 0.0, 10f64.to_radians());
+        // Nodes 30 and 31 lie 6 m along: drift explains 3° + 0.2°/m, so two matches turned 10° against
+        // submap 0 are both beyond drift.
+        let mut global = straight_run(40);
+        global.add_search_results([wide_closure(30, turned)]);
+        global.add_search_results([wide_closure(31, turned)]);
+        assert!(global.accepted_loop_closures().is_empty());
+        assert_eq!(global.closures_beyond_drift(), 2);
+        // LLO recovered just before node 20 (3.8 m along): the same matches are within its 0.26 rad (15°) of doubt,
+        // far from the estimate, so the second confirms the first.
+        let mut global = straight_run(20);
+        drive_on_recovering(&mut global, 20..40, Some(20));
+        let node = |index| NodeId {
+            trajectory: 0,
+            index,
+        };
+        let submap_0 = SubmapId {
+            trajectory: 0,
+            index: 0,
+        };
+        let record = &global.nodes[&node(30)];
+        let window = global.search_window(node(30), record, submap_0, &global.submaps[&submap_0]);
+        let (doubt_rad, doubt_m) =
+            global.recovery_doubt(node(30), record, submap_0, &global.submaps[&submap_0]);
+        assert!((doubt_rad - 0.26).abs() < 1e-9);
+        assert!(
+            (doubt_m - 0.26 * 2.2).abs() < 1e-9,
+            "lever: 2.2 m since node 19"
+        );
+        assert!(window.angular_rad > 30f64.to_radians());
+        global.add_search_results([wide_closure(30, turned)]);
+        global.add_search_results([wide_closure(31, turned)]);
+        assert_eq!(global.accepted_loop_closures().len(), 2);
+        assert!(
+            global
+                .loop_closure_checks()
+                .iter()
+                .all(|c| c.acceptance.confirmed_by_agreement)
+        );
+        assert_eq!(global.closures_beyond_drift(), 0);
+        // A node before the recovery has no doubt.
+        let before = &global.nodes[&node(15)];
+        assert_eq!(
+            global.recovery_doubt(node(15), before, submap_0, &global.submaps[&submap_0]),
+            (0.0, 0.0)
+        );
     }
 
     #[test]

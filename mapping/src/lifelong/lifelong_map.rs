@@ -7,7 +7,6 @@ pub use lifelong_map_state::{LifelongMapState, SessionProgress};
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
 
-use nalgebra::Point2;
 use thiserror::Error;
 
 use super::{
@@ -19,6 +18,7 @@ use crate::global_slam::{
     ConstraintBuilder, GlobalSlam, GlobalSlamError, GlobalSlamEvent, LoopClosure, SearchJob,
 };
 use crate::grid::ProbabilityGrid;
+use crate::local_slam::LloNode;
 use crate::pose_graph::{
     Constraint, ConstraintId, NodeId, OptimizationSummary, SubmapId, VariableId,
 };
@@ -293,21 +293,10 @@ impl LifelongMap {
     pub fn add_node(
         &mut self,
         session: u32,
-        time: Timestamp,
-        local_pose: Rigid2,
-        points: Vec<Point2<f32>>,
-        insertion_submaps: &[(usize, Rigid2)],
-        finished_submaps: Vec<(usize, ProbabilityGrid)>,
+        node: LloNode,
     ) -> Result<(NodeId, Vec<LifelongEvent>), LifelongError> {
         self.active(session)?;
-        let (id, events) = self.global.add_node(
-            session,
-            time,
-            local_pose,
-            points,
-            insertion_submaps,
-            finished_submaps,
-        )?;
+        let (id, events) = self.global.add_node(session, node)?;
         Ok((id, events.into_iter().map(Into::into).collect()))
     }
 

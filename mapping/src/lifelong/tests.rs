@@ -11,6 +11,7 @@ use super::*;
 use crate::geometry::{Rigid2, rigid2};
 use crate::global_slam::{LoopClosure, SearchJob};
 use crate::grid::{CellIndex, MapLimits, ProbabilityGrid};
+use crate::local_slam::LloNode;
 use crate::pose_graph::SubmapId;
 use crate::sensor::Timestamp;
 
@@ -154,10 +155,15 @@ impl Site {
                 };
             let time = Timestamp(i64::from(session) * 1_000_000_000_000 + i as i64 * 100_000_000);
             let points = vec![Point2::new(1.0f32, 0.0); 10];
-            let (_, events) = self
-                .map
-                .add_node(session, time, local_pose, points, &insertion, finished)
-                .unwrap();
+            let node = LloNode {
+                time,
+                local_pose,
+                points,
+                insertion_submaps: insertion,
+                finished_submaps: finished,
+                recovered: false,
+            };
+            let (_, events) = self.map.add_node(session, node).unwrap();
             self.record(events);
             self.answer();
         }
@@ -325,11 +331,14 @@ fn sessions_are_checked() {
     assert!(matches!(
         map.add_node(
             0,
-            Timestamp(0),
-            Rigid2::identity(),
-            Vec::new(),
-            &[],
-            Vec::new()
+            LloNode {
+                time: Timestamp(0),
+                local_pose: Rigid2::identity(),
+                points: Vec::new(),
+                insertion_submaps: Vec::new(),
+                finished_submaps: Vec::new(),
+                recovered: false,
+            }
         ),
         Err(LifelongError::SessionFinished(0))
     ));

@@ -213,6 +213,9 @@ pub struct TrajectoryNodeData {
     pub local_pose: Rigid2,
     /// The voxel-filtered hits in the tracking frame (what GLM matches).
     pub filtered_points: Vec<Point2<f32>>,
+    /// A recovery search ([`CorrelativeBranch::is_recovery`]) placed this scan or one since the previous
+    /// node: LLO's heading may have broken here (see `recovery_heading_doubt` of GLM's options).
+    pub recovered: bool,
 }
 
 /// A scan that became a node.
@@ -226,28 +229,42 @@ pub struct InsertionResult {
     pub finished_submaps: Vec<(usize, Submap)>,
 }
 
-/// What global SLAM takes of a scan that became a node: its filtered points, `(index, local_from_submap)`
-/// of the submaps it went into, and `(index, grid)` of the submaps it finished.
-pub type NodeParts = (
-    Vec<Point2<f32>>,
-    Vec<(usize, Rigid2)>,
-    Vec<(usize, ProbabilityGrid)>,
-);
+/// A node as LLO hands it to global SLAM (`GlobalSlam::add_node`).
+#[derive(Clone, Debug)]
+pub struct LloNode {
+    /// Scan time.
+    pub time: Timestamp,
+    /// `local_from_tracking`.
+    pub local_pose: Rigid2,
+    /// The voxel-filtered hits in the tracking frame (what GLM matches).
+    pub points: Vec<Point2<f32>>,
+    /// `(index, local_from_submap)` of the submaps it went into (indices per trajectory).
+    pub insertion_submaps: Vec<(usize, Rigid2)>,
+    /// `(index, grid)` of the submaps its insertion finished.
+    pub finished_submaps: Vec<(usize, ProbabilityGrid)>,
+    /// See [`TrajectoryNodeData::recovered`].
+    pub recovered: bool,
+}
 
 impl InsertionResult {
-    /// The parts global SLAM takes (see [`NodeParts`]).
-    pub fn into_node_parts(self) -> NodeParts {
-        (
-            self.node.filtered_points,
-            self.insertion_submaps
+    /// What global SLAM takes of it.
+    pub fn into_llo_node(self) -> LloNode {
+        LloNode {
+            time: self.node.time,
+            local_pose: self.node.local_pose,
+            points: self.node.filtered_points,
+            insertion_submaps: self
+                .insertion_submaps
                 .iter()
                 .map(|s| (s.index, s.local_pose))
                 .collect(),
-            self.finished_submaps
+            finished_submaps: self
+                .finished_submaps
                 .into_iter()
                 .map(|(index, submap)| (index, submap.grid))
                 .collect(),
-        )
+            recovered: self.node.recovered,
+        }
     }
 }
 
@@ -304,6 +321,8 @@ pub struct LocalTrajectoryBuilder {
     dropped: usize,
     /// A scan placed by a recovery search, waiting for the next scan to decide between it and odometry.
     held: Option<HeldRecovery>,
+    /// A recovery search placed a scan since the last node (see [`TrajectoryNodeData::recovered`]).
+    recovered_since_node: bool,
 }
 
 /// A scan placed by a recovery search and held out of the submaps (`insert_recovered_scans` false), with
@@ -330,6 +349,7 @@ impl LocalTrajectoryBuilder {
             last_pose: None,
             dropped: 0,
             held: None,
+            recovered_since_node: false,
         }
     }
 
@@ -602,6 +622,7 @@ impl LocalTrajectoryBuilder {
             self.extrapolator = held.extrapolator;
             self.last_pose = held.last_pose;
         }
+        self.recovered_since_node |= branch.is_recovery();
         // A recovered pose steers the next prediction but is held out of the submaps until the next scan
         // decides between it and the odometry: a wrong recovery must not become part of the map the next
         // scans match. Another recovery replaces the held scan; the odometry's hypothesis stays the one
@@ -670,6 +691,7 @@ impl LocalTrajectoryBuilder {
                     time,
                     local_pose: pose,
                     filtered_points: filtered,
+                    recovered: std::mem::take(&mut self.recovered_since_node),
                 },
                 insertion_submaps: inserted,
                 finished_submaps: finished,
@@ -810,12 +832,13 @@ mod tests {
     }
 
     /// [`unseen_slip_error`]'s run over `scans` scans (the slip stays, the odometry never sees it): each
-    /// scan's position error (metres), the search that placed it and whether it was inserted.
+    /// scan's position error (metres), the search that placed it and, if it was inserted, whether its
+    /// node is marked `recovered`.
     fn unseen_slip(
         options: LocalTrajectoryBuilderOptions,
         slip: f64,
         scans: u32,
-    ) -> Vec<(f64, CorrelativeBranch, bool)> {
+    ) -> Vec<(f64, CorrelativeBranch, Option<bool>)> {
         let room = room();
         let mut llo = LocalTrajectoryBuilder::new(options);
         let mut results = Vec::new();
@@ -838,7 +861,8 @@ mod tests {
             // The local frame starts at the first scan's pose (3, 4), heading 0.
             let truth = Vector2::new(forward + slipped, slipped);
             let error = (result.local_pose.translation.vector - truth).norm();
-            results.push((error, result.branch, result.insertion.is_some()));
+            let recovered = result.insertion.map(|i| i.node.recovered);
+            results.push((error, result.branch, recovered));
         }
         results
     }
@@ -885,14 +909,19 @@ mod tests {
     #[test]
     fn a_recovered_scan_is_inserted_once_the_next_scan_confirms_it() {
         let run = unseen_slip(shifted_search(), 0.3, 12);
+        assert!(
+            run[..10].iter().all(|r| r.2 != Some(true)),
+            "no recovery before the slip"
+        );
         let (error, branch, inserted) = run[10];
         assert_eq!(branch, CorrelativeBranch::Shifted);
-        assert!(!inserted, "held back until confirmed");
+        assert_eq!(inserted, None, "held back until confirmed");
         assert!(error < 0.05, "position error {error} m");
-        // The next scan fits near the prediction made from it: both go into the submaps.
+        // The next scan fits near the prediction made from it: both go into the submaps, and its node
+        // carries the recovery for GLM.
         let (error, branch, inserted) = run[11];
         assert_eq!(branch, CorrelativeBranch::Trusted);
-        assert!(inserted, "confirmed");
+        assert_eq!(inserted, Some(true), "confirmed, marked recovered");
         assert!(error < 0.05, "position error {error} m");
         // Inserted at once when asked.
         let at_once = unseen_slip(
@@ -903,7 +932,7 @@ mod tests {
             0.3,
             11,
         );
-        assert!(at_once[10].2);
+        assert_eq!(at_once[10].2, Some(true));
     }
 
     /// The robot turns in place at (4, 3), +10° per scan, and odometry sees every turn; scan 4 holds what
@@ -960,7 +989,7 @@ mod tests {
         // A recovery the odometry's hypothesis also needs stands: after an unseen slip the held scan and
         // the deciding one both go in, where they are.
         let slip = unseen_slip(shifted_search(), 0.3, 12);
-        assert!(!slip[10].2 && slip[11].2, "{slip:?}");
+        assert!(slip[10].2.is_none() && slip[11].2.is_some(), "{slip:?}");
         assert!(slip[10].0 < 0.05 && slip[11].0 < 0.05, "{slip:?}");
         // Nothing is retracted where nothing is held.
         assert!(!late_stamped_scan(before_session_34()).iter().any(|r| r.2));

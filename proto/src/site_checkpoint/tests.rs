@@ -309,3 +309,14 @@ fn corrections_on_probation_round_trip() {
             .is_empty()
     );
 }
+
+#[test]
+fn the_path_of_an_llo_recovery_round_trips_and_a_non_finite_one_is_refused() {
+    let map = LifelongMap::new(options()).expect("map");
+    let mut state = SiteCheckpoint::of(&map, 1, 1).map.global;
+    state.recovery_path = [(0, 12.5), (3, 0.0)].into_iter().collect();
+    let decoded = global_from_pb(Some(&global_to_pb(&state))).expect("decode");
+    assert_eq!(decoded.recovery_path, state.recovery_path);
+    state.recovery_path.insert(4, f64::NAN);
+    assert!(global_from_pb(Some(&global_to_pb(&state))).is_err());
+}

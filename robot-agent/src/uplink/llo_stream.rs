@@ -97,6 +97,7 @@ pub fn run_llo_stream(
                 .iter()
                 .map(|s| (s.index as u32, s.local_pose))
                 .collect(),
+            recovered: insertion.node.recovered,
         })];
         for (index, submap) in insertion.finished_submaps {
             stats.submaps_finished += 1;

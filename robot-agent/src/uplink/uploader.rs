@@ -371,6 +371,7 @@ mod tests {
             local_pose: rigid2(0.0, 0.0, 0.0),
             points: vec![],
             insertion_submaps: vec![(0, rigid2(0.0, 0.0, 0.0))],
+            recovered: false,
         })]
     }
 

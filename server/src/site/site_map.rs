@@ -584,21 +584,9 @@ impl SiteMap {
         finished: Vec<(usize, ProbabilityGrid)>,
         matches: &[(SubmapId, Rigid2, f32)],
     ) -> Result<usize, SiteError> {
-        let insertion: Vec<(usize, Rigid2)> = node
-            .insertion_submaps
-            .iter()
-            .map(|(index, pose)| (*index as usize, *pose))
-            .collect();
         let (id, _) = self
             .map
-            .add_node(
-                trajectory,
-                node.time,
-                node.local_pose,
-                node.points.clone(),
-                &insertion,
-                finished,
-            )
+            .add_node(trajectory, node.to_llo_node(finished))
             .map_err(SiteError::Rejected)?;
         // A session started on an empty committed map searches once there is one.
         let needs_search = self

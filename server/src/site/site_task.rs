@@ -1422,6 +1422,7 @@ mod tests {
                     nalgebra::Point2::new(2.0, 0.0),
                 ],
                 insertion_submaps: vec![(0, mapping::geometry::rigid2(0.0, 0.0, 0.0))],
+                recovered: false,
             })],
         }
     }

@@ -8,32 +8,16 @@ use mapping::geometry::Rigid2;
 use mapping::global_slam::LoopClosure;
 use mapping::grid::ProbabilityGrid;
 use mapping::lifelong::{LifelongEvent, LifelongMap, LifelongOptions, TrimPolicy};
-use mapping::local_slam::{LloDriver, LocalTrajectoryBuilderOptions};
-use mapping::sensor::{Timestamp, collate_for_llo};
-use nalgebra::Point2;
+use mapping::local_slam::{LloDriver, LloNode, LocalTrajectoryBuilderOptions};
+use mapping::sensor::collate_for_llo;
 
 use crate::{SessionOptions, Store, StoreOptions};
-
-/// One node as LLO handed it to the map.
-#[derive(Clone)]
-pub struct NodeInput {
-    /// Scan time.
-    pub time: Timestamp,
-    /// `local_from_tracking`.
-    pub local_pose: Rigid2,
-    /// Filtered scan points.
-    pub points: Vec<Point2<f32>>,
-    /// `(index, local_from_submap)` of the submaps it was inserted into.
-    pub insertion_submaps: Vec<(usize, Rigid2)>,
-    /// Submaps its insertion finished.
-    pub finished_submaps: Vec<(usize, ProbabilityGrid)>,
-}
 
 /// One session's LLO output: its nodes, the submaps still active at its end, and its true start in the
 /// map frame (session 0's start) for the prior.
 pub struct SessionInput {
     /// Its nodes.
-    pub nodes: Vec<NodeInput>,
+    pub nodes: Vec<LloNode>,
     /// LLO's submaps still active at the end, finished.
     pub active_submaps: Vec<(usize, ProbabilityGrid)>,
     /// Its true start in the map frame: the prior.
@@ -70,19 +54,12 @@ pub fn session_inputs() -> Vec<SessionInput> {
             let mut llo = LloDriver::new(llo_options.clone());
             let mut nodes = Vec::new();
             for event in collate_for_llo(&simulated.events) {
-                let Some((result, insertion)) =
+                let Some((_, insertion)) =
                     llo.add_event(event, &simulated.base_from_laser).into_node()
                 else {
                     continue;
                 };
-                let (points, insertion_submaps, finished_submaps) = insertion.into_node_parts();
-                nodes.push(NodeInput {
-                    time: result.time,
-                    local_pose: result.local_pose,
-                    points,
-                    insertion_submaps,
-                    finished_submaps,
-                });
+                nodes.push(insertion.into_llo_node());
             }
             let active_submaps = llo
                 .builder()
@@ -163,16 +140,7 @@ pub fn feed(
         }
         if at.nodes < input.nodes.len() {
             let node = input.nodes[at.nodes].clone();
-            let (id, events) = map
-                .add_node(
-                    session,
-                    node.time,
-                    node.local_pose,
-                    node.points,
-                    &node.insertion_submaps,
-                    node.finished_submaps,
-                )
-                .expect("node");
+            let (id, events) = map.add_node(session, node).expect("node");
             log.push(format!("node {id:?}"));
             log_events(log, "add_node", &events);
             let events = map.run_pending_searches(Vec::<LoopClosure>::new());

@@ -45,10 +45,12 @@ impl GlobalSlam {
         };
         let cb = &self.options.constraint_builder;
         let drift_path = self.drift_path(closure.node, record, closure.submap, submap);
+        let (doubt_rad, doubt_m) =
+            self.recovery_doubt(closure.node, record, closure.submap, submap);
         acceptance.innovation_translation_m
-            > cb.max_innovation_translation + cb.linear_window_growth * drift_path
+            > cb.max_innovation_translation + cb.linear_window_growth * drift_path + doubt_m
             || acceptance.innovation_rotation_rad
-                > cb.max_innovation_rotation + cb.angular_window_growth * drift_path
+                > cb.max_innovation_rotation + cb.angular_window_growth * drift_path + doubt_rad
     }
 
     /// Adds accepted loop closures as robust node-to-submap constraints, then optimizes if

@@ -71,6 +71,8 @@ pub struct GlobalSlamState {
     pub matched_elsewhere: BTreeSet<u32>,
     /// Per trajectory, the path (m) of its latest node that closed a loop.
     pub last_loop_path: BTreeMap<u32, f64>,
+    /// Per trajectory, the path (m) of the node before its first LLO recovery since its last loop.
+    pub recovery_path: BTreeMap<u32, f64>,
     /// Matches refused as beyond drift, still counted.
     pub closures_beyond_drift: usize,
     /// Matches beyond drift waiting for others to agree, in arrival order.
@@ -110,6 +112,7 @@ impl GlobalSlam {
             unanchored: self.unanchored.clone(),
             matched_elsewhere: self.matched_elsewhere.clone(),
             last_loop_path: self.last_loop_path.clone(),
+            recovery_path: self.recovery_path.clone(),
             closures_beyond_drift: self.closures_beyond_drift,
             pending_beyond_drift: self.pending_beyond_drift.clone(),
             closures_outvoted: self.closures_outvoted,
@@ -156,6 +159,7 @@ impl GlobalSlam {
             unanchored,
             matched_elsewhere,
             last_loop_path,
+            recovery_path,
             closures_beyond_drift,
             pending_beyond_drift,
             closures_outvoted,
@@ -192,6 +196,7 @@ impl GlobalSlam {
             capped_optimizer: None,
             matched_elsewhere,
             last_loop_path,
+            recovery_path,
             closures_beyond_drift,
             pending_beyond_drift,
             closures_outvoted,

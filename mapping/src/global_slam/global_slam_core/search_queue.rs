@@ -122,11 +122,14 @@ impl GlobalSlam {
     ) -> SearchWindow {
         let cb = &self.options.constraint_builder;
         let drift_path = self.drift_path(node, record, sid, submap);
+        let (doubt_rad, doubt_m) = self.recovery_doubt(node, record, sid, submap);
         let base = &cb.fast_correlative;
         SearchWindow {
-            linear_m: (base.linear_search_window + cb.linear_window_growth * drift_path)
+            linear_m: (base.linear_search_window + cb.linear_window_growth * drift_path + doubt_m)
                 .min(cb.max_linear_search_window.max(base.linear_search_window)),
-            angular_rad: (base.angular_search_window + cb.angular_window_growth * drift_path)
+            angular_rad: (base.angular_search_window
+                + cb.angular_window_growth * drift_path
+                + doubt_rad)
                 .min(std::f64::consts::PI),
         }
     }
@@ -154,5 +157,54 @@ impl GlobalSlam {
             drift_path = drift_path.min((record.path_m - first.path_m).abs());
         }
         drift_path
+    }
+
+    /// The doubt an LLO recovery adds between `node`'s estimate and `submap`'s: (rotation rad, translation
+    /// m), zero unless the trajectory recovered since its last loop closure, at or before the node, and
+    /// (within one trajectory) after the submap's first node.
+    pub(super) fn recovery_doubt(
+        &self,
+        node: NodeId,
+        record: &NodeRecord,
+        sid: SubmapId,
+        submap: &SubmapRecord,
+    ) -> (f64, f64) {
+        let doubt = self.options.constraint_builder.recovery_heading_doubt;
+        let Some(&recovered) = self.recovery_path.get(&node.trajectory) else {
+            return (0.0, 0.0);
+        };
+        let last_loop = self
+            .last_loop_path
+            .get(&node.trajectory)
+            .copied()
+            .unwrap_or(0.0);
+        if doubt <= 0.0 || recovered < last_loop || record.path_m < recovered {
+            return (0.0, 0.0);
+        }
+        if sid.trajectory == node.trajectory
+            && submap
+                .nodes
+                .first()
+                .and_then(|n| self.nodes.get(n))
+                .is_some_and(|first| first.path_m > recovered)
+        {
+            return (0.0, 0.0);
+        }
+        (doubt, doubt * (record.path_m - recovered))
+    }
+
+    /// Notes that LLO placed a scan after `trajectory`'s newest node by a recovery search: until the next
+    /// loop closure, its nodes carry `recovery_heading_doubt`.
+    pub(super) fn note_llo_recovery(&mut self, trajectory: u32) {
+        let path = self
+            .last_node
+            .get(&trajectory)
+            .and_then(|n| self.nodes.get(n))
+            .map_or(0.0, |r| r.path_m);
+        let last_loop = self.last_loop_path.get(&trajectory).copied().unwrap_or(0.0);
+        let entry = self.recovery_path.entry(trajectory).or_insert(path);
+        if *entry < last_loop {
+            *entry = path;
+        }
     }
 }

@@ -36,6 +36,7 @@ fn node(i: u32) -> UploadItem {
         local_pose: rigid2(0.1 * f64::from(i), 0.0, 0.0),
         points: vec![Point2::new(1.0, 0.5), Point2::new(1.0, -0.5)],
         insertion_submaps: vec![(0, rigid2(0.0, 0.0, 0.0))],
+        recovered: false,
     })
 }
 

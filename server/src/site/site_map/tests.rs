@@ -22,6 +22,7 @@ fn node(i: u32, submaps: &[u32]) -> UploadItem {
             .iter()
             .map(|s| (*s, rigid2(f64::from(*s), 0.0, 0.0)))
             .collect(),
+        recovered: false,
     })
 }
 

@@ -51,6 +51,7 @@ pub(super) fn sample_upload_batch() -> UploadBatch {
                     .map(|i| Point2::new(i as f32 * 0.1, (i as f32 * 0.3).sin()))
                     .collect(),
                 insertion_submaps: vec![(0, rigid2(0.0, 0.0, 0.0)), (1, rigid2(0.5, 0.0, 0.0))],
+                recovered: false,
             }),
             UploadItem::SubmapFinished {
                 index: 0,

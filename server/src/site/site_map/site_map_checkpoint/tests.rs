@@ -51,6 +51,7 @@ fn batches(session: usize, input: &SessionInput) -> Vec<UploadBatch> {
                     .iter()
                     .map(|(index, pose)| (*index as u32, *pose))
                     .collect(),
+                recovered: false,
             }));
             for (index, grid) in &node.finished_submaps {
                 batch.push(UploadItem::SubmapFinished {
