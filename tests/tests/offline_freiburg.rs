@@ -2,8 +2,9 @@
 //! and PGR with the default configuration, scored against the benchmark's ground-truth relations
 //! (Kümmerle et al. 2009) and by loop-closure precision (Hess et al. 2016, Table IV).
 //!
-//! The bounds are the figures measured with the release build (docs/BENCHMARK-HISTORY.md, session 15)
-//! plus a margin for floating-point differences between builds, not for regressions.
+//! The bounds are figures measured with a release build (docs/BENCHMARK-HISTORY.md, session 15; the
+//! current ones, well inside them, are the robustness suite's table in BENCHMARKS.md) plus a margin for
+//! floating-point differences between builds, not for regressions.
 
 use mapping::geometry::Rigid2;
 use mapping::global_slam::loop_closure_precision;
@@ -58,9 +59,8 @@ fn check(name: &str, bounds: &Bounds) -> anyhow::Result<()> {
 
 #[test]
 fn csail_offline_run_is_accurate() -> anyhow::Result<()> {
-    // Measured 0.0340 m, 0.393°, precision 1.000 (318 closures, 30 retracted; session 11: 0.0343 m, 0.993;
-    // session 10: 0.0341 m, 0.975;
-    // session 9: 0.0405 m, 0.413°). Cartographer published 0.0319 m, 0.369°;
+    // Measured 0.0279 m, 0.340°, precision 0.991 (348 closures, 14 retracted; session 47's table; session
+    // 15: 0.0340 m, 0.393°; session 9: 0.0405 m, 0.413°). Cartographer published 0.0319 m, 0.369°;
     // stock Cartographer run on this machine: 1.5 m.
     check(
         "mit-csail",
@@ -76,8 +76,8 @@ fn csail_offline_run_is_accurate() -> anyhow::Result<()> {
 
 #[test]
 fn aces_offline_run_is_accurate() -> anyhow::Result<()> {
-    // Measured 0.0359 m, 0.351°, precision 0.998 (506 closures, 8 retracted; session 11: 0.0358 m, 0.994;
-    // session 10: 0.0356 m, 0.978). Cartographer published 0.0375 m, 0.373°.
+    // Measured 0.0359 m, 0.337°, precision 1.000 (524 closures, 5 retracted; session 47's table; session
+    // 11: 0.0358 m, 0.994). Cartographer published 0.0375 m, 0.373°.
     // Before session 8 one large loop stayed open (2.07 m mean error).
     check(
         "aces",
@@ -93,8 +93,8 @@ fn aces_offline_run_is_accurate() -> anyhow::Result<()> {
 
 #[test]
 fn intel_offline_run_is_accurate() -> anyhow::Result<()> {
-    // Measured 0.0242 m, 0.335°, precision 0.990 (session 17; session 15: 0.0257 m; session 12: 0.0314 m,
-    // 0.984, 6189 closures, 862 retracted; session 11: 0.0313 m, 0.973; session 10: 0.0324 m, 0.911).
+    // Measured 0.0223 m, 0.312°, precision 0.991 (6240 closures, 340 retracted; session 47's table;
+    // session 17: 0.0242 m; session 10: 0.0324 m, 0.911).
     // Cartographer published 0.0229 m, 0.453°.
     // Intel's odometry and scan stamps come in bursts (see ../shared/datasets/README.md).
     check(
@@ -167,18 +167,18 @@ fn check_perturbed(name: &str, variant: &str, max_mean_m: f64) -> anyhow::Result
 
 #[test]
 fn csail_with_people_and_carts_in_the_beams_does_not_tear() -> anyhow::Result<()> {
-    // Measured 0.0305 m mean, 0.54 m largest (BENCHMARKS.md, robustness suite).
+    // Measured 0.0284 m mean, 0.31 m largest (BENCHMARKS.md, robustness suite, session 47).
     check_perturbed("mit-csail", "clutter", 0.045)
 }
 
 #[test]
 fn aces_with_drifting_odometry_does_not_tear() -> anyhow::Result<()> {
-    // Measured 0.0356 m mean, 0.42 m largest.
+    // Measured 0.0355 m mean, 0.41 m largest (session 47).
     check_perturbed("aces", "odom", 0.05)
 }
 
 #[test]
 fn intel_with_wheel_slips_does_not_tear() -> anyhow::Result<()> {
-    // Measured 0.0280 m mean, 0.72 m largest.
+    // Measured 0.0232 m mean, 0.44 m largest (session 47).
     check_perturbed("intel", "slip", 0.04)
 }
