@@ -1162,8 +1162,8 @@ mod tests {
         global.add_search_results([wide_closure(31, turned)]);
         assert!(global.accepted_loop_closures().is_empty());
         assert_eq!(global.closures_beyond_drift(), 2);
-        // LLO recovered just before node 20 (3.8 m along): the same matches are within its 0.26 rad (15°) of doubt,
-        // far from the estimate, so the second confirms the first.
+        // LLO recovered just before node 20 (3.8 m along): the same matches are within its 0.26 rad (15°)
+        // of doubt, far from the estimate, so the second confirms the first.
         let mut global = straight_run(20);
         drive_on_recovering(&mut global, 20..40, Some(20));
         let node = |index| NodeId {

@@ -161,7 +161,7 @@ impl GlobalSlam {
 
     /// The doubt an LLO recovery adds between `node`'s estimate and `submap`'s: (rotation rad, translation
     /// m), zero unless the trajectory recovered since its last loop closure, at or before the node, and
-    /// (within one trajectory) after the submap's first node.
+    /// (within one trajectory) at or after the submap's first node: the recovery lies between the two.
     pub(super) fn recovery_doubt(
         &self,
         node: NodeId,
