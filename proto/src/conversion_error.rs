@@ -42,14 +42,19 @@ pub enum ConversionError {
         value: String,
     },
     /// The record was written with a format version this build does not read.
-    #[error("{message} has format_version {got}, this build reads only {supported}")]
+    #[error(
+        "{message} has format_version {got}, this build reads {}",
+        readable_versions(*.oldest, *.newest)
+    )]
     UnsupportedFormatVersion {
         /// The message type.
         message: &'static str,
         /// The version found.
         got: u32,
-        /// The version this build reads.
-        supported: u32,
+        /// The oldest version this build reads.
+        oldest: u32,
+        /// The version this build writes, the newest it reads.
+        newest: u32,
     },
     /// The bytes are not a protobuf encoding of the message (a transport that carries raw bytes).
     #[error("{message} cannot be decoded: {reason}")]
@@ -69,4 +74,13 @@ pub enum ConversionError {
         /// Why.
         reason: String,
     },
+}
+
+/// "only 3", "2 to 3".
+fn readable_versions(oldest: u32, newest: u32) -> String {
+    if oldest == newest {
+        format!("only {newest}")
+    } else {
+        format!("{oldest} to {newest}")
+    }
 }

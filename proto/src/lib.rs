@@ -42,9 +42,9 @@ pub use convert::{
 pub use map_delta::{MapDelta, SubmapSnapshot};
 pub use png_image::{PngCompression, PngError, PngPixels, encode_png};
 pub use site_checkpoint::{
-    CHECKPOINT_FORMAT_VERSION, PublishedSubmapState, RestoreError, RobotPrior, SessionStartCounts,
-    SiteCheckpoint, SiteServerState, SiteSessionState, options_fingerprint, pose_from_exact,
-    pose_to_exact,
+    CHECKPOINT_FORMAT_VERSION, OLDEST_CHECKPOINT_FORMAT_VERSION, PublishedSubmapState, RobotPrior,
+    SessionStartCounts, SiteCheckpoint, SiteServerState, SiteSessionState,
+    check_checkpoint_format_version, options_fingerprint, pose_from_exact, pose_to_exact,
 };
 pub use upload_batch::{NodeAdded, UploadBatch, UploadItem};
 pub use zenoh_link_options::{

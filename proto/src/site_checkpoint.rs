@@ -2,9 +2,10 @@
 //! encoded so that every number comes back with the same bits (see the `.proto` file for why poses and
 //! information matrices are not encoded as elsewhere on the wire).
 //!
-//! Decoding refuses a checkpoint of another `format_version` with an error naming the version found
-//! ([`ConversionError::UnsupportedFormatVersion`]): the caller falls back to an older checkpoint or
-//! stops, and never guesses at the layout. What decodes is checked field by field here and for
+//! Decoding reads every `format_version` from [`OLDEST_CHECKPOINT_FORMAT_VERSION`] to
+//! [`CHECKPOINT_FORMAT_VERSION`] (an older one migrated as the constants' docs say) and refuses any
+//! other with an error naming the version found ([`ConversionError::UnsupportedFormatVersion`]): the
+//! caller stops, and never guesses at the layout. What decodes is checked field by field here and for
 //! consistency by `LifelongMap::from_state`.
 
 use std::collections::{BTreeMap, BTreeSet};
@@ -35,13 +36,34 @@ pub use site_server_state::{
 };
 use site_server_state::{site_from_pb, site_to_pb};
 
-/// The `format_version` of the checkpoints this build writes, and the only one it reads. Bump it with
-/// every change of `site_checkpoint.proto` or of what the state means (a field of `GlobalSlamState` or
-/// `LifelongMapState` added, removed or reinterpreted).
+/// The `format_version` of the checkpoints this build writes, the newest it reads. Bump it with every
+/// change of `site_checkpoint.proto` or of what the state means (a field of `GlobalSlamState` or
+/// `LifelongMapState` added, removed or reinterpreted), and say here how the version before it is read.
 ///
 /// Version 2: the server's part of the site ([`SiteServerState`], field 6) added and required.
-/// Version 3: `GlobalSlamState.recovery_path` (the heading doubt of LLO recoveries) added.
+/// Version 3: `GlobalSlamState.recovery_path` (the heading doubt of LLO recoveries) added. A version-2
+/// checkpoint reads as version 3 with no recovery since any trajectory's last loop closure: the doubt
+/// starts at the trajectory's next recovery, as it would have had the build that wrote it run on.
 pub const CHECKPOINT_FORMAT_VERSION: u32 = 3;
+
+/// The oldest `format_version` this build reads. A server upgraded across a format change must restore
+/// the sites it holds, whose log before their checkpoint compaction deleted: raise it only with a
+/// migration that reads the versions it leaves behind. Version 1 (no server part) is refused.
+pub const OLDEST_CHECKPOINT_FORMAT_VERSION: u32 = 2;
+
+/// Refuses a checkpoint `format_version` this build does not read, naming it and the versions it reads.
+pub fn check_checkpoint_format_version(got: u32) -> Result<(), ConversionError> {
+    if (OLDEST_CHECKPOINT_FORMAT_VERSION..=CHECKPOINT_FORMAT_VERSION).contains(&got) {
+        Ok(())
+    } else {
+        Err(ConversionError::UnsupportedFormatVersion {
+            message: "SiteCheckpoint",
+            got,
+            oldest: OLDEST_CHECKPOINT_FORMAT_VERSION,
+            newest: CHECKPOINT_FORMAT_VERSION,
+        })
+    }
+}
 
 /// A site's map state and the log position it covers.
 #[derive(Clone, Debug, PartialEq)]
@@ -59,28 +81,10 @@ pub struct SiteCheckpoint {
 }
 
 /// A fingerprint of `options` (CRC-32 of their `Debug` form: every field, names and values, in order),
-/// kept with a checkpoint so that it is never restored under other options. Any change of the options
-/// or of their struct changes it.
+/// kept with a checkpoint to tell whether it is restored under the options it ran with. Any change of
+/// the options or of their struct changes it.
 pub fn options_fingerprint(options: &LifelongOptions) -> u32 {
     crc32fast::hash(format!("{options:?}").as_bytes())
-}
-
-/// Why a decoded checkpoint cannot become a map.
-#[derive(Debug, thiserror::Error)]
-pub enum RestoreError {
-    /// The checkpoint was written under other options than the ones given.
-    #[error(
-        "the checkpoint was written under other lifelong options (fingerprint {written:#010x}, these {given:#010x}): restore it with the options it ran with, or rebuild the site from its log"
-    )]
-    OptionsChanged {
-        /// The checkpoint's fingerprint.
-        written: u32,
-        /// The given options' fingerprint.
-        given: u32,
-    },
-    /// The state contradicts itself, or the options are invalid.
-    #[error("the checkpoint's map cannot be restored: {0}")]
-    Map(#[from] LifelongError),
 }
 
 impl SiteCheckpoint {
@@ -96,16 +100,18 @@ impl SiteCheckpoint {
         }
     }
 
-    /// The map this checkpoint holds, under `options` (the ones it ran with: anything else is refused).
-    pub fn restore(self, options: LifelongOptions) -> Result<LifelongMap, RestoreError> {
-        let given = options_fingerprint(&options);
-        if given != self.options_fingerprint {
-            return Err(RestoreError::OptionsChanged {
-                written: self.options_fingerprint,
-                given,
-            });
-        }
-        Ok(LifelongMap::from_state(options, self.map)?)
+    /// The map this checkpoint holds, under `options`: those the site is configured with now. They need
+    /// not be the ones it ran with (a newer build adds an option, an operator retunes one): the state is
+    /// kept as it stands and the options govern what comes after it, as they would have had they been
+    /// changed while the site ran ([`Self::written_under_other_options`] tells the caller to say so).
+    /// Refused only if the options are invalid or the state contradicts itself.
+    pub fn restore(self, options: LifelongOptions) -> Result<LifelongMap, LifelongError> {
+        LifelongMap::from_state(options, self.map)
+    }
+
+    /// Whether the checkpoint was written under other options than `options` (by fingerprint).
+    pub fn written_under_other_options(&self, options: &LifelongOptions) -> bool {
+        options_fingerprint(options) != self.options_fingerprint
     }
 }
 
@@ -125,17 +131,12 @@ impl From<&SiteCheckpoint> for pb::SiteCheckpoint {
 impl TryFrom<&pb::SiteCheckpoint> for SiteCheckpoint {
     type Error = ConversionError;
 
-    /// Checks the format version first (nothing else is read from a checkpoint of another version), then
-    /// every field.
+    /// Checks the format version first (nothing else is read from a checkpoint of a version this build
+    /// does not read), then every field. Version 2 needs no conversion: the field version 3 added
+    /// (`GlobalSlamState.recovery_path`) decodes empty from it.
     fn try_from(c: &pb::SiteCheckpoint) -> Result<Self, ConversionError> {
         const M: &str = "SiteCheckpoint";
-        if c.format_version != CHECKPOINT_FORMAT_VERSION {
-            return Err(ConversionError::UnsupportedFormatVersion {
-                message: M,
-                got: c.format_version,
-                supported: CHECKPOINT_FORMAT_VERSION,
-            });
-        }
+        check_checkpoint_format_version(c.format_version)?;
         Ok(Self {
             log_index: c.log_index,
             map_version: c.map_version,

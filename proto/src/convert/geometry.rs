@@ -36,7 +36,8 @@ pub fn check_format_version(message: &'static str, got: u32) -> Result<(), Conve
         Err(ConversionError::UnsupportedFormatVersion {
             message,
             got,
-            supported: FORMAT_VERSION,
+            oldest: FORMAT_VERSION,
+            newest: FORMAT_VERSION,
         })
     }
 }

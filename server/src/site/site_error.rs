@@ -75,9 +75,9 @@ pub enum SiteError {
         /// Why.
         reason: String,
     },
-    /// A stored checkpoint this build must not restore: written in a format version it does not read
-    /// (by a newer build), or under other lifelong options. The site is not rebuilt behind it (the log
-    /// it covers may be compacted away): run the build, or the options, that wrote it.
+    /// A stored checkpoint this build must not restore: written in a format version it does not read (by
+    /// a newer build, or one older than any this build migrates). The site is not rebuilt behind it (the
+    /// log it covers may be compacted away): run a build that reads it.
     #[error(
         "site checkpoint at log index {index} refused, the site is not rebuilt without it: {source}"
     )]

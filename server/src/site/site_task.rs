@@ -23,8 +23,10 @@
 //! flight). A start
 //! (and a rebuild) is the newest checkpoint that reads back, plus the log after it: one that fails its
 //! CRC or does not decode is skipped for the one before it (whose log compaction kept); one of a format
-//! version this build does not read, or written under other lifelong options, stops the site with
-//! [`SiteError::CheckpointRefused`] — never rebuilt behind it.
+//! version this build does not read (a newer build's, or one older than
+//! `proto::OLDEST_CHECKPOINT_FORMAT_VERSION`) stops the site with [`SiteError::CheckpointRefused`] —
+//! never rebuilt behind it. One written under other lifelong options (an older build's, or before the
+//! operator changed `[map]`) is restored as it stands, under the options configured now (logged).
 //!
 //! **Robots' data first** (issue 34: a fleet's sessions all end in the same second). Ending a session
 //! (its final optimization, trimming and sparsification) and encoding and writing checkpoints are
@@ -89,9 +91,7 @@ use std::time::{Duration, Instant};
 
 use mapping::lifelong::{LifelongOptions, render_submaps_log_odds};
 use prost::Message as _;
-use proto::{
-    CHECKPOINT_FORMAT_VERSION, FORMAT_VERSION, SiteCheckpoint, UploadBatch, UploadItem, pb,
-};
+use proto::{FORMAT_VERSION, SiteCheckpoint, UploadBatch, UploadItem, pb};
 use storage::{BatchOutcome, MapStore, RecordKind, WriteBatch};
 use tokio::sync::{mpsc, watch};
 use tokio::task::JoinHandle;
@@ -1287,18 +1287,14 @@ fn restore_checkpoint(
     let started = Instant::now();
     let message = pb::SiteCheckpoint::decode(bytes.as_slice())
         .map_err(|e| corrupt(format!("it does not decode: {e}")))?;
-    if message.format_version != CHECKPOINT_FORMAT_VERSION {
-        // Never guessed at, never rebuilt behind: the log it covers may be compacted away.
-        return Err(SiteError::CheckpointRefused {
+    // A version this build does not read is never guessed at, never rebuilt behind: the log it covers
+    // may be compacted away.
+    proto::check_checkpoint_format_version(message.format_version).map_err(|e| {
+        SiteError::CheckpointRefused {
             index,
-            source: proto::ConversionError::UnsupportedFormatVersion {
-                message: "SiteCheckpoint",
-                got: message.format_version,
-                supported: CHECKPOINT_FORMAT_VERSION,
-            }
-            .into(),
-        });
-    }
+            source: e.into(),
+        }
+    })?;
     let checkpoint = SiteCheckpoint::try_from(&message).map_err(|e| corrupt(e.to_string()));
     drop(message);
     times.decode += started.elapsed();

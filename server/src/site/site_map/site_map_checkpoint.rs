@@ -22,7 +22,7 @@
 use std::sync::Arc;
 
 use mapping::lifelong::LifelongOptions;
-use proto::{RestoreError, SiteCheckpoint, SiteServerState};
+use proto::{SiteCheckpoint, SiteServerState};
 
 use super::{MapHistory, SiteMap};
 use crate::site::SiteError;
@@ -55,9 +55,9 @@ impl SiteMap {
         Some(checkpoint)
     }
 
-    /// The site `checkpoint` holds, under `options` (the ones it ran with: other options are refused,
-    /// [`SiteError::CheckpointRefused`]). A state that contradicts itself is
-    /// [`SiteError::CorruptCheckpoint`].
+    /// The site `checkpoint` holds, under `options`: those configured now, which govern it from here on
+    /// even if the checkpoint was written under others (logged; see [`SiteCheckpoint::restore`]). A
+    /// state that contradicts itself is [`SiteError::CorruptCheckpoint`].
     pub fn restore(
         site: impl Into<String>,
         options: LifelongOptions,
@@ -73,13 +73,18 @@ impl SiteMap {
         }
         let state = checkpoint.site.clone();
         let version = checkpoint.map_version;
-        let map = checkpoint.restore(options).map_err(|e| match e {
-            RestoreError::OptionsChanged { .. } => SiteError::CheckpointRefused {
-                index,
-                source: e.into(),
-            },
-            RestoreError::Map(e) => corrupt(e.to_string()),
-        })?;
+        if checkpoint.written_under_other_options(&options) {
+            tracing::warn!(
+                checkpoint = index,
+                written = format_args!("{:#010x}", checkpoint.options_fingerprint),
+                now = format_args!("{:#010x}", proto::options_fingerprint(&options)),
+                "the site's checkpoint was written under other [map] options: restored as it stands, \
+                 the options configured now govern the site from here on"
+            );
+        }
+        let map = checkpoint
+            .restore(options)
+            .map_err(|e| corrupt(e.to_string()))?;
         let mut trajectories: Vec<u32> = state.sessions.values().map(|s| s.trajectory).collect();
         trajectories.sort_unstable();
         if trajectories
