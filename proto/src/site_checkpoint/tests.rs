@@ -143,6 +143,78 @@ fn a_map_restored_from_its_encoded_checkpoint_behaves_bit_for_bit_like_the_origi
     assert_eq!(snapshot(&restored), snapshot(&original));
 }
 
+/// Where the fixture checkpoints stand: session 1, 8 nodes in (placed after 5), at log index and map
+/// version 1234.
+const FIXTURE_AT: Position = Position {
+    session: 1,
+    nodes: 8,
+    started: true,
+};
+
+/// `tests/fixtures/site_checkpoint_v{version}.bin`.
+fn fixture(version: u32) -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/fixtures")
+        .join(format!("site_checkpoint_v{version}.bin"))
+}
+
+/// A server upgraded to this build restores the sites an earlier build checkpointed (their log before
+/// the checkpoint is compacted away): each build that wrote a format version left one checkpoint of it
+/// here, a map mid-session of `checkpoint_sessions` (options `options()`), and every one this build
+/// reads restores and maps on. A new format version adds its own: `EVERMAP_WRITE_CHECKPOINT_FIXTURE=1
+/// cargo nextest run --workspace -E 'test(fixture)'` writes it.
+#[test]
+fn every_fixture_checkpoint_an_earlier_build_wrote_restores_and_maps_on() {
+    let current = fixture(CHECKPOINT_FORMAT_VERSION);
+    if std::env::var_os("EVERMAP_WRITE_CHECKPOINT_FIXTURE").is_some() && !current.exists() {
+        let inputs = session_inputs();
+        let start = Position {
+            session: 0,
+            nodes: 0,
+            started: false,
+        };
+        let mut map = LifelongMap::new(options()).expect("map");
+        feed(&mut map, &inputs, start, FIXTURE_AT, &mut Log::new());
+        let checkpoint = SiteCheckpoint::of(&map, 1234, 1234);
+        std::fs::create_dir_all(current.parent().expect("dir")).expect("fixture dir");
+        std::fs::write(
+            &current,
+            pb::SiteCheckpoint::from(&checkpoint).encode_to_vec(),
+        )
+        .expect("fixture written");
+    }
+    assert!(
+        current.exists(),
+        "no fixture checkpoint of format version {CHECKPOINT_FORMAT_VERSION} (this build's): write it \
+         with EVERMAP_WRITE_CHECKPOINT_FIXTURE=1 and commit it"
+    );
+    let inputs = session_inputs();
+    let end = Position {
+        session: SESSIONS,
+        nodes: 0,
+        started: false,
+    };
+    let mut read = 0;
+    for version in OLDEST_CHECKPOINT_FORMAT_VERSION..=CHECKPOINT_FORMAT_VERSION {
+        let path = fixture(version);
+        let Ok(bytes) = std::fs::read(&path) else {
+            continue; // formats older than the fixtures (version 3 was the first to leave one)
+        };
+        let message = pb::SiteCheckpoint::decode(bytes.as_slice()).expect("protobuf");
+        assert_eq!(message.format_version, version, "{}", path.display());
+        let checkpoint = SiteCheckpoint::try_from(&message).expect("a format this build reads");
+        assert_eq!((checkpoint.log_index, checkpoint.map_version), (1234, 1234));
+        let nodes = checkpoint.map.global.nodes.len();
+        let mut map = checkpoint.restore(options()).expect("restored");
+        assert!(nodes > 100, "{nodes} nodes: the fixture proves little");
+        let mut log = Log::new();
+        feed(&mut map, &inputs, FIXTURE_AT, end, &mut log);
+        assert!(log.len() > 20, "it mapped on: {log:?}");
+        read += 1;
+    }
+    assert!(read >= 1);
+}
+
 #[test]
 fn a_checkpoint_is_restored_under_the_options_given_and_says_whether_they_changed() {
     let map = LifelongMap::new(options()).expect("map");
