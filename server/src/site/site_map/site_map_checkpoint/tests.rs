@@ -341,6 +341,25 @@ async fn an_unreadable_newest_checkpoint_falls_back_to_the_one_before_and_its_lo
     assert_restored_equals_replayed(restored, replayed, &fed);
 }
 
+/// Decodes the site's newest checkpoint, lets `edit` change it, and stores it back under its index
+/// (returned).
+fn rewrite_newest_checkpoint(
+    store: &dyn MapStore,
+    edit: impl FnOnce(&mut pb::SiteCheckpoint),
+) -> u64 {
+    let newest = store.checkpoint_indexes(SITE).expect("indexes")[0];
+    let bytes = store
+        .checkpoint(SITE, newest)
+        .expect("read")
+        .expect("there");
+    let mut message = pb::SiteCheckpoint::decode(bytes.as_slice()).expect("decode");
+    edit(&mut message);
+    store
+        .put_checkpoint(SITE, newest, &message.encode_to_vec())
+        .expect("overwrite");
+    newest
+}
+
 // Reference: issue 34 — "a site that lives for years": a server upgraded to a build that writes a newer
 // checkpoint format, and whose options differ (a new build adds options), still serves the sites it
 // holds, whose log before their checkpoint is compacted away.
@@ -348,23 +367,16 @@ async fn an_unreadable_newest_checkpoint_falls_back_to_the_one_before_and_its_lo
 async fn a_checkpoint_an_older_build_wrote_restores_under_the_options_configured_now() {
     let fed = fed_sites().await;
     let store = fed.checkpointed.as_ref();
-    let newest = store.checkpoint_indexes(SITE).expect("indexes")[0];
-    let bytes = store
-        .checkpoint(SITE, newest)
-        .expect("read")
-        .expect("there");
     // What the build before format 3 wrote: version 2, no `recovery_path` (these sessions had no LLO
     // recovery, so the field is empty here as there), its own options' fingerprint.
-    let mut older = pb::SiteCheckpoint::decode(bytes.as_slice()).expect("decode");
-    assert_eq!(older.format_version, proto::CHECKPOINT_FORMAT_VERSION);
-    assert_eq!(proto::OLDEST_CHECKPOINT_FORMAT_VERSION, 2);
-    let global = older.map.as_ref().and_then(|m| m.global.as_ref());
-    assert!(global.expect("global state").recovery_path.is_empty());
-    older.format_version = 2;
-    older.options_fingerprint ^= 0x5a5a_5a5a;
-    store
-        .put_checkpoint(SITE, newest, &older.encode_to_vec())
-        .expect("overwrite");
+    let newest = rewrite_newest_checkpoint(store, |older| {
+        assert_eq!(older.format_version, proto::CHECKPOINT_FORMAT_VERSION);
+        assert_eq!(proto::OLDEST_CHECKPOINT_FORMAT_VERSION, 2);
+        let global = older.map.as_ref().and_then(|m| m.global.as_ref());
+        assert!(global.expect("global state").recovery_path.is_empty());
+        older.format_version = 2;
+        older.options_fingerprint ^= 0x5a5a_5a5a;
+    });
     let restored = load_site(store, true).expect("a version-2 checkpoint restores");
     assert_eq!(restored.checkpoint, Some(newest));
     let replayed = load_site(fed.whole.as_ref(), false).expect("replay");
@@ -399,16 +411,9 @@ async fn a_checkpoint_an_older_build_wrote_restores_under_the_options_configured
 async fn a_checkpoint_of_an_unknown_format_version_stops_the_site_with_an_error_naming_it() {
     let fed = fed_sites().await;
     let store = fed.checkpointed.as_ref();
-    let newest = store.checkpoint_indexes(SITE).expect("indexes")[0];
-    let bytes = store
-        .checkpoint(SITE, newest)
-        .expect("read")
-        .expect("there");
-    let mut future = pb::SiteCheckpoint::decode(bytes.as_slice()).expect("decode");
-    future.format_version = proto::CHECKPOINT_FORMAT_VERSION + 40;
-    store
-        .put_checkpoint(SITE, newest, &future.encode_to_vec())
-        .expect("overwrite");
+    let newest = rewrite_newest_checkpoint(store, |future| {
+        future.format_version = proto::CHECKPOINT_FORMAT_VERSION + 40;
+    });
     let Err(error) = load_site(store, true) else {
         panic!("a checkpoint of an unknown format version was used or skipped");
     };
