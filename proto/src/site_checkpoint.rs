@@ -42,8 +42,8 @@ use site_server_state::{site_from_pb, site_to_pb};
 ///
 /// Version 2: the server's part of the site ([`SiteServerState`], field 6) added and required.
 /// Version 3: `GlobalSlamState.recovery_path` (the heading doubt of LLO recoveries) added. A version-2
-/// checkpoint reads as version 3 with no recovery since any trajectory's last loop closure: the doubt
-/// starts at the trajectory's next recovery, as it would have had the build that wrote it run on.
+/// checkpoint reads as version 3 with no recovery since any trajectory's last loop closure (the build
+/// that wrote it kept none): the doubt starts at each trajectory's next recovery.
 pub const CHECKPOINT_FORMAT_VERSION: u32 = 3;
 
 /// The oldest `format_version` this build reads. A server upgraded across a format change must restore
