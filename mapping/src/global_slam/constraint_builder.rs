@@ -221,12 +221,13 @@ impl ConstraintBuilderOptions {
             self.max_unconfirmed_rotation,
         )?;
         check_sigma("agreement_rotation", "rad", self.agreement_rotation)?;
+        let matcher = |field| move |source| GlobalSlamOptionsError::ScanMatcher { field, source };
         self.fast_correlative
             .validate()
-            .map_err(|e| GlobalSlamOptionsError::Invalid(e.to_string()))?;
+            .map_err(matcher("fast_correlative"))?;
         self.least_squares
             .validate()
-            .map_err(|e| GlobalSlamOptionsError::Invalid(e.to_string()))
+            .map_err(matcher("least_squares"))
     }
 }
 

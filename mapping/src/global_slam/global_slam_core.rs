@@ -182,8 +182,8 @@ impl GlobalSlam {
     /// An empty map.
     pub fn new(options: GlobalSlamOptions) -> Result<Self, GlobalSlamError> {
         options.validate()?;
-        let optimizer = Optimizer::new(options.optimizer.clone())
-            .map_err(|e| GlobalSlamOptionsError::Invalid(e.to_string()))?;
+        let optimizer =
+            Optimizer::new(options.optimizer.clone()).map_err(GlobalSlamOptionsError::from)?;
         Ok(Self {
             graph: PoseGraph::new(),
             optimizer,

@@ -3,7 +3,8 @@
 use serde::Deserialize;
 
 use super::ConstraintBuilderOptions;
-use crate::pose_graph::OptimizerOptions;
+use crate::pose_graph::{OptimizerOptions, OptimizerOptionsError};
+use crate::scan_matching::MatchError;
 
 /// Invalid [`GlobalSlamOptions`].
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -29,6 +30,18 @@ pub enum GlobalSlamOptionsError {
     /// Another option is invalid.
     #[error("{0}")]
     Invalid(String),
+    /// The optimizer's options are invalid.
+    #[error("optimizer: {0}")]
+    Optimizer(#[from] OptimizerOptionsError),
+    /// A scan matcher's options are invalid (`fast_correlative` or `least_squares` of the constraint
+    /// builder).
+    #[error("constraint_builder.{field}: {source}")]
+    ScanMatcher {
+        /// Which matcher's options.
+        field: &'static str,
+        /// Why.
+        source: MatchError,
+    },
 }
 
 /// How LLO's nodes and submaps become a pose graph, and how often it is optimized.
@@ -142,9 +155,7 @@ impl GlobalSlamOptions {
             ));
         }
         self.constraint_builder.validate()?;
-        self.optimizer
-            .validate()
-            .map_err(|e| GlobalSlamOptionsError::Invalid(e.to_string()))
+        Ok(self.optimizer.validate()?)
     }
 }
 
@@ -161,5 +172,49 @@ mod tests {
         };
         let err = bad.validate().unwrap_err().to_string();
         assert!(err.contains("odometry_rotation_sigma"), "{err}");
+    }
+
+    // Reference: issue 35 — errors keep their `source()` chain instead of being turned into strings.
+    #[test]
+    fn a_bad_nested_option_keeps_its_own_error_as_the_source() {
+        use std::error::Error as _;
+        let bad_optimizer = GlobalSlamOptions {
+            optimizer: OptimizerOptions {
+                initial_lambda: -1.0,
+                ..OptimizerOptions::default()
+            },
+            ..GlobalSlamOptions::default()
+        };
+        let err = bad_optimizer.validate().unwrap_err();
+        assert!(
+            matches!(err, GlobalSlamOptionsError::Optimizer(_)),
+            "{err:?}"
+        );
+        let source = err.source().expect("the optimizer's error");
+        assert!(source.downcast_ref::<OptimizerOptionsError>().is_some());
+        assert!(err.to_string().starts_with("optimizer: "), "{err}");
+
+        let mut bad_matcher = GlobalSlamOptions::default();
+        bad_matcher
+            .constraint_builder
+            .least_squares
+            .translation_weight = -1.0;
+        let err = bad_matcher.validate().unwrap_err();
+        assert!(
+            matches!(
+                err,
+                GlobalSlamOptionsError::ScanMatcher {
+                    field: "least_squares",
+                    ..
+                }
+            ),
+            "{err:?}"
+        );
+        assert!(err.source().is_some_and(|s| s.is::<MatchError>()));
+        assert!(
+            err.to_string()
+                .starts_with("constraint_builder.least_squares: "),
+            "{err}"
+        );
     }
 }

@@ -72,8 +72,11 @@ pub enum SiteError {
     CorruptCheckpoint {
         /// The log index it covers.
         index: u64,
-        /// Why.
+        /// Why (with the text of `source`, when there is one).
         reason: String,
+        /// The error that found it (the decoder's, the conversion's, the map's restore), kept for
+        /// `source()`; `None` where the check is the server's own.
+        source: Option<Box<dyn std::error::Error + Send + Sync>>,
     },
     /// A stored checkpoint this build must not restore: written in a format version it does not read (by
     /// a newer build, or one older than any this build migrates). The site is not rebuilt behind it (the

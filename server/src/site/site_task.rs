@@ -1270,14 +1270,18 @@ pub(crate) fn load(
 }
 
 /// The site the checkpoint at `index` holds; `Ok(None)` if it is gone (compacted since it was listed).
-fn restore_checkpoint(
+pub(crate) fn restore_checkpoint(
     site: &str,
     options: LifelongOptions,
     store: &dyn MapStore,
     index: u64,
     times: &mut LoadTimes,
 ) -> Result<Option<SiteMap>, SiteError> {
-    let corrupt = |reason: String| SiteError::CorruptCheckpoint { index, reason };
+    let corrupt = |reason: String| SiteError::CorruptCheckpoint {
+        index,
+        reason,
+        source: None,
+    };
     let started = Instant::now();
     let bytes = store.checkpoint(site, index);
     times.read += started.elapsed();
@@ -1285,8 +1289,12 @@ fn restore_checkpoint(
         return Ok(None);
     };
     let started = Instant::now();
-    let message = pb::SiteCheckpoint::decode(bytes.as_slice())
-        .map_err(|e| corrupt(format!("it does not decode: {e}")))?;
+    let message =
+        pb::SiteCheckpoint::decode(bytes.as_slice()).map_err(|e| SiteError::CorruptCheckpoint {
+            index,
+            reason: format!("it does not decode: {e}"),
+            source: Some(e.into()),
+        })?;
     // A version this build does not read is never guessed at, never rebuilt behind: the log it covers
     // may be compacted away.
     proto::check_checkpoint_format_version(message.format_version).map_err(|e| {
@@ -1295,7 +1303,11 @@ fn restore_checkpoint(
             source: e.into(),
         }
     })?;
-    let checkpoint = SiteCheckpoint::try_from(&message).map_err(|e| corrupt(e.to_string()));
+    let checkpoint = SiteCheckpoint::try_from(&message).map_err(|e| SiteError::CorruptCheckpoint {
+        index,
+        reason: e.to_string(),
+        source: Some(e.into()),
+    });
     drop(message);
     times.decode += started.elapsed();
     let checkpoint = checkpoint?;

@@ -134,8 +134,8 @@ impl GlobalSlam {
     ) -> Result<Self, GlobalSlamError> {
         validate(&state)?;
         options.validate()?;
-        let optimizer = Optimizer::new(options.optimizer.clone())
-            .map_err(|e| GlobalSlamOptionsError::Invalid(e.to_string()))?;
+        let optimizer =
+            Optimizer::new(options.optimizer.clone()).map_err(GlobalSlamOptionsError::from)?;
         let mut builder = ConstraintBuilder::new(options.constraint_builder.clone());
         for (id, record) in &state.submaps {
             if let Some(grid) = &record.grid {

@@ -64,7 +64,11 @@ impl SiteMap {
         checkpoint: SiteCheckpoint,
     ) -> Result<Self, SiteError> {
         let index = checkpoint.log_index;
-        let corrupt = |reason: String| SiteError::CorruptCheckpoint { index, reason };
+        let corrupt = |reason: String| SiteError::CorruptCheckpoint {
+            index,
+            reason,
+            source: None,
+        };
         if checkpoint.map_version != checkpoint.log_index {
             return Err(corrupt(format!(
                 "it covers log index {} but is at map version {} (the site's log index is its version)",
@@ -84,7 +88,11 @@ impl SiteMap {
         }
         let map = checkpoint
             .restore(options)
-            .map_err(|e| corrupt(e.to_string()))?;
+            .map_err(|e| SiteError::CorruptCheckpoint {
+                index,
+                reason: e.to_string(),
+                source: Some(e.into()),
+            })?;
         let mut trajectories: Vec<u32> = state.sessions.values().map(|s| s.trajectory).collect();
         trajectories.sort_unstable();
         if trajectories

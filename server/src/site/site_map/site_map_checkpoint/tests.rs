@@ -15,7 +15,7 @@ use storage::{MapStore, MemStore};
 
 use super::*;
 use crate::ServerMetrics;
-use crate::site::site_task::{Loaded, load};
+use crate::site::site_task::{LoadTimes, Loaded, load, restore_checkpoint};
 use crate::site::{CheckpointOptions, SITE_LOG_KIND, SiteTask, SiteTaskOptions};
 
 const SITE: &str = "store";
@@ -335,6 +335,26 @@ async fn an_unreadable_newest_checkpoint_falls_back_to_the_one_before_and_its_lo
     store
         .put_checkpoint(SITE, newest, &bytes[..bytes.len() / 2])
         .expect("overwrite");
+    // It is corrupt, and the error keeps the decoder's as its source (issue 35: no error turned into a
+    // string alone).
+    let error = restore_checkpoint(
+        SITE,
+        checkpoint_sessions::options(),
+        store,
+        newest,
+        &mut LoadTimes::default(),
+    )
+    .err()
+    .expect("a checkpoint cut short is refused");
+    assert!(
+        matches!(error, SiteError::CorruptCheckpoint { index, .. } if index == newest),
+        "{error:?}"
+    );
+    let source = std::error::Error::source(&error).expect("the decoder's error is kept");
+    assert!(
+        source.downcast_ref::<prost::DecodeError>().is_some(),
+        "{source:?}"
+    );
     let restored = load_site(store, true).expect("restore");
     assert_eq!(restored.checkpoint, Some(older));
     let replayed = load_site(fed.whole.as_ref(), false).expect("replay");
