@@ -210,7 +210,8 @@ mod tests {
             ),
             "{err:?}"
         );
-        assert!(err.source().is_some_and(|s| s.is::<MatchError>()));
+        let source = err.source().expect("the matcher's error");
+        assert!(source.downcast_ref::<MatchError>().is_some());
         assert!(
             err.to_string()
                 .starts_with("constraint_builder.least_squares: "),
