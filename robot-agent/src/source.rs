@@ -62,8 +62,11 @@ pub enum SourceError {
         path: String,
         /// `ROS1 bag`, `CARMEN log`, `MCAP`, `rosbag2 sqlite3`, `rosbag2`, ...
         format: &'static str,
-        /// What is wrong, and where.
+        /// What is wrong, and where (with the text of `source`, when there is one).
         what: String,
+        /// The reader's own error, where a library found it (the ROS1 bag, SQLite, MCAP or YAML reader),
+        /// kept for `source()`.
+        source: Option<Box<dyn std::error::Error + Send + Sync>>,
     },
     /// A topic evermap reads by its conventional name (`/scan`, `/odom`, `/imu`, `/tf`, `/tf_static`)
     /// carries another type than the one evermap reads there.

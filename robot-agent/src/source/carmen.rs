@@ -216,6 +216,7 @@ pub fn read(input: impl BufRead, path: &Path) -> Result<Recording, SourceError> 
         return Err(SourceError::Malformed {
             path: path.display().to_string(),
             format: "CARMEN log",
+            source: None,
             what: format!(
                 "no readable laser line; first problem: {}",
                 report.problems.join("; ")

@@ -50,6 +50,7 @@ pub fn read(path: &Path, visitor: &mut dyn Visitor) -> Result<(), SourceError> {
     let malformed = |what: String| SourceError::Malformed {
         path: path.display().to_string(),
         format: "MCAP",
+        source: None,
         what,
     };
     let bytes = std::fs::read(path).map_err(|source| SourceError::Io {

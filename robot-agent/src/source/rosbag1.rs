@@ -64,6 +64,7 @@ fn prescan(path: &Path, bytes: &[u8]) -> Result<(), SourceError> {
     let malformed = |what: String| SourceError::Malformed {
         path: path.display().to_string(),
         format: "ROS1 bag",
+        source: None,
         what,
     };
     let mut pos = 13;
@@ -144,22 +145,24 @@ pub fn read(path: &Path) -> Result<Recording, SourceError> {
     })?;
     prescan(path, &bytes)?;
     drop(bytes);
-    let malformed = |what: String| SourceError::Malformed {
-        path: path.display().to_string(),
-        format: "ROS1 bag",
-        what,
-    };
-    let bag = RosBag::new(path).map_err(|e| malformed(e.to_string()))?;
+    let malformed_by =
+        |what: String, source: Box<dyn std::error::Error + Send + Sync>| SourceError::Malformed {
+            path: path.display().to_string(),
+            format: "ROS1 bag",
+            source: Some(source),
+            what,
+        };
+    let bag = RosBag::new(path).map_err(|e| malformed_by(e.to_string(), e.into()))?;
 
     let mut connections: BTreeMap<u32, RosKind> = BTreeMap::new();
     let mut collector = RosCollector::default();
     for record in bag.chunk_records() {
-        let record = record.map_err(|e| malformed(format!("chunk section: {e}")))?;
+        let record = record.map_err(|e| malformed_by(format!("chunk section: {e}"), e.into()))?;
         let ChunkRecord::Chunk(chunk) = record else {
             continue;
         };
         for message in chunk.messages() {
-            match message.map_err(|e| malformed(format!("inside a chunk: {e}")))? {
+            match message.map_err(|e| malformed_by(format!("inside a chunk: {e}"), e.into()))? {
                 MessageRecord::Connection(c) => {
                     connections.insert(c.id, kind_of(c.tp));
                 }

@@ -98,6 +98,7 @@ impl Visitor for Reader<'_> {
             return Err(SourceError::Malformed {
                 path,
                 format: "rosbag2",
+                source: None,
                 what: format!(
                     "topic {} has type `{}` in the storage file but `{declared}` in metadata.yaml",
                     topic.name, topic.type_name
@@ -176,6 +177,7 @@ pub fn read(path: &Path) -> Result<Recording, SourceError> {
             return Err(SourceError::Malformed {
                 path: shown,
                 format: "rosbag2",
+                source: None,
                 what: "the folder has no metadata.yaml, so it is not a rosbag2 recording (pass its .mcap \
                        or .db3 file to read that file alone)"
                     .into(),
@@ -241,6 +243,7 @@ fn read_folder(metadata_path: &Path) -> Result<Recording, SourceError> {
     let metadata = Rosbag2Metadata::parse(&text).map_err(|what| SourceError::Malformed {
         path: shown.clone(),
         format: "rosbag2 metadata.yaml",
+        source: None,
         what,
     })?;
     let storage = match metadata.storage_identifier.as_str() {
@@ -272,6 +275,7 @@ fn read_folder(metadata_path: &Path) -> Result<Recording, SourceError> {
         return Err(SourceError::Malformed {
             path: shown,
             format: "rosbag2 metadata.yaml",
+            source: None,
             what: "relative_file_paths lists no storage file".into(),
         });
     }
@@ -303,6 +307,7 @@ fn read_folder(metadata_path: &Path) -> Result<Recording, SourceError> {
             return Err(SourceError::Malformed {
                 path: shown,
                 format: "rosbag2 metadata.yaml",
+                source: None,
                 what: format!(
                     "relative_file_paths names {}, which is not a regular file",
                     file.display()

@@ -35,11 +35,13 @@ fn immutable_uri(path: &Path) -> String {
 /// as the MCAP and ROS1 readers stream theirs in file order; the recording is sorted by header stamp
 /// afterwards, so only messages with equal stamps keep this order.
 pub fn read(path: &Path, visitor: &mut dyn Visitor) -> Result<(), SourceError> {
-    let malformed = |what: String| SourceError::Malformed {
+    let malformed_by = |what: String, source: Option<rusqlite::Error>| SourceError::Malformed {
         path: path.display().to_string(),
         format: "rosbag2 sqlite3",
+        source: source.map(|e| Box::new(e) as Box<dyn std::error::Error + Send + Sync>),
         what,
     };
+    let malformed = |what: String| malformed_by(what, None);
     let mut head = Vec::with_capacity(SQLITE_MAGIC.len());
     {
         use std::io::Read as _;
@@ -65,8 +67,9 @@ pub fn read(path: &Path, visitor: &mut dyn Visitor) -> Result<(), SourceError> {
             | OpenFlags::SQLITE_OPEN_URI
             | OpenFlags::SQLITE_OPEN_NO_MUTEX,
     )
-    .map_err(|e| malformed(format!("cannot open: {e}")))?;
-    let sql = |e: rusqlite::Error| malformed(format!("{e} (is it a rosbag2 recording?)"));
+    .map_err(|e| malformed_by(format!("cannot open: {e}"), Some(e)))?;
+    let sql =
+        |e: rusqlite::Error| malformed_by(format!("{e} (is it a rosbag2 recording?)"), Some(e));
 
     let mut topics: BTreeMap<i64, (String, RosKind)> = BTreeMap::new();
     {
@@ -111,6 +114,42 @@ pub fn read(path: &Path, visitor: &mut dyn Visitor) -> Result<(), SourceError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    struct Nothing;
+
+    impl Visitor for Nothing {
+        fn topic(&mut self, _: &StoredTopic<'_>) -> Result<RosKind, SourceError> {
+            Ok(RosKind::Other)
+        }
+        fn message(&mut self, _: RosKind, _: &str, _: u64, _: &[u8]) {}
+        fn unknown_topic(&mut self, _: i64, _: i64) {}
+    }
+
+    // Reference: issue 35 — errors keep their `source()` chain instead of being turned into strings.
+    #[test]
+    fn a_damaged_database_is_malformed_and_keeps_sqlites_error() {
+        let dir = tempfile::tempdir().expect("temporary folder");
+        let path = dir.path().join("damaged.db3");
+        let mut bytes = SQLITE_MAGIC.to_vec();
+        bytes.extend(std::iter::repeat_n(0xA5u8, 4096));
+        std::fs::write(&path, bytes).expect("written");
+        let error = read(&path, &mut Nothing).expect_err("a damaged database is refused");
+        assert!(
+            matches!(
+                error,
+                SourceError::Malformed {
+                    format: "rosbag2 sqlite3",
+                    ..
+                }
+            ),
+            "{error:?}"
+        );
+        let source = std::error::Error::source(&error).expect("SQLite's error is kept");
+        assert!(
+            source.downcast_ref::<rusqlite::Error>().is_some(),
+            "{source:?}"
+        );
+    }
 
     #[test]
     fn uri_escapes_what_sqlite_would_read_as_syntax() {
