@@ -36,8 +36,10 @@ pub enum OutboxError {
     Corrupt {
         /// The record id.
         id: String,
-        /// Why.
+        /// Why (with the text of `source`, when there is one).
         reason: String,
+        /// The decoder's or the conversion's error, kept for `source()`.
+        source: Option<Box<dyn std::error::Error + Send + Sync>>,
     },
 }
 
@@ -133,13 +135,14 @@ impl Outbox {
             .scan(&self.site, RecordKind::Session)?
             .map(|record| {
                 let (id, robot) = record?;
-                let corrupt = |what: &str| OutboxError::Corrupt {
+                let corrupt = |what: &str, e: std::string::FromUtf8Error| OutboxError::Corrupt {
                     id: id.to_string(),
                     reason: format!("the session marker's {what} is not UTF-8"),
+                    source: Some(e.into()),
                 };
                 let session = String::from_utf8(id.as_bytes().to_vec())
-                    .map_err(|_| corrupt("session uuid"))?;
-                let robot = String::from_utf8(robot).map_err(|_| corrupt("robot id"))?;
+                    .map_err(|e| corrupt("session uuid", e))?;
+                let robot = String::from_utf8(robot).map_err(|e| corrupt("robot id", e))?;
                 Ok((session, robot))
             })
             .collect()
@@ -174,14 +177,15 @@ impl Outbox {
         else {
             return Ok(None);
         };
-        let corrupt = |reason: String| OutboxError::Corrupt {
+        let corrupt = |source: Box<dyn std::error::Error + Send + Sync>| OutboxError::Corrupt {
             id: DOCK_RECORD.into(),
-            reason: format!("{} bytes: {reason}", bytes.len()),
+            reason: format!("{} bytes: {source}", bytes.len()),
+            source: Some(source),
         };
-        let exact = pb::ExactPose2::decode(bytes.as_slice()).map_err(|e| corrupt(e.to_string()))?;
+        let exact = pb::ExactPose2::decode(bytes.as_slice()).map_err(|e| corrupt(e.into()))?;
         proto::pose_from_exact(Some(&exact), "ExactPose2", "dock")
             .map(Some)
-            .map_err(|e| corrupt(e.to_string()))
+            .map_err(|e| corrupt(e.into()))
     }
 
     /// Stores the robot's dock in the site, durably, or removes it (`None`: the robot does not know where
@@ -218,6 +222,7 @@ impl Outbox {
                 pb::UploadBatch::decode(bytes.as_slice()).map_err(|e| OutboxError::Corrupt {
                     id: id.to_string(),
                     reason: e.to_string(),
+                    source: Some(e.into()),
                 })
             })
             .collect()
@@ -309,6 +314,12 @@ mod tests {
         store.apply_durable(&write).unwrap();
         let error = Outbox::with_store(store, "store-1").dock().unwrap_err();
         assert!(error.to_string().contains("17 bytes"), "{error}");
+        // The decoder's error is kept as the source (issue 35).
+        let source = std::error::Error::source(&error).expect("the decoder's error");
+        assert!(
+            source.downcast_ref::<prost::DecodeError>().is_some(),
+            "{source:?}"
+        );
     }
 
     #[test]
