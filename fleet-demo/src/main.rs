@@ -59,7 +59,12 @@ enum Command {
     Simulate(simulate_command::SimulateArgs),
 }
 
-fn main() -> anyhow::Result<()> {
+/// Runs the command; an error is reported with its causes, each once (`proto::error_report`).
+fn main() -> std::process::ExitCode {
+    proto::exit_code(run())
+}
+
+fn run() -> anyhow::Result<()> {
     let cli = Cli::parse();
     // Every command prints its own progress and figures; the server's and the robots' log lines are off
     // unless RUST_LOG asks for them (then on standard error).

@@ -26,6 +26,7 @@
 
 mod conversion_error;
 mod convert;
+mod error_report;
 pub mod logging;
 mod map_delta;
 mod png_image;
@@ -39,6 +40,7 @@ pub use convert::{
     NodeSnapshot, check_format_version, grid_from_pb, grid_to_pb, grid_to_pb_with, pose_from_pb,
     pose_to_pb,
 };
+pub use error_report::{error_report, exit_code};
 pub use map_delta::{MapDelta, SubmapSnapshot};
 pub use png_image::{PngCompression, PngError, PngPixels, encode_png};
 pub use site_checkpoint::{

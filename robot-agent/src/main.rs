@@ -30,7 +30,12 @@ enum Command {
     Run(commands::run::RunArgs),
 }
 
-fn main() -> anyhow::Result<()> {
+/// Runs the command; an error is reported with its causes, each once (`proto::error_report`).
+fn main() -> std::process::ExitCode {
+    proto::exit_code(run())
+}
+
+fn run() -> anyhow::Result<()> {
     let cli = Cli::parse();
     // `run` logs to standard output at INFO as a service does; the offline tools print their results
     // there and log nothing unless RUST_LOG asks (then to standard error).

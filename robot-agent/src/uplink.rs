@@ -68,6 +68,15 @@ pub enum UplinkError {
     /// The outbox failed.
     #[error(transparent)]
     Outbox(#[from] crate::outbox::OutboxError),
+    /// The uplink's own settings are unusable (the server URL, TLS, the token, zenoh's options): fix the
+    /// configuration; retrying cannot help.
+    #[error("uplink settings: {what}")]
+    Settings {
+        /// Which setting, and why (with the text of `source`, when there is one).
+        what: String,
+        /// The library's own error, where one found it.
+        source: Option<Box<dyn std::error::Error + Send + Sync>>,
+    },
 }
 
 impl UplinkError {
@@ -76,7 +85,7 @@ impl UplinkError {
         match self {
             Self::Unavailable(_) | Self::SequenceGap { .. } => true,
             Self::Outbox(e) => e.is_out_of_space(),
-            Self::Rejected { .. } | Self::Malformed(_) => false,
+            Self::Rejected { .. } | Self::Malformed(_) | Self::Settings { .. } => false,
         }
     }
 }

@@ -207,10 +207,13 @@ fn bad_rosbag2_input_gets_a_clear_error() {
 
     // A metadata.yaml that is not rosbag2's.
     let dir = copy_folder("rosbag2-derived/mit-csail", |_| "version: 9\n".into());
-    error_of(
+    let error = error_of(
         dir.path(),
         &["metadata.yaml", "rosbag2_bagfile_information"],
     );
+    // Reference: issue 35 item 6 — the YAML reader's error stays the source.
+    let source = std::error::Error::source(&error).expect("the YAML reader's error");
+    assert!(source.is::<serde_yaml::Error>(), "{source:?}");
 
     // A truncated MCAP, alone and through its folder.
     let dir = copy_folder("rosbag2-derived/mit-csail", |t| t);

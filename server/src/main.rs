@@ -27,7 +27,12 @@ enum Command {
     Site(site_command::SiteArgs),
 }
 
-fn main() -> anyhow::Result<()> {
+/// Runs the command; an error is reported with its causes, each once (`proto::error_report`).
+fn main() -> std::process::ExitCode {
+    proto::exit_code(run())
+}
+
+fn run() -> anyhow::Result<()> {
     let cli = Cli::parse();
     // `serve` logs to standard output at INFO (DEBUG with `--verbose`) as a service does; the tools
     // print their results there and log nothing unless RUST_LOG asks (then to standard error).

@@ -15,10 +15,10 @@ use super::{
     PoseExtrapolatorOptions, Submap, SubmapRef, SubmapsOptions, adaptive_voxel_filter,
 };
 use crate::geometry::{Rigid2, Rigid2Ext as _, normalize_angle};
-use crate::grid::ProbabilityGrid;
+use crate::grid::{ProbabilityGrid, RangeDataInserterOptionsError};
 use crate::scan_matching::{
-    LeastSquaresScanMatcher, LeastSquaresScanMatcherOptions, RealTimeCorrelativeScanMatcher,
-    RealTimeCorrelativeScanMatcherOptions, paired_z,
+    LeastSquaresScanMatcher, LeastSquaresScanMatcherOptions, MatchError,
+    RealTimeCorrelativeScanMatcher, RealTimeCorrelativeScanMatcherOptions, paired_z,
 };
 use crate::sensor::{ImuReading, OdometryReading, RangeConversionOptions, RangeData, Timestamp};
 
@@ -135,16 +135,34 @@ impl Default for LocalTrajectoryBuilderOptions {
 
 /// Invalid [`LocalTrajectoryBuilderOptions`].
 #[derive(Debug, thiserror::Error, PartialEq)]
-#[error("invalid LLO option: {0}")]
-pub struct LocalTrajectoryBuilderOptionsError(String);
+pub enum LocalTrajectoryBuilderOptionsError {
+    /// An option of LLO itself.
+    #[error("invalid LLO option: {0}")]
+    Invalid(String),
+    /// A scan matcher's options (`real_time_correlative` or `least_squares`).
+    #[error("invalid LLO option: {field}: {source}")]
+    ScanMatcher {
+        /// Which matcher's options.
+        field: &'static str,
+        /// Why.
+        source: MatchError,
+    },
+    /// The submaps' range data inserter's options (`submaps.range_data_inserter`).
+    #[error("invalid LLO option: submaps.range_data_inserter: {0}")]
+    RangeDataInserter(#[source] RangeDataInserterOptionsError),
+}
 
 impl LocalTrajectoryBuilderOptions {
     /// Checks every nested option.
     pub fn validate(&self) -> Result<(), LocalTrajectoryBuilderOptionsError> {
-        let err = |e: &dyn std::fmt::Display| LocalTrajectoryBuilderOptionsError(e.to_string());
-        self.real_time_correlative.validate().map_err(|e| err(&e))?;
+        let err = |e: &str| LocalTrajectoryBuilderOptionsError::Invalid(e.to_owned());
+        let matcher =
+            |field| move |source| LocalTrajectoryBuilderOptionsError::ScanMatcher { field, source };
+        self.real_time_correlative
+            .validate()
+            .map_err(matcher("real_time_correlative"))?;
         if !(self.correlative_max_range.is_finite() && self.correlative_max_range >= 0.0) {
-            return Err(err(&"correlative_max_range must be finite and >= 0"));
+            return Err(err("correlative_max_range must be finite and >= 0"));
         }
         for (name, value) in [
             ("min_recovery_score", self.min_recovery_score),
@@ -161,43 +179,45 @@ impl LocalTrajectoryBuilderOptions {
             ),
         ] {
             if !(value.is_finite() && value >= 0.0) {
-                return Err(LocalTrajectoryBuilderOptionsError(format!(
+                return Err(LocalTrajectoryBuilderOptionsError::Invalid(format!(
                     "{name} must be finite and >= 0"
                 )));
             }
         }
-        self.least_squares.validate().map_err(|e| err(&e))?;
+        self.least_squares
+            .validate()
+            .map_err(matcher("least_squares"))?;
         if !(self.max_odometry_target_disagreement >= 0.0
             && self.max_odometry_target_disagreement.is_finite())
         {
             return Err(err(
-                &"max_odometry_target_disagreement must be finite and >= 0",
+                "max_odometry_target_disagreement must be finite and >= 0",
             ));
         }
         self.submaps
             .range_data_inserter
             .validate()
-            .map_err(|e| err(&e))?;
+            .map_err(LocalTrajectoryBuilderOptionsError::RangeDataInserter)?;
         let rc = &self.range_conversion;
         if !(rc.min_range >= 0.0
             && rc.max_range > rc.min_range
             && rc.missing_data_ray_length >= 0.0)
         {
             return Err(err(
-                &"range_conversion: need 0 ≤ min_range < max_range and missing_data_ray_length ≥ 0",
+                "range_conversion: need 0 ≤ min_range < max_range and missing_data_ray_length ≥ 0",
             ));
         }
         if !(self.submaps.resolution > 0.0 && self.submaps.resolution.is_finite())
             || self.submaps.num_range_data == 0
         {
             return Err(err(
-                &"submaps: resolution must be positive and num_range_data at least 1",
+                "submaps: resolution must be positive and num_range_data at least 1",
             ));
         }
         let av = &self.adaptive_voxel_filter;
         if !(av.max_length > 0.0 && av.max_range > 0.0) {
             return Err(err(
-                &"adaptive_voxel_filter: max_length and max_range must be positive",
+                "adaptive_voxel_filter: max_length and max_range must be positive",
             ));
         }
         Ok(())
@@ -1123,5 +1143,25 @@ mod tests {
             assert!(broken.validate().is_err());
         }
         assert!(LocalTrajectoryBuilderOptions::default().validate().is_ok());
+    }
+
+    // Reference: issue 35 item 6 — a nested option's own error stays the source, named by its field.
+    #[test]
+    fn a_bad_nested_option_keeps_its_own_error_as_the_source() {
+        let mut options = LocalTrajectoryBuilderOptions::default();
+        options.real_time_correlative.linear_search_window = -1.0;
+        let error = options.validate().unwrap_err();
+        let source = std::error::Error::source(&error).expect("the matcher's error");
+        assert!(source.is::<MatchError>(), "{source:?}");
+        assert!(
+            error.to_string().contains("real_time_correlative: ")
+                && error.to_string().contains("linear_search_window"),
+            "{error}"
+        );
+        let mut options = LocalTrajectoryBuilderOptions::default();
+        options.submaps.range_data_inserter.hit_probability = 0.2;
+        let error = options.validate().unwrap_err();
+        let source = std::error::Error::source(&error).expect("the inserter's error");
+        assert!(source.is::<RangeDataInserterOptionsError>(), "{source:?}");
     }
 }

@@ -73,7 +73,12 @@ pub fn read(path: &Path, visitor: &mut dyn Visitor) -> Result<(), SourceError> {
     let mut pos = 0;
     let mut eof_signalled = false;
     while let Some(event) = reader.next_event() {
-        let (opcode, data) = match event.map_err(|e| malformed(describe(&e)))? {
+        let (opcode, data) = match event.map_err(|e| SourceError::Malformed {
+            path: path.display().to_string(),
+            format: "MCAP",
+            what: describe(&e),
+            source: Some(Box::new(e)),
+        })? {
             LinearReadEvent::ReadRequest(need) => {
                 let n = need.min(bytes.len() - pos);
                 if n == 0 {
@@ -475,6 +480,23 @@ mod tests {
         for chunk in [None, Some(""), Some("zstd")] {
             assert_eq!(read_bytes(&file(8, chunk, 0)), Ok(1), "{chunk:?}");
         }
+    }
+
+    // Reference: issue 35 item 6 — the MCAP reader's error stays the source of a malformed file's.
+    #[test]
+    fn a_truncated_file_keeps_the_readers_error_as_its_source() {
+        let bytes = file(8, None, 0);
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("cut.mcap");
+        std::fs::write(&path, &bytes[..bytes.len() - 30]).unwrap();
+        let error = read(&path, &mut Count::default()).unwrap_err();
+        assert!(
+            matches!(error, SourceError::Malformed { format: "MCAP", .. }),
+            "{error}"
+        );
+        assert!(error.to_string().contains("truncated"), "{error}");
+        let source = std::error::Error::source(&error).expect("the reader's error");
+        assert!(source.is::<McapError>(), "{source:?}");
     }
 
     /// Regression (found by the fuzz harness, `rosbag2_mcap`): a string length of 4 GiB inside a

@@ -240,11 +240,11 @@ fn read_folder(metadata_path: &Path) -> Result<Recording, SourceError> {
         path: shown.clone(),
         source,
     })?;
-    let metadata = Rosbag2Metadata::parse(&text).map_err(|what| SourceError::Malformed {
+    let metadata = Rosbag2Metadata::parse(&text).map_err(|e| SourceError::Malformed {
         path: shown.clone(),
         format: "rosbag2 metadata.yaml",
-        source: None,
-        what,
+        what: e.to_string(),
+        source: Some(Box::new(e)),
     })?;
     let storage = match metadata.storage_identifier.as_str() {
         "mcap" => Storage::Mcap,

@@ -59,9 +59,10 @@ fn null_as_empty<'de, D: serde::Deserializer<'de>>(d: D) -> Result<String, D::Er
 }
 
 impl Rosbag2Metadata {
-    /// Parses the text of a `metadata.yaml`; the error says what is missing or malformed.
-    pub fn parse(text: &str) -> Result<Self, String> {
-        let file: MetadataFile = serde_yaml::from_str(text).map_err(|e| e.to_string())?;
+    /// Parses the text of a `metadata.yaml`; the YAML reader's error says what is missing or malformed,
+    /// and where.
+    pub fn parse(text: &str) -> Result<Self, serde_yaml::Error> {
+        let file: MetadataFile = serde_yaml::from_str(text)?;
         Ok(file.rosbag2_bagfile_information)
     }
 
@@ -96,7 +97,7 @@ mod tests {
 
         let error =
             Rosbag2Metadata::parse("rosbag2_bagfile_information:\n  version: 9\n").unwrap_err();
-        assert!(error.contains("storage_identifier"), "{error}");
+        assert!(error.to_string().contains("storage_identifier"), "{error}");
         assert!(Rosbag2Metadata::parse("not: [yaml").is_err());
     }
 }

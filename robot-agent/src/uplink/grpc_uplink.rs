@@ -100,7 +100,10 @@ impl GrpcUplink {
         tls: Option<&ClientTls>,
     ) -> Result<Self, UplinkError> {
         let mut endpoint = Endpoint::from_shared(url.to_owned())
-            .map_err(|e| UplinkError::Unavailable(format!("bad server url {url:?}: {e}")))?
+            .map_err(|e| UplinkError::Settings {
+                what: format!("bad server url {url:?}: {e}"),
+                source: Some(Box::new(e)),
+            })?
             .connect_timeout(call_timeout)
             .tcp_nodelay(true);
         if let Some(tls) = tls {
@@ -111,18 +114,18 @@ impl GrpcUplink {
             }
             endpoint = endpoint
                 .tls_config(config)
-                .map_err(|e| UplinkError::Rejected {
-                    code: tonic::Code::InvalidArgument,
-                    message: format!("TLS settings: {e}"),
+                .map_err(|e| UplinkError::Settings {
+                    what: format!("TLS: {e}"),
+                    source: Some(Box::new(e)),
                 })?;
         }
         let channel = endpoint.connect_lazy();
         let token: MetadataValue<Ascii> =
             format!("Bearer {token}")
                 .parse()
-                .map_err(|_| UplinkError::Rejected {
-                    code: tonic::Code::InvalidArgument,
-                    message: "the token must be printable ASCII".into(),
+                .map_err(|e| UplinkError::Settings {
+                    what: "the token must be printable ASCII".into(),
+                    source: Some(Box::new(e)),
                 })?;
         let auth = BearerToken(token);
         Ok(Self {
@@ -258,5 +261,31 @@ impl MapUplink for GrpcUplink {
         Ok(Box::pin(stream.map(|item| {
             item.map(|v| v.version).map_err(|s| from_status(&s))
         })))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    // Reference: issue 35 item 6 — settings that cannot work are the agent's own error, kept as the
+    // source, and retrying them is not offered.
+    #[tokio::test]
+    async fn unusable_settings_are_refused_for_good_with_their_cause() {
+        let second = Duration::from_secs(1);
+        for (url, token, said) in [
+            ("not a url\n", "t0k3n", "bad server url"),
+            ("http://127.0.0.1:1", "t0k3n\u{7}é", "printable ASCII"),
+        ] {
+            let Err(error) = GrpcUplink::new(url, "site", token, 1 << 20, second) else {
+                panic!("{url:?} {token:?} accepted");
+            };
+            assert!(
+                matches!(error, UplinkError::Settings { .. }) && !error.is_transient(),
+                "{error:?}"
+            );
+            assert!(error.to_string().contains(said), "{error}");
+            assert!(std::error::Error::source(&error).is_some(), "{error:?}");
+        }
     }
 }

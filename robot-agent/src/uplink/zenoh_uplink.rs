@@ -40,9 +40,9 @@ impl ZenohUplink {
     ) -> Result<Self, UplinkError> {
         let config = options
             .to_zenoh_config()
-            .map_err(|e| UplinkError::Rejected {
-                code: tonic::Code::InvalidArgument,
-                message: e.to_string(),
+            .map_err(|e| UplinkError::Settings {
+                what: format!("zenoh: {e}"),
+                source: Some(Box::new(e)),
             })?;
         let session = zenoh::open(config)
             .await

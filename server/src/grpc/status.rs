@@ -65,6 +65,7 @@ pub fn from_site(metrics: &ServerMetrics, error: &SiteError) -> Status {
         | SiteError::CorruptCheckpoint { .. }
         | SiteError::CheckpointRefused { .. } => Status::data_loss(message),
         SiteError::Internal(_)
+        | SiteError::ThreadStart { .. }
         | SiteError::Worker(_)
         | SiteError::Map(_)
         | SiteError::EndSession { .. }

@@ -38,7 +38,7 @@ pub(crate) async fn run_as_maintenance<T: Send + 'static>(
                 lower_this_threads_priority();
                 f()
             })
-            .map_err(|e| SiteError::Internal(format!("cannot start the {what} thread: {e}")))?
+            .map_err(|source| SiteError::ThreadStart { what, source })?
             .join()
             .map_err(|_| SiteError::Internal(format!("the {what} thread panicked")))
     })

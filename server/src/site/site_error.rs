@@ -97,6 +97,14 @@ pub enum SiteError {
     /// on the version it wrote).
     #[error("internal error: {0}")]
     Internal(String),
+    /// The operating system refused a thread for site work (out of memory or of threads).
+    #[error("internal error: cannot start the {what} thread: {source}")]
+    ThreadStart {
+        /// The work the thread was for.
+        what: &'static str,
+        /// The operating system's error.
+        source: std::io::Error,
+    },
     /// A worker task failed (panicked or was cancelled).
     #[error("internal error: {0}")]
     Worker(#[source] tokio::task::JoinError),
