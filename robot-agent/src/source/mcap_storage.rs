@@ -47,12 +47,13 @@ struct ChannelDef {
 
 /// Streams every message of an MCAP file into `visitor`, in file order.
 pub fn read(path: &Path, visitor: &mut dyn Visitor) -> Result<(), SourceError> {
-    let malformed = |what: String| SourceError::Malformed {
+    let malformed_by = |what: String, source: Option<McapError>| SourceError::Malformed {
         path: path.display().to_string(),
         format: "MCAP",
-        source: None,
+        source: source.map(|e| Box::new(e) as Box<dyn std::error::Error + Send + Sync>),
         what,
     };
+    let malformed = |what: String| malformed_by(what, None);
     let bytes = std::fs::read(path).map_err(|source| SourceError::Io {
         path: path.display().to_string(),
         source,
@@ -73,12 +74,7 @@ pub fn read(path: &Path, visitor: &mut dyn Visitor) -> Result<(), SourceError> {
     let mut pos = 0;
     let mut eof_signalled = false;
     while let Some(event) = reader.next_event() {
-        let (opcode, data) = match event.map_err(|e| SourceError::Malformed {
-            path: path.display().to_string(),
-            format: "MCAP",
-            what: describe(&e),
-            source: Some(Box::new(e)),
-        })? {
+        let (opcode, data) = match event.map_err(|e| malformed_by(describe(&e), Some(e)))? {
             LinearReadEvent::ReadRequest(need) => {
                 let n = need.min(bytes.len() - pos);
                 if n == 0 {
