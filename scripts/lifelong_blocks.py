@@ -46,6 +46,9 @@ def block_rows(sessions):
             "pgr": f"{p95([s['pgr_cpu_ms'] for s in block if s.get('pgr_cpu_ms') is not None]):.0f} / "
                    f"{max((s['pgr_cpu_ms'] or 0) for s in block):.0f}",
             "lm": f"{mean(s['pgr_iterations'] for s in block):.1f}",
+            # Reports before session 51 lack the factor's size.
+            "factor": (f"{mean(s['pgr_factor_nonzeros'] for s in block) / 1e6:.2f}"
+                       if all("pgr_factor_nonzeros" in s for s in block) else "–"),
             "rss": f"{mean(s['rss_mb'] for s in block if s.get('rss_mb')):.0f} / "
                    f"{max((s.get('peak_rss_mb') or 0) for s in block):.0f}",
             "cri": f"{right}/{len(block)}",
@@ -111,11 +114,11 @@ def main():
     print(f"seed {report.get('seed')}, policy {report.get('policy')}, sessions 1–{sessions[-1]['session']}"
           f"{'' if report.get('complete') else ' (run not complete)'}\n")
     print("| sessions | nodes | submaps | constraints | PGR CPU p95 / max (ms) | LM steps (mean) "
-          "| RSS mean / peak (MB) | placed right | AMS mean | MRCL mean |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "| Cholesky factor (M values, mean) | RSS mean / peak (MB) | placed right | AMS mean | MRCL mean |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in block_rows(sessions):
         print(f"| {r['sessions']} | {r['nodes']} | {r['submaps']} | {r['constraints']} | {r['pgr']} | "
-              f"{r['lm']} | {r['rss']} | {r['cri']} | {r['ams']} | {r['mrcl']} |")
+              f"{r['lm']} | {r['factor']} | {r['rss']} | {r['cri']} | {r['ams']} | {r['mrcl']} |")
     print()
     for key in ("nodes", "submaps", "constraints"):
         g, last_first = growth(sessions, key)

@@ -3,14 +3,25 @@
 # scored against their relations, and one table of the results (scripts/robustness_table.py).
 #
 #   scripts/robustness_suite.sh [OUT_DIR]        (default out/robustness)
+#   SEEDS="1 2 3 4 5 6" VARIANTS=hard scripts/robustness_suite.sh OUT_DIR
+#                                                (each seed in OUT_DIR/seedN, then scripts/robustness_seeds.py)
 #
 # Environment: RECORDINGS (default "mit-csail aces intel"), VARIANTS (default: every variant),
-# CONFIG (a TOML file passed as --config; the suite's figures are scored without one), SEED (default 1), JOBS (parallel runs, default 2), AGENT (default target/release/evermap-agent).
+# CONFIG (a TOML file passed as --config; the suite's figures are scored without one), SEED (default 1),
+# SEEDS (several perturbation seeds: a random variant's one draw says little about the next), JOBS
+# (parallel runs, default 2), AGENT (default target/release/evermap-agent).
 # A run whose report.json exists is not run again, so an interrupted suite resumes where it stopped;
 # delete OUT_DIR to start over (do so after changing the engine).
 set -euo pipefail
+self=$(realpath "$0")
 cd "$(dirname "$0")/.."
 out=${1:-out/robustness}
+if [[ -n ${SEEDS:-} && $(wc -w <<<"$SEEDS") -gt 1 ]]; then
+  for s in $SEEDS; do
+    SEEDS= SEED=$s "$self" "$out/seed$s" >/dev/null
+  done
+  exec python3 scripts/robustness_seeds.py "$out"
+fi
 recordings=${RECORDINGS:-"mit-csail aces intel"}
 variants=${VARIANTS:-"clean range8 range4 sparse odom slip slow clutter late noise stall hard thin lag"}
 seed=${SEED:-1}

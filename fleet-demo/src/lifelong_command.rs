@@ -101,6 +101,8 @@ struct SessionRow {
     pgr_cpu_ms: Option<f64>,
     /// Levenberg-Marquardt steps of every optimization `pgr_ms` covers.
     pgr_iterations: usize,
+    /// Values stored for the largest Cholesky factor those steps used (what a step costs grows with).
+    pgr_factor_nonzeros: usize,
     peak_rss_mb: Option<f64>,
     /// Resident memory when the session ended, MB (the peak never falls; this does).
     rss_mb: Option<f64>,
@@ -223,6 +225,7 @@ impl Reporter<'_> {
             pgr_ms: s.finish_ms,
             pgr_cpu_ms: s.finish_cpu_ms,
             pgr_iterations: s.finish_iterations(),
+            pgr_factor_nonzeros: s.finish_factor_nonzeros(),
             peak_rss_mb: s.peak_rss_mb,
             rss_mb: s.rss_mb,
             scans: end.record.smoothed.len(),

@@ -119,6 +119,11 @@ pub struct OptimizationFigures {
     pub chi2: [f64; 2],
     /// Why it stopped.
     pub termination: String,
+    /// Poses it moved.
+    pub free_variables: usize,
+    /// Values stored for its Cholesky factor, fill-in included: with `free_variables`, what each step
+    /// costs.
+    pub factor_nonzeros: usize,
 }
 
 impl SessionSummary {
@@ -126,6 +131,16 @@ impl SessionSummary {
     /// optimization `finish_ms` covers.
     pub fn finish_iterations(&self) -> usize {
         self.finish_optimizations.iter().map(|o| o.iterations).sum()
+    }
+
+    /// The largest Cholesky factor (values stored) of the session end's optimizations; 0 if none
+    /// factorized.
+    pub fn finish_factor_nonzeros(&self) -> usize {
+        self.finish_optimizations
+            .iter()
+            .map(|o| o.factor_nonzeros)
+            .max()
+            .unwrap_or(0)
     }
 }
 
@@ -866,6 +881,8 @@ fn worker(
                                 accepted_steps: o.accepted_steps,
                                 chi2: [o.initial_chi2, o.final_chi2],
                                 termination: o.termination.to_string(),
+                                free_variables: o.free_variables,
+                                factor_nonzeros: o.factor_nonzeros,
                             }),
                             _ => None,
                         })

@@ -219,6 +219,11 @@ pub struct OptimizationSummary {
     pub pruned_constraints: usize,
     /// Why it stopped.
     pub termination: Termination,
+    /// Poses the optimization moved (free variables). Count.
+    pub free_variables: usize,
+    /// Values stored for the last factorization's Cholesky factor, fill-in included (0 if none ran):
+    /// with `free_variables`, what each step costs. Count.
+    pub factor_nonzeros: usize,
 }
 
 /// One constraint in dense form.
@@ -332,6 +337,8 @@ impl Optimizer {
             accepted_steps: 0,
             pruned_constraints: 0,
             termination: Termination::Converged(ConvergenceCriterion::GradientTolerance),
+            free_variables: problem.num_free,
+            factor_nonzeros: 0,
         };
         if !initial_cost.is_finite() {
             summary.termination = Termination::Failed(FailureReason::NonFiniteCost);
@@ -383,6 +390,10 @@ impl Optimizer {
         summary.final_chi2 = chi2;
         summary.iterations = iterations;
         summary.accepted_steps = accepted;
+        summary.factor_nonzeros = factorization
+            .solver
+            .as_ref()
+            .map_or(0, SparseCholesky::factor_nonzeros);
         problem.write_back(graph);
         summary
     }

@@ -154,6 +154,26 @@ fn converges_on_a_synthetic_loop() {
 }
 
 #[test]
+fn the_summary_says_what_a_step_cost() {
+    // 24 poses, the first fixed (the default gauge): 23 move. L holds at least the pattern of H (each
+    // free pose's 3×3 diagonal block, 6 nonzeros of it in one triangle, and a 3×3 block for each of the
+    // 33 constraints between free poses) and at most a full square (supernodes store dense blocks).
+    let (mut graph, _) = square_world(24, RobustLoss::Trivial);
+    let summary = optimizer().optimize(&mut graph);
+    assert_eq!(summary.free_variables, 23, "{summary:?}");
+    let (n, pattern) = (3 * 23, 6 * 23 + 9 * 33);
+    assert!(
+        summary.factor_nonzeros >= pattern && summary.factor_nonzeros <= n * n,
+        "{summary:?}"
+    );
+    // Nothing to move: nothing factorized, nothing counted.
+    let mut single = PoseGraph::new();
+    single.add_variable(node(0), Rigid2::identity()).unwrap();
+    let summary = optimizer().optimize(&mut single);
+    assert_eq!((summary.free_variables, summary.factor_nonzeros), (0, 0));
+}
+
+#[test]
 fn robust_loss_down_weights_an_injected_outlier() {
     let run = |loss| {
         let (mut graph, truth) = square_world(24, loss);
