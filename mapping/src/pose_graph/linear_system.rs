@@ -228,13 +228,13 @@ impl SparseCholesky {
         })
     }
 
-    /// The pattern this solver was built for.
     /// Values stored for the Cholesky factor `L`: its nonzeros, fill-in included, and the zeros its dense
     /// supernode blocks hold (what a numeric factorization and a solve cost grows with).
     pub(crate) fn factor_nonzeros(&self) -> usize {
         self.factor_values.len()
     }
 
+    /// The pattern this solver was built for.
     pub(crate) fn pattern(&self) -> &BlockPattern {
         &self.pattern
     }
