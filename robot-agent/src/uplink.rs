@@ -46,8 +46,15 @@ pub use zenoh_uplink::ZenohUplink;
 pub enum UplinkError {
     /// The server cannot be reached now (connection refused or lost, timeout, server unavailable):
     /// try again later; nothing is lost.
-    #[error("server unavailable: {0}")]
-    Unavailable(String),
+    #[error("server unavailable: {what}")]
+    Unavailable {
+        /// What failed, in words (the server's message, or which wait ran out).
+        what: String,
+        /// The transport's own error, where there is one (a gRPC status and what caused it, a zenoh
+        /// error): kept as [`std::error::Error::source`] so a report shows the whole chain.
+        #[source]
+        source: Option<Box<dyn std::error::Error + Send + Sync>>,
+    },
     /// The server refused a batch because it skipped sequence numbers.
     #[error("sequence gap: the server expects seq {expected}")]
     SequenceGap {
@@ -80,10 +87,29 @@ pub enum UplinkError {
 }
 
 impl UplinkError {
+    /// [`UplinkError::Unavailable`] with no underlying error (a wait that ran out, a link taken down).
+    pub fn unavailable(what: impl Into<String>) -> Self {
+        Self::Unavailable {
+            what: what.into(),
+            source: None,
+        }
+    }
+
+    /// [`UplinkError::Unavailable`] caused by the transport's `source`.
+    pub fn unavailable_because(
+        what: impl Into<String>,
+        source: impl std::error::Error + Send + Sync + 'static,
+    ) -> Self {
+        Self::Unavailable {
+            what: what.into(),
+            source: Some(Box::new(source)),
+        }
+    }
+
     /// Whether retrying later can help (a full outbox disk too: space may return).
     pub fn is_transient(&self) -> bool {
         match self {
-            Self::Unavailable(_) | Self::SequenceGap { .. } => true,
+            Self::Unavailable { .. } | Self::SequenceGap { .. } => true,
             Self::Outbox(e) => e.is_out_of_space(),
             Self::Rejected { .. } | Self::Malformed(_) | Self::Settings { .. } => false,
         }

@@ -90,7 +90,7 @@ impl OneRobotSite {
         robot.enqueue(&Self::node(4)).expect("enqueue");
         for _ in 0..3 {
             match robot.flush().await {
-                Err(UplinkError::Unavailable(message)) => assert!(
+                Err(UplinkError::Unavailable { what: message, .. }) => assert!(
                     message.contains("No space left on device"),
                     "{case}: the refusal names the full disk: {message}"
                 ),

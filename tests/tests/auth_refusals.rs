@@ -85,7 +85,7 @@ async fn zenoh_session(port: u16) -> zenoh::Session {
     // Declarations propagate after the link comes up: wait until the site answers.
     let mut probe = ZenohUplink::with_session(session.clone(), "site-a", TOKEN_A, WAIT);
     let deadline = Instant::now() + Duration::from_secs(20);
-    while let Err(UplinkError::Unavailable(e)) = probe.map_version().await {
+    while let Err(e @ UplinkError::Unavailable { .. }) = probe.map_version().await {
         assert!(Instant::now() < deadline, "site-a does not answer: {e}");
         tokio::time::sleep(Duration::from_millis(100)).await;
     }

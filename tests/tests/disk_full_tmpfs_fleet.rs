@@ -176,7 +176,10 @@ async fn server_and_outbox_on_a_full_tmpfs_recover_in_place_and_nothing_is_lost_
         }
     };
     assert!(
-        matches!(refusal, robot_agent::uplink::UplinkError::Unavailable(_)),
+        matches!(
+            refusal,
+            robot_agent::uplink::UplinkError::Unavailable { .. }
+        ),
         "the server refuses: {refusal}"
     );
     eprintln!("after {nodes} nodes: {refusal}");

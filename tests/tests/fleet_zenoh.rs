@@ -69,7 +69,7 @@ async fn zenoh_uplink(port: u16, token: &str) -> ZenohUplink {
     let deadline = Instant::now() + Duration::from_secs(20);
     loop {
         match uplink.map_version().await {
-            Err(UplinkError::Unavailable(e)) if Instant::now() < deadline => {
+            Err(e @ UplinkError::Unavailable { .. }) if Instant::now() < deadline => {
                 eprintln!("waiting for the server's queryable: {e}");
                 tokio::time::sleep(Duration::from_millis(100)).await;
             }

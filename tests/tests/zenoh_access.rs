@@ -146,7 +146,7 @@ async fn answering(uplink: &mut ZenohUplink) -> u64 {
     loop {
         match uplink.map_version().await {
             Ok(version) => return version,
-            Err(UplinkError::Unavailable(e)) if Instant::now() < deadline => {
+            Err(e @ UplinkError::Unavailable { .. }) if Instant::now() < deadline => {
                 eprintln!("waiting for the site to answer: {e}");
                 tokio::time::sleep(Duration::from_millis(100)).await;
             }
@@ -309,7 +309,7 @@ async fn attack(access_control: bool) -> Attempts {
 }
 
 fn unanswered(result: &Result<u64, UplinkError>) -> bool {
-    matches!(result, Err(UplinkError::Unavailable(m)) if m.contains("no answer"))
+    matches!(result, Err(UplinkError::Unavailable { what: m, .. }) if m.contains("no answer"))
 }
 
 // Reference: issue 16 §3 "a robot of site A cannot query or publish on site B, over zenoh as over gRPC".

@@ -101,7 +101,7 @@ async fn the_robots_link_and_the_router_drop_mid_session_and_nothing_is_lost_or_
         .await
         .unwrap();
     bounded("the server's queryable reaching the robot", async {
-        while let Err(UplinkError::Unavailable(_)) = uplink.map_version().await {
+        while let Err(UplinkError::Unavailable { .. }) = uplink.map_version().await {
             tokio::time::sleep(Duration::from_millis(100)).await;
         }
     })

@@ -282,7 +282,7 @@ async fn sites_sharded_over_two_instances_and_one_moved_lose_nothing_and_keep_th
             .await
             .unwrap();
         bounded("the owner's queryable reaching the robot", 30, async {
-            while let Err(UplinkError::Unavailable(_)) = probe.map_version().await {
+            while let Err(UplinkError::Unavailable { .. }) = probe.map_version().await {
                 tokio::time::sleep(Duration::from_millis(100)).await;
             }
         })

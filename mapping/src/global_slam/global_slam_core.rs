@@ -289,6 +289,15 @@ impl GlobalSlam {
                 .map_err(graph_error)?;
         }
 
+        let path_m = self
+            .last_node
+            .get(&trajectory)
+            .and_then(|p| self.nodes.get(p))
+            .map_or(0.0, |previous| {
+                previous.path_m
+                    + (local_pose.translation.vector - previous.local_pose.translation.vector)
+                        .norm()
+            });
         let mut node_submaps = Vec::with_capacity(insertion_submaps.len());
         for &(submap_index, local_from_submap) in &insertion_submaps {
             let sid = SubmapId {
@@ -319,6 +328,20 @@ impl GlobalSlam {
             let Some(submap) = self.submaps.get_mut(&sid) else {
                 continue;
             };
+            // LLO drifted over the path from the submap's first node to this one, and the graph holds the
+            // submap rigid: the farther along, the less the node's pose in it says about the world.
+            let span_m = submap
+                .nodes
+                .first()
+                .and_then(|n| self.nodes.get(n))
+                .map_or(0.0, |first| (path_m - first.path_m).abs());
+            let o = &self.options;
+            let intra_information = information(
+                o.intra_submap_translation_sigma
+                    .hypot(o.intra_submap_translation_sigma_per_m * span_m),
+                o.intra_submap_rotation_sigma
+                    .hypot(o.intra_submap_rotation_sigma_per_m * span_m),
+            );
             submap.nodes.push(id);
             self.graph
                 .add_constraint(Constraint {
@@ -326,25 +349,13 @@ impl GlobalSlam {
                     from: VariableId::Submap(sid),
                     to: VariableId::Node(id),
                     from_from_to: submap.local_pose.inverse() * local_pose,
-                    information: information(
-                        self.options.intra_submap_translation_sigma,
-                        self.options.intra_submap_rotation_sigma,
-                    ),
+                    information: intra_information,
                     loss: RobustLoss::Trivial,
                 })
                 .map_err(graph_error)?;
             node_submaps.push(sid);
         }
 
-        let path_m = self
-            .last_node
-            .get(&trajectory)
-            .and_then(|p| self.nodes.get(p))
-            .map_or(0.0, |previous| {
-                previous.path_m
-                    + (local_pose.translation.vector - previous.local_pose.translation.vector)
-                        .norm()
-            });
         if let Some(previous) = self
             .last_node
             .get(&trajectory)
@@ -968,6 +979,51 @@ mod tests {
             runner_up_score: None,
             information: None,
         }
+    }
+
+    /// The translation information (x) of node `index`'s constraint to submap 1 of [`straight_run`].
+    fn intra_information_x(global: &GlobalSlam, index: u32) -> f64 {
+        let submap = VariableId::Submap(SubmapId {
+            trajectory: 0,
+            index: 1,
+        });
+        let node = VariableId::Node(NodeId {
+            trajectory: 0,
+            index,
+        });
+        global
+            .graph()
+            .constraints()
+            .find(|(_, c)| {
+                c.kind == ConstraintKind::NodeToSubmapIntra && c.from == submap && c.to == node
+            })
+            .map(|(_, c)| c.information[(0, 0)])
+            .expect("the node's constraint to submap 1")
+    }
+
+    #[test]
+    fn a_node_far_along_its_submap_is_held_to_it_more_loosely_when_asked() {
+        // By default every node is held to its submap alike.
+        let global = straight_run(101);
+        assert_eq!(
+            intra_information_x(&global, 11),
+            intra_information_x(&global, 100)
+        );
+        // With growth: submap 1 starts at node 11; node 100 is 17.8 m of path further.
+        let mut grown = GlobalSlam::new(GlobalSlamOptions {
+            intra_submap_translation_sigma_per_m: 0.1,
+            intra_submap_rotation_sigma_per_m: 0.01,
+            optimize_every_n_nodes: 0,
+            ..GlobalSlamOptions::default()
+        })
+        .expect("valid options");
+        drive_on(&mut grown, 0..101);
+        let sigma = |information: f64| information.sqrt().recip();
+        let near = sigma(intra_information_x(&grown, 11));
+        let far = sigma(intra_information_x(&grown, 100));
+        assert!((near - 0.5).abs() < 1e-9, "{near}");
+        let expected = 0.5f64.hypot(0.1 * 17.8);
+        assert!((far - expected).abs() < 1e-6, "{far} vs {expected}");
     }
 
     #[test]

@@ -55,6 +55,12 @@ pub struct GlobalSlamOptions {
     pub intra_submap_translation_sigma: f64,
     /// Standard deviation (rad) of that relative rotation. Default 0.1 rad.
     pub intra_submap_rotation_sigma: f64,
+    /// Growth of `intra_submap_translation_sigma` with the path (m) LLO drove from the submap's first node to
+    /// the node (m per m, added in quadrature): a submap is rigid in the graph but LLO drifted while it built
+    /// it. Default 0 (measured, not yet a default). Why: `docs/TUNING.md#gs-intra-submap-sigma-per-m`.
+    pub intra_submap_translation_sigma_per_m: f64,
+    /// The same growth of `intra_submap_rotation_sigma` (rad per m). Default 0.
+    pub intra_submap_rotation_sigma_per_m: f64,
     /// Standard deviation (m) of the translation between consecutive nodes of a trajectory, from LLO's
     /// relative motion. Default 0.02 m.
     pub odometry_translation_sigma: f64,
@@ -93,6 +99,8 @@ impl Default for GlobalSlamOptions {
             optimize_every_n_nodes: 90,
             intra_submap_translation_sigma: 0.5,
             intra_submap_rotation_sigma: 0.1,
+            intra_submap_translation_sigma_per_m: 0.0,
+            intra_submap_rotation_sigma_per_m: 0.0,
             odometry_translation_sigma: 0.02,
             odometry_rotation_sigma: 0.01,
             loop_closure_retraction_chi2: 6.0,
@@ -141,6 +149,22 @@ impl GlobalSlamOptions {
             "rad",
             self.odometry_rotation_sigma,
         )?;
+        for (name, value) in [
+            (
+                "intra_submap_translation_sigma_per_m",
+                self.intra_submap_translation_sigma_per_m,
+            ),
+            (
+                "intra_submap_rotation_sigma_per_m",
+                self.intra_submap_rotation_sigma_per_m,
+            ),
+        ] {
+            if !(value.is_finite() && value >= 0.0) {
+                return Err(GlobalSlamOptionsError::Invalid(format!(
+                    "{name} must be a finite number >= 0, got {value}"
+                )));
+            }
+        }
         if !(self.loop_closure_retraction_chi2.is_finite()
             && self.loop_closure_retraction_chi2 >= 0.0)
         {
@@ -172,6 +196,12 @@ mod tests {
         };
         let err = bad.validate().unwrap_err().to_string();
         assert!(err.contains("odometry_rotation_sigma"), "{err}");
+        let bad = GlobalSlamOptions {
+            intra_submap_rotation_sigma_per_m: -0.01,
+            ..Default::default()
+        };
+        let err = bad.validate().unwrap_err().to_string();
+        assert!(err.contains("intra_submap_rotation_sigma_per_m"), "{err}");
     }
 
     // Reference: issue 35 — errors keep their `source()` chain instead of being turned into strings.

@@ -48,7 +48,7 @@ pub(super) fn from_status(status: &tonic::Status) -> UplinkError {
         | Code::DeadlineExceeded
         | Code::Cancelled
         | Code::Unknown
-        | Code::Aborted => UplinkError::Unavailable(status.message().to_owned()),
+        | Code::Aborted => UplinkError::unavailable_because(status.message(), status.clone()),
         Code::FailedPrecondition => status
             .metadata()
             .get(EXPECTED_SEQ_METADATA)
@@ -150,7 +150,7 @@ impl GrpcUplink {
         match tokio::time::timeout(self.call_timeout, call).await {
             Ok(Ok(response)) => Ok(response.into_inner()),
             Ok(Err(status)) => Err(from_status(&status)),
-            Err(_) => Err(UplinkError::Unavailable(format!(
+            Err(_) => Err(UplinkError::unavailable(format!(
                 "no answer within {:?}",
                 self.call_timeout
             ))),
@@ -247,7 +247,7 @@ impl MapUplink for GrpcUplink {
             Ok::<_, UplinkError>(chunks)
         };
         let chunks = tokio::time::timeout(timeout, collect).await.map_err(|_| {
-            UplinkError::Unavailable(format!("delta not received within {timeout:?}"))
+            UplinkError::unavailable(format!("delta not received within {timeout:?}"))
         })??;
         Ok(MapDelta::from_pb_chunks(&chunks)?)
     }
@@ -287,5 +287,19 @@ mod tests {
             assert!(error.to_string().contains(said), "{error}");
             assert!(std::error::Error::source(&error).is_some(), "{error:?}");
         }
+    }
+
+    // Reference: issue 35 item 6 — a server that cannot answer now is a retryable error that keeps the
+    // gRPC status (and what caused it) as its source, not only the status's message.
+    #[test]
+    fn an_unavailable_server_keeps_its_status_as_the_source() {
+        let error = from_status(&tonic::Status::unavailable("connection refused"));
+        assert!(error.is_transient(), "{error:?}");
+        assert_eq!(error.to_string(), "server unavailable: connection refused");
+        let source = std::error::Error::source(&error).expect("the status is kept");
+        let status = source
+            .downcast_ref::<tonic::Status>()
+            .expect("the source is the gRPC status");
+        assert_eq!(status.code(), tonic::Code::Unavailable);
     }
 }

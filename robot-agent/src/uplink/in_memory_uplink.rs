@@ -78,7 +78,7 @@ impl InMemoryUplink {
         if state.online {
             Ok(state)
         } else {
-            Err(UplinkError::Unavailable("in-memory link is down".into()))
+            Err(UplinkError::unavailable("in-memory link is down"))
         }
     }
 

@@ -25,8 +25,12 @@ pub struct ZenohUplink {
     call_timeout: Duration,
 }
 
-fn unavailable(what: &str, e: impl std::fmt::Display) -> UplinkError {
-    UplinkError::Unavailable(format!("zenoh {what}: {e}"))
+/// A zenoh call failed: `what` names it, zenoh's error is kept as the source.
+fn unavailable(what: &str, e: zenoh::Error) -> UplinkError {
+    UplinkError::Unavailable {
+        what: format!("zenoh {what}"),
+        source: Some(e),
+    }
 }
 
 impl ZenohUplink {
@@ -87,9 +91,9 @@ impl ZenohUplink {
             .map_err(|e| unavailable("query", e))?;
         let mut answers = Vec::new();
         while let Ok(reply) = replies.recv_async().await {
-            let sample = reply
-                .result()
-                .map_err(|e| unavailable("reply", format!("{:?}", e.payload().to_bytes())))?;
+            let sample = reply.result().map_err(|e| {
+                UplinkError::unavailable(format!("zenoh reply: {:?}", e.payload().to_bytes()))
+            })?;
             let decoded = pb::ZenohReply::decode(&*sample.payload().to_bytes()).map_err(|e| {
                 UplinkError::Malformed(proto::ConversionError::Decode {
                     message: "ZenohReply",
@@ -113,7 +117,7 @@ impl ZenohUplink {
             }
         }
         if answers.is_empty() {
-            return Err(UplinkError::Unavailable(format!(
+            return Err(UplinkError::unavailable(format!(
                 "no answer from {} within {:?} (is the server's zenoh front end reachable?)",
                 api_key(&self.site),
                 self.call_timeout
@@ -128,7 +132,7 @@ impl ZenohUplink {
     ) -> Result<pb::zenoh_reply::Reply, UplinkError> {
         let mut answers = self.call(request).await?;
         if answers.len() != 1 {
-            return Err(UplinkError::Unavailable(format!(
+            return Err(UplinkError::unavailable(format!(
                 "{} answers to one request: is more than one server serving site {:?}?",
                 answers.len(),
                 self.site
@@ -240,7 +244,7 @@ impl MapUplink for ZenohUplink {
             }
         }
         if !chunks.last().is_some_and(|c| c.last) {
-            return Err(UplinkError::Unavailable(format!(
+            return Err(UplinkError::unavailable(format!(
                 "delta since {since} arrived incomplete ({} chunks, no last one)",
                 chunks.len()
             )));

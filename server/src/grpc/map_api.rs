@@ -81,7 +81,7 @@ impl pb::map_service_server::MapService for MapApi {
         // Compressing grids is CPU work: keep it off the async workers.
         let chunks = tokio::task::spawn_blocking(move || delta.to_pb_chunks(chunk_bytes))
             .await
-            .map_err(|e| Status::internal(e.to_string()))?;
+            .map_err(|e| status::internal("compressing the delta", e))?;
         c.metrics
             .add_bytes_out(chunks.iter().map(prost::Message::encoded_len).sum());
         Ok(Response::new(Box::pin(tokio_stream::iter(
@@ -133,7 +133,7 @@ impl pb::map_service_server::MapService for MapApi {
         })?;
         let encoded = tokio::task::spawn_blocking(move || (encode_map(&grid), grid))
             .await
-            .map_err(|e| Status::internal(e.to_string()))?;
+            .map_err(|e| status::internal("encoding the map", e))?;
         let (Some(image), grid) = encoded else {
             return Err(Status::internal("the map could not be encoded"));
         };

@@ -31,6 +31,14 @@ pub fn counted(metrics: &ServerMetrics, status: Status) -> Status {
     status
 }
 
+/// An internal failure of the handler itself (a worker task that panicked): `what` failed, and the
+/// error stays attached as the status's source for the server's own log.
+pub fn internal(what: &str, error: impl std::error::Error + Send + Sync + 'static) -> Status {
+    let mut status = Status::internal(format!("{what}: {error}"));
+    status.set_source(std::sync::Arc::new(error));
+    status
+}
+
 /// The status of a malformed message.
 pub fn from_conversion(metrics: &ServerMetrics, error: &ConversionError) -> Status {
     counted(metrics, Status::invalid_argument(error.to_string()))
