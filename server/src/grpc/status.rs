@@ -102,4 +102,15 @@ mod tests {
         assert!(status.message().contains("expected seq 7"));
         assert_eq!(metrics.refused_count("failed_precondition"), 1);
     }
+
+    // Reference: issue 35 item 6 — an internal failure says what failed and keeps the error as the source.
+    #[test]
+    fn an_internal_failure_keeps_its_error_as_the_source() {
+        let error = std::io::Error::other("worker panicked");
+        let status = internal("encoding the map", error);
+        assert_eq!(status.code(), Code::Internal);
+        assert_eq!(status.message(), "encoding the map: worker panicked");
+        let source = std::error::Error::source(&status).expect("the error is kept");
+        assert_eq!(source.to_string(), "worker panicked");
+    }
 }
