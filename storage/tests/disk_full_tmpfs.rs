@@ -19,48 +19,14 @@
     clippy::unwrap_used,
     reason = "integration test helpers: a failed unwrap is a failed test"
 )]
-use std::io::Write as _;
-use std::path::{Path, PathBuf};
-use std::process::Command;
-
 use storage::{
     BatchOutcome, MapStore as _, RecordId, RecordKind, SledStore, SledStoreOptions, WriteBatch,
 };
+use test_support::{Tmpfs, fill};
 
 const SITE: &str = "store-tmpfs";
 const SIZE_MIB: u64 = 16;
 const VALUE_BYTES: usize = 64 << 10;
-
-/// A tmpfs mounted on a temporary directory, unmounted on drop.
-struct Tmpfs {
-    dir: tempfile::TempDir,
-}
-
-impl Tmpfs {
-    fn mount(mib: u64) -> Self {
-        let dir = tempfile::tempdir().unwrap();
-        let status = Command::new("mount")
-            .args(["-t", "tmpfs", "-o", &format!("size={mib}m"), "tmpfs"])
-            .arg(dir.path())
-            .status()
-            .unwrap();
-        assert!(
-            status.success(),
-            "cannot mount a tmpfs (needs root): {status}"
-        );
-        Self { dir }
-    }
-
-    fn path(&self) -> &Path {
-        self.dir.path()
-    }
-}
-
-impl Drop for Tmpfs {
-    fn drop(&mut self) {
-        let _ = Command::new("umount").arg(self.dir.path()).status();
-    }
-}
 
 fn batch(seq: u64) -> WriteBatch {
     let mut batch = WriteBatch::new(SITE);
@@ -73,22 +39,6 @@ fn batch(seq: u64) -> WriteBatch {
         .bump_map_version()
         .for_session("robot-1", seq);
     batch
-}
-
-/// Fills the filesystem with `path` until it is full (bounded by its size).
-fn fill(path: &PathBuf) {
-    let mut file = std::fs::File::create(path).unwrap();
-    let chunk = vec![0_u8; 64 << 10];
-    for _ in 0..(SIZE_MIB << 4) + 16 {
-        if file
-            .write_all(&chunk)
-            .and_then(|()| file.sync_all())
-            .is_err()
-        {
-            return;
-        }
-    }
-    panic!("the filler never hit the size limit");
 }
 
 #[test]
@@ -110,7 +60,7 @@ fn sled_on_a_full_tmpfs_reports_it_keeps_what_it_acknowledged_and_recovers() {
         store.apply_durable(&batch(seq)).unwrap();
     }
     let filler = fs.path().join("filler");
-    fill(&filler);
+    fill(&filler, SIZE_MIB);
 
     // Write until the disk refuses (bounded: the disk is full already).
     let mut acked = 4;

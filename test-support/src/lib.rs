@@ -2,10 +2,16 @@
 //!
 //! The few helpers that integration and unit tests across the workspace need alike, written once:
 //! [`datasets_dir`] (the shared recordings and pose graphs), [`free_port`] (a loopback port for
-//! endpoints that cannot take port 0) and [`noise`] (incompressible values). No workspace crate is a
-//! dependency, so any crate can take this one as a dev-dependency.
+//! endpoints that cannot take port 0), [`noise`] (incompressible values) and [`Tmpfs`] with [`fill`] (a
+//! real full disk). No workspace crate is a dependency, so any crate can take this one as a
+//! dev-dependency; its one dependency is `tempfile`, small and already among the workspace's
+//! dev-dependencies.
 
 use std::path::PathBuf;
+
+mod tmpfs;
+
+pub use tmpfs::{Tmpfs, fill};
 
 /// The shared data sets folder, `../shared/datasets` next to the repository root. Found by walking up from
 /// this crate, so that it works from the main checkout (`/work/main`) and from worktrees one level deeper

@@ -16,9 +16,7 @@
     clippy::unwrap_used,
     reason = "integration test helpers: a failed unwrap is a failed test"
 )]
-use std::io::Write as _;
 use std::path::Path;
-use std::process::Command;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -32,57 +30,11 @@ use robot_agent::uplink::{GrpcUplink, Uploader};
 use server::site::SITE_LOG_KIND;
 use server::{RobotConfig, RunningServer, ServerConfig, SiteConfig};
 use storage::{MapStore, SledStore, SledStoreOptions};
+use test_support::{Tmpfs, fill};
 
 const SITE: &str = "store-tmpfs-fleet";
 const TOKEN: &str = "token-tmpfs-fleet-r1";
 const SIZE_MIB: u64 = 16;
-
-/// A tmpfs mounted on a temporary directory, unmounted on drop.
-struct Tmpfs {
-    dir: tempfile::TempDir,
-}
-
-impl Tmpfs {
-    fn mount(mib: u64) -> Self {
-        let dir = tempfile::tempdir().unwrap();
-        let status = Command::new("mount")
-            .args(["-t", "tmpfs", "-o", &format!("size={mib}m"), "tmpfs"])
-            .arg(dir.path())
-            .status()
-            .unwrap();
-        assert!(
-            status.success(),
-            "cannot mount a tmpfs (needs root): {status}"
-        );
-        Self { dir }
-    }
-
-    fn path(&self) -> &Path {
-        self.dir.path()
-    }
-}
-
-impl Drop for Tmpfs {
-    fn drop(&mut self) {
-        let _ = Command::new("umount").arg(self.dir.path()).status();
-    }
-}
-
-/// Fills the filesystem with `path` until it is full (bounded by its size).
-fn fill(path: &Path) {
-    let mut file = std::fs::File::create(path).unwrap();
-    let chunk = vec![0_u8; 64 << 10];
-    for _ in 0..(SIZE_MIB << 4) + 16 {
-        if file
-            .write_all(&chunk)
-            .and_then(|()| file.sync_all())
-            .is_err()
-        {
-            return;
-        }
-    }
-    panic!("the filler never hit the size limit");
-}
 
 fn sled(path: &Path) -> Arc<SledStore> {
     Arc::new(
@@ -166,7 +118,7 @@ async fn server_and_outbox_on_a_full_tmpfs_recover_in_place_and_nothing_is_lost_
 
     // The server's disk fills: the robot goes on mapping until the server refuses (bounded).
     let server_filler = server_fs.path().join("filler");
-    fill(&server_filler);
+    fill(&server_filler, SIZE_MIB);
     let refusal = loop {
         nodes += 1;
         robot.enqueue(&node(nodes)).unwrap();
@@ -186,7 +138,7 @@ async fn server_and_outbox_on_a_full_tmpfs_recover_in_place_and_nothing_is_lost_
     let published_while_full = site.current().version;
     // Then the robot's disk fills too: it keeps its batches in memory.
     let robot_filler = robot_fs.path().join("filler");
-    fill(&robot_filler);
+    fill(&robot_filler, SIZE_MIB);
     for _ in 0..3 {
         nodes += 1;
         robot.enqueue(&node(nodes)).unwrap();

@@ -34,20 +34,6 @@ async fn bounded<T>(what: &str, f: impl Future<Output = T>) -> T {
         .unwrap_or_else(|_| panic!("{what} did not finish within 180 s"))
 }
 
-/// A zenoh router on `port` (TCP, loopback, no scouting): a `zenohd` in process.
-async fn router(port: u16) -> zenoh::Session {
-    let mut config = zenoh::Config::default();
-    for (key, value) in [
-        ("mode", "\"router\"".to_owned()),
-        ("listen/endpoints", format!("[\"tcp/127.0.0.1:{port}\"]")),
-        ("scouting/multicast/enabled", "false".to_owned()),
-        ("scouting/gossip/enabled", "false".to_owned()),
-    ] {
-        config.insert_json5(key, &value).unwrap();
-    }
-    zenoh::open(config).await.unwrap()
-}
-
 fn endpoint(addr: SocketAddr) -> String {
     format!("tcp/{addr}")
 }
@@ -69,7 +55,7 @@ async fn nodes_at_least(server: &RunningServer, nodes: u64) {
 async fn the_robots_link_and_the_router_drop_mid_session_and_nothing_is_lost_or_duplicated() {
     let router_port = tests::free_port();
     let router_addr: SocketAddr = format!("127.0.0.1:{router_port}").parse().unwrap();
-    let mut zenohd = router(router_port).await;
+    let mut zenohd = tests::zenoh_router(router_port).await;
     let robot_link = CuttableLink::start(router_addr).await.unwrap();
     let server_link = CuttableLink::start(router_addr).await.unwrap();
 
@@ -149,7 +135,7 @@ async fn the_robots_link_and_the_router_drop_mid_session_and_nothing_is_lost_or_
     server_link.set_up(false);
     zenohd.close().await.unwrap();
     tokio::time::sleep(Duration::from_secs(1)).await;
-    zenohd = router(router_port).await;
+    zenohd = tests::zenoh_router(router_port).await;
     robot_link.set_up(true);
     server_link.set_up(true);
     let router_back = std::time::Instant::now();

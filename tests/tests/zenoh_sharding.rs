@@ -74,20 +74,6 @@ fn robot(site: &str) -> String {
     format!("{site}-robot")
 }
 
-/// A zenoh router on `port` (TCP, loopback, no scouting): a `zenohd` in process.
-async fn router(port: u16) -> zenoh::Session {
-    let mut config = zenoh::Config::default();
-    for (key, value) in [
-        ("mode", "\"router\"".to_owned()),
-        ("listen/endpoints", format!("[\"tcp/127.0.0.1:{port}\"]")),
-        ("scouting/multicast/enabled", "false".to_owned()),
-        ("scouting/gossip/enabled", "false".to_owned()),
-    ] {
-        config.insert_json5(key, &value).unwrap();
-    }
-    zenoh::open(config).await.unwrap()
-}
-
 /// An instance's configuration: gRPC on a free port (unused here), zenoh to the router only, `sites`.
 fn config(router_port: u16, sites: &[&str]) -> ServerConfig {
     ServerConfig {
@@ -260,7 +246,7 @@ fn sled(dir: &std::path::Path) -> Arc<dyn MapStore> {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sites_sharded_over_two_instances_and_one_moved_lose_nothing_and_keep_their_versions() {
     let router_port = tests::free_port();
-    let zenohd = router(router_port).await;
+    let zenohd = tests::zenoh_router(router_port).await;
     let dirs = tempfile::tempdir().unwrap();
     let store_a = sled(&dirs.path().join("a"));
     let store_b = sled(&dirs.path().join("b"));
@@ -596,7 +582,7 @@ async fn a_site_moved_between_serve_processes_with_the_site_commands_loses_nothi
     const KEPT_A: &str = "store-a0";
     const KEPT_B: &str = "store-b0";
     let router_port = tests::free_port();
-    let zenohd = router(router_port).await;
+    let zenohd = tests::zenoh_router(router_port).await;
     let dirs = tempfile::tempdir().unwrap();
     let mut a = Instance::new("a", dirs.path(), router_port);
     let mut b = Instance::new("b", dirs.path(), router_port);
