@@ -53,14 +53,7 @@ struct Args {
 
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
-    let config: SessionsConfig = match &args.config {
-        Some(path) => {
-            let text = std::fs::read_to_string(path)
-                .with_context(|| format!("cannot read config {}", path.display()))?;
-            toml::from_str(&text).with_context(|| format!("invalid config {}", path.display()))?
-        }
-        None => SessionsConfig::default(),
-    };
+    let config = SessionsConfig::load(args.config.as_deref(), None)?;
     let relocalization = &config.lifelong.relocalization;
     let store = Store::generate(args.world.options(), args.seed)?;
     let map = store.occupancy(0, relocalization.resolution).surface_grid();
