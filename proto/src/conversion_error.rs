@@ -1,5 +1,7 @@
 //! Why a wire message could not become a `mapping` value.
 
+use std::sync::Arc;
+
 /// A wire message that cannot be converted: every variant names the message and field at fault.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum ConversionError {
@@ -57,23 +59,61 @@ pub enum ConversionError {
         newest: u32,
     },
     /// The bytes are not a protobuf encoding of the message (a transport that carries raw bytes).
-    #[error("{message} cannot be decoded: {reason}")]
+    #[error("{message} cannot be decoded: {source}")]
     Decode {
         /// The message type.
         message: &'static str,
-        /// Why.
-        reason: String,
+        /// Why: the decoder's error.
+        #[source]
+        source: ErrorSource,
     },
     /// Compressed grid values could not be decompressed.
-    #[error("{message}.{field} cannot be decompressed: {reason}")]
+    #[error("{message}.{field} cannot be decompressed: {source}")]
     Decompress {
         /// The message type.
         message: &'static str,
         /// The field.
         field: &'static str,
-        /// Why.
-        reason: String,
+        /// Why: the decompressor's error.
+        #[source]
+        source: ErrorSource,
     },
+}
+
+/// The underlying error of a [`ConversionError`], kept for `source()`. Shared, so that the error stays
+/// `Clone`; compared by its message, as the `reason` string it replaced was, so that it stays
+/// `PartialEq`. It displays as the error it holds and passes on that error's own source.
+#[derive(Debug, Clone)]
+pub struct ErrorSource(Arc<dyn std::error::Error + Send + Sync>);
+
+impl ErrorSource {
+    /// Keeps `error`.
+    pub fn new(error: impl std::error::Error + Send + Sync + 'static) -> Self {
+        Self(Arc::new(error))
+    }
+
+    /// The error it holds.
+    pub fn get(&self) -> &(dyn std::error::Error + Send + Sync + 'static) {
+        &*self.0
+    }
+}
+
+impl PartialEq for ErrorSource {
+    fn eq(&self, other: &Self) -> bool {
+        self.0.to_string() == other.0.to_string()
+    }
+}
+
+impl std::fmt::Display for ErrorSource {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        self.0.fmt(f)
+    }
+}
+
+impl std::error::Error for ErrorSource {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        self.0.source()
+    }
 }
 
 /// "only 3", "2 to 3".

@@ -55,6 +55,9 @@ pub struct ZenohLinkOptionsError {
     pub field: &'static str,
     /// Why.
     pub reason: String,
+    /// The underlying error (zenoh's, or the JSON encoder's), where there is one.
+    #[source]
+    pub source: Option<Box<dyn std::error::Error + Send + Sync>>,
 }
 
 impl ZenohLinkOptions {
@@ -64,12 +67,14 @@ impl ZenohLinkOptions {
             return Err(ZenohLinkOptionsError {
                 field: "mode",
                 reason: format!("{:?} is neither \"peer\" nor \"client\"", self.mode),
+                source: None,
             });
         }
         if self.mode == "client" && self.connect.is_empty() {
             return Err(ZenohLinkOptionsError {
                 field: "connect",
                 reason: "a client needs at least one endpoint to connect to".into(),
+                source: None,
             });
         }
         if self.listen.is_empty() && self.connect.is_empty() && !self.multicast_scouting {
@@ -77,6 +82,7 @@ impl ZenohLinkOptions {
                 field: "listen/connect",
                 reason: "with multicast scouting off, give at least one endpoint to listen on or connect to"
                     .into(),
+                source: None,
             });
         }
         let tls_endpoint = self
@@ -88,6 +94,7 @@ impl ZenohLinkOptions {
             return Err(ZenohLinkOptionsError {
                 field: "tls",
                 reason: format!("endpoint {endpoint:?} needs the certificates of [zenoh.tls]"),
+                source: None,
             });
         }
         Ok(())
@@ -127,6 +134,7 @@ impl ZenohLinkOptions {
                 .map_err(|e| ZenohLinkOptionsError {
                     field: key,
                     reason: e.to_string(),
+                    source: Some(e),
                 })?;
         }
         Ok(config)

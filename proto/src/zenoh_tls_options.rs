@@ -35,10 +35,12 @@ impl ZenohTlsOptions {
             let text = path.to_str().ok_or_else(|| ZenohLinkOptionsError {
                 field,
                 reason: format!("{} is not valid UTF-8", path.display()),
+                source: None,
             })?;
             serde_json::to_string(text).map_err(|e| ZenohLinkOptionsError {
                 field,
                 reason: e.to_string(),
+                source: Some(Box::new(e)),
             })
         };
         let ca = path("tls.root_ca_pem", &self.root_ca_pem)?;

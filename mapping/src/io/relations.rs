@@ -31,6 +31,9 @@ pub enum RelationsError {
         line: usize,
         /// What is wrong.
         what: String,
+        /// The number parser's error, when a value is not a number.
+        #[source]
+        source: Option<std::num::ParseFloatError>,
     },
 }
 
@@ -51,6 +54,7 @@ pub fn read_relations(input: impl BufRead) -> Result<Vec<Relation>, RelationsErr
         let values = values.map_err(|e| RelationsError::Parse {
             line: i + 1,
             what: e.to_string(),
+            source: Some(e),
         })?;
         if values.len() != 8 || values.iter().any(|v| !v.is_finite()) {
             return Err(RelationsError::Parse {
@@ -59,12 +63,14 @@ pub fn read_relations(input: impl BufRead) -> Result<Vec<Relation>, RelationsErr
                     "expected 8 finite numbers `t1 t2 x y z roll pitch yaw`, got {}",
                     values.len()
                 ),
+                source: None,
             });
         }
         if let Some(t) = values[..2].iter().find(|t| !(0.0..MAX_TIME_S).contains(*t)) {
             return Err(RelationsError::Parse {
                 line: i + 1,
                 what: format!("time {t} s is outside 0..{MAX_TIME_S} s"),
+                source: None,
             });
         }
         out.push(Relation {
@@ -92,6 +98,13 @@ mod tests {
             .to_string();
         assert!(err.contains("line 1"), "{err}");
         assert!(read_relations("1 2 3 4 5 6 7 x\n".as_bytes()).is_err());
+    }
+
+    #[test]
+    fn a_value_that_is_not_a_number_keeps_the_parser_error_as_source() {
+        let err = read_relations("1 2 3 4 5 6 7 x\n".as_bytes()).unwrap_err();
+        assert_eq!(err.to_string(), "relations line 1: invalid float literal");
+        assert!(std::error::Error::source(&err).is_some());
     }
 
     /// Fuzz finding (regression): times beyond i64 nanoseconds saturated silently, and differences of

@@ -6,7 +6,9 @@ use mapping::grid::{MapLimits, ProbabilityGrid};
 use nalgebra::Vector2;
 
 use crate::convert::check_finite;
-use crate::{ConversionError, FORMAT_VERSION, MAX_GRID_CELLS, check_format_version, pb};
+use crate::{
+    ConversionError, ErrorSource, FORMAT_VERSION, MAX_GRID_CELLS, check_format_version, pb,
+};
 
 /// Largest valid stored cell value (see `mapping::grid`).
 const MAX_CELL_VALUE: u16 = 32767;
@@ -98,7 +100,7 @@ pub fn grid_from_pb(grid: &pb::Grid) -> Result<ProbabilityGrid, ConversionError>
                 .map_err(|e| ConversionError::Decompress {
                     message: M,
                     field: "values",
-                    reason: e.to_string(),
+                    source: ErrorSource::new(e),
                 })?;
             decompressed = out;
             &decompressed
@@ -266,6 +268,19 @@ mod tests {
             grid_from_pb(&encoding),
             Err(ConversionError::OutOfRange { .. })
         ));
+    }
+
+    #[test]
+    fn values_that_do_not_decompress_keep_the_decompressor_error_as_source() {
+        let mut garbage = grid_to_pb(&sample_grid(4, 3, 1));
+        garbage.values = vec![1, 2, 3];
+        let err = grid_from_pb(&garbage).unwrap_err();
+        let source = std::error::Error::source(&err).expect("the decompressor's error");
+        // The message is the one the `reason` string gave.
+        assert_eq!(
+            err.to_string(),
+            format!("Grid.values cannot be decompressed: {source}")
+        );
     }
 
     #[test]

@@ -35,11 +35,13 @@ fn immutable_uri(path: &Path) -> String {
 /// as the MCAP and ROS1 readers stream theirs in file order; the recording is sorted by header stamp
 /// afterwards, so only messages with equal stamps keep this order.
 pub fn read(path: &Path, visitor: &mut dyn Visitor) -> Result<(), SourceError> {
-    let malformed_by = |what: String, source: Option<rusqlite::Error>| SourceError::Malformed {
-        path: path.display().to_string(),
-        format: "rosbag2 sqlite3",
-        source: source.map(|e| Box::new(e) as Box<dyn std::error::Error + Send + Sync>),
-        what,
+    let malformed_by = |what: String, source: Option<Box<dyn std::error::Error + Send + Sync>>| {
+        SourceError::Malformed {
+            path: path.display().to_string(),
+            format: "rosbag2 sqlite3",
+            source,
+            what,
+        }
     };
     let malformed = |what: String| malformed_by(what, None);
     let mut head = Vec::with_capacity(SQLITE_MAGIC.len());
@@ -67,9 +69,13 @@ pub fn read(path: &Path, visitor: &mut dyn Visitor) -> Result<(), SourceError> {
             | OpenFlags::SQLITE_OPEN_URI
             | OpenFlags::SQLITE_OPEN_NO_MUTEX,
     )
-    .map_err(|e| malformed_by(format!("cannot open: {e}"), Some(e)))?;
-    let sql =
-        |e: rusqlite::Error| malformed_by(format!("{e} (is it a rosbag2 recording?)"), Some(e));
+    .map_err(|e| malformed_by(format!("cannot open: {e}"), Some(Box::new(e))))?;
+    let sql = |e: rusqlite::Error| {
+        malformed_by(
+            format!("{e} (is it a rosbag2 recording?)"),
+            Some(Box::new(e)),
+        )
+    };
 
     let mut topics: BTreeMap<i64, (String, RosKind)> = BTreeMap::new();
     {
@@ -98,9 +104,10 @@ pub fn read(path: &Path, visitor: &mut dyn Visitor) -> Result<(), SourceError> {
         let topic_id: i64 = row.get(0).map_err(sql)?;
         let timestamp: i64 = row.get(1).map_err(sql)?;
         let data = row.get_ref(2).map_err(sql)?.as_blob().map_err(|e| {
-            malformed(format!(
-                "message at {timestamp} on topic id {topic_id}: data is not a blob ({e})"
-            ))
+            malformed_by(
+                format!("message at {timestamp} on topic id {topic_id}: data is not a blob ({e})"),
+                Some(Box::new(e)),
+            )
         })?;
         let Some((name, kind)) = topics.get(&topic_id) else {
             visitor.unknown_topic(topic_id, timestamp);

@@ -97,7 +97,7 @@ impl ZenohUplink {
             let decoded = pb::ZenohReply::decode(&*sample.payload().to_bytes()).map_err(|e| {
                 UplinkError::Malformed(proto::ConversionError::Decode {
                     message: "ZenohReply",
-                    reason: e.to_string(),
+                    source: proto::ErrorSource::new(e),
                 })
             })?;
             proto::check_format_version("ZenohReply", decoded.format_version)?;
@@ -274,7 +274,7 @@ impl MapUplink for ZenohUplink {
                             .map_err(|e| {
                                 UplinkError::Malformed(proto::ConversionError::Decode {
                                     message: "MapVersion",
-                                    reason: e.to_string(),
+                                    source: proto::ErrorSource::new(e),
                                 })
                             });
                         // A full buffer means the watcher is behind: it will read a newer version anyway.

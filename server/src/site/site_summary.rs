@@ -111,7 +111,7 @@ impl SiteSummary {
     fn from_bytes(bytes: &[u8]) -> Result<Self, ConversionError> {
         let message = pb::SiteSummary::decode(bytes).map_err(|e| ConversionError::Decode {
             message: "SiteSummary",
-            reason: e.to_string(),
+            source: proto::ErrorSource::new(e),
         })?;
         proto::check_format_version("SiteSummary", message.format_version)?;
         let c = message.counts.ok_or(ConversionError::MissingField {
