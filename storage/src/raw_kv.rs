@@ -110,12 +110,16 @@ fn txn_counter(txn: &mut dyn RawTxn, key: &[u8]) -> Result<Option<u64>> {
         .transpose()
 }
 
-/// Makes every change so far durable, then deletes the value files that changes made before it unnamed
-/// (see the `value_files` module). Every flush of the crate's semantics goes through here.
+/// Makes every change so far durable, then deletes the value files that changes made before it unnamed,
+/// and those of changes a reopen of the database lost (see the `value_files` module). Every flush of the
+/// crate's semantics goes through here.
 pub(crate) fn flush(kv: &impl RawKv) -> Result<()> {
     let values = kv.value_files();
     let due = values.take_unnamed();
-    if let Err(error) = kv.raw_flush() {
+    let fresh = values.take_fresh();
+    let flushed = kv.raw_flush();
+    value_files::settle_fresh(kv, fresh, flushed.is_ok());
+    if let Err(error) = flushed {
         values.restore_unnamed(due);
         return Err(error);
     }
@@ -222,6 +226,11 @@ pub(crate) fn apply(kv: &impl RawKv, batch: &WriteBatch) -> Result<BatchOutcome>
         Ok((applied @ BatchOutcome::Applied { .. }, replaced)) => {
             for (key, old) in replaced {
                 values.unname(site, &key, &old);
+            }
+            // Read after the transaction: a reopen it made (a wedged store's) came before its entries.
+            let generation = kv.generation();
+            for (key, file) in written {
+                values.note_fresh(site, &key, file, generation);
             }
             Ok(applied)
         }

@@ -17,6 +17,12 @@
 //! 1. [`crate::MapStore::apply`] writes the batch's large values to new files durably (a temporary file,
 //!    fsync, rename, directory fsync), then applies the batch, their entries included, in one
 //!    transaction. A crash between leaves orphan files; a refused or failed batch deletes its files.
+//!    Until a flush makes the entries durable, their files are *fresh*: when the database is reopened
+//!    after a failed write ([`crate::SledStore`], which bumps [`crate::MapStore::generation`]), the
+//!    reopen may lose entries applied but never flushed, so the next flush deletes each fresh file of an
+//!    earlier generation that no record names (the batch is gone; a retry writes a new file). Without
+//!    it, a disk that filled between a batch's value file and sled's write left that file, named by
+//!    nothing, until the store was next opened (`tests/value_files_sled_full.rs`).
 //! 2. A value overwritten or deleted (by a batch, by a compaction of the log) leaves its file named by no
 //!    entry. The file is deleted by the next [`crate::MapStore::flush`] that succeeds (the flush made the
 //!    change durable), unless the record names it again (a change a failed flush lost when the store
@@ -68,6 +74,14 @@ pub(crate) struct Unnamed {
     file: String,
 }
 
+/// A file an applied change named, not known durable yet (see the module docs).
+#[derive(Debug)]
+pub(crate) struct Fresh {
+    /// The store's [`RawKv::generation`] after the change was applied.
+    generation: u64,
+    named: Unnamed,
+}
+
 /// A store's value files and their bookkeeping. Thread-safe.
 #[derive(Debug)]
 pub(crate) struct ValueFiles<F: ?Sized + SideFiles = dyn SideFiles> {
@@ -76,6 +90,8 @@ pub(crate) struct ValueFiles<F: ?Sized + SideFiles = dyn SideFiles> {
     next_serial: AtomicU64,
     /// Files whose entries were removed by changes not known durable yet.
     unnamed: Mutex<Vec<Unnamed>>,
+    /// Files named by changes applied since the last successful flush.
+    fresh: Mutex<Vec<Fresh>>,
     files: F,
 }
 
@@ -86,6 +102,7 @@ impl<F: SideFiles> ValueFiles<F> {
         Self {
             next_serial: AtomicU64::new(0),
             unnamed: Mutex::new(Vec::new()),
+            fresh: Mutex::new(Vec::new()),
             files,
         }
     }
@@ -161,6 +178,28 @@ impl<F: ?Sized + SideFiles> ValueFiles<F> {
     fn pending(&self) -> std::sync::MutexGuard<'_, Vec<Unnamed>> {
         self.unnamed.lock().unwrap_or_else(PoisonError::into_inner)
     }
+
+    /// Notes that an applied change made the site's record `key` name `file`, the store being at
+    /// `generation` after it: fresh until a flush makes it durable.
+    pub(crate) fn note_fresh(&self, site: &str, key: &[u8], file: String, generation: u64) {
+        self.fresh_files().push(Fresh {
+            generation,
+            named: Unnamed {
+                site: site.to_owned(),
+                key: key.to_vec(),
+                file,
+            },
+        });
+    }
+
+    /// Takes the fresh files, before a flush.
+    pub(crate) fn take_fresh(&self) -> Vec<Fresh> {
+        std::mem::take(&mut *self.fresh_files())
+    }
+
+    fn fresh_files(&self) -> std::sync::MutexGuard<'_, Vec<Fresh>> {
+        self.fresh.lock().unwrap_or_else(PoisonError::into_inner)
+    }
 }
 
 /// Whether a stored record value is the entry of a value in a file (unverified: a cheap first check).
@@ -210,6 +249,29 @@ pub(crate) fn remove_unnamed(kv: &impl RawKv, due: Vec<Unnamed>) {
     for Unnamed { site, key, file } in due {
         let _ = remove_unless_named(kv, &site, &key, &file);
     }
+}
+
+/// After a flush (`flushed`: whether it succeeded) of the files `fresh` taken before it: deletes those
+/// named by changes applied on a database reopened since (the store's generation moved) that no record
+/// names now — the reopen lost the change —, keeps those a record names, and gives back the others when
+/// the flush failed (still not durable). A file whose record cannot be read, or that cannot be deleted,
+/// stays, an orphan, until the sweep at the next open.
+pub(crate) fn settle_fresh(kv: &impl RawKv, fresh: Vec<Fresh>, flushed: bool) {
+    if fresh.is_empty() {
+        return;
+    }
+    let generation = kv.generation();
+    let mut still_fresh = Vec::new();
+    for item in fresh {
+        if item.generation < generation {
+            let Unnamed { site, key, file } = &item.named;
+            let _ = remove_unless_named(kv, site, key, file);
+        } else if !flushed {
+            still_fresh.push(item);
+        }
+    }
+    let values = kv.value_files();
+    values.fresh_files().append(&mut still_fresh);
 }
 
 /// Deletes a site's value directory once its records are gone (deleted, or purged for an import) and
