@@ -789,19 +789,7 @@ mod tests {
 
     /// The files under a directory of site directories, relative to it, sorted.
     fn files_on_disk(root: &Path) -> Vec<String> {
-        let mut names = Vec::new();
-        for site in std::fs::read_dir(root).unwrap() {
-            let site = site.unwrap();
-            for file in std::fs::read_dir(site.path()).unwrap() {
-                names.push(format!(
-                    "{}/{}",
-                    site.file_name().to_string_lossy(),
-                    file.unwrap().file_name().to_string_lossy()
-                ));
-            }
-        }
-        names.sort();
-        names
+        test_support::files_in_site_dirs(root)
     }
 
     #[test]

@@ -61,22 +61,7 @@ fn batch(seq: u64, bytes: usize) -> WriteBatch {
 
 /// Every file under the value directory (temporary ones included), relative to it.
 fn value_files(db: &Path) -> Vec<String> {
-    let mut names = Vec::new();
-    let Ok(sites) = std::fs::read_dir(db.join("values")) else {
-        return names;
-    };
-    for site in sites {
-        let site = site.unwrap();
-        for file in std::fs::read_dir(site.path()).unwrap() {
-            names.push(format!(
-                "{}/{}",
-                site.file_name().to_string_lossy(),
-                file.unwrap().file_name().to_string_lossy()
-            ));
-        }
-    }
-    names.sort();
-    names
+    test_support::files_in_site_dirs(&db.join("values"))
 }
 
 /// A store on a fresh tmpfs holding 4 batches of `bytes`-byte values, its disk then filled; the batches

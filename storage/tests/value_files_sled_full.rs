@@ -50,15 +50,7 @@ fn limit_file_size(bytes: Option<u64>) {
 
 /// The value files on disk, relative to the value directory.
 fn value_files(db: &Path) -> Vec<String> {
-    let mut names = Vec::new();
-    for site in std::fs::read_dir(db.join("values")).unwrap() {
-        let site = site.unwrap();
-        for file in std::fs::read_dir(site.path()).unwrap() {
-            names.push(file.unwrap().file_name().to_string_lossy().into_owned());
-        }
-    }
-    names.sort();
-    names
+    test_support::files_in_site_dirs(&db.join("values"))
 }
 
 /// The largest file of sled's (its log grows as it is written).

@@ -2,12 +2,12 @@
 //!
 //! The few helpers that integration and unit tests across the workspace need alike, written once:
 //! [`datasets_dir`] (the shared recordings and pose graphs), [`free_port`] (a loopback port for
-//! endpoints that cannot take port 0), [`noise`] (incompressible values) and [`Tmpfs`] with [`fill`] (a
-//! real full disk). No workspace crate is a dependency, so any crate can take this one as a
+//! endpoints that cannot take port 0), [`noise`] (incompressible values), [`Tmpfs`] with [`fill`] (a
+//! real full disk) and [`files_in_site_dirs`] (what a store keeps on disk per site). No workspace crate is a dependency, so any crate can take this one as a
 //! dev-dependency; its one dependency is `tempfile`, small and already among the workspace's
 //! dev-dependencies.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 mod tmpfs;
 
@@ -47,4 +47,25 @@ pub fn noise(state: &mut u64, len: usize) -> Vec<u8> {
             state.to_le_bytes()[0]
         })
         .collect()
+}
+
+/// The files in each directory under `root` (one per site, as the store keeps checkpoints and value
+/// files), as `site/file`, sorted; empty when `root` does not exist.
+pub fn files_in_site_dirs(root: &Path) -> Vec<String> {
+    let mut names = Vec::new();
+    let Ok(sites) = std::fs::read_dir(root) else {
+        return names;
+    };
+    for site in sites {
+        let site = site.expect("a site directory entry");
+        for file in std::fs::read_dir(site.path()).expect("a site directory") {
+            names.push(format!(
+                "{}/{}",
+                site.file_name().to_string_lossy(),
+                file.expect("a file entry").file_name().to_string_lossy()
+            ));
+        }
+    }
+    names.sort();
+    names
 }
