@@ -91,11 +91,6 @@ impl ErrorSource {
     pub fn new(error: impl std::error::Error + Send + Sync + 'static) -> Self {
         Self(Arc::new(error))
     }
-
-    /// The error it holds.
-    pub fn get(&self) -> &(dyn std::error::Error + Send + Sync + 'static) {
-        &*self.0
-    }
 }
 
 impl PartialEq for ErrorSource {

@@ -48,20 +48,29 @@ mod tests {
         assert!(super::peak_rss_mb().is_some_and(|mb| mb > 0.0));
     }
 
-    #[test]
+    /// Spins until `read` has grown by more than `by`, or 20 s of wall time have passed (a loaded machine
+    /// may give this thread only a fraction of a core); returns the readings before and after.
     #[cfg(target_os = "linux")]
-    fn thread_cpu_time_grows_with_work() {
-        let before = super::thread_cpu_ms().expect("thread cpu time");
+    fn spin_until_it_grows(read: impl Fn() -> f64, by: f64) -> (f64, f64) {
+        let before = read();
         let started = std::time::Instant::now();
         let mut x = 0u64;
         let mut after = before;
-        while after - before <= 50.0 && started.elapsed() < std::time::Duration::from_secs(20) {
+        while after - before <= by && started.elapsed() < std::time::Duration::from_secs(20) {
             for _ in 0..1_000_000 {
                 x = x.wrapping_mul(6364136223846793005).wrapping_add(1);
             }
             std::hint::black_box(x);
-            after = super::thread_cpu_ms().expect("thread cpu time");
+            after = read();
         }
+        (before, after)
+    }
+
+    #[test]
+    #[cfg(target_os = "linux")]
+    fn thread_cpu_time_grows_with_work() {
+        let (before, after) =
+            spin_until_it_grows(|| super::thread_cpu_ms().expect("thread cpu time"), 50.0);
         assert!(after - before > 50.0, "{before} -> {after}");
     }
 
@@ -79,19 +88,7 @@ mod tests {
     #[test]
     #[cfg(target_os = "linux")]
     fn cpu_time_grows_with_work() {
-        // Spin until the process has used 0.1 s of CPU, or give up after 20 s of wall time (a loaded
-        // machine may give this thread only a fraction of a core).
-        let before = super::cpu_seconds().expect("cpu time");
-        let started = std::time::Instant::now();
-        let mut x = 0u64;
-        let mut after = before;
-        while after - before <= 0.1 && started.elapsed() < std::time::Duration::from_secs(20) {
-            for _ in 0..1_000_000 {
-                x = x.wrapping_mul(6364136223846793005).wrapping_add(1);
-            }
-            std::hint::black_box(x);
-            after = super::cpu_seconds().expect("cpu time");
-        }
+        let (before, after) = spin_until_it_grows(|| super::cpu_seconds().expect("cpu time"), 0.1);
         assert!(after - before > 0.1, "{before} -> {after}");
     }
 

@@ -131,8 +131,7 @@ fn check_all_there(store: SledStore, options: &SledStoreOptions, last: u64, byte
 
 #[test]
 fn large_values_on_a_full_tmpfs_are_refused_at_their_file_and_the_store_goes_on() {
-    if std::env::var_os("EVERMAP_TMPFS_TESTS").is_none() {
-        eprintln!("skipped: set EVERMAP_TMPFS_TESTS=1 to run it (needs root to mount a tmpfs)");
+    if !test_support::tmpfs_tests_enabled() {
         return;
     }
     let fs = Tmpfs::mount(SIZE_MIB);
@@ -179,8 +178,7 @@ fn large_values_on_a_full_tmpfs_are_refused_at_their_file_and_the_store_goes_on(
 
 #[test]
 fn sled_on_a_full_tmpfs_reports_it_keeps_what_it_acknowledged_and_recovers() {
-    if std::env::var_os("EVERMAP_TMPFS_TESTS").is_none() {
-        eprintln!("skipped: set EVERMAP_TMPFS_TESTS=1 to run it (needs root to mount a tmpfs)");
+    if !test_support::tmpfs_tests_enabled() {
         return;
     }
     let fs = Tmpfs::mount(SIZE_MIB);

@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 
 mod tmpfs;
 
-pub use tmpfs::{Tmpfs, fill};
+pub use tmpfs::{Tmpfs, fill, tmpfs_tests_enabled};
 
 /// The shared data sets folder, `../shared/datasets` next to the repository root. Found by walking up from
 /// this crate, so that it works from the main checkout (`/work/main`) and from worktrees one level deeper

@@ -5,6 +5,15 @@ use std::io::Write as _;
 use std::path::Path;
 use std::process::Command;
 
+/// Whether the tmpfs tests were asked for (`EVERMAP_TMPFS_TESTS` set; they need root); says so when not.
+pub fn tmpfs_tests_enabled() -> bool {
+    let enabled = std::env::var_os("EVERMAP_TMPFS_TESTS").is_some();
+    if !enabled {
+        eprintln!("skipped: set EVERMAP_TMPFS_TESTS=1 to run it (needs root to mount a tmpfs)");
+    }
+    enabled
+}
+
 /// A tmpfs mounted on a temporary directory, unmounted on drop. Mounting needs root
 /// (`CAP_SYS_ADMIN`).
 pub struct Tmpfs {

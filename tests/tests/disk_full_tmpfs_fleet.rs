@@ -93,8 +93,7 @@ fn logged_seqs(store: &dyn MapStore) -> Vec<u64> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn server_and_outbox_on_a_full_tmpfs_recover_in_place_and_nothing_is_lost_or_doubled() {
-    if std::env::var_os("EVERMAP_TMPFS_TESTS").is_none() {
-        eprintln!("skipped: set EVERMAP_TMPFS_TESTS=1 to run it (needs root to mount a tmpfs)");
+    if !test_support::tmpfs_tests_enabled() {
         return;
     }
     let server_fs = Tmpfs::mount(SIZE_MIB);
