@@ -1,0 +1,417 @@
+//! The map's worker thread: it runs each session through the lifelong map as LLO's nodes arrive,
+//! and notes what happened in the session's summary and record.
+
+use std::collections::BTreeMap;
+use std::sync::mpsc;
+use std::time::Instant;
+
+use mapping::geometry::Rigid2;
+use mapping::grid::ProbabilityGrid;
+use mapping::lifelong::{
+    LifelongEvent, LifelongMap, SessionStart, SessionStartEvent, StartSearch, render_submaps_max,
+};
+use mapping::local_slam::LloNode;
+use mapping::metrics::MatchScorer;
+use mapping::pose_graph::NodeId;
+use mapping::sensor::Timestamp;
+
+use super::act_on_start::act_on_start;
+use super::{
+    OptimizationFigures, ScanAnchor, SessionEnd, SessionRecord, SessionSummary, SessionsConfig,
+    SessionsError,
+};
+use crate::map_probes::MapProbes;
+use crate::offline_slam::run_searches;
+use crate::process_stats::thread_cpu_ms;
+
+pub(super) enum Message {
+    Start {
+        session: u32,
+        /// The session's first event.
+        start_time: Timestamp,
+        /// See [`SessionInput::from_dock`].
+        ///
+        /// [`SessionInput::from_dock`]: super::SessionInput::from_dock
+        from_dock: bool,
+    },
+    Node {
+        session: u32,
+        node: LloNode,
+    },
+    Finish {
+        session: u32,
+        active_submaps: Vec<(usize, ProbabilityGrid)>,
+        /// Every matched scan of the session, in time order.
+        scans: Vec<ScanAnchor>,
+    },
+}
+
+pub(super) struct WorkerOutput {
+    pub(super) map: LifelongMap,
+    pub(super) sessions: Vec<SessionSummary>,
+    /// Every node's pose when the last session that saw it in the map ended.
+    pub(super) retired: BTreeMap<NodeId, Rigid2>,
+    pub(super) records: Vec<SessionRecord>,
+    pub(super) probe_poses: Vec<Option<Rigid2>>,
+}
+
+/// `map_from_base` of each scan whose node has a pose in `node_poses`: the node's pose composed with
+/// LLO's motion from the node to the scan.
+fn poses_of_scans(
+    scans: &[ScanAnchor],
+    node_local: &BTreeMap<NodeId, Rigid2>,
+    node_poses: &BTreeMap<NodeId, Rigid2>,
+) -> Vec<(Timestamp, Rigid2)> {
+    scans
+        .iter()
+        .filter_map(|a| {
+            let node = a.node?;
+            let global = node_poses.get(&node)?;
+            let local = node_local.get(&node)?;
+            Some((a.time, global * local.inverse() * a.local_pose))
+        })
+        .collect()
+}
+
+pub(super) fn worker(
+    mut map: LifelongMap,
+    config: &SessionsConfig,
+    mut probes: MapProbes,
+    receiver: &mpsc::Receiver<Message>,
+    on_session_end: &mut (dyn FnMut(&SessionEnd<'_>) + Send),
+) -> Result<WorkerOutput, SessionsError> {
+    let relocalization = &config.lifelong.relocalization;
+    let mut sessions: Vec<SessionSummary> = Vec::new();
+    let mut retired: BTreeMap<NodeId, Rigid2> = BTreeMap::new();
+    let mut records: Vec<SessionRecord> = Vec::new();
+    // The current session's: node local poses, node poses as the robot had them when each was added,
+    // and the map of the finished sessions as it was at its start (for the match scores).
+    let mut node_local: BTreeMap<NodeId, Rigid2> = BTreeMap::new();
+    let mut online_nodes: BTreeMap<NodeId, Rigid2> = BTreeMap::new();
+    let mut map_at_start: Option<MatchScorer> = None;
+    let mut priors: BTreeMap<u32, (Rigid2, Rigid2)> = BTreeMap::new();
+    let mut scores: Vec<f32> = Vec::new();
+    // The current session's start (none for session 0, which defines the map) and its nodes' times.
+    let mut start: Option<SessionStart> = None;
+    let mut node_times: Vec<Timestamp> = Vec::new();
+    // Acts on session `$session`'s start decisions `$decisions` with this worker's books
+    // (`$first_search`: they come from its first whole-map search); see `act_on_start`.
+    macro_rules! act_on_start {
+        ($session:expr, $first_search:expr, $decisions:expr) => {
+            act_on_start(
+                &mut map,
+                $session,
+                $first_search,
+                $decisions,
+                &node_times,
+                &node_local,
+                sessions.last_mut(),
+                records.last_mut(),
+                &mut priors,
+            )?
+        };
+    }
+    for message in receiver {
+        match message {
+            Message::Start {
+                session,
+                start_time,
+                from_dock,
+            } => {
+                scores.clear();
+                node_local.clear();
+                // Where the robot was at the end of its last session, as it had it then: its dock.
+                let dock = online_nodes.values().next_back().copied();
+                online_nodes.clear();
+                node_times.clear();
+                map_at_start = None;
+                start = None;
+                if session > 0 {
+                    // AMS scores every scan against everything the map holds (each cell at the
+                    // highest value any submap gives it: the definition every earlier figure used);
+                    // the session start searches the map as `map_cells` renders it.
+                    map_at_start =
+                        render_submaps_max(map.placed_submaps(), relocalization.resolution)
+                            .map(|grid| MatchScorer::new(&grid, config.scoring.match_window));
+                    start = Some(session_start(&map, config, dock.filter(|_| from_dock))?);
+                }
+                // Every later session starts unplaced; its `SessionStart` places it.
+                map.start_session(session, None)?;
+                sessions.push(SessionSummary {
+                    session,
+                    ..SessionSummary::default()
+                });
+                records.push(SessionRecord {
+                    session,
+                    start_time,
+                    ..SessionRecord::default()
+                });
+            }
+            Message::Node { session, node } => {
+                let (time, local_pose) = (node.time, node.local_pose);
+                // The scans before this node were estimated from the map as it stands now.
+                probes.answer_before(time, |id| map.global().node_pose(id));
+                let scored_points = (session > 0).then(|| node.points.clone());
+                let start_points = start.as_ref().map(|_| node.points.clone());
+                let (id, events) = map.add_node(session, node)?;
+                node_local.insert(id, local_pose);
+                node_times.push(time);
+                let mut decisions = Vec::new();
+                let mut first_search = false;
+                if let (Some(start), Some(points)) = (start.as_mut(), start_points) {
+                    let began = Instant::now();
+                    let searches = start.searches();
+                    decisions = start.add_node(local_pose, points);
+                    if let Some(summary) = sessions.last_mut() {
+                        summary.first_node_time = node_times.first().copied();
+                        if start.searches() > searches {
+                            let ms = began.elapsed().as_secs_f64() * 1e3;
+                            first_search = searches == 0;
+                            if first_search {
+                                summary.relocalization_ms = ms;
+                            }
+                            summary.relocalization_ms_total += ms;
+                            summary.relocalization_retries = start.searches() - 1;
+                        }
+                    }
+                }
+                act_on_start!(session, first_search, &decisions);
+                let mut events_after = run_search_jobs(&mut map);
+                events_after.extend(events);
+                // The matches of this session's nodes against the existing map judge its placement.
+                if let Some(start) = start.as_mut() {
+                    let decisions = judge_placement(start, &map, session, &events_after);
+                    act_on_start!(session, false, &decisions);
+                }
+                if let Some(summary) = sessions.last_mut() {
+                    summary.nodes_added += 1;
+                    count_closures(summary, &events_after, &mut scores);
+                }
+                // What the robot has now, at this scan: placed (on probation or committed) or not, and
+                // where.
+                let online = map
+                    .global()
+                    .node_pose(id)
+                    .filter(|_| map.is_placed(session));
+                if let Some(pose) = online {
+                    online_nodes.insert(id, pose);
+                }
+                if let (Some(points), Some(record)) = (scored_points, records.last_mut()) {
+                    let score = match (online, &map_at_start) {
+                        (Some(pose), Some(scorer)) => scorer.score(&points, &pose),
+                        _ => 0.0,
+                    };
+                    record.match_scores.push(score);
+                }
+            }
+            Message::Finish {
+                session,
+                active_submaps,
+                scans,
+            } => {
+                if let Some(last) = scans.last() {
+                    probes
+                        .answer_before(Timestamp(last.time.0 + 1), |id| map.global().node_pose(id));
+                }
+                map.finish_submaps(session, active_submaps)?;
+                let events = run_search_jobs(&mut map);
+                // Every node's pose before pose graph refinement: what a node `finish_session` removes
+                // (trimmed, or its session dropped) keeps; the rest are updated after it.
+                let mut at_session_end = BTreeMap::new();
+                let mut note_poses = |map: &LifelongMap| {
+                    for (id, _, pose) in map.node_poses() {
+                        retired.insert(id, pose);
+                        if id.trajectory == session {
+                            at_session_end.insert(id, pose);
+                        }
+                    }
+                };
+                note_poses(&map);
+                // What the session's end decides of its start (a dock placement never disputed).
+                if let Some(start) = start.as_mut() {
+                    let decisions = start.finish();
+                    act_on_start!(session, false, &decisions);
+                }
+                let on_probation = map.is_on_probation(session);
+                let start_ms = Instant::now();
+                let start_cpu_ms = thread_cpu_ms();
+                let events_finish = map.finish_session(session)?;
+                let finish_ms = start_ms.elapsed().as_secs_f64() * 1e3;
+                let finish_cpu_ms = thread_cpu_ms()
+                    .zip(start_cpu_ms)
+                    .map(|(end, start)| end - start);
+                note_poses(&map);
+                let placed = map.is_placed(session) && !on_probation;
+                let counts = map.counts();
+                let offset = relocalization_offset(&priors, &retired, session);
+                if let Some(summary) = sessions.last_mut() {
+                    count_closures(summary, &events, &mut scores);
+                    count_trims(summary, &events_finish);
+                    summary.placed = placed;
+                    summary.ended_on_probation = on_probation;
+                    summary.counts = counts;
+                    summary.finish_ms = finish_ms;
+                    summary.finish_cpu_ms = finish_cpu_ms;
+                    summary.finish_optimizations = optimization_figures(&events_finish);
+                    summary.relocalization_offset_m = offset;
+                    summary.peak_rss_mb = crate::process_stats::peak_rss_mb();
+                    summary.rss_mb = crate::process_stats::current_rss_mb();
+                }
+                probes.add_ended_session(&scans, &node_local);
+                if let (Some(summary), Some(record)) = (sessions.last(), records.last_mut()) {
+                    record.online = poses_of_scans(&scans, &node_local, &online_nodes);
+                    record.smoothed = poses_of_scans(&scans, &node_local, &at_session_end);
+                    on_session_end(&SessionEnd {
+                        summary,
+                        record,
+                        map: &map,
+                    });
+                }
+            }
+        }
+    }
+    // Nodes still in the map report their final pose; `retired` keeps the rest.
+    Ok(WorkerOutput {
+        map,
+        sessions,
+        retired,
+        records,
+        probe_poses: probes.into_answers(),
+    })
+}
+
+/// The session start of a session after the first: the whole-map search over the map as it stands
+/// (rendered as `map_cells` says), from the robot's `dock` when there is one.
+fn session_start(
+    map: &LifelongMap,
+    config: &SessionsConfig,
+    dock: Option<Rigid2>,
+) -> Result<SessionStart, SessionsError> {
+    let relocalization = &config.lifelong.relocalization;
+    let rendered = map.relocalization_map(relocalization);
+    let search = rendered
+        .as_ref()
+        .map(|grid| StartSearch::new(grid, relocalization));
+    let options = config.lifelong.session_start.clone();
+    match dock {
+        Some(dock) => SessionStart::from_dock(options, search, dock),
+        None => SessionStart::new(options, search),
+    }
+    .map_err(|e| SessionsError::Options(e.into()))
+}
+
+/// Runs the GLM searches the map queued ([`run_searches`]: on two threads) and adds the accepted ones.
+fn run_search_jobs(map: &mut LifelongMap) -> Vec<LifelongEvent> {
+    let jobs = map.take_search_jobs();
+    let results = run_searches(map.constraint_builder(), &jobs);
+    map.add_search_results(results)
+}
+
+/// What `session`'s start decides from the matches among `events` of the session's nodes against
+/// older sessions' submaps (they judge its placement).
+fn judge_placement(
+    start: &mut SessionStart,
+    map: &LifelongMap,
+    session: u32,
+    events: &[LifelongEvent],
+) -> Vec<SessionStartEvent> {
+    let mut decisions = Vec::new();
+    for event in events {
+        if let LifelongEvent::LoopClosureAdded(closure) = event
+            && closure.node.trajectory == session
+            && closure.submap.trajectory != session
+            && let Some(submap_pose) = map.global().submap_pose(closure.submap)
+        {
+            decisions.extend(start.add_match(
+                closure.node.index as usize,
+                submap_pose * closure.submap_from_node,
+                closure.submap,
+            ));
+        }
+    }
+    decisions
+}
+
+/// How far `session`'s placement put its first node from that node's last known pose (`retired`),
+/// metres; `None` without a placement (`priors`) or that pose.
+fn relocalization_offset(
+    priors: &BTreeMap<u32, (Rigid2, Rigid2)>,
+    retired: &BTreeMap<NodeId, Rigid2>,
+    session: u32,
+) -> Option<f64> {
+    let first_node = NodeId {
+        trajectory: session,
+        index: 0,
+    };
+    priors.get(&session).and_then(|(prior, first_local)| {
+        let last = retired.get(&first_node)?;
+        Some(((prior * first_local).translation.vector - last.translation.vector).norm())
+    })
+}
+
+/// Counts the submap trims among a session end's `events` in `summary`: submaps trimmed or dropped,
+/// nodes removed, tree edges added, and the mean KL divergence of the trims that measured one.
+fn count_trims(summary: &mut SessionSummary, events: &[LifelongEvent]) {
+    let mut klds = Vec::new();
+    for event in events {
+        if let LifelongEvent::SubmapTrimmed {
+            dropped,
+            nodes_removed,
+            tree_edges,
+            kld,
+            ..
+        } = event
+        {
+            if *dropped {
+                summary.dropped += 1;
+                continue;
+            }
+            summary.trimmed += 1;
+            summary.nodes_trimmed += nodes_removed;
+            summary.tree_edges += tree_edges;
+            klds.extend(*kld);
+        }
+    }
+    summary.trim_kld_mean =
+        (!klds.is_empty()).then(|| klds.iter().sum::<f64>() / klds.len() as f64);
+}
+
+/// The figures of each optimization among `events`, in order.
+fn optimization_figures(events: &[LifelongEvent]) -> Vec<OptimizationFigures> {
+    events
+        .iter()
+        .filter_map(|e| match e {
+            LifelongEvent::Optimized(o) => Some(OptimizationFigures {
+                iterations: o.iterations,
+                accepted_steps: o.accepted_steps,
+                chi2: [o.initial_chi2, o.final_chi2],
+                termination: o.termination.to_string(),
+                free_variables: o.free_variables,
+                factor_nonzeros: o.factor_nonzeros,
+            }),
+            _ => None,
+        })
+        .collect()
+}
+
+fn count_closures(summary: &mut SessionSummary, events: &[LifelongEvent], scores: &mut Vec<f32>) {
+    for event in events {
+        if let LifelongEvent::LoopClosureAdded(closure) = event
+            && closure.node.trajectory == summary.session
+        {
+            summary.closures += 1;
+            scores.push(closure.score);
+            if closure.submap.trajectory != summary.session {
+                let n = summary.cross_session_closures as f64;
+                let mean = summary.cross_session_ams.unwrap_or(0.0);
+                summary.cross_session_ams = Some((mean * n + f64::from(closure.score)) / (n + 1.0));
+                summary.cross_session_closures += 1;
+            }
+        }
+    }
+    summary.ams = if scores.is_empty() {
+        0.0
+    } else {
+        scores.iter().map(|&s| f64::from(s)).sum::<f64>() / scores.len() as f64
+    };
+}

@@ -1,0 +1,49 @@
+//! The configuration of a multi-session run: one TOML file, every field optional.
+
+use mapping::lifelong::LifelongOptions;
+use mapping::local_slam::LocalTrajectoryBuilderOptions;
+use mapping::metrics::ScoringOptions;
+use serde::Deserialize;
+
+use super::SessionsError;
+
+/// Configuration of a multi-session run; one TOML file, every field optional.
+#[derive(Clone, Debug, Default, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SessionsConfig {
+    /// Local LiDAR odometry (LLO), restarted for every session.
+    pub local: LocalTrajectoryBuilderOptions,
+    /// The lifelong map (global SLAM, the session start — `[lifelong.relocalization]` and
+    /// `[lifelong.session_start]` —, trimming, policy).
+    pub lifelong: LifelongOptions,
+    /// What the scores count, and the window AMS searches each node's match in.
+    pub scoring: ScoringOptions,
+}
+
+impl SessionsConfig {
+    /// The configuration in the TOML file at `path`, or the defaults without one; `policy` overrides the
+    /// file's trimming policy.
+    pub fn load(
+        path: Option<&std::path::Path>,
+        policy: Option<mapping::lifelong::TrimPolicy>,
+    ) -> Result<Self, SessionsError> {
+        let mut config = match path {
+            Some(path) => {
+                let text =
+                    std::fs::read_to_string(path).map_err(|source| SessionsError::ConfigFile {
+                        path: path.display().to_string(),
+                        source: Box::new(source),
+                    })?;
+                toml::from_str(&text).map_err(|source| SessionsError::ConfigFile {
+                    path: path.display().to_string(),
+                    source: Box::new(source),
+                })?
+            }
+            None => Self::default(),
+        };
+        if let Some(policy) = policy {
+            config.lifelong.policy = policy;
+        }
+        Ok(config)
+    }
+}
