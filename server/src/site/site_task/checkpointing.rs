@@ -39,7 +39,7 @@ pub(super) async fn written(
 }
 
 impl SiteTask {
-    /// Starts a checkpoint of the site when one is due and can be taken (see the module docs): the
+    /// Starts a checkpoint of the site when one is due and can be taken (see the module docs of `site_task`): the
     /// site's state is copied ([`SiteMap::checkpoint`]) while the task waits, then encoded, written and
     /// the log compacted on a maintenance thread beside the task, which goes on with its
     /// requests ([`Self::checkpoint_written`] records the outcome). One write at a time: a checkpoint

@@ -77,7 +77,7 @@ pub(crate) struct LoadTimes {
 }
 
 /// Rebuilds a site map from its store: the newest checkpoint that reads back (when `use_checkpoints`)
-/// and the log after it, or the whole log (see the module docs for which checkpoints are skipped and
+/// and the log after it, or the whole log (see the module docs of `site_task` for which checkpoints are skipped and
 /// which stop the site).
 pub(crate) fn load(
     site: &str,

@@ -60,7 +60,7 @@ impl SiteTask {
     }
 
     /// Before any change: if the store was reopened since the map was built and the map may differ
-    /// from it, rebuilds the map from the store (see the module docs). `Err` while that fails (nothing
+    /// from it, rebuilds the map from the store (see the module docs of `site_task`). `Err` while that fails (nothing
     /// may be changed on a map that may not equal the store).
     pub(super) async fn check_store(&mut self) -> Result<(), SiteError> {
         let generation = self.store.generation();

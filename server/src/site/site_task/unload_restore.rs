@@ -8,7 +8,7 @@ use super::SiteTask;
 use crate::site::{SiteError, VersionInfo};
 
 impl SiteTask {
-    /// Unloads the site if it has been idle long enough (see the module docs).
+    /// Unloads the site if it has been idle long enough (see the module docs of `site_task`).
     pub(super) async fn unload_if_idle(&mut self) {
         let Some(after) = self.unload_after else {
             return;
