@@ -72,6 +72,11 @@ pub struct LocalTrajectoryBuilderOptions {
     /// How much better (paired statistic) a recovery search (over every rotation, or the shifted window)
     /// must fit than the best match near the prediction. Default 6. Why: `docs/TUNING.md#llo-min-recovery-z`.
     pub min_recovery_z: f64,
+    /// The odometry as a prior on the search over every rotation (radians > 0; 0 = off): a pose that turns
+    /// `Δθ` away from the prediction must fit better by `√(min_recovery_z² + (Δθ / this)²)`, so a corridor
+    /// flipped 180° needs far more support than a turn the wheels missed by a few degrees. Default 15°.
+    /// Why: `docs/TUNING.md#llo-every-rotation-prior`.
+    pub every_rotation_prior: f64,
     /// Half-width (metres) of a translation window searched, in the trusted angular window, where nothing
     /// near the prediction fits (best score below `min_recovery_score`); 0 = off. Default 0.5 m.
     /// Why: `docs/TUNING.md#llo-recovery-linear-window`.
@@ -104,6 +109,19 @@ pub struct LocalTrajectoryBuilderOptions {
     pub submaps: SubmapsOptions,
 }
 
+/// The paired statistic a pose of the search over every rotation, turned `turn` (radians) away from the
+/// prediction, must reach over the best match near the prediction (see
+/// [`LocalTrajectoryBuilderOptions::every_rotation_prior`]).
+fn every_rotation_min_z(options: &LocalTrajectoryBuilderOptions, turn: f64) -> f64 {
+    if options.every_rotation_prior > 0.0 {
+        options
+            .min_recovery_z
+            .hypot(turn.abs() / options.every_rotation_prior)
+    } else {
+        options.min_recovery_z
+    }
+}
+
 impl Default for LocalTrajectoryBuilderOptions {
     fn default() -> Self {
         Self {
@@ -121,6 +139,7 @@ impl Default for LocalTrajectoryBuilderOptions {
             paired_test_where_trusted_misfits: true,
             min_recovery_score: 0.35,
             min_recovery_z: 6.0,
+            every_rotation_prior: 15f64.to_radians(),
             recovery_linear_window: 0.5,
             insert_recovered_scans: false,
             insert_while_odometry_stalls: true,
@@ -167,6 +186,7 @@ impl LocalTrajectoryBuilderOptions {
         for (name, value) in [
             ("min_recovery_score", self.min_recovery_score),
             ("min_recovery_z", self.min_recovery_z),
+            ("every_rotation_prior", self.every_rotation_prior),
             ("recovery_linear_window", self.recovery_linear_window),
             ("trusted_angular_window", self.trusted_angular_window),
             ("trusted_window_per_radian", self.trusted_window_per_radian),
@@ -499,7 +519,9 @@ impl LocalTrajectoryBuilder {
                         && clearly_better(shifted, o.min_recovery_z)
                 });
             let recovery = search(predicted, std::f64::consts::PI);
-            let recovery = clearly_better(&recovery, o.min_recovery_z).then_some(recovery);
+            let turn = normalize_angle(recovery.0.theta() - predicted.theta());
+            let recovery =
+                clearly_better(&recovery, every_rotation_min_z(o, turn)).then_some(recovery);
             match (shifted, recovery) {
                 // A shifted match is its own refinement target: the prediction's translation is what
                 // it corrects.
@@ -1122,6 +1144,21 @@ mod tests {
         let far = |errors: &[f64]| errors.iter().filter(|e| **e > 1.6).count();
         assert_eq!(far(&with), 0, "anchored: {with:.2?}");
         assert!(far(&without) >= 2, "trusted window only: {without:.2?}");
+    }
+
+    #[test]
+    fn the_search_over_every_rotation_needs_more_support_the_farther_it_turns_from_the_odometry() {
+        let options = LocalTrajectoryBuilderOptions::default();
+        let min_z = |degrees: f64| every_rotation_min_z(&options, degrees.to_radians());
+        assert!((min_z(0.0) - options.min_recovery_z).abs() < 1e-12);
+        assert!(min_z(10.0) < 6.2, "{}", min_z(10.0));
+        assert!((min_z(-180.0) - 6f64.hypot(12.0)).abs() < 1e-9);
+        assert!(min_z(90.0) < min_z(180.0));
+        let off = LocalTrajectoryBuilderOptions {
+            every_rotation_prior: 0.0,
+            ..options
+        };
+        assert!((every_rotation_min_z(&off, std::f64::consts::PI) - 6.0).abs() < 1e-12);
     }
 
     #[test]
