@@ -4,6 +4,7 @@
 //! core, and the uplink to the fleet map server (durable outbox, gRPC, the global submap cache).
 
 pub mod agent_config;
+pub mod config_file;
 pub mod lifelong_run;
 pub mod line_chart;
 pub mod map_image;

@@ -8,6 +8,7 @@
 //! submaps.
 
 use std::collections::BTreeMap;
+use std::path::Path;
 use std::sync::mpsc;
 
 use mapping::geometry::Rigid2;
@@ -24,6 +25,7 @@ use mapping::pose_graph::{NodeId, OptimizationSummary};
 use mapping::sensor::{OdometryReading, RangeData, RangeStats, SensorEvent, Timestamp};
 use serde::Deserialize;
 
+use crate::config_file::{ConfigFileError, load_toml};
 use crate::source::{Recording, RecordingStream, SensorStream};
 
 /// Everything the agent's SLAM can be configured with; one TOML file, every field optional.
@@ -36,6 +38,14 @@ pub struct SlamConfig {
     pub global: GlobalSlamOptions,
     /// Whole-map relocalization with no prior (`relocalize`; the lifelong session start's options).
     pub relocalization: RelocalizationOptions,
+}
+
+impl SlamConfig {
+    /// The configuration in the TOML file at `path`, or the defaults without one. Its sections are
+    /// validated where they are used ([`run_slam`]).
+    pub fn load(path: Option<&Path>) -> Result<Self, ConfigFileError> {
+        Ok(path.map(load_toml).transpose()?.unwrap_or_default())
+    }
 }
 
 /// Errors of the offline pipeline.

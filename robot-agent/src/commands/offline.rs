@@ -71,19 +71,9 @@ pub struct OfflineArgs {
     perturb: PerturbArgs,
 }
 
-/// Reads a TOML SLAM configuration, or the defaults.
-pub fn load_config(path: Option<&Path>) -> anyhow::Result<SlamConfig> {
-    let Some(path) = path else {
-        return Ok(SlamConfig::default());
-    };
-    let text = std::fs::read_to_string(path)
-        .with_context(|| format!("cannot read config {}", path.display()))?;
-    toml::from_str(&text).with_context(|| format!("invalid config {}", path.display()))
-}
-
 /// Runs the command.
 pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
-    let config = load_config(args.config.as_deref())?;
+    let config = SlamConfig::load(args.config.as_deref())?;
     let perturbation_asked = args.perturb.perturbation()?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;

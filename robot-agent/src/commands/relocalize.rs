@@ -34,12 +34,10 @@ use proto::UploadItem;
 use rand::SeedableRng as _;
 use rand::seq::index::sample;
 use rand_pcg::Pcg64;
-use robot_agent::offline_slam::{render_map, render_range_data, run_offline};
+use robot_agent::offline_slam::{SlamConfig, render_map, render_range_data, run_offline};
 use robot_agent::source::{self, Recording};
 use robot_agent::uplink::run_llo;
 use serde_json::json;
-
-use super::offline::load_config;
 
 /// Scans to relocalize: `(local_from_tracking, points)`, first scan first.
 type Stack = Vec<(Rigid2, Vec<Point2<f32>>)>;
@@ -116,7 +114,7 @@ fn percentile(sorted: &[f64], q: f64) -> f64 {
 
 /// Runs the command.
 pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
-    let config = load_config(args.config.as_deref())?;
+    let config = SlamConfig::load(args.config.as_deref())?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     let recording = source::read_recording(&args.input)?;

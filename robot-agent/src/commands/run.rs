@@ -20,6 +20,7 @@ use clap::Args;
 use mapping::lifelong::RelocalizationOptions;
 use rand::RngCore as _;
 use robot_agent::agent_config::AgentConfig;
+use robot_agent::config_file::load_toml;
 use robot_agent::outbox::Outbox;
 use robot_agent::ros2_publisher::{PublishStats, Ros2Publisher, odom_from_base_at};
 use robot_agent::source::{self, LiveRos2Source, OdometryHistory, Ros2LiveOptions};
@@ -60,11 +61,10 @@ fn random_uuid() -> String {
 
 /// Runs the command (the caller has set up logging: `proto::logging::init_logging`).
 pub fn run(args: &RunArgs) -> anyhow::Result<()> {
-    let text = std::fs::read_to_string(&args.config)
-        .with_context(|| format!("cannot read {}", args.config.display()))?;
-    let config = AgentConfig::from_toml(&text)
-        .and_then(|config| config.validate().map(|()| config))
-        .with_context(|| format!("in {}", args.config.display()))?;
+    let config: AgentConfig = load_toml(&args.config)?;
+    config
+        .validate()
+        .with_context(|| format!("invalid configuration {}", args.config.display()))?;
     let (input, live_session) = match &config.ros2 {
         Some(ros2) => {
             let live = LiveRos2Source::open(ros2, ros2.stream_end())?;

@@ -6,6 +6,7 @@ use mapping::metrics::ScoringOptions;
 use serde::Deserialize;
 
 use super::SessionsError;
+use crate::config_file::load_toml;
 
 /// Configuration of a multi-session run; one TOML file, every field optional.
 #[derive(Clone, Debug, Default, PartialEq, Deserialize)]
@@ -28,17 +29,7 @@ impl SessionsConfig {
         policy: Option<mapping::lifelong::TrimPolicy>,
     ) -> Result<Self, SessionsError> {
         let mut config = match path {
-            Some(path) => {
-                let text =
-                    std::fs::read_to_string(path).map_err(|source| SessionsError::ConfigFile {
-                        path: path.display().to_string(),
-                        source: Box::new(source),
-                    })?;
-                toml::from_str(&text).map_err(|source| SessionsError::ConfigFile {
-                    path: path.display().to_string(),
-                    source: Box::new(source),
-                })?
-            }
+            Some(path) => load_toml(path)?,
             None => Self::default(),
         };
         if let Some(policy) = policy {

@@ -2,6 +2,8 @@
 
 use mapping::lifelong::LifelongError;
 
+use crate::config_file::ConfigFileError;
+
 /// Errors of a multi-session run.
 #[derive(Debug, thiserror::Error)]
 pub enum SessionsError {
@@ -12,14 +14,8 @@ pub enum SessionsError {
     #[error("invalid configuration: {0}")]
     Config(String),
     /// The configuration file could not be read or parsed.
-    #[error("configuration {path}: {source}")]
-    ConfigFile {
-        /// The file.
-        path: String,
-        /// Why.
-        #[source]
-        source: Box<dyn std::error::Error + Send + Sync>,
-    },
+    #[error(transparent)]
+    ConfigFile(#[from] ConfigFileError),
     /// A section of the configuration refused its options.
     #[error("invalid configuration: {0}")]
     Options(#[source] Box<dyn std::error::Error + Send + Sync>),
