@@ -34,14 +34,62 @@ pub enum ConversionError {
         got: usize,
     },
     /// A value is outside its valid range (e.g. a non-positive resolution, an unknown enum value).
-    #[error("{message}.{field} is out of range: {value}")]
+    #[error("{message}.{field} is out of range: {value}, expected {expected}")]
     OutOfRange {
         /// The message type.
         message: &'static str,
         /// The field.
         field: &'static str,
-        /// The offending value, printed.
-        value: String,
+        /// The offending value.
+        value: FieldValue,
+        /// What the field must be ("in [0, 1]", "a known ConstraintKind").
+        expected: &'static str,
+    },
+    /// A `oneof` holds another kind than the one this exchange expects (a reply to another request).
+    #[error("{message}.{field} is {got}, expected {expected}")]
+    WrongKind {
+        /// The message type.
+        message: &'static str,
+        /// The `oneof` field.
+        field: &'static str,
+        /// The kind expected.
+        expected: &'static str,
+        /// The kind found.
+        got: &'static str,
+    },
+    /// A repeated field lists the same key twice: the encoder writes each once, so a repeat is damage.
+    #[error("{message}.{field} lists {key} twice")]
+    Duplicate {
+        /// The message type.
+        message: &'static str,
+        /// The field.
+        field: &'static str,
+        /// The repeated key, printed.
+        key: String,
+    },
+    /// An item of a repeated field (or a message of a sequence of chunks) is where it may not be.
+    #[error("{message}.{field}: item {index} is misplaced: {rule}")]
+    Misplaced {
+        /// The message type.
+        message: &'static str,
+        /// The field.
+        field: &'static str,
+        /// The item's index (from 0).
+        index: usize,
+        /// The rule it breaks.
+        rule: &'static str,
+    },
+    /// The fields are each valid but do not make a valid value together (a pose graph whose constraint
+    /// names a missing variable); `source` is the `mapping` type's own refusal.
+    #[error("{message}.{field} is invalid: {source}")]
+    Invalid {
+        /// The message type.
+        message: &'static str,
+        /// The field.
+        field: &'static str,
+        /// Why: the error of the constructor that refused it.
+        #[source]
+        source: ErrorSource,
     },
     /// The record was written with a format version this build does not read.
     #[error(
@@ -78,6 +126,63 @@ pub enum ConversionError {
         #[source]
         source: ErrorSource,
     },
+}
+
+/// The value of a field [`ConversionError::OutOfRange`] refuses, as the wire carries it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum FieldValue {
+    /// An unsigned integer (a count, a sequence number, a cell value).
+    Unsigned(u64),
+    /// A signed integer (an enum's wire value).
+    Signed(i64),
+    /// A floating-point number.
+    Float(f64),
+}
+
+impl std::fmt::Display for FieldValue {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Unsigned(v) => v.fmt(f),
+            Self::Signed(v) => v.fmt(f),
+            Self::Float(v) => v.fmt(f),
+        }
+    }
+}
+
+impl From<u64> for FieldValue {
+    fn from(v: u64) -> Self {
+        Self::Unsigned(v)
+    }
+}
+
+impl From<u32> for FieldValue {
+    fn from(v: u32) -> Self {
+        Self::Unsigned(v.into())
+    }
+}
+
+impl From<u16> for FieldValue {
+    fn from(v: u16) -> Self {
+        Self::Unsigned(v.into())
+    }
+}
+
+impl From<i32> for FieldValue {
+    fn from(v: i32) -> Self {
+        Self::Signed(v.into())
+    }
+}
+
+impl From<f64> for FieldValue {
+    fn from(v: f64) -> Self {
+        Self::Float(v)
+    }
+}
+
+impl From<f32> for FieldValue {
+    fn from(v: f32) -> Self {
+        Self::Float(v.into())
+    }
 }
 
 /// The underlying error of a [`ConversionError`], kept for `source()`. Shared, so that the error stays

@@ -35,7 +35,7 @@ mod upload_batch;
 mod zenoh_link_options;
 mod zenoh_tls_options;
 
-pub use conversion_error::{ConversionError, ErrorSource};
+pub use conversion_error::{ConversionError, ErrorSource, FieldValue};
 pub use convert::{
     NodeSnapshot, check_format_version, grid_from_pb, grid_to_pb, grid_to_pb_with, pose_from_pb,
     pose_to_pb,

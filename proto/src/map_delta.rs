@@ -127,13 +127,14 @@ impl MapDelta {
         const M: &str = "MapDelta";
         let mut delta: Option<Self> = None;
         let mut finished = false;
-        for chunk in chunks {
+        for (index, chunk) in chunks.into_iter().enumerate() {
             check_format_version(M, chunk.format_version)?;
             if finished {
-                return Err(ConversionError::OutOfRange {
+                return Err(ConversionError::Misplaced {
                     message: M,
                     field: "last",
-                    value: "a chunk after the last one".into(),
+                    index,
+                    rule: "no chunk may follow the one marked last",
                 });
             }
             let delta = delta.get_or_insert_with(|| Self {
@@ -144,13 +145,21 @@ impl MapDelta {
                 pose_updates: Vec::new(),
                 trimmed: Vec::new(),
             });
-            if (chunk.site.as_str(), chunk.from_version, chunk.to_version)
-                != (delta.site.as_str(), delta.from_version, delta.to_version)
-            {
-                return Err(ConversionError::OutOfRange {
+            let other_delta = if chunk.site != delta.site {
+                Some("site")
+            } else if chunk.from_version != delta.from_version {
+                Some("from_version")
+            } else if chunk.to_version != delta.to_version {
+                Some("to_version")
+            } else {
+                None
+            };
+            if let Some(field) = other_delta {
+                return Err(ConversionError::Misplaced {
                     message: M,
-                    field: "to_version",
-                    value: format!("chunks of different deltas ({})", chunk.to_version),
+                    field,
+                    index,
+                    rule: "a chunk of another delta (each must carry the first chunk's site and versions)",
                 });
             }
             for submap in &chunk.submaps_added {
@@ -264,9 +273,23 @@ mod tests {
         assert!(MapDelta::from_pb_chunks(&[]).is_err());
         let mut mixed = chunks.clone();
         mixed[1].to_version = 10;
-        assert!(MapDelta::from_pb_chunks(&mixed).is_err());
+        assert!(matches!(
+            MapDelta::from_pb_chunks(&mixed),
+            Err(ConversionError::Misplaced {
+                field: "to_version",
+                index: 1,
+                ..
+            })
+        ));
         let mut twice = chunks.clone();
         twice.push(chunks[0].clone());
-        assert!(MapDelta::from_pb_chunks(&twice).is_err());
+        assert!(matches!(
+            MapDelta::from_pb_chunks(&twice),
+            Err(ConversionError::Misplaced {
+                field: "last",
+                index,
+                ..
+            }) if index == chunks.len()
+        ));
     }
 }

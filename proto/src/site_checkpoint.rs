@@ -27,7 +27,7 @@ use crate::convert::constraint::{
     kind_from_pb, kind_to_pb, loss_from_pb, loss_to_pb, variable_in, variable_to_pb,
 };
 use crate::convert::{check_finite, points_from_pb, points_to_pb};
-use crate::{ConversionError, grid_from_pb, grid_to_pb, pb};
+use crate::{ConversionError, ErrorSource, grid_from_pb, grid_to_pb, pb};
 
 mod site_server_state;
 
@@ -163,7 +163,8 @@ fn to_usize(
     usize::try_from(value).map_err(|_| ConversionError::OutOfRange {
         message,
         field,
-        value: value.to_string(),
+        value: value.into(),
+        expected: "a count this machine's usize holds",
     })
 }
 
@@ -216,7 +217,8 @@ pub fn pose_from_exact(
         return Err(ConversionError::OutOfRange {
             message,
             field,
-            value: format!("rotation of norm {norm}"),
+            value: norm.into(),
+            expected: "a rotation (cos, sin) of norm 1 (to 1e-6)",
         });
     }
     Ok(Rigid2::from_parts(
@@ -388,10 +390,10 @@ fn graph_from_pb(graph: Option<&pb::PoseGraphState>) -> Result<PoseGraph, Conver
         })
         .collect::<Result<Vec<_>, ConversionError>>()?;
     PoseGraph::from_parts(variables, constraints, ConstraintId(graph.next_constraint)).map_err(
-        |e| ConversionError::OutOfRange {
+        |e| ConversionError::Invalid {
             message: M,
             field: "graph",
-            value: e.to_string(),
+            source: ErrorSource::new(e),
         },
     )
 }

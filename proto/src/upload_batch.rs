@@ -222,7 +222,8 @@ impl TryFrom<&pb::UploadItem> for UploadItem {
                     return Err(ConversionError::OutOfRange {
                         message: M,
                         field: "score",
-                        value: m.score.to_string(),
+                        value: m.score.into(),
+                        expected: "in [0, 1]",
                     });
                 }
                 Ok(Self::GlobalMatch {
@@ -282,7 +283,8 @@ impl TryFrom<&pb::UploadBatch> for UploadBatch {
             return Err(ConversionError::OutOfRange {
                 message: M,
                 field: "seq",
-                value: "0 (sequence numbers start at 1)".into(),
+                value: 0_u64.into(),
+                expected: "at least 1 (sequence numbers start at 1)",
             });
         }
         if batch.items.is_empty() {
@@ -305,12 +307,11 @@ impl TryFrom<&pb::UploadBatch> for UploadBatch {
                     UploadItem::NodeAdded(_) | UploadItem::SubmapFinished { .. }
                 );
             if matches!(item, UploadItem::SubmapFinished { .. }) && !follows_node {
-                return Err(ConversionError::OutOfRange {
+                return Err(ConversionError::Misplaced {
                     message: M,
                     field: "items",
-                    value: format!(
-                        "item {i}: SubmapFinished must follow the NodeAdded that finished it"
-                    ),
+                    index: i,
+                    rule: "SubmapFinished must follow the NodeAdded that finished it",
                 });
             }
             let follows_node_items = i > 0
@@ -321,10 +322,11 @@ impl TryFrom<&pb::UploadBatch> for UploadBatch {
                         | UploadItem::GlobalMatch { .. }
                 );
             if matches!(item, UploadItem::GlobalMatch { .. }) && !follows_node_items {
-                return Err(ConversionError::OutOfRange {
+                return Err(ConversionError::Misplaced {
                     message: M,
                     field: "items",
-                    value: format!("item {i}: GlobalMatch must follow the NodeAdded it matched"),
+                    index: i,
+                    rule: "GlobalMatch must follow the NodeAdded it matched",
                 });
             }
         }
@@ -428,14 +430,14 @@ mod tests {
         orphan.items.swap(1, 2);
         assert!(matches!(
             UploadBatch::try_from(&orphan),
-            Err(ConversionError::OutOfRange { field: "items", .. })
+            Err(ConversionError::Misplaced { field: "items", .. })
         ));
         // A match with no node before it, and a match scored outside [0, 1].
         let mut stray = good.clone();
         stray.items.swap(0, 3);
         assert!(matches!(
             UploadBatch::try_from(&stray),
-            Err(ConversionError::OutOfRange { field: "items", .. })
+            Err(ConversionError::Misplaced { field: "items", .. })
         ));
         let mut overscored = good.clone();
         if let Some(pb::upload_item::Item::GlobalMatch(m)) = &mut overscored.items[3].item {

@@ -111,7 +111,8 @@ pub(crate) fn kind_from_pb(
         _ => Err(ConversionError::OutOfRange {
             message,
             field: "kind",
-            value: kind.to_string(),
+            value: kind.into(),
+            expected: "a known ConstraintKind",
         }),
     }
 }
@@ -135,7 +136,8 @@ pub(crate) fn loss_from_pb(
             return Err(ConversionError::OutOfRange {
                 message,
                 field: "loss",
-                value: loss.to_string(),
+                value: loss.into(),
+                expected: "a known RobustLossKind",
             });
         }
     };
@@ -143,7 +145,8 @@ pub(crate) fn loss_from_pb(
         return Err(ConversionError::OutOfRange {
             message,
             field: "loss_scale",
-            value: scale.to_string(),
+            value: scale.into(),
+            expected: "positive for this loss",
         });
     }
     Ok(loss)

@@ -86,7 +86,8 @@ pub(crate) fn points_from_pb(
         return Err(ConversionError::OutOfRange {
             message,
             field,
-            value: format!("{v} m (at most {MAX_POINT_COORDINATE_M} m from the robot)"),
+            value: (*v).into(),
+            expected: "at most 10000 m from the robot (MAX_POINT_COORDINATE_M)",
         });
     }
     Ok(xy
@@ -109,6 +110,12 @@ mod tests {
         assert!(points_from_pb(&[1.0, 2.0, 9_999.0, -9_999.0], "Node", "points_xy").is_ok());
         let err = points_from_pb(&[1.0, 2.0, 1.0e10, 0.0], "Node", "points_xy").unwrap_err();
         assert!(matches!(err, ConversionError::OutOfRange { .. }), "{err}");
+        // The limit the message states is the one checked.
+        assert!(
+            err.to_string()
+                .contains(&format!("at most {MAX_POINT_COORDINATE_M} m")),
+            "{err}"
+        );
     }
 
     proptest! {

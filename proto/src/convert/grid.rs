@@ -70,7 +70,8 @@ pub fn grid_from_pb(grid: &pb::Grid) -> Result<ProbabilityGrid, ConversionError>
         return Err(ConversionError::OutOfRange {
             message: M,
             field: "resolution",
-            value: resolution.to_string(),
+            value: resolution.into(),
+            expected: "positive",
         });
     }
     let origin = Vector2::new(
@@ -109,7 +110,8 @@ pub fn grid_from_pb(grid: &pb::Grid) -> Result<ProbabilityGrid, ConversionError>
             return Err(ConversionError::OutOfRange {
                 message: M,
                 field: "encoding",
-                value: grid.encoding.to_string(),
+                value: grid.encoding.into(),
+                expected: "a known GridEncoding",
             });
         }
     };
@@ -135,7 +137,8 @@ pub fn grid_from_pb(grid: &pb::Grid) -> Result<ProbabilityGrid, ConversionError>
         return Err(ConversionError::OutOfRange {
             message: M,
             field: "values",
-            value: value.to_string(),
+            value: (*value).into(),
+            expected: "at most 32767 (MAX_CELL_VALUE)",
         });
     }
     Ok(out)
@@ -147,6 +150,7 @@ mod tests {
     use proptest::prelude::*;
 
     use super::*;
+    use crate::FieldValue;
 
     /// Fuzz finding (regression): a zlib grid reserved its declared size (up to 128 MiB) before
     /// inflating, whatever the size of the message.
@@ -246,10 +250,23 @@ mod tests {
         let mut marker = good.clone();
         marker.values[0] = 0xff;
         marker.values[1] = 0xff;
-        assert!(matches!(
-            grid_from_pb(&marker),
-            Err(ConversionError::OutOfRange { .. })
-        ));
+        let error = grid_from_pb(&marker).unwrap_err();
+        assert_eq!(
+            error,
+            ConversionError::OutOfRange {
+                message: "Grid",
+                field: "values",
+                value: FieldValue::Unsigned(0xffff),
+                expected: "at most 32767 (MAX_CELL_VALUE)",
+            }
+        );
+        // The limit the message states is the one checked.
+        assert!(
+            error
+                .to_string()
+                .contains(&format!("at most {MAX_CELL_VALUE} ")),
+            "{error}"
+        );
         let mut garbage = grid_to_pb(&sample_grid(4, 3, 1));
         garbage.values = vec![1, 2, 3];
         assert!(matches!(

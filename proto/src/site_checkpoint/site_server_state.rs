@@ -135,10 +135,10 @@ fn unique<K: Ord, V>(
     shown: impl FnOnce() -> String,
 ) -> Result<(), ConversionError> {
     if map.insert(key, value).is_some() {
-        return Err(ConversionError::OutOfRange {
+        return Err(ConversionError::Duplicate {
             message,
             field,
-            value: format!("{} listed twice", shown()),
+            key: shown(),
         });
     }
     Ok(())

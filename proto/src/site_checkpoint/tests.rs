@@ -5,6 +5,7 @@ use simulator::testing::checkpoint_sessions::{
 };
 
 use super::*;
+use crate::FieldValue;
 
 #[test]
 fn a_checkpoint_of_an_unknown_format_version_is_refused_with_an_error_naming_it() {
@@ -81,7 +82,16 @@ fn a_rotation_off_the_unit_circle_is_refused() {
         cos: Some(2.0),
         sin: Some(0.0),
     };
-    assert!(pose_from_exact(Some(&pose), "ExactPose2", "pose").is_err());
+    let error = pose_from_exact(Some(&pose), "ExactPose2", "pose").unwrap_err();
+    assert_eq!(
+        error,
+        ConversionError::OutOfRange {
+            message: "ExactPose2",
+            field: "pose",
+            value: FieldValue::Float(2.0),
+            expected: "a rotation (cos, sin) of norm 1 (to 1e-6)",
+        }
+    );
     let missing = pb::ExactPose2 {
         sin: None,
         cos: Some(1.0),
@@ -323,7 +333,17 @@ fn the_servers_part_of_a_checkpoint_round_trips_bit_for_bit() {
     let site_pb = twice.site.as_mut().expect("site");
     site_pb.sessions.push(site_pb.sessions[0].clone());
     let error = SiteCheckpoint::try_from(&twice).expect_err("a session listed twice");
-    assert!(error.to_string().contains("listed twice"), "{error}");
+    assert!(
+        matches!(
+            error,
+            ConversionError::Duplicate {
+                field: "session_uuid",
+                ..
+            }
+        ),
+        "{error:?}"
+    );
+    assert!(error.to_string().contains("\"uuid-a\" twice"), "{error}");
 
     let mut without = wire;
     without.site = None;
@@ -334,6 +354,45 @@ fn the_servers_part_of_a_checkpoint_round_trips_bit_for_bit() {
             field: "site"
         })
     ));
+}
+
+/// A graph whose parts are each valid but not together (a variable listed twice) is refused with the
+/// pose graph's own error as the source.
+#[test]
+fn a_graph_the_pose_graph_refuses_keeps_its_error_as_the_source() {
+    use mapping::pose_graph::{NodeId, PoseGraphError};
+
+    let node = VariableId::Node(NodeId {
+        trajectory: 0,
+        index: 3,
+    });
+    let variable = pb::GraphVariable {
+        id: Some(variable_to_pb(node)),
+        pose: Some(pose_to_exact(&Rigid2::identity())),
+        fixed: false,
+    };
+    let graph = pb::PoseGraphState {
+        variables: vec![variable, variable],
+        constraints: Vec::new(),
+        next_constraint: 0,
+    };
+    let error = graph_from_pb(Some(&graph)).unwrap_err();
+    assert!(
+        matches!(
+            error,
+            ConversionError::Invalid {
+                message: "PoseGraphState",
+                field: "graph",
+                ..
+            }
+        ),
+        "{error:?}"
+    );
+    let source = std::error::Error::source(&error).expect("the pose graph's error");
+    assert_eq!(
+        source.to_string(),
+        PoseGraphError::DuplicateVariable(node).to_string()
+    );
 }
 
 /// Corrections on probation and kept ones (none arise in the simulated sessions above) come back field for

@@ -154,11 +154,12 @@ fn from_zenoh_status(status: &pb::ZenohStatus) -> UplinkError {
     from_status(&grpc)
 }
 
-fn unexpected(what: &str, reply: &pb::zenoh_reply::Reply) -> UplinkError {
-    UplinkError::Malformed(proto::ConversionError::OutOfRange {
+fn unexpected(what: &'static str, reply: &pb::zenoh_reply::Reply) -> UplinkError {
+    UplinkError::Malformed(proto::ConversionError::WrongKind {
         message: "ZenohReply",
         field: "reply",
-        value: format!("expected {what}, got {}", reply_name(reply)),
+        expected: what,
+        got: reply_name(reply),
     })
 }
 

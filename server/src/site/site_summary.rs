@@ -183,7 +183,8 @@ fn session_from_pb(s: &pb::SessionSummary) -> Result<SessionView, ConversionErro
             return Err(ConversionError::OutOfRange {
                 message: MESSAGE,
                 field: "state",
-                value: s.state.to_string(),
+                value: s.state.into(),
+                expected: "a known PlacementStateKind other than UNSPECIFIED",
             });
         }
     };
