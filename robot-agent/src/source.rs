@@ -26,6 +26,7 @@ use std::path::Path;
 
 pub use cdr_reader::CdrReader;
 pub use cdr_writer::CdrWriter;
+pub use mcap_storage::McapFormatError;
 pub use recording::{ReadReport, Recording};
 pub use ros_messages::DecodeError;
 pub use ros2_live::{

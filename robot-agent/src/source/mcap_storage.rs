@@ -45,23 +45,118 @@ struct ChannelDef {
     schema_id: u16,
 }
 
+/// What is wrong with an MCAP file, and where: the source of a [`SourceError::Malformed`] whose
+/// `format` is `MCAP` (its `what` is this error's text).
+#[derive(Debug, thiserror::Error)]
+pub enum McapFormatError {
+    /// The file does not start with [`MCAP_MAGIC`].
+    #[error("the file does not start with the MCAP magic bytes: not an MCAP file")]
+    NotMcap,
+    /// The `mcap` crate's reader refused the file (truncated, a bad CRC, a record too long, ...).
+    #[error("{}", describe(source))]
+    Reader {
+        /// The reader's error.
+        #[source]
+        source: McapError,
+    },
+    /// The crate's reader kept asking for bytes after it was told the file had ended.
+    #[error("the reader kept asking for bytes past the end of the file")]
+    ReadPastEnd,
+    /// A field of a record extends past the record's end.
+    #[error(
+        "a {record} record of {record_bytes} bytes is cut off at byte {at} (a field of {field_bytes} bytes)"
+    )]
+    CutOff {
+        /// The record: `schema`, `channel`, `message` or `chunk`.
+        record: &'static str,
+        /// The record's length.
+        record_bytes: usize,
+        /// Where in the record the field starts.
+        at: usize,
+        /// The field's declared length.
+        field_bytes: usize,
+    },
+    /// A string field is not UTF-8.
+    #[error("a string in a {record} record is not UTF-8: {source}")]
+    NotUtf8 {
+        /// The record: `schema` or `channel`.
+        record: &'static str,
+        /// The decoder's error.
+        #[source]
+        source: std::string::FromUtf8Error,
+    },
+    /// A record inside an uncompressed chunk extends past the chunk's records.
+    #[error(
+        "a record inside the uncompressed chunk at byte {chunk_at} overruns the chunk (at byte {at} of \
+         its {records_bytes} bytes of records): the file is damaged"
+    )]
+    ChunkOverrun {
+        /// The chunk record's offset in the file.
+        chunk_at: usize,
+        /// The offset of the overrunning record among the chunk's records.
+        at: usize,
+        /// The length of the chunk's records.
+        records_bytes: usize,
+    },
+    /// A schema record has id 0 (reserved for "no schema").
+    #[error("a schema record has id 0, which is invalid")]
+    SchemaIdZero,
+    /// Two schema records give one id different names.
+    #[error("schema {id} is defined twice, as `{earlier}` and `{name}`")]
+    SchemaTwice {
+        /// The schema id.
+        id: u16,
+        /// The name first given.
+        earlier: String,
+        /// The name given now.
+        name: String,
+    },
+    /// A channel names a schema no earlier record defines.
+    #[error("channel {id} ({topic}) names schema {schema_id}, which no earlier record defines")]
+    UnknownSchema {
+        /// The channel id.
+        id: u16,
+        /// The channel's topic.
+        topic: String,
+        /// The schema it names.
+        schema_id: u16,
+    },
+    /// Two channel records give one id different definitions.
+    #[error("channel {id} is defined twice, as {earlier} and {topic}")]
+    ChannelTwice {
+        /// The channel id.
+        id: u16,
+        /// The topic first given.
+        earlier: String,
+        /// The topic given now.
+        topic: String,
+    },
+    /// A message is on a channel no earlier record defines.
+    #[error(
+        "a message at {log_time_ns} ns is on channel {channel_id}, which no earlier record defines"
+    )]
+    UnknownChannel {
+        /// The message's log time.
+        log_time_ns: u64,
+        /// The channel it names.
+        channel_id: u16,
+    },
+}
+
 /// Streams every message of an MCAP file into `visitor`, in file order.
 pub fn read(path: &Path, visitor: &mut dyn Visitor) -> Result<(), SourceError> {
-    let malformed_by = |what: String, source: Option<McapError>| SourceError::Malformed {
+    let malformed = |error: McapFormatError| SourceError::Malformed {
         path: path.display().to_string(),
         format: "MCAP",
-        source: source.map(|e| Box::new(e) as Box<dyn std::error::Error + Send + Sync>),
-        what,
+        what: error.to_string(),
+        source: Some(Box::new(error)),
     };
-    let malformed = |what: String| malformed_by(what, None);
     let bytes = std::fs::read(path).map_err(|source| SourceError::Io {
         path: path.display().to_string(),
         source,
     })?;
     if !bytes.starts_with(MCAP_MAGIC) {
-        return Err(malformed(
-            "the file does not start with the MCAP magic bytes: not an MCAP file".into(),
-        ));
+        return Err(malformed(McapFormatError::NotMcap));
     }
     check_uncompressed_chunks(&bytes).map_err(malformed)?;
     let mut reader = LinearReader::new_with_options(
@@ -74,15 +169,14 @@ pub fn read(path: &Path, visitor: &mut dyn Visitor) -> Result<(), SourceError> {
     let mut pos = 0;
     let mut eof_signalled = false;
     while let Some(event) = reader.next_event() {
-        let (opcode, data) = match event.map_err(|e| malformed_by(describe(&e), Some(e)))? {
+        let event = event.map_err(|source| malformed(McapFormatError::Reader { source }))?;
+        let (opcode, data) = match event {
             LinearReadEvent::ReadRequest(need) => {
                 let n = need.min(bytes.len() - pos);
                 if n == 0 {
                     // The reader asked past the end: tell it once, then it must finish or fail.
                     if eof_signalled {
-                        return Err(malformed(
-                            "the reader kept asking for bytes past the end of the file".into(),
-                        ));
+                        return Err(malformed(McapFormatError::ReadPastEnd));
                     }
                     eof_signalled = true;
                 }
@@ -103,44 +197,46 @@ pub fn read(path: &Path, visitor: &mut dyn Visitor) -> Result<(), SourceError> {
             op::SCHEMA => {
                 let (id, name) = parse_schema(data).map_err(malformed)?;
                 if id == 0 {
-                    return Err(malformed(
-                        "a schema record has id 0, which is invalid".into(),
-                    ));
+                    return Err(malformed(McapFormatError::SchemaIdZero));
                 }
                 if let Some(earlier) = schemas.insert(id, name.clone())
                     && earlier != name
                 {
-                    return Err(malformed(format!(
-                        "schema {id} is defined twice, as `{earlier}` and `{name}`"
-                    )));
+                    return Err(malformed(McapFormatError::SchemaTwice {
+                        id,
+                        earlier,
+                        name,
+                    }));
                 }
             }
             op::CHANNEL => {
                 let (id, def) = parse_channel(data).map_err(malformed)?;
                 let schema_id = def.schema_id;
                 if schema_id != 0 && !schemas.contains_key(&schema_id) {
-                    return Err(malformed(format!(
-                        "channel {id} ({}) names schema {schema_id}, which no earlier record defines",
-                        def.topic
-                    )));
+                    return Err(malformed(McapFormatError::UnknownSchema {
+                        id,
+                        topic: def.topic,
+                        schema_id,
+                    }));
                 }
                 if let Some(earlier) = channels.get(&id)
                     && *earlier != def
                 {
-                    return Err(malformed(format!(
-                        "channel {id} is defined twice, as {} and {}",
-                        earlier.topic, def.topic
-                    )));
+                    return Err(malformed(McapFormatError::ChannelTwice {
+                        id,
+                        earlier: earlier.topic.clone(),
+                        topic: def.topic,
+                    }));
                 }
                 channels.insert(id, def);
             }
             op::MESSAGE => {
                 let (channel_id, log_time, payload) = parse_message(data).map_err(malformed)?;
                 let Some(channel) = channels.get(&channel_id) else {
-                    return Err(malformed(format!(
-                        "a message at {log_time} ns is on channel {channel_id}, which no earlier \
-                         record defines"
-                    )));
+                    return Err(malformed(McapFormatError::UnknownChannel {
+                        log_time_ns: log_time,
+                        channel_id,
+                    }));
                 };
                 let kind = if let Some(&kind) = kinds.get(&channel_id) {
                     kind
@@ -162,7 +258,7 @@ pub fn read(path: &Path, visitor: &mut dyn Visitor) -> Result<(), SourceError> {
 }
 
 /// A schema record: its id and name (the ROS type).
-fn parse_schema(data: &[u8]) -> Result<(u16, String), String> {
+fn parse_schema(data: &[u8]) -> Result<(u16, String), McapFormatError> {
     let mut f = Fields::new(data, "schema");
     let id = f.u16()?;
     let name = f.string()?;
@@ -172,7 +268,7 @@ fn parse_schema(data: &[u8]) -> Result<(u16, String), String> {
 }
 
 /// A channel record: its id and definition.
-fn parse_channel(data: &[u8]) -> Result<(u16, ChannelDef), String> {
+fn parse_channel(data: &[u8]) -> Result<(u16, ChannelDef), McapFormatError> {
     let mut f = Fields::new(data, "channel");
     let id = f.u16()?;
     let schema_id = f.u16()?;
@@ -186,7 +282,7 @@ fn parse_channel(data: &[u8]) -> Result<(u16, ChannelDef), String> {
 }
 
 /// A message record: its channel, log time (ns) and payload.
-fn parse_message(data: &[u8]) -> Result<(u16, u64, &[u8]), String> {
+fn parse_message(data: &[u8]) -> Result<(u16, u64, &[u8]), McapFormatError> {
     let mut f = Fields::new(data, "message");
     let channel_id = f.u16()?;
     let _sequence = f.u32()?;
@@ -212,54 +308,52 @@ impl<'a> Fields<'a> {
         }
     }
 
-    fn take(&mut self, n: usize) -> Result<&'a [u8], String> {
+    fn take(&mut self, n: usize) -> Result<&'a [u8], McapFormatError> {
         let end = self
             .pos
             .checked_add(n)
             .filter(|&end| end <= self.body.len())
-            .ok_or_else(|| {
-                format!(
-                    "a {} record of {} bytes is cut off at byte {} (a field of {n} bytes)",
-                    self.record,
-                    self.body.len(),
-                    self.pos
-                )
+            .ok_or(McapFormatError::CutOff {
+                record: self.record,
+                record_bytes: self.body.len(),
+                at: self.pos,
+                field_bytes: n,
             })?;
         let bytes = &self.body[self.pos..end];
         self.pos = end;
         Ok(bytes)
     }
 
-    fn array<const N: usize>(&mut self) -> Result<[u8; N], String> {
+    fn array<const N: usize>(&mut self) -> Result<[u8; N], McapFormatError> {
         let mut a = [0u8; N];
         a.copy_from_slice(self.take(N)?);
         Ok(a)
     }
 
-    fn u16(&mut self) -> Result<u16, String> {
+    fn u16(&mut self) -> Result<u16, McapFormatError> {
         Ok(u16::from_le_bytes(self.array()?))
     }
 
-    fn u32(&mut self) -> Result<u32, String> {
+    fn u32(&mut self) -> Result<u32, McapFormatError> {
         Ok(u32::from_le_bytes(self.array()?))
     }
 
-    fn u64(&mut self) -> Result<u64, String> {
+    fn u64(&mut self) -> Result<u64, McapFormatError> {
         Ok(u64::from_le_bytes(self.array()?))
     }
 
     /// A `u32` length and that many bytes.
-    fn bytes(&mut self) -> Result<&'a [u8], String> {
+    fn bytes(&mut self) -> Result<&'a [u8], McapFormatError> {
         let n = self.u32()? as usize;
         self.take(n)
     }
 
     /// A `u32` length and that many bytes of UTF-8.
-    fn string(&mut self) -> Result<String, String> {
+    fn string(&mut self) -> Result<String, McapFormatError> {
         let record = self.record;
         let bytes = self.bytes()?;
         String::from_utf8(bytes.to_vec())
-            .map_err(|e| format!("a string in a {record} record is not UTF-8: {e}"))
+            .map_err(|source| McapFormatError::NotUtf8 { record, source })
     }
 
     fn rest(&mut self) -> &'a [u8] {
@@ -272,7 +366,7 @@ impl<'a> Fields<'a> {
 /// Checks that every record inside every uncompressed chunk lies within its chunk (see the module
 /// docs). Walks the top-level records only as far as they are whole: where the file is cut off or
 /// damaged otherwise, the crate's reader says so.
-fn check_uncompressed_chunks(file: &[u8]) -> Result<(), String> {
+fn check_uncompressed_chunks(file: &[u8]) -> Result<(), McapFormatError> {
     let mut pos = MCAP_MAGIC.len();
     while let Some(head) = file.get(pos..pos + 9) {
         let opcode = head[0];
@@ -296,13 +390,13 @@ fn check_uncompressed_chunks(file: &[u8]) -> Result<(), String> {
 }
 
 /// [`check_uncompressed_chunks`] for one chunk record's body, at file offset `at`.
-fn check_chunk(body: &[u8], at: usize) -> Result<(), String> {
+fn check_chunk(body: &[u8], at: usize) -> Result<(), McapFormatError> {
     let mut f = Fields::new(body, "chunk");
     let header = (|| {
         f.take(8 + 8 + 8 + 4)?; // start and end time, uncompressed size and CRC
         let compression = f.bytes()?;
         let records_size = f.u64()?;
-        Ok::<_, String>((compression.is_empty(), records_size))
+        Ok::<_, McapFormatError>((compression.is_empty(), records_size))
     })();
     let Ok((true, records_size)) = header else {
         // Compressed (the decompressor checks the records), or a header the crate will refuse.
@@ -317,12 +411,10 @@ fn check_chunk(body: &[u8], at: usize) -> Result<(), String> {
     let mut r = 0;
     while r < records.len() {
         let left = records.len() - r;
-        let overrun = || {
-            format!(
-                "a record inside the uncompressed chunk at byte {at} overruns the chunk (at byte {r} of \
-                 its {} bytes of records): the file is damaged",
-                records.len()
-            )
+        let overrun = || McapFormatError::ChunkOverrun {
+            chunk_at: at,
+            at: r,
+            records_bytes: records.len(),
         };
         if left < 9 {
             return Err(overrun());
@@ -392,13 +484,31 @@ mod tests {
         fn unknown_topic(&mut self, _topic_id: i64, _log_time_ns: i64) {}
     }
 
-    fn read_bytes(bytes: &[u8]) -> Result<usize, String> {
+    fn read_bytes(bytes: &[u8]) -> Result<usize, SourceError> {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("x.mcap");
         std::fs::write(&path, bytes).unwrap();
         let mut count = Count::default();
-        read(&path, &mut count).map_err(|e| e.to_string())?;
+        read(&path, &mut count)?;
         Ok(count.0)
+    }
+
+    /// The MCAP reader's error under a `Malformed` one, checking that the latter's text is the former's.
+    fn format_error(error: &SourceError) -> &McapFormatError {
+        let SourceError::Malformed {
+            format: "MCAP",
+            what,
+            source: Some(source),
+            ..
+        } = error
+        else {
+            panic!("not a malformed MCAP file: {error:?}");
+        };
+        let format = source
+            .downcast_ref::<McapFormatError>()
+            .expect("an McapFormatError");
+        assert_eq!(*what, format.to_string());
+        format
     }
 
     /// `bytes` as a zstd frame of one raw (stored) block: what a zstd chunk holds, with no compressor
@@ -474,7 +584,7 @@ mod tests {
     #[test]
     fn a_well_formed_file_reads_with_or_without_chunks() {
         for chunk in [None, Some(""), Some("zstd")] {
-            assert_eq!(read_bytes(&file(8, chunk, 0)), Ok(1), "{chunk:?}");
+            assert_eq!(read_bytes(&file(8, chunk, 0)).unwrap(), 1, "{chunk:?}");
         }
     }
 
@@ -491,8 +601,18 @@ mod tests {
             "{error}"
         );
         assert!(error.to_string().contains("truncated"), "{error}");
-        let source = std::error::Error::source(&error).expect("the reader's error");
-        assert!(source.is::<McapError>(), "{source:?}");
+        let McapFormatError::Reader { source } = format_error(&error) else {
+            panic!("not the reader's error: {error:?}");
+        };
+        assert!(
+            matches!(source, McapError::UnexpectedEof | McapError::UnexpectedEoc),
+            "{source:?}"
+        );
+        // The chain: Malformed → McapFormatError::Reader → the crate's McapError.
+        let reader = std::error::Error::source(&error)
+            .and_then(std::error::Error::source)
+            .expect("the reader's error");
+        assert!(reader.is::<McapError>(), "{reader:?}");
     }
 
     /// Regression (found by the fuzz harness, `rosbag2_mcap`): a string length of 4 GiB inside a
@@ -501,8 +621,20 @@ mod tests {
     fn a_string_longer_than_its_record_is_refused_before_allocating() {
         let error = read_bytes(&file(u32::MAX, None, 0)).unwrap_err();
         assert!(
-            error.contains("channel record") && error.contains("cut off"),
-            "{error}"
+            matches!(
+                format_error(&error),
+                McapFormatError::CutOff {
+                    record: "channel",
+                    field_bytes: 4_294_967_295,
+                    ..
+                }
+            ),
+            "{error:?}"
+        );
+        let text = error.to_string();
+        assert!(
+            text.contains("channel record") && text.contains("cut off"),
+            "{text}"
         );
     }
 
@@ -513,7 +645,17 @@ mod tests {
     fn a_record_overrunning_its_uncompressed_chunk_is_refused() {
         for extra in [1, 1 << 20, u64::MAX - 100] {
             let error = read_bytes(&file(8, Some(""), extra)).unwrap_err();
-            assert!(error.contains("overruns the chunk"), "{extra}: {error}");
+            assert!(
+                matches!(
+                    format_error(&error),
+                    McapFormatError::ChunkOverrun { at: 0, .. }
+                ),
+                "{extra}: {error:?}"
+            );
+            assert!(
+                error.to_string().contains("overruns the chunk"),
+                "{extra}: {error}"
+            );
         }
     }
 
@@ -527,6 +669,13 @@ mod tests {
         // Inside a zstd chunk, a message record declaring 8·10¹⁸ bytes.
         let bytes = file(8, Some("zstd"), 8_000_000_000_000_000_000);
         let error = read_bytes(&bytes).unwrap_err();
-        assert!(error.contains("longer than any record"), "{error}");
+        assert!(
+            matches!(format_error(&error), McapFormatError::Reader { .. }),
+            "{error:?}"
+        );
+        assert!(
+            error.to_string().contains("longer than any record"),
+            "{error}"
+        );
     }
 }
