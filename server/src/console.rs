@@ -46,7 +46,7 @@ pub use console_api::router;
 pub use console_auth::{COOKIE_NAME, ConsoleAuth};
 pub use console_error::ConsoleError;
 pub use console_state::{ConsoleState, LoadEvent, VersionEvent};
-pub use http_config::{HttpConfig, MIN_OPERATOR_TOKEN_CHARS};
+pub use http_config::{HttpConfig, HttpConfigError, MIN_OPERATOR_TOKEN_CHARS};
 pub use map_images::{ChangeImage, MapImage, render_change_image, render_map_image};
 
 use std::collections::BTreeMap;

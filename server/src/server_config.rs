@@ -272,7 +272,7 @@ impl ServerConfig {
         }
         if let Some(http) = &self.http {
             if let Err(e) = http.validate() {
-                return invalid("http", &e);
+                return refused("http", e.into());
             }
             let robots_have_tokens = self.sites.iter().any(|s| !s.robots.is_empty());
             if robots_have_tokens && http.operator_token.is_none() {
@@ -467,6 +467,19 @@ mod tests {
         ));
         config.http.as_mut().unwrap().operator_token = Some("operator-token".into());
         config.validate().unwrap();
+        // The section's own check: its error is the source, as the other sections' are.
+        config.http.as_mut().unwrap().map_resolution_m = 5.0;
+        let error = config.validate().unwrap_err();
+        assert!(
+            matches!(&error, ServerConfigError::Refused { field: "http", source }
+                if source.is::<crate::console::HttpConfigError>()),
+            "{error:?}"
+        );
+        assert_eq!(
+            error.to_string(),
+            "http: map_resolution_m must be in 0.02..=1 m, got 5"
+        );
+        config.http.as_mut().unwrap().map_resolution_m = 0.05;
         config.sites[0].robots.clear();
         config.http.as_mut().unwrap().operator_token = None;
         // No tokens anywhere: an open console.

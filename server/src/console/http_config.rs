@@ -42,22 +42,35 @@ impl Default for HttpConfig {
     }
 }
 
+/// An invalid [`HttpConfig`].
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum HttpConfigError {
+    /// The operator token is too short or holds spaces or control characters.
+    #[error(
+        "operator_token must be at least {MIN_OPERATOR_TOKEN_CHARS} characters, without spaces or control characters"
+    )]
+    WeakOperatorToken,
+    /// The console's map resolution is outside 0.02..=1 m.
+    #[error("map_resolution_m must be in 0.02..=1 m, got {got}")]
+    MapResolution {
+        /// The resolution configured, metres per pixel.
+        got: f64,
+    },
+}
+
 impl HttpConfig {
     /// Checks the fields on their own (the server's config checks the token against the robots').
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), HttpConfigError> {
         if let Some(token) = &self.operator_token
             && (token.chars().count() < MIN_OPERATOR_TOKEN_CHARS
                 || token.chars().any(|c| c.is_control() || c.is_whitespace()))
         {
-            return Err(format!(
-                "operator_token must be at least {MIN_OPERATOR_TOKEN_CHARS} characters, without spaces or control characters"
-            ));
+            return Err(HttpConfigError::WeakOperatorToken);
         }
         if !(0.02..=1.0).contains(&self.map_resolution_m) {
-            return Err(format!(
-                "map_resolution_m must be in 0.02..=1 m, got {}",
-                self.map_resolution_m
-            ));
+            return Err(HttpConfigError::MapResolution {
+                got: self.map_resolution_m,
+            });
         }
         Ok(())
     }
@@ -74,21 +87,30 @@ mod tests {
             operator_token: Some("short".into()),
             ..HttpConfig::default()
         };
-        assert!(short.validate().unwrap_err().contains("operator_token"));
+        assert_eq!(short.validate(), Err(HttpConfigError::WeakOperatorToken));
+        assert!(
+            short
+                .validate()
+                .unwrap_err()
+                .to_string()
+                .contains("operator_token")
+        );
         let spaced = HttpConfig {
             operator_token: Some("with a space".into()),
             ..HttpConfig::default()
         };
-        assert!(spaced.validate().is_err());
+        assert_eq!(spaced.validate(), Err(HttpConfigError::WeakOperatorToken));
         for bad in [0.0, f64::NAN, 5.0] {
             let config = HttpConfig {
                 map_resolution_m: bad,
                 ..HttpConfig::default()
             };
+            let error = config.validate().unwrap_err();
             assert!(
-                config.validate().unwrap_err().contains("map_resolution_m"),
+                matches!(error, HttpConfigError::MapResolution { got } if got.to_bits() == bad.to_bits()),
                 "{bad}"
             );
+            assert!(error.to_string().contains("map_resolution_m"), "{bad}");
         }
     }
 }
