@@ -140,7 +140,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<()> {
         "--session-duration-s must be at least 10"
     );
     Duration::try_from_secs_f64(args.linger_s)
-        .map_err(|e| anyhow::anyhow!("--linger-s must be a number of seconds ≥ 0: {e}"))?;
+        .context("--linger-s must be a number of seconds ≥ 0")?;
     block_on(demo(args))
 }
 
