@@ -14,7 +14,7 @@ use std::sync::Arc;
 use mapping::geometry::Rigid2;
 use mapping::global_slam::{
     Acceptance, ClosureState, CorrectionProbation, FixedRatioSampler, GlobalSlamState, LoopClosure,
-    NodeRecord, SearchJob, SearchWindow, SubmapRecord,
+    NodeRecord, SearchJob, SearchWindow, SubmapBend, SubmapRecord,
 };
 use mapping::lifelong::{
     LifelongError, LifelongMap, LifelongMapState, LifelongOptions, SessionProgress,
@@ -501,19 +501,55 @@ fn global_to_pb(g: &GlobalSlamState) -> pb::GlobalSlamState {
             .iter()
             .map(probation_to_pb)
             .collect(),
+        submap_bends: g.submap_bends.iter().map(bend_to_pb).collect(),
     }
+}
+
+fn closure_refs_to_pb(closures: &[(NodeId, SubmapId)]) -> Vec<pb::ClosureRef> {
+    closures
+        .iter()
+        .map(|(node, submap)| pb::ClosureRef {
+            node: Some((*node).into()),
+            submap: Some((*submap).into()),
+        })
+        .collect()
+}
+
+fn closure_refs_from_pb(
+    closures: &[pb::ClosureRef],
+) -> Result<Vec<(NodeId, SubmapId)>, ConversionError> {
+    closures
+        .iter()
+        .map(|c| {
+            Ok((
+                node_in(c.node.as_ref(), "ClosureRef", "node")?,
+                submap_in(c.submap.as_ref(), "ClosureRef", "submap")?,
+            ))
+        })
+        .collect()
+}
+
+fn bend_to_pb(b: &SubmapBend) -> pb::SubmapBendState {
+    pb::SubmapBendState {
+        closures: closure_refs_to_pb(&b.closures),
+        submaps: b.submaps.iter().map(|s| (*s).into()).collect(),
+    }
+}
+
+fn bend_from_pb(b: &pb::SubmapBendState) -> Result<SubmapBend, ConversionError> {
+    Ok(SubmapBend {
+        closures: closure_refs_from_pb(&b.closures)?,
+        submaps: b
+            .submaps
+            .iter()
+            .map(|s| submap_in(Some(s), "SubmapBendState", "submaps"))
+            .collect::<Result<Vec<_>, ConversionError>>()?,
+    })
 }
 
 fn probation_to_pb(p: &CorrectionProbation) -> pb::CorrectionProbationState {
     pb::CorrectionProbationState {
-        closures: p
-            .closures
-            .iter()
-            .map(|(node, submap)| pb::ClosureRef {
-                node: Some((*node).into()),
-                submap: Some((*submap).into()),
-            })
-            .collect(),
+        closures: closure_refs_to_pb(&p.closures),
         newest: Some(closure_to_pb(&p.newest)),
         after_node: p.after_node,
         old_submaps_to: p.old_submaps_to,
@@ -534,16 +570,7 @@ fn probation_from_pb(
             .collect::<Result<BTreeSet<NodeId>, ConversionError>>()
     };
     Ok(CorrectionProbation {
-        closures: p
-            .closures
-            .iter()
-            .map(|c| {
-                Ok((
-                    node_in(c.node.as_ref(), "ClosureRef", "node")?,
-                    submap_in(c.submap.as_ref(), "ClosureRef", "submap")?,
-                ))
-            })
-            .collect::<Result<Vec<_>, ConversionError>>()?,
+        closures: closure_refs_from_pb(&p.closures)?,
         newest: closure_from_pb(p.newest.as_ref())?,
         after_node: p.after_node,
         old_submaps_to: p.old_submaps_to,
@@ -706,6 +733,11 @@ fn global_from_pb(g: Option<&pb::GlobalSlamState>) -> Result<GlobalSlamState, Co
             .correction_probations
             .iter()
             .map(probation_from_pb)
+            .collect::<Result<Vec<_>, ConversionError>>()?,
+        submap_bends: g
+            .submap_bends
+            .iter()
+            .map(bend_from_pb)
             .collect::<Result<Vec<_>, ConversionError>>()?,
     })
 }

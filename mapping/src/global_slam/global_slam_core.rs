@@ -4,6 +4,7 @@ mod closure_acceptance;
 mod correction_probation;
 mod global_slam_state;
 mod search_queue;
+mod submap_bend;
 
 pub use global_slam_state::GlobalSlamState;
 
@@ -25,6 +26,7 @@ use crate::pose_graph::{
 };
 use crate::sensor::Timestamp;
 pub use correction_probation::CorrectionProbation;
+pub use submap_bend::SubmapBend;
 
 /// What global SLAM knows about a node.
 #[derive(Clone, Debug, PartialEq)]
@@ -167,6 +169,10 @@ pub struct GlobalSlam {
     /// Confirmed corrections the nodes after them are judging, or have kept (see
     /// [`CorrectionProbation`]).
     probations: Vec<CorrectionProbation>,
+    /// The bends confirmed corrections granted (see [`SubmapBend`]), in confirmation order.
+    submap_bends: Vec<SubmapBend>,
+    /// The submaps a bend holds loosely now (rebuilt from `submap_bends` and the closures' states).
+    bent_submaps: BTreeSet<SubmapId>,
 }
 
 pub(super) fn information(translation_sigma: f64, rotation_sigma: f64) -> Matrix3<f64> {
@@ -214,6 +220,8 @@ impl GlobalSlam {
             changed: BTreeSet::new(),
             closures_outvoted: 0,
             probations: Vec::new(),
+            submap_bends: Vec::new(),
+            bent_submaps: BTreeSet::new(),
         })
     }
 
@@ -335,12 +343,10 @@ impl GlobalSlam {
                 .first()
                 .and_then(|n| self.nodes.get(n))
                 .map_or(0.0, |first| (path_m - first.path_m).abs());
-            let o = &self.options;
-            let intra_information = information(
-                o.intra_submap_translation_sigma
-                    .hypot(o.intra_submap_translation_sigma_per_m * span_m),
-                o.intra_submap_rotation_sigma
-                    .hypot(o.intra_submap_rotation_sigma_per_m * span_m),
+            let intra_information = submap_bend::intra_submap_information(
+                &self.options,
+                self.bent_submaps.contains(&sid),
+                span_m,
             );
             submap.nodes.push(id);
             self.graph
@@ -501,6 +507,7 @@ impl GlobalSlam {
             .retain(|(c, _)| !crosses(c.node, c.submap));
         self.pending_beyond_drift
             .retain(|(c, _)| !crosses(c.node, c.submap));
+        self.sync_bends();
         self.last_loop_path.remove(&trajectory);
         self.recovery_path.remove(&trajectory);
         self.unanchored.insert(trajectory);
@@ -551,7 +558,8 @@ impl GlobalSlam {
         let mut summary = self.optimizer.optimize(&mut self.graph);
         self.release(held);
         if self.retract_refused_loop_closures() > 0 {
-            // Without the refused closures' pull.
+            // Without the refused closures' pull (and the bends they granted).
+            self.sync_bends();
             let held = self.hold_settled();
             summary = self.optimizer.optimize(&mut self.graph);
             self.release(held);
@@ -788,6 +796,8 @@ impl GlobalSlam {
             }
             self.forget_probations();
         }
+        self.forget_bends();
+        self.sync_bends();
     }
 
     /// The pose graph, for editing by trimming and sparsification. Keep it consistent with the records:

@@ -61,6 +61,15 @@ pub struct GlobalSlamOptions {
     pub intra_submap_translation_sigma_per_m: f64,
     /// The same growth of `intra_submap_rotation_sigma` (rad per m). Default 0.
     pub intra_submap_rotation_sigma_per_m: f64,
+    /// Growth of `intra_submap_translation_sigma` with the path from the submap's first node (m per m,
+    /// added in quadrature), instead of `intra_submap_translation_sigma_per_m`, in a submap a confirmed
+    /// correction says LLO bent: one built along the correction's drift path, for as long as one of the
+    /// correction's matches is in the graph (see `SubmapBend`). 0 with `bent_submap_rotation_sigma_per_m`
+    /// 0: no submap is ever bent. Default 0 (measured, not yet a default).
+    /// Why: `docs/TUNING.md#gs-bent-submap-sigma-per-m`.
+    pub bent_submap_translation_sigma_per_m: f64,
+    /// The same growth of `intra_submap_rotation_sigma` in a bent submap (rad per m). Default 0.
+    pub bent_submap_rotation_sigma_per_m: f64,
     /// Standard deviation (m) of the translation between consecutive nodes of a trajectory, from LLO's
     /// relative motion. Default 0.02 m.
     pub odometry_translation_sigma: f64,
@@ -101,6 +110,8 @@ impl Default for GlobalSlamOptions {
             intra_submap_rotation_sigma: 0.1,
             intra_submap_translation_sigma_per_m: 0.0,
             intra_submap_rotation_sigma_per_m: 0.0,
+            bent_submap_translation_sigma_per_m: 0.0,
+            bent_submap_rotation_sigma_per_m: 0.0,
             odometry_translation_sigma: 0.02,
             odometry_rotation_sigma: 0.01,
             loop_closure_retraction_chi2: 6.0,
@@ -158,6 +169,14 @@ impl GlobalSlamOptions {
                 "intra_submap_rotation_sigma_per_m",
                 self.intra_submap_rotation_sigma_per_m,
             ),
+            (
+                "bent_submap_translation_sigma_per_m",
+                self.bent_submap_translation_sigma_per_m,
+            ),
+            (
+                "bent_submap_rotation_sigma_per_m",
+                self.bent_submap_rotation_sigma_per_m,
+            ),
         ] {
             if !(value.is_finite() && value >= 0.0) {
                 return Err(GlobalSlamOptionsError::Invalid(format!(
@@ -202,6 +221,12 @@ mod tests {
         };
         let err = bad.validate().unwrap_err().to_string();
         assert!(err.contains("intra_submap_rotation_sigma_per_m"), "{err}");
+        let bad = GlobalSlamOptions {
+            bent_submap_translation_sigma_per_m: f64::INFINITY,
+            ..Default::default()
+        };
+        let err = bad.validate().unwrap_err().to_string();
+        assert!(err.contains("bent_submap_translation_sigma_per_m"), "{err}");
     }
 
     // Reference: issue 35 — errors keep their `source()` chain instead of being turned into strings.

@@ -201,6 +201,21 @@ impl PoseGraph {
         Ok(constraint)
     }
 
+    /// Replaces a constraint's information matrix in place (its id and place in the graph stay).
+    pub fn set_information(
+        &mut self,
+        id: ConstraintId,
+        information: Matrix3<f64>,
+    ) -> Result<(), PoseGraphError> {
+        validate_information(&information)?;
+        let constraint = self
+            .constraints
+            .get_mut(&id)
+            .ok_or(PoseGraphError::UnknownConstraint(id))?;
+        constraint.information = information;
+        Ok(())
+    }
+
     /// The constraint with this id.
     pub fn constraint(&self, id: ConstraintId) -> Option<&Constraint> {
         self.constraints.get(&id)

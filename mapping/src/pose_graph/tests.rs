@@ -313,7 +313,22 @@ fn edits_are_validated() {
         Err(PoseGraphError::InvalidLoss)
     );
     let id = graph.add_constraint(good.clone()).unwrap();
+    let mut bad_information = good.information;
+    bad_information[(2, 2)] = f64::NAN;
+    assert_eq!(
+        graph.set_information(id, bad_information),
+        Err(PoseGraphError::NonFinite("information"))
+    );
+    let looser = good.information * 0.25;
+    assert_eq!(graph.set_information(id, looser), Ok(()));
+    assert_eq!(graph.constraint(id).map(|c| c.information), Some(looser));
+    assert_eq!(graph.constraints_of(node(0)), [id], "same id, same place");
+    graph.set_information(id, good.information).unwrap();
     assert_eq!(graph.remove_constraint(id), Ok(good));
+    assert_eq!(
+        graph.set_information(id, looser),
+        Err(PoseGraphError::UnknownConstraint(id))
+    );
     assert_eq!(
         graph.remove_constraint(id),
         Err(PoseGraphError::UnknownConstraint(id))

@@ -464,6 +464,46 @@ fn corrections_on_probation_round_trip() {
 }
 
 #[test]
+fn submap_bends_round_trip_and_older_checkpoints_have_none() {
+    use mapping::global_slam::SubmapBend;
+
+    let map = LifelongMap::new(options()).expect("map");
+    let mut state = SiteCheckpoint::of(&map, 1, 1).map.global;
+    let node = |index| NodeId {
+        trajectory: 2,
+        index,
+    };
+    let submap = |index| SubmapId {
+        trajectory: 2,
+        index,
+    };
+    state.submap_bends = vec![
+        SubmapBend {
+            closures: vec![(node(40), submap(1)), (node(52), submap(0))],
+            submaps: vec![submap(2), submap(3)],
+        },
+        SubmapBend {
+            closures: vec![(node(90), submap(3))],
+            submaps: vec![submap(5)],
+        },
+    ];
+    let decoded = global_from_pb(Some(&global_to_pb(&state))).expect("decode");
+    assert_eq!(decoded.submap_bends, state.submap_bends);
+    let mut older = global_to_pb(&state);
+    older.submap_bends.clear();
+    assert!(
+        global_from_pb(Some(&older))
+            .expect("decode")
+            .submap_bends
+            .is_empty()
+    );
+    let mut missing = global_to_pb(&state);
+    missing.submap_bends[0].closures[0].node = None;
+    let err = global_from_pb(Some(&missing)).unwrap_err().to_string();
+    assert!(err.contains("ClosureRef"), "{err}");
+}
+
+#[test]
 fn the_path_of_an_llo_recovery_round_trips_and_a_non_finite_one_is_refused() {
     let map = LifelongMap::new(options()).expect("map");
     let mut state = SiteCheckpoint::of(&map, 1, 1).map.global;

@@ -115,6 +115,7 @@ impl GlobalSlam {
                 let group: Vec<(LoopClosure, Acceptance)> =
                     confirmed(agreeing, closure, acceptance).collect();
                 self.start_probation(group.iter().map(|(c, _)| c));
+                self.bend_along_drift(group.iter().map(|(c, _)| c));
                 accepted.extend(group);
                 continue;
             }
@@ -128,6 +129,7 @@ impl GlobalSlam {
                 let group: Vec<(LoopClosure, Acceptance)> =
                     confirmed(agreeing, closure, acceptance).collect();
                 self.start_probation(group.iter().map(|(c, _)| c));
+                self.bend_along_drift(group.iter().map(|(c, _)| c));
                 accepted.extend(group);
                 continue;
             }
@@ -158,6 +160,8 @@ impl GlobalSlam {
             self.loop_closures_accepted += 1;
             events.push(GlobalSlamEvent::LoopClosureAdded(closure));
         }
+        // The confirmed groups' matches are in the graph now, and probation may have retracted others.
+        self.sync_bends();
         let n = self.options.optimize_every_n_nodes;
         if confirmed_any || (n > 0 && self.nodes_since_optimization >= n) {
             // Confirmed matches far from the estimates close a loop that moves much of the trajectory:

@@ -9,9 +9,10 @@
 //!   trajectory's `global_from_local` and last node, the queued searches, the accepted loop closures
 //!   with how they were accepted and where each stands, the matches waiting for agreement, the
 //!   unanchored, matched-elsewhere and settled trajectories, each trajectory's last loop's path, the
-//!   corrections on probation or kept, the optimization bookkeeping (nodes since the last optimization, the first constraint new to the next
+//!   corrections on probation or kept, the bends confirmed corrections granted, the optimization bookkeeping (nodes since the last optimization, the first constraint new to the next
 //!   one, the variables changed since) and the counters;
-//! - rebuilt: the branch-and-bound matchers of the constraint builder (from the finished submaps' grids
+//! - rebuilt: which submaps a bend holds loosely now (from the bends and the closures' states; their
+//!   constraints in the graph already carry it), the branch-and-bound matchers of the constraint builder (from the finished submaps' grids
 //!   and local poses, as [`GlobalSlam`] built them), the optimizers (from the options; their cached
 //!   symbolic factorization is keyed by the block pattern and rebuilt on first use, their work buffers
 //!   are overwritten every step), and the options themselves (the caller's: a state restored with other
@@ -25,7 +26,7 @@ use std::sync::Arc;
 
 use super::{
     Acceptance, ClosureState, CorrectionProbation, GlobalSlam, GlobalSlamError, NodeRecord,
-    SubmapRecord,
+    SubmapBend, SubmapRecord,
 };
 use crate::geometry::Rigid2;
 use crate::global_slam::{
@@ -89,6 +90,8 @@ pub struct GlobalSlamState {
     pub changed: BTreeSet<VariableId>,
     /// Confirmed corrections on probation or kept, in confirmation order.
     pub correction_probations: Vec<CorrectionProbation>,
+    /// The bends confirmed corrections granted, in confirmation order.
+    pub submap_bends: Vec<SubmapBend>,
 }
 
 impl GlobalSlam {
@@ -121,6 +124,7 @@ impl GlobalSlam {
             new_constraints_from: self.new_constraints_from,
             changed: self.changed.clone(),
             correction_probations: self.probations.clone(),
+            submap_bends: self.submap_bends.clone(),
         }
     }
 
@@ -168,6 +172,7 @@ impl GlobalSlam {
             new_constraints_from,
             changed,
             correction_probations,
+            submap_bends,
         } = state;
         // A queued search matches its node's points: share them again (a decoded state has copies).
         for job in &mut pending_jobs {
@@ -175,7 +180,7 @@ impl GlobalSlam {
                 job.points = Arc::clone(&record.points);
             }
         }
-        Ok(Self {
+        let mut global = Self {
             options,
             graph,
             optimizer,
@@ -205,7 +210,11 @@ impl GlobalSlam {
             settled,
             new_constraints_from,
             changed,
-        })
+            submap_bends,
+            bent_submaps: BTreeSet::new(),
+        };
+        global.bent_submaps = global.bent_by_evidence();
+        Ok(global)
     }
 }
 
@@ -256,6 +265,16 @@ fn validate(state: &GlobalSlamState) -> Result<(), GlobalSlamError> {
     {
         return inconsistent(format!(
             "correction on probation holds the match of node {node:?} against submap {submap:?}, not an accepted closure"
+        ));
+    }
+    if let Some((node, submap)) = state
+        .submap_bends
+        .iter()
+        .flat_map(|b| &b.closures)
+        .find(|c| !accepted.contains(c))
+    {
+        return inconsistent(format!(
+            "submap bend granted by the match of node {node:?} against submap {submap:?}, not an accepted closure"
         ));
     }
     if state.new_constraints_from > state.graph.next_constraint_id() {
