@@ -992,7 +992,7 @@ mod tests {
     }
 
     /// The translation information (x) of node `index`'s constraint to submap 1 of [`straight_run`].
-    fn intra_information_x(global: &GlobalSlam, index: u32) -> f64 {
+    pub(super) fn intra_information_x(global: &GlobalSlam, index: u32) -> f64 {
         let submap = VariableId::Submap(SubmapId {
             trajectory: 0,
             index: 1,

@@ -220,7 +220,7 @@ impl GlobalSlam {
 
 #[cfg(test)]
 mod tests {
-    use super::super::tests::{straight_run, wide_closure};
+    use super::super::tests::{intra_information_x, straight_run, wide_closure};
     use super::*;
     use crate::geometry::{Rigid2, rigid2};
 
@@ -233,20 +233,7 @@ mod tests {
 
     /// The translation σ (m, x) of node `index`'s constraint to submap 1 of [`straight_run`].
     fn intra_sigma_x(global: &GlobalSlam, index: u32) -> f64 {
-        let node = VariableId::Node(NodeId {
-            trajectory: 0,
-            index,
-        });
-        global
-            .graph()
-            .constraints()
-            .find(|(_, c)| {
-                c.kind == ConstraintKind::NodeToSubmapIntra
-                    && c.from == VariableId::Submap(submap(1))
-                    && c.to == node
-            })
-            .map(|(_, c)| c.information[(0, 0)].sqrt().recip())
-            .expect("the node's constraint to submap 1")
+        intra_information_x(global, index).sqrt().recip()
     }
 
     fn drift() -> Rigid2 {
