@@ -622,8 +622,8 @@ impl SessionStart {
         let rotation = normalize_angle(map_from_node.theta() - expected.theta()).abs();
         let translation_tolerance =
             self.options.agreement_translation_m + self.options.agreement_growth * route;
-        let rotation_tolerance = self.options.agreement_rotation_rad
-            + self.options.agreement_rotation_growth * route;
+        let rotation_tolerance =
+            self.options.agreement_rotation_rad + self.options.agreement_rotation_growth * route;
         let agrees = translation <= translation_tolerance && rotation <= rotation_tolerance;
         let counted = Counted {
             path_m,

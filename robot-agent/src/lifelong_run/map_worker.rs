@@ -17,8 +17,8 @@ use mapping::sensor::Timestamp;
 
 use super::act_on_start::act_on_start;
 use super::{
-    OptimizationFigures, ProbationStepFigures, ScanAnchor, SessionEnd, SessionRecord, SessionSummary, SessionsConfig,
-    SessionsError,
+    OptimizationFigures, ProbationStepFigures, ScanAnchor, SessionEnd, SessionRecord,
+    SessionSummary, SessionsConfig, SessionsError,
 };
 use crate::map_probes::MapProbes;
 use crate::offline_slam::run_searches;

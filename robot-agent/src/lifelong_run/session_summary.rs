@@ -90,7 +90,11 @@ impl ProbationStepFigures {
     /// by node index) after `start_time`.
     ///
     /// [`SessionStart::probation_timeline`]: mapping::lifelong::SessionStart::probation_timeline
-    pub fn timed(steps: &[ProbationStep], node_times: &[Timestamp], start_time: Timestamp) -> Vec<Self> {
+    pub fn timed(
+        steps: &[ProbationStep],
+        node_times: &[Timestamp],
+        start_time: Timestamp,
+    ) -> Vec<Self> {
         steps
             .iter()
             .map(|step| {
