@@ -44,6 +44,10 @@ pub enum ProbationStep {
 }
 
 /// How [`super::SessionStart::add_match`] judged one match while the session was on probation.
+#[allow(
+    clippy::struct_excessive_bools,
+    reason = "the verdicts of the independent tests a match passes or fails, for reports, not a state"
+)]
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct ProbationMatch {
     /// The session's latest node when the match arrived.
