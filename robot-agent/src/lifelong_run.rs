@@ -36,7 +36,9 @@ mod sessions_error;
 
 use map_worker::{Message, WorkerOutput, worker};
 pub use session_record::SessionRecord;
-pub use session_summary::{DockCheckFigures, OptimizationFigures, SearchFigures, SessionSummary};
+pub use session_summary::{
+    DockCheckFigures, OptimizationFigures, ProbationStepFigures, SearchFigures, SessionSummary,
+};
 pub use sessions_config::SessionsConfig;
 pub use sessions_error::SessionsError;
 

@@ -66,8 +66,10 @@ use std::collections::VecDeque;
 use nalgebra::Point2;
 use serde::Deserialize;
 
+mod probation_timeline;
 mod scan_view;
 
+pub use self::probation_timeline::{ProbationContest, ProbationMatch, ProbationStep};
 use self::scan_view::ScanView;
 use super::{
     LifelongOptionsError, PriorCheck, RelocalizationOutcome, SessionRelocalization, StartAnswer,
@@ -410,6 +412,8 @@ pub struct SessionStart {
     dock_check_at: usize,
     /// The current placement is the dock's (its check agreed).
     placed_at_dock: bool,
+    /// Every step of every probation so far ([`Self::probation_timeline`]).
+    timeline: Vec<ProbationStep>,
 }
 
 impl SessionStart {
@@ -440,6 +444,7 @@ impl SessionStart {
             dock: None,
             dock_check_at: 0,
             placed_at_dock: false,
+            timeline: Vec::new(),
         })
     }
 
@@ -535,6 +540,13 @@ impl SessionStart {
         self.nodes.len()
     }
 
+    /// What every probation of the session went through so far, in order: each match judged while a
+    /// placement was on probation, each test against the placement's rivals, how each probation ended
+    /// (see [`ProbationStep`]). A record for reports; nothing reads it back.
+    pub fn probation_timeline(&self) -> &[ProbationStep] {
+        &self.timeline
+    }
+
     /// Adds the session's next node (`local_from_tracking` and its points in the tracking frame) and runs
     /// whatever it makes due: the first search once `hold_back_nodes` are in, a retry, a probation
     /// timeout, giving up.
@@ -608,11 +620,11 @@ impl SessionStart {
         let route = (path_m - placed_path).abs();
         let translation = (map_from_node.translation.vector - expected.translation.vector).norm();
         let rotation = normalize_angle(map_from_node.theta() - expected.theta()).abs();
-        let agrees = translation
-            <= self.options.agreement_translation_m + self.options.agreement_growth * route
-            && rotation
-                <= self.options.agreement_rotation_rad
-                    + self.options.agreement_rotation_growth * route;
+        let translation_tolerance =
+            self.options.agreement_translation_m + self.options.agreement_growth * route;
+        let rotation_tolerance =
+            self.options.agreement_rotation_rad + self.options.agreement_rotation_growth * route;
+        let agrees = translation <= translation_tolerance && rotation <= rotation_tolerance;
         let counted = Counted {
             path_m,
             view: self.view_of(node),
@@ -620,28 +632,72 @@ impl SessionStart {
         };
         let separation = self.options.probation_min_separation_m;
         let max_overlap = self.options.probation_max_view_overlap;
-        if agrees {
-            let past_placement = path_m - placed_path >= separation
-                || counted
-                    .view
-                    .as_ref()
-                    .is_some_and(|view| view.overlap(&self.placing_view) < max_overlap);
-            if past_placement && independent(&self.agreeing, &counted, separation, max_overlap) {
+        let placing_view_overlap = counted
+            .view
+            .as_ref()
+            .map(|view| view.overlap(&self.placing_view));
+        let past_placement = path_m - placed_path >= separation
+            || placing_view_overlap.is_some_and(|overlap| overlap < max_overlap);
+        let side = if agrees {
+            &self.agreeing
+        } else {
+            &self.disagreeing
+        };
+        let nearest_counted_m = side
+            .iter()
+            .map(|c| (c.path_m - path_m).abs())
+            .min_by(f64::total_cmp);
+        let is_independent = independent(side, &counted, separation, max_overlap);
+        let counts = if agrees {
+            past_placement && is_independent
+        } else {
+            is_independent
+        };
+        if counts {
+            if agrees {
                 self.agreeing.push(counted);
+            } else {
+                self.disagreeing.push(counted);
             }
-            let mut submaps: Vec<SubmapId> = self.agreeing.iter().map(|c| c.submap).collect();
-            submaps.sort_unstable();
-            submaps.dedup();
+        }
+        let mut submaps: Vec<SubmapId> = self.agreeing.iter().map(|c| c.submap).collect();
+        submaps.sort_unstable();
+        submaps.dedup();
+        let at_node = self.nodes.len().saturating_sub(1);
+        self.timeline.push(ProbationStep::Match(ProbationMatch {
+            at_node,
+            node,
+            submap,
+            past_placing_m: path_m - placed_path,
+            translation_m: translation,
+            translation_tolerance_m: translation_tolerance,
+            rotation_rad: rotation,
+            rotation_tolerance_rad: rotation_tolerance,
+            agrees,
+            placing_view_overlap,
+            past_placement,
+            nearest_counted_m,
+            independent: is_independent,
+            counted: counts,
+            agreeing: self.agreeing.len(),
+            agreeing_submaps: submaps.len(),
+            disagreeing: self.disagreeing.len(),
+        }));
+        if agrees {
             let min_submaps = self
                 .options
                 .probation_min_submaps
                 .min(self.options.probation_matches);
             if self.agreeing.len() >= self.options.probation_matches && submaps.len() >= min_submaps
             {
-                return match self.contest(placement, path_m) {
+                return match self.contest(placement, path_m, node) {
                     Contest::Upheld => {
                         self.state = SessionStartState::Committed(placement);
                         self.cloud.clear();
+                        self.timeline.push(ProbationStep::Ended {
+                            at_node,
+                            outcome: "committed",
+                        });
                         vec![SessionStartEvent::Committed { placement, node }]
                     }
                     Contest::Overturned => {
@@ -651,12 +707,9 @@ impl SessionStart {
                     Contest::Undecided => Vec::new(),
                 };
             }
-        } else if independent(&self.disagreeing, &counted, separation, max_overlap) {
-            self.disagreeing.push(counted);
-            if self.disagreeing.len() >= self.options.probation_disagreements {
-                let last = self.nodes.len().saturating_sub(1);
-                return self.revoke(placement, RevokeReason::Disagreement, last);
-            }
+        } else if counts && self.disagreeing.len() >= self.options.probation_disagreements {
+            let last = self.nodes.len().saturating_sub(1);
+            return self.revoke(placement, RevokeReason::Disagreement, last);
         }
         Vec::new()
     }
@@ -694,6 +747,10 @@ impl SessionStart {
         let node = self.nodes.len().saturating_sub(1);
         self.state = SessionStartState::Committed(placement);
         self.cloud.clear();
+        self.timeline.push(ProbationStep::Ended {
+            at_node: node,
+            outcome: "committed",
+        });
         vec![SessionStartEvent::Committed { placement, node }]
     }
 
@@ -786,29 +843,46 @@ impl SessionStart {
     }
 
     /// Tests `placement` against its search's rivals with the session's cloud (`probation_min_z`), at
-    /// most once per `probation_min_separation_m` of route (`path_m`: the matched node's) while
+    /// most once per `probation_min_separation_m` of route (`path_m`: the matched node's, `node`) while
     /// undecided.
-    fn contest(&mut self, placement: StartPlacement, path_m: f64) -> Contest {
+    fn contest(&mut self, placement: StartPlacement, path_m: f64, node: usize) -> Contest {
         let min_z = self.options.probation_min_z;
+        let mut step = ProbationContest {
+            at_node: self.nodes.len().saturating_sub(1),
+            node,
+            route_nodes: self.cloud.len(),
+            z: Vec::new(),
+            min_z,
+            decision: "upheld",
+        };
         let (Some(search), false) = (&self.search, min_z == 0.0 || self.rivals.is_empty()) else {
+            self.timeline.push(ProbationStep::Contest(step));
             return Contest::Upheld;
         };
         if self
             .contested_at_m
             .is_some_and(|at| path_m - at < self.options.probation_min_separation_m)
         {
+            step.decision = "skipped";
+            self.timeline.push(ProbationStep::Contest(step));
             return Contest::Undecided;
         }
         let scans = self.cloud.make_contiguous();
-        match search.contest(scans, &placement.global_from_local, &self.rivals) {
-            None => Contest::Upheld,
-            Some(z) if z >= min_z => Contest::Upheld,
-            Some(z) if z <= -min_z => Contest::Overturned,
+        step.z = search.contest_each(scans, &placement.global_from_local, &self.rivals);
+        // `StartSearch::contest`: the weakest of the tests.
+        let weakest = step.z.iter().flatten().copied().min_by(f64::total_cmp);
+        let (contest, decision) = match weakest {
+            None => (Contest::Upheld, "upheld"),
+            Some(z) if z >= min_z => (Contest::Upheld, "upheld"),
+            Some(z) if z <= -min_z => (Contest::Overturned, "overturned"),
             Some(_) => {
                 self.contested_at_m = Some(path_m);
-                Contest::Undecided
+                (Contest::Undecided, "undecided")
             }
-        }
+        };
+        step.decision = decision;
+        self.timeline.push(ProbationStep::Contest(step));
+        contest
     }
 
     /// What node `node` saw, while its scan is among the latest held in the cloud (`None` for a scan
@@ -986,6 +1060,10 @@ impl SessionStart {
             return vec![SessionStartEvent::Committed { placement, node }];
         }
         self.state = SessionStartState::Probation(placement);
+        self.timeline.push(ProbationStep::Began {
+            at_node: node,
+            rivals: self.rivals.len(),
+        });
         Vec::new()
     }
 
@@ -997,6 +1075,10 @@ impl SessionStart {
     ) -> Vec<SessionStartEvent> {
         self.revoked.push(placement.global_from_local);
         self.revocations += 1;
+        self.timeline.push(ProbationStep::Ended {
+            at_node: node,
+            outcome: reason.as_str(),
+        });
         self.rivals.clear();
         self.agreeing.clear();
         self.disagreeing.clear();

@@ -17,8 +17,8 @@ use mapping::sensor::Timestamp;
 
 use super::act_on_start::act_on_start;
 use super::{
-    OptimizationFigures, ScanAnchor, SessionEnd, SessionRecord, SessionSummary, SessionsConfig,
-    SessionsError,
+    OptimizationFigures, ProbationStepFigures, ScanAnchor, SessionEnd, SessionRecord,
+    SessionSummary, SessionsConfig, SessionsError,
 };
 use crate::map_probes::MapProbes;
 use crate::offline_slam::run_searches;
@@ -231,6 +231,13 @@ pub(super) fn worker(
                 if let Some(start) = start.as_mut() {
                     let decisions = start.finish();
                     act_on_start!(session, false, &decisions);
+                    if let (Some(summary), Some(record)) = (sessions.last_mut(), records.last()) {
+                        summary.probation_timeline = ProbationStepFigures::timed(
+                            start.probation_timeline(),
+                            &node_times,
+                            record.start_time,
+                        );
+                    }
                 }
                 let on_probation = map.is_on_probation(session);
                 let start_ms = Instant::now();

@@ -1,6 +1,6 @@
 //! What happened in one session, for the report: [`SessionSummary`] and the figures it holds.
 
-use mapping::lifelong::GraphCounts;
+use mapping::lifelong::{GraphCounts, ProbationStep};
 use mapping::sensor::Timestamp;
 use serde::Serialize;
 
@@ -71,6 +71,49 @@ pub struct SearchFigures {
     /// How far its best candidate (the placement, for `placed`) put the session's latest node from the
     /// truth, metres (filled in by the scoring shell; `None` without a candidate or truth).
     pub best_error_m: Option<f64>,
+}
+
+/// One step of the session start's probation ([`ProbationStep`]: a match judged, a test against the
+/// placement's rivals, the probation's end) and when it was taken.
+#[derive(Clone, Debug, Serialize)]
+pub struct ProbationStepFigures {
+    /// Time of the session's latest node when it was taken, seconds after the session's first event
+    /// (the clock of the scores' `placed_after_s` and `committed_after_s`).
+    pub time_s: Option<f64>,
+    /// The step, as the session start recorded it.
+    #[serde(flatten)]
+    pub step: ProbationStep,
+}
+
+impl ProbationStepFigures {
+    /// `steps` ([`SessionStart::probation_timeline`]) timed by their latest node's time (`node_times`,
+    /// by node index) after `start_time`.
+    ///
+    /// [`SessionStart::probation_timeline`]: mapping::lifelong::SessionStart::probation_timeline
+    pub fn timed(
+        steps: &[ProbationStep],
+        node_times: &[Timestamp],
+        start_time: Timestamp,
+    ) -> Vec<Self> {
+        steps
+            .iter()
+            .map(|step| {
+                let at_node = match step {
+                    ProbationStep::Began { at_node, .. } | ProbationStep::Ended { at_node, .. } => {
+                        *at_node
+                    }
+                    ProbationStep::Match(m) => m.at_node,
+                    ProbationStep::Contest(c) => c.at_node,
+                };
+                Self {
+                    time_s: node_times
+                        .get(at_node)
+                        .map(|time| time.seconds_since(start_time)),
+                    step: step.clone(),
+                }
+            })
+            .collect()
+    }
 }
 
 /// What happened in one session.
@@ -151,6 +194,10 @@ pub struct SessionSummary {
     pub finish_optimizations: Vec<OptimizationFigures>,
     /// Every whole-map search of the session start, in order: what it answered and how decisively.
     pub searches: Vec<SearchFigures>,
+    /// What the session start's probations went through, step by step: each match of the session's
+    /// nodes against older sessions judged while its placement was on probation (agreed? counted? held
+    /// back by which condition?), each test of the route against the placement's rivals, each end.
+    pub probation_timeline: Vec<ProbationStepFigures>,
     /// Where the session started from the robot's dock ([`SessionInput::from_dock`]): the check of it.
     ///
     /// [`SessionInput::from_dock`]: super::SessionInput::from_dock

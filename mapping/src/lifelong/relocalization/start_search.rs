@@ -336,18 +336,35 @@ impl StartSearch {
         global_from_local: &Rigid2,
         rivals: &[Rigid2],
     ) -> Option<f64> {
-        let (first_from_local, cloud) = merge_scans(scans, self.options.voxel_size)?;
+        self.contest_each(scans, global_from_local, rivals)
+            .into_iter()
+            .flatten()
+            .min_by(f64::total_cmp)
+    }
+
+    /// [`Self::contest`]'s paired test against each of `rivals`, in their order (`None` for a rival that
+    /// refines onto the placement); empty when there are no points.
+    pub fn contest_each(
+        &self,
+        scans: &[(Rigid2, Vec<Point2<f32>>)],
+        global_from_local: &Rigid2,
+        rivals: &[Rigid2],
+    ) -> Vec<Option<f64>> {
+        let Some((first_from_local, cloud)) = merge_scans(scans, self.options.voxel_size) else {
+            return Vec::new();
+        };
         let local_from_first = first_from_local.inverse();
         let grid = self.sharp_grid();
         let placed = self.sharpen(&cloud, &(global_from_local * local_from_first));
         rivals
             .iter()
             .map(|rival| self.sharpen(&cloud, &(rival * local_from_first)))
-            .filter(|rival| clearly_different(&placed, rival))
             .map(|rival| {
-                blocked_paired_z(grid, &cloud, &placed, &rival, self.options.route_block_m)
+                clearly_different(&placed, &rival).then(|| {
+                    blocked_paired_z(grid, &cloud, &placed, &rival, self.options.route_block_m)
+                })
             })
-            .min_by(f64::total_cmp)
+            .collect()
     }
 
     /// Whether a fit (a [`CloudFit::sharp_score`]) reaches `min_unfiltered_score`.

@@ -829,3 +829,133 @@ fn a_dock_check_a_rival_fits_better_waits_for_the_hold_back() {
     .unwrap();
     assert!(!start.defers(&check(true, Some(-1.25)), 1));
 }
+
+/// The `Match` steps of a timeline.
+fn match_steps(start: &SessionStart) -> Vec<&ProbationMatch> {
+    start
+        .probation_timeline()
+        .iter()
+        .filter_map(|step| match step {
+            ProbationStep::Match(m) => Some(m),
+            _ => None,
+        })
+        .collect()
+}
+
+#[test]
+fn the_probation_timeline_says_which_matches_counted_and_why_the_others_did_not() {
+    let placed = rigid2(10.0, 5.0, 0.3);
+    let mut start = on_probation(options(), placed, 12);
+    let agreeing = |k: usize| placed * local(k) * rigid2(0.05, -0.05, 0.01);
+    let elsewhere = rigid2(0.0, 4.0, 0.0) * placed * local(3);
+    // The matches of `a_placement_is_committed_after_independent_agreeing_matches`, and one
+    // disagreeing.
+    start.add_match(1, agreeing(1), submap(0));
+    start.add_match(3, elsewhere, submap(5));
+    start.add_match(4, agreeing(4), submap(1));
+    start.add_match(10, agreeing(10), submap(1));
+    start.add_match(5, agreeing(5), submap(2));
+    let events = start.add_match(7, agreeing(7), submap(3));
+    assert!(
+        matches!(events[..], [SessionStartEvent::Committed { node: 7, .. }]),
+        "{events:?}"
+    );
+    // After the commit nothing is judged any more.
+    start.add_match(11, agreeing(11), submap(4));
+    let timeline = start.probation_timeline();
+    assert!(
+        matches!(
+            timeline.first(),
+            Some(ProbationStep::Began {
+                at_node: 0,
+                rivals: 0
+            })
+        ),
+        "{timeline:?}"
+    );
+    let matches = match_steps(&start);
+    let nodes: Vec<usize> = matches.iter().map(|m| m.node).collect();
+    assert_eq!(nodes, vec![1, 3, 4, 10, 5, 7]);
+    // Every match arrived while node 11 was the latest.
+    assert!(matches.iter().all(|m| m.at_node == 11));
+    let by_node = |node: usize| matches.iter().find(|m| m.node == node).unwrap();
+    // Node 1: agreed, but only 0.5 m past the placement's node (no scans: no view to judge by).
+    let m = by_node(1);
+    assert!(m.agrees && !m.past_placement && !m.counted && m.placing_view_overlap.is_none());
+    assert!((m.past_placing_m - 0.5).abs() < 1e-9);
+    assert!(m.translation_m < m.translation_tolerance_m);
+    // Node 3: 4 m over, the first disagreeing match, counted toward revoking.
+    let m = by_node(3);
+    assert!(!m.agrees && m.counted && m.disagreeing == 1);
+    assert!(m.translation_m > m.translation_tolerance_m);
+    // Node 4: counted; node 10 too (3 m on); node 5 is 0.5 m from node 4.
+    assert!(by_node(4).counted && by_node(4).agreeing == 1);
+    assert!(by_node(10).counted && by_node(10).agreeing_submaps == 1);
+    let m = by_node(5);
+    assert!(m.agrees && m.past_placement && !m.independent && !m.counted);
+    assert_eq!(m.nearest_counted_m, Some(0.5));
+    let m = by_node(7);
+    assert!(m.counted && m.agreeing == 3 && m.agreeing_submaps == 2);
+    // Then the contest (no rival: nothing to test) and the commit.
+    let n = timeline.len();
+    assert!(
+        matches!(
+            &timeline[n - 2..],
+            [
+                ProbationStep::Contest(ProbationContest {
+                    node: 7,
+                    decision: "upheld",
+                    ..
+                }),
+                ProbationStep::Ended {
+                    at_node: 11,
+                    outcome: "committed"
+                }
+            ]
+        ),
+        "{timeline:?}"
+    );
+}
+
+#[test]
+fn the_probation_timeline_keeps_each_rivals_paired_test() {
+    let truth = rigid2(2.7, 2.2, 0.4);
+    let look_alike = rigid2(1.2, 2.9, 0.4);
+    for (placed, rival, outcome) in [
+        (truth, look_alike, "committed"),
+        (look_alike, truth, "rival"),
+    ] {
+        let mut start = contested(placed, vec![rival, placed], truth);
+        let route = start.cloud.make_contiguous().to_vec();
+        start.add_match(4, placed * local(4), submap(1));
+        start.add_match(8, placed * local(8), submap(2));
+        let contests: Vec<&ProbationContest> = start
+            .probation_timeline()
+            .iter()
+            .filter_map(|step| match step {
+                ProbationStep::Contest(c) => Some(c),
+                _ => None,
+            })
+            .collect();
+        let [contest] = contests[..] else {
+            panic!("one contest: {:?}", start.probation_timeline());
+        };
+        assert_eq!(contest.route_nodes, 12);
+        // The rival, then the placement itself, which is no rival.
+        let [Some(z), None] = contest.z[..] else {
+            panic!("{contest:?}");
+        };
+        // The weakest test is the one the decision took.
+        let weakest = room_search().contest(&route, &placed, &[rival, placed]);
+        assert_eq!(weakest, Some(z));
+        assert_eq!(z >= contest.min_z, outcome == "committed", "z {z}");
+        assert!(
+            matches!(
+                start.probation_timeline().last(),
+                Some(ProbationStep::Ended { outcome: o, .. }) if *o == outcome
+            ),
+            "{:?}",
+            start.probation_timeline()
+        );
+    }
+}
