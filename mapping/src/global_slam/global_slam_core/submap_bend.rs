@@ -276,6 +276,8 @@ mod tests {
     fn without_the_option_nothing_bends() {
         let mut global = straight_run(171);
         global.options.loop_closure_retraction_chi2 = 0.0;
+        global.options.bent_submap_translation_sigma_per_m = 0.0;
+        global.options.bent_submap_rotation_sigma_per_m = 0.0;
         global.add_search_results([wide_closure(160, drift())]);
         global.add_search_results([wide_closure(170, drift() * rigid2(0.02, 0.01, 0.002))]);
         assert!(global.submap_bends().is_empty() && global.bent_submaps().is_empty());
