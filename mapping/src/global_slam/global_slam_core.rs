@@ -175,6 +175,13 @@ pub struct GlobalSlam {
     bent_submaps: BTreeSet<SubmapId>,
 }
 
+/// The (node, submap) pair of each of `closures`: how corrections and bends name the matches they hold.
+pub(super) fn closure_refs<'a>(
+    closures: impl IntoIterator<Item = &'a LoopClosure>,
+) -> BTreeSet<(NodeId, SubmapId)> {
+    closures.into_iter().map(|c| (c.node, c.submap)).collect()
+}
+
 pub(super) fn information(translation_sigma: f64, rotation_sigma: f64) -> Matrix3<f64> {
     let t = 1.0 / (translation_sigma * translation_sigma);
     Matrix3::from_diagonal(&nalgebra::Vector3::new(

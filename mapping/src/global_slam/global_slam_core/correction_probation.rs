@@ -17,7 +17,7 @@
 
 use std::collections::BTreeSet;
 
-use super::{ClosureState, GlobalSlam};
+use super::{ClosureState, GlobalSlam, closure_refs};
 use crate::global_slam::LoopClosure;
 use crate::pose_graph::{NodeId, SubmapId};
 
@@ -173,11 +173,7 @@ impl GlobalSlam {
     /// node is gone can no longer be judged (its matches are judged as any), and forgotten matches need
     /// no exemption.
     pub(super) fn forget_probations(&mut self) {
-        let known: BTreeSet<(NodeId, SubmapId)> = self
-            .accepted_loop_closures
-            .iter()
-            .map(|c| (c.node, c.submap))
-            .collect();
+        let known = closure_refs(&self.accepted_loop_closures);
         self.probations.retain_mut(|p| {
             p.closures.retain(|c| known.contains(c));
             !p.closures.is_empty() && (p.kept || self.nodes.contains_key(&p.newest.node))

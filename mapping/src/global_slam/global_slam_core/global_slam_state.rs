@@ -26,7 +26,7 @@ use std::sync::Arc;
 
 use super::{
     Acceptance, ClosureState, CorrectionProbation, GlobalSlam, GlobalSlamError, NodeRecord,
-    SubmapBend, SubmapRecord,
+    SubmapBend, SubmapRecord, closure_refs,
 };
 use crate::geometry::Rigid2;
 use crate::global_slam::{
@@ -252,30 +252,31 @@ fn validate(state: &GlobalSlamState) -> Result<(), GlobalSlamError> {
             state.closure_states.len()
         ));
     }
-    let accepted: BTreeSet<(NodeId, SubmapId)> = state
-        .accepted_loop_closures
-        .iter()
-        .map(|c| (c.node, c.submap))
-        .collect();
-    if let Some((node, submap)) = state
-        .correction_probations
-        .iter()
-        .flat_map(|p| &p.closures)
-        .find(|c| !accepted.contains(c))
-    {
-        return inconsistent(format!(
-            "correction on probation holds the match of node {node:?} against submap {submap:?}, not an accepted closure"
-        ));
-    }
-    if let Some((node, submap)) = state
-        .submap_bends
-        .iter()
-        .flat_map(|b| &b.closures)
-        .find(|c| !accepted.contains(c))
-    {
-        return inconsistent(format!(
-            "submap bend granted by the match of node {node:?} against submap {submap:?}, not an accepted closure"
-        ));
+    let accepted = closure_refs(&state.accepted_loop_closures);
+    let held = [
+        (
+            "correction on probation holds",
+            state
+                .correction_probations
+                .iter()
+                .flat_map(|p| &p.closures)
+                .collect::<Vec<_>>(),
+        ),
+        (
+            "submap bend granted by",
+            state
+                .submap_bends
+                .iter()
+                .flat_map(|b| &b.closures)
+                .collect(),
+        ),
+    ];
+    for (holder, closures) in held {
+        if let Some((node, submap)) = closures.into_iter().find(|c| !accepted.contains(c)) {
+            return inconsistent(format!(
+                "{holder} the match of node {node:?} against submap {submap:?}, not an accepted closure"
+            ));
+        }
     }
     if state.new_constraints_from > state.graph.next_constraint_id() {
         return inconsistent(format!(

@@ -17,7 +17,7 @@ use std::collections::BTreeSet;
 
 use nalgebra::Matrix3;
 
-use super::{ClosureState, GlobalSlam, information};
+use super::{ClosureState, GlobalSlam, closure_refs, information};
 use crate::global_slam::{GlobalSlamOptions, LoopClosure};
 use crate::pose_graph::{ConstraintId, ConstraintKind, NodeId, SubmapId, VariableId};
 
@@ -193,11 +193,7 @@ impl GlobalSlam {
     /// Drops what forgotten closures and submaps leave of the bends (a bend with no match left grants
     /// nothing).
     pub(super) fn forget_bends(&mut self) {
-        let known: BTreeSet<(NodeId, SubmapId)> = self
-            .accepted_loop_closures
-            .iter()
-            .map(|c| (c.node, c.submap))
-            .collect();
+        let known = closure_refs(&self.accepted_loop_closures);
         let submaps = &self.submaps;
         self.submap_bends.retain_mut(|b| {
             b.closures.retain(|c| known.contains(c));
