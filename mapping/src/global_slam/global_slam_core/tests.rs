@@ -1,0 +1,422 @@
+//! Tests of [`GlobalSlam`]: bookkeeping, acceptance, placement, optimization and retraction, and the
+//! shared fixtures (`straight_run`, `drive_on`, `wide_closure`) its submodules' tests build on.
+
+use super::*;
+use crate::geometry::rigid2;
+use crate::global_slam::ConstraintBuilderOptions;
+use crate::grid::MapLimits;
+
+/// One trajectory driving along x in 0.2 m steps; submap 0 holds its first 11 nodes and is finished.
+pub(super) fn straight_run(nodes: u32) -> GlobalSlam {
+    let options = GlobalSlamOptions {
+        optimize_every_n_nodes: 0,
+        constraint_builder: ConstraintBuilderOptions {
+            sampling_ratio: 0.0,
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    let mut global = GlobalSlam::new(options).expect("valid options");
+    drive_on(&mut global, 0..nodes);
+    global
+}
+
+/// Adds the nodes `indices` of [`straight_run`]'s trajectory.
+pub(super) fn drive_on(global: &mut GlobalSlam, indices: std::ops::Range<u32>) {
+    drive_on_recovering(global, indices, None);
+}
+
+/// [`drive_on`], LLO having placed a scan by a recovery search just before node `recovered_at`.
+fn drive_on_recovering(
+    global: &mut GlobalSlam,
+    indices: std::ops::Range<u32>,
+    recovered_at: Option<u32>,
+) {
+    for i in indices {
+        let submaps = if i <= 10 {
+            vec![(0, Rigid2::identity())]
+        } else {
+            vec![(1, rigid2(2.2, 0.0, 0.0))]
+        };
+        let finished = if i == 11 {
+            vec![(
+                0,
+                ProbabilityGrid::new(MapLimits::new(
+                    0.05,
+                    nalgebra::Vector2::new(-1.0, -1.0),
+                    40,
+                    40,
+                )),
+            )]
+        } else {
+            Vec::new()
+        };
+        let node = LloNode {
+            time: Timestamp(i64::from(i) * 100_000_000),
+            local_pose: rigid2(0.2 * f64::from(i), 0.0, 0.0),
+            points: vec![Point2::new(1.0, 0.0)],
+            insertion_submaps: submaps,
+            finished_submaps: finished,
+            recovered: recovered_at == Some(i),
+        };
+        global.add_node(0, node).expect("node added");
+    }
+}
+
+pub(super) fn wide_closure(node: u32, error: Rigid2) -> LoopClosure {
+    LoopClosure {
+        submap: SubmapId {
+            trajectory: 0,
+            index: 0,
+        },
+        node: NodeId {
+            trajectory: 0,
+            index: node,
+        },
+        submap_from_node: rigid2(0.2 * f64::from(node), 0.0, 0.0) * error,
+        score: 0.7,
+        runner_up_score: None,
+        information: None,
+    }
+}
+
+/// The translation information (x) of node `index`'s constraint to submap 1 of [`straight_run`].
+pub(super) fn intra_information_x(global: &GlobalSlam, index: u32) -> f64 {
+    let submap = VariableId::Submap(SubmapId {
+        trajectory: 0,
+        index: 1,
+    });
+    let node = VariableId::Node(NodeId {
+        trajectory: 0,
+        index,
+    });
+    global
+        .graph()
+        .constraints()
+        .find(|(_, c)| {
+            c.kind == ConstraintKind::NodeToSubmapIntra && c.from == submap && c.to == node
+        })
+        .map(|(_, c)| c.information[(0, 0)])
+        .expect("the node's constraint to submap 1")
+}
+
+#[test]
+fn a_node_far_along_its_submap_is_held_to_it_more_loosely_when_asked() {
+    // By default every node is held to its submap alike.
+    let global = straight_run(101);
+    assert_eq!(
+        intra_information_x(&global, 11).to_bits(),
+        intra_information_x(&global, 100).to_bits()
+    );
+    // With growth: submap 1 starts at node 11; node 100 is 17.8 m of path further.
+    let mut grown = GlobalSlam::new(GlobalSlamOptions {
+        intra_submap_translation_sigma_per_m: 0.1,
+        intra_submap_rotation_sigma_per_m: 0.01,
+        optimize_every_n_nodes: 0,
+        ..GlobalSlamOptions::default()
+    })
+    .expect("valid options");
+    drive_on(&mut grown, 0..101);
+    let sigma = |information: f64| information.sqrt().recip();
+    let near = sigma(intra_information_x(&grown, 11));
+    let far = sigma(intra_information_x(&grown, 100));
+    assert!((near - 0.5).abs() < 1e-9, "{near}");
+    let expected = 0.5f64.hypot(0.1 * 17.8);
+    assert!((far - expected).abs() < 1e-6, "{far} vs {expected}");
+}
+
+#[test]
+fn a_match_far_from_the_estimate_waits_for_another_that_agrees_with_it() {
+    let mut global = straight_run(200);
+    // Near the estimate: accepted at once.
+    global.add_search_results([wide_closure(140, rigid2(0.05, -0.03, 0.004))]);
+    assert_eq!(global.accepted_loop_closures().len(), 1);
+    let shifted = rigid2(1.5, -0.8, 0.2);
+    // Alone, a match 1.7 m from the estimate is held back (beyond drift, it would need a chorus).
+    global.add_search_results([wide_closure(150, shifted)]);
+    assert_eq!(global.accepted_loop_closures().len(), 1);
+    // One 0.6 m off that disagrees with it (the trajectory between them says otherwise) is held back
+    // too: within what 4 m of drift since the closure of node 140 explains (0.7 m), beyond 0.5 m.
+    let drift = rigid2(0.48, 0.36, 0.0);
+    global.add_search_results([wide_closure(160, drift)]);
+    assert_eq!(global.accepted_loop_closures().len(), 1);
+    // One that agrees with the second closes the cycle: both are accepted, the first is not.
+    let events = global.add_search_results([wide_closure(170, drift * rigid2(0.02, 0.01, 0.002))]);
+    let accepted: Vec<u32> = global
+        .accepted_loop_closures()
+        .iter()
+        .map(|c| c.node.index)
+        .collect();
+    assert_eq!(accepted, vec![140, 160, 170]);
+    assert!(
+        events
+            .iter()
+            .any(|e| matches!(e, GlobalSlamEvent::Optimized(_))),
+        "a confirmed loop is optimized at once"
+    );
+    // A wide match far behind along the path (more than agreement_path_length) never agrees.
+    let mut global = straight_run(400);
+    global.add_search_results([wide_closure(150, rigid2(0.8, 0.6, 0.0))]);
+    global.add_search_results([wide_closure(390, rigid2(0.8, 0.6, 0.0))]);
+    assert!(global.accepted_loop_closures().is_empty());
+}
+
+#[test]
+fn the_closures_of_forgotten_nodes_and_submaps_are_forgotten_with_them() {
+    let mut global = straight_run(200);
+    global.add_search_results([
+        wide_closure(139, rigid2(0.0, 0.01, 0.0)),
+        wide_closure(140, rigid2(0.0, 0.0, 0.0)),
+    ]);
+    // Held back: 0.6 m from its estimate, waiting for another match to agree with it.
+    global.add_search_results([wide_closure(160, rigid2(0.48, 0.36, 0.0))]);
+    assert_eq!(global.accepted_loop_closures().len(), 2);
+    assert_eq!(global.pending_unconfirmed.len(), 1);
+    let node = |index| NodeId {
+        trajectory: 0,
+        index,
+    };
+    global.forget(&[], &[node(139), node(160)]);
+    let kept: Vec<u32> = global
+        .accepted_loop_closures()
+        .iter()
+        .map(|c| c.node.index)
+        .collect();
+    assert_eq!(kept, [140]);
+    assert_eq!(global.acceptances.len(), 1);
+    assert_eq!(global.closure_states.len(), 1);
+    assert!(global.pending_unconfirmed.is_empty());
+    assert_eq!(global.loop_closures_accepted(), 2, "the count keeps them");
+    // Its submap trimmed, the last one goes too.
+    let submap = SubmapId {
+        trajectory: 0,
+        index: 0,
+    };
+    global.forget(&[submap], &[]);
+    assert!(global.accepted_loop_closures().is_empty());
+    assert!(global.closure_states.is_empty());
+    assert_eq!(global.loop_closures_accepted(), 2);
+}
+
+#[test]
+fn a_closure_the_optimized_graph_refuses_is_retracted() {
+    let mut global = straight_run(200);
+    // Three neighbouring nodes; the middle one matched 0.3 m sideways (10σ), its neighbours where the
+    // chain puts them. Each is near enough its estimate to be accepted at once.
+    global.add_search_results([
+        wide_closure(139, rigid2(0.0, 0.01, 0.0)),
+        wide_closure(140, rigid2(0.0, 0.3, 0.0)),
+        wide_closure(141, rigid2(0.0, 0.0, 0.0)),
+    ]);
+    assert_eq!(global.accepted_loop_closures().len(), 3);
+    global.optimize();
+    assert_eq!(global.closures_retracted(), 1);
+    let checks = global.loop_closure_checks();
+    let retracted: Vec<u32> = checks
+        .iter()
+        .filter(|c| c.retracted)
+        .map(|c| c.closure.node.index)
+        .collect();
+    assert_eq!(retracted, vec![140]);
+    // Optimized again without it: the others hold, and it no longer pulls node 140 sideways.
+    assert!(
+        checks
+            .iter()
+            .filter(|c| !c.retracted)
+            .all(LoopClosureCheck::holds)
+    );
+    let node = global
+        .node_pose(NodeId {
+            trajectory: 0,
+            index: 140,
+        })
+        .expect("node");
+    assert!(node.translation.vector.y.abs() < 0.02, "{node:?}");
+    // With retraction off, the same closure stays in the graph.
+    let mut global = straight_run(200);
+    global.options.loop_closure_retraction_chi2 = 0.0;
+    global.add_search_results([
+        wide_closure(139, rigid2(0.0, 0.01, 0.0)),
+        wide_closure(140, rigid2(0.0, 0.3, 0.0)),
+        wide_closure(141, rigid2(0.0, 0.0, 0.0)),
+    ]);
+    global.optimize();
+    assert_eq!(global.closures_retracted(), 0);
+    assert!(global.loop_closure_checks().iter().all(|c| !c.retracted));
+}
+
+#[test]
+fn a_retracted_closure_returns_once_the_graph_fits_it() {
+    let mut global = straight_run(200);
+    global.add_search_results([
+        wide_closure(139, rigid2(0.0, 0.01, 0.0)),
+        wide_closure(140, rigid2(0.0, 0.3, 0.0)),
+        wide_closure(141, rigid2(0.0, 0.0, 0.0)),
+    ]);
+    global.optimize();
+    assert_eq!(global.closures_retracted(), 1);
+    let sideways = |global: &GlobalSlam| {
+        global
+            .node_pose(NodeId {
+                trajectory: 0,
+                index: 140,
+            })
+            .expect("node")
+            .translation
+            .vector
+            .y
+    };
+    let retracted = sideways(&global);
+    // A looser bound (standing in for a graph reshaped by later closures) fits it again: it is back in
+    // the graph and pulls node 140 sideways once more.
+    global.options.loop_closure_retraction_chi2 = 1e6;
+    global.optimize();
+    assert_eq!(global.closures_retracted(), 0);
+    assert!(
+        sideways(&global) > retracted + 0.01,
+        "{} vs {retracted}",
+        sideways(&global)
+    );
+}
+
+#[test]
+fn a_match_farther_than_drift_explains_is_refused_even_when_another_agrees() {
+    let mut global = straight_run(40);
+    // Nodes 12 and 13 are 2.4–2.6 m of path from submap 0's first node: drift explains at most
+    // 0.5 m + 5 % of that. Two matches that agree with each other 1 m away are both refused.
+    let error = rigid2(1.0, 0.0, 0.0);
+    global.add_search_results([wide_closure(12, error)]);
+    global.add_search_results([wide_closure(13, error)]);
+    assert!(global.accepted_loop_closures().is_empty());
+    assert_eq!(global.closures_beyond_drift(), 2);
+    // Within the bound (0.1 m) it is accepted at once, with its innovation recorded.
+    global.add_search_results([wide_closure(14, rigid2(0.1, 0.0, 0.0))]);
+    let checks = global.loop_closure_checks();
+    assert_eq!(checks.len(), 1);
+    assert!((checks[0].acceptance.innovation_translation_m - 0.1).abs() < 1e-9);
+    assert!(!checks[0].acceptance.confirmed_by_agreement);
+    // Far along the path (35 m driven, no loop closed) the same 1 m is within what drift explains: it
+    // waits for a second opinion instead.
+    let mut global = straight_run(200);
+    global.add_search_results([wide_closure(175, error)]);
+    global.add_search_results([wide_closure(178, error)]);
+    let checks = global.loop_closure_checks();
+    assert_eq!(checks.len(), 2);
+    assert!(checks.iter().all(|c| c.acceptance.confirmed_by_agreement));
+    assert_eq!(global.closures_beyond_drift(), 0);
+}
+
+#[test]
+fn an_llo_recovery_adds_its_heading_doubt_to_the_nodes_after_it() {
+    let turned = rigid2(0.0, 0.0, 10f64.to_radians());
+    // Nodes 30 and 31 lie 6 m along: drift explains 3° + 0.2°/m, so two matches turned 10° against
+    // submap 0 are both beyond drift.
+    let mut global = straight_run(40);
+    global.add_search_results([wide_closure(30, turned)]);
+    global.add_search_results([wide_closure(31, turned)]);
+    assert!(global.accepted_loop_closures().is_empty());
+    assert_eq!(global.closures_beyond_drift(), 2);
+    // LLO recovered just before node 20 (3.8 m along): the same matches are within its 0.26 rad (15°)
+    // of doubt, far from the estimate, so the second confirms the first.
+    let mut global = straight_run(20);
+    drive_on_recovering(&mut global, 20..40, Some(20));
+    let node = |index| NodeId {
+        trajectory: 0,
+        index,
+    };
+    let submap_0 = SubmapId {
+        trajectory: 0,
+        index: 0,
+    };
+    let record = &global.nodes[&node(30)];
+    let window = global.search_window(node(30), record, submap_0, &global.submaps[&submap_0]);
+    let (doubt_rad, doubt_m) =
+        global.recovery_doubt(node(30), record, submap_0, &global.submaps[&submap_0]);
+    assert!((doubt_rad - 0.26).abs() < 1e-9);
+    assert!(
+        (doubt_m - 0.26 * 2.2).abs() < 1e-9,
+        "lever: 2.2 m since node 19"
+    );
+    assert!(window.angular_rad > 30f64.to_radians());
+    global.add_search_results([wide_closure(30, turned)]);
+    global.add_search_results([wide_closure(31, turned)]);
+    assert_eq!(global.accepted_loop_closures().len(), 2);
+    assert!(
+        global
+            .loop_closure_checks()
+            .iter()
+            .all(|c| c.acceptance.confirmed_by_agreement)
+    );
+    assert_eq!(global.closures_beyond_drift(), 0);
+    // A node before the recovery has no doubt.
+    let before = &global.nodes[&node(15)];
+    assert_eq!(
+        global.recovery_doubt(node(15), before, submap_0, &global.submaps[&submap_0]),
+        (0.0, 0.0)
+    );
+}
+
+#[test]
+fn a_slip_beyond_drift_is_repaired_when_nodes_and_submaps_agree_on_it() {
+    let mut global = straight_run(40);
+    let error = rigid2(1.0, 0.0, 0.0);
+    let to_submap_1 = |node: u32| LoopClosure {
+        submap: SubmapId {
+            trajectory: 0,
+            index: 1,
+        },
+        submap_from_node: rigid2(0.2 * f64::from(node) - 2.2, 0.0, 0.0) * error,
+        ..wide_closure(node, error)
+    };
+    // Four nodes agree on a 1 m correction, all against submap 0: still refused.
+    for node in [12, 13, 14, 15] {
+        global.add_search_results([wide_closure(node, error)]);
+    }
+    assert!(global.accepted_loop_closures().is_empty());
+    // A fifth node agrees through another submap: the chorus is accepted together.
+    global.add_search_results([to_submap_1(5)]);
+    let accepted: Vec<u32> = global
+        .accepted_loop_closures()
+        .iter()
+        .map(|c| c.node.index)
+        .collect();
+    assert_eq!(accepted, vec![12, 13, 14, 15, 5]);
+    assert_eq!(global.closures_beyond_drift(), 0);
+}
+
+#[test]
+fn the_search_window_grows_with_the_path_since_the_last_loop() {
+    let global = straight_run(300);
+    let cb = ConstraintBuilderOptions::default();
+    let node = NodeId {
+        trajectory: 0,
+        index: 250,
+    };
+    let sid = SubmapId {
+        trajectory: 0,
+        index: 0,
+    };
+    let window = global.search_window(node, &global.nodes()[&node], sid, &global.submaps()[&sid]);
+    // 50 m driven since the start (no loop closed yet), the submap ~49 m back along the path.
+    let path = 0.2 * 250.0 - 0.0;
+    assert!(
+        (window.linear_m
+            - (cb.fast_correlative.linear_search_window + cb.linear_window_growth * path))
+            .abs()
+            < 1e-6,
+        "{window:?}"
+    );
+    assert!(window.angular_rad > cb.fast_correlative.angular_search_window);
+    // The submap the robot has just left is searched with the default window.
+    let recent = NodeId {
+        trajectory: 0,
+        index: 11,
+    };
+    let window = global.search_window(
+        recent,
+        &global.nodes()[&recent],
+        sid,
+        &global.submaps()[&sid],
+    );
+    assert!(window.linear_m < cb.fast_correlative.linear_search_window + 0.2);
+}
