@@ -1060,9 +1060,19 @@ impl SessionStart {
             return vec![SessionStartEvent::Committed { placement, node }];
         }
         self.state = SessionStartState::Probation(placement);
+        let placed_node = self
+            .cloud
+            .back()
+            .map_or_else(Rigid2::identity, |(pose, _)| *pose);
+        let rival_offsets = self
+            .rivals
+            .iter()
+            .map(|rival| rival_offset(&placement.global_from_local, rival, &placed_node))
+            .collect();
         self.timeline.push(ProbationStep::Began {
             at_node: node,
             rivals: self.rivals.len(),
+            rival_offsets,
         });
         Vec::new()
     }
@@ -1144,6 +1154,17 @@ fn independent(
         (c.path_m - candidate.path_m).abs() >= separation
             || matches!((&candidate.view, &c.view), (Some(a), Some(b)) if a.overlap(b) < max_overlap)
     })
+}
+
+/// Where `rival` (a `global_from_local`) puts the robot at `local_pose`, seen from where `placed` puts
+/// it: `[x, y]` metres and heading in degrees ([`ProbationStep::Began`]'s `rival_offsets`).
+fn rival_offset(placed: &Rigid2, rival: &Rigid2, local_pose: &Rigid2) -> [f64; 3] {
+    let offset = (placed * local_pose).inverse() * (rival * local_pose);
+    [
+        offset.translation.vector.x,
+        offset.translation.vector.y,
+        offset.rotation.angle().to_degrees(),
+    ]
 }
 
 #[cfg(test)]

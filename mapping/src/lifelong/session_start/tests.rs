@@ -868,7 +868,8 @@ fn the_probation_timeline_says_which_matches_counted_and_why_the_others_did_not(
             timeline.first(),
             Some(ProbationStep::Began {
                 at_node: 0,
-                rivals: 0
+                rivals: 0,
+                ..
             })
         ),
         "{timeline:?}"
@@ -958,4 +959,15 @@ fn the_probation_timeline_keeps_each_rivals_paired_test() {
             start.probation_timeline()
         );
     }
+}
+
+#[test]
+fn a_rivals_offset_is_where_it_puts_the_robot_seen_from_the_placement() {
+    let placed = rigid2(4.0, -2.0, 0.5);
+    let local_pose = rigid2(1.0, 0.5, 1.0);
+    // A rival 1.5 m ahead of the placed robot and turned 12° more.
+    let rival = placed * local_pose * rigid2(1.5, 0.0, 12f64.to_radians()) * local_pose.inverse();
+    let [x, y, heading] = super::rival_offset(&placed, &rival, &local_pose);
+    assert!((x - 1.5).abs() < 1e-9 && y.abs() < 1e-9, "{x} {y}");
+    assert!((heading - 12.0).abs() < 1e-9, "{heading}");
 }
