@@ -1071,7 +1071,6 @@ impl SessionStart {
             .collect();
         self.timeline.push(ProbationStep::Began {
             at_node: node,
-            rivals: self.rivals.len(),
             rival_offsets,
         });
         Vec::new()

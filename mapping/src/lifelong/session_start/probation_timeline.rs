@@ -26,10 +26,9 @@ pub enum ProbationStep {
     Began {
         /// The session's latest node (index in the session) when it began: the node it was decided at.
         at_node: usize,
-        /// The rivals of the search that placed it, which the route must beat before the commit.
-        rivals: usize,
-        /// Where each rival puts the robot at the placing node, seen from where the placement puts it:
-        /// `[x, y]` metres and heading in degrees, in the rivals' order (the contests' z follow it).
+        /// The rivals of the search that placed it, which the route must beat before the commit: where
+        /// each puts the robot at the placing node, seen from where the placement puts it (`[x, y]` metres
+        /// and heading in degrees), in the order the contests' z follow.
         rival_offsets: Vec<[f64; 3]>,
     },
     /// A GLM match of one of the session's nodes against an older session's submap was judged.

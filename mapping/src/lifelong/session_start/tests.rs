@@ -866,11 +866,8 @@ fn the_probation_timeline_says_which_matches_counted_and_why_the_others_did_not(
     assert!(
         matches!(
             timeline.first(),
-            Some(ProbationStep::Began {
-                at_node: 0,
-                rivals: 0,
-                ..
-            })
+            Some(ProbationStep::Began { at_node: 0, rival_offsets })
+                if rival_offsets.is_empty()
         ),
         "{timeline:?}"
     );
