@@ -44,7 +44,9 @@ for s in r['sessions']:
                       f"{'COUNTED' if st['counted'] else '       '} a={st['agreeing']}/{st['agreeing_submaps']}sm d={st['disagreeing']}")
         elif st['step'] == 'contest':
             z = ', '.join('-' if v is None else f'{v:.2f}' for v in st['z'])
-            print(f"  {ts} CONTEST node {st['node']} (at {st['at_node']}) route {st['route_nodes']} nodes: z [{z}] vs {st['min_z']} -> {st['decision']}")
+            pz = ', '.join('-' if v is None else f'{v:.2f}' for v in st.get('piece_z', []))
+            pieces = f" pieces [{pz}]" if pz else ''
+            print(f"  {ts} CONTEST node {st['node']} (at {st['at_node']}) route {st['route_nodes']} nodes: z [{z}]{pieces} vs {st['min_z']} -> {st['decision']}")
         else:
             print(f"  {ts} {st['step'].upper()} {dict((a,b) for a,b in st.items() if a not in ('step','time_s'))}")
     print(f"  matches {n_m}, agreeing {n_agree}, counted {n_counted}, agreeing-not-past {n_notpast}, agreeing-past-not-independent {n_notindep}; first agreeing at {first_agree}, first counted at {first_counted}")

@@ -37,7 +37,9 @@ pub use interpolated_grid::InterpolatedGrid;
 pub use least_squares::{
     LeastSquaresScanMatcher, LeastSquaresScanMatcherOptions, LeastSquaresSummary,
 };
-pub use paired_evidence::{blocked_paired_z, mean_probability, paired_z, probability_at};
+pub use paired_evidence::{
+    PairedBlocks, blocked_paired_z, mean_probability, paired_z, probability_at,
+};
 pub use real_time_correlative::{
     RealTimeCorrelativeScanMatcher, RealTimeCorrelativeScanMatcherOptions,
 };

@@ -599,6 +599,72 @@ mod tests {
         assert_eq!(search.contest(&scans, &truth, &[nudged]), None);
     }
 
+    /// [`corridor_route`] as a drifting LLO records it: each 0.5 m step's heading off by `drift_rad_per_m`
+    /// per metre more than the last, so the merged cloud bends (the scans themselves are the truth's).
+    fn bent_corridor_route(drift_rad_per_m: f64) -> Vec<(Rigid2, Vec<Point2<f32>>)> {
+        let mut local = Rigid2::identity();
+        corridor_route()
+            .into_iter()
+            .enumerate()
+            .map(|(k, (_, points))| {
+                if k > 0 {
+                    local *= rigid2(0.5, 0.0, 0.5 * drift_rad_per_m);
+                }
+                (local, points)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_route_bent_by_drift_is_judged_in_pieces() {
+        let grid = corridors_grid();
+        // Per point, as in the tests above: the pillar tells the corridors apart.
+        let options = RelocalizationOptions {
+            route_block_m: 0.0,
+            ..RelocalizationOptions::default()
+        };
+        let search = StartSearch::new(&grid, &options);
+        let truth = rigid2(3.0, 1.0, 0.0);
+        let look_alike = rigid2(3.0, 9.0, 0.0);
+        let straight = corridor_route();
+        let rigid = |scans: &[(Rigid2, Vec<Point2<f32>>)]| {
+            search.contest_each(scans, &truth, &[look_alike])[0].unwrap()
+        };
+        let pieces = |scans: &[(Rigid2, Vec<Point2<f32>>)]| {
+            search.contest_each_in_pieces(scans, &truth, &[look_alike], 4.0)[0].unwrap()
+        };
+        // Straight, the pieces see the pillar as the whole route does, and more sharply.
+        assert!(
+            pieces(&straight) > rigid(&straight),
+            "{} {}",
+            pieces(&straight),
+            rigid(&straight)
+        );
+        // Bent by 1°/m (15° over the route), one rigid pose fits neither corridor: the whole route decides
+        // nothing, and the pieces, each refined where it is, still see the pillar.
+        let bent = bent_corridor_route(1f64.to_radians());
+        let (bent_rigid, bent_pieces) = (rigid(&bent), pieces(&bent));
+        assert!(bent_rigid.abs() < 0.5, "rigid z {bent_rigid}");
+        assert!(bent_pieces > 2.0, "pieces z {bent_pieces}");
+        // One test either way round: the pieces give the look-alike, placed, the same freedom.
+        let swapped = search.contest_each_in_pieces(&bent, &look_alike, &[truth], 4.0)[0].unwrap();
+        assert!(
+            (swapped + bent_pieces).abs() < 1e-9,
+            "{swapped} {bent_pieces}"
+        );
+        // Off: no pieces; a rival that refines onto the placement is no rival, as in `contest_each`.
+        assert!(
+            search
+                .contest_each_in_pieces(&straight, &truth, &[look_alike], 0.0)
+                .is_empty()
+        );
+        let nudged = truth * rigid2(0.05, 0.02, 0.0);
+        assert_eq!(
+            search.contest_each_in_pieces(&straight, &truth, &[nudged], 4.0),
+            vec![None]
+        );
+    }
+
     #[test]
     fn one_pillar_is_one_piece_of_evidence() {
         // The route past the pillar, as in the test above: per point the pillar's dozen points decide

@@ -40,7 +40,9 @@
 //!    are searched near the placement, so in a look-alike aisle they agree with a wrong one too: before
 //!    committing, the session's route since the start must also fit the placement decisively better than
 //!    every rival the placing search ranked below it ([`StartSearch::contest`],
-//!    [`SessionStartOptions::probation_min_z`]); a rival that fits decisively better revokes it.
+//!    [`SessionStartOptions::probation_min_z`]; where that is undecided, the same test in pieces of the
+//!    route, each refined on its own, may decide for the placement: `contest_piece_m`); a rival that fits
+//!    decisively better revokes it.
 //!    [`SessionStartOptions::probation_disagreements`] independent disagreeing matches, or
 //!    `probation_timeout_m` of route without a commit, revoke the placement and searching resumes (a
 //!    search that finds a revoked placement again is refused, unless its paired test reaches
@@ -149,6 +151,11 @@ pub struct SessionStartOptions {
     /// ranked below it by this paired test ([`StartSearch::contest`]); a rival as much better revokes it.
     /// Unitless (about standard errors; 0 = no test). Default 4. Why: `docs/TUNING.md#ss-probation-min-z`.
     pub probation_min_z: f64,
+    /// Where the route's test against a rival is undecided, test it again in pieces of this much route,
+    /// each refined on its own ([`StartSearch::contest_each_in_pieces`]); a rival the pieces beat by
+    /// `probation_min_z` is beaten (only the whole route's test overturns). Metres ≥ 0 (0 = off).
+    /// Default 4 m. Why: `docs/TUNING.md#ss-contest-piece-m`.
+    pub contest_piece_m: f64,
     /// While a placement is on probation, no match has agreed with it yet and the latest
     /// `recent_search_nodes` nodes fit the map below `min_unfiltered_score` there, search the whole map
     /// again every `retry_every_n_nodes` nodes (the route since the start, decided as a retry); an answer
@@ -187,6 +194,7 @@ impl Default for SessionStartOptions {
             probation_timeout_m: 0.0,
             revoked_radius_m: 1.0,
             probation_min_z: 4.0,
+            contest_piece_m: 4.0,
             search_while_unconfirmed: true,
             commit_dock_placement_at_end: true,
             defer_contested_dock_check: true,
@@ -258,6 +266,9 @@ impl SessionStartOptions {
         }
         if !non_negative(self.probation_min_z) {
             return out_of_range("probation_min_z", "must be a non-negative number");
+        }
+        if !non_negative(self.contest_piece_m) {
+            return out_of_range("contest_piece_m", "must be a non-negative number of metres");
         }
         Ok(())
     }
@@ -852,6 +863,7 @@ impl SessionStart {
             node,
             route_nodes: self.cloud.len(),
             z: Vec::new(),
+            piece_z: Vec::new(),
             min_z,
             decision: "upheld",
         };
@@ -871,11 +883,30 @@ impl SessionStart {
         step.z = search.contest_each(scans, &placement.global_from_local, &self.rivals);
         // `StartSearch::contest`: the weakest of the tests.
         let weakest = step.z.iter().flatten().copied().min_by(f64::total_cmp);
-        let (contest, decision) = match weakest {
-            None => (Contest::Upheld, "upheld"),
-            Some(z) if z >= min_z => (Contest::Upheld, "upheld"),
-            Some(z) if z <= -min_z => (Contest::Overturned, "overturned"),
-            Some(_) => {
+        let undecided = weakest.is_some_and(|z| z > -min_z && z < min_z);
+        if undecided && self.options.contest_piece_m > 0.0 {
+            step.piece_z = search.contest_each_in_pieces(
+                scans,
+                &placement.global_from_local,
+                &self.rivals,
+                self.options.contest_piece_m,
+            );
+        }
+        // A rival is beaten by the whole route's test or by its pieces'.
+        let weakest_beaten = step
+            .z
+            .iter()
+            .enumerate()
+            .filter_map(|(i, z)| {
+                let piece = step.piece_z.get(i).copied().flatten();
+                z.map(|z| piece.map_or(z, |piece| z.max(piece)))
+            })
+            .min_by(f64::total_cmp);
+        let (contest, decision) = match (weakest, weakest_beaten) {
+            (None, _) => (Contest::Upheld, "upheld"),
+            (Some(z), _) if z <= -min_z => (Contest::Overturned, "overturned"),
+            (_, Some(z)) if z >= min_z => (Contest::Upheld, "upheld"),
+            _ => {
                 self.contested_at_m = Some(path_m);
                 (Contest::Undecided, "undecided")
             }

@@ -77,23 +77,68 @@ pub fn blocked_paired_z(
     if block_m <= 0.0 {
         return paired_z(grid, cloud, better, other);
     }
-    // Ordered, so that the sums, and every decision on them, are the same in every run.
-    let mut blocks: BTreeMap<(i64, i64), f64> = BTreeMap::new();
-    for p in cloud {
-        let d = probability_at(grid, better, *p) - probability_at(grid, other, *p);
-        let key = (
-            (f64::from(p.x) / block_m).floor() as i64,
-            (f64::from(p.y) / block_m).floor() as i64,
-        );
-        *blocks.entry(key).or_default() += d;
+    let mut blocks = PairedBlocks::new(block_m);
+    blocks.add(grid, cloud, better, other);
+    blocks.z()
+}
+
+/// The block sums of [`blocked_paired_z`], gathered piece by piece: each piece of one cloud (points in the
+/// cloud's frame) is compared at its own pair of poses, and its differences are added to the same
+/// `block_m` squares of the cloud's frame (`block_m` ≤ 0: every point its own block, as in [`paired_z`]).
+/// One piece is [`blocked_paired_z`] itself.
+#[derive(Clone, Debug)]
+pub struct PairedBlocks {
+    block_m: f64,
+    /// Ordered, so that the sums, and every decision on them, are the same in every run.
+    blocks: BTreeMap<(i64, i64), f64>,
+    /// Points added so far (the blocks' keys when `block_m` ≤ 0).
+    points: i64,
+}
+
+impl PairedBlocks {
+    /// No evidence yet, blocks of `block_m` metres.
+    pub fn new(block_m: f64) -> Self {
+        Self {
+            block_m,
+            blocks: BTreeMap::new(),
+            points: 0,
+        }
     }
-    let (sum, squares) = blocks
-        .values()
-        .fold((0.0, 0.0), |(sum, squares), d| (sum + d, squares + d * d));
-    if squares > 0.0 {
-        sum / squares.sqrt()
-    } else {
-        0.0
+
+    /// Adds the differences of `piece` (points in the cloud's frame) between `better` and `other`.
+    pub fn add(
+        &mut self,
+        grid: &ProbabilityGrid,
+        piece: &[Point2<f32>],
+        better: &Rigid2,
+        other: &Rigid2,
+    ) {
+        for p in piece {
+            let d = probability_at(grid, better, *p) - probability_at(grid, other, *p);
+            let key = if self.block_m > 0.0 {
+                (
+                    (f64::from(p.x) / self.block_m).floor() as i64,
+                    (f64::from(p.y) / self.block_m).floor() as i64,
+                )
+            } else {
+                (self.points, 0)
+            };
+            self.points += 1;
+            *self.blocks.entry(key).or_default() += d;
+        }
+    }
+
+    /// `ΣD / √(ΣD²)` over the blocks: positive when `better` fits better (0 without evidence).
+    pub fn z(&self) -> f64 {
+        let (sum, squares) = self
+            .blocks
+            .values()
+            .fold((0.0, 0.0), |(sum, squares), d| (sum + d, squares + d * d));
+        if squares > 0.0 {
+            sum / squares.sqrt()
+        } else {
+            0.0
+        }
     }
 }
 

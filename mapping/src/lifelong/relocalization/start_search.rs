@@ -11,9 +11,9 @@ use crate::geometry::{Rigid2, Rigid2Ext as _};
 use crate::grid::ProbabilityGrid;
 use crate::local_slam::voxel_filter;
 use crate::scan_matching::{
-    LeastSquaresScanMatcher, RealTimeCorrelativeScanMatcher, RealTimeCorrelativeScanMatcherOptions,
-    Relocalizer, RelocalizerOptions, blocked_paired_z, clearly_different, max_filtered,
-    mean_probability,
+    LeastSquaresScanMatcher, PairedBlocks, RealTimeCorrelativeScanMatcher,
+    RealTimeCorrelativeScanMatcherOptions, Relocalizer, RelocalizerOptions, blocked_paired_z,
+    clearly_different, max_filtered, mean_probability,
 };
 
 /// What [`StartSearch::evidence`] found: the best pose and how decisively it beats the others.
@@ -367,6 +367,46 @@ impl StartSearch {
             .collect()
     }
 
+    /// [`Self::contest_each`] judged in pieces: the route cut every `piece_m` metres (of route, in the
+    /// scans' local frame), each piece refined on its own from where the whole cloud's refinement put the
+    /// placement and from where it put each rival, and the differences of every piece summed into the same
+    /// `route_block_m` blocks ([`PairedBlocks`]). LLO's drift bends a long route, which one rigid pose fits
+    /// only in part; each piece is refined where it is, at the placement and at the rival alike. The
+    /// order and the `None`s are [`Self::contest_each`]'s; empty when there are no points or `piece_m` ≤ 0.
+    pub fn contest_each_in_pieces(
+        &self,
+        scans: &[(Rigid2, Vec<Point2<f32>>)],
+        global_from_local: &Rigid2,
+        rivals: &[Rigid2],
+        piece_m: f64,
+    ) -> Vec<Option<f64>> {
+        if piece_m <= 0.0 {
+            return Vec::new();
+        }
+        let Some((first_from_local, cloud)) = merge_scans(scans, self.options.voxel_size) else {
+            return Vec::new();
+        };
+        let local_from_first = first_from_local.inverse();
+        let grid = self.sharp_grid();
+        let placed = self.sharpen(&cloud, &(global_from_local * local_from_first));
+        let pieces = route_pieces(scans, piece_m, self.options.voxel_size);
+        rivals
+            .iter()
+            .map(|rival| self.sharpen(&cloud, &(rival * local_from_first)))
+            .map(|rival| {
+                clearly_different(&placed, &rival).then(|| {
+                    let mut blocks = PairedBlocks::new(self.options.route_block_m);
+                    for piece in &pieces {
+                        let at_placement = self.sharpen(piece, &placed);
+                        let at_rival = self.sharpen(piece, &rival);
+                        blocks.add(grid, piece, &at_placement, &at_rival);
+                    }
+                    blocks.z()
+                })
+            })
+            .collect()
+    }
+
     /// Whether a fit (a [`CloudFit::sharp_score`]) reaches `min_unfiltered_score`.
     pub fn fits(&self, fit: f32) -> bool {
         fit >= self.options.min_unfiltered_score
@@ -603,6 +643,48 @@ pub(super) fn thinned_to(
         thinned = voxel_filter(cloud, size);
     }
     thinned
+}
+
+/// The points of `scans` (`(local_from_tracking, points)`) in the first scan's frame, as [`merge_scans`]
+/// puts them, cut into pieces of `piece_m` metres of route (the distance between consecutive scans'
+/// origins), each thinned to `voxel_size` (0: not at all); empty pieces are left out.
+fn route_pieces(
+    scans: &[(Rigid2, Vec<Point2<f32>>)],
+    piece_m: f64,
+    voxel_size: f64,
+) -> Vec<Vec<Point2<f32>>> {
+    let Some((first_pose, _)) = scans.first() else {
+        return Vec::new();
+    };
+    let first_from_local = first_pose.inverse();
+    let mut pieces: Vec<Vec<Point2<f32>>> = Vec::new();
+    let mut piece: Vec<Point2<f32>> = Vec::new();
+    let (mut route_m, mut piece_start_m) = (0.0, 0.0);
+    let mut previous = first_pose.translation.vector;
+    for (local_pose, points) in scans {
+        route_m += (local_pose.translation.vector - previous).norm();
+        previous = local_pose.translation.vector;
+        if route_m - piece_start_m >= piece_m {
+            pieces.push(std::mem::take(&mut piece));
+            piece_start_m = route_m;
+        }
+        let first_from_tracking = first_from_local * local_pose;
+        piece.extend(points.iter().map(|p| {
+            (first_from_tracking * Point2::new(f64::from(p.x), f64::from(p.y))).cast::<f32>()
+        }));
+    }
+    pieces.push(piece);
+    pieces
+        .into_iter()
+        .map(|piece| {
+            if voxel_size > 0.0 {
+                voxel_filter(&piece, voxel_size as f32)
+            } else {
+                piece
+            }
+        })
+        .filter(|piece| !piece.is_empty())
+        .collect()
 }
 
 /// Coarsest voxels [`thinned_to`] uses, metres: beyond this a cloud no longer has a room's shape.

@@ -106,9 +106,13 @@ pub struct ProbationContest {
     /// route better; `None` for a rival that sharpened onto the placement itself. Empty when no test was
     /// made (`skipped` or `upheld` without one).
     pub z: Vec<Option<f64>>,
+    /// The same test in pieces of `contest_piece_m` of route, in the rivals' order; empty when it was not
+    /// made (the whole route's test decided, or `contest_piece_m` is 0).
+    pub piece_z: Vec<Option<f64>>,
     /// The bar (`probation_min_z`).
     pub min_z: f64,
-    /// `upheld` (the commit follows), `overturned` (a rival revokes it), `undecided`, or `skipped`: an
+    /// `upheld` (the commit follows: every rival beaten by `z` or `piece_z`), `overturned` (a rival's `z`
+    /// revokes it), `undecided`, or `skipped`: an
     /// undecided test was made less than `probation_min_separation_m` of route before.
     pub decision: &'static str,
 }

@@ -524,6 +524,10 @@ fn invalid_options_are_refused() {
             agreement_rotation_growth: -0.01,
             ..SessionStartOptions::default()
         },
+        SessionStartOptions {
+            contest_piece_m: -4.0,
+            ..SessionStartOptions::default()
+        },
     ];
     for options in bad {
         assert!(options.validate().is_err(), "{options:?}");
