@@ -3,8 +3,10 @@
 mod closure_acceptance;
 mod correction_probation;
 mod global_slam_state;
+mod optimization;
 mod search_queue;
 mod submap_bend;
+mod trajectory_placement;
 
 pub use global_slam_state::GlobalSlamState;
 
@@ -15,7 +17,7 @@ use nalgebra::{Matrix3, Point2};
 
 use super::{
     ConstraintBuilder, FixedRatioSampler, GlobalSlamOptions, GlobalSlamOptionsError, LoopClosure,
-    LoopClosureCheck, SearchJob, optimization_region,
+    LoopClosureCheck, SearchJob,
 };
 use crate::geometry::Rigid2;
 use crate::grid::ProbabilityGrid;
@@ -259,19 +261,6 @@ impl GlobalSlam {
         Ok(())
     }
 
-    /// Declares that `trajectory`'s matches against other trajectories are computed elsewhere (by GLM on
-    /// its robot, handed in with [`Self::add_search_results`]): no search pairs one of its nodes with
-    /// another trajectory's submap, or one of its submaps with another trajectory's node. Searches within
-    /// the trajectory (its own loop closures) still run here.
-    pub fn set_matched_elsewhere(&mut self, trajectory: u32) {
-        self.matched_elsewhere.insert(trajectory);
-    }
-
-    /// Whether a trajectory still waits for its first cross-trajectory match to be placed in the map.
-    pub fn is_unanchored(&self, trajectory: u32) -> bool {
-        self.unanchored.contains(&trajectory)
-    }
-
     /// Adds a node of `trajectory` as LLO inserted it, together with the submaps its insertion finished.
     /// Queues the loop-closure searches it makes possible (see [`Self::take_search_jobs`]).
     pub fn add_node(
@@ -443,329 +432,11 @@ impl GlobalSlam {
         }
     }
 
-    /// Moves an unanchored trajectory so that `closure` holds exactly, and queues the searches its nodes
-    /// can now make near their estimates.
-    fn anchor(&mut self, closure: &LoopClosure) {
-        let trajectory = closure.node.trajectory;
-        let (Some(submap_pose), Some(node_pose)) = (
-            self.graph.pose(VariableId::Submap(closure.submap)),
-            self.graph.pose(VariableId::Node(closure.node)),
-        ) else {
-            return;
-        };
-        let correction = submap_pose * closure.submap_from_node * node_pose.inverse();
-        self.move_trajectory(trajectory, correction);
-    }
-
-    /// Places an unanchored trajectory (see [`Self::start_trajectory`]) at `global_from_local`, found by
-    /// relocalization after it started: moves its nodes and submaps there and queues the searches its nodes
-    /// can now make near their estimates. Returns false (and changes nothing) when the trajectory is not
-    /// unanchored.
-    pub fn place_trajectory(&mut self, trajectory: u32, global_from_local: Rigid2) -> bool {
-        if !self.unanchored.contains(&trajectory) {
-            return false;
-        }
-        let correction = global_from_local * self.global_from_local(trajectory).inverse();
-        self.move_trajectory(trajectory, correction);
-        true
-    }
-
-    /// Undoes a placement (see [`Self::place_trajectory`]) found wrong: removes every constraint between
-    /// `trajectory` and the other trajectories (its matches against their submaps and theirs against its
-    /// own), forgets its queued and pending cross-trajectory matches, and makes it unanchored again (its
-    /// estimates keep their values, which mean nothing in the map frame until it is placed again).
-    /// Returns false (and changes nothing) when it is unanchored already or unknown.
-    pub fn unplace_trajectory(&mut self, trajectory: u32) -> bool {
-        if self.unanchored.contains(&trajectory) || !self.last_node.contains_key(&trajectory) {
-            return false;
-        }
-        let crossing: Vec<_> = self
-            .graph
-            .constraints()
-            .filter(|(_, c)| {
-                let (a, b) = (c.from.trajectory(), c.to.trajectory());
-                a != b && (a == trajectory || b == trajectory)
-            })
-            .map(|(id, _)| id)
-            .collect();
-        for id in crossing {
-            if let Ok(c) = self.graph.remove_constraint(id) {
-                self.changed.extend([c.from, c.to]);
-            }
-        }
-        let crosses = |node: NodeId, submap: SubmapId| {
-            node.trajectory != submap.trajectory
-                && (node.trajectory == trajectory || submap.trajectory == trajectory)
-        };
-        // Its cross-trajectory closures are gone for good, retracted ones included (never put back).
-        for (closure, state) in self
-            .accepted_loop_closures
-            .iter()
-            .zip(&mut self.closure_states)
-        {
-            if crosses(closure.node, closure.submap) {
-                *state = ClosureState::Gone;
-            }
-        }
-        self.pending_jobs.retain(|j| !crosses(j.node, j.submap));
-        self.probations
-            .retain(|p| !p.closures.iter().any(|&(n, s)| crosses(n, s)));
-        self.pending_unconfirmed
-            .retain(|(c, _)| !crosses(c.node, c.submap));
-        self.pending_beyond_drift
-            .retain(|(c, _)| !crosses(c.node, c.submap));
-        self.sync_bends();
-        self.last_loop_path.remove(&trajectory);
-        self.recovery_path.remove(&trajectory);
-        self.unanchored.insert(trajectory);
-        true
-    }
-
-    /// Stops treating `trajectory`'s cross-trajectory matches as found elsewhere (see
-    /// [`Self::set_matched_elsewhere`]): its nodes are searched here again from now on.
-    pub fn clear_matched_elsewhere(&mut self, trajectory: u32) {
-        self.matched_elsewhere.remove(&trajectory);
-    }
-
-    /// Applies `correction` (new global from old global) to every variable of `trajectory`, anchors it and
-    /// queues its nodes' searches.
-    fn move_trajectory(&mut self, trajectory: u32, correction: Rigid2) {
-        let variables: Vec<(VariableId, Rigid2)> = self
-            .graph
-            .variables()
-            .filter(|(id, _, _)| id.trajectory() == trajectory)
-            .map(|(id, pose, _)| (id, pose))
-            .collect();
-        for (id, pose) in variables {
-            // Cannot fail: the variable exists and a rigid motion keeps poses finite.
-            let _ = self.graph.set_pose(id, correction * pose);
-        }
-        let global_from_local = correction * self.global_from_local(trajectory);
-        self.global_from_local.insert(trajectory, global_from_local);
-        self.unanchored.remove(&trajectory);
-        let nodes: Vec<NodeId> = self
-            .trajectory_nodes(trajectory)
-            .map(|(id, _)| *id)
-            .collect();
-        for node in nodes {
-            self.queue_searches_for_node(node);
-        }
-    }
-
     /// Runs every queued search on this thread and adds the results.
     pub fn run_pending_searches(&mut self) -> Vec<GlobalSlamEvent> {
         let jobs = self.take_search_jobs();
         let results: Vec<LoopClosure> = jobs.iter().filter_map(|j| self.builder.run(j)).collect();
         self.add_search_results(results)
-    }
-
-    /// Optimizes the whole graph now and updates each trajectory's `global_from_local`.
-    pub fn optimize(&mut self) -> OptimizationSummary {
-        let held = self.hold_settled();
-        let mut summary = self.optimizer.optimize(&mut self.graph);
-        self.release(held);
-        if self.retract_refused_loop_closures() > 0 {
-            // Without the refused closures' pull (and the bends they granted).
-            self.sync_bends();
-            let held = self.hold_settled();
-            summary = self.optimizer.optimize(&mut self.graph);
-            self.release(held);
-        }
-        self.optimized();
-        self.nodes_since_optimization = 0;
-        self.update_global_from_local();
-        summary
-    }
-
-    /// Marks a trajectory settled (or not): once any is, optimizations move only the unsettled
-    /// trajectories' variables, the endpoints of constraints added or changed since the last
-    /// optimization, and what lies within `settled_region_hops` constraints of them, when that is set (see
-    /// [`optimization_region`]); the rest holds still. A lifelong map settles a session when it ends.
-    /// Settling a trajectory also ends the probation of its corrections, kept ones included (see
-    /// [`CorrectionProbation`]): its route is over, and from then on retraction judges their matches as
-    /// any, against what later trajectories add.
-    pub fn set_trajectory_settled(&mut self, trajectory: u32, settled: bool) {
-        if settled {
-            self.settled.insert(trajectory);
-            self.probations
-                .retain(|p| p.newest.node.trajectory != trajectory);
-        } else {
-            self.settled.remove(&trajectory);
-        }
-    }
-
-    /// Notes that these variables' constraints changed other than by an addition (the caller deleted
-    /// some through [`Self::graph_mut`]): the next optimization moves them even if they are settled.
-    pub fn mark_changed(&mut self, ids: impl IntoIterator<Item = VariableId>) {
-        self.changed.extend(ids);
-    }
-
-    /// Fixes, for one optimization, every free variable outside the optimization region (nothing when no
-    /// trajectory is settled); returns them for [`Self::release`].
-    fn hold_settled(&mut self) -> Vec<VariableId> {
-        let Some(hops) = self.options.settled_region_hops else {
-            return Vec::new();
-        };
-        if self.settled.is_empty() {
-            return Vec::new();
-        }
-        let seeds: Vec<VariableId> = self
-            .graph
-            .variables()
-            .map(|(id, _, _)| id)
-            .filter(|id| !self.settled.contains(&id.trajectory()))
-            .chain(
-                self.graph
-                    .constraints_since(self.new_constraints_from)
-                    .flat_map(|(_, c)| [c.from, c.to]),
-            )
-            .chain(self.changed.iter().copied())
-            .collect();
-        let region = optimization_region(&self.graph, seeds, hops);
-        let held: Vec<VariableId> = self
-            .graph
-            .variables()
-            .filter(|(id, _, fixed)| !fixed && !region.contains(id))
-            .map(|(id, _, _)| id)
-            .collect();
-        for &id in &held {
-            // Cannot fail: the id came from the graph.
-            let _ = self.graph.set_fixed(id, true);
-        }
-        held
-    }
-
-    /// Frees what [`Self::hold_settled`] fixed.
-    fn release(&mut self, held: Vec<VariableId>) {
-        for id in held {
-            let _ = self.graph.set_fixed(id, false);
-        }
-    }
-
-    /// Everything added or changed so far is now optimized.
-    fn optimized(&mut self) {
-        self.new_constraints_from = self.graph.next_constraint_id();
-        self.changed.clear();
-    }
-
-    /// Takes out of the graph every accepted loop closure that the optimized graph refuses — its χ² (with
-    /// its own information) exceeds `loop_closure_retraction_chi2` at the current poses — and puts back
-    /// every retracted one the graph now fits within it. A closure the graph has just been optimized with
-    /// and still violates by that much disagrees with the odometry chain and the other closures together
-    /// (a look-alike place, or several matches that agreed on the wrong one); as later closures reshape
-    /// the graph, it is judged again. Returns how many changed sides.
-    fn retract_refused_loop_closures(&mut self) -> usize {
-        let max_chi2 = self.options.loop_closure_retraction_chi2;
-        if max_chi2 <= 0.0 {
-            return 0;
-        }
-        let mut changed = 0;
-        let on_probation = self.closures_on_probation();
-        for (closure, state) in self
-            .accepted_loop_closures
-            .iter()
-            .zip(&mut self.closure_states)
-        {
-            if on_probation.contains(&(closure.node, closure.submap)) {
-                continue;
-            }
-            let constraint = match state {
-                ClosureState::InGraph(id) => {
-                    let Some(c) = self.graph.constraint(*id) else {
-                        *state = ClosureState::Gone; // its node or submap was trimmed
-                        continue;
-                    };
-                    c.clone()
-                }
-                ClosureState::Retracted(c) => c.clone(),
-                ClosureState::Gone => continue,
-            };
-            let (Some(from), Some(to)) = (
-                self.graph.pose(constraint.from),
-                self.graph.pose(constraint.to),
-            ) else {
-                *state = ClosureState::Gone;
-                continue;
-            };
-            let fits = constraint.chi2(&from, &to) <= max_chi2;
-            match state {
-                ClosureState::InGraph(id) if !fits && self.graph.remove_constraint(*id).is_ok() => {
-                    self.changed.extend([constraint.from, constraint.to]);
-                    *state = ClosureState::Retracted(constraint);
-                    changed += 1;
-                }
-                ClosureState::Retracted(_) if fits => {
-                    if let Ok(id) = self.graph.add_constraint(constraint) {
-                        *state = ClosureState::InGraph(id);
-                        changed += 1;
-                    }
-                }
-                _ => {}
-            }
-        }
-        changed
-    }
-
-    /// Loop closures out of the graph now because the optimized graph refuses them (see
-    /// `GlobalSlamOptions::loop_closure_retraction_chi2`).
-    pub fn closures_retracted(&self) -> usize {
-        self.closure_states
-            .iter()
-            .filter(|s| matches!(s, ClosureState::Retracted(_)))
-            .count()
-    }
-
-    /// Re-derives each trajectory's `global_from_local` from its last node's optimized pose.
-    fn update_global_from_local(&mut self) {
-        for (&trajectory, last) in &self.last_node {
-            if let (Some(global), Some(record)) = (
-                self.graph.pose(VariableId::Node(*last)),
-                self.nodes.get(last),
-            ) {
-                self.global_from_local
-                    .insert(trajectory, global * record.local_pose.inverse());
-            }
-        }
-    }
-
-    /// Optimizes with at most `max_iterations` Levenberg–Marquardt steps (the same options otherwise), as
-    /// after a batch of sparsifications; does not reset the periodic-optimization counter.
-    pub fn optimize_capped(&mut self, max_iterations: usize) -> OptimizationSummary {
-        let stale = self
-            .capped_optimizer
-            .as_ref()
-            .is_none_or(|o| o.options().max_iterations != max_iterations);
-        if stale {
-            let options = crate::pose_graph::OptimizerOptions {
-                max_iterations,
-                ..self.options.optimizer.clone()
-            };
-            // The options were validated at construction and max_iterations is not checked.
-            self.capped_optimizer = Optimizer::new(options).ok();
-        }
-        let held = self.hold_settled();
-        let summary = match self.capped_optimizer.as_mut() {
-            Some(optimizer) => optimizer.optimize(&mut self.graph),
-            None => self.optimizer.optimize(&mut self.graph),
-        };
-        self.release(held);
-        self.optimized();
-        self.update_global_from_local();
-        summary
-    }
-
-    /// Holds every variable of a trajectory fixed (or frees it) in later optimizations.
-    pub fn set_trajectory_fixed(&mut self, trajectory: u32, fixed: bool) {
-        let ids: Vec<VariableId> = self
-            .graph
-            .variables()
-            .filter(|(id, _, _)| id.trajectory() == trajectory)
-            .map(|(id, _, _)| id)
-            .collect();
-        for id in ids {
-            // Cannot fail: the id came from the graph.
-            let _ = self.graph.set_fixed(id, fixed);
-        }
     }
 
     /// Forgets submaps and nodes whose variables the caller has removed from (or is about to remove
