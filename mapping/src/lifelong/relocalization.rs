@@ -565,19 +565,23 @@ mod tests {
         );
     }
 
-    #[test]
-    fn the_route_overturns_a_look_alike_placement_and_upholds_the_true_one() {
-        let grid = corridors_grid();
-        // Per point (see `one_pillar_is_one_piece_of_evidence`).
+    /// The corridors prepared for searches compared point by point (see
+    /// `one_pillar_is_one_piece_of_evidence`), and the two placements of [`corridor_route`]'s LLO frame
+    /// (its first pose) they are told apart by: the truth, and the look-alike in the other corridor, 8 m
+    /// over.
+    fn per_point_corridors() -> (StartSearch, Rigid2, Rigid2) {
         let options = RelocalizationOptions {
             route_block_m: 0.0,
             ..RelocalizationOptions::default()
         };
-        let search = StartSearch::new(&grid, &options);
-        // The robot drives the first corridor from x = 3 to x = 18.5 (past the pillar); LLO's frame is
-        // its first pose. The look-alike placement puts it in the other corridor, 8 m over.
-        let truth = rigid2(3.0, 1.0, 0.0);
-        let look_alike = rigid2(3.0, 9.0, 0.0);
+        let search = StartSearch::new(&corridors_grid(), &options);
+        (search, rigid2(3.0, 1.0, 0.0), rigid2(3.0, 9.0, 0.0))
+    }
+
+    #[test]
+    fn the_route_overturns_a_look_alike_placement_and_upholds_the_true_one() {
+        // The robot drives the first corridor from x = 3 to x = 18.5 (past the pillar).
+        let (search, truth, look_alike) = per_point_corridors();
         let scans = corridor_route();
         // Before the pillar neither fits the route better (the one pillar gives z ≈ 3.3 past it).
         let early = search.contest(&scans[..8], &look_alike, &[truth]).unwrap();
@@ -617,15 +621,8 @@ mod tests {
 
     #[test]
     fn a_route_bent_by_drift_is_judged_in_pieces() {
-        let grid = corridors_grid();
         // Per point, as in the tests above: the pillar tells the corridors apart.
-        let options = RelocalizationOptions {
-            route_block_m: 0.0,
-            ..RelocalizationOptions::default()
-        };
-        let search = StartSearch::new(&grid, &options);
-        let truth = rigid2(3.0, 1.0, 0.0);
-        let look_alike = rigid2(3.0, 9.0, 0.0);
+        let (search, truth, look_alike) = per_point_corridors();
         let straight = corridor_route();
         let rigid = |scans: &[(Rigid2, Vec<Point2<f32>>)]| {
             search.contest_each(scans, &truth, &[look_alike])[0].unwrap()

@@ -49,7 +49,7 @@ impl GlobalSlam {
 
     /// Fixes, for one optimization, every free variable outside the optimization region (nothing when no
     /// trajectory is settled); returns them for [`Self::release`].
-    pub(super) fn hold_settled(&mut self) -> Vec<VariableId> {
+    fn hold_settled(&mut self) -> Vec<VariableId> {
         let Some(hops) = self.options.settled_region_hops else {
             return Vec::new();
         };
@@ -83,14 +83,14 @@ impl GlobalSlam {
     }
 
     /// Frees what [`Self::hold_settled`] fixed.
-    pub(super) fn release(&mut self, held: Vec<VariableId>) {
+    fn release(&mut self, held: Vec<VariableId>) {
         for id in held {
             let _ = self.graph.set_fixed(id, false);
         }
     }
 
     /// Everything added or changed so far is now optimized.
-    pub(super) fn optimized(&mut self) {
+    fn optimized(&mut self) {
         self.new_constraints_from = self.graph.next_constraint_id();
         self.changed.clear();
     }
@@ -101,7 +101,7 @@ impl GlobalSlam {
     /// and still violates by that much disagrees with the odometry chain and the other closures together
     /// (a look-alike place, or several matches that agreed on the wrong one); as later closures reshape
     /// the graph, it is judged again. Returns how many changed sides.
-    pub(super) fn retract_refused_loop_closures(&mut self) -> usize {
+    fn retract_refused_loop_closures(&mut self) -> usize {
         let max_chi2 = self.options.loop_closure_retraction_chi2;
         if max_chi2 <= 0.0 {
             return 0;
@@ -163,7 +163,7 @@ impl GlobalSlam {
     }
 
     /// Re-derives each trajectory's `global_from_local` from its last node's optimized pose.
-    pub(super) fn update_global_from_local(&mut self) {
+    fn update_global_from_local(&mut self) {
         for (&trajectory, last) in &self.last_node {
             if let (Some(global), Some(record)) = (
                 self.graph.pose(VariableId::Node(*last)),

@@ -107,7 +107,7 @@ impl GlobalSlam {
 
     /// Applies `correction` (new global from old global) to every variable of `trajectory`, anchors it and
     /// queues its nodes' searches.
-    pub(super) fn move_trajectory(&mut self, trajectory: u32, correction: Rigid2) {
+    fn move_trajectory(&mut self, trajectory: u32, correction: Rigid2) {
         let variables: Vec<(VariableId, Rigid2)> = self
             .graph
             .variables()

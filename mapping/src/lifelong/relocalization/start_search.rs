@@ -350,21 +350,15 @@ impl StartSearch {
         global_from_local: &Rigid2,
         rivals: &[Rigid2],
     ) -> Vec<Option<f64>> {
-        let Some((first_from_local, cloud)) = merge_scans(scans, self.options.voxel_size) else {
-            return Vec::new();
-        };
-        let local_from_first = first_from_local.inverse();
-        let grid = self.sharp_grid();
-        let placed = self.sharpen(&cloud, &(global_from_local * local_from_first));
-        rivals
-            .iter()
-            .map(|rival| self.sharpen(&cloud, &(rival * local_from_first)))
-            .map(|rival| {
-                clearly_different(&placed, &rival).then(|| {
-                    blocked_paired_z(grid, &cloud, &placed, &rival, self.options.route_block_m)
-                })
-            })
-            .collect()
+        self.contest_each_by(scans, global_from_local, rivals, |cloud, placed, rival| {
+            blocked_paired_z(
+                self.sharp_grid(),
+                cloud,
+                placed,
+                rival,
+                self.options.route_block_m,
+            )
+        })
     }
 
     /// [`Self::contest_each`] judged in pieces: the route cut every `piece_m` metres (of route, in the
@@ -383,27 +377,37 @@ impl StartSearch {
         if piece_m <= 0.0 {
             return Vec::new();
         }
+        let pieces = route_pieces(scans, piece_m, self.options.voxel_size);
+        self.contest_each_by(scans, global_from_local, rivals, |_, placed, rival| {
+            let mut blocks = PairedBlocks::new(self.options.route_block_m);
+            for piece in &pieces {
+                let at_placement = self.sharpen(piece, placed);
+                let at_rival = self.sharpen(piece, rival);
+                blocks.add(self.sharp_grid(), piece, &at_placement, &at_rival);
+            }
+            blocks.z()
+        })
+    }
+
+    /// The contests' common part: the merged cloud of `scans`, the placement and each rival refined with it
+    /// on the unfiltered map, and `test(cloud, placed, rival)` for each rival clearly different from the
+    /// placement (`None` for one that refined onto it); empty when there are no points.
+    fn contest_each_by(
+        &self,
+        scans: &[(Rigid2, Vec<Point2<f32>>)],
+        global_from_local: &Rigid2,
+        rivals: &[Rigid2],
+        test: impl Fn(&[Point2<f32>], &Rigid2, &Rigid2) -> f64,
+    ) -> Vec<Option<f64>> {
         let Some((first_from_local, cloud)) = merge_scans(scans, self.options.voxel_size) else {
             return Vec::new();
         };
         let local_from_first = first_from_local.inverse();
-        let grid = self.sharp_grid();
         let placed = self.sharpen(&cloud, &(global_from_local * local_from_first));
-        let pieces = route_pieces(scans, piece_m, self.options.voxel_size);
         rivals
             .iter()
             .map(|rival| self.sharpen(&cloud, &(rival * local_from_first)))
-            .map(|rival| {
-                clearly_different(&placed, &rival).then(|| {
-                    let mut blocks = PairedBlocks::new(self.options.route_block_m);
-                    for piece in &pieces {
-                        let at_placement = self.sharpen(piece, &placed);
-                        let at_rival = self.sharpen(piece, &rival);
-                        blocks.add(grid, piece, &at_placement, &at_rival);
-                    }
-                    blocks.z()
-                })
-            })
+            .map(|rival| clearly_different(&placed, &rival).then(|| test(&cloud, &placed, &rival)))
             .collect()
     }
 
