@@ -34,10 +34,14 @@ use proto::UploadItem;
 use rand::SeedableRng as _;
 use rand::seq::index::sample;
 use rand_pcg::Pcg64;
-use robot_agent::offline_slam::{SlamConfig, render_map, render_range_data, run_offline};
+use robot_agent::offline_slam::SlamConfig;
 use robot_agent::source::{self, Recording};
 use robot_agent::uplink::run_llo;
 use serde_json::json;
+
+mod reference;
+
+use self::reference::{LOCAL_ALIGNMENT_RADIUS_M, Reference, prepare_aligned, prepare_own};
 
 /// Scans to relocalize: `(local_from_tracking, points)`, first scan first.
 type Stack = Vec<(Rigid2, Vec<Point2<f32>>)>;
@@ -124,8 +128,7 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
     let cut = first
         .time()
         .offset_by(0.6 * last.time().seconds_since(first.time()));
-
-    let relations: Vec<Relation> = match &args.relations {
+    let relations = match &args.relations {
         Some(path) => {
             let file = std::fs::File::open(path)
                 .with_context(|| format!("cannot open {}", path.display()))?;
@@ -134,12 +137,7 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
         }
         None => Vec::new(),
     };
-    let Reference {
-        map,
-        truth,
-        map_poses,
-        full_poses,
-    } = match &args.reference {
+    let reference = match &args.reference {
         Some(path) if path.exists() => Reference::read(path)?,
         cache => {
             let reference = match args.truth {
@@ -156,32 +154,18 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
         .relocalization
         .validate()
         .context("invalid relocalization options")?;
-    anyhow::ensure!(
-        args.stack_s.is_finite() && args.stack_s >= 0.0,
-        "--stack-s must be a non-negative number of seconds"
-    );
-    anyhow::ensure!(
-        args.grow_step_s.is_finite() && args.grow_step_s > 0.0,
-        "--grow-step-s must be a positive number of seconds"
-    );
+    let lengths = stack_lengths(args)?;
+    // LLO runs to the longest stack (`--grow-to-s`, at least `--stack-s`) once per sample.
     let grow_to_s = args.grow_to_s.unwrap_or(args.stack_s).max(args.stack_s);
-    anyhow::ensure!(grow_to_s.is_finite(), "--grow-to-s must be finite");
-    // The stack lengths tried, seconds: `stack_s`, then one growth step more each time up to `grow_to_s`.
-    let mut lengths = vec![args.stack_s];
-    while let Some(&last) = lengths.last()
-        && last + args.grow_step_s <= grow_to_s + 1e-9
-    {
-        lengths.push(last + args.grow_step_s);
-    }
     let build_start = Instant::now();
-    let search = StartSearch::new(&map, &config.relocalization);
+    let search = StartSearch::new(&reference.map, &config.relocalization);
     let precompute_ms = build_start.elapsed().as_secs_f64() * 1e3;
 
     let candidates: Vec<Timestamp> = recording
         .events
         .iter()
         .filter_map(|e| match e {
-            SensorEvent::Scan(s) if truth.contains_key(&s.time) => Some(s.time),
+            SensorEvent::Scan(s) if reference.truth.contains_key(&s.time) => Some(s.time),
             _ => None,
         })
         .collect();
@@ -194,6 +178,11 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
     let mut picks = sample(&mut rng, candidates.len(), n).into_vec();
     picks.sort_unstable();
 
+    let judge = Judge {
+        search: &search,
+        reference: &reference,
+        relations: &relations,
+    };
     let mut times_ms = Vec::with_capacity(n);
     let mut results = Vec::with_capacity(n);
     let mut tally = Tally::default();
@@ -207,23 +196,115 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
             results.push(json!({"time": sampled.to_string(), "answer": "no_scan"}));
             continue;
         };
-        let truth_pose = truth.get(&scored_time).copied();
+        let truth_pose = reference.truth.get(&scored_time).copied();
+        let stack = StackSearch {
+            sampled,
+            first_local,
+            truth_pose,
+            nodes: &nodes,
+        };
+        let decided = stack.search(&search, &lengths, args.every_step);
+        times_ms.push(decided.ms);
+        let Some(truth_pose) = truth_pose else {
+            tally.refused += 1;
+            results.push(json!({"time": sampled.to_string(), "answer": "no_truth"}));
+            continue;
+        };
+        let sample = JudgedSample {
+            sampled,
+            scored_time,
+            first_local,
+            truth_pose,
+            nodes: &nodes,
+            llo_ms,
+        };
+        results.push(judge.judge(&sample, decided, &mut tally));
+    }
+    let report = summary_report(
+        args,
+        n,
+        &tally,
+        &times_ms,
+        &results,
+        precompute_ms,
+        &reference,
+    );
+    let path = args.out.join("report.json");
+    std::fs::write(&path, serde_json::to_string_pretty(&report)? + "\n")
+        .with_context(|| format!("cannot write {}", path.display()))?;
+    println!(
+        "{}",
+        json!({"samples": n, "stack_s": args.stack_s, "success_rate": report["success_rate"],
+            "precision": report["precision"], "answered_rate": report["answered_rate"],
+            "wrong": report["wrong"], "refused": report["refused"],
+            "answers_checked_by_relations": report["answers_checked_by_relations"],
+            "answers_off_by_relations": report["answers_off_by_relations"],
+            "median_ms": report["median_ms"], "p95_ms": report["p95_ms"],
+            "on_observed_ground": report["on_observed_ground"]})
+    );
+    Ok(())
+}
+
+/// The stack lengths tried, seconds: `--stack-s`, then one growth step more each time up to `--grow-to-s`.
+fn stack_lengths(args: &RelocalizeArgs) -> anyhow::Result<Vec<f64>> {
+    anyhow::ensure!(
+        args.stack_s.is_finite() && args.stack_s >= 0.0,
+        "--stack-s must be a non-negative number of seconds"
+    );
+    anyhow::ensure!(
+        args.grow_step_s.is_finite() && args.grow_step_s > 0.0,
+        "--grow-step-s must be a positive number of seconds"
+    );
+    let grow_to_s = args.grow_to_s.unwrap_or(args.stack_s).max(args.stack_s);
+    anyhow::ensure!(grow_to_s.is_finite(), "--grow-to-s must be finite");
+    let mut lengths = vec![args.stack_s];
+    while let Some(&last) = lengths.last()
+        && last + args.grow_step_s <= grow_to_s + 1e-9
+    {
+        lengths.push(last + args.grow_step_s);
+    }
+    Ok(lengths)
+}
+
+/// One sample's stack: the nodes LLO made from its sampled scan on, and the truth of its first node.
+struct StackSearch<'a> {
+    sampled: Timestamp,
+    /// `local_from_tracking` of the first node (the pose scored).
+    first_local: Rigid2,
+    truth_pose: Option<Rigid2>,
+    nodes: &'a [(Timestamp, Rigid2, Vec<Point2<f32>>)],
+}
+
+/// What the stack searches decided: the stack that answered (or the last), its evidence and outcome, its
+/// length, the time of every search until the answer, and every attempt for the report.
+struct Decided {
+    scans: Stack,
+    evidence: Option<SearchEvidence>,
+    outcome: RelocalizationOutcome,
+    stack_s: f64,
+    ms: f64,
+    attempts: Vec<serde_json::Value>,
+}
+
+impl StackSearch<'_> {
+    /// Searches ever longer stacks (`lengths`) until the decision answers; with `every_step`, every
+    /// length is searched and reported, the outcome still the first answer's.
+    fn search(&self, search: &StartSearch, lengths: &[f64], every_step: bool) -> Decided {
         // The scans' local frame at the truth: what the search should find.
-        let truth_global_from_local = truth_pose.map(|t| t * first_local.inverse());
+        let truth_global_from_local = self.truth_pose.map(|t| t * self.first_local.inverse());
         let attempt_error = |global_from_local: &Rigid2| {
-            truth_pose.map(|t| {
-                let p = global_from_local * first_local;
+            self.truth_pose.map(|t| {
+                let p = global_from_local * self.first_local;
                 (p.translation.vector - t.translation.vector).norm()
             })
         };
-        // Search ever longer stacks until the decision answers (one length without `--grow-to-s`); the
-        // time counted is every search until then.
         let mut ms = 0.0;
         let mut attempts = Vec::new();
         let mut decided: Option<(Stack, Option<SearchEvidence>, RelocalizationOutcome, f64)> = None;
         for (k, &length) in lengths.iter().enumerate() {
-            let end = sampled.offset_by(length);
-            let scans: Stack = nodes
+            let end = self.sampled.offset_by(length);
+            let scans: Stack = self
+                .nodes
                 .iter()
                 .enumerate()
                 .filter(|(k, (t, _, _))| *k == 0 || *t <= end)
@@ -258,28 +339,84 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
                     decided = Some((scans, evidence, outcome, length));
                 }
             }
-            if decided.is_some() && !args.every_step {
+            if decided.is_some() && !every_step {
                 break;
             }
         }
-        let Some((scans, evidence, outcome, stack_s_used)) = decided else {
+        let Some((scans, evidence, outcome, stack_s)) = decided else {
             unreachable!("the last length always decides");
         };
-        times_ms.push(ms);
-        let Some(truth_pose) = truth_pose else {
-            tally.refused += 1;
-            results.push(json!({"time": sampled.to_string(), "answer": "no_truth"}));
-            continue;
-        };
+        Decided {
+            scans,
+            evidence,
+            outcome,
+            stack_s,
+            ms,
+            attempts,
+        }
+    }
+}
+
+/// A sample whose first node has a truth, as [`Judge::judge`] scores it.
+struct JudgedSample<'a> {
+    sampled: Timestamp,
+    /// The first node's time: the scan scored.
+    scored_time: Timestamp,
+    first_local: Rigid2,
+    truth_pose: Rigid2,
+    nodes: &'a [(Timestamp, Rigid2, Vec<Point2<f32>>)],
+    llo_ms: f64,
+}
+
+/// What an answer is judged against: the search (for the fit at the truth), the reference and the
+/// relations.
+struct Judge<'a> {
+    search: &'a StartSearch,
+    reference: &'a Reference,
+    relations: &'a [Relation],
+}
+
+impl Judge<'_> {
+    /// Scores one sample's decision into `tally` and returns its line of the report.
+    fn judge(
+        &self,
+        sample: &JudgedSample<'_>,
+        decided: Decided,
+        tally: &mut Tally,
+    ) -> serde_json::Value {
+        let JudgedSample {
+            sampled,
+            scored_time,
+            first_local,
+            truth_pose,
+            nodes,
+            llo_ms,
+        } = *sample;
+        let Decided {
+            scans,
+            evidence,
+            outcome,
+            stack_s: stack_s_used,
+            ms,
+            attempts,
+        } = decided;
+        let reference = self.reference;
+        let truth_global_from_local = truth_pose * first_local.inverse();
         // How the cloud fits at the truth: the best any search could find.
-        let truth_fit = truth_global_from_local.and_then(|g| search.fit(&scans, &g));
+        let truth_fit = self.search.fit(&scans, &truth_global_from_local);
         // How far the scan is from where the map's run went: far means its area may not be mapped.
-        let nearest_mapped_m = map_poses
+        let nearest_mapped_m = reference
+            .map_poses
             .iter()
             .map(|(_, h)| (h.translation.vector - truth_pose.translation.vector).norm())
             .fold(f64::INFINITY, f64::min);
         // The relations' truths of this scan, and how far the scored truth lies from them.
-        let relation_truths = relations_truth(&relations, &map_poses, &full_poses, scored_time);
+        let relation_truths = relations_truth(
+            self.relations,
+            &reference.map_poses,
+            &reference.full_poses,
+            scored_time,
+        );
         let truth_vs_relations_m = median(
             relation_truths
                 .iter()
@@ -338,7 +475,7 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
         let newest = nodes
             .iter()
             .rfind(|(t, _, _)| *t <= stack_end)
-            .and_then(|(t, local, _)| Some((*local, *truth.get(t)?)));
+            .and_then(|(t, local, _)| Some((*local, *reference.truth.get(t)?)));
         // The stack's own shape: the newest node's offset from the first as LLO made it minus the truth's,
         // in the first node's frame (x ahead, y left, degrees), and the true distance between them. LLO's
         // first seconds, matched against a submap that has seen its free space once or twice, come out
@@ -365,7 +502,7 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
             ),
             _ => None,
         };
-        results.push(json!({
+        json!({
             "time": sampled.to_string(),
             "scored_time": scored_time.to_string(),
             "stack_shape_error": stack_shape_error,
@@ -400,14 +537,27 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
             "relations": relation_truths.len(),
             "truth_vs_relations_m": truth_vs_relations_m,
             "relations_error_m": best_relations_error_m,
-        }));
+        })
     }
-    let mut sorted = times_ms.clone();
+}
+
+/// The report: the tallies of the `n` samples, their search times, and `results`, one line each.
+fn summary_report(
+    args: &RelocalizeArgs,
+    n: usize,
+    tally: &Tally,
+    times_ms: &[f64],
+    results: &[serde_json::Value],
+    precompute_ms: f64,
+    reference: &Reference,
+) -> serde_json::Value {
+    let mut sorted = times_ms.to_vec();
     sorted.sort_by(f64::total_cmp);
     let answered = tally.right + tally.wrong_errors_m.len();
     let mut wrong_sorted = tally.wrong_errors_m.clone();
     wrong_sorted.sort_by(f64::total_cmp);
-    let report = json!({
+    let map = &reference.map;
+    json!({
         "input": args.input.display().to_string(),
         "stack_s": args.stack_s,
         "grow_to_s": args.grow_to_s,
@@ -433,167 +583,9 @@ pub fn run(args: &RelocalizeArgs) -> anyhow::Result<()> {
         "answers_off_by_relations": tally.relations_wrong,
         "success_translation_m": SUCCESS.translation_m,
         "success_rotation_deg": SUCCESS.rotation_deg,
-        "on_observed_ground": observed_ground_summary(&results),
-        "stack_shape_along_error_m": stack_shape_summary(&results),
+        "on_observed_ground": observed_ground_summary(results),
+        "stack_shape_along_error_m": stack_shape_summary(results),
         "results": results,
-    });
-    let path = args.out.join("report.json");
-    std::fs::write(&path, serde_json::to_string_pretty(&report)? + "\n")
-        .with_context(|| format!("cannot write {}", path.display()))?;
-    println!(
-        "{}",
-        json!({"samples": n, "stack_s": args.stack_s, "success_rate": report["success_rate"],
-            "precision": report["precision"], "answered_rate": report["answered_rate"],
-            "wrong": report["wrong"], "refused": report["refused"],
-            "answers_checked_by_relations": report["answers_checked_by_relations"],
-            "answers_off_by_relations": report["answers_off_by_relations"],
-            "median_ms": report["median_ms"], "p95_ms": report["p95_ms"],
-            "on_observed_ground": report["on_observed_ground"]})
-    );
-    Ok(())
-}
-
-/// What relocalizations are placed on and scored against.
-struct Reference {
-    /// The map of the recording before the cut.
-    map: mapping::grid::ProbabilityGrid,
-    /// Every scan after the cut: its true pose in the map's frame.
-    truth: std::collections::BTreeMap<Timestamp, Rigid2>,
-    /// The scans drawn into the map, with their poses in the map's frame, in time order.
-    map_poses: Vec<(Timestamp, Rigid2)>,
-    /// Every scan's pose in the full run (its own frame), in time order: its short-range relative motion
-    /// bridges from a relation's stamp to a nearby sampled scan.
-    full_poses: Vec<(Timestamp, Rigid2)>,
-}
-
-/// A pose as `[x, y, θ]` (m, m, rad), for the reference file.
-fn to_xyt(pose: &Rigid2) -> [f64; 3] {
-    [pose.translation.x, pose.translation.y, pose.theta()]
-}
-
-fn from_xyt([x, y, theta]: [f64; 3]) -> Rigid2 {
-    mapping::geometry::rigid2(x, y, theta)
-}
-
-/// [`Reference`] as stored by `--reference`.
-#[derive(serde::Serialize, serde::Deserialize)]
-struct StoredReference {
-    limits: mapping::grid::MapLimits,
-    cells: Vec<u16>,
-    truth: Vec<(Timestamp, [f64; 3])>,
-    map_poses: Vec<(Timestamp, [f64; 3])>,
-    full_poses: Vec<(Timestamp, [f64; 3])>,
-}
-
-impl Reference {
-    fn write(&self, path: &std::path::Path) -> anyhow::Result<()> {
-        let poses = |v: &[(Timestamp, Rigid2)]| v.iter().map(|(t, p)| (*t, to_xyt(p))).collect();
-        let stored = StoredReference {
-            limits: self.map.limits().clone(),
-            cells: self.map.values().to_vec(),
-            truth: self.truth.iter().map(|(t, p)| (*t, to_xyt(p))).collect(),
-            map_poses: poses(&self.map_poses),
-            full_poses: poses(&self.full_poses),
-        };
-        std::fs::write(path, serde_json::to_string(&stored)?)
-            .with_context(|| format!("cannot write {}", path.display()))
-    }
-
-    fn read(path: &std::path::Path) -> anyhow::Result<Self> {
-        let text = std::fs::read_to_string(path)
-            .with_context(|| format!("cannot read {}", path.display()))?;
-        let stored: StoredReference = serde_json::from_str(&text)
-            .with_context(|| format!("invalid reference file {}", path.display()))?;
-        let mut map = mapping::grid::ProbabilityGrid::new(stored.limits);
-        anyhow::ensure!(
-            map.values().len() == stored.cells.len(),
-            "invalid reference file {}: the cells do not fill the map",
-            path.display()
-        );
-        map.values_mut().copy_from_slice(&stored.cells);
-        let poses = |v: Vec<(Timestamp, [f64; 3])>| -> Vec<(Timestamp, Rigid2)> {
-            v.into_iter().map(|(t, p)| (t, from_xyt(p))).collect()
-        };
-        Ok(Self {
-            map,
-            truth: poses(stored.truth).into_iter().collect(),
-            map_poses: poses(stored.map_poses),
-            full_poses: poses(stored.full_poses),
-        })
-    }
-}
-
-/// `--truth own`: one run of the whole recording; the map is its nodes before `cut` re-inserted at their
-/// optimized poses, and the truth of a later scan is that run's pose of it.
-fn prepare_own(
-    recording: &Recording,
-    config: &robot_agent::offline_slam::SlamConfig,
-    cut: Timestamp,
-) -> anyhow::Result<Reference> {
-    eprintln!("mapping the whole recording");
-    let full = run_offline(recording, config, &mut |_| {})?;
-    let nodes = full.global.nodes();
-    let map = render_range_data(
-        full.node_range_data.iter().filter_map(|(id, data)| {
-            (nodes.get(id)?.time < cut).then_some((full.global.node_pose(*id)?, data))
-        }),
-        config.local.submaps.resolution,
-    );
-    let (map_poses, after): (Vec<_>, Vec<_>) =
-        full.scan_poses.iter().copied().partition(|(t, _)| *t < cut);
-    Ok(Reference {
-        map,
-        truth: after.into_iter().collect(),
-        map_poses,
-        full_poses: full.scan_poses,
-    })
-}
-
-/// `--truth aligned`: maps the whole recording and its part before `cut`, and expresses the first in the
-/// second's frame.
-fn prepare_aligned(
-    recording: &Recording,
-    config: &robot_agent::offline_slam::SlamConfig,
-    cut: Timestamp,
-) -> anyhow::Result<Reference> {
-    eprintln!("mapping the whole recording for ground truth");
-    let full = run_offline(recording, config, &mut |_| {})?;
-    eprintln!("mapping the first 60 %");
-    let head = Recording {
-        events: recording
-            .events
-            .iter()
-            .filter(|e| e.time() < cut)
-            .cloned()
-            .collect(),
-        base_from_laser: recording.base_from_laser,
-        report: recording.report.clone(),
-    };
-    let map_run = run_offline(&head, config, &mut |_| {})?;
-    let map = render_map(&map_run, config.local.submaps.resolution);
-
-    // The map's frame is the head run's; the two runs agree on the first node but their maps differ by
-    // decimetres in places as their loop closures differ. A scan is relocalized against the part of the
-    // map around it, so its truth is the full run's pose expressed in the head run's frame through the
-    // rigid transform that best aligns the common scans within `LOCAL_ALIGNMENT_RADIUS_M` of it.
-    let full_by_time: std::collections::BTreeMap<Timestamp, Rigid2> =
-        full.scan_poses.iter().copied().collect();
-    let common: Vec<(Rigid2, Rigid2)> = map_run
-        .scan_poses
-        .iter()
-        .filter_map(|(t, h)| full_by_time.get(t).map(|f| (*h, *f)))
-        .collect();
-    let truth: std::collections::BTreeMap<Timestamp, Rigid2> = full
-        .scan_poses
-        .iter()
-        .filter(|(t, _)| *t >= cut)
-        .map(|(t, p)| (*t, align_near(&common, p) * p))
-        .collect();
-    Ok(Reference {
-        map,
-        truth,
-        map_poses: map_run.scan_poses,
-        full_poses: full.scan_poses,
     })
 }
 
@@ -792,35 +784,6 @@ fn local_map(
 
 /// Seconds of odometry before a stack's first scan given to LLO.
 const ODOMETRY_LEAD_IN_S: f64 = 0.5;
-
-/// Radius (metres) around a sampled scan within which the two runs' common scans define its truth frame.
-const LOCAL_ALIGNMENT_RADIUS_M: f64 = 8.0;
-
-/// `head_from_full` aligning the pairs `(head pose, full pose)` of common scans within
-/// [`LOCAL_ALIGNMENT_RADIUS_M`] of `near` (full-run frame), or all of them if fewer than 10 are that close.
-fn align_near(common: &[(Rigid2, Rigid2)], near: &Rigid2) -> Rigid2 {
-    let close: Vec<(Rigid2, Rigid2)> = common
-        .iter()
-        .copied()
-        .filter(|(_, f)| {
-            (f.translation.vector - near.translation.vector).norm() <= LOCAL_ALIGNMENT_RADIUS_M
-        })
-        .collect();
-    if close.len() >= 10 {
-        align(&close)
-    } else {
-        align(common)
-    }
-}
-
-/// The rigid transform `head_from_full` best aligning the positions of the pairs `(head pose, full pose)`.
-fn align(pairs: &[(Rigid2, Rigid2)]) -> Rigid2 {
-    let positions: Vec<_> = pairs
-        .iter()
-        .map(|(h, f)| (f.translation.vector, h.translation.vector))
-        .collect();
-    mapping::metrics::rigid_alignment(&positions)
-}
 
 #[cfg(test)]
 mod tests {
