@@ -13,7 +13,9 @@
 //! 2. **Retries.** While unplaced, the whole map is searched again with every node since the start (at
 //!    most the latest [`SessionStartOptions::max_search_nodes`]) after `retry_every_n_nodes` nodes, then
 //!    twice, four times ... as many ([`StartSearch::search_again`]: placed when the best pose fits the
-//!    map well enough and beats every other candidate in the paired test over the route's blocks).
+//!    map well enough and beats every other candidate in the paired test over the route's blocks, or,
+//!    where the whole route leaves a rival undecided, in pieces of
+//!    [`SessionStartOptions::search_piece_m`] of route each refined on its own).
 //!    Between them, every [`SessionStartOptions::recheck_every_n_nodes`] nodes, a cheap test of the last
 //!    search's candidates against the grown route ([`StartSearch::route_decides`]) brings the retry
 //!    forward when the route already tells them apart. While the last search found nothing (no pose
@@ -496,12 +498,13 @@ impl SessionStart {
         };
         let recent = self.options.recent_search_nodes;
         let scans = self.cloud.make_contiguous();
-        let mut answer = search.search_again(scans);
+        let piece_m = self.options.search_piece_m;
+        let mut answer = search.search_again(scans, piece_m);
         if matches!(answer.outcome, RelocalizationOutcome::NotFound)
             && recent > 0
             && recent < scans.len()
         {
-            answer = search.search_again(&scans[scans.len() - recent..]);
+            answer = search.search_again(&scans[scans.len() - recent..], piece_m);
         }
         self.searches += 1;
         let RelocalizationOutcome::Found(found) = answer.outcome else {
@@ -679,20 +682,21 @@ impl SessionStart {
             Some(search) => {
                 let scans = self.cloud.make_contiguous();
                 let latest = &scans[scans.len().saturating_sub(recent)..];
+                let piece_m = self.options.search_piece_m;
                 if first {
                     search.search(scans)
                 } else if retry {
-                    let answer = search.search_again(scans);
+                    let answer = search.search_again(scans, piece_m);
                     if matches!(answer.outcome, RelocalizationOutcome::NotFound)
                         && recent > 0
                         && latest.len() < scans.len()
                     {
-                        search.search_again(latest)
+                        search.search_again(latest, piece_m)
                     } else {
                         answer
                     }
                 } else {
-                    search.search_again(latest)
+                    search.search_again(latest, piece_m)
                 }
             }
         };

@@ -269,23 +269,69 @@ impl StartSearch {
     /// [`Self::disambiguation_z`]), or is the only one reaching `min_score`.
     /// `Ambiguous` otherwise; `NotFound` when nothing reaches `min_score` or the fit is below the floor.
     /// (Its mean-score margin is not asked: it is diluted as the cloud grows.)
-    pub fn search_again(&self, scans: &[(Rigid2, Vec<Point2<f32>>)]) -> StartAnswer {
+    ///
+    /// With `piece_m` > 0, where the route's paired test leaves the best undecided against some rival, the
+    /// same test is made in pieces of `piece_m` metres of route, each refined on its own
+    /// ([`Self::contest_each_in_pieces`]): LLO's drift bends a long route, which one rigid pose fits only
+    /// in part. A rival is beaten when either test reaches [`Self::disambiguation_z`], and the best is
+    /// placed when every rival is (`weakest_z` is then the weakest rival's stronger test).
+    pub fn search_again(&self, scans: &[(Rigid2, Vec<Point2<f32>>)], piece_m: f64) -> StartAnswer {
         let evidence = self.evidence_in_blocks(scans, self.options.route_block_m);
-        let outcome = self.decide_with(
+        let min_z = self.disambiguation_z(scans.len());
+        let mut outcome = self.decide_with(
             evidence.as_ref(),
             &Decision {
                 min_score_margin: None,
-                min_z: self.disambiguation_z(scans.len()),
+                min_z,
                 max_first_scan_shift: None,
             },
         );
+        let mut weakest_z = evidence.as_ref().and_then(|e| e.weakest).map(|(z, _, _)| z);
+        if let (RelocalizationOutcome::Ambiguous { .. }, Some(e)) = (outcome, &evidence)
+            && piece_m > 0.0
+            && let Some(beaten) = self.decided_in_pieces(scans, e, min_z, piece_m)
+        {
+            outcome = RelocalizationOutcome::Found(SessionRelocalization {
+                global_from_local: e.global_from_local,
+                score: e.score,
+            });
+            weakest_z = beaten.into_iter().min_by(f64::total_cmp);
+        }
         StartAnswer {
             outcome,
             best: evidence.as_ref().map(|e| e.global_from_local),
-            weakest_z: evidence.as_ref().and_then(|e| e.weakest).map(|(z, _, _)| z),
+            weakest_z,
             fit: evidence.as_ref().map(|e| e.sharp_score),
             rivals: evidence.map(|e| e.rivals).unwrap_or_default(),
         }
+    }
+
+    /// Whether the route `scans` beats every rival of `evidence` by `min_z`, each either over the whole
+    /// route ([`Self::contest_each`]) or in pieces of `piece_m` metres
+    /// ([`Self::contest_each_in_pieces`]): the stronger test of each rival that did not refine onto the
+    /// best, or `None` when some rival stands.
+    fn decided_in_pieces(
+        &self,
+        scans: &[(Rigid2, Vec<Point2<f32>>)],
+        evidence: &SearchEvidence,
+        min_z: f64,
+        piece_m: f64,
+    ) -> Option<Vec<f64>> {
+        let best = &evidence.global_from_local;
+        let whole = self.contest_each(scans, best, &evidence.rivals);
+        let pieces = self.contest_each_in_pieces(scans, best, &evidence.rivals, piece_m);
+        if whole.len() != evidence.rivals.len() || pieces.len() != whole.len() {
+            return None;
+        }
+        whole
+            .into_iter()
+            .zip(pieces)
+            .filter_map(|tests| match tests {
+                (Some(whole), Some(pieces)) => Some(whole.max(pieces)),
+                _ => None, // refined onto the best: no rival
+            })
+            .map(|z| (z >= min_z).then_some(z))
+            .collect()
     }
 
     /// Whether the route `scans` now tells `candidates` (`global_from_local`, from an earlier search)

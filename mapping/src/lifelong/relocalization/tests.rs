@@ -147,7 +147,7 @@ fn an_ambiguous_start_is_placed_once_the_robot_sees_what_tells_the_places_apart(
     assert!((dx.hypot(dy) - 8.0).abs() < 0.5, "{runner_up_from_best:?}");
     let mut placed = None;
     for k in (5..=scans.len()).step_by(4) {
-        let answer = search.search_again(&scans[..k]);
+        let answer = search.search_again(&scans[..k], 0.0);
         match answer.outcome {
             RelocalizationOutcome::Found(found) => {
                 // Placed: its fit passed the floor, and the answer says by how much.
@@ -168,7 +168,7 @@ fn an_ambiguous_start_is_placed_once_the_robot_sees_what_tells_the_places_apart(
     let (k, found) = placed.unwrap_or_else(|| {
         panic!(
             "not placed by the corridor's end: {:?}",
-            search.search_again(&scans).outcome
+            search.search_again(&scans, 0.0).outcome
         )
     });
     // Only scans within 4 m of the pillar see it (x ≥ 11, scan 16 on).
@@ -198,7 +198,7 @@ fn a_cloud_longer_than_the_short_route_is_held_to_the_long_route_bar() {
     assert!((short.disambiguation_z(k) - 3.0).abs() < 1e-12);
     assert!(
         matches!(
-            short.search_again(&scans).outcome,
+            short.search_again(&scans, 0.0).outcome,
             RelocalizationOutcome::Found(_)
         ),
         "the whole route, at the short-route bar, tells the corridors apart"
@@ -207,7 +207,7 @@ fn a_cloud_longer_than_the_short_route_is_held_to_the_long_route_bar() {
     assert!((long.disambiguation_z(k) - 1e6).abs() < 1e-6);
     assert!(
         matches!(
-            long.search_again(&scans).outcome,
+            long.search_again(&scans, 0.0).outcome,
             RelocalizationOutcome::Ambiguous { .. }
         ),
         "one scan past the short route, the long-route bar holds"
@@ -309,6 +309,34 @@ fn a_route_bent_by_drift_is_judged_in_pieces() {
         search.contest_each_in_pieces(&straight, &truth, &[nudged], 4.0),
         vec![None]
     );
+}
+
+#[test]
+fn a_retry_the_bent_route_leaves_undecided_is_decided_in_pieces() {
+    let (search, truth, look_alike) = per_point_corridors();
+    // Bent by 0.5°/m (7.5° over the route; at 1°/m no rigid pose fits the map well enough to be found).
+    let bent = bent_corridor_route(0.5f64.to_radians());
+    // Over the whole route, one rigid pose fits either corridor about as badly: undecided (z 1.3).
+    let whole = search.search_again(&bent, 0.0);
+    assert!(
+        matches!(whole.outcome, RelocalizationOutcome::Ambiguous { .. }),
+        "{:?}",
+        whole.outcome
+    );
+    // In pieces of 4 m each refined where it is, the pillar tells them apart: placed in the right one.
+    let pieces = search.search_again(&bent, 4.0);
+    let RelocalizationOutcome::Found(found) = pieces.outcome else {
+        panic!("{:?}", pieces.outcome);
+    };
+    let off = |pose: &Rigid2| {
+        (pose.translation.vector - found.global_from_local.translation.vector).norm()
+    };
+    assert!(off(&truth) < 0.3, "{} m from the truth", off(&truth));
+    assert!(off(&look_alike) > 5.0);
+    let z = pieces.weakest_z.expect("a rival was beaten");
+    assert!(z >= search.disambiguation_z(bent.len()), "z {z}");
+    // The best is what the whole route ranked first either way.
+    assert_eq!(pieces.best, whole.best);
 }
 
 #[test]

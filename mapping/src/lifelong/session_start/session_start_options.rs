@@ -84,6 +84,11 @@ pub struct SessionStartOptions {
     /// `probation_min_z` is beaten (only the whole route's test overturns). Metres ≥ 0 (0 = off).
     /// Default 4 m. Why: `docs/TUNING.md#ss-contest-piece-m`.
     pub contest_piece_m: f64,
+    /// Where a retry's whole-map search leaves its best candidate undecided against some rival by the
+    /// route's paired test, test those rivals again in pieces of this much route, each refined on its own
+    /// ([`StartSearch::search_again`]); the session is placed (on probation) when each rival is beaten by
+    /// either test. Metres ≥ 0 (0 = off). Default 4 m. Why: `docs/TUNING.md#ss-search-piece-m`.
+    pub search_piece_m: f64,
     /// While a placement is on probation, no match has agreed with it yet and the latest
     /// `recent_search_nodes` nodes fit the map below `min_unfiltered_score` there, search the whole map
     /// again every `retry_every_n_nodes` nodes (the route since the start, decided as a retry); an answer
@@ -123,6 +128,7 @@ impl Default for SessionStartOptions {
             revoked_radius_m: 1.0,
             probation_min_z: 4.0,
             contest_piece_m: 4.0,
+            search_piece_m: 4.0,
             search_while_unconfirmed: true,
             commit_dock_placement_at_end: true,
             defer_contested_dock_check: true,
@@ -197,6 +203,9 @@ impl SessionStartOptions {
         }
         if !non_negative(self.contest_piece_m) {
             return out_of_range("contest_piece_m", "must be a non-negative number of metres");
+        }
+        if !non_negative(self.search_piece_m) {
+            return out_of_range("search_piece_m", "must be a non-negative number of metres");
         }
         Ok(())
     }

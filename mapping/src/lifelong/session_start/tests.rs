@@ -528,6 +528,10 @@ fn invalid_options_are_refused() {
             contest_piece_m: -4.0,
             ..SessionStartOptions::default()
         },
+        SessionStartOptions {
+            search_piece_m: f64::NAN,
+            ..SessionStartOptions::default()
+        },
     ];
     for options in bad {
         assert!(options.validate().is_err(), "{options:?}");
