@@ -19,6 +19,7 @@ mod relocalization_options;
 mod start_search;
 
 pub use relocalization_options::RelocalizationOptions;
+pub(in crate::lifelong) use start_search::weakest_of_either;
 pub use start_search::{CloudFit, PriorCheck, SearchEvidence, StartSearch};
 
 use super::LifelongMap;

@@ -80,6 +80,7 @@ pub use self::session_start_event::{
     RevokeReason, SessionStartEvent, SessionStartState, StartPlacement,
 };
 pub use self::session_start_options::SessionStartOptions;
+use super::relocalization::weakest_of_either;
 use super::{
     LifelongOptionsError, PriorCheck, RelocalizationOutcome, SessionRelocalization, StartAnswer,
     StartSearch,
@@ -600,15 +601,7 @@ impl SessionStart {
             );
         }
         // A rival is beaten by the whole route's test or by its pieces'.
-        let weakest_beaten = step
-            .z
-            .iter()
-            .enumerate()
-            .filter_map(|(i, z)| {
-                let piece = step.piece_z.get(i).copied().flatten();
-                z.map(|z| piece.map_or(z, |piece| z.max(piece)))
-            })
-            .min_by(f64::total_cmp);
+        let weakest_beaten = weakest_of_either(&step.z, &step.piece_z);
         let (contest, decision) = match (weakest, weakest_beaten) {
             (None, _) => (Contest::Upheld, "upheld"),
             (Some(z), _) if z <= -min_z => (Contest::Overturned, "overturned"),

@@ -289,13 +289,18 @@ impl StartSearch {
         let mut weakest_z = evidence.as_ref().and_then(|e| e.weakest).map(|(z, _, _)| z);
         if let (RelocalizationOutcome::Ambiguous { .. }, Some(e)) = (outcome, &evidence)
             && piece_m > 0.0
-            && let Some(beaten) = self.decided_in_pieces(scans, e, min_z, piece_m)
         {
-            outcome = RelocalizationOutcome::Found(SessionRelocalization {
-                global_from_local: e.global_from_local,
-                score: e.score,
-            });
-            weakest_z = beaten.into_iter().min_by(f64::total_cmp);
+            let best = &e.global_from_local;
+            let whole = self.contest_each(scans, best, &e.rivals);
+            let pieces = self.contest_each_in_pieces(scans, best, &e.rivals, piece_m);
+            let weakest = weakest_of_either(&whole, &pieces);
+            if whole.len() == e.rivals.len() && weakest.is_none_or(|z| z >= min_z) {
+                outcome = RelocalizationOutcome::Found(SessionRelocalization {
+                    global_from_local: e.global_from_local,
+                    score: e.score,
+                });
+                weakest_z = weakest;
+            }
         }
         StartAnswer {
             outcome,
@@ -304,34 +309,6 @@ impl StartSearch {
             fit: evidence.as_ref().map(|e| e.sharp_score),
             rivals: evidence.map(|e| e.rivals).unwrap_or_default(),
         }
-    }
-
-    /// Whether the route `scans` beats every rival of `evidence` by `min_z`, each either over the whole
-    /// route ([`Self::contest_each`]) or in pieces of `piece_m` metres
-    /// ([`Self::contest_each_in_pieces`]): the stronger test of each rival that did not refine onto the
-    /// best, or `None` when some rival stands.
-    fn decided_in_pieces(
-        &self,
-        scans: &[(Rigid2, Vec<Point2<f32>>)],
-        evidence: &SearchEvidence,
-        min_z: f64,
-        piece_m: f64,
-    ) -> Option<Vec<f64>> {
-        let best = &evidence.global_from_local;
-        let whole = self.contest_each(scans, best, &evidence.rivals);
-        let pieces = self.contest_each_in_pieces(scans, best, &evidence.rivals, piece_m);
-        if whole.len() != evidence.rivals.len() || pieces.len() != whole.len() {
-            return None;
-        }
-        whole
-            .into_iter()
-            .zip(pieces)
-            .filter_map(|tests| match tests {
-                (Some(whole), Some(pieces)) => Some(whole.max(pieces)),
-                _ => None, // refined onto the best: no rival
-            })
-            .map(|z| (z >= min_z).then_some(z))
-            .collect()
     }
 
     /// Whether the route `scans` now tells `candidates` (`global_from_local`, from an earlier search)
@@ -666,6 +643,23 @@ impl StartSearch {
             None => *pose,
         }
     }
+}
+
+/// The weakest rival's stronger test: per rival, the larger of its whole-route z (`whole`) and its pieces' z
+/// (`pieces`, same order, may be shorter or empty when the pieces were not tested); rivals whose whole-route
+/// test is `None` (refined onto the placement) are no rivals. `None` when no rival remains.
+pub(in crate::lifelong) fn weakest_of_either(
+    whole: &[Option<f64>],
+    pieces: &[Option<f64>],
+) -> Option<f64> {
+    whole
+        .iter()
+        .enumerate()
+        .filter_map(|(i, z)| {
+            let piece = pieces.get(i).copied().flatten();
+            z.map(|z| piece.map_or(z, |piece| z.max(piece)))
+        })
+        .min_by(f64::total_cmp)
 }
 
 /// Which tests a decision on [`SearchEvidence`] asks for (see [`StartSearch::decide`]).
