@@ -452,209 +452,40 @@ pub async fn stream_session_from<U: MapUplink>(
         })
         .map_err(SessionError::LloSpawn)?;
 
-    let mut report = SessionReport::default();
-    let mut trace = SessionTrace::default();
-    let mut batch: Vec<UploadItem> = Vec::new();
-    let mut nodes_in_batch = 0;
+    let mut session = SessionStream::new(options, start);
     let mut retry = tokio::time::interval(options.retry_interval);
     retry.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     let mut backlog = false;
-    // Nodes held back until the start is decided (only with a `SessionStart`), and the decision.
-    let mut held: Vec<Vec<UploadItem>> = Vec::new();
-    let mut started = start.is_none();
-    let mut decision: Option<StartDecision> = None;
-    let mut prepared = false;
-    // Every node's local pose, in node order.
-    let mut held_local: Vec<Option<Rigid2>> = Vec::new();
-    // GLM on the robot, once the start is relocalized.
-    let mut glm: Option<RobotGlm> = None;
-    let flush = async |uploader: &mut Uploader<U>,
-                       report: &mut SessionReport|
-           -> Result<bool, UplinkError> {
-        match uploader.flush().await {
-            Ok(stats) => {
-                report.applied += stats.applied;
-                report.map_version = stats.map_version;
-                // Batches the full outbox disk could not take yet are a backlog too.
-                Ok(uploader.unstored() > 0)
-            }
-            Err(e) if e.is_transient() => {
-                report.failed_flushes += 1;
-                Ok(true)
-            }
-            Err(e) => Err(e),
-        }
-    };
     loop {
         tokio::select! {
             items = receiver.recv() => {
                 let Some(items) = items else { break };
-                for item in &items {
-                    if let UploadItem::NodeAdded(node) = item {
-                        trace.first_local_pose.get_or_insert(node.local_pose);
-                        trace.node_times.push(node.time);
-                    }
+                if !session.add(items, uploader.trajectory()).await {
+                    continue; // held back while the start is searched for
                 }
-                let node = trace.node_times.len().saturating_sub(1);
-                if started {
-                    let mut items = items;
-                    let estimate = match (glm.as_mut(), start.as_ref()) {
-                        (Some(glm), Some(start)) => {
-                            glm.match_items(start.cache, uploader.trajectory(), &mut items).await
-                        }
-                        _ => None,
-                    };
-                    if let (Some(d), Some(start)) = (decision.as_mut(), start.as_ref()) {
-                        // On probation: no search is due, so the node is fed on this thread.
-                        let mut events = items
-                            .iter()
-                            .find_map(|item| match item {
-                                UploadItem::NodeAdded(n) => {
-                                    Some(d.add_node(n.local_pose, n.points.clone()))
-                                }
-                                _ => None,
-                            })
-                            .unwrap_or_default();
-                        events.extend(feed_matches(d, start.cache, node, &items));
-                        for event in events {
-                            trace.start.record(&event, &trace.node_times, &|node| {
-                                held_local.get(node).copied().flatten()
-                            });
-                            if let SessionStartEvent::Revoked { .. } = event {
-                                // The robot cannot take its prior back: it stops matching, and the
-                                // server (which revokes it on the same matches) searches for it.
-                                glm = None;
-                            }
-                        }
-                        if trace.start.revoked || d.is_committed() {
-                            decision = None;
-                        }
-                    }
-                    let local = node_local_pose(&items);
-                    held_local.push(local);
-                    let estimate = if trace.start.revoked {
-                        None
-                    } else {
-                        estimate.or_else(|| Some(trace.prior? * local?))
-                    };
-                    if let (Some(sink), Some(pose), Some(time)) =
-                        (&options.node_poses, estimate, trace.node_times.last())
-                    {
-                        let _ = sink.try_send((*time, pose));
-                    }
-                    trace.node_estimates.push(estimate);
-                    nodes_in_batch += 1;
-                    batch.extend(items);
-                } else {
-                    held_local.push(node_local_pose(&items));
-                    held.push(items);
-                    if !prepared && let Some(start) = start.as_ref() {
-                        prepared = true;
-                        let mut session_start = start.session_start.clone();
-                        // Nodes are held back while searching: not longer than `max_search_nodes`.
-                        if session_start.give_up_after_nodes == 0
-                            || session_start.give_up_after_nodes > session_start.max_search_nodes
-                        {
-                            session_start.give_up_after_nodes = session_start.max_search_nodes;
-                        }
-                        if let Some(search) = prepare_search(start.cache, &start.relocalization).await {
-                            decision = match start.dock {
-                                Some(dock) => {
-                                    StartDecision::from_dock(session_start, Some(search), dock)
-                                }
-                                None => StartDecision::new(session_start, Some(search)),
-                            }
-                            .ok();
-                        }
-                    }
-                    let mut decided = decision.is_none();
-                    if let (Some(d), Some(last)) = (decision.take(), held.last()) {
-                        let searches = d.searches();
-                        let began = Instant::now();
-                        let (d, events) = feed_node(d, last).await;
-                        if d.searches() > searches {
-                            trace.relocalization_attempted = true;
-                            trace.searches = d.searches();
-                            if searches == 0 {
-                                trace.relocalization_ms = began.elapsed().as_secs_f64() * 1e3;
-                            }
-                        }
-                        for event in &events {
-                            trace.start.record(event, &trace.node_times, &|node| {
-                                held_local.get(node).copied().flatten()
-                            });
-                            match event {
-                                SessionStartEvent::DockChecked { agreed, .. } => {
-                                    trace.dock = if *agreed {
-                                        DockOutcome::Placed
-                                    } else {
-                                        DockOutcome::NotPlaced
-                                    };
-                                }
-                                SessionStartEvent::Placed(placement) => {
-                                    trace.prior = Some(placement.global_from_local);
-                                    trace.score = placement.score;
-                                    decided = true;
-                                }
-                                SessionStartEvent::GaveUp { .. } => decided = true,
-                                _ => {}
-                            }
-                        }
-                        if !d.is_committed() && trace.prior.is_some() || !decided {
-                            decision = Some(d);
-                        }
-                    }
-                    if !decided {
-                        continue;
-                    }
-                    if let Some(start) = &start {
-                        glm = begin_glm(start, options, &mut held, &trace).await;
-                    }
-                    started = true;
-                    push_held_estimates(&mut trace, &held);
-                    batch.extend(start_prior(&trace, glm.is_some()));
-                    nodes_in_batch += held.len();
-                    batch.extend(held.drain(..).flatten());
-                }
-                if nodes_in_batch >= options.nodes_per_batch.max(1) {
-                    uploader.enqueue(&batch)?;
-                    report.batches += 1;
-                    batch.clear();
-                    nodes_in_batch = 0;
-                    backlog = flush(uploader, &mut report).await?;
+                if session.nodes_in_batch >= options.nodes_per_batch.max(1) {
+                    uploader.enqueue(&session.batch)?;
+                    session.report.batches += 1;
+                    session.batch.clear();
+                    session.nodes_in_batch = 0;
+                    backlog = flush(uploader, &mut session.report).await?;
                 }
             }
             _ = retry.tick(), if backlog => {
-                backlog = flush(uploader, &mut report).await?;
+                backlog = flush(uploader, &mut session.report).await?;
             }
         }
     }
-    report.llo = llo
+    session.report.llo = llo
         .join()
         .map_err(|_| SessionError::Llo("the LLO thread panicked".into()))?;
-    if !started {
-        // Shorter than the hold-back, or still searching: the session streams without a prior and the
-        // server searches for it.
-        push_held_estimates(&mut trace, &held);
-        batch.extend(start_prior(&trace, glm.is_some()));
-        batch.extend(held.drain(..).flatten());
-    }
-    // What the session's end decides of its start: a dock placement still on probation that nothing
-    // disputed is kept (the server commits it on this word, after its own judging agrees).
-    if let Some(d) = decision.as_mut().filter(|_| trace.prior.is_some()) {
-        for event in d.finish() {
-            trace.start.record(&event, &trace.node_times, &|node| {
-                held_local.get(node).copied().flatten()
-            });
-            if let SessionStartEvent::Committed { .. } = event {
-                trace.dock = DockOutcome::Kept;
-                batch.push(UploadItem::DockPlacementKept);
-            }
-        }
-    }
-    // After the short-session path above, which may start GLM too.
-    trace.glm_on_robot = glm.is_some();
-    trace.glm_matches = glm.as_ref().map_or(0, |g| g.matches);
+    session.end_start();
+    let SessionStream {
+        mut report,
+        trace,
+        batch,
+        ..
+    } = session;
     // The last data, then the session end in a batch of its own: the server publishes the data (the
     // submaps LLO finished at the end) at once, and ends the session — its heavy maintenance — after.
     if !batch.is_empty() {
@@ -673,6 +504,257 @@ pub async fn stream_session_from<U: MapUplink>(
     report.left_in_outbox =
         uploader.outbox().len().map_err(UplinkError::from)? + uploader.unstored();
     Ok((report, trace))
+}
+
+/// One flush of the outbox into `report`: whether a backlog remains (a transient failure, or batches
+/// the full outbox disk could not take yet); an error when the server refused for good.
+async fn flush<U: MapUplink>(
+    uploader: &mut Uploader<U>,
+    report: &mut SessionReport,
+) -> Result<bool, UplinkError> {
+    // Boxed: the gRPC call's future is large, and the session holds it across its loop's awaits.
+    match Box::pin(uploader.flush()).await {
+        Ok(stats) => {
+            report.applied += stats.applied;
+            report.map_version = stats.map_version;
+            // Batches the full outbox disk could not take yet are a backlog too.
+            Ok(uploader.unstored() > 0)
+        }
+        Err(e) if e.is_transient() => {
+            report.failed_flushes += 1;
+            Ok(true)
+        }
+        Err(e) => Err(e),
+    }
+}
+
+/// A streaming session's state between LLO's nodes: the batch being filled, the nodes held back while
+/// the start is searched for, the session start's decision and the robot's GLM.
+struct SessionStream<'o, 'a> {
+    options: &'o SessionOptions,
+    start: Option<SessionStart<'a>>,
+    report: SessionReport,
+    trace: SessionTrace,
+    batch: Vec<UploadItem>,
+    nodes_in_batch: usize,
+    /// Nodes held back until the start is decided (only with a `SessionStart`).
+    held: Vec<Vec<UploadItem>>,
+    started: bool,
+    decision: Option<StartDecision>,
+    prepared: bool,
+    /// Every node's local pose, in node order.
+    held_local: Vec<Option<Rigid2>>,
+    /// GLM on the robot, once the start is relocalized.
+    glm: Option<RobotGlm>,
+}
+
+impl<'o, 'a> SessionStream<'o, 'a> {
+    fn new(options: &'o SessionOptions, start: Option<SessionStart<'a>>) -> Self {
+        Self {
+            options,
+            started: start.is_none(),
+            start,
+            report: SessionReport::default(),
+            trace: SessionTrace::default(),
+            batch: Vec::new(),
+            nodes_in_batch: 0,
+            held: Vec::new(),
+            decision: None,
+            prepared: false,
+            held_local: Vec::new(),
+            glm: None,
+        }
+    }
+
+    /// Records a session-start event in the trace.
+    fn record(&mut self, event: &SessionStartEvent) {
+        let held_local = &self.held_local;
+        self.trace
+            .start
+            .record(event, &self.trace.node_times, &|node| {
+                held_local.get(node).copied().flatten()
+            });
+    }
+
+    /// Takes a node's items from LLO (`trajectory`: the session's, once the server opened it): streamed
+    /// into the batch once the start is decided, held back before. Whether the batch may be sent now
+    /// (false while the node is held back).
+    async fn add(&mut self, items: Vec<UploadItem>, trajectory: Option<u32>) -> bool {
+        for item in &items {
+            if let UploadItem::NodeAdded(node) = item {
+                self.trace.first_local_pose.get_or_insert(node.local_pose);
+                self.trace.node_times.push(node.time);
+            }
+        }
+        let node = self.trace.node_times.len().saturating_sub(1);
+        if self.started {
+            self.stream_node(items, node, trajectory).await;
+            true
+        } else {
+            self.hold_node(items).await
+        }
+    }
+
+    /// A node of a started session: matched by the robot's GLM, its matches judging a placement on
+    /// probation, its estimate published, and into the batch.
+    async fn stream_node(
+        &mut self,
+        mut items: Vec<UploadItem>,
+        node: usize,
+        trajectory: Option<u32>,
+    ) {
+        let estimate = match (self.glm.as_mut(), self.start.as_ref()) {
+            (Some(glm), Some(start)) => glm.match_items(start.cache, trajectory, &mut items).await,
+            _ => None,
+        };
+        if let (Some(mut d), Some(start)) = (self.decision.take(), self.start.as_ref()) {
+            // On probation: no search is due, so the node is fed on this thread.
+            let mut events = items
+                .iter()
+                .find_map(|item| match item {
+                    UploadItem::NodeAdded(n) => Some(d.add_node(n.local_pose, n.points.clone())),
+                    _ => None,
+                })
+                .unwrap_or_default();
+            events.extend(feed_matches(&mut d, start.cache, node, &items));
+            for event in events {
+                self.record(&event);
+                if let SessionStartEvent::Revoked { .. } = event {
+                    // The robot cannot take its prior back: it stops matching, and the server (which
+                    // revokes it on the same matches) searches for it.
+                    self.glm = None;
+                }
+            }
+            if !(self.trace.start.revoked || d.is_committed()) {
+                self.decision = Some(d);
+            }
+        }
+        let local = node_local_pose(&items);
+        self.held_local.push(local);
+        let estimate = if self.trace.start.revoked {
+            None
+        } else {
+            estimate.or_else(|| Some(self.trace.prior? * local?))
+        };
+        if let (Some(sink), Some(pose), Some(time)) = (
+            &self.options.node_poses,
+            estimate,
+            self.trace.node_times.last(),
+        ) {
+            let _ = sink.try_send((*time, pose));
+        }
+        self.trace.node_estimates.push(estimate);
+        self.nodes_in_batch += 1;
+        self.batch.extend(items);
+    }
+
+    /// A node held back while the start is searched for: fed to the session start, and once it decides
+    /// (placed, gave up, or nothing to search), the session starts streaming. Whether it started.
+    async fn hold_node(&mut self, items: Vec<UploadItem>) -> bool {
+        self.held_local.push(node_local_pose(&items));
+        self.held.push(items);
+        if !self.prepared {
+            self.prepare_decision().await;
+        }
+        let mut decided = self.decision.is_none();
+        if let (Some(d), Some(last)) = (self.decision.take(), self.held.last()) {
+            let searches = d.searches();
+            let began = Instant::now();
+            let (d, events) = feed_node(d, last).await;
+            if d.searches() > searches {
+                self.trace.relocalization_attempted = true;
+                self.trace.searches = d.searches();
+                if searches == 0 {
+                    self.trace.relocalization_ms = began.elapsed().as_secs_f64() * 1e3;
+                }
+            }
+            for event in &events {
+                self.record(event);
+                match event {
+                    SessionStartEvent::DockChecked { agreed, .. } => {
+                        self.trace.dock = if *agreed {
+                            DockOutcome::Placed
+                        } else {
+                            DockOutcome::NotPlaced
+                        };
+                    }
+                    SessionStartEvent::Placed(placement) => {
+                        self.trace.prior = Some(placement.global_from_local);
+                        self.trace.score = placement.score;
+                        decided = true;
+                    }
+                    SessionStartEvent::GaveUp { .. } => decided = true,
+                    _ => {}
+                }
+            }
+            if !d.is_committed() && self.trace.prior.is_some() || !decided {
+                self.decision = Some(d);
+            }
+        }
+        if !decided {
+            return false;
+        }
+        if let Some(start) = &self.start {
+            self.glm = begin_glm(start, self.options, &mut self.held, &self.trace).await;
+        }
+        self.started = true;
+        push_held_estimates(&mut self.trace, &self.held);
+        self.batch
+            .extend(start_prior(&self.trace, self.glm.is_some()));
+        self.nodes_in_batch += self.held.len();
+        self.batch.extend(self.held.drain(..).flatten());
+        true
+    }
+
+    /// The session start, made at the first held node: the cache prepared for whole-map searches and the
+    /// decision begun at the dock or without one (none when the cache holds no submaps).
+    async fn prepare_decision(&mut self) {
+        let Some(start) = self.start.as_ref() else {
+            return;
+        };
+        self.prepared = true;
+        let mut session_start = start.session_start.clone();
+        // Nodes are held back while searching: not longer than `max_search_nodes`.
+        if session_start.give_up_after_nodes == 0
+            || session_start.give_up_after_nodes > session_start.max_search_nodes
+        {
+            session_start.give_up_after_nodes = session_start.max_search_nodes;
+        }
+        if let Some(search) = prepare_search(start.cache, &start.relocalization).await {
+            self.decision = match start.dock {
+                Some(dock) => StartDecision::from_dock(session_start, Some(search), dock),
+                None => StartDecision::new(session_start, Some(search)),
+            }
+            .ok();
+        }
+    }
+
+    /// What the end of LLO decides of the start: a session still held back streams without a prior (the
+    /// server searches for it), and a dock placement still on probation that nothing disputed is kept.
+    fn end_start(&mut self) {
+        if !self.started {
+            // Shorter than the hold-back, or still searching: the session streams without a prior and the
+            // server searches for it.
+            push_held_estimates(&mut self.trace, &self.held);
+            self.batch
+                .extend(start_prior(&self.trace, self.glm.is_some()));
+            self.batch.extend(self.held.drain(..).flatten());
+        }
+        // A dock placement still on probation that nothing disputed is kept (the server commits it on
+        // this word, after its own judging agrees).
+        if let Some(mut d) = self.decision.take().filter(|_| self.trace.prior.is_some()) {
+            for event in d.finish() {
+                self.record(&event);
+                if let SessionStartEvent::Committed { .. } = event {
+                    self.trace.dock = DockOutcome::Kept;
+                    self.batch.push(UploadItem::DockPlacementKept);
+                }
+            }
+        }
+        // After the short-session path above, which may start GLM too.
+        self.trace.glm_on_robot = self.glm.is_some();
+        self.trace.glm_matches = self.glm.as_ref().map_or(0, |g| g.matches);
+    }
 }
 
 /// Keeps `cache` at the site's latest version until `stop` turns true: watches versions and, for each
