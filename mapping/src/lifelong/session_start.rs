@@ -17,8 +17,8 @@
 //!    where the whole route leaves a rival undecided, in pieces of
 //!    [`SessionStartOptions::search_piece_m`] of route each refined on its own).
 //!    Between them, every [`SessionStartOptions::recheck_every_n_nodes`] nodes, a cheap test of the last
-//!    search's candidates against the grown route ([`StartSearch::route_decides`]) brings the retry
-//!    forward when the route already tells them apart. While the last search found nothing (no pose
+//!    search's candidates against the grown route ([`StartSearch::route_decides`], whole and in the
+//!    same pieces) brings the retry forward when the route already tells them apart. While the last search found nothing (no pose
 //!    reached the score, or the best fit the map below its floor: the route lies largely off the map),
 //!    the latest [`SessionStartOptions::recent_search_nodes`] nodes are searched every
 //!    `retry_every_n_nodes` nodes, so that a session placed nowhere is placed soon after it drives onto
@@ -658,7 +658,11 @@ impl SessionStart {
                 && since.is_multiple_of(recheck)
                 && self.candidates.len() > 1
                 && self.search.as_ref().is_some_and(|search| {
-                    search.route_decides(self.cloud.make_contiguous(), &self.candidates)
+                    search.route_decides(
+                        self.cloud.make_contiguous(),
+                        &self.candidates,
+                        self.options.search_piece_m,
+                    )
                 }));
         if !(first || retry || arrival) {
             return Vec::new();

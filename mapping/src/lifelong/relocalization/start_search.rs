@@ -317,10 +317,15 @@ impl StartSearch {
     /// [`Self::disambiguation_z`] ([`blocked_paired_z`] over `route_block_m` blocks). A cheap test between
     /// whole-map searches — no search, a few refinements — that says when a search is worth making now:
     /// it decides nothing itself, since the truth may not be among the candidates.
+    ///
+    /// With `piece_m` > 0, a candidate the whole route leaves undecided against the leader is tested again
+    /// in pieces of `piece_m` metres of route, as [`Self::search_again`] tests its rivals: the recheck
+    /// then says a search is worth making exactly where that search could decide.
     pub fn route_decides(
         &self,
         scans: &[(Rigid2, Vec<Point2<f32>>)],
         candidates: &[Rigid2],
+        piece_m: f64,
     ) -> bool {
         let Some((first_from_local, cloud)) = merge_scans(scans, self.options.voxel_size) else {
             return false;
@@ -338,14 +343,25 @@ impl StartSearch {
         let Some(&(leader, fit)) = refined.first() else {
             return false;
         };
-        fit >= f64::from(self.options.min_unfiltered_score)
-            && refined[1..]
-                .iter()
-                .filter(|(other, _)| clearly_different(&leader, other))
-                .all(|(other, _)| {
-                    blocked_paired_z(grid, &cloud, &leader, other, self.options.route_block_m)
-                        >= self.disambiguation_z(scans.len())
-                })
+        if fit < f64::from(self.options.min_unfiltered_score) {
+            return false;
+        }
+        let min_z = self.disambiguation_z(scans.len());
+        let mut pieces = None;
+        refined[1..]
+            .iter()
+            .filter(|(other, _)| clearly_different(&leader, other))
+            .all(|(other, _)| {
+                blocked_paired_z(grid, &cloud, &leader, other, self.options.route_block_m) >= min_z
+                    || (piece_m > 0.0
+                        && self.pieces_z(
+                            pieces.get_or_insert_with(|| {
+                                route_pieces(scans, piece_m, self.options.voxel_size)
+                            }),
+                            &leader,
+                            other,
+                        ) >= min_z)
+            })
     }
 
     /// The weakest paired test ([`blocked_paired_z`]) of the session placed at `global_from_local` against each
@@ -402,14 +418,21 @@ impl StartSearch {
         }
         let pieces = route_pieces(scans, piece_m, self.options.voxel_size);
         self.contest_each_by(scans, global_from_local, rivals, |_, placed, rival| {
-            let mut blocks = PairedBlocks::new(self.options.route_block_m);
-            for piece in &pieces {
-                let at_placement = self.sharpen(piece, placed);
-                let at_rival = self.sharpen(piece, rival);
-                blocks.add(self.sharp_grid(), piece, &at_placement, &at_rival);
-            }
-            blocks.z()
+            self.pieces_z(&pieces, placed, rival)
         })
+    }
+
+    /// The paired test of `placed` against `rival` (both `global_from_first`) over `pieces` of route
+    /// ([`route_pieces`]), each piece refined on its own from either pose, the differences summed into
+    /// `route_block_m` blocks ([`PairedBlocks`]).
+    fn pieces_z(&self, pieces: &[Vec<Point2<f32>>], placed: &Rigid2, rival: &Rigid2) -> f64 {
+        let mut blocks = PairedBlocks::new(self.options.route_block_m);
+        for piece in pieces {
+            let at_placement = self.sharpen(piece, placed);
+            let at_rival = self.sharpen(piece, rival);
+            blocks.add(self.sharp_grid(), piece, &at_placement, &at_rival);
+        }
+        blocks.z()
     }
 
     /// The contests' common part: the merged cloud of `scans`, the placement and each rival refined with it

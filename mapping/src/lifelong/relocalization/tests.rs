@@ -340,6 +340,20 @@ fn a_retry_the_bent_route_leaves_undecided_is_decided_in_pieces() {
 }
 
 #[test]
+fn the_recheck_decides_in_pieces_where_the_retry_would() {
+    let (search, truth, look_alike) = per_point_corridors();
+    let bent = bent_corridor_route(0.5f64.to_radians());
+    let candidates = [look_alike, truth];
+    // Over the whole route the bent corridor fits both about as badly: no retry brought forward.
+    assert!(!search.route_decides(&bent, &candidates, 0.0));
+    // In the retry's pieces the pillar decides: the recheck says the search is worth making now.
+    assert!(search.route_decides(&bent, &candidates, 4.0));
+    assert!(search.route_decides(&bent, &[truth, look_alike], 4.0));
+    // Before the pillar the pieces tell nothing either.
+    assert!(!search.route_decides(&bent[..8], &candidates, 4.0));
+}
+
+#[test]
 fn one_pillar_is_one_piece_of_evidence() {
     // The route past the pillar, as in the test above: per point the pillar's dozen points decide
     // (|z| > 3); counted per 1.2 m block (the default) they are one piece of evidence, and a whole
@@ -410,11 +424,11 @@ fn the_route_decides_between_candidates_once_it_passes_what_tells_them_apart() {
     let candidates = [rigid2(3.0, 9.0, 0.0), truth];
     let scans = corridor_route();
     // Whichever comes first in the list: before the pillar the corridors look alike.
-    assert!(!search.route_decides(&scans[..8], &candidates));
-    assert!(search.route_decides(&scans, &candidates));
-    assert!(search.route_decides(&scans, &[truth, candidates[0]]));
+    assert!(!search.route_decides(&scans[..8], &candidates, 0.0));
+    assert!(search.route_decides(&scans, &candidates, 0.0));
+    assert!(search.route_decides(&scans, &[truth, candidates[0]], 0.0));
     // No candidate: nothing decided.
-    assert!(!search.route_decides(&scans, &[]));
+    assert!(!search.route_decides(&scans, &[], 0.0));
 }
 
 #[test]
