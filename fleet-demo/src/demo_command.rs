@@ -149,64 +149,8 @@ async fn demo(args: &DemoArgs) -> anyhow::Result<()> {
     recreate_dir(&args.out)?;
     std::fs::create_dir_all(args.out.join("maps"))
         .with_context(|| format!("cannot create {}", args.out.display()))?;
-
-    let store_options = SledStoreOptions {
-        path: args.out.join("data"),
-        ..SledStoreOptions::default()
-    };
-    let store = tokio::task::spawn_blocking(move || SledStore::open(&store_options))
-        .await
-        .context("storage thread")??;
-    let robots: Vec<RobotConfig> = (1..=args.agents)
-        .map(|k| RobotConfig {
-            id: robot_id(k),
-            token: format!("demo-token-robot-{k}"),
-        })
-        .collect();
-    let zenoh_endpoint = match args.transport.as_str() {
-        "zenoh" => Some(format!("tcp/127.0.0.1:{}", free_loopback_port()?)),
-        _ => None,
-    };
-    let config = ServerConfig {
-        listen: "127.0.0.1:0".parse()?,
-        metrics_listen: None,
-        max_message_bytes: MAX_MESSAGE_BYTES,
-        zenoh: zenoh_endpoint.as_ref().map(|endpoint| ZenohLinkOptions {
-            listen: vec![endpoint.clone()],
-            ..ZenohLinkOptions::default()
-        }),
-        sites: vec![SiteConfig {
-            id: SITE.into(),
-            robots: robots.clone(),
-        }],
-        http: args.http.map(|listen| HttpConfig {
-            listen,
-            operator_token: Some(format!("demo-operator-{:016x}", rand::random::<u64>())),
-            ..HttpConfig::default()
-        }),
-        ..ServerConfig::default()
-    };
-    let server = RunningServer::start(&config, Arc::new(store)).await?;
-    if let (Some(addr), Some(token)) = (
-        server.console_addr(),
-        config.http.as_ref().and_then(|h| h.operator_token.as_ref()),
-    ) {
-        eprintln!("evermap demo: web console at http://{addr}/?token={token}");
-    }
-    let url = format!("http://{}", server.grpc_addr());
-    let site = server
-        .site(SITE)
-        .context("the demo site is not served")?
-        .clone();
-    eprintln!(
-        "evermap demo: map server on {} ({}; sled in {}), site {SITE}, {} robots, {} cleaning sessions each",
-        zenoh_endpoint.as_deref().unwrap_or(&url),
-        args.transport,
-        args.out.join("data").display(),
-        args.agents,
-        args.sessions_per_agent
-    );
-
+    let fleet = DemoServer::start(args).await?;
+    let site = fleet.site.clone();
     let world = Store::generate(args.world.demo_options(), args.seed)?;
     let sim = SimSessionOptions {
         max_duration_s: args.session_duration_s,
@@ -216,45 +160,8 @@ async fn demo(args: &DemoArgs) -> anyhow::Result<()> {
     sim.validate()?;
 
     let (stop, stopped) = watch::channel(false);
-    let mut agents = Vec::new();
-    let mut followers = Vec::new();
-    for (k, robot) in robots.iter().enumerate() {
-        let call_timeout = Duration::from_secs(30);
-        let uplink = match &zenoh_endpoint {
-            Some(endpoint) => {
-                let options = ZenohLinkOptions {
-                    connect: vec![endpoint.clone()],
-                    ..ZenohLinkOptions::default()
-                };
-                FleetUplink::Zenoh(
-                    ZenohUplink::connect(&options, SITE, &robot.token, call_timeout).await?,
-                )
-            }
-            None => FleetUplink::Grpc(Box::new(GrpcUplink::new(
-                &url,
-                SITE,
-                &robot.token,
-                MAX_MESSAGE_BYTES,
-                call_timeout,
-            )?)),
-        };
-        let cache = Arc::new(Mutex::new(GlobalSubmapCache::default()));
-        followers.push(tokio::spawn(follow_site(
-            uplink.clone(),
-            Arc::clone(&cache),
-            stopped.clone(),
-            Duration::from_millis(200),
-        )));
-        agents.push(Agent {
-            robot: k + 1,
-            uplink,
-            cache,
-            out: args.out.join(format!("agent-{}", k + 1)),
-            site: site.clone(),
-        });
-    }
+    let (agents, followers) = fleet.connect_agents(args, &stopped).await?;
     let caches: Vec<_> = agents.iter().map(|a| Arc::clone(&a.cache)).collect();
-
     let total_sessions = 1 + args.agents * args.sessions_per_agent;
     let bar = ProgressBar::new(total_sessions as u64);
     bar.set_style(
@@ -268,53 +175,8 @@ async fn demo(args: &DemoArgs) -> anyhow::Result<()> {
         bar.clone(),
         stopped.clone(),
     ));
-
-    // Day 0: robot 1 maps the store.
-    let mut runs = Vec::new();
-    say(
-        &bar,
-        "session 0: robot-1 maps the store (the whole sweep)".into(),
-    );
-    runs.push(run_session(&agents[0], &world, &sim, 0, false).await?);
-    bar.inc(1);
-    wait_caught_up(&site, &caches).await;
-
-    // Later days: every robot cleans, concurrently.
-    let per_agent = args.sessions_per_agent;
-    let count = agents.len();
-    let mut tasks = Vec::new();
-    for agent in agents {
-        let world = world.clone();
-        let sim = sim.clone();
-        let bar = bar.clone();
-        tasks.push(tokio::spawn(async move {
-            let mut done = Vec::new();
-            for j in 0..per_agent {
-                let session = u32::try_from(1 + j * count + (agent.robot - 1))?;
-                say(
-                    &bar,
-                    format!("session {session}: robot-{} starts cleaning", agent.robot),
-                );
-                let run = run_session(&agent, &world, &sim, session, true).await?;
-                say(
-                    &bar,
-                    format!(
-                        "session {session}: robot-{} done ({} nodes, relocalized: {})",
-                        agent.robot,
-                        run.node_times.len(),
-                        run.prior.is_some()
-                    ),
-                );
-                bar.inc(1);
-                done.push(run);
-            }
-            anyhow::Ok(done)
-        }));
-    }
-    for task in tasks {
-        runs.extend(task.await.context("agent task")??);
-    }
-    wait_caught_up(&site, &caches).await;
+    let runs =
+        clean_the_store(agents, &world, &sim, args.sessions_per_agent, &bar, &caches).await?;
     let _ = stop.send(true);
     let _ = printer.await;
     for follower in followers {
@@ -324,20 +186,7 @@ async fn demo(args: &DemoArgs) -> anyhow::Result<()> {
 
     // The final map picture, then the scores.
     let final_version = site.current();
-    let rendered = site.render(0.05).await?;
-    if let Some(grid) = &rendered.grid {
-        let (w, h, pixels) = map_image::grid_to_gray(grid);
-        map_image::write_gray_png(
-            &args
-                .out
-                .join("maps")
-                .join(format!("version-{:05}.png", rendered.version)),
-            w,
-            h,
-            &pixels,
-        )?;
-        map_image::write_gray_png(&args.out.join("map.png"), w, h, &pixels)?;
-    }
+    write_final_map(&site, &args.out).await?;
     let mcr = write_map_change(&caches[0], &args.out)?;
     let poses: BTreeMap<NodeId, Rigid2> = runs
         .iter()
@@ -351,7 +200,7 @@ async fn demo(args: &DemoArgs) -> anyhow::Result<()> {
         .collect();
     let wall_time_s = started.elapsed().as_secs_f64();
     let robot_seconds: f64 = runs.iter().map(|r| r.duration_s).sum();
-    let metrics = server.metrics();
+    let metrics = fleet.server.metrics();
     let (pgr_runs, pgr_mean_ms) = metrics.pgr_mean_ms();
     let summary = json!({
         "site": SITE,
@@ -389,7 +238,7 @@ async fn demo(args: &DemoArgs) -> anyhow::Result<()> {
     let report_path = args.out.join("report.json");
     std::fs::write(&report_path, serde_json::to_string_pretty(&summary)? + "\n")
         .with_context(|| format!("cannot write {}", report_path.display()))?;
-    if let Some(addr) = server.console_addr()
+    if let Some(addr) = fleet.server.console_addr()
         && args.linger_s > 0.0
     {
         eprintln!(
@@ -398,7 +247,7 @@ async fn demo(args: &DemoArgs) -> anyhow::Result<()> {
         );
         tokio::time::sleep(Duration::try_from_secs_f64(args.linger_s)?).await;
     }
-    server.shutdown().await?;
+    fleet.server.shutdown().await?;
     println!(
         "demo done in {wall_time_s:.0} s: version {} ({} sessions, {} nodes, {} submaps, {} trimmed); every robot at version {:?}; CRI {}, MRCL {:.3} (smoothed {:.3}), {} wrong placements, MCR {}; maps in {}",
         final_version.version,
@@ -414,6 +263,208 @@ async fn demo(args: &DemoArgs) -> anyhow::Result<()> {
         mcr.map_or("-".into(), |m| format!("{m:.3}")),
         args.out.display()
     );
+    Ok(())
+}
+
+/// The demo's map server on sled in `<out>/data`, serving [`SITE`] to its robots over loopback zenoh or
+/// gRPC, with the web console when asked.
+struct DemoServer {
+    server: RunningServer,
+    robots: Vec<RobotConfig>,
+    zenoh_endpoint: Option<String>,
+    /// The gRPC URL.
+    url: String,
+    site: SiteHandle,
+}
+
+impl DemoServer {
+    async fn start(args: &DemoArgs) -> anyhow::Result<Self> {
+        let store_options = SledStoreOptions {
+            path: args.out.join("data"),
+            ..SledStoreOptions::default()
+        };
+        let store = tokio::task::spawn_blocking(move || SledStore::open(&store_options))
+            .await
+            .context("storage thread")??;
+        let robots: Vec<RobotConfig> = (1..=args.agents)
+            .map(|k| RobotConfig {
+                id: robot_id(k),
+                token: format!("demo-token-robot-{k}"),
+            })
+            .collect();
+        let zenoh_endpoint = match args.transport.as_str() {
+            "zenoh" => Some(format!("tcp/127.0.0.1:{}", free_loopback_port()?)),
+            _ => None,
+        };
+        let config = ServerConfig {
+            listen: "127.0.0.1:0".parse()?,
+            metrics_listen: None,
+            max_message_bytes: MAX_MESSAGE_BYTES,
+            zenoh: zenoh_endpoint.as_ref().map(|endpoint| ZenohLinkOptions {
+                listen: vec![endpoint.clone()],
+                ..ZenohLinkOptions::default()
+            }),
+            sites: vec![SiteConfig {
+                id: SITE.into(),
+                robots: robots.clone(),
+            }],
+            http: args.http.map(|listen| HttpConfig {
+                listen,
+                operator_token: Some(format!("demo-operator-{:016x}", rand::random::<u64>())),
+                ..HttpConfig::default()
+            }),
+            ..ServerConfig::default()
+        };
+        let server = RunningServer::start(&config, Arc::new(store)).await?;
+        if let (Some(addr), Some(token)) = (
+            server.console_addr(),
+            config.http.as_ref().and_then(|h| h.operator_token.as_ref()),
+        ) {
+            eprintln!("evermap demo: web console at http://{addr}/?token={token}");
+        }
+        let url = format!("http://{}", server.grpc_addr());
+        let site = server
+            .site(SITE)
+            .context("the demo site is not served")?
+            .clone();
+        eprintln!(
+            "evermap demo: map server on {} ({}; sled in {}), site {SITE}, {} robots, {} cleaning sessions each",
+            zenoh_endpoint.as_deref().unwrap_or(&url),
+            args.transport,
+            args.out.join("data").display(),
+            args.agents,
+            args.sessions_per_agent
+        );
+        Ok(Self {
+            server,
+            robots,
+            zenoh_endpoint,
+            url,
+            site,
+        })
+    }
+
+    /// One agent per robot: its uplink (zenoh or gRPC) and a site follower keeping its submap cache at
+    /// the site's version until `stopped`.
+    async fn connect_agents(
+        &self,
+        args: &DemoArgs,
+        stopped: &watch::Receiver<bool>,
+    ) -> anyhow::Result<(Vec<Agent>, Vec<tokio::task::JoinHandle<()>>)> {
+        let mut agents = Vec::new();
+        let mut followers = Vec::new();
+        for (k, robot) in self.robots.iter().enumerate() {
+            let call_timeout = Duration::from_secs(30);
+            let uplink = match &self.zenoh_endpoint {
+                Some(endpoint) => {
+                    let options = ZenohLinkOptions {
+                        connect: vec![endpoint.clone()],
+                        ..ZenohLinkOptions::default()
+                    };
+                    FleetUplink::Zenoh(
+                        ZenohUplink::connect(&options, SITE, &robot.token, call_timeout).await?,
+                    )
+                }
+                None => FleetUplink::Grpc(Box::new(GrpcUplink::new(
+                    &self.url,
+                    SITE,
+                    &robot.token,
+                    MAX_MESSAGE_BYTES,
+                    call_timeout,
+                )?)),
+            };
+            let cache = Arc::new(Mutex::new(GlobalSubmapCache::default()));
+            followers.push(tokio::spawn(follow_site(
+                uplink.clone(),
+                Arc::clone(&cache),
+                stopped.clone(),
+                Duration::from_millis(200),
+            )));
+            agents.push(Agent {
+                robot: k + 1,
+                uplink,
+                cache,
+                out: args.out.join(format!("agent-{}", k + 1)),
+                site: self.site.clone(),
+            });
+        }
+        Ok((agents, followers))
+    }
+}
+
+/// Day 0, robot 1 maps the store; then on later days every robot cleans it, `per_agent` sessions each,
+/// concurrently. Every session run, once every agent's cache has caught up with the site.
+async fn clean_the_store(
+    agents: Vec<Agent>,
+    world: &Store,
+    sim: &SimSessionOptions,
+    per_agent: usize,
+    bar: &ProgressBar,
+    caches: &[Arc<Mutex<GlobalSubmapCache>>],
+) -> anyhow::Result<Vec<SessionRun>> {
+    let site = agents[0].site.clone();
+    // Day 0: robot 1 maps the store.
+    let mut runs = Vec::new();
+    say(
+        bar,
+        "session 0: robot-1 maps the store (the whole sweep)".into(),
+    );
+    runs.push(run_session(&agents[0], world, sim, 0, false).await?);
+    bar.inc(1);
+    wait_caught_up(&site, caches).await;
+
+    // Later days: every robot cleans, concurrently.
+    let count = agents.len();
+    let mut tasks = Vec::new();
+    for agent in agents {
+        let world = world.clone();
+        let sim = sim.clone();
+        let bar = bar.clone();
+        tasks.push(tokio::spawn(async move {
+            let mut done = Vec::new();
+            for j in 0..per_agent {
+                let session = u32::try_from(1 + j * count + (agent.robot - 1))?;
+                say(
+                    &bar,
+                    format!("session {session}: robot-{} starts cleaning", agent.robot),
+                );
+                let run = run_session(&agent, &world, &sim, session, true).await?;
+                say(
+                    &bar,
+                    format!(
+                        "session {session}: robot-{} done ({} nodes, relocalized: {})",
+                        agent.robot,
+                        run.node_times.len(),
+                        run.prior.is_some()
+                    ),
+                );
+                bar.inc(1);
+                done.push(run);
+            }
+            anyhow::Ok(done)
+        }));
+    }
+    for task in tasks {
+        runs.extend(task.await.context("agent task")??);
+    }
+    wait_caught_up(&site, caches).await;
+    Ok(runs)
+}
+
+/// The site's final map, as `maps/version-NNNNN.png` and `map.png` in `out`.
+async fn write_final_map(site: &SiteHandle, out: &Path) -> anyhow::Result<()> {
+    let rendered = site.render(0.05).await?;
+    if let Some(grid) = &rendered.grid {
+        let (w, h, pixels) = map_image::grid_to_gray(grid);
+        map_image::write_gray_png(
+            &out.join("maps")
+                .join(format!("version-{:05}.png", rendered.version)),
+            w,
+            h,
+            &pixels,
+        )?;
+        map_image::write_gray_png(&out.join("map.png"), w, h, &pixels)?;
+    }
     Ok(())
 }
 
