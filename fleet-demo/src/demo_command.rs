@@ -222,6 +222,7 @@ async fn demo(args: &DemoArgs) -> anyhow::Result<()> {
         "mrcl": report.run.mrcl,
         "mrcl_smoothed": report.run.mrcl_smoothed,
         "wrong_placements": report.run.wrong_placements,
+        "mrwl": report.run.mrwl,
         "score": report.run,
         "scoring": scoring,
         "relocalization_score_mean": report.score_mean,
@@ -249,7 +250,7 @@ async fn demo(args: &DemoArgs) -> anyhow::Result<()> {
     }
     fleet.server.shutdown().await?;
     println!(
-        "demo done in {wall_time_s:.0} s: version {} ({} sessions, {} nodes, {} submaps, {} trimmed); every robot at version {:?}; CRI {}, MRCL {:.3} (smoothed {:.3}), {} wrong placements, MCR {}; maps in {}",
+        "demo done in {wall_time_s:.0} s: version {} ({} sessions, {} nodes, {} submaps, {} trimmed); every robot at version {:?}; CRI {}, MRCL {:.3} (smoothed {:.3}), {} wrong placements, driven wrongly localized {:.3}, MCR {}; maps in {}",
         final_version.version,
         final_version.counts.sessions,
         final_version.counts.nodes,
@@ -260,6 +261,7 @@ async fn demo(args: &DemoArgs) -> anyhow::Result<()> {
         report.run.mrcl,
         report.run.mrcl_smoothed,
         report.run.wrong_placements,
+        report.run.mrwl,
         mcr.map_or("-".into(), |m| format!("{m:.3}")),
         args.out.display()
     );

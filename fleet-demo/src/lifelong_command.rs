@@ -266,7 +266,7 @@ impl Reporter<'_> {
         self.details.push(details);
         self.last_change = change;
         eprintln!(
-            "session {k:>2}: init {:<5} placed {} committed {} placement {} mrcl {:.3} (smoothed {:.3}) ams {} ate {:.3} m | mcr {} world {:.3} | map shows {} of the world, {} gone | nodes {} submaps {} constraints {} | pgr {:.0} ms, {} ms cpu ({} LM steps)",
+            "session {k:>2}: init {:<5} placed {} committed {} placement {} mrcl {:.3} (smoothed {:.3}) wrong {:.3} ams {} ate {:.3} m | mcr {} world {:.3} | map shows {} of the world, {} gone | nodes {} submaps {} constraints {} | pgr {:.0} ms, {} ms cpu ({} LM steps)",
             if k == 0 {
                 "-".to_string()
             } else {
@@ -283,6 +283,7 @@ impl Reporter<'_> {
                 .map_or("-".to_string(), |m| format!("{m:.2} m")),
             score.mrcl,
             score.mrcl_smoothed,
+            score.mrwl,
             score.ams.map_or("-".to_string(), |a| format!("{a:.3}")),
             score.ate_rms_m,
             self.rows
@@ -336,6 +337,8 @@ impl Reporter<'_> {
                 "ams_mean": run.ams_mean,
                 "ams_min": run.ams_min,
                 "wrong_placements": run.wrong_placements,
+                "mrwl": run.mrwl,
+                "wrong_estimate_sessions": run.wrong_estimate_sessions,
                 "mcr": last.and_then(|r| r.mcr),
                 "world_change_rate": last.map(|r| r.world_change_rate),
                 "map_shows_world": last.and_then(|r| r.map_shows_world),

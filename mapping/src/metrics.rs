@@ -27,5 +27,5 @@ pub use session_score::{
 pub use start_record::StartRecord;
 pub use trajectory_metric::{
     PoseTolerance, TrajectoryAccuracy, align_to_truth, pose_error, rigid_alignment,
-    trajectory_accuracy,
+    trajectory_accuracy, wrong_distance_m,
 };

@@ -23,6 +23,12 @@ pub struct RunScore {
     pub committed: usize,
     /// Sessions that acted on a wrong placement (tentative or committed).
     pub wrong_placements: usize,
+    /// Mileage rate of wrong localization over the run, weighted by distance (see
+    /// [`SessionScore::mrwl`]): the robot's estimate at the time off by more than the wrong-placement
+    /// tolerance.
+    pub mrwl: f64,
+    /// Sessions whose robot drove some distance wrongly localized ([`SessionScore::mrwl`] > 0).
+    pub wrong_estimate_sessions: usize,
     /// MRCL over the run from the estimate at the time of each scan: good distance over distance.
     pub mrcl: f64,
     /// The same from each session's trajectory smoothed at its end.
@@ -73,6 +79,8 @@ pub fn score_run(sessions: &[SessionScore]) -> RunScore {
             .filter(|s| s.placement_error_m.is_some())
             .count(),
         wrong_placements: sessions.iter().filter(|s| s.wrong_placement).count(),
+        mrwl: ratio(sessions.iter().map(SessionScore::wrong_distance_m).sum()),
+        wrong_estimate_sessions: sessions.iter().filter(|s| s.mrwl > 0.0).count(),
         mrcl: ratio(sessions.iter().map(SessionScore::good_distance_m).sum()),
         mrcl_smoothed: ratio(
             sessions

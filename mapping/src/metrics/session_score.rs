@@ -31,7 +31,9 @@
 
 use serde::Serialize;
 
-use super::{ScoringOptions, TrajectoryAccuracy, pose_error, trajectory_accuracy};
+use super::{
+    ScoringOptions, TrajectoryAccuracy, pose_error, trajectory_accuracy, wrong_distance_m,
+};
 use crate::geometry::Rigid2;
 use crate::sensor::Timestamp;
 
@@ -112,6 +114,11 @@ pub struct SessionScore {
     /// A placement the robot acted on (tentative or committed) is off by more than
     /// [`ScoringOptions::wrong_placement`].
     pub wrong_placement: bool,
+    /// Mileage rate of wrong localization: the share of the distance driven while the robot's estimate at
+    /// the time was off by more than [`ScoringOptions::wrong_placement`] — it believed it knew where it was,
+    /// and was wrong. Unlike `wrong_placement` it sees an estimate that went wrong after a right placement
+    /// (matches on probation that moved it). Scans with no estimate (refusals) count in neither.
+    pub mrwl: f64,
     /// Mean match score of every scan against the map as it was then; `None` when not measured.
     pub ams: Option<f64>,
     /// Scans that score.
@@ -127,6 +134,9 @@ pub struct SessionScore {
     /// weigh MRCL over a run by distance.
     #[serde(skip)]
     good_distance_m: [f64; 2],
+    /// Distance driven while wrongly localized (estimate at the time), metres, to weigh `mrwl` over a run.
+    #[serde(skip)]
+    wrong_distance_m: f64,
 }
 
 impl SessionScore {
@@ -138,6 +148,11 @@ impl SessionScore {
     /// Distance driven while correctly localized by the smoothed trajectory, metres.
     pub fn good_distance_smoothed_m(&self) -> f64 {
         self.good_distance_m[1]
+    }
+
+    /// Distance driven while wrongly localized (estimate at the time, see `mrwl`), metres.
+    pub fn wrong_distance_m(&self) -> f64 {
+        self.wrong_distance_m
     }
 }
 
@@ -179,6 +194,12 @@ pub fn score_session(
     options: &ScoringOptions,
 ) -> SessionScore {
     let online = trajectory_accuracy(track.online, track.truth, world_from_map, &options.correct);
+    let wrong_distance_m = wrong_distance_m(
+        track.online,
+        track.truth,
+        world_from_map,
+        &options.wrong_placement,
+    );
     let smoothed = trajectory_accuracy(
         track.smoothed,
         track.truth,
@@ -240,10 +261,16 @@ pub fn score_session(
         committed_after_s: committed.map(|p| p.2),
         placements: track.placements.len().max(usize::from(committed.is_some())),
         wrong_placement,
+        mrwl: if online.distance_m > 0.0 {
+            wrong_distance_m / online.distance_m
+        } else {
+            0.0
+        },
         ams: average_match_score(track.match_scores),
         scored_scans: track.match_scores.len(),
         mrcl_ceiling,
         good_distance_m: [good(&online), good(&smoothed)],
+        wrong_distance_m,
     }
 }
 
@@ -303,6 +330,40 @@ mod tests {
         assert_eq!(score.localized_scans, 11);
         assert!((score.max_error_m - 1.0).abs() < 1e-12);
         assert_eq!(score.ams, None);
+    }
+
+    #[test]
+    fn an_estimate_dragged_off_after_a_right_placement_is_driven_wrong_though_no_placement_was() {
+        let truth = truth();
+        // Placed right at 2 s (no estimate before: refused, not wrong); from 5 s the estimate is 4 m off
+        // (matches on probation moved it), while the placement itself stays right.
+        let online: Vec<_> = truth[2..]
+            .iter()
+            .map(|(time, p)| {
+                let off = if time.as_secs_f64() > 4.5 { 4.0 } else { 0.0 };
+                (*time, rigid2(p.translation.x, off, 0.0))
+            })
+            .collect();
+        let placements = [placement_at(2.0, 2.0, 0.02, 0.0)];
+        let track = SessionTrack {
+            truth: &truth,
+            start_time: t(0.0),
+            online: &online,
+            smoothed: &truth,
+            placements: &placements,
+            committed: None,
+            match_scores: &[],
+            search_bests: &[],
+        };
+        let score = score_session(&track, &Rigid2::identity(), &ScoringOptions::DEFAULT);
+        assert!(!score.wrong_placement, "{score:?}");
+        // Steps 5→6 .. 9→10 wrong: 5 m of 10; 0→2 refused and 2→4 right count in neither.
+        assert!((score.mrwl - 0.5).abs() < 1e-12, "{score:?}");
+        assert!((score.wrong_distance_m() - 5.0).abs() < 1e-12);
+        assert!((score.mrcl - 0.2).abs() < 1e-12, "{score:?}");
+        let run = crate::metrics::score_run(&[score]);
+        assert!((run.mrwl - 0.5).abs() < 1e-12);
+        assert_eq!((run.wrong_placements, run.wrong_estimate_sessions), (0, 1));
     }
 
     #[test]

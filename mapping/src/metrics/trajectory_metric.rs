@@ -147,6 +147,34 @@ pub fn trajectory_accuracy(
     accuracy
 }
 
+/// The distance (metres, truth) travelled while `estimate` was wrong: each truth step both of whose ends
+/// have an estimate off by more than `wrong` (through `world_from_map`). A truth pose without an estimate
+/// is a refusal, not a wrong answer: it counts in neither.
+pub fn wrong_distance_m(
+    estimate: &[(Timestamp, Rigid2)],
+    truth: &[(Timestamp, Rigid2)],
+    world_from_map: &Rigid2,
+    wrong: &PoseTolerance,
+) -> f64 {
+    let estimate: BTreeMap<Timestamp, Rigid2> = estimate.iter().copied().collect();
+    let mut distance = 0.0;
+    let mut previous: Option<(Rigid2, bool)> = None;
+    for (time, world_from_base) in truth {
+        let is_wrong = estimate.get(time).is_some_and(|map_from_base| {
+            let (error, rotation) = pose_error(world_from_map, map_from_base, world_from_base);
+            !wrong.accepts(error, rotation)
+        });
+        if let Some((last, last_wrong)) = previous
+            && is_wrong
+            && last_wrong
+        {
+            distance += (world_from_base.translation.vector - last.translation.vector).norm();
+        }
+        previous = Some((*world_from_base, is_wrong));
+    }
+    distance
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
