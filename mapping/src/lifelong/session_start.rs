@@ -18,8 +18,9 @@
 //!    [`SessionStartOptions::search_piece_m`] of route each refined on its own).
 //!    Between them, every [`SessionStartOptions::recheck_every_n_nodes`] nodes, a cheap test of the last
 //!    search's candidates against the grown route ([`StartSearch::route_decides`], whole and in the
-//!    same pieces) brings the retry forward when the route already tells them apart. While the last search found nothing (no pose
-//!    reached the score, or the best fit the map below its floor: the route lies largely off the map),
+//!    same pieces) brings the retry forward when the route already tells them apart. While the last
+//!    search found nothing (no pose reached the score, or the best fit the map below its floor: the
+//!    route lies largely off the map),
 //!    the latest [`SessionStartOptions::recent_search_nodes`] nodes are searched every
 //!    `retry_every_n_nodes` nodes, so that a session placed nowhere is placed soon after it drives onto
 //!    mapped ground. After
