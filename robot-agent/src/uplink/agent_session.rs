@@ -607,15 +607,9 @@ impl<'o, 'a> SessionStream<'o, 'a> {
             (Some(glm), Some(start)) => glm.match_items(start.cache, trajectory, &mut items).await,
             _ => None,
         };
-        if let (Some(mut d), Some(start)) = (self.decision.take(), self.start.as_ref()) {
-            // On probation: no search is due, so the node is fed on this thread.
-            let mut events = items
-                .iter()
-                .find_map(|item| match item {
-                    UploadItem::NodeAdded(n) => Some(d.add_node(n.local_pose, n.points.clone())),
-                    _ => None,
-                })
-                .unwrap_or_default();
+        if let (Some(d), Some(start)) = (self.decision.take(), self.start.as_ref()) {
+            // On probation: the node judges the placement, and may be searched from (while unconfirmed).
+            let (mut d, mut events) = feed_node(d, &items).await;
             events.extend(feed_matches(&mut d, start.cache, node, &items));
             for event in events {
                 self.record(&event);
