@@ -324,9 +324,7 @@ fn judge_placement(
 ) -> Vec<SessionStartEvent> {
     let mut decisions = Vec::new();
     for event in events {
-        if let LifelongEvent::LoopClosureAdded(closure) = event
-            && closure.node.trajectory == session
-            && closure.submap.trajectory != session
+        if let Some(closure) = event.placement_match(session)
             && let Some(submap_pose) = map.global().submap_pose(closure.submap)
         {
             decisions.extend(start.add_match(

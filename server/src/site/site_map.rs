@@ -625,9 +625,7 @@ impl SiteMap {
         let mut decisions = Vec::new();
         if let Some(start) = self.starts.get_mut(&trajectory) {
             for event in &events {
-                if let LifelongEvent::LoopClosureAdded(closure) = event
-                    && closure.node.trajectory == trajectory
-                    && closure.submap.trajectory != trajectory
+                if let Some(closure) = event.placement_match(trajectory)
                     && let Some(submap_pose) = self.map.global().submap_pose(closure.submap)
                 {
                     decisions.extend(start.add_match(

@@ -135,8 +135,8 @@ impl GlobalSlam {
     }
 
     /// The path (m) over which LLO's drift separates `node`'s estimate from `submap`'s: the path since the
-    /// node's trajectory last closed a loop or, within one trajectory, the path between the submap and the
-    /// node, if shorter.
+    /// node's trajectory last closed a loop (or was placed by a relocalization) or, within one trajectory,
+    /// the path between the submap and the node, if shorter.
     pub(super) fn drift_path(
         &self,
         node: NodeId,

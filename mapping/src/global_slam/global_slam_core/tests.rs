@@ -420,3 +420,118 @@ fn the_search_window_grows_with_the_path_since_the_last_loop() {
     );
     assert!(window.linear_m < cb.fast_correlative.linear_search_window + 0.2);
 }
+
+#[test]
+fn a_placed_trajectory_is_searched_as_if_it_had_just_closed_a_loop() {
+    let mut global = placed_second_trajectory();
+    let cb = ConstraintBuilderOptions::default();
+    let sid = SubmapId {
+        trajectory: 0,
+        index: 0,
+    };
+    let window_at = |global: &GlobalSlam, index: u32| {
+        let node = NodeId {
+            trajectory: 1,
+            index,
+        };
+        global.search_window(node, &global.nodes()[&node], sid, &global.submaps()[&sid])
+    };
+    // Placed at its newest node after 50 m unplaced: there the map holds it as well as a closure would.
+    let placed = window_at(&global, 249);
+    assert!(
+        (placed.linear_m - cb.fast_correlative.linear_search_window).abs() < 1e-9,
+        "{placed:?}"
+    );
+    assert!((placed.angular_rad - cb.fast_correlative.angular_search_window).abs() < 1e-9);
+    // Its nodes after the placement drift from there again.
+    drive_second_trajectory(&mut global, 250..300);
+    let later = window_at(&global, 299);
+    let expected = cb.fast_correlative.linear_search_window + cb.linear_window_growth * 10.0;
+    assert!((later.linear_m - expected).abs() < 1e-6, "{later:?}");
+}
+
+/// [`straight_run`]'s map (trajectory 0) and a second trajectory driven 50 m beside it, placed at its
+/// newest node.
+fn placed_second_trajectory() -> GlobalSlam {
+    let mut global = straight_run(20);
+    global.start_trajectory(1, None).expect("new trajectory");
+    drive_second_trajectory(&mut global, 0..250);
+    assert!(global.place_trajectory(1, rigid2(-48.0, 0.0, 0.0)));
+    global
+}
+
+/// Adds the nodes `indices` of trajectory 1, along x in 0.2 m steps, all in its submap 0.
+fn drive_second_trajectory(global: &mut GlobalSlam, indices: std::ops::Range<u32>) {
+    for i in indices {
+        let node = LloNode {
+            time: Timestamp(1_000_000_000_000 + i64::from(i) * 100_000_000),
+            local_pose: rigid2(0.2 * f64::from(i), 0.0, 0.0),
+            points: vec![Point2::new(1.0, 0.0)],
+            insertion_submaps: vec![(0, Rigid2::identity())],
+            finished_submaps: Vec::new(),
+            recovered: false,
+        };
+        global.add_node(1, node).expect("node added");
+    }
+}
+
+/// Matches of trajectory 1's nodes 240..245 against trajectory 0's two submaps, all putting them `offset`
+/// (in the map frame) from their estimates: a chorus that agrees with itself.
+fn shifted_chorus(global: &GlobalSlam, offset: Rigid2) -> Vec<LoopClosure> {
+    (240..245u32)
+        .map(|index| {
+            let node = NodeId {
+                trajectory: 1,
+                index,
+            };
+            let submap = SubmapId {
+                trajectory: 0,
+                index: index % 2,
+            };
+            let node_pose = global.node_pose(node).expect("node");
+            let submap_pose = global.submap_pose(submap).expect("submap");
+            LoopClosure {
+                submap,
+                node,
+                submap_from_node: submap_pose.inverse() * offset * node_pose,
+                score: 0.7,
+                runner_up_score: None,
+                information: None,
+            }
+        })
+        .collect()
+}
+
+#[test]
+fn a_chorus_against_a_tentative_placement_goes_to_its_judge_not_into_the_graph() {
+    let mut global = placed_second_trajectory();
+    global.set_placement_tentative(1, true);
+    let newest = NodeId {
+        trajectory: 1,
+        index: 249,
+    };
+    let before = global.node_pose(newest).expect("node");
+    let chorus = shifted_chorus(&global, rigid2(0.0, 2.0, 0.0));
+    let events = global.add_search_results(chorus.clone());
+    let held = events
+        .iter()
+        .filter(|e| matches!(e, GlobalSlamEvent::MatchHeldForPlacement(_)))
+        .count();
+    assert_eq!(held, 5, "{events:?}");
+    assert!(
+        !events
+            .iter()
+            .any(|e| matches!(e, GlobalSlamEvent::LoopClosureAdded(_)))
+    );
+    global.optimize();
+    let after = global.node_pose(newest).expect("node");
+    assert!((after.translation.vector - before.translation.vector).norm() < 1e-6);
+    // Once the placement is confirmed, the same chorus is a correction like any other.
+    global.set_placement_tentative(1, false);
+    let events = global.add_search_results(shifted_chorus(&global, rigid2(0.0, 2.0, 0.0)));
+    let added = events
+        .iter()
+        .filter(|e| matches!(e, GlobalSlamEvent::LoopClosureAdded(_)))
+        .count();
+    assert_eq!(added, 5, "{events:?}");
+}

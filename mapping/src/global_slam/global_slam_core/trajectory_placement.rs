@@ -37,11 +37,20 @@ impl GlobalSlam {
 
     /// Places an unanchored trajectory (see [`Self::start_trajectory`]) at `global_from_local`, found by
     /// relocalization after it started: moves its nodes and submaps there and queues the searches its nodes
-    /// can now make near their estimates. Returns false (and changes nothing) when the trajectory is not
-    /// unanchored.
+    /// can now make near their estimates. The placement ties the trajectory's newest node to the map as a
+    /// loop closure would: drift, and with it the search windows and the drift bound of its matches, grows
+    /// from that node again (as from the node of the first closure that anchors a trajectory). Returns
+    /// false (and changes nothing) when the trajectory is not unanchored.
     pub fn place_trajectory(&mut self, trajectory: u32, global_from_local: Rigid2) -> bool {
         if !self.unanchored.contains(&trajectory) {
             return false;
+        }
+        if let Some(newest) = self
+            .last_node
+            .get(&trajectory)
+            .and_then(|n| self.nodes.get(n))
+        {
+            self.last_loop_path.insert(trajectory, newest.path_m);
         }
         let correction = global_from_local * self.global_from_local(trajectory).inverse();
         self.move_trajectory(trajectory, correction);
@@ -97,6 +106,22 @@ impl GlobalSlam {
         self.recovery_path.remove(&trajectory);
         self.unanchored.insert(trajectory);
         true
+    }
+
+    /// Marks `trajectory`'s placement tentative (`true`: placed, but still judged by whoever placed it, as
+    /// [`crate::lifelong::SessionStart`]'s probation does) or no longer (`false`: confirmed, revoked or
+    /// ended). While it is tentative, matches of its nodes against other trajectories' submaps that move
+    /// them farther than drift explains (or than an unconfirmed match may) do not enter the graph when
+    /// others agree with them: they are handed to the placement's judge
+    /// ([`GlobalSlamEvent::MatchHeldForPlacement`]), which keeps or takes back the placement. (Otherwise a
+    /// few look-alike matches that agree with each other move a right placement along with them, and the
+    /// robot with it.) Matches within the bounds are taken as ever.
+    pub fn set_placement_tentative(&mut self, trajectory: u32, tentative: bool) {
+        if tentative {
+            self.tentative.insert(trajectory);
+        } else {
+            self.tentative.remove(&trajectory);
+        }
     }
 
     /// Stops treating `trajectory`'s cross-trajectory matches as found elsewhere (see
