@@ -65,10 +65,6 @@ pub enum GlobalSlamEvent {
     SubmapFinished(SubmapId),
     /// A loop closure (GLM constraint) was accepted.
     LoopClosureAdded(LoopClosure),
-    /// A match of a trajectory whose placement is tentative, against another trajectory's submap, that
-    /// other matches agree with but that would move the trajectory farther than drift explains: kept out
-    /// of the graph for the placement's judge to weigh (see [`GlobalSlam::set_placement_tentative`]).
-    MatchHeldForPlacement(LoopClosure),
     /// The graph was optimized.
     Optimized(OptimizationSummary),
 }
@@ -149,9 +145,6 @@ pub struct GlobalSlam {
     /// Trajectories whose cross-trajectory matches are found elsewhere (GLM on the robot; see
     /// [`GlobalSlam::set_matched_elsewhere`]).
     matched_elsewhere: BTreeSet<u32>,
-    /// Trajectories whose placement is tentative (see [`GlobalSlam::set_placement_tentative`]). Not part
-    /// of [`GlobalSlamState`]: whoever judges placements sets it again after a restore.
-    tentative: BTreeSet<u32>,
     /// Per trajectory, the path length (m) of its latest node with an accepted loop closure that closed a
     /// loop (see `min_loop_length`): drift, and so the search window, grows from there.
     last_loop_path: BTreeMap<u32, f64>,
@@ -226,7 +219,6 @@ impl GlobalSlam {
             unanchored: BTreeSet::new(),
             capped_optimizer: None,
             matched_elsewhere: BTreeSet::new(),
-            tentative: BTreeSet::new(),
             last_loop_path: BTreeMap::new(),
             recovery_path: BTreeMap::new(),
             pending_unconfirmed: Vec::new(),

@@ -62,9 +62,6 @@ pub enum LifelongEvent {
     SubmapFinished(SubmapId),
     /// A GLM constraint (loop closure, or a later session's localization) was accepted.
     LoopClosureAdded(LoopClosure),
-    /// A match of a session on probation held out of the graph for its session start to judge (see
-    /// [`GlobalSlamEvent::MatchHeldForPlacement`]).
-    MatchHeldForPlacement(LoopClosure),
     /// A submap was removed from the map with the nodes only it held.
     SubmapTrimmed {
         /// The submap.
@@ -87,11 +84,10 @@ pub enum LifelongEvent {
 
 impl LifelongEvent {
     /// The match this event hands to `session`'s placement judge ([`super::SessionStart::add_match`]): a
-    /// match of one of its nodes against another session's submap, added to the graph or held for the
-    /// judge.
+    /// match of one of its nodes against another session's submap, added to the graph.
     pub fn placement_match(&self, session: u32) -> Option<&LoopClosure> {
         match self {
-            Self::LoopClosureAdded(c) | Self::MatchHeldForPlacement(c)
+            Self::LoopClosureAdded(c)
                 if c.node.trajectory == session && c.submap.trajectory != session =>
             {
                 Some(c)
@@ -107,7 +103,6 @@ impl From<GlobalSlamEvent> for LifelongEvent {
             GlobalSlamEvent::SubmapAdded(id) => Self::SubmapAdded(id),
             GlobalSlamEvent::SubmapFinished(id) => Self::SubmapFinished(id),
             GlobalSlamEvent::LoopClosureAdded(c) => Self::LoopClosureAdded(c),
-            GlobalSlamEvent::MatchHeldForPlacement(c) => Self::MatchHeldForPlacement(c),
             GlobalSlamEvent::Optimized(s) => Self::Optimized(s),
         }
     }
@@ -237,13 +232,11 @@ impl LifelongMap {
     pub fn begin_probation(&mut self, session: u32) -> Result<(), LifelongError> {
         self.active(session)?;
         self.probation.insert(session);
-        self.global.set_placement_tentative(session, true);
         Ok(())
     }
 
     /// Commits a session's placement: ends its probation. Returns whether it was on probation.
     pub fn commit_session(&mut self, session: u32) -> bool {
-        self.global.set_placement_tentative(session, false);
         self.probation.remove(&session)
     }
 
@@ -253,7 +246,6 @@ impl LifelongMap {
     pub fn revoke_placement(&mut self, session: u32) -> Result<bool, LifelongError> {
         self.active(session)?;
         self.probation.remove(&session);
-        self.global.set_placement_tentative(session, false);
         Ok(self.global.unplace_trajectory(session))
     }
 
@@ -394,7 +386,6 @@ impl LifelongMap {
             // nothing (trustworthy) ties to the site, so they can neither update the map nor justify
             // trimming anything. Dropped whatever the policy.
             self.probation.remove(&session);
-            self.global.set_placement_tentative(session, false);
             events.extend(self.drop_session(session)?);
             if let Some(s) = self.sessions.get_mut(&session) {
                 s.finished = true;

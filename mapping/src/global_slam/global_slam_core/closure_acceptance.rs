@@ -110,13 +110,10 @@ impl GlobalSlam {
                     self.closures_beyond_drift += 1;
                     continue;
                 }
+                confirmed_any = true;
                 self.closures_beyond_drift -= agreeing.len();
                 let group: Vec<(LoopClosure, Acceptance)> =
                     confirmed(agreeing, closure, acceptance).collect();
-                let Some(group) = self.unless_held_for_placement(group, &mut events) else {
-                    continue;
-                };
-                confirmed_any = true;
                 self.start_probation(group.iter().map(|(c, _)| c));
                 self.bend_along_drift(group.iter().map(|(c, _)| c));
                 accepted.extend(group);
@@ -128,12 +125,9 @@ impl GlobalSlam {
                     self.pending_unconfirmed.push((closure, acceptance));
                     continue;
                 }
+                confirmed_any = true;
                 let group: Vec<(LoopClosure, Acceptance)> =
                     confirmed(agreeing, closure, acceptance).collect();
-                let Some(group) = self.unless_held_for_placement(group, &mut events) else {
-                    continue;
-                };
-                confirmed_any = true;
                 self.start_probation(group.iter().map(|(c, _)| c));
                 self.bend_along_drift(group.iter().map(|(c, _)| c));
                 accepted.extend(group);
@@ -175,29 +169,6 @@ impl GlobalSlam {
             events.push(GlobalSlamEvent::Optimized(self.optimize()));
         }
         events
-    }
-
-    /// A group of matches confirmed by agreement, unless it would move a trajectory whose placement is
-    /// tentative (see [`Self::set_placement_tentative`]) against another trajectory's submaps: then its
-    /// matches stay out of the graph and are handed to the placement's judge
-    /// ([`GlobalSlamEvent::MatchHeldForPlacement`]), and `None` is returned.
-    fn unless_held_for_placement(
-        &self,
-        group: Vec<(LoopClosure, Acceptance)>,
-        events: &mut Vec<GlobalSlamEvent>,
-    ) -> Option<Vec<(LoopClosure, Acceptance)>> {
-        let held = group.iter().any(|(c, _)| {
-            c.node.trajectory != c.submap.trajectory && self.tentative.contains(&c.node.trajectory)
-        });
-        if !held {
-            return Some(group);
-        }
-        events.extend(
-            group
-                .into_iter()
-                .map(|(c, _)| GlobalSlamEvent::MatchHeldForPlacement(c)),
-        );
-        None
     }
 
     /// Records that `closure` was accepted: if it closes a loop (another trajectory's submap, or one at

@@ -200,7 +200,6 @@ impl GlobalSlam {
             unanchored,
             capped_optimizer: None,
             matched_elsewhere,
-            tentative: BTreeSet::new(),
             last_loop_path,
             recovery_path,
             closures_beyond_drift,

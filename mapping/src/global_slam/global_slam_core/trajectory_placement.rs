@@ -108,22 +108,6 @@ impl GlobalSlam {
         true
     }
 
-    /// Marks `trajectory`'s placement tentative (`true`: placed, but still judged by whoever placed it, as
-    /// [`crate::lifelong::SessionStart`]'s probation does) or no longer (`false`: confirmed, revoked or
-    /// ended). While it is tentative, matches of its nodes against other trajectories' submaps that move
-    /// them farther than drift explains (or than an unconfirmed match may) do not enter the graph when
-    /// others agree with them: they are handed to the placement's judge
-    /// ([`GlobalSlamEvent::MatchHeldForPlacement`]), which keeps or takes back the placement. (Otherwise a
-    /// few look-alike matches that agree with each other move a right placement along with them, and the
-    /// robot with it.) Matches within the bounds are taken as ever.
-    pub fn set_placement_tentative(&mut self, trajectory: u32, tentative: bool) {
-        if tentative {
-            self.tentative.insert(trajectory);
-        } else {
-            self.tentative.remove(&trajectory);
-        }
-    }
-
     /// Stops treating `trajectory`'s cross-trajectory matches as found elsewhere (see
     /// [`Self::set_matched_elsewhere`]): its nodes are searched here again from now on.
     pub fn clear_matched_elsewhere(&mut self, trajectory: u32) {

@@ -94,12 +94,8 @@ impl LifelongMap {
         if let Some(session) = probation.iter().find(|s| !sessions.contains_key(s)) {
             return inconsistent(format!("session {session} on probation was never started"));
         }
-        let mut global = GlobalSlam::from_state(options.global.clone(), global)?;
-        for &session in &probation {
-            global.set_placement_tentative(session, true);
-        }
         Ok(Self {
-            global,
+            global: GlobalSlam::from_state(options.global.clone(), global)?,
             options,
             sessions: sessions
                 .into_iter()
