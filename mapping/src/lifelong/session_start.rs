@@ -15,16 +15,14 @@
 //!    twice, four times ... as many ([`StartSearch::search_again`]: placed when the best pose fits the
 //!    map well enough and beats every other candidate in the paired test over the route's blocks, or,
 //!    where the whole route leaves a rival undecided, in pieces of
-//!    [`SessionStartOptions::search_piece_m`] of route each refined on its own).
-//!    Between them, every [`SessionStartOptions::recheck_every_n_nodes`] nodes, a cheap test of the last
-//!    search's candidates against the grown route ([`StartSearch::route_decides`], whole and in the
-//!    same pieces) brings the retry forward when the route already tells them apart. While the last
-//!    search found nothing (no pose reached the score, or the best fit the map below its floor: the
-//!    route lies largely off the map),
-//!    the latest [`SessionStartOptions::recent_search_nodes`] nodes are searched every
-//!    `retry_every_n_nodes` nodes, so that a session placed nowhere is placed soon after it drives onto
-//!    mapped ground. After
-//!    [`SessionStartOptions::give_up_after_nodes`] the session stops searching.
+//!    [`SessionStartOptions::search_piece_m`] of route each refined on its own). Between them, every
+//!    [`SessionStartOptions::recheck_every_n_nodes`] nodes, a cheap test of the last search's
+//!    candidates against the grown route ([`StartSearch::route_decides`], whole and in the same pieces)
+//!    brings the retry forward when the route already tells them apart. While the last search found
+//!    nothing (no pose reached the score, or the best fit the map below its floor: the route lies
+//!    largely off the map), the latest [`SessionStartOptions::recent_search_nodes`] nodes are searched
+//!    every `retry_every_n_nodes` nodes, so that a session placed nowhere is placed soon after it drives
+//!    onto mapped ground. After [`SessionStartOptions::give_up_after_nodes`] the session stops searching.
 //! 3. **Probation.** A placement is tentative: the shell places the session so that GLM can match its
 //!    nodes near their estimates, but its submaps stay out of the map robots relocalize against and it
 //!    trims nothing. It is committed once [`SessionStartOptions::probation_matches`] *independent*
@@ -83,8 +81,8 @@ pub use self::session_start_event::{
 pub use self::session_start_options::SessionStartOptions;
 use super::relocalization::weakest_of_either;
 use super::{
-    LifelongOptionsError, PriorCheck, RelocalizationOutcome, SessionRelocalization, StartAnswer,
-    StartSearch,
+    LifelongEvent, LifelongMap, LifelongOptionsError, PriorCheck, RelocalizationOutcome,
+    SessionRelocalization, StartAnswer, StartSearch,
 };
 use crate::geometry::{Rigid2, Rigid2Ext as _, normalize_angle};
 use crate::pose_graph::SubmapId;
@@ -317,6 +315,31 @@ impl SessionStart {
                 }
             }
         }
+    }
+
+    /// Feeds [`Self::add_match`] the matches among `events` (of `map`) that judge `session`'s placement:
+    /// those of its nodes against other sessions' submaps ([`LifelongEvent::placement_match`]), in the
+    /// map frame as the submaps now stand. Every shell that runs a session start on a [`LifelongMap`]
+    /// judges its placement through this.
+    pub fn add_matches_from(
+        &mut self,
+        map: &LifelongMap,
+        session: u32,
+        events: &[LifelongEvent],
+    ) -> Vec<SessionStartEvent> {
+        let mut decisions = Vec::new();
+        for event in events {
+            if let Some(closure) = event.placement_match(session)
+                && let Some(submap_pose) = map.global().submap_pose(closure.submap)
+            {
+                decisions.extend(self.add_match(
+                    closure.node.index as usize,
+                    submap_pose * closure.submap_from_node,
+                    closure.submap,
+                ));
+            }
+        }
+        decisions
     }
 
     /// A GLM match of the session's node `node` against the existing map, implying the node's map pose

@@ -8,7 +8,7 @@ use std::time::Instant;
 use mapping::geometry::Rigid2;
 use mapping::grid::ProbabilityGrid;
 use mapping::lifelong::{
-    LifelongEvent, LifelongMap, SessionStart, SessionStartEvent, StartSearch, render_submaps_max,
+    LifelongEvent, LifelongMap, SessionStart, StartSearch, render_submaps_max,
 };
 use mapping::local_slam::LloNode;
 use mapping::metrics::MatchScorer;
@@ -180,7 +180,7 @@ pub(super) fn worker(
                 events_after.extend(events);
                 // The matches of this session's nodes against the existing map judge its placement.
                 if let Some(start) = start.as_mut() {
-                    let decisions = judge_placement(start, &map, session, &events_after);
+                    let decisions = start.add_matches_from(&map, session, &events_after);
                     act_on_start!(session, false, &decisions);
                 }
                 if let Some(summary) = sessions.last_mut() {
@@ -312,29 +312,6 @@ fn run_search_jobs(map: &mut LifelongMap) -> Vec<LifelongEvent> {
     let jobs = map.take_search_jobs();
     let results = run_searches(map.constraint_builder(), &jobs);
     map.add_search_results(results)
-}
-
-/// What `session`'s start decides from the matches among `events` of the session's nodes against
-/// older sessions' submaps (they judge its placement).
-fn judge_placement(
-    start: &mut SessionStart,
-    map: &LifelongMap,
-    session: u32,
-    events: &[LifelongEvent],
-) -> Vec<SessionStartEvent> {
-    let mut decisions = Vec::new();
-    for event in events {
-        if let Some(closure) = event.placement_match(session)
-            && let Some(submap_pose) = map.global().submap_pose(closure.submap)
-        {
-            decisions.extend(start.add_match(
-                closure.node.index as usize,
-                submap_pose * closure.submap_from_node,
-                closure.submap,
-            ));
-        }
-    }
-    decisions
 }
 
 /// How far `session`'s placement put its first node from that node's last known pose (`retired`),

@@ -622,20 +622,11 @@ impl SiteMap {
                 },
             ));
         // Its matches against the other sessions judge its placement.
-        let mut decisions = Vec::new();
-        if let Some(start) = self.starts.get_mut(&trajectory) {
-            for event in &events {
-                if let Some(closure) = event.placement_match(trajectory)
-                    && let Some(submap_pose) = self.map.global().submap_pose(closure.submap)
-                {
-                    decisions.extend(start.add_match(
-                        closure.node.index as usize,
-                        submap_pose * closure.submap_from_node,
-                        closure.submap,
-                    ));
-                }
-            }
-        }
+        let decisions = self
+            .starts
+            .get_mut(&trajectory)
+            .map(|start| start.add_matches_from(&self.map, trajectory, &events))
+            .unwrap_or_default();
         self.act_on_start(trajectory, &decisions)?;
         Ok(count_optimizations(&events))
     }
