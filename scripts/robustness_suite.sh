@@ -9,7 +9,9 @@
 # Environment: RECORDINGS (default "mit-csail aces intel"), VARIANTS (default: every variant),
 # CONFIG (a TOML file passed as --config; the suite's figures are scored without one), SEED (default 1),
 # SEEDS (several perturbation seeds: a random variant's one draw says little about the next), JOBS
-# (parallel runs, default 2), AGENT (default target/release/evermap-agent).
+# (parallel runs, default 2), AGENT (default target/release/evermap-agent), REFERENCE (a suite's
+# OUT_DIR whose REC/clean/trajectory.tum judges each GLM match of the other variants, default OUT_DIR:
+# the clean runs go first; scripts/glm_rules_table.py OUT_DIR tabulates the judged matches).
 # A run whose report.json exists is not run again, so an interrupted suite resumes where it stopped;
 # delete OUT_DIR to start over (do so after changing the engine).
 set -euo pipefail
@@ -43,8 +45,11 @@ echo "${#runs[@]} runs to do in $out (seed $seed, $jobs at a time)" >&2
 run_one() {
   local r=$1 v=$2 dir=$out/$1/$2
   mkdir -p "$dir"
+  local reference=$reference_dir/$r/clean/trajectory.tum
+  [[ $v != clean && -f $reference ]] || reference=
   if "$agent" offline --input "$datasets/rosbag1/$r.orig.bag" --relations "$datasets/relations/$r.relations" \
-      --perturb "$v" --perturb-seed "$seed" ${config:+--config "$config"} --out "$dir.partial" >"$dir/stdout" 2>"$dir/stderr"; then
+      --perturb "$v" --perturb-seed "$seed" ${config:+--config "$config"} ${reference:+--reference-trajectory "$reference"} \
+      --out "$dir.partial" >"$dir/stdout" 2>"$dir/stderr"; then
     mv "$dir.partial"/* "$dir"/ && rmdir "$dir.partial"
     echo "done $r $v" >&2
   else
@@ -53,8 +58,15 @@ run_one() {
 }
 export -f run_one
 config=${CONFIG:-}
-export out seed agent datasets config
-if ((${#runs[@]})); then
-  printf '%s\n' "${runs[@]}" | xargs -P "$jobs" -L 1 bash -c 'run_one $0 $1'
-fi
+reference_dir=${REFERENCE:-$out}
+export out seed agent datasets config reference_dir
+# The clean runs first: each is the reference its recording's other variants judge their matches by.
+for phase in clean other; do
+  for run in "${runs[@]}"; do
+    variant=${run#* }
+    if [[ ($phase == clean && $variant == clean) || ($phase != clean && $variant != clean) ]]; then
+      echo "$run"
+    fi
+  done | xargs -r -P "$jobs" -L 1 bash -c 'run_one $0 $1'
+done
 python3 scripts/robustness_table.py "$out"

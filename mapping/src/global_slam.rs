@@ -20,7 +20,7 @@ pub use constraint_builder::{
 pub use fixed_ratio_sampler::FixedRatioSampler;
 pub use global_slam_core::{
     Acceptance, ClosureState, CorrectionProbation, GlobalSlam, GlobalSlamError, GlobalSlamEvent,
-    GlobalSlamState, NodeRecord, SubmapBend, SubmapRecord,
+    GlobalSlamState, MatchDecided, MatchDecision, NodeRecord, SubmapBend, SubmapRecord,
 };
 pub use global_slam_options::{GlobalSlamOptions, GlobalSlamOptionsError};
 pub use loop_closure_check::{
@@ -28,3 +28,7 @@ pub use loop_closure_check::{
     loop_closure_precision,
 };
 pub use optimization_region::optimization_region;
+
+/// [`GlobalSlam`]'s test fixtures, for the tests of what reads it (`metrics::judge_matches`).
+#[cfg(test)]
+pub(crate) use global_slam_core::tests::{straight_run, wide_closure};

@@ -1,6 +1,7 @@
 //! Accuracy measures of SLAM results, and the scores of a lifelong run (what each session lived).
 
 mod map_world_agreement;
+mod match_judgement;
 mod match_score;
 mod placement_verdict;
 mod relations_metric;
@@ -11,6 +12,9 @@ mod start_record;
 mod trajectory_metric;
 
 pub use map_world_agreement::{MAP_WORLD_TOLERANCE_M, MapWorldAgreement, map_world_agreement};
+pub use match_judgement::{
+    JudgedMatch, MATCH_TOLERANCE, MatchCounts, MatchFate, judge_matches, match_counts,
+};
 pub use match_score::MatchScorer;
 pub use placement_verdict::{
     PLACEMENT_WINDOW_S, PlacementVerdict, SpanVerdict, Verdict, judge_placements,

@@ -14,7 +14,7 @@ use std::sync::mpsc;
 use mapping::geometry::Rigid2;
 use mapping::global_slam::{
     ConstraintBuilder, GlobalSlam, GlobalSlamError, GlobalSlamEvent, GlobalSlamOptions,
-    LoopClosure, SearchJob,
+    LoopClosure, MatchDecided, SearchJob,
 };
 use mapping::grid::{MapLimits, ProbabilityGrid, RangeDataInserter, RangeDataInserterOptions};
 use mapping::lifelong::{PlacedGrid, RelocalizationOptions, render_submaps_max};
@@ -113,6 +113,8 @@ pub struct SlamRun {
     pub final_optimization: OptimizationSummary,
     /// Periodic optimizations run during the recording.
     pub optimizations: usize,
+    /// Every GLM match that reached the acceptance rules, with the rule that decided it, in order.
+    pub match_decisions: Vec<MatchDecided>,
 }
 
 enum WorkerMessage {
@@ -278,7 +280,12 @@ pub fn run_slam(
         progress(scans_done);
         drop(sender);
         // Keep hearing the worker while it finishes (it may wait on the update channel).
-        let (global, optimizations, final_optimization) = loop {
+        let WorkerOutcome {
+            global,
+            optimizations,
+            final_optimization,
+            match_decisions,
+        } = loop {
             while let Ok(update) = updates.try_recv() {
                 observer.optimized(update.optimizations, update.map.as_ref());
             }
@@ -333,6 +340,7 @@ pub fn run_slam(
             data_duration_s,
             final_optimization,
             optimizations,
+            match_decisions,
         })
     })
 }
@@ -378,24 +386,36 @@ pub fn run_searches(builder: &ConstraintBuilder, jobs: &[SearchJob]) -> Vec<Loop
     })
 }
 
+/// What the global SLAM worker hands back when the recording ends.
+struct WorkerOutcome {
+    global: GlobalSlam,
+    optimizations: usize,
+    final_optimization: OptimizationSummary,
+    match_decisions: Vec<MatchDecided>,
+}
+
 fn global_worker(
     mut global: GlobalSlam,
     receiver: &mpsc::Receiver<WorkerMessage>,
     updates: &mpsc::SyncSender<WorkerUpdate>,
     render_resolution: Option<f64>,
-) -> Result<(GlobalSlam, usize, OptimizationSummary), GlobalSlamError> {
+) -> Result<WorkerOutcome, GlobalSlamError> {
     let mut optimizations = 0;
+    let mut match_decisions = Vec::new();
     for message in receiver {
         match message {
             WorkerMessage::Node(node) => {
                 global.add_node(0, node)?;
                 let jobs = global.take_search_jobs();
                 let results = run_searches(global.constraint_builder(), &jobs);
-                let events = global.add_search_results(results);
-                let optimized = events
-                    .iter()
-                    .filter(|e| matches!(e, GlobalSlamEvent::Optimized(_)))
-                    .count();
+                let mut optimized = 0;
+                for event in global.add_search_results(results) {
+                    match event {
+                        GlobalSlamEvent::Optimized(_) => optimized += 1,
+                        GlobalSlamEvent::MatchDecided(decided) => match_decisions.push(decided),
+                        _ => {}
+                    }
+                }
                 optimizations += optimized;
                 if optimized > 0 {
                     // Never blocks (the LLO thread may be waiting on this worker): when the LLO thread
@@ -417,7 +437,12 @@ fn global_worker(
         map: None,
         optimizations: optimizations + 1,
     });
-    Ok((global, optimizations, summary))
+    Ok(WorkerOutcome {
+        global,
+        optimizations,
+        final_optimization: summary,
+        match_decisions,
+    })
 }
 
 /// Renders the optimized map at `resolution` by re-inserting every node's range data at its optimized

@@ -3,12 +3,14 @@
 mod closure_acceptance;
 mod correction_probation;
 mod global_slam_state;
+mod match_decision;
 mod optimization;
 mod search_queue;
 mod submap_bend;
 mod trajectory_placement;
 
 pub use global_slam_state::GlobalSlamState;
+pub use match_decision::{MatchDecided, MatchDecision};
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
@@ -65,6 +67,8 @@ pub enum GlobalSlamEvent {
     SubmapFinished(SubmapId),
     /// A loop closure (GLM constraint) was accepted.
     LoopClosureAdded(LoopClosure),
+    /// A search's match reached the acceptance rules and one of them decided it (one event per match).
+    MatchDecided(MatchDecided),
     /// The graph was optimized.
     Optimized(OptimizationSummary),
 }
@@ -589,4 +593,4 @@ impl GlobalSlam {
 }
 
 #[cfg(test)]
-mod tests;
+pub(crate) mod tests;

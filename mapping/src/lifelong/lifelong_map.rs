@@ -15,7 +15,8 @@ use super::{
 };
 use crate::geometry::Rigid2;
 use crate::global_slam::{
-    ConstraintBuilder, GlobalSlam, GlobalSlamError, GlobalSlamEvent, LoopClosure, SearchJob,
+    ConstraintBuilder, GlobalSlam, GlobalSlamError, GlobalSlamEvent, LoopClosure, MatchDecided,
+    SearchJob,
 };
 use crate::grid::ProbabilityGrid;
 use crate::local_slam::LloNode;
@@ -62,6 +63,8 @@ pub enum LifelongEvent {
     SubmapFinished(SubmapId),
     /// A GLM constraint (loop closure, or a later session's localization) was accepted.
     LoopClosureAdded(LoopClosure),
+    /// A GLM match reached the acceptance rules and one of them decided it.
+    MatchDecided(MatchDecided),
     /// A submap was removed from the map with the nodes only it held.
     SubmapTrimmed {
         /// The submap.
@@ -103,6 +106,7 @@ impl From<GlobalSlamEvent> for LifelongEvent {
             GlobalSlamEvent::SubmapAdded(id) => Self::SubmapAdded(id),
             GlobalSlamEvent::SubmapFinished(id) => Self::SubmapFinished(id),
             GlobalSlamEvent::LoopClosureAdded(c) => Self::LoopClosureAdded(c),
+            GlobalSlamEvent::MatchDecided(d) => Self::MatchDecided(d),
             GlobalSlamEvent::Optimized(s) => Self::Optimized(s),
         }
     }

@@ -13,6 +13,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use mapping::geometry::{Rigid2, Rigid2Ext as _};
 use mapping::global_slam::{GlobalSlam, LoopClosureCheck, loop_closure_precision};
 use mapping::io::relations::Relation;
+use mapping::metrics::{JudgedMatch, judge_matches, match_counts};
 use mapping::sensor::Timestamp;
 use robot_agent::line_chart::{LineChart, Series};
 use robot_agent::offline_slam::{SlamConfig, SlamRun, render_map, run_offline, run_slam};
@@ -60,6 +61,11 @@ pub struct OfflineArgs {
     /// Ground-truth relations (`t1 t2 x y z roll pitch yaw`) to score the trajectory with.
     #[arg(long)]
     relations: Option<PathBuf>,
+    /// A reference trajectory (TUM: the truth, or the final trajectory of the same recording's clean run)
+    /// to judge each GLM match against: `glm_matches.csv` and `report.json`'s `glm_matches` then say,
+    /// per acceptance rule, how many of the matches it decided were right (within 0.5 m and 3°).
+    #[arg(long)]
+    reference_trajectory: Option<PathBuf>,
     /// Output folder (created if missing).
     #[arg(long)]
     out: PathBuf,
@@ -77,17 +83,22 @@ pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
     let perturbation_asked = args.perturb.perturbation()?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
-    let relations = match &args.relations {
-        Some(path) => {
-            let file = std::fs::File::open(path)
-                .with_context(|| format!("cannot open {}", path.display()))?;
-            Some(
-                mapping::io::relations::read_relations(std::io::BufReader::new(file))
-                    .with_context(|| format!("invalid relations file {}", path.display()))?,
+    let relations = args
+        .relations
+        .as_deref()
+        .map(|path| {
+            read_with(
+                path,
+                "relations file",
+                mapping::io::relations::read_relations,
             )
-        }
-        None => None,
-    };
+        })
+        .transpose()?;
+    let reference = args
+        .reference_trajectory
+        .as_deref()
+        .map(|path| read_with(path, "TUM trajectory", mapping::io::tum::read_tum))
+        .transpose()?;
 
     let start = Instant::now();
     let mut perturbation = serde_json::Value::Null;
@@ -175,6 +186,8 @@ pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
     };
     let checks = run.global.loop_closure_checks();
     write_loop_closures(&args.out.join("loop_closures.csv"), &run.global, &checks)?;
+    let judged = judge_matches(&run.global, &run.match_decisions, reference.as_deref());
+    write_glm_matches(&args.out.join("glm_matches.csv"), &run.global, &judged)?;
     let precision = loop_closure_precision(&checks);
     let graph = run.global.graph();
     let report = json!({
@@ -198,6 +211,8 @@ pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
         "loop_closure_searches": run.global.searches_queued(),
         "loop_closures_beyond_drift": run.global.closures_beyond_drift(),
         "loop_closures_outvoted": run.global.closures_outvoted(),
+        "glm_matches": match_counts(&judged),
+        "glm_matches_reference": args.reference_trajectory.as_ref().map(|p| p.display().to_string()),
         "ams": ams,
         "optimizations": run.optimizations,
         "final_optimization": format!("{:?}", run.final_optimization),
@@ -214,6 +229,18 @@ pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
         .with_context(|| format!("cannot write {}", report_path.display()))?;
     println!("{}", serde_json::to_string(&report)?);
     Ok(())
+}
+
+/// Opens `path` and parses it with `parse`; errors name the file and what it should have been.
+fn read_with<T, E: std::error::Error + Send + Sync + 'static>(
+    path: &Path,
+    what: &str,
+    parse: impl FnOnce(std::io::BufReader<std::fs::File>) -> Result<T, E>,
+) -> anyhow::Result<T> {
+    let file =
+        std::fs::File::open(path).with_context(|| format!("cannot open {}", path.display()))?;
+    parse(std::io::BufReader::new(file))
+        .with_context(|| format!("invalid {what} {}", path.display()))
 }
 
 /// `--ros2`: maps the live robot until it has been idle `--until-idle-s` seconds, publishing the map and
@@ -424,6 +451,50 @@ fn write_loop_closures(
             c.residual_rotation_rad.to_degrees(),
             u8::from(c.holds()),
             u8::from(c.retracted),
+        )?;
+    }
+    std::fs::write(path, csv).with_context(|| format!("cannot write {}", path.display()))
+}
+
+/// Writes `glm_matches.csv`: every GLM match that reached the acceptance rules, in order, with the rule
+/// that decided it, where it ended, its anchor (the submap's node nearest it) and, with a reference
+/// trajectory, its error against it and whether that makes it right.
+fn write_glm_matches(
+    path: &Path,
+    global: &GlobalSlam,
+    judged: &[JudgedMatch],
+) -> anyhow::Result<()> {
+    let start = global.nodes().values().next().map(|n| n.time);
+    let since_start = |t: Timestamp| start.map_or(f64::NAN, |s| t.seconds_since(s));
+    let mut csv = String::from(
+        "node_time_s,node,submap_trajectory,submap,anchor_time_s,decision,fate,score,innovation_m,innovation_deg,error_m,error_deg,right\n",
+    );
+    for j in judged {
+        let c = &j.decided.closure;
+        let (error_m, error_deg, right) = match j.error {
+            Some((m, deg)) => (
+                format!("{m:.4}"),
+                format!("{deg:.3}"),
+                u8::from(j.right() == Some(true)).to_string(),
+            ),
+            None => (String::new(), String::new(), String::new()),
+        };
+        writeln!(
+            csv,
+            "{:.3},{},{},{},{:.3},{},{},{:.4},{:.4},{:.3},{},{},{}",
+            since_start(j.node_time),
+            c.node.index,
+            c.submap.trajectory,
+            c.submap.index,
+            since_start(j.anchor_time),
+            j.decided.decision.name(),
+            j.fate.name(),
+            c.score,
+            j.decided.acceptance.innovation_translation_m,
+            j.decided.acceptance.innovation_rotation_rad.to_degrees(),
+            error_m,
+            error_deg,
+            right,
         )?;
     }
     std::fs::write(path, csv).with_context(|| format!("cannot write {}", path.display()))

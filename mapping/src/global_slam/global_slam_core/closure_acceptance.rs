@@ -3,7 +3,9 @@
 
 use std::collections::BTreeSet;
 
-use super::{Acceptance, ClosureState, GlobalSlam, GlobalSlamEvent, information};
+use super::{
+    Acceptance, ClosureState, GlobalSlam, GlobalSlamEvent, MatchDecided, MatchDecision, information,
+};
 use crate::geometry::Rigid2;
 use crate::global_slam::LoopClosure;
 use crate::pose_graph::{Constraint, ConstraintKind, NodeId, RobustLoss, SubmapId, VariableId};
@@ -72,10 +74,18 @@ impl GlobalSlam {
         let outvoted = self.outvoted(&results);
         let mut accepted: Vec<(LoopClosure, Acceptance)> = Vec::new();
         let mut confirmed_any = false;
+        let mut decided = |closure: &LoopClosure, acceptance: Acceptance, decision| {
+            events.push(GlobalSlamEvent::MatchDecided(MatchDecided {
+                closure: closure.clone(),
+                acceptance,
+                decision,
+            }));
+        };
         for (closure, outvoted) in results.into_iter().zip(outvoted) {
             self.judge_corrections_by_match(&closure);
             if outvoted {
                 self.closures_outvoted += 1;
+                decided(&closure, self.acceptance(&closure), MatchDecision::Outvoted);
                 continue;
             }
             if !self.nodes.contains_key(&closure.node)
@@ -105,11 +115,13 @@ impl GlobalSlam {
                     .collect();
                 let needed = self.options.constraint_builder.beyond_drift_confirmations;
                 if needed == 0 || nodes.len() < needed || submaps.len() < 2 {
+                    decided(&closure, acceptance, MatchDecision::HeldBeyondDrift);
                     self.pending_beyond_drift.append(&mut agreeing);
                     self.pending_beyond_drift.push((closure, acceptance));
                     self.closures_beyond_drift += 1;
                     continue;
                 }
+                decided(&closure, acceptance, MatchDecision::ConfirmedBeyondDrift);
                 confirmed_any = true;
                 self.closures_beyond_drift -= agreeing.len();
                 let group: Vec<(LoopClosure, Acceptance)> =
@@ -122,9 +134,11 @@ impl GlobalSlam {
             if self.needs_confirmation(&closure, &acceptance) {
                 let agreeing = self.take_agreeing(&closure, false);
                 if agreeing.is_empty() {
+                    decided(&closure, acceptance, MatchDecision::HeldUnconfirmed);
                     self.pending_unconfirmed.push((closure, acceptance));
                     continue;
                 }
+                decided(&closure, acceptance, MatchDecision::Confirmed);
                 confirmed_any = true;
                 let group: Vec<(LoopClosure, Acceptance)> =
                     confirmed(agreeing, closure, acceptance).collect();
@@ -133,6 +147,7 @@ impl GlobalSlam {
                 accepted.extend(group);
                 continue;
             }
+            decided(&closure, acceptance, MatchDecision::Accepted);
             accepted.push((closure, acceptance));
         }
         for (closure, acceptance) in accepted {

@@ -6,8 +6,9 @@ use crate::geometry::rigid2;
 use crate::global_slam::ConstraintBuilderOptions;
 use crate::grid::MapLimits;
 
-/// One trajectory driving along x in 0.2 m steps; submap 0 holds its first 11 nodes and is finished.
-pub(super) fn straight_run(nodes: u32) -> GlobalSlam {
+/// One trajectory driving along x in 0.2 m steps, 0.1 s apart; submap 0 holds its first 11 nodes and is
+/// finished at node 11.
+pub(crate) fn straight_run(nodes: u32) -> GlobalSlam {
     let options = GlobalSlamOptions {
         optimize_every_n_nodes: 0,
         constraint_builder: ConstraintBuilderOptions {
@@ -63,7 +64,8 @@ fn drive_on_recovering(
     }
 }
 
-pub(super) fn wide_closure(node: u32, error: Rigid2) -> LoopClosure {
+/// A match of `node` against submap 0, `error` away from where the node is.
+pub(crate) fn wide_closure(node: u32, error: Rigid2) -> LoopClosure {
     LoopClosure {
         submap: SubmapId {
             trajectory: 0,
@@ -473,4 +475,56 @@ fn drive_second_trajectory(global: &mut GlobalSlam, indices: std::ops::Range<u32
         };
         global.add_node(1, node).expect("node added");
     }
+}
+
+/// The decisions the events of `add_search_results` report, by node index.
+fn decisions(events: &[GlobalSlamEvent]) -> Vec<(u32, MatchDecision)> {
+    events
+        .iter()
+        .filter_map(|e| match e {
+            GlobalSlamEvent::MatchDecided(d) => Some((d.closure.node.index, d.decision)),
+            _ => None,
+        })
+        .collect()
+}
+
+#[test]
+fn each_match_is_reported_once_with_the_rule_that_decided_it() {
+    use MatchDecision::*;
+    let mut global = straight_run(200);
+    let near = global.add_search_results([wide_closure(140, rigid2(0.05, -0.03, 0.004))]);
+    assert_eq!(decisions(&near), [(140, Accepted)]);
+    let far = global.add_search_results([wide_closure(150, rigid2(1.5, -0.8, 0.2))]);
+    assert_eq!(decisions(&far), [(150, HeldBeyondDrift)]);
+    let drift = rigid2(0.48, 0.36, 0.0);
+    let held = global.add_search_results([wide_closure(160, drift)]);
+    assert_eq!(decisions(&held), [(160, HeldUnconfirmed)]);
+    let agreeing =
+        global.add_search_results([wide_closure(170, drift * rigid2(0.02, 0.01, 0.002))]);
+    assert_eq!(decisions(&agreeing), [(170, Confirmed)]);
+
+    // Two matches of one node at places 1 m apart: neither is believed.
+    let mut global = straight_run(200);
+    let split = global.add_search_results([
+        wide_closure(140, Rigid2::identity()),
+        wide_closure(140, rigid2(1.0, 0.0, 0.0)),
+    ]);
+    assert_eq!(decisions(&split), [(140, Outvoted), (140, Outvoted)]);
+
+    // A chorus beyond drift: four held, the fifth (through another submap) confirms them.
+    let mut global = straight_run(40);
+    let error = rigid2(1.0, 0.0, 0.0);
+    for node in [12, 13, 14, 15] {
+        let events = global.add_search_results([wide_closure(node, error)]);
+        assert_eq!(decisions(&events), [(node, HeldBeyondDrift)]);
+    }
+    let fifth = global.add_search_results([LoopClosure {
+        submap: SubmapId {
+            trajectory: 0,
+            index: 1,
+        },
+        submap_from_node: rigid2(0.2 * 5.0 - 2.2, 0.0, 0.0) * error,
+        ..wide_closure(5, error)
+    }]);
+    assert_eq!(decisions(&fifth), [(5, ConfirmedBeyondDrift)]);
 }
