@@ -9,7 +9,7 @@
 use mapping::geometry::Rigid2;
 use mapping::global_slam::loop_closure_precision;
 use mapping::io::relations::{Relation, read_relations};
-use mapping::metrics::{relations_error, rigid_alignment};
+use mapping::metrics::{MatchFate, judge_matches, match_counts, relations_error, rigid_alignment};
 use mapping::sensor::Timestamp;
 use robot_agent::offline_slam::{SlamConfig, run_offline};
 use robot_agent::perturbation::Perturbation;
@@ -169,6 +169,33 @@ fn check_perturbed(name: &str, variant: &str, max_mean_m: f64) -> anyhow::Result
 fn csail_with_people_and_carts_in_the_beams_does_not_tear() -> anyhow::Result<()> {
     // Measured 0.0284 m mean, 0.31 m largest (BENCHMARKS.md, robustness suite, session 47).
     check_perturbed("mit-csail", "clutter", 0.045)
+}
+
+/// GLM's matches on a perturbed recording, judged against the clean run's final trajectory as the suite
+/// judges them (`offline --reference-trajectory`): the matches the final graph is made of are right.
+#[test]
+fn csail_with_clutter_keeps_only_right_matches_in_its_graph() -> anyhow::Result<()> {
+    let (recording, _) = recording_and_relations("mit-csail")?;
+    let clean = run_offline(&recording, &SlamConfig::default(), &mut |_| {})?;
+    let (perturbed, _) = Perturbation::parse("clutter")?.apply(&recording, 1);
+    let run = run_offline(&perturbed, &SlamConfig::default(), &mut |_| {})?;
+    let judged = judge_matches(&run.global, &run.match_decisions, Some(&clean.scan_poses));
+    assert_eq!(
+        judged.len(),
+        run.match_decisions.len(),
+        "every match judged"
+    );
+    let in_graph: Vec<_> = judged
+        .iter()
+        .filter(|j| j.fate == MatchFate::InGraph)
+        .collect();
+    let right = in_graph.iter().filter(|j| j.right() == Some(true)).count();
+    let wrong = in_graph.iter().filter(|j| j.right() == Some(false)).count();
+    eprintln!("mit-csail clutter: {:?}", match_counts(&judged));
+    // Measured 320 right, 0 wrong (BENCHMARK-HISTORY, session 63).
+    assert!(right >= 250, "{right} right matches in the graph");
+    assert!(wrong * 100 <= right, "{wrong} wrong against {right} right");
+    Ok(())
 }
 
 #[test]
