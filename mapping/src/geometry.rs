@@ -5,4 +5,4 @@
 
 mod se2;
 
-pub use se2::{Rigid2, Rigid2Ext, normalize_angle, rigid2, se2_exp, se2_log};
+pub use se2::{Rigid2, Rigid2Ext, normalize_angle, rigid2, se2_exp, se2_log, yaw_from_quaternion};

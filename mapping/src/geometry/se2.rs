@@ -13,6 +13,12 @@ pub fn rigid2(x: f64, y: f64, theta: f64) -> Rigid2 {
     Isometry2::new(Vector2::new(x, y), theta)
 }
 
+/// The yaw (rad, about z) of the unit quaternion `[x, y, z, w]`: a 3-D orientation projected to the plane
+/// (ROS messages, TUM files).
+pub fn yaw_from_quaternion([x, y, z, w]: [f64; 4]) -> f64 {
+    (2.0 * (w * z + x * y)).atan2(1.0 - 2.0 * (y * y + z * z))
+}
+
 /// Wraps an angle to `(−π, π]`.
 pub fn normalize_angle(angle: f64) -> f64 {
     let two_pi = std::f64::consts::TAU;

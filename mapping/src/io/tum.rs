@@ -2,7 +2,7 @@
 
 use std::io::{BufRead, Write};
 
-use crate::geometry::{Rigid2, Rigid2Ext as _, rigid2};
+use crate::geometry::{Rigid2, Rigid2Ext as _, rigid2, yaw_from_quaternion};
 use crate::sensor::Timestamp;
 
 /// A TUM file that could not be read.
@@ -66,8 +66,7 @@ pub fn read_tum(input: impl BufRead) -> Result<Vec<(Timestamp, Rigid2)>, TumErro
             .map(|f| f.parse::<f64>().ok().filter(|v| v.is_finite()))
             .collect();
         let v = values.ok_or_else(|| bad("a pose field is not a finite number"))?;
-        let (qx, qy, qz, qw) = (v[3], v[4], v[5], v[6]);
-        let yaw = (2.0 * (qw * qz + qx * qy)).atan2(1.0 - 2.0 * (qy * qy + qz * qz));
+        let yaw = yaw_from_quaternion([v[3], v[4], v[5], v[6]]);
         if poses.last().is_some_and(|(last, _)| *last > t) {
             return Err(bad("the stamp goes back in time"));
         }

@@ -89,8 +89,7 @@ impl<'a> Cursor<'a> {
 /// A 3-D position and quaternion `[x, y, z, w]` projected to the plane (yaw about z); ROS1 and ROS 2
 /// readers share it so both give the same pose from the same values.
 pub(super) fn planar_pose(x: f64, y: f64, q: [f64; 4], what: &str) -> Result<Rigid2, DecodeError> {
-    let [qx, qy, qz, qw] = q;
-    let yaw = (2.0 * (qw * qz + qx * qy)).atan2(1.0 - 2.0 * (qy * qy + qz * qz));
+    let yaw = mapping::geometry::yaw_from_quaternion(q);
     if !(x.is_finite() && y.is_finite() && yaw.is_finite()) {
         return Err(DecodeError(format!("non-finite {what}")));
     }
