@@ -284,115 +284,12 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
     };
     let metrics = Arc::clone(fleet.server.metrics());
 
-    // A robot of site 0 last seen halfway through the site's life (its session count then half of what it
-    // is now, from the maturing samples) catches up: one delta holding every submap changed since.
-    let catch_up = match half_life_version(&maturing_growth) {
-        Some((sessions_then, from_version)) => {
-            let caught =
-                catch_up_since(fleet.robots[0].uplink.clone(), &metrics, from_version).await?;
-            let sessions_now = fleet
-                .server
-                .site(&site_id(0))
-                .map_or(0, |h| h.current().counts.sessions);
-            json!({
-                "site": site_id(0),
-                "sessions_missed": sessions_now.saturating_sub(sessions_then),
-                "from_version": from_version,
-                "to_version": caught.delta.to_version,
-                "submaps_added": caught.delta.submaps_added.len(),
-                "trimmed": caught.delta.trimmed.len(),
-                "ms": caught.ms,
-                "bytes": caught.bytes,
-                "whole_map_bytes": caught.whole_map_bytes,
-                "bytes_per_whole_map": caught.bytes as f64 / caught.whole_map_bytes.max(1) as f64,
-            })
-        }
-        None => serde_json::Value::Null,
-    };
-
-    // The offline robot catches up by delta.
-    let resync = {
-        let caught = catch_up_since(
-            fleet.robots[0].uplink.clone(),
-            &metrics,
-            window.offline_version,
-        )
-        .await?;
-        json!({
-            "site": site_id(0),
-            "offline_s": window.measured_s,
-            "from_version": window.offline_version,
-            "to_version": caught.delta.to_version,
-            "submaps_added": caught.delta.submaps_added.len(),
-            "ms": caught.ms,
-            "bytes": caught.bytes,
-            "whole_map_ms": caught.whole_map_ms,
-            "whole_map_bytes": caught.whole_map_bytes,
-        })
-    };
+    let catch_up = catch_up_after_half_life(&fleet, &metrics, &maturing_growth).await?;
+    let resync = resync_after_offline(&fleet, &metrics, &window).await?;
 
     let latencies = SubmapLatencies::measure(&window.outcomes, &fleet.robots, window.started);
-    // Figures per minute of robot time.
-    let robot_minute = |at: Instant| {
-        at.saturating_duration_since(window.started).as_secs_f64() * args.speed / 60.0
-    };
-    let minute_inputs = MinuteInputs {
-        samples: window.minute_samples.clone(),
-        submap_latencies: latencies
-            .by_finish
-            .iter()
-            .map(|&(finished, latency)| (robot_minute(finished), latency))
-            .collect(),
-        batch_acks: window
-            .outcomes
-            .iter()
-            .flat_map(|o| &o.acks)
-            .map(|&at| robot_minute(at))
-            .collect(),
-    };
-    let minutes = (args.duration_s / 60.0).floor() as usize;
-    let figures = minute_figures::minute_figures(&minute_inputs, minutes);
-    // Sessions end (and trims free memory) every `--session-s` of robot time; the figures are per
-    // minute, so per-period figures need a whole number of minutes.
-    let session_period_minutes = args
-        .session_s
-        .filter(|s| *s >= 60.0 && s % 60.0 == 0.0)
-        .map(|s| (s / 60.0) as usize);
-    let per_minute = minute_figures::report(&figures, session_period_minutes);
-    if figures.len() >= 2 {
-        let (w, h, pixels) = minute_figures::chart(
-            &figures,
-            &format!(
-                "{} robots, {} sites, {}x{}",
-                args.agents,
-                args.sites,
-                args.speed,
-                if args.mature_sessions > 0 {
-                    format!(", after {} maturing sessions each", args.mature_sessions)
-                } else {
-                    String::new()
-                }
-            ),
-            720,
-        );
-        map_image::write_rgb_png(&args.out.join("minutes.png"), w, h, &pixels)?;
-    }
-    let sites: BTreeMap<String, serde_json::Value> = (0..args.sites)
-        .filter_map(|s| {
-            let info = fleet.server.site(&site_id(s))?.current();
-            Some((
-                site_id(s),
-                json!({
-                    "version": info.version,
-                    "sessions": info.counts.sessions,
-                    "nodes": info.counts.nodes,
-                    "submaps": info.counts.submaps,
-                    "constraints": info.counts.constraints,
-                    "loop_closures": info.counts.loop_closures,
-                }),
-            ))
-        })
-        .collect();
+    let per_minute = minute_report(args, &window, &latencies)?;
+    let sites = final_site_counts(&fleet, args.sites);
     let outcomes = &window.outcomes;
     let report = json!({
         "world": args.world.name(),
@@ -448,6 +345,135 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
     fleet.server.shutdown().await?;
     print_summary(args, &report, &path);
     Ok(())
+}
+
+/// Site 0's robot last seen halfway through the site's life (its session count then half of what it is
+/// now, from the maturing samples) catches up: one delta holding every submap changed since (`null`
+/// without maturing sessions).
+async fn catch_up_after_half_life(
+    fleet: &Fleet,
+    metrics: &server::ServerMetrics,
+    maturing_growth: &[serde_json::Value],
+) -> anyhow::Result<serde_json::Value> {
+    let Some((sessions_then, from_version)) = half_life_version(maturing_growth) else {
+        return Ok(serde_json::Value::Null);
+    };
+    let caught = catch_up_since(fleet.robots[0].uplink.clone(), metrics, from_version).await?;
+    let sessions_now = fleet
+        .server
+        .site(&site_id(0))
+        .map_or(0, |h| h.current().counts.sessions);
+    Ok(json!({
+        "site": site_id(0),
+        "sessions_missed": sessions_now.saturating_sub(sessions_then),
+        "from_version": from_version,
+        "to_version": caught.delta.to_version,
+        "submaps_added": caught.delta.submaps_added.len(),
+        "trimmed": caught.delta.trimmed.len(),
+        "ms": caught.ms,
+        "bytes": caught.bytes,
+        "whole_map_bytes": caught.whole_map_bytes,
+        "bytes_per_whole_map": caught.bytes as f64 / caught.whole_map_bytes.max(1) as f64,
+    }))
+}
+
+/// The robot of site 0 that was offline through the measured window catches up by delta.
+async fn resync_after_offline(
+    fleet: &Fleet,
+    metrics: &server::ServerMetrics,
+    window: &MeasuredWindow,
+) -> anyhow::Result<serde_json::Value> {
+    let caught = catch_up_since(
+        fleet.robots[0].uplink.clone(),
+        metrics,
+        window.offline_version,
+    )
+    .await?;
+    Ok(json!({
+        "site": site_id(0),
+        "offline_s": window.measured_s,
+        "from_version": window.offline_version,
+        "to_version": caught.delta.to_version,
+        "submaps_added": caught.delta.submaps_added.len(),
+        "ms": caught.ms,
+        "bytes": caught.bytes,
+        "whole_map_ms": caught.whole_map_ms,
+        "whole_map_bytes": caught.whole_map_bytes,
+    }))
+}
+
+/// The measured window's figures per minute of robot time (the report's `per_minute_of_robot_time`),
+/// charted in `minutes.png` when there are at least two minutes.
+fn minute_report(
+    args: &LoadArgs,
+    window: &MeasuredWindow,
+    latencies: &SubmapLatencies,
+) -> anyhow::Result<serde_json::Value> {
+    let robot_minute = |at: Instant| {
+        at.saturating_duration_since(window.started).as_secs_f64() * args.speed / 60.0
+    };
+    let minute_inputs = MinuteInputs {
+        samples: window.minute_samples.clone(),
+        submap_latencies: latencies
+            .by_finish
+            .iter()
+            .map(|&(finished, latency)| (robot_minute(finished), latency))
+            .collect(),
+        batch_acks: window
+            .outcomes
+            .iter()
+            .flat_map(|o| &o.acks)
+            .map(|&at| robot_minute(at))
+            .collect(),
+    };
+    let minutes = (args.duration_s / 60.0).floor() as usize;
+    let figures = minute_figures::minute_figures(&minute_inputs, minutes);
+    // Sessions end (and trims free memory) every `--session-s` of robot time; the figures are per
+    // minute, so per-period figures need a whole number of minutes.
+    let session_period_minutes = args
+        .session_s
+        .filter(|s| *s >= 60.0 && s % 60.0 == 0.0)
+        .map(|s| (s / 60.0) as usize);
+    let per_minute = minute_figures::report(&figures, session_period_minutes);
+    if figures.len() >= 2 {
+        let (w, h, pixels) = minute_figures::chart(
+            &figures,
+            &format!(
+                "{} robots, {} sites, {}x{}",
+                args.agents,
+                args.sites,
+                args.speed,
+                if args.mature_sessions > 0 {
+                    format!(", after {} maturing sessions each", args.mature_sessions)
+                } else {
+                    String::new()
+                }
+            ),
+            720,
+        );
+        map_image::write_rgb_png(&args.out.join("minutes.png"), w, h, &pixels)?;
+    }
+    Ok(per_minute)
+}
+
+/// Each measured site's version and graph counts at the end.
+fn final_site_counts(fleet: &Fleet, sites: usize) -> BTreeMap<String, serde_json::Value> {
+    (0..sites)
+        .filter_map(|s| {
+            let info = fleet.server.site(&site_id(s))?.current();
+            Some((
+                site_id(s),
+                json!({
+                    "version": info.version,
+                    "sessions": info.counts.sessions,
+                    "nodes": info.counts.nodes,
+                    "submaps": info.counts.submaps,
+                    "constraints": info.counts.constraints,
+                    "loop_closures": info.counts.loop_closures,
+                }),
+            ))
+        })
+        .collect()
 }
 
 /// The idle sites (`--idle-store`): how many, how many the server held unloaded at the end, and the
