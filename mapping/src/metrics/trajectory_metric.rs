@@ -107,32 +107,23 @@ pub fn trajectory_accuracy(
     world_from_map: &Rigid2,
     tolerance: &PoseTolerance,
 ) -> TrajectoryAccuracy {
-    let estimate: BTreeMap<Timestamp, Rigid2> = estimate.iter().copied().collect();
     let mut accuracy = TrajectoryAccuracy::default();
     let (mut sum_squared, mut good_distance) = (0.0, 0.0);
-    let mut previous: Option<(Rigid2, bool)> = None;
-    for (time, world_from_base) in truth {
-        let Some(map_from_base) = estimate.get(time) else {
-            if let Some((last, _)) = previous {
-                accuracy.distance_m +=
-                    (world_from_base.translation.vector - last.translation.vector).norm();
-            }
-            previous = Some((*world_from_base, false));
-            continue;
-        };
-        let (error, rotation) = pose_error(world_from_map, map_from_base, world_from_base);
-        let correct = tolerance.accepts(error, rotation);
-        accuracy.matched += 1;
-        sum_squared += error * error;
-        accuracy.max_error_m = accuracy.max_error_m.max(error);
-        if let Some((last, last_correct)) = previous {
-            let step = (world_from_base.translation.vector - last.translation.vector).norm();
-            accuracy.distance_m += step;
+    let mut last_correct = false;
+    for (k, step) in errors_along_truth(estimate, truth, world_from_map).enumerate() {
+        let correct = step.error.is_some_and(|(m, deg)| tolerance.accepts(m, deg));
+        if let Some((error, _)) = step.error {
+            accuracy.matched += 1;
+            sum_squared += error * error;
+            accuracy.max_error_m = accuracy.max_error_m.max(error);
+        }
+        if k > 0 {
+            accuracy.distance_m += step.step_m;
             if correct && last_correct {
-                good_distance += step;
+                good_distance += step.step_m;
             }
         }
-        previous = Some((*world_from_base, correct));
+        last_correct = correct;
     }
     if accuracy.matched > 0 {
         accuracy.ate_rms_m = (sum_squared / accuracy.matched as f64).sqrt();
@@ -156,23 +147,47 @@ pub fn wrong_distance_m(
     world_from_map: &Rigid2,
     wrong: &PoseTolerance,
 ) -> f64 {
-    let estimate: BTreeMap<Timestamp, Rigid2> = estimate.iter().copied().collect();
     let mut distance = 0.0;
-    let mut previous: Option<(Rigid2, bool)> = None;
-    for (time, world_from_base) in truth {
-        let is_wrong = estimate.get(time).is_some_and(|map_from_base| {
-            let (error, rotation) = pose_error(world_from_map, map_from_base, world_from_base);
-            !wrong.accepts(error, rotation)
-        });
-        if let Some((last, last_wrong)) = previous
-            && is_wrong
-            && last_wrong
-        {
-            distance += (world_from_base.translation.vector - last.translation.vector).norm();
+    let mut last_wrong = false;
+    for (k, step) in errors_along_truth(estimate, truth, world_from_map).enumerate() {
+        let is_wrong = step.error.is_some_and(|(m, deg)| !wrong.accepts(m, deg));
+        if k > 0 && is_wrong && last_wrong {
+            distance += step.step_m;
         }
-        previous = Some((*world_from_base, is_wrong));
+        last_wrong = is_wrong;
     }
     distance
+}
+
+/// One truth pose on the walk along the truth that [`trajectory_accuracy`] and [`wrong_distance_m`] share.
+struct TruthStep {
+    /// Distance (m) from the previous truth pose (0 for the first).
+    step_m: f64,
+    /// The estimate's error at this pose, `(metres, degrees)` as [`pose_error`] gives it; `None` where the
+    /// estimate has no pose at the truth's stamp.
+    error: Option<(f64, f64)>,
+}
+
+/// The truth poses in order, each with its step from the one before and the estimate's error there.
+fn errors_along_truth<'a>(
+    estimate: &[(Timestamp, Rigid2)],
+    truth: &'a [(Timestamp, Rigid2)],
+    world_from_map: &'a Rigid2,
+) -> impl Iterator<Item = TruthStep> + 'a {
+    let estimate: BTreeMap<Timestamp, Rigid2> = estimate.iter().copied().collect();
+    let mut last: Option<Rigid2> = None;
+    truth.iter().map(move |(time, world_from_base)| {
+        let step_m = last.map_or(0.0, |last| {
+            (world_from_base.translation.vector - last.translation.vector).norm()
+        });
+        last = Some(*world_from_base);
+        TruthStep {
+            step_m,
+            error: estimate
+                .get(time)
+                .map(|map_from_base| pose_error(world_from_map, map_from_base, world_from_base)),
+        }
+    })
 }
 
 #[cfg(test)]
