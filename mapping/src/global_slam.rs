@@ -19,8 +19,9 @@ pub use constraint_builder::{
 };
 pub use fixed_ratio_sampler::FixedRatioSampler;
 pub use global_slam_core::{
-    Acceptance, ClosureState, CorrectionProbation, GlobalSlam, GlobalSlamError, GlobalSlamEvent,
-    GlobalSlamState, MatchDecided, MatchDecision, NodeRecord, SubmapBend, SubmapRecord,
+    Acceptance, BendGrowth, ClosureState, CorrectionProbation, GlobalSlam, GlobalSlamError,
+    GlobalSlamEvent, GlobalSlamState, MatchDecided, MatchDecision, NodeRecord, SubmapBend,
+    SubmapRecord,
 };
 pub use global_slam_options::{GlobalSlamOptions, GlobalSlamOptionsError};
 pub use loop_closure_check::{

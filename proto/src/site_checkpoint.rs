@@ -13,8 +13,8 @@ use std::sync::Arc;
 
 use mapping::geometry::Rigid2;
 use mapping::global_slam::{
-    Acceptance, ClosureState, CorrectionProbation, FixedRatioSampler, GlobalSlamState, LoopClosure,
-    NodeRecord, SearchJob, SearchWindow, SubmapBend, SubmapRecord,
+    Acceptance, BendGrowth, ClosureState, CorrectionProbation, FixedRatioSampler, GlobalSlamState,
+    LoopClosure, NodeRecord, SearchJob, SearchWindow, SubmapBend, SubmapRecord,
 };
 use mapping::lifelong::{
     LifelongError, LifelongMap, LifelongMapState, LifelongOptions, SessionProgress,
@@ -533,6 +533,8 @@ fn bend_to_pb(b: &SubmapBend) -> pb::SubmapBendState {
     pb::SubmapBendState {
         closures: closure_refs_to_pb(&b.closures),
         submaps: b.submaps.iter().map(|s| (*s).into()).collect(),
+        growth_translation_per_m: b.growth.translation_per_m,
+        growth_rotation_per_m: b.growth.rotation_per_m,
     }
 }
 
@@ -544,6 +546,10 @@ fn bend_from_pb(b: &pb::SubmapBendState) -> Result<SubmapBend, ConversionError> 
             .iter()
             .map(|s| submap_in(Some(s), "SubmapBendState", "submaps"))
             .collect::<Result<Vec<_>, ConversionError>>()?,
+        growth: BendGrowth {
+            translation_per_m: b.growth_translation_per_m,
+            rotation_per_m: b.growth_rotation_per_m,
+        },
     })
 }
 

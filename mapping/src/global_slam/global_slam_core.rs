@@ -30,7 +30,7 @@ use crate::pose_graph::{
 };
 use crate::sensor::Timestamp;
 pub use correction_probation::CorrectionProbation;
-pub use submap_bend::SubmapBend;
+pub use submap_bend::{BendGrowth, SubmapBend};
 
 /// What global SLAM knows about a node.
 #[derive(Clone, Debug, PartialEq)]
@@ -178,7 +178,7 @@ pub struct GlobalSlam {
     /// The bends confirmed corrections granted (see [`SubmapBend`]), in confirmation order.
     submap_bends: Vec<SubmapBend>,
     /// The submaps a bend holds loosely now (rebuilt from `submap_bends` and the closures' states).
-    bent_submaps: BTreeSet<SubmapId>,
+    bent_submaps: BTreeMap<SubmapId, BendGrowth>,
 }
 
 /// The (node, submap) pair of each of `closures`: how corrections and bends name the matches they hold.
@@ -234,7 +234,7 @@ impl GlobalSlam {
             closures_outvoted: 0,
             probations: Vec::new(),
             submap_bends: Vec::new(),
-            bent_submaps: BTreeSet::new(),
+            bent_submaps: BTreeMap::new(),
         })
     }
 
@@ -345,7 +345,7 @@ impl GlobalSlam {
                 .map_or(0.0, |first| (path_m - first.path_m).abs());
             let intra_information = submap_bend::intra_submap_information(
                 &self.options,
-                self.bent_submaps.contains(&sid),
+                self.bent_submaps.get(&sid).copied(),
                 span_m,
             );
             submap.nodes.push(id);

@@ -70,6 +70,11 @@ pub struct GlobalSlamOptions {
     pub bent_submap_translation_sigma_per_m: f64,
     /// The same growth of `intra_submap_rotation_sigma` in a bent submap (rad per m). Default 0.
     pub bent_submap_rotation_sigma_per_m: f64,
+    /// With m > 0, a bend grows at m times the drift rate its correction measured (the median innovation
+    /// of its matches over the drift path, translation and rotation apart), capped by
+    /// `bent_submap_*_sigma_per_m`, instead of at those rates; 0: at those rates. Unitless. Default 0
+    /// (measured, not a default). Why: `docs/TUNING.md#gs-bend-drift-rate-multiple`.
+    pub bend_drift_rate_multiple: f64,
     /// Standard deviation (m) of the translation between consecutive nodes of a trajectory, from LLO's
     /// relative motion. Default 0.02 m.
     pub odometry_translation_sigma: f64,
@@ -112,6 +117,7 @@ impl Default for GlobalSlamOptions {
             intra_submap_rotation_sigma_per_m: 0.0,
             bent_submap_translation_sigma_per_m: 0.0,
             bent_submap_rotation_sigma_per_m: 0.0,
+            bend_drift_rate_multiple: 0.0,
             odometry_translation_sigma: 0.02,
             odometry_rotation_sigma: 0.01,
             loop_closure_retraction_chi2: 6.0,
@@ -177,6 +183,7 @@ impl GlobalSlamOptions {
                 "bent_submap_rotation_sigma_per_m",
                 self.bent_submap_rotation_sigma_per_m,
             ),
+            ("bend_drift_rate_multiple", self.bend_drift_rate_multiple),
         ] {
             if !(value.is_finite() && value >= 0.0) {
                 return Err(GlobalSlamOptionsError::Invalid(format!(

@@ -465,7 +465,7 @@ fn corrections_on_probation_round_trip() {
 
 #[test]
 fn submap_bends_round_trip_and_older_checkpoints_have_none() {
-    use mapping::global_slam::SubmapBend;
+    use mapping::global_slam::{BendGrowth, SubmapBend};
 
     let map = LifelongMap::new(options()).expect("map");
     let mut state = SiteCheckpoint::of(&map, 1, 1).map.global;
@@ -481,10 +481,18 @@ fn submap_bends_round_trip_and_older_checkpoints_have_none() {
         SubmapBend {
             closures: vec![(node(40), submap(1)), (node(52), submap(0))],
             submaps: vec![submap(2), submap(3)],
+            growth: BendGrowth {
+                translation_per_m: 0.1,
+                rotation_per_m: 0.01,
+            },
         },
         SubmapBend {
             closures: vec![(node(90), submap(3))],
             submaps: vec![submap(5)],
+            growth: BendGrowth {
+                translation_per_m: 0.031,
+                rotation_per_m: 0.0043,
+            },
         },
     ];
     let decoded = global_from_pb(Some(&global_to_pb(&state))).expect("decode");

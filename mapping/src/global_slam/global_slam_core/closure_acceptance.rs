@@ -127,7 +127,7 @@ impl GlobalSlam {
                 let group: Vec<(LoopClosure, Acceptance)> =
                     confirmed(agreeing, closure, acceptance).collect();
                 self.start_probation(group.iter().map(|(c, _)| c));
-                self.bend_along_drift(group.iter().map(|(c, _)| c));
+                self.bend_along_drift(group.iter());
                 accepted.extend(group);
                 continue;
             }
@@ -143,7 +143,7 @@ impl GlobalSlam {
                 let group: Vec<(LoopClosure, Acceptance)> =
                     confirmed(agreeing, closure, acceptance).collect();
                 self.start_probation(group.iter().map(|(c, _)| c));
-                self.bend_along_drift(group.iter().map(|(c, _)| c));
+                self.bend_along_drift(group.iter());
                 accepted.extend(group);
                 continue;
             }

@@ -211,7 +211,7 @@ impl GlobalSlam {
             new_constraints_from,
             changed,
             submap_bends,
-            bent_submaps: BTreeSet::new(),
+            bent_submaps: BTreeMap::new(),
         };
         global.bent_submaps = global.bent_by_evidence();
         Ok(global)

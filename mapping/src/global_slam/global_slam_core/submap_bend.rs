@@ -13,11 +13,11 @@
 //! the optimized graph or by the correction's probation) or forgotten, the submap is held as before.
 //! What is bent is rebuilt from the bends and the closures' states, so a checkpoint stores only the bends.
 
-use std::collections::BTreeSet;
+use std::collections::{BTreeMap, BTreeSet};
 
 use nalgebra::Matrix3;
 
-use super::{ClosureState, GlobalSlam, closure_refs, information};
+use super::{Acceptance, ClosureState, GlobalSlam, closure_refs, information};
 use crate::global_slam::{GlobalSlamOptions, LoopClosure};
 use crate::pose_graph::{ConstraintId, ConstraintKind, NodeId, SubmapId, VariableId};
 
@@ -28,25 +28,42 @@ pub struct SubmapBend {
     pub closures: Vec<(NodeId, SubmapId)>,
     /// The submaps of the corrected trajectory LLO built along the drift path, the matched ones excluded.
     pub submaps: Vec<SubmapId>,
+    /// The growth this bend grants (translation σ in m per m of path, rotation σ in rad per m; see
+    /// [`GlobalSlamOptions::bend_drift_rate_multiple`]).
+    pub growth: BendGrowth,
+}
+
+/// How fast a bent submap's node-to-submap σ grows with the path from its first node.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct BendGrowth {
+    /// Translation σ growth (m per m of path).
+    pub translation_per_m: f64,
+    /// Rotation σ growth (rad per m of path).
+    pub rotation_per_m: f64,
+}
+
+impl BendGrowth {
+    fn max(self, other: Self) -> Self {
+        Self {
+            translation_per_m: self.translation_per_m.max(other.translation_per_m),
+            rotation_per_m: self.rotation_per_m.max(other.rotation_per_m),
+        }
+    }
 }
 
 /// The information of a node's pose in a submap it was inserted `span_m` (m of path) after the submap's
 /// first node: the standard deviations grow with the span, faster in a bent submap.
 pub(super) fn intra_submap_information(
     options: &GlobalSlamOptions,
-    bent: bool,
+    bend: Option<BendGrowth>,
     span_m: f64,
 ) -> Matrix3<f64> {
-    let (per_m_translation, per_m_rotation) = if bent {
-        (
-            options.bent_submap_translation_sigma_per_m,
-            options.bent_submap_rotation_sigma_per_m,
-        )
-    } else {
-        (
+    let (per_m_translation, per_m_rotation) = match bend {
+        Some(growth) => (growth.translation_per_m, growth.rotation_per_m),
+        None => (
             options.intra_submap_translation_sigma_per_m,
             options.intra_submap_rotation_sigma_per_m,
-        )
+        ),
     };
     information(
         options
@@ -56,6 +73,17 @@ pub(super) fn intra_submap_information(
             .intra_submap_rotation_sigma
             .hypot(per_m_rotation * span_m),
     )
+}
+
+/// The median of `values` (the mean of the middle two for an even count; 0 for none).
+fn median(mut values: Vec<f64>) -> f64 {
+    values.sort_by(f64::total_cmp);
+    let n = values.len();
+    match n {
+        0 => 0.0,
+        _ if n % 2 == 1 => values[n / 2],
+        _ => 0.5 * (values[n / 2 - 1] + values[n / 2]),
+    }
 }
 
 impl GlobalSlam {
@@ -69,12 +97,15 @@ impl GlobalSlam {
     /// `drift_path`), except the matched ones and those up to the newest matched submap of the same
     /// trajectory (the map the correction was made against). Takes effect at [`Self::sync_bends`], once
     /// the matches are in the graph.
-    pub(super) fn bend_along_drift<'a>(&mut self, group: impl Iterator<Item = &'a LoopClosure>) {
+    pub(super) fn bend_along_drift<'a>(
+        &mut self,
+        group: impl Iterator<Item = &'a (LoopClosure, Acceptance)>,
+    ) {
         if !self.bends_enabled() {
             return;
         }
-        let group: Vec<&LoopClosure> = group.collect();
-        let Some(newest) = group.iter().max_by_key(|c| c.node) else {
+        let group: Vec<&(LoopClosure, Acceptance)> = group.collect();
+        let Some((newest, _)) = group.iter().max_by_key(|(c, _)| c.node) else {
             return;
         };
         let trajectory = newest.node.trajectory;
@@ -85,12 +116,14 @@ impl GlobalSlam {
             return;
         };
         let to_path = record.path_m;
-        let from_path = to_path - self.drift_path(newest.node, record, newest.submap, submap);
-        let matched: BTreeSet<SubmapId> = group.iter().map(|c| c.submap).collect();
+        let drift_path = self.drift_path(newest.node, record, newest.submap, submap);
+        let from_path = to_path - drift_path;
+        let growth = self.bend_growth(group.iter().map(|(_, a)| a), drift_path);
+        let matched: BTreeSet<SubmapId> = group.iter().map(|(c, _)| c.submap).collect();
         let old_submaps_to = group
             .iter()
-            .filter(|c| c.submap.trajectory == trajectory)
-            .map(|c| c.submap.index)
+            .filter(|(c, _)| c.submap.trajectory == trajectory)
+            .map(|(c, _)| c.submap.index)
             .max();
         let submaps: Vec<SubmapId> = self
             .submaps
@@ -109,16 +142,49 @@ impl GlobalSlam {
             .collect();
         if !submaps.is_empty() {
             self.submap_bends.push(SubmapBend {
-                closures: group.iter().map(|c| (c.node, c.submap)).collect(),
+                closures: group.iter().map(|(c, _)| (c.node, c.submap)).collect(),
                 submaps,
+                growth,
             });
         }
     }
 
-    /// The submaps a bend holds loosely now: those of bends with at least one match in the graph.
-    pub(super) fn bent_by_evidence(&self) -> BTreeSet<SubmapId> {
+    /// The growth a correction grants: the options' `bent_submap_*_sigma_per_m`, or with
+    /// `bend_drift_rate_multiple` m > 0 the drift rate the correction measured (the median innovation of its
+    /// matches over the drift path, at least 1 m; the median, so that one wrong match among agreeing ones
+    /// does not set it) times m, capped by them.
+    fn bend_growth<'a>(
+        &self,
+        acceptances: impl Iterator<Item = &'a Acceptance>,
+        drift_path_m: f64,
+    ) -> BendGrowth {
+        let o = &self.options;
+        let cap = BendGrowth {
+            translation_per_m: o.bent_submap_translation_sigma_per_m,
+            rotation_per_m: o.bent_submap_rotation_sigma_per_m,
+        };
+        let multiple = o.bend_drift_rate_multiple;
+        if multiple <= 0.0 {
+            return cap;
+        }
+        let (translations, rotations): (Vec<f64>, Vec<f64>) = acceptances
+            .map(|a| (a.innovation_translation_m, a.innovation_rotation_rad))
+            .unzip();
+        let rate = |innovations: Vec<f64>, cap: f64| {
+            (multiple * median(innovations) / drift_path_m.max(1.0)).min(cap)
+        };
+        BendGrowth {
+            translation_per_m: rate(translations, cap.translation_per_m),
+            rotation_per_m: rate(rotations, cap.rotation_per_m),
+        }
+    }
+
+    /// The submaps a bend holds loosely now, with the fastest growth a bend grants them: those of bends
+    /// with at least one match in the graph.
+    pub(super) fn bent_by_evidence(&self) -> BTreeMap<SubmapId, BendGrowth> {
+        let mut bent = BTreeMap::new();
         if self.submap_bends.is_empty() {
-            return BTreeSet::new();
+            return bent;
         }
         let in_graph: BTreeSet<(NodeId, SubmapId)> = self
             .accepted_loop_closures
@@ -127,12 +193,22 @@ impl GlobalSlam {
             .filter(|(_, state)| matches!(state, ClosureState::InGraph(_)))
             .map(|(c, _)| (c.node, c.submap))
             .collect();
-        self.submap_bends
+        for bend in self
+            .submap_bends
             .iter()
             .filter(|b| b.closures.iter().any(|c| in_graph.contains(c)))
-            .flat_map(|b| b.submaps.iter().copied())
-            .filter(|sid| self.submaps.contains_key(sid))
-            .collect()
+        {
+            for sid in bend
+                .submaps
+                .iter()
+                .filter(|sid| self.submaps.contains_key(sid))
+            {
+                bent.entry(*sid)
+                    .and_modify(|g: &mut BendGrowth| *g = g.max(bend.growth))
+                    .or_insert(bend.growth);
+            }
+        }
+        bent
     }
 
     /// Loosens the node-to-submap constraints of the submaps a bend now holds and tightens again those of
@@ -143,18 +219,22 @@ impl GlobalSlam {
         if wanted == self.bent_submaps {
             return;
         }
-        let flipped: Vec<(SubmapId, bool)> = wanted
-            .symmetric_difference(&self.bent_submaps)
-            .map(|sid| (*sid, wanted.contains(sid)))
+        let changed: Vec<(SubmapId, Option<BendGrowth>)> = wanted
+            .keys()
+            .chain(self.bent_submaps.keys())
+            .collect::<BTreeSet<_>>()
+            .into_iter()
+            .filter(|sid| wanted.get(sid) != self.bent_submaps.get(sid))
+            .map(|sid| (*sid, wanted.get(sid).copied()))
             .collect();
-        for (sid, bent) in flipped {
-            self.set_intra_submap_information(sid, bent);
+        for (sid, bend) in changed {
+            self.set_intra_submap_information(sid, bend);
         }
         self.bent_submaps = wanted;
     }
 
     /// Rewrites the information of every node-to-submap constraint LLO gave `sid`, bent or not.
-    fn set_intra_submap_information(&mut self, sid: SubmapId, bent: bool) {
+    fn set_intra_submap_information(&mut self, sid: SubmapId, bend: Option<BendGrowth>) {
         let Some(first_path) = self.submaps.get(&sid).and_then(|s| {
             s.nodes
                 .first()
@@ -182,7 +262,7 @@ impl GlobalSlam {
                 .nodes
                 .get(&node)
                 .map_or(0.0, |r| (r.path_m - first_path).abs());
-            let information = intra_submap_information(&self.options, bent, span_m);
+            let information = intra_submap_information(&self.options, bend, span_m);
             if self.graph.set_information(id, information).is_ok() {
                 self.changed
                     .extend([VariableId::Submap(sid), VariableId::Node(node)]);
@@ -200,7 +280,7 @@ impl GlobalSlam {
             b.submaps.retain(|sid| submaps.contains_key(sid));
             !b.closures.is_empty() && !b.submaps.is_empty()
         });
-        self.bent_submaps.retain(|sid| submaps.contains_key(sid));
+        self.bent_submaps.retain(|sid, _| submaps.contains_key(sid));
     }
 
     /// The bends confirmed corrections granted (see [`SubmapBend`]).
@@ -208,8 +288,8 @@ impl GlobalSlam {
         &self.submap_bends
     }
 
-    /// The submaps a bend holds loosely now.
-    pub fn bent_submaps(&self) -> &BTreeSet<SubmapId> {
+    /// The submaps a bend holds loosely now, and how loosely.
+    pub fn bent_submaps(&self) -> &BTreeMap<SubmapId, BendGrowth> {
         &self.bent_submaps
     }
 }
@@ -257,7 +337,10 @@ mod tests {
         // Submap 1 (nodes 11..) lies on the drift path; submap 0, the matched one, stays rigid.
         assert_eq!(global.submap_bends().len(), 1);
         assert_eq!(global.submap_bends()[0].submaps, [submap(1)]);
-        assert_eq!(global.bent_submaps(), &BTreeSet::from([submap(1)]));
+        assert_eq!(
+            global.bent_submaps().keys().copied().collect::<Vec<_>>(),
+            [submap(1)]
+        );
         // Node 160 is 29.8 m of path along submap 1: σ = √(0.5² + (0.1·29.8)²).
         let expected = 0.5f64.hypot(0.1 * 29.8);
         assert!((intra_sigma_x(&global, 160) - expected).abs() < 1e-9);
@@ -266,6 +349,38 @@ mod tests {
         super::super::tests::drive_on(&mut global, 171..181);
         let expected = 0.5f64.hypot(0.1 * 33.8);
         assert!((intra_sigma_x(&global, 180) - expected).abs() < 1e-9);
+    }
+
+    /// [`straight_run`] to node 170 with bends capped at 0.1 m/m and 0.01 rad/m growing at `multiple`
+    /// times the drift rate of the correction nodes 160 and 170 confirm (0.6 m from their estimates).
+    fn rate_bent_run(multiple: f64) -> GlobalSlam {
+        let mut global = straight_run(171);
+        global.options.bent_submap_translation_sigma_per_m = 0.1;
+        global.options.bent_submap_rotation_sigma_per_m = 0.01;
+        global.options.bend_drift_rate_multiple = multiple;
+        global.options.loop_closure_retraction_chi2 = 0.0;
+        global.add_search_results([wide_closure(160, drift())]);
+        global.add_search_results([wide_closure(170, drift() * rigid2(0.02, 0.01, 0.002))]);
+        global
+    }
+
+    #[test]
+    fn a_bend_at_its_corrections_drift_rate_grows_by_what_the_correction_measured() {
+        // The correction moves node 160 by 0.6 m (and hardly turns it): the bend grows at m · 0.6 m over the
+        // drift path, below the cap, and the node is held by that growth.
+        let global = rate_bent_run(2.0);
+        let growth = global.submap_bends()[0].growth;
+        assert!(
+            growth.translation_per_m > 0.0 && growth.translation_per_m < 0.1,
+            "{growth:?}"
+        );
+        assert!(growth.rotation_per_m < 0.01, "{growth:?}");
+        assert_eq!(global.bent_submaps().get(&submap(1)), Some(&growth));
+        let expected = 0.5f64.hypot(growth.translation_per_m * 29.8);
+        assert!((intra_sigma_x(&global, 160) - expected).abs() < 1e-9);
+        // Twice the multiple, twice the growth (nothing capped here).
+        let twice = rate_bent_run(4.0).submap_bends()[0].growth;
+        assert!((twice.translation_per_m - 2.0 * growth.translation_per_m).abs() < 1e-12);
     }
 
     #[test]
