@@ -19,6 +19,7 @@ pub use match_score::MatchScorer;
 pub use placement_verdict::{
     PLACEMENT_WINDOW_S, PlacementVerdict, SpanVerdict, Verdict, judge_placements,
 };
+pub(crate) use relations_metric::median;
 pub use relations_metric::{
     RelationError, RelationsErrorStats, pose_at, relation_error, relation_error_stats,
     relation_errors, relations_error, relations_error_at_scans,

@@ -25,8 +25,8 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
 
 use super::{
-    Acceptance, ClosureState, CorrectionProbation, GlobalSlam, GlobalSlamError, NodeRecord,
-    SubmapBend, SubmapRecord, closure_refs,
+    Acceptance, BendGrowth, ClosureState, CorrectionProbation, GlobalSlam, GlobalSlamError,
+    NodeRecord, SubmapBend, SubmapRecord, closure_refs, submap_bend,
 };
 use crate::geometry::Rigid2;
 use crate::global_slam::{
@@ -172,8 +172,15 @@ impl GlobalSlam {
             new_constraints_from,
             changed,
             correction_probations,
-            submap_bends,
+            mut submap_bends,
         } = state;
+        // A checkpoint written before bends stored their growth holds none: those bends grew at the fixed
+        // rates, and go on doing so.
+        for bend in &mut submap_bends {
+            if bend.growth == BendGrowth::default() {
+                bend.growth = submap_bend::fixed_growth(&options);
+            }
+        }
         // A queued search matches its node's points: share them again (a decoded state has copies).
         for job in &mut pending_jobs {
             if let Some(record) = nodes.get(&job.node) {

@@ -5,7 +5,9 @@
 //! the trajectory drove since it was last known to be right (`drift_path`): the submaps LLO built there
 //! are the ones likely bent. Their nodes are then held to them more loosely the farther along the submap
 //! they are (`GlobalSlamOptions::bent_submap_translation_sigma_per_m` and `…_rotation_…`), so the
-//! optimization spreads the correction along the path instead of breaking it at a submap's edge.
+//! optimization spreads the correction along the path instead of breaking it at a submap's edge. With
+//! `bend_drift_rate_multiple` > 0 each bend loosens them by the drift rate its own correction measured
+//! ([`BendGrowth`], stored with the bend), up to those rates.
 //!
 //! Growth everywhere (`intra_submap_translation_sigma_per_m`) loosens every submap for a drift that most
 //! never had; here the loosening is granted by evidence and lasts as long as the evidence does: while at
@@ -19,6 +21,7 @@ use nalgebra::Matrix3;
 
 use super::{Acceptance, ClosureState, GlobalSlam, closure_refs, information};
 use crate::global_slam::{GlobalSlamOptions, LoopClosure};
+use crate::metrics::median;
 use crate::pose_graph::{ConstraintId, ConstraintKind, NodeId, SubmapId, VariableId};
 
 /// The submaps a confirmed correction bent, and the matches that grant it.
@@ -75,14 +78,12 @@ pub(super) fn intra_submap_information(
     )
 }
 
-/// The median of `values` (the mean of the middle two for an even count; 0 for none).
-fn median(mut values: Vec<f64>) -> f64 {
-    values.sort_by(f64::total_cmp);
-    let n = values.len();
-    match n {
-        0 => 0.0,
-        _ if n % 2 == 1 => values[n / 2],
-        _ => 0.5 * (values[n / 2 - 1] + values[n / 2]),
+/// The growth at the options' fixed rates (`bent_submap_*_sigma_per_m`): every bend's with
+/// `bend_drift_rate_multiple` 0, the cap of each otherwise.
+pub(super) fn fixed_growth(options: &GlobalSlamOptions) -> BendGrowth {
+    BendGrowth {
+        translation_per_m: options.bent_submap_translation_sigma_per_m,
+        rotation_per_m: options.bent_submap_rotation_sigma_per_m,
     }
 }
 
@@ -158,12 +159,8 @@ impl GlobalSlam {
         acceptances: impl Iterator<Item = &'a Acceptance>,
         drift_path_m: f64,
     ) -> BendGrowth {
-        let o = &self.options;
-        let cap = BendGrowth {
-            translation_per_m: o.bent_submap_translation_sigma_per_m,
-            rotation_per_m: o.bent_submap_rotation_sigma_per_m,
-        };
-        let multiple = o.bend_drift_rate_multiple;
+        let cap = fixed_growth(&self.options);
+        let multiple = self.options.bend_drift_rate_multiple;
         if multiple <= 0.0 {
             return cap;
         }
@@ -171,7 +168,7 @@ impl GlobalSlam {
             .map(|a| (a.innovation_translation_m, a.innovation_rotation_rad))
             .unzip();
         let rate = |innovations: Vec<f64>, cap: f64| {
-            (multiple * median(innovations) / drift_path_m.max(1.0)).min(cap)
+            (multiple * median(&innovations) / drift_path_m.max(1.0)).min(cap)
         };
         BendGrowth {
             translation_per_m: rate(translations, cap.translation_per_m),
@@ -412,6 +409,25 @@ mod tests {
         assert!(global.bent_submaps().is_empty());
         assert!((intra_sigma_x(&global, 170) - 0.5).abs() < 1e-9);
         assert!((intra_sigma_x(&global, 179) - 0.5).abs() < 1e-9);
+    }
+
+    #[test]
+    fn a_bend_from_a_checkpoint_without_its_growth_grows_at_the_fixed_rates() {
+        let global = bent_run(0.0, 20);
+        let mut older = global.to_state();
+        older.submap_bends[0].growth = BendGrowth::default();
+        let mut restored = GlobalSlam::from_state(global.options.clone(), older).expect("restored");
+        assert_eq!(
+            restored.submap_bends()[0].growth,
+            BendGrowth {
+                translation_per_m: 0.1,
+                rotation_per_m: 0.01
+            }
+        );
+        // Nodes inserted after the restore are held as loosely as before it.
+        super::super::tests::drive_on(&mut restored, 171..181);
+        let expected = 0.5f64.hypot(0.1 * 33.8);
+        assert!((intra_sigma_x(&restored, 180) - expected).abs() < 1e-9);
     }
 
     #[test]
