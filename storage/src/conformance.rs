@@ -700,15 +700,12 @@ fn compaction_keeps_the_log_after_the_older_kept_checkpoint(store: &impl MapStor
 }
 
 fn export_import_carries_checkpoints(store: &impl MapStore) {
+    let retention = CheckpointRetention::DEFAULT;
     write_log(store, "depot", 1..=6);
     store.put_checkpoint("depot", 3, b"state 3").unwrap();
     store.put_checkpoint("depot", 6, b"state 6").unwrap();
     store
-        .compact(
-            "depot",
-            RecordKind::Trajectory,
-            &CheckpointRetention::DEFAULT,
-        )
+        .compact("depot", RecordKind::Trajectory, &retention)
         .unwrap();
     let mut archive = Vec::new();
     store.export_site("depot", &mut archive).unwrap();
@@ -813,6 +810,7 @@ fn large_values_are_kept_apart_and_freed(store: &(impl MapStore + RawKv)) {
 }
 
 fn compaction_frees_the_files_of_large_log_entries(store: &(impl MapStore + RawKv)) {
+    let retention = CheckpointRetention::DEFAULT;
     // A site log of 30-kB entries, as the server writes, checkpointed every 5 entries.
     for index in 1..=20 {
         let mut batch = WriteBatch::new("depot");
@@ -825,11 +823,7 @@ fn compaction_frees_the_files_of_large_log_entries(store: &(impl MapStore + RawK
                 .put_checkpoint("depot", index, format!("state {index}").as_bytes())
                 .unwrap();
             store
-                .compact(
-                    "depot",
-                    RecordKind::Trajectory,
-                    &CheckpointRetention::DEFAULT,
-                )
+                .compact("depot", RecordKind::Trajectory, &retention)
                 .unwrap();
         }
     }

@@ -665,6 +665,13 @@ impl LocalTrajectoryBuilder {
             self.last_pose = held.last_pose;
         }
         self.recovered_since_node |= branch.is_recovery();
+        let not_inserted = MatchingResult {
+            time,
+            local_pose: pose,
+            branch,
+            retracted,
+            insertion: None,
+        };
         // A recovered pose steers the next prediction but is held out of the submaps until the next scan
         // decides between it and the odometry: a wrong recovery must not become part of the map the next
         // scans match. Another recovery replaces the held scan; the odometry's hypothesis stays the one
@@ -683,13 +690,7 @@ impl LocalTrajectoryBuilder {
             }
             self.extrapolator.add_pose(time, pose);
             self.last_pose = Some(pose);
-            return Some(MatchingResult {
-                time,
-                local_pose: pose,
-                branch,
-                retracted,
-                insertion: None,
-            });
+            return Some(not_inserted);
         }
         // A stall: the odometry froze although the robot was moving (the last two scans moved farther
         // apart than the motion filter's thresholds); a robot standing still is not stalled.
@@ -707,13 +708,7 @@ impl LocalTrajectoryBuilder {
         self.last_pose = Some(pose);
         let confirmed = self.held.take().map(|held| held.range_data);
         if confirmed.is_none() && (stalled || self.motion_filter.is_similar(time, &pose)) {
-            return Some(MatchingResult {
-                time,
-                local_pose: pose,
-                branch,
-                retracted,
-                insertion: None,
-            });
+            return Some(not_inserted);
         }
         let mut finished = Vec::new();
         if let Some(confirmed) = confirmed {
@@ -724,10 +719,6 @@ impl LocalTrajectoryBuilder {
         let (inserted, finished_now) = self.active.insert(&range_data.transformed(&pose));
         finished.extend(finished_now);
         Some(MatchingResult {
-            time,
-            local_pose: pose,
-            branch,
-            retracted,
             insertion: Some(InsertionResult {
                 node: TrajectoryNodeData {
                     time,
@@ -738,6 +729,7 @@ impl LocalTrajectoryBuilder {
                 insertion_submaps: inserted,
                 finished_submaps: finished,
             }),
+            ..not_inserted
         })
     }
 }

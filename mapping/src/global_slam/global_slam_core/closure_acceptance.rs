@@ -55,6 +55,21 @@ impl GlobalSlam {
                 > cb.max_innovation_rotation + cb.angular_window_growth * drift_path + doubt_rad
     }
 
+    /// A confirmed group (the `agreeing` pending matches and the `closure` that confirmed them), marked
+    /// confirmed by agreement, its correction put on probation and the submaps along its drift bent.
+    fn confirm_group(
+        &mut self,
+        agreeing: Vec<(LoopClosure, Acceptance)>,
+        closure: LoopClosure,
+        acceptance: Acceptance,
+    ) -> Vec<(LoopClosure, Acceptance)> {
+        let group: Vec<(LoopClosure, Acceptance)> =
+            confirmed(agreeing, closure, acceptance).collect();
+        self.start_probation(group.iter().map(|(c, _)| c));
+        self.bend_along_drift(group.iter());
+        group
+    }
+
     /// Adds accepted loop closures as robust node-to-submap constraints, then optimizes if
     /// `optimize_every_n_nodes` nodes arrived since the last optimization.
     pub fn add_search_results(
@@ -124,11 +139,7 @@ impl GlobalSlam {
                 decided(&closure, acceptance, MatchDecision::ConfirmedBeyondDrift);
                 confirmed_any = true;
                 self.closures_beyond_drift -= agreeing.len();
-                let group: Vec<(LoopClosure, Acceptance)> =
-                    confirmed(agreeing, closure, acceptance).collect();
-                self.start_probation(group.iter().map(|(c, _)| c));
-                self.bend_along_drift(group.iter());
-                accepted.extend(group);
+                accepted.extend(self.confirm_group(agreeing, closure, acceptance));
                 continue;
             }
             if self.needs_confirmation(&closure, &acceptance) {
@@ -140,11 +151,7 @@ impl GlobalSlam {
                 }
                 decided(&closure, acceptance, MatchDecision::Confirmed);
                 confirmed_any = true;
-                let group: Vec<(LoopClosure, Acceptance)> =
-                    confirmed(agreeing, closure, acceptance).collect();
-                self.start_probation(group.iter().map(|(c, _)| c));
-                self.bend_along_drift(group.iter());
-                accepted.extend(group);
+                accepted.extend(self.confirm_group(agreeing, closure, acceptance));
                 continue;
             }
             decided(&closure, acceptance, MatchDecision::Accepted);

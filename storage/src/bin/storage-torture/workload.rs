@@ -43,6 +43,17 @@ pub fn mix(mut x: u64) -> u64 {
     x ^ (x >> 31)
 }
 
+/// `len` pseudo-random bytes drawn from `seed` by [`mix`].
+fn noise(seed: u64, len: usize) -> Vec<u8> {
+    let mut state = seed;
+    (0..len)
+        .map(|_| {
+            state = mix(state);
+            state as u8
+        })
+        .collect()
+}
+
 /// Number of Node records of batch `seq` (1..=12).
 pub fn node_count(seq: u64) -> u64 {
     1 + mix(seq) % 12
@@ -56,13 +67,7 @@ pub fn node_value(seq: u64, i: u64) -> Vec<u8> {
     } else {
         16 + seed % 1_000
     } as usize;
-    let mut state = seed;
-    (0..len)
-        .map(|_| {
-            state = mix(state);
-            state as u8
-        })
-        .collect()
+    noise(seed, len)
 }
 
 /// Value of Outbox record `seq`.
@@ -78,13 +83,7 @@ pub fn log_value(seq: u64) -> Vec<u8> {
     } else {
         24 + (seed % 257) as usize
     };
-    let mut state = seed;
-    (0..len)
-        .map(|_| {
-            state = mix(state);
-            state as u8
-        })
-        .collect()
+    noise(seed, len)
 }
 
 /// The digest of the log entries up to `seq`, from the digest up to `seq - 1` and entry `seq`'s value
