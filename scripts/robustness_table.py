@@ -13,8 +13,8 @@ import json
 import sys
 from pathlib import Path
 
-MILD = {"range8", "sparse", "odom", "slow", "clutter", "late", "noise", "stall", "lag"}
-ORDER = ["clean", "range8", "range4", "sparse", "odom", "slip", "slow", "clutter", "late", "noise", "stall", "hard", "thin", "lag"]
+MILD = {"range8", "sparse", "odom", "slow", "clutter", "late", "noise", "stall", "lag", "burst", "scanburst"}
+ORDER = ["clean", "range8", "range4", "sparse", "odom", "slip", "slow", "clutter", "late", "noise", "stall", "hard", "thin", "lag", "burst", "scanburst"]
 AT_SCANS = {"slow", "thin"}
 
 

@@ -23,6 +23,13 @@
 //! | `hard` | `range4` + `slip` + `clutter` + `slow` |
 //! | `thin` | `sparse` + `slow`: a low-cost scanner, few beams at a low rate (90 beams at 2° and 1.4 scans/s on Intel) |
 //! | `lag` | every odometry reading stamped 0.1 s late (the odometry's clock behind the scanner's; ACES's own odometry already lags by about 0.08 s, MIT CSAIL's by 0.12–0.16 s) |
+//! | `burst` | the logger stalls for 0.5–2 s every 10–40 s: what the sensors sent meanwhile is stamped when it resumes, in a burst 0.5 ms apart, in the order it came (Intel's own stamps do this) |
+//! | `scanburst` | the same stalls, of the scanner's driver alone: scans stamped in bursts, the odometry on time |
+//!
+//! `burst` moves scans' stamps away from when they were taken; [`PerturbationReport::capture_time`] gives
+//! each scan's own, and a run is scored at those.
+
+use std::collections::BTreeMap;
 
 use mapping::geometry::{Rigid2, Rigid2Ext as _, rigid2};
 use mapping::sensor::{LaserScan, OdometryReading, SensorEvent, Timestamp};
@@ -34,8 +41,22 @@ use crate::source::Recording;
 
 /// Every variant name [`Perturbation::parse`] knows, in the suite's order.
 pub const VARIANTS: &[&str] = &[
-    "clean", "range8", "range4", "sparse", "odom", "slip", "slow", "clutter", "late", "noise",
-    "stall", "hard", "thin", "lag",
+    "clean",
+    "range8",
+    "range4",
+    "sparse",
+    "odom",
+    "slip",
+    "slow",
+    "clutter",
+    "late",
+    "noise",
+    "stall",
+    "hard",
+    "thin",
+    "lag",
+    "burst",
+    "scanburst",
 ];
 
 /// Odometry that is wrong the way wheel odometry is: a scale error, a heading drift with distance, and
@@ -74,6 +95,24 @@ pub struct OdometryStalls {
     pub duration_s: (f64, f64),
 }
 
+/// A logger that stalls and then stamps what it buffered on arrival: every message taken during a stall
+/// carries the stall's end as its stamp (spread [`BURST_SPACING_S`] apart, in the order the messages
+/// came). Intel's recording is stamped this way, scans and odometry alike: a third of its scan intervals
+/// are under a fifth of the median, bursts of up to 13 scans after gaps of up to 2 s. With `scans_only`
+/// only the scanner's driver stalls: the odometry keeps the stamps of when it was taken.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LoggerStalls {
+    /// Recording time between stalls, seconds: drawn uniformly from this range each time.
+    pub every_s: (f64, f64),
+    /// How long a stall lasts, seconds (uniform).
+    pub duration_s: (f64, f64),
+    /// Only scans are held and restamped.
+    pub scans_only: bool,
+}
+
+/// Seconds between the stamps of a burst's messages (Intel's bursts: 0.3–1 ms).
+pub const BURST_SPACING_S: f64 = 0.0005;
+
 /// Short returns that replace some beams: people and carts between the scanner and the walls.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Clutter {
@@ -109,6 +148,8 @@ pub struct Perturbation {
     /// Every odometry reading's stamp moved this much later (seconds): the pose it reports is older than
     /// its stamp says.
     pub odometry_lag_s: Option<f64>,
+    /// Logger stalls, after which messages come stamped in bursts.
+    pub logger_stalls: Option<LoggerStalls>,
 }
 
 /// A variant name [`Perturbation::parse`] does not know.
@@ -137,6 +178,23 @@ pub struct PerturbationReport {
     pub beams_cut: usize,
     /// Beams replaced by clutter.
     pub beams_cluttered: usize,
+    /// Logger stalls injected.
+    pub logger_stalls: usize,
+    /// Messages stamped later than taken, in bursts.
+    pub messages_restamped: usize,
+    /// Each restamped scan's stamp and the stamp of when it was taken.
+    #[serde(skip)]
+    pub scan_capture_times: BTreeMap<Timestamp, Timestamp>,
+}
+
+impl PerturbationReport {
+    /// When the scan stamped `stamp` was taken: its stamp, unless the perturbation moved it.
+    pub fn capture_time(&self, stamp: Timestamp) -> Timestamp {
+        self.scan_capture_times
+            .get(&stamp)
+            .copied()
+            .unwrap_or(stamp)
+    }
 }
 
 impl Perturbation {
@@ -181,6 +239,13 @@ impl Perturbation {
             "late" => self.drop_first_share = Some(0.2),
             "noise" => self.range_noise_m = Some(0.03),
             "lag" => self.odometry_lag_s = Some(0.1),
+            "burst" | "scanburst" => {
+                self.logger_stalls = Some(LoggerStalls {
+                    every_s: (10.0, 40.0),
+                    duration_s: (0.5, 2.0),
+                    scans_only: name == "scanburst",
+                });
+            }
             "stall" => {
                 self.stalls = Some(OdometryStalls {
                     every_m: (20.0, 60.0),
@@ -248,6 +313,15 @@ impl Perturbation {
             }
             // Stable: readings and scans at the same stamp keep their order.
             events.sort_by_key(SensorEvent::time);
+        }
+        // After `lag`: a reading that comes late reaches the stalled logger late, and is stamped on
+        // arrival like everything else the stall held.
+        if let Some(stalls) = self.logger_stalls {
+            (
+                report.logger_stalls,
+                report.messages_restamped,
+                report.scan_capture_times,
+            ) = stamp_in_bursts(&stalls, &mut events, &mut rng(6));
         }
         let mut clutter_rng = rng(3);
         let mut noise_rng = rng(4);
@@ -432,6 +506,61 @@ fn stall_odometry(
     (count, changed)
 }
 
+/// Makes the logger stall (see [`LoggerStalls`]): every so many seconds, the messages (or the scans) of
+/// the next `duration_s` are restamped to the stall's end, [`BURST_SPACING_S`] apart in their order, the
+/// last at the end itself; the events are left in time order. Returns the stalls, the messages restamped
+/// and each restamped scan's new stamp with its own.
+fn stamp_in_bursts(
+    stalls: &LoggerStalls,
+    events: &mut [SensorEvent],
+    rng: &mut Pcg64,
+) -> (usize, usize, BTreeMap<Timestamp, Timestamp>) {
+    let mut scan_capture_times = BTreeMap::new();
+    let Some(first) = events.first().map(SensorEvent::time) else {
+        return (0, 0, scan_capture_times);
+    };
+    let draw_gap = |rng: &mut Pcg64| rng.random_range(stalls.every_s.0..=stalls.every_s.1);
+    let mut start = first.offset_by(draw_gap(rng));
+    let (mut count, mut changed) = (0, 0);
+    // The first event at or after `from` whose stamp satisfies `is`, or the end.
+    let next = |events: &[SensorEvent], from: usize, is: &dyn Fn(Timestamp) -> bool| {
+        events[from..]
+            .iter()
+            .position(|e| is(e.time()))
+            .map_or(events.len(), |k| from + k)
+    };
+    let mut i = next(events, 0, &|t| t >= start);
+    while i < events.len() {
+        let end = start.offset_by(rng.random_range(stalls.duration_s.0..=stalls.duration_s.1));
+        let j = next(events, i, &|t| t > end);
+        let held = |e: &SensorEvent| !stalls.scans_only || matches!(e, SensorEvent::Scan(_));
+        let n = events[i..j].iter().filter(|e| held(e)).count();
+        for (k, event) in events[i..j].iter_mut().filter(|e| held(e)).enumerate() {
+            // Never before the stall's start, so the events stay in order.
+            let stamp = end
+                .offset_by(-((n - 1 - k) as f64) * BURST_SPACING_S)
+                .max(start);
+            match event {
+                SensorEvent::Scan(scan) => {
+                    scan_capture_times.insert(stamp, scan.time);
+                    scan.time = stamp;
+                }
+                SensorEvent::Odometry(reading) => reading.time = stamp,
+                SensorEvent::Imu(reading) => reading.time = stamp,
+            }
+        }
+        if n > 0 {
+            count += 1;
+            changed += n;
+        }
+        start = end.offset_by(draw_gap(rng));
+        i = next(events, j, &|t| t >= start);
+    }
+    // Stable: a held scan now comes after the odometry of its stall.
+    events.sort_by_key(SensorEvent::time);
+    (count, changed, scan_capture_times)
+}
+
 fn count_scans(events: &[SensorEvent]) -> usize {
     events
         .iter()
@@ -536,6 +665,72 @@ mod tests {
         }
         assert_eq!(scans(&lagged).len(), scans(&recording).len());
         assert!(lagged.events.windows(2).all(|w| w[0].time() <= w[1].time()));
+    }
+
+    #[test]
+    fn burst_stamps_what_a_stall_held_at_its_end_and_keeps_each_scans_capture_time() {
+        let recording = drive(120);
+        let (burst, report) = Perturbation::parse("burst").unwrap().apply(&recording, 1);
+        assert!(burst.events.windows(2).all(|w| w[0].time() <= w[1].time()));
+        // Between 2 and 11 stalls of 0.5–2 s in 120 s, each holding messages at 15 a second.
+        assert!((2..=11).contains(&report.logger_stalls), "{report:?}");
+        assert!(report.messages_restamped >= 5 * report.logger_stalls);
+        // Every scan is still there, in its order, and its capture time is the recording's stamp.
+        let before: Vec<Timestamp> = scans(&recording).iter().map(|s| s.time).collect();
+        let after = scans(&burst);
+        let captured: Vec<Timestamp> = after.iter().map(|s| report.capture_time(s.time)).collect();
+        assert_eq!(captured, before);
+        let moved: Vec<f64> = after
+            .iter()
+            .map(|s| s.time.seconds_since(report.capture_time(s.time)))
+            .collect();
+        assert!(moved.iter().all(|&m| (0.0..=2.0).contains(&m)), "{moved:?}");
+        // A burst: scans a few 0.5-ms steps apart (the odometry between them), taken 0.2 s apart.
+        assert!(after.windows(2).any(|w| {
+            w[1].time.seconds_since(w[0].time) <= 4.0 * BURST_SPACING_S
+                && report
+                    .capture_time(w[1].time)
+                    .seconds_since(report.capture_time(w[0].time))
+                    > 0.19
+        }));
+        // The odometry says what it said, only later.
+        let poses = |r: &Recording| -> Vec<Rigid2> {
+            r.events
+                .iter()
+                .filter_map(|e| match e {
+                    SensorEvent::Odometry(o) => Some(o.pose),
+                    _ => None,
+                })
+                .collect()
+        };
+        assert_eq!(poses(&burst), poses(&recording));
+    }
+
+    #[test]
+    fn scanburst_holds_only_the_scans_and_leaves_the_odometry_on_time() {
+        let recording = drive(120);
+        let (burst, report) = Perturbation::parse("scanburst")
+            .unwrap()
+            .apply(&recording, 1);
+        assert!(burst.events.windows(2).all(|w| w[0].time() <= w[1].time()));
+        assert!(report.logger_stalls >= 2, "{report:?}");
+        assert_eq!(report.messages_restamped, report.scan_capture_times.len());
+        let odometry = |r: &Recording| -> Vec<OdometryReading> {
+            r.events
+                .iter()
+                .filter_map(|e| match e {
+                    SensorEvent::Odometry(o) => Some(o.clone()),
+                    _ => None,
+                })
+                .collect()
+        };
+        assert_eq!(odometry(&burst), odometry(&recording));
+        let captured: Vec<Timestamp> = scans(&burst)
+            .iter()
+            .map(|s| report.capture_time(s.time))
+            .collect();
+        let before: Vec<Timestamp> = scans(&recording).iter().map(|s| s.time).collect();
+        assert_eq!(captured, before);
     }
 
     #[test]

@@ -17,6 +17,7 @@ use mapping::metrics::{JudgedMatch, judge_matches, match_counts};
 use mapping::sensor::Timestamp;
 use robot_agent::line_chart::{LineChart, Series};
 use robot_agent::offline_slam::{SlamConfig, SlamRun, render_map, run_offline, run_slam};
+use robot_agent::perturbation::PerturbationReport;
 use robot_agent::ros2_publisher::{Ros2Publisher, Ros2SlamPublisher};
 use robot_agent::{map_image, process_stats, source};
 use serde_json::json;
@@ -102,7 +103,10 @@ pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
 
     let start = Instant::now();
     let mut perturbation = serde_json::Value::Null;
-    let (run, input, read_report, read_time_s, live) = if args.ros2 {
+    // Where the perturbation restamped scans (`burst`), the run is written and scored at the times they
+    // were taken.
+    let mut capture_times = PerturbationReport::default();
+    let (mut run, input, read_report, read_time_s, live) = if args.ros2 {
         anyhow::ensure!(
             perturbation_asked.is_none(),
             "--perturb works on recordings, not on a live robot"
@@ -121,10 +125,11 @@ pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
             .as_ref()
             .context("give --input (a recording) or --ros2 (a live robot)")?;
         eprintln!("reading {}", input.display());
-        let (recording, done) = args
+        let (recording, done, perturbed) = args
             .perturb
             .apply(perturbation_asked.as_ref(), source::read_recording(input)?);
         perturbation = done;
+        capture_times = perturbed;
         let read_time_s = start.elapsed().as_secs_f64();
         let scans = recording.report.scans;
         let bar = ProgressBar::new(scans as u64);
@@ -147,6 +152,9 @@ pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
         )
     };
     let wall_time_s = start.elapsed().as_secs_f64();
+    for (time, _) in &mut run.scan_poses {
+        *time = capture_times.capture_time(*time);
+    }
 
     let tum_path = args.out.join("trajectory.tum");
     let tum = std::fs::File::create(&tum_path)

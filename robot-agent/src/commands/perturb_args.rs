@@ -2,14 +2,15 @@
 
 use anyhow::Context as _;
 use clap::Args;
-use robot_agent::perturbation::Perturbation;
+use robot_agent::perturbation::{Perturbation, PerturbationReport};
 use robot_agent::source::Recording;
 
 /// Arguments that perturb the recording before it is mapped (see `robot_agent::perturbation`).
 #[derive(Args, Clone, Debug, Default)]
 pub struct PerturbArgs {
     /// Perturb the recording first, deterministically: a comma-separated list of `clean`, `range8`,
-    /// `range4`, `sparse`, `odom`, `slip`, `slow`, `clutter`, `late`, `noise`, `hard`.
+    /// `range4`, `sparse`, `odom`, `slip`, `slow`, `clutter`, `late`, `noise`, `stall`, `hard`, `thin`,
+    /// `lag`, `burst`.
     #[arg(long)]
     pub perturb: Option<String>,
     /// The perturbation's random seed.
@@ -27,15 +28,20 @@ impl PerturbArgs {
             .transpose()
     }
 
-    /// `recording` perturbed by `perturbation` (from [`Self::perturbation`]), and what was done (for the
-    /// report); unchanged when there is none.
+    /// `recording` perturbed by `perturbation` (from [`Self::perturbation`]), what was done for the
+    /// report, and in full (each scan's capture time: [`PerturbationReport::capture_time`]); unchanged
+    /// when there is none.
     pub fn apply(
         &self,
         perturbation: Option<&Perturbation>,
         recording: Recording,
-    ) -> (Recording, serde_json::Value) {
+    ) -> (Recording, serde_json::Value, PerturbationReport) {
         let (Some(perturbation), Some(names)) = (perturbation, &self.perturb) else {
-            return (recording, serde_json::Value::Null);
+            return (
+                recording,
+                serde_json::Value::Null,
+                PerturbationReport::default(),
+            );
         };
         let (perturbed, report) = perturbation.apply(&recording, self.perturb_seed);
         eprintln!(
@@ -48,13 +54,11 @@ impl PerturbArgs {
             report.beams_cut,
             report.beams_cluttered
         );
-        (
-            perturbed,
-            serde_json::json!({
-                "variant": names,
-                "seed": self.perturb_seed,
-                "done": report,
-            }),
-        )
+        let done = serde_json::json!({
+            "variant": names,
+            "seed": self.perturb_seed,
+            "done": report,
+        });
+        (perturbed, done, report)
     }
 }

@@ -69,6 +69,13 @@ pub struct SessionsArgs {
 pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
     let config = SessionsConfig::load(args.config.as_deref(), args.policy)?;
     let perturbation_asked = args.perturb.perturbation()?;
+    anyhow::ensure!(
+        perturbation_asked
+            .as_ref()
+            .is_none_or(|p| p.logger_stalls.is_none()),
+        "--perturb burst restamps scans, and `sessions` scores its relations at the scans' stamps: \
+         run `burst` with `offline`, which scores at the times the scans were taken"
+    );
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     let relations: Option<Vec<Relation>> = match &args.relations {
@@ -85,7 +92,7 @@ pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
 
     let start = Instant::now();
     eprintln!("reading {}", args.input.display());
-    let (recording, perturbation) = args.perturb.apply(
+    let (recording, perturbation, _) = args.perturb.apply(
         perturbation_asked.as_ref(),
         source::read_recording(&args.input)?,
     );
