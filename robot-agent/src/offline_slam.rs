@@ -107,6 +107,8 @@ pub struct SlamRun {
     pub scans: usize,
     /// Scans LLO could not match (e.g. too few points), skipped.
     pub scans_dropped: usize,
+    /// Scans of a driver's backlog put back at the times they were taken (`SensorStream::scans_retimed`).
+    pub scans_retimed: usize,
     /// Data duration from the first to the last event, seconds.
     pub data_duration_s: f64,
     /// Summary of the final optimization.
@@ -326,7 +328,7 @@ pub fn run_slam(
                     }
                     None => global.global_from_local(0) * a.local_pose,
                 };
-                (a.time, pose)
+                (stream.stamped(a.time), pose)
             })
             .collect();
         Ok(SlamRun {
@@ -337,6 +339,7 @@ pub fn run_slam(
             range_stats,
             scans: scans_done,
             scans_dropped,
+            scans_retimed: stream.scans_retimed(),
             data_duration_s,
             final_optimization,
             optimizations,

@@ -87,27 +87,8 @@ impl<E: std::borrow::Borrow<SensorEvent>> LloCollator<E> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::geometry::rigid2;
-    use crate::sensor::{LaserScan, OdometryReading, Timestamp};
-
-    fn scan(t: f64) -> SensorEvent {
-        SensorEvent::Scan(LaserScan {
-            time: Timestamp::from_secs_f64(t),
-            angle_min: 0.0,
-            angle_increment: 0.1,
-            time_increment: 0.0,
-            range_min: 0.1,
-            range_max: 10.0,
-            ranges: vec![1.0; 4],
-        })
-    }
-
-    fn odom(t: f64) -> SensorEvent {
-        SensorEvent::Odometry(OdometryReading {
-            time: Timestamp::from_secs_f64(t),
-            pose: rigid2(t, 0.0, 0.0),
-        })
-    }
+    use crate::sensor::Timestamp;
+    use crate::sensor::test_support::{odometry_event, scan_event};
 
     fn kinds(events: &[&SensorEvent]) -> String {
         events
@@ -124,12 +105,12 @@ mod tests {
     fn a_scan_waits_for_the_odometry_stamped_after_it() {
         // ACES-like: odometry 0.1 s after each scan.
         let events = vec![
-            odom(0.0),
-            scan(0.1),
-            odom(0.2),
-            scan(0.3),
-            odom(0.4),
-            scan(0.5),
+            odometry_event(0.0),
+            scan_event(0.1),
+            odometry_event(0.2),
+            scan_event(0.3),
+            odometry_event(0.4),
+            scan_event(0.5),
         ];
         let collated = collate_for_llo(&events);
         assert_eq!(kinds(&collated), "oososs");
@@ -146,30 +127,30 @@ mod tests {
     fn a_scan_is_not_held_past_the_wait_nor_without_odometry() {
         let late = 0.2 + MAX_ODOMETRY_WAIT_S + 0.1;
         let events = vec![
-            odom(0.0),
-            scan(0.1),
-            scan(0.2),
-            scan(late),
-            odom(late + 0.05),
+            odometry_event(0.0),
+            scan_event(0.1),
+            scan_event(0.2),
+            scan_event(late),
+            odometry_event(late + 0.05),
         ];
         let collated = collate_for_llo(&events);
         // The scans at 0.1 and 0.2 s are released when the next scan shows they waited too long.
         assert_eq!(kinds(&collated), "ossos");
-        let no_odometry = vec![scan(0.1), scan(0.2)];
+        let no_odometry = vec![scan_event(0.1), scan_event(0.2)];
         assert_eq!(kinds(&collate_for_llo(&no_odometry)), "ss");
     }
 
     #[test]
     fn the_streaming_collator_gives_the_same_order_as_the_whole_recording() {
         let events = vec![
-            odom(0.0),
-            scan(0.1),
-            odom(0.2),
-            scan(0.3),
-            scan(0.35),
-            scan(1.2),
-            odom(1.25),
-            scan(1.3),
+            odometry_event(0.0),
+            scan_event(0.1),
+            odometry_event(0.2),
+            scan_event(0.3),
+            scan_event(0.35),
+            scan_event(1.2),
+            odometry_event(1.25),
+            scan_event(1.3),
         ];
         let whole = collate_for_llo(&events);
         let mut collator = LloCollator::default();

@@ -1,11 +1,14 @@
 //! [`SensorStream`]: what the SLAM driver reads, one event at a time, from a recording or a live robot.
 
+use std::collections::BTreeMap;
+
 use mapping::geometry::Rigid2;
-use mapping::sensor::SensorEvent;
+use mapping::sensor::{ScanBacklog, SensorEvent, Timestamp, collate_for_llo};
 
 use super::Recording;
 
-/// Sensor events in the order LLO takes them (stamp order, each scan after the odometry that covers it:
+/// Sensor events in the order LLO takes them (stamp order, a driver's backlog of scans put back at the
+/// times they were taken: `mapping::sensor::ScanBacklog`, each scan after the odometry that covers it:
 /// `mapping::sensor::collate_for_llo`), and the laser's mounting pose.
 pub trait SensorStream {
     /// The next event; `None` at the end of the stream. A live stream blocks until one arrives.
@@ -13,30 +16,54 @@ pub trait SensorStream {
 
     /// `base_from_laser`: the laser's pose on the robot. Fixed before the first scan is handed on.
     fn base_from_laser(&self) -> Rigid2;
+
+    /// The stamp a scan handed on at `time` came with (they differ where a backlog was re-timed), for
+    /// scoring against references made at the stamps. The same time where not known.
+    fn stamped(&self, time: Timestamp) -> Timestamp {
+        time
+    }
+
+    /// How many scans so far were a driver's backlog put back at the times they were taken.
+    fn scans_retimed(&self) -> usize {
+        0
+    }
 }
 
 /// A whole recording as a [`SensorStream`].
-pub struct RecordingStream<'a> {
-    order: std::vec::IntoIter<&'a SensorEvent>,
+pub struct RecordingStream {
+    order: std::vec::IntoIter<SensorEvent>,
     base_from_laser: Rigid2,
+    /// Re-timed scans: the time each was given, and its stamp.
+    stamps: BTreeMap<Timestamp, Timestamp>,
 }
 
-impl<'a> RecordingStream<'a> {
+impl RecordingStream {
     /// The recording's events in LLO order.
-    pub fn new(recording: &'a Recording) -> Self {
+    pub fn new(recording: &Recording) -> Self {
+        let (events, retimed) = ScanBacklog::retime(&recording.events);
+        let order: Vec<SensorEvent> = collate_for_llo(&events).into_iter().cloned().collect();
         Self {
-            order: mapping::sensor::collate_for_llo(&recording.events).into_iter(),
+            order: order.into_iter(),
             base_from_laser: recording.base_from_laser,
+            stamps: retimed.into_iter().map(|r| (r.taken, r.stamped)).collect(),
         }
     }
 }
 
-impl SensorStream for RecordingStream<'_> {
+impl SensorStream for RecordingStream {
     fn next_event(&mut self) -> Option<SensorEvent> {
-        self.order.next().cloned()
+        self.order.next()
     }
 
     fn base_from_laser(&self) -> Rigid2 {
         self.base_from_laser
+    }
+
+    fn stamped(&self, time: Timestamp) -> Timestamp {
+        self.stamps.get(&time).copied().unwrap_or(time)
+    }
+
+    fn scans_retimed(&self) -> usize {
+        self.stamps.len()
     }
 }

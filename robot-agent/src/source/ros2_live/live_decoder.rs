@@ -9,7 +9,7 @@ use std::collections::{BTreeMap, VecDeque};
 use std::sync::Arc;
 
 use mapping::geometry::Rigid2;
-use mapping::sensor::{LloCollator, SensorEvent, Timestamp};
+use mapping::sensor::{LloCollator, ScanBacklog, SensorEvent, Timestamp};
 
 use super::super::rmw_zenoh;
 use super::super::ros_collector::{RosCollector, RosKind};
@@ -45,6 +45,7 @@ pub struct LiveDecoder {
     first_scan: Option<Timestamp>,
     mount: Option<(Rigid2, String)>,
     last_out: [Option<Timestamp>; 3],
+    backlog: ScanBacklog,
     collator: LloCollator<SensorEvent>,
     ready: VecDeque<SensorEvent>,
     dropped_late: u64,
@@ -86,6 +87,7 @@ impl LiveDecoder {
             first_scan: None,
             mount: None,
             last_out: [None; 3],
+            backlog: ScanBacklog::default(),
             collator: LloCollator::default(),
             ready: VecDeque::new(),
             dropped_late: 0,
@@ -205,6 +207,7 @@ impl LiveDecoder {
             }
             self.mount = Some(self.collector.laser_mount_or_identity());
         }
+        let mut staged = Vec::new();
         let mut out = Vec::new();
         loop {
             let overfull = self.buffer.len() > self.max_buffered;
@@ -231,6 +234,14 @@ impl LiveDecoder {
                 continue;
             }
             self.last_out[stream] = Some(time);
+            self.backlog.push(event, &mut staged);
+        }
+        if all {
+            self.backlog.finish(&mut staged);
+        }
+        // A live robot's scans go on at the times they were taken; the stamps they came with are not kept.
+        self.backlog.take_retimed();
+        for event in staged {
             self.collator.push(event, &mut out);
         }
         if all {
