@@ -249,6 +249,8 @@ pub struct LiveStats {
     pub events_out: u64,
     /// Scans handed on to SLAM.
     pub scans_out: u64,
+    /// Scans of a driver's backlog put back at the times they were taken (`mapping::sensor::ScanBacklog`).
+    pub scans_retimed: u64,
     /// The newest stamp (nanoseconds) handed on to SLAM.
     pub newest_stamp_ns: Option<i64>,
     /// Where the laser's mounting pose came from.

@@ -46,6 +46,7 @@ pub struct LiveDecoder {
     mount: Option<(Rigid2, String)>,
     last_out: [Option<Timestamp>; 3],
     backlog: ScanBacklog,
+    scans_retimed: u64,
     collator: LloCollator<SensorEvent>,
     ready: VecDeque<SensorEvent>,
     dropped_late: u64,
@@ -88,6 +89,7 @@ impl LiveDecoder {
             mount: None,
             last_out: [None; 3],
             backlog: ScanBacklog::default(),
+            scans_retimed: 0,
             collator: LloCollator::default(),
             ready: VecDeque::new(),
             dropped_late: 0,
@@ -169,6 +171,7 @@ impl LiveDecoder {
             repeated_stamp: self.repeated_stamp,
             events_out: self.events_out,
             scans_out: self.scans_out,
+            scans_retimed: self.scans_retimed,
             newest_stamp_ns: self.newest_out.map(|t| t.0),
             extrinsic_source: self
                 .mount
@@ -239,8 +242,8 @@ impl LiveDecoder {
         if all {
             self.backlog.finish(&mut staged);
         }
-        // A live robot's scans go on at the times they were taken; the stamps they came with are not kept.
-        self.backlog.take_retimed();
+        // A live robot's scans go on at the times they were taken; the stamps they came with are only counted.
+        self.scans_retimed += self.backlog.take_retimed().len() as u64;
         for event in staged {
             self.collator.push(event, &mut out);
         }
