@@ -107,10 +107,8 @@ impl ScanBacklog {
 
     /// The end of the stream: hands on everything still held.
     pub fn finish(&mut self, out: &mut Vec<SensorEvent>) {
-        if self.burst.is_some() {
-            self.resolve(out);
-        }
-        self.release(out);
+        // Resolving a burst (or none) hands on everything held.
+        self.resolve(out);
     }
 
     /// The scans re-timed since the last call.
