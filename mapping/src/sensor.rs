@@ -2,9 +2,11 @@
 //! conversion of a scan into range data (hits and free-space rays).
 
 mod laser_scan;
+mod odometry_clock;
 mod range_data;
 mod readings;
 mod scan_backlog;
+mod scan_period;
 mod sensor_collator;
 mod sensor_event;
 #[cfg(test)]
@@ -12,12 +14,17 @@ pub(crate) mod test_support;
 mod timestamp;
 
 pub use laser_scan::{LaserScan, RangeConversionOptions, RangeStats};
+pub use odometry_clock::{
+    ERROR_CAP_RAD, MAX_OFFSET_S, MAX_PAIR_SPAN_S, MIN_TURN_RAD, OFFSET_STEP_S, OdometryClock,
+    PAIR_SPAN_S, SWITCH_SHARE,
+};
 pub use range_data::RangeData;
 pub use readings::{ImuReading, OdometryReading};
 pub use scan_backlog::{
-    BACKLOG_GAP_PERIODS, BURST_INTERVAL_SHARE, MAX_BACKLOG_HOLD_S, MAX_ODOMETRY_SILENCE_SHARE,
-    MIN_BACKLOG_SHARE, PERIOD_WINDOW, Retimed, ScanBacklog,
+    BACKLOG_GAP_PERIODS, MAX_BACKLOG_HOLD_S, MAX_ODOMETRY_SILENCE_SHARE, MIN_BACKLOG_SHARE,
+    Retimed, ScanBacklog,
 };
+pub use scan_period::{BURST_INTERVAL_SHARE, PERIOD_WINDOW, ScanPeriod};
 pub use sensor_collator::{LloCollator, MAX_ODOMETRY_WAIT_S, collate_for_llo};
 pub use sensor_event::SensorEvent;
 pub use timestamp::Timestamp;

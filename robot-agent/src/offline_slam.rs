@@ -109,6 +109,10 @@ pub struct SlamRun {
     pub scans_dropped: usize,
     /// Scans of a driver's backlog put back at the times they were taken (`SensorStream::scans_retimed`).
     pub scans_retimed: usize,
+    /// The offset of the odometry's clock against the scanner's as LLO estimated it by the end, seconds
+    /// (`mapping::sensor::OdometryClock`; positive: the odometry is stamped late; `None` if it could not
+    /// tell). Reported, not applied.
+    pub odometry_offset_s: Option<f64>,
     /// Data duration from the first to the last event, seconds.
     pub data_duration_s: f64,
     /// Summary of the final optimization.
@@ -340,6 +344,7 @@ pub fn run_slam(
             scans: scans_done,
             scans_dropped,
             scans_retimed: stream.scans_retimed(),
+            odometry_offset_s: llo.odometry_clock().offset_s(),
             data_duration_s,
             final_optimization,
             optimizations,

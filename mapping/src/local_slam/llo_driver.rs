@@ -3,13 +3,15 @@
 //! Odometry and IMU readings go to the pose extrapolator. A scan is converted into range data
 //! ([`LaserScan::to_range_data`](crate::sensor::LaserScan::to_range_data)), moved from the laser frame
 //! into the tracking frame by `base_from_laser`, and matched by the [`LocalTrajectoryBuilder`]. The
-//! caller gets an [`LloEvent`] back and keeps its own bookkeeping (counts, nodes, uploads). No I/O.
+//! caller gets an [`LloEvent`] back and keeps its own bookkeeping (counts, nodes, uploads). The driver
+//! also estimates the odometry clock's offset against the scanner's from what it matches
+//! ([`OdometryClock`], reported, not applied). No I/O.
 
 use super::{
     InsertionResult, LocalTrajectoryBuilder, LocalTrajectoryBuilderOptions, MatchingResult,
 };
 use crate::geometry::Rigid2;
-use crate::sensor::{RangeConversionOptions, RangeData, RangeStats, SensorEvent};
+use crate::sensor::{OdometryClock, RangeConversionOptions, RangeData, RangeStats, SensorEvent};
 
 /// What LLO made of one sensor event.
 #[derive(Clone, Debug)]
@@ -56,6 +58,7 @@ impl LloEvent {
 pub struct LloDriver {
     builder: LocalTrajectoryBuilder,
     range_conversion: RangeConversionOptions,
+    odometry_clock: OdometryClock,
 }
 
 impl LloDriver {
@@ -64,6 +67,7 @@ impl LloDriver {
         Self {
             range_conversion: options.range_conversion.clone(),
             builder: LocalTrajectoryBuilder::new(options),
+            odometry_clock: OdometryClock::default(),
         }
     }
 
@@ -72,12 +76,18 @@ impl LloDriver {
         &self.builder
     }
 
+    /// The odometry clock's offset against the scanner's, as estimated from the scans matched so far.
+    pub fn odometry_clock(&self) -> &OdometryClock {
+        &self.odometry_clock
+    }
+
     /// Hands one event to LLO. `base_from_laser`, the laser's mounting pose, moves a scan into the
     /// tracking frame; readings ignore it.
     pub fn add_event(&mut self, event: &SensorEvent, base_from_laser: &Rigid2) -> LloEvent {
         match event {
             SensorEvent::Odometry(reading) => {
                 self.builder.add_odometry(reading);
+                self.odometry_clock.add_odometry(reading);
                 LloEvent::ReadingAdded
             }
             SensorEvent::Imu(reading) => {
@@ -88,11 +98,15 @@ impl LloDriver {
                 let (range_data, stats) = scan.to_range_data(&self.range_conversion);
                 let range_data = range_data.transformed(base_from_laser);
                 match self.builder.add_range_data(scan.time, &range_data) {
-                    Some(result) => LloEvent::ScanMatched {
-                        result,
-                        range_data,
-                        stats,
-                    },
+                    Some(result) => {
+                        self.odometry_clock
+                            .scan_matched(result.time, &result.local_pose);
+                        LloEvent::ScanMatched {
+                            result,
+                            range_data,
+                            stats,
+                        }
+                    }
                     None => LloEvent::ScanDropped { stats },
                 }
             }

@@ -18,21 +18,14 @@
 //! [`BACKLOG_GAP_PERIODS`] periods late, everything after it is held until the next scans show whether they
 //! are a backlog, [`MAX_BACKLOG_HOLD_S`] at most.
 
-use std::collections::VecDeque;
+use super::{ScanPeriod, SensorEvent, Timestamp};
 
-use super::{SensorEvent, Timestamp};
-
-/// A gap: this many scan periods without a scan. The period is the median of the last
-/// [`PERIOD_WINDOW`] intervals between scans' stamps.
+/// A gap: this many scan periods without a scan (the period: [`ScanPeriod`]).
 pub const BACKLOG_GAP_PERIODS: f64 = 3.0;
-/// Scans of one burst: stamps closer than this share of the period.
-pub const BURST_INTERVAL_SHARE: f64 = 0.2;
 /// A backlog: the burst holds at least this share of the scans its gap is missing (gap / period).
 pub const MIN_BACKLOG_SHARE: f64 = 0.7;
 /// The odometry kept coming through the gap: it was never silent for more than this share of it.
 pub const MAX_ODOMETRY_SILENCE_SHARE: f64 = 0.5;
-/// Scan intervals the period is the median of.
-pub const PERIOD_WINDOW: usize = 128;
 /// Longest time (seconds of stream time) events are held waiting for scans after a gap; then they go on
 /// as they are.
 pub const MAX_BACKLOG_HOLD_S: f64 = 5.0;
@@ -49,9 +42,8 @@ pub struct Retimed {
 /// The stage (see the module docs): push events in stamp order, take what comes out.
 #[derive(Debug, Default)]
 pub struct ScanBacklog {
-    /// The last scan intervals (seconds), oldest first, and their median: the scanner's period.
-    intervals: VecDeque<f64>,
-    period_s: Option<f64>,
+    /// The scanner's period.
+    period: ScanPeriod,
     /// The stamp of the last scan pushed.
     last_scan: Option<Timestamp>,
     /// The last time the odometry spoke since `last_scan` (or `last_scan` itself), and its longest silence
@@ -81,9 +73,10 @@ impl ScanBacklog {
     /// Takes the next event (in stamp order) and appends to `out` what can go on now.
     pub fn push(&mut self, event: SensorEvent, out: &mut Vec<SensorEvent>) {
         let time = event.time();
-        let period = self.period_s;
-        if let (Some(burst), Some(period)) = (self.burst, period)
-            && time.seconds_since(burst.last) >= BURST_INTERVAL_SHARE * period
+        let period = self.period.seconds();
+        if let Some(burst) = self.burst
+            && period.is_some()
+            && !self.period.within_burst(time.seconds_since(burst.last))
         {
             self.resolve(out);
         }
@@ -127,24 +120,10 @@ impl ScanBacklog {
         (out, stage.take_retimed())
     }
 
-    /// The median of the last scan intervals (`None` before two scans).
-    fn median_interval(&self) -> Option<f64> {
-        if self.intervals.is_empty() {
-            return None;
-        }
-        let mut sorted: Vec<f64> = self.intervals.iter().copied().collect();
-        sorted.sort_by(f64::total_cmp);
-        Some(sorted[sorted.len() / 2])
-    }
-
     fn push_scan(&mut self, event: SensorEvent, period: Option<f64>, out: &mut Vec<SensorEvent>) {
         let time = event.time();
         if let Some(last) = self.last_scan {
-            if self.intervals.len() == PERIOD_WINDOW {
-                self.intervals.pop_front();
-            }
-            self.intervals.push_back(time.seconds_since(last));
-            self.period_s = self.median_interval();
+            self.period.add(time.seconds_since(last));
         }
         if let Some(burst) = &mut self.burst {
             // Closer than the burst interval to the last (else the burst was resolved above).
@@ -209,7 +188,7 @@ impl ScanBacklog {
     /// The burst is over: re-time it if it is a backlog, then hand on everything held.
     fn resolve(&mut self, out: &mut Vec<SensorEvent>) {
         let (Some(burst), Some(after), Some(period)) =
-            (self.burst.take(), self.gap_after, self.period_s)
+            (self.burst.take(), self.gap_after, self.period.seconds())
         else {
             self.release(out);
             return;

@@ -203,6 +203,7 @@ pub fn run(args: &OfflineArgs) -> anyhow::Result<()> {
         "scans": run.scans,
         "scans_dropped": run.scans_dropped,
         "scans_retimed": run.scans_retimed,
+        "odometry_offset_s": run.odometry_offset_s,
         "llo_scans_by_branch": llo_branch_counts(&run),
         "data_duration_s": run.data_duration_s,
         "wall_time_s": wall_time_s,
