@@ -16,7 +16,7 @@ mod timestamp;
 pub use laser_scan::{LaserScan, RangeConversionOptions, RangeStats};
 pub use odometry_clock::{
     ERROR_CAP_RAD, MAX_OFFSET_S, MAX_PAIR_SPAN_S, MIN_TURN_RAD, OFFSET_STEP_S, OdometryClock,
-    PAIR_SPAN_S, SWITCH_SHARE,
+    PAIR_SPAN_S,
 };
 pub use range_data::RangeData;
 pub use readings::{ImuReading, OdometryReading};

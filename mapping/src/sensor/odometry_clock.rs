@@ -7,15 +7,14 @@
 //! do, from the data: the heading LLO matched over each half second against the odometry's heading change
 //! over the same span moved by each candidate offset (every [`OFFSET_STEP_S`] within ±[`MAX_OFFSET_S`]);
 //! the offset whose summed error (each span's capped at [`ERROR_CAP_RAD`]) is least over every span since
-//! the start, once the robot has turned [`MIN_TURN_RAD`] in all (turning is what tells offsets apart), and
-//! once it beats the offset held so far by [`SWITCH_SHARE`]. A fixed offset is estimated; a clock that
-//! drifts is not followed. Scans stamped in a burst (a logger that stalled and stamped what it held) carry
-//! no time to measure against and bound no span.
+//! the start, once the robot has turned [`MIN_TURN_RAD`] in all (turning is what tells offsets apart). A
+//! fixed offset is estimated; a clock that drifts is not followed. Scans stamped in a burst (a logger that
+//! stalled and stamped what it held) carry no time to measure against and bound no span.
 //!
 //! The estimate is reported (`offline`'s report), not applied: handing the odometry on at its stamps less
-//! the offset mends `lag` on Intel exactly, but across the suite it tore ACES `range4` and the `burst`
-//! variants, where the logger stamps scans and odometry together and the order they came in is the only
-//! pairing left (the same session's section).
+//! the offset mends `lag` on Intel exactly, but across the suite it tore ACES `range4` (with a fixed shift
+//! too) and the `burst` variants, where the logger stamps scans and odometry together and the order they
+//! came in is the only pairing left (the same session's section).
 
 use std::collections::VecDeque;
 
@@ -37,8 +36,6 @@ pub const ERROR_CAP_RAD: f64 = 0.2;
 /// The robot must have turned this much (radians, summed over the spans) before an offset is estimated:
 /// driving straight, every offset fits.
 pub const MIN_TURN_RAD: f64 = std::f64::consts::TAU;
-/// A new offset replaces the one in use when its summed error is at most this share of the other's.
-pub const SWITCH_SHARE: f64 = 0.9;
 /// Odometry kept for the estimate beyond what pending spans need, seconds.
 const ODOMETRY_KEEP_S: f64 = MAX_PAIR_SPAN_S + 2.0 * MAX_OFFSET_S + 1.0;
 /// Spans waiting for odometry to cover them: beyond this many, the oldest are given up.
@@ -227,16 +224,14 @@ impl OdometryClock {
         if !scored || self.turned < MIN_TURN_RAD {
             return;
         }
-        let current = (self.offset_steps.unwrap_or(0) + max_steps()) as usize;
-        let best = self
+        if let Some((best, _)) = self
             .error
             .iter()
             .enumerate()
             .min_by(|a, b| a.1.total_cmp(b.1))
-            .map_or(current, |(k, _)| k);
-        let take = best != current && self.error[best] < SWITCH_SHARE * self.error[current];
-        let steps = if take { best } else { current };
-        self.offset_steps = Some(steps as i32 - max_steps());
+        {
+            self.offset_steps = Some(best as i32 - max_steps());
+        }
     }
 }
 
