@@ -22,7 +22,7 @@
 //! | `stall` | odometry stalls for 0.4–1.0 s every 20–60 m of driving: readings repeat the last pose, then one carries the backlog |
 //! | `hard` | `range4` + `slip` + `clutter` + `slow` |
 //! | `thin` | `sparse` + `slow`: a low-cost scanner, few beams at a low rate (90 beams at 2° and 1.4 scans/s on Intel) |
-//! | `lag` | every odometry reading stamped 0.1 s late (its clock ahead of the scanner's, or its driver's latency stamped at arrival; against their scans, ACES's own odometry is stamped about 0.08 s early and MIT CSAIL's about 0.12–0.14 s early, as `mapping::sensor::OdometryClock` estimates them) |
+//! | `lag` | every odometry reading stamped 0.1 s late (its clock ahead of the scanner's, or its driver's latency stamped at arrival; against their scans, ACES's own odometry is stamped 0.09 s early and MIT CSAIL's 0.14 s early, as `mapping::sensor::OdometryClock` estimates them) |
 //! | `burst` | the logger stalls for 0.5–2 s every 10–40 s: what the sensors sent meanwhile is stamped when it resumes, in a burst 0.5 ms apart, in the order it came (Intel's own stamps do this) |
 //! | `scanburst` | the same stalls, of the scanner's driver alone: scans stamped in bursts, the odometry on time |
 //!

@@ -23,6 +23,10 @@ struct Bounds {
     rot_deg: f64,
     precision: f64,
     min_closures: usize,
+    /// The odometry clock's offset LLO estimates (`mapping::sensor::OdometryClock`), seconds, within one
+    /// step of [`mapping::sensor::OFFSET_STEP_S`]. Measured with a release build (BENCHMARK-HISTORY,
+    /// session 69; each recording's `lag` variant gives 0.10 s more).
+    odometry_offset_s: f64,
 }
 
 /// The shared recording `name` and its ground-truth relations.
@@ -54,6 +58,13 @@ fn check(name: &str, bounds: &Bounds) -> anyhow::Result<()> {
         run.global.accepted_loop_closures().len() > bounds.min_closures,
         "loop closing stopped working"
     );
+    let offset = run
+        .odometry_offset_s
+        .expect("the robot turns enough to tell");
+    assert!(
+        (offset - bounds.odometry_offset_s).abs() <= mapping::sensor::OFFSET_STEP_S + 1e-9,
+        "odometry clock offset {offset} s"
+    );
     Ok(())
 }
 
@@ -70,6 +81,7 @@ fn csail_offline_run_is_accurate() -> anyhow::Result<()> {
             rot_deg: 0.38,
             precision: 0.985,
             min_closures: 200,
+            odometry_offset_s: -0.14,
         },
     )
 }
@@ -87,6 +99,7 @@ fn aces_offline_run_is_accurate() -> anyhow::Result<()> {
             rot_deg: 0.37,
             precision: 0.985,
             min_closures: 350,
+            odometry_offset_s: -0.09,
         },
     )
 }
@@ -105,6 +118,7 @@ fn intel_offline_run_is_accurate() -> anyhow::Result<()> {
             rot_deg: 0.37,
             precision: 0.97,
             min_closures: 4500,
+            odometry_offset_s: 0.0,
         },
     )
 }

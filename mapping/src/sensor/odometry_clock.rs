@@ -1,8 +1,8 @@
 //! The odometry's clock against the scanner's: the offset between their stamps, estimated online.
 //!
 //! Wheel odometry and the laser come from different drivers, often different processes or computers, and
-//! their stamps rarely agree: against their scans, ACES's odometry is stamped about 0.08 s early, MIT
-//! CSAIL's about 0.12 s, Intel's not at all; the robustness suite's `lag` stamps it 0.1 s late
+//! their stamps rarely agree: against their scans, ACES's odometry is stamped 0.09 s early, MIT CSAIL's
+//! 0.14 s, Intel's not at all, and the robustness suite's `lag`, 0.1 s late, adds 0.10 s to each
 //! (docs/BENCHMARK-HISTORY.md "Session 69"). [`OdometryClock`] estimates the offset as calibration tools
 //! do, from the data: the heading LLO matched over each half second against the odometry's heading change
 //! over the same span moved by each candidate offset (every [`OFFSET_STEP_S`] within ±[`MAX_OFFSET_S`]);
