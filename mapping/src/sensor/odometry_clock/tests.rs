@@ -86,10 +86,11 @@ fn until_the_robot_has_turned_enough_there_is_no_estimate() {
 }
 
 #[test]
-fn stamps_in_bursts_do_not_move_a_clock_that_agrees() {
+fn a_clock_that_agrees_is_found_to_through_stamps_in_bursts() {
     // Intel-like: one logger stalls for 0.6 s every 2 s and then stamps what it held 0.5 ms apart, scans
-    // and odometry alike, in the order they came. The stamps in a burst say nothing about when each was
-    // taken.
+    // and odometry alike, in the order they came. This synthetic pattern does not by itself need the burst
+    // scans left out (it passes with them counted too); what does is Intel's own stamps, where counting
+    // them moved the estimate to -0.01 s (docs/BENCHMARK-HISTORY.md "Session 69").
     let stamp_of = |k: u32| {
         let taken = 1.0 + f64::from(k) * 0.02;
         let (cycle, into) = (k / 100, k % 100);
