@@ -7,6 +7,7 @@ mod range_data;
 mod readings;
 mod scan_backlog;
 mod scan_period;
+mod scan_stamps;
 mod sensor_collator;
 mod sensor_event;
 #[cfg(test)]
@@ -25,6 +26,7 @@ pub use scan_backlog::{
     Retimed, ScanBacklog,
 };
 pub use scan_period::{BURST_INTERVAL_SHARE, PERIOD_WINDOW, ScanPeriod};
+pub use scan_stamps::{STAMP_TOLERANCE_NS, ScanStamps, nearest_within_tolerance};
 pub use sensor_collator::{LloCollator, MAX_ODOMETRY_WAIT_S, collate_for_llo};
 pub use sensor_event::SensorEvent;
 pub use timestamp::Timestamp;

@@ -22,7 +22,7 @@ use mapping::grid::ProbabilityGrid;
 use mapping::lifelong::LifelongMap;
 use mapping::local_slam::{LloDriver, LloEvent, LocalTrajectoryBuilder};
 use mapping::pose_graph::NodeId;
-use mapping::sensor::{RangeData, SensorEvent, Timestamp};
+use mapping::sensor::{RangeData, ScanBacklog, ScanStamps, SensorEvent, Timestamp};
 
 use crate::map_probes::{MapProbe, MapProbes};
 use crate::source::Recording;
@@ -44,7 +44,8 @@ pub use sessions_error::SessionsError;
 
 /// One session's sensor data.
 pub struct SessionInput {
-    /// Time-ordered scans, odometry and IMU readings.
+    /// Scans, odometry and IMU readings in stamp order (or as `mapping::sensor::ScanBacklog` hands them
+    /// on); each session's are collated for LLO (`mapping::sensor::collate_for_llo`).
     pub events: Vec<SensorEvent>,
     /// The LiDAR's extrinsic.
     pub base_from_laser: Rigid2,
@@ -84,6 +85,10 @@ pub struct SessionsRun {
     pub records: Vec<SessionRecord>,
     /// The answer to each of the run's [`MapProbe`]s, in their order.
     pub probe_poses: Vec<Option<Rigid2>>,
+    /// Scans of a driver's backlog the run put back at the times they were taken
+    /// (`mapping::sensor::ScanBacklog`). [`run_sessions`] hands `scan_poses` and each record's `online`
+    /// back at the scans' stamps, as the references are.
+    pub scans_retimed: usize,
 }
 
 /// A matched scan: its time, LLO's pose and the node it follows.
@@ -118,6 +123,11 @@ pub fn session_boundaries(
 
 /// Runs `recording` as `split` time sessions (see the module docs), answering `probes` on the way.
 /// `progress` gets the number of scans processed so far.
+///
+/// The recording goes through the stages every shell's LLO input goes through: a driver's backlog of
+/// scans put back at the times they were taken (`mapping::sensor::ScanBacklog`, as `offline`'s
+/// `RecordingStream`), then each session's events collated for LLO. `probes` and the outputs are at the
+/// scans' stamps, as the recording's references are.
 pub fn run_sessions(
     recording: &Recording,
     split: usize,
@@ -139,13 +149,34 @@ pub fn run_sessions(
             from_dock,
         })
         .collect();
-    for event in &recording.events {
-        inputs[session_of(event.time())].events.push(event.clone());
+    let (events, retimed) = ScanBacklog::retime(&recording.events);
+    let stamps = ScanStamps::new(&retimed);
+    for event in events {
+        inputs[session_of(event.time())].events.push(event);
     }
-    let mut run = run_session_inputs(inputs.into_iter(), config, probes, progress, &mut |_| {})?;
+    // The run knows a re-timed scan by the time it was taken.
+    let probes: Vec<MapProbe> = probes
+        .iter()
+        .map(|p| MapProbe {
+            earlier: stamps.taken(p.earlier),
+            later: stamps.taken(p.later),
+        })
+        .collect();
+    let mut run = run_session_inputs(inputs.into_iter(), config, &probes, progress, &mut |_| {})?;
     // Spans without data still count as sessions of the split.
     run.boundaries = boundaries;
     run.data_duration_s = data_duration_s;
+    run.scans_retimed = stamps.len();
+    if !stamps.is_empty() {
+        for (time, _) in &mut run.scan_poses {
+            *time = stamps.stamped(*time);
+        }
+        for record in &mut run.records {
+            for (time, _) in &mut record.online {
+                *time = stamps.stamped(*time);
+            }
+        }
+    }
     Ok(run)
 }
 
@@ -311,6 +342,7 @@ pub fn run_session_inputs(
             data_duration_s,
             records,
             probe_poses,
+            scans_retimed: 0,
         })
     })
 }

@@ -27,12 +27,16 @@
 //! | `scanburst` | the same stalls, of the scanner's driver alone: scans stamped in bursts, the odometry on time |
 //!
 //! `burst` moves scans' stamps away from when they were taken; [`PerturbationReport::capture_time`] gives
-//! each scan's own, and a run is scored at those.
+//! each scan's own, and a run is scored at those ([`PerturbationReport::relations_at_stamps`] the other
+//! way, for a run that asks its questions at the stamps).
 
 use std::collections::BTreeMap;
 
 use mapping::geometry::{Rigid2, Rigid2Ext as _, rigid2};
-use mapping::sensor::{LaserScan, OdometryReading, SensorEvent, Timestamp};
+use mapping::io::relations::Relation;
+use mapping::sensor::{
+    LaserScan, OdometryReading, SensorEvent, Timestamp, nearest_within_tolerance,
+};
 use rand::{Rng as _, SeedableRng as _};
 use rand_distr::{Distribution as _, Normal};
 use rand_pcg::Pcg64;
@@ -194,6 +198,28 @@ impl PerturbationReport {
             .get(&stamp)
             .copied()
             .unwrap_or(stamp)
+    }
+
+    /// `relations` (made at the times scans were taken, rounded) at the stamps the scans came with:
+    /// [`Self::capture_time`] the other way, for a run that goes by the stamps.
+    pub fn relations_at_stamps(&self, relations: Vec<Relation>) -> Vec<Relation> {
+        if self.scan_capture_times.is_empty() {
+            return relations;
+        }
+        let stamp_of: BTreeMap<Timestamp, Timestamp> = self
+            .scan_capture_times
+            .iter()
+            .map(|(stamp, capture)| (*capture, *stamp))
+            .collect();
+        let stamp = |t: Timestamp| nearest_within_tolerance(&stamp_of, t).unwrap_or(t);
+        relations
+            .into_iter()
+            .map(|r| Relation {
+                t1: stamp(r.t1),
+                t2: stamp(r.t2),
+                ..r
+            })
+            .collect()
     }
 }
 
@@ -685,6 +711,22 @@ mod tests {
             .map(|s| s.time.seconds_since(report.capture_time(s.time)))
             .collect();
         assert!(moved.iter().all(|&m| (0.0..=2.0).contains(&m)), "{moved:?}");
+        // A reference made at the capture times (rounded to 10 µs, as the Freiburg relations) asked at
+        // the stamps.
+        let rounded = |t: Timestamp| Timestamp((t.0 + 5_000) / 10_000 * 10_000);
+        let relations: Vec<Relation> = before
+            .windows(2)
+            .map(|w| Relation {
+                t1: rounded(w[0]),
+                t2: rounded(w[1]),
+                delta: Rigid2::identity(),
+            })
+            .collect();
+        let at_stamps = report.relations_at_stamps(relations);
+        let stamps: Vec<Timestamp> = after.iter().map(|s| s.time).collect();
+        for (relation, w) in at_stamps.iter().zip(stamps.windows(2)) {
+            assert_eq!((relation.t1, relation.t2), (w[0], w[1]));
+        }
         // A burst: scans a few 0.5-ms steps apart (the odometry between them), taken 0.2 s apart.
         assert!(after.windows(2).any(|w| {
             w[1].time.seconds_since(w[0].time) <= 4.0 * BURST_SPACING_S

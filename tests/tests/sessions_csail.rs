@@ -6,6 +6,7 @@ use mapping::io::relations::read_relations;
 use mapping::metrics::{Verdict, judge_placements, relation_error_stats, relations_error};
 use robot_agent::lifelong_run::{SessionsConfig, run_sessions, session_boundaries};
 use robot_agent::map_probes::{cross_session_probes, relation_errors_at_the_time};
+use robot_agent::perturbation::Perturbation;
 use robot_agent::source::read_recording;
 use tests::datasets_dir;
 
@@ -63,5 +64,45 @@ fn csail_in_two_sessions_localizes_across_sessions() -> anyhow::Result<()> {
         run.map.counts().nodes,
         run.sessions.iter().map(|s| s.nodes_added).sum::<usize>()
     );
+    Ok(())
+}
+
+/// The same two sessions with the scanner's driver stalling (`scanburst`: scans stamped in bursts after
+/// each stall, the odometry on time): `sessions` puts the backlogs back at the times the scans were taken,
+/// as `offline` does, and scores at the stamps.
+#[test]
+fn csail_in_two_sessions_with_a_stalled_scanner_driver_does_not_tear() -> anyhow::Result<()> {
+    let recording = read_recording(&datasets_dir().join("rosbag1/mit-csail.orig.bag"))?;
+    let (perturbed, done) = Perturbation::parse("scanburst")?.apply(&recording, 1);
+    let relations = done.relations_at_stamps(read_relations(std::io::BufReader::new(
+        std::fs::File::open(datasets_dir().join("relations/mit-csail.relations"))?,
+    ))?);
+    let config = SessionsConfig::default();
+    let (cross, probes) = cross_session_probes(&relations, &session_boundaries(&perturbed, 2)?);
+    let run = run_sessions(&perturbed, 2, false, &config, &probes, &mut |_| {})?;
+    assert!(
+        run.scans_retimed > 50,
+        "{} scans re-timed",
+        run.scans_retimed
+    );
+    let at_the_time =
+        relation_errors_at_the_time(&cross, &probes, &run.probe_poses, &run.records[1].online);
+    let verdicts = judge_placements(
+        &run.records[1].start.placements,
+        &at_the_time,
+        config.scoring.wrong_placement,
+    );
+    let all = relations_error(&run.scan_poses, &relations);
+    eprintln!(
+        "{} scans re-timed; placements {verdicts:?}\nall {all:?}",
+        run.scans_retimed
+    );
+    assert!(
+        verdicts.iter().all(|v| v.placed.verdict != Verdict::Wrong),
+        "{verdicts:?}"
+    );
+    assert!(all.count * 10 > relations.len() * 9, "{all:?}");
+    assert!(all.trans_abs_max_m < 1.0, "a relation tore: {all:?}");
+    assert!(all.trans_abs_mean_m < 0.06, "{all:?}");
     Ok(())
 }

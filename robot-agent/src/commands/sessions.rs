@@ -69,13 +69,6 @@ pub struct SessionsArgs {
 pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
     let config = SessionsConfig::load(args.config.as_deref(), args.policy)?;
     let perturbation_asked = args.perturb.perturbation()?;
-    anyhow::ensure!(
-        perturbation_asked
-            .as_ref()
-            .is_none_or(|p| p.logger_stalls.is_none()),
-        "--perturb burst restamps scans, and `sessions` scores its relations at the scans' stamps: \
-         run `burst` with `offline`, which scores at the times the scans were taken"
-    );
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     let relations: Option<Vec<Relation>> = match &args.relations {
@@ -92,10 +85,14 @@ pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
 
     let start = Instant::now();
     eprintln!("reading {}", args.input.display());
-    let (recording, perturbation, _) = args.perturb.apply(
+    let (recording, perturbation, perturbed) = args.perturb.apply(
         perturbation_asked.as_ref(),
         source::read_recording(&args.input)?,
     );
+    // The relations are made at the times scans were taken; the run goes by their stamps, which a
+    // perturbation may have moved (`burst`, `scanburst`): each relation is asked at its scans' stamps, and
+    // the trajectory written at the times they were taken, as `offline` does.
+    let relations = relations.map(|relations| perturbed.relations_at_stamps(relations));
     let bar = ProgressBar::new(recording.report.scans as u64);
     bar.set_style(
         ProgressStyle::with_template(
@@ -125,7 +122,12 @@ pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
     let tum_path = args.out.join("trajectory.tum");
     let tum = std::fs::File::create(&tum_path)
         .with_context(|| format!("cannot create {}", tum_path.display()))?;
-    mapping::io::tum::write_tum(std::io::BufWriter::new(tum), &run.scan_poses)
+    let captured: Vec<(Timestamp, Rigid2)> = run
+        .scan_poses
+        .iter()
+        .map(|(t, pose)| (perturbed.capture_time(*t), *pose))
+        .collect();
+    mapping::io::tum::write_tum(std::io::BufWriter::new(tum), &captured)
         .with_context(|| format!("cannot write {}", tum_path.display()))?;
     let map = render_range_data(
         run.node_range_data
@@ -218,6 +220,7 @@ pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
         "session_scores": scores,
         "placements": placement_counts,
         "scan_poses": run.scan_poses.len(),
+        "scans_retimed": run.scans_retimed,
         "final": counts,
         "sessions": run.sessions,
         "peak_rss_mb": process_stats::peak_rss_mb(),

@@ -1,9 +1,7 @@
 //! [`SensorStream`]: what the SLAM driver reads, one event at a time, from a recording or a live robot.
 
-use std::collections::BTreeMap;
-
 use mapping::geometry::Rigid2;
-use mapping::sensor::{ScanBacklog, SensorEvent, Timestamp, collate_for_llo};
+use mapping::sensor::{ScanBacklog, ScanStamps, SensorEvent, Timestamp, collate_for_llo};
 
 use super::Recording;
 
@@ -34,7 +32,7 @@ pub struct RecordingStream {
     order: std::vec::IntoIter<SensorEvent>,
     base_from_laser: Rigid2,
     /// Re-timed scans: the time each was given, and its stamp.
-    stamps: BTreeMap<Timestamp, Timestamp>,
+    stamps: ScanStamps,
 }
 
 impl RecordingStream {
@@ -45,7 +43,7 @@ impl RecordingStream {
         Self {
             order: order.into_iter(),
             base_from_laser: recording.base_from_laser,
-            stamps: retimed.into_iter().map(|r| (r.taken, r.stamped)).collect(),
+            stamps: ScanStamps::new(&retimed),
         }
     }
 }
@@ -60,7 +58,7 @@ impl SensorStream for RecordingStream {
     }
 
     fn stamped(&self, time: Timestamp) -> Timestamp {
-        self.stamps.get(&time).copied().unwrap_or(time)
+        self.stamps.stamped(time)
     }
 
     fn scans_retimed(&self) -> usize {
