@@ -26,6 +26,7 @@
 //! are run by the caller, anywhere, with [`LifelongMap::constraint_builder`].
 
 mod lifelong_map;
+mod live_anchor;
 pub(crate) mod map_change;
 mod map_matcher;
 mod options;
@@ -40,6 +41,7 @@ mod tests;
 pub use lifelong_map::{
     GraphCounts, LifelongError, LifelongEvent, LifelongMap, LifelongMapState, SessionProgress,
 };
+pub use live_anchor::LiveAnchor;
 pub use map_change::{
     CellChange, MAP_CHANGE_TOLERANCE_M, MapChange, OCCUPIED_PROBABILITY, map_change_rate,
 };

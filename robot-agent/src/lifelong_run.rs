@@ -7,7 +7,10 @@
 //! sessions, retries while unplaced, probation until GLM matches along the route agree with the
 //! placement); this shell only feeds it nodes and matches and acts on its events. Its nodes localize by
 //! GLM against the older sessions' submaps while its own submaps join the map, and at its end stale
-//! submaps are trimmed per the policy (by a session whose placement was committed).
+//! submaps are trimmed per the policy (by a session whose placement was committed). The pose the robot
+//! has at each node (`SessionRecord::online`, what "at the time" scores) is anchored on its best match
+//! against the older sessions' map between optimizations, as the fleet's robots anchor theirs
+//! ([`mapping::lifelong::LiveAnchor`]).
 //!
 //! As in `offline_slam`, LLO runs on the calling thread and the map (relocalization, GLM searches on two
 //! threads, optimization, trimming) on a named worker thread fed through a bounded channel.

@@ -4,8 +4,9 @@
 //!
 //! The searches are [`ConstraintBuilder`]'s (branch and bound in the loop-closure window, least-squares
 //! refinement, the same minimum score and sampling ratio as the server's GLM). After each node, the best
-//! accepted match re-anchors the session's `global_from_local`, so the estimate follows the map rather than
-//! LLO's drift since the session-start relocalization.
+//! accepted match re-anchors the session's `global_from_local` ([`LiveAnchor`], as `sessions` anchors the
+//! robot's pose on the map's matches), so the estimate follows the map rather than LLO's drift since the
+//! session-start relocalization.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
@@ -19,6 +20,8 @@ use crate::global_slam::{
 };
 use crate::grid::ProbabilityGrid;
 use crate::pose_graph::{NodeId, SubmapId};
+
+use super::LiveAnchor;
 
 /// One accepted match of a node against a global submap.
 #[derive(Clone, Debug, PartialEq)]
@@ -54,7 +57,7 @@ struct Known {
 pub struct MapMatcher {
     builder: ConstraintBuilder,
     submaps: BTreeMap<SubmapId, Known>,
-    global_from_local: Rigid2,
+    anchor: LiveAnchor,
     nodes: u32,
     searches: u64,
 }
@@ -69,7 +72,7 @@ impl MapMatcher {
         Ok(Self {
             builder: ConstraintBuilder::new(options),
             submaps: BTreeMap::new(),
-            global_from_local,
+            anchor: LiveAnchor::new(global_from_local),
             nodes: 0,
             searches: 0,
         })
@@ -117,7 +120,7 @@ impl MapMatcher {
 
     /// The session's current `global_from_local`.
     pub fn global_from_local(&self) -> Rigid2 {
-        self.global_from_local
+        self.anchor.global_from_local()
     }
 
     /// Submaps known.
@@ -143,7 +146,7 @@ impl MapMatcher {
             index: self.nodes,
         };
         self.nodes += 1;
-        let global_node = self.global_from_local * local_pose;
+        let global_node = self.anchor.pose(local_pose);
         let max_distance = self.builder.options().max_constraint_distance;
         let mut jobs = Vec::new();
         for (id, known) in &mut self.submaps {
@@ -173,8 +176,8 @@ impl MapMatcher {
         if let Some(best) = matches.first()
             && let Some(known) = self.submaps.get(&best.submap)
         {
-            self.global_from_local =
-                known.global_pose * best.submap_from_node * local_pose.inverse();
+            self.anchor
+                .anchor_on_match(&known.global_pose, &best.submap_from_node, local_pose);
         }
         matches
     }

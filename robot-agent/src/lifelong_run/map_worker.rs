@@ -8,7 +8,7 @@ use std::time::Instant;
 use mapping::geometry::Rigid2;
 use mapping::grid::ProbabilityGrid;
 use mapping::lifelong::{
-    LifelongEvent, LifelongMap, SessionStart, StartSearch, render_submaps_max,
+    LifelongEvent, LifelongMap, LiveAnchor, SessionStart, StartSearch, render_submaps_max,
 };
 use mapping::local_slam::LloNode;
 use mapping::metrics::MatchScorer;
@@ -94,6 +94,9 @@ pub(super) fn worker(
     // The current session's start (none for session 0, which defines the map) and its nodes' times.
     let mut start: Option<SessionStart> = None;
     let mut node_times: Vec<Timestamp> = Vec::new();
+    // The current session's pose as the robot has it: anchored on its best match against the earlier
+    // sessions' map after each node, on the graph's after each optimization or start decision.
+    let mut live: Option<LiveAnchor> = None;
     // Acts on session `$session`'s start decisions `$decisions` with this worker's books
     // (`$first_search`: they come from its first whole-map search); see `act_on_start`.
     macro_rules! act_on_start {
@@ -120,6 +123,7 @@ pub(super) fn worker(
             } => {
                 scores.clear();
                 node_local.clear();
+                live = None;
                 // Where the robot was at the end of its last session, as it had it then: its dock.
                 let dock = online_nodes.values().next_back().copied();
                 online_nodes.clear();
@@ -179,9 +183,10 @@ pub(super) fn worker(
                 let mut events_after = run_search_jobs(&mut map);
                 events_after.extend(events);
                 // The matches of this session's nodes against the existing map judge its placement.
+                let mut later_decisions = Vec::new();
                 if let Some(start) = start.as_mut() {
-                    let decisions = start.add_matches_from(&map, session, &events_after);
-                    act_on_start!(session, false, &decisions);
+                    later_decisions = start.add_matches_from(&map, session, &events_after);
+                    act_on_start!(session, false, &later_decisions);
                 }
                 if let Some(summary) = sessions.last_mut() {
                     summary.nodes_added += 1;
@@ -189,10 +194,13 @@ pub(super) fn worker(
                 }
                 // What the robot has now, at this scan: placed (on probation or committed) or not, and
                 // where.
-                let online = map
-                    .global()
-                    .node_pose(id)
-                    .filter(|_| map.is_placed(session));
+                let decided = !decisions.is_empty() || !later_decisions.is_empty();
+                let online = map.is_placed(session).then(|| {
+                    let anchor =
+                        live_anchor(&map, session, live, decided, &events_after, &node_local);
+                    live = Some(anchor);
+                    anchor.pose(&local_pose)
+                });
                 if let Some(pose) = online {
                     online_nodes.insert(id, pose);
                 }
@@ -308,6 +316,47 @@ fn session_start(
 }
 
 /// Runs the GLM searches the map queued ([`run_searches`]: on two threads) and adds the accepted ones.
+/// `session`'s pose as the robot has it after a node whose events were `events` (see [`LiveAnchor`]): the
+/// graph's `global_from_local` where it optimized, or the session was just placed or its placement
+/// decided (`decided`), or nothing was anchored yet; else re-anchored on the best-scoring match of the
+/// session's nodes against an earlier session's submap, if any.
+fn live_anchor(
+    map: &LifelongMap,
+    session: u32,
+    live: Option<LiveAnchor>,
+    decided: bool,
+    events: &[LifelongEvent],
+    node_local: &BTreeMap<NodeId, Rigid2>,
+) -> LiveAnchor {
+    let optimized = events
+        .iter()
+        .any(|e| matches!(e, LifelongEvent::Optimized(_)));
+    let graph = || LiveAnchor::new(map.global().global_from_local(session));
+    let Some(mut anchor) = live.filter(|_| !(optimized || decided)) else {
+        return graph();
+    };
+    let best = events
+        .iter()
+        .filter_map(|e| match e {
+            LifelongEvent::LoopClosureAdded(c)
+                if c.node.trajectory == session && c.submap.trajectory != session =>
+            {
+                Some(c)
+            }
+            _ => None,
+        })
+        .max_by(|a, b| a.score.total_cmp(&b.score));
+    if let Some(closure) = best
+        && let (Some(global_from_submap), Some(local_pose)) = (
+            map.global().submap_pose(closure.submap),
+            node_local.get(&closure.node),
+        )
+    {
+        anchor.anchor_on_match(&global_from_submap, &closure.submap_from_node, local_pose);
+    }
+    anchor
+}
+
 fn run_search_jobs(map: &mut LifelongMap) -> Vec<LifelongEvent> {
     let jobs = map.take_search_jobs();
     let results = run_searches(map.constraint_builder(), &jobs);
