@@ -170,14 +170,12 @@ pub fn run_sessions(
     run.boundaries = boundaries;
     run.data_duration_s = data_duration_s;
     run.scans_retimed = stamps.len();
-    if !stamps.is_empty() {
-        for (time, _) in &mut run.scan_poses {
+    for (time, _) in &mut run.scan_poses {
+        *time = stamps.stamped(*time);
+    }
+    for record in &mut run.records {
+        for (time, _) in &mut record.online {
             *time = stamps.stamped(*time);
-        }
-        for record in &mut run.records {
-            for (time, _) in &mut record.online {
-                *time = stamps.stamped(*time);
-            }
         }
     }
     Ok(run)

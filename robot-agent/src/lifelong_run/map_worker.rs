@@ -315,7 +315,6 @@ fn session_start(
     .map_err(|e| SessionsError::Options(e.into()))
 }
 
-/// Runs the GLM searches the map queued ([`run_searches`]: on two threads) and adds the accepted ones.
 /// `session`'s pose as the robot has it after a node whose events were `events` (see [`LiveAnchor`]): the
 /// graph's `global_from_local` where it optimized, or the session was just placed or its placement
 /// decided (`decided`), or nothing was anchored yet; else re-anchored on the best-scoring match of the
@@ -357,6 +356,7 @@ fn live_anchor(
     anchor
 }
 
+/// Runs the GLM searches the map queued ([`run_searches`]: on two threads) and adds the accepted ones.
 fn run_search_jobs(map: &mut LifelongMap) -> Vec<LifelongEvent> {
     let jobs = map.take_search_jobs();
     let results = run_searches(map.constraint_builder(), &jobs);

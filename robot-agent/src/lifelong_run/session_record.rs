@@ -17,8 +17,9 @@ pub struct SessionRecord {
     /// `map_from_base` of each matched scan as the robot estimated it at that scan: its node's pose as the
     /// robot had it right after the map took the node in (the graph's `global_from_local`, re-anchored on
     /// the best match against the older sessions' map since the last optimization or start decision:
-    /// `mapping::lifelong::LiveAnchor`), composed with LLO's motion since. Only scans while the session was placed (on probation — the robot navigates
-    /// with a tentative placement too — or committed) have one (session 0: every scan).
+    /// `mapping::lifelong::LiveAnchor`), composed with LLO's motion since. Only scans while the session
+    /// was placed (on probation — the robot navigates with a tentative placement too — or committed) have
+    /// one (session 0: every scan).
     pub online: Vec<(Timestamp, Rigid2)>,
     /// `map_from_base` of each matched scan when the session ended (after its final optimization).
     pub smoothed: Vec<(Timestamp, Rigid2)>,
