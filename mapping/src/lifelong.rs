@@ -41,7 +41,7 @@ mod tests;
 pub use lifelong_map::{
     GraphCounts, LifelongError, LifelongEvent, LifelongMap, LifelongMapState, SessionProgress,
 };
-pub use live_anchor::LiveAnchor;
+pub use live_anchor::{LiveAnchor, LiveAnchorNoise};
 pub use map_change::{
     CellChange, MAP_CHANGE_TOLERANCE_M, MapChange, OCCUPIED_PROBABILITY, map_change_rate,
 };

@@ -4,8 +4,8 @@
 //!
 //! The searches are [`ConstraintBuilder`]'s (branch and bound in the loop-closure window, least-squares
 //! refinement, the same minimum score and sampling ratio as the server's GLM). After each node, the best
-//! accepted match re-anchors the session's `global_from_local` ([`LiveAnchor`], as `sessions` anchors the
-//! robot's pose on the map's matches), so the estimate follows the map rather than LLO's drift since the
+//! accepted match is fused into the session's `global_from_local` ([`LiveAnchor`], as `sessions` anchors
+//! the robot's pose on the map's matches), so the estimate follows the map rather than LLO's drift since the
 //! session-start relocalization.
 
 use std::collections::{BTreeMap, BTreeSet};
@@ -21,7 +21,7 @@ use crate::global_slam::{
 use crate::grid::ProbabilityGrid;
 use crate::pose_graph::{NodeId, SubmapId};
 
-use super::LiveAnchor;
+use super::{LiveAnchor, LiveAnchorNoise};
 
 /// One accepted match of a node against a global submap.
 #[derive(Clone, Debug, PartialEq)]
@@ -69,10 +69,11 @@ impl MapMatcher {
         global_from_local: Rigid2,
     ) -> Result<Self, GlobalSlamOptionsError> {
         options.validate()?;
+        let noise = LiveAnchorNoise::from_constraint_builder(&options);
         Ok(Self {
             builder: ConstraintBuilder::new(options),
             submaps: BTreeMap::new(),
-            anchor: LiveAnchor::new(global_from_local),
+            anchor: LiveAnchor::placed(global_from_local, noise),
             nodes: 0,
             searches: 0,
         })
@@ -135,7 +136,7 @@ impl MapMatcher {
 
     /// Matches the session's next node (`local_from_tracking`, its filtered points in the tracking frame)
     /// against the known submaps within the loop-closure distance of its estimate, each sampled at the
-    /// configured ratio. Returns the accepted matches, best first, and re-anchors the session on the best.
+    /// configured ratio. Returns the accepted matches, best first, and fuses the best into the session's anchor.
     pub fn match_node(
         &mut self,
         local_pose: &Rigid2,
@@ -146,6 +147,7 @@ impl MapMatcher {
             index: self.nodes,
         };
         self.nodes += 1;
+        self.anchor.advance(local_pose);
         let global_node = self.anchor.pose(local_pose);
         let max_distance = self.builder.options().max_constraint_distance;
         let mut jobs = Vec::new();

@@ -8,7 +8,8 @@ use std::time::Instant;
 use mapping::geometry::Rigid2;
 use mapping::grid::ProbabilityGrid;
 use mapping::lifelong::{
-    LifelongEvent, LifelongMap, LiveAnchor, SessionStart, StartSearch, render_submaps_max,
+    LifelongEvent, LifelongMap, LiveAnchor, LiveAnchorNoise, SessionStart, StartSearch,
+    render_submaps_max,
 };
 use mapping::local_slam::LloNode;
 use mapping::metrics::MatchScorer;
@@ -196,8 +197,15 @@ pub(super) fn worker(
                 // where.
                 let decided = !decisions.is_empty() || !later_decisions.is_empty();
                 let online = map.is_placed(session).then(|| {
-                    let anchor =
-                        live_anchor(&map, session, live, decided, &events_after, &node_local);
+                    let anchor = live_anchor(
+                        &map,
+                        session,
+                        live,
+                        decided,
+                        &events_after,
+                        &node_local,
+                        &local_pose,
+                    );
                     live = Some(anchor);
                     anchor.pose(&local_pose)
                 });
@@ -315,10 +323,11 @@ fn session_start(
     .map_err(|e| SessionsError::Options(e.into()))
 }
 
-/// `session`'s pose as the robot has it after a node whose events were `events` (see [`LiveAnchor`]): the
-/// graph's `global_from_local` where it optimized, or the session was just placed or its placement
-/// decided (`decided`), or nothing was anchored yet; else re-anchored on the best-scoring match of the
-/// session's nodes against an earlier session's submap, if any.
+/// `session`'s pose as the robot has it after its node at `local_pose` whose events were `events` (see
+/// [`LiveAnchor`]): the graph's `global_from_local` where the session was just placed or its placement
+/// decided (`decided`), or nothing was anchored yet (the next match overrules it), or the graph optimized
+/// (trusted as one match); else the anchor carried to the node, with the best-scoring match of the
+/// session's nodes against an earlier session's submap, if any, fused in.
 fn live_anchor(
     map: &LifelongMap,
     session: u32,
@@ -326,14 +335,22 @@ fn live_anchor(
     decided: bool,
     events: &[LifelongEvent],
     node_local: &BTreeMap<NodeId, Rigid2>,
+    local_pose: &Rigid2,
 ) -> LiveAnchor {
     let optimized = events
         .iter()
         .any(|e| matches!(e, LifelongEvent::Optimized(_)));
-    let graph = || LiveAnchor::new(map.global().global_from_local(session));
-    let Some(mut anchor) = live.filter(|_| !(optimized || decided)) else {
-        return graph();
+    let noise = LiveAnchorNoise::from_constraint_builder(map.constraint_builder().options());
+    let graph = map.global().global_from_local(session);
+    let mut anchor = match live {
+        Some(anchor) if !decided && !optimized => anchor,
+        Some(_) if !decided => LiveAnchor::new(graph, noise),
+        _ => LiveAnchor::placed(graph, noise),
     };
+    anchor.advance(local_pose);
+    if decided || optimized {
+        return anchor;
+    }
     let best = events
         .iter()
         .filter_map(|e| match e {
@@ -346,12 +363,12 @@ fn live_anchor(
         })
         .max_by(|a, b| a.score.total_cmp(&b.score));
     if let Some(closure) = best
-        && let (Some(global_from_submap), Some(local_pose)) = (
+        && let (Some(global_from_submap), Some(node_pose)) = (
             map.global().submap_pose(closure.submap),
             node_local.get(&closure.node),
         )
     {
-        anchor.anchor_on_match(&global_from_submap, &closure.submap_from_node, local_pose);
+        anchor.anchor_on_match(&global_from_submap, &closure.submap_from_node, node_pose);
     }
     anchor
 }
