@@ -158,12 +158,17 @@ impl LiveAnchor {
     }
 
     /// Fuses a match of the node at `local_pose` (LLO's frame): the node is at `submap_from_node` in the
-    /// submap whose pose in the map is `global_from_submap`.
+    /// submap whose pose in the map is `global_from_submap`, with `information` over the error in the
+    /// node's frame (the constraint the match adds to the graph, [`LoopClosure::information`]: a match in
+    /// a corridor hardly pins the position along it), or the noise model's σ where it is `None`.
+    ///
+    /// [`LoopClosure::information`]: crate::global_slam::LoopClosure::information
     pub fn anchor_on_match(
         &mut self,
         global_from_submap: &Rigid2,
         submap_from_node: &Rigid2,
         local_pose: &Rigid2,
+        information: Option<&Matrix3<f64>>,
     ) {
         let at = *self.at.get_or_insert(*local_pose);
         let to_node = at.inverse() * local_pose;
@@ -171,7 +176,10 @@ impl LiveAnchor {
         let estimate = self.global_from_local * local_pose;
         let measured = global_from_submap * submap_from_node;
         let innovation = se2_log(&(estimate.inverse() * measured));
-        let Some(inverse) = (prior + self.noise.match_covariance()).try_inverse() else {
+        let measurement = information
+            .and_then(|information| information.try_inverse())
+            .unwrap_or_else(|| self.noise.match_covariance());
+        let Some(inverse) = (prior + measurement).try_inverse() else {
             return;
         };
         let gain = prior * inverse;
@@ -204,7 +212,7 @@ mod tests {
         // The map says the node is 0.3 m farther and turned 0.1 rad: LLO drifted over 200 m.
         let submap = rigid2(0.0, 1.0, 0.0);
         let submap_from_node = rigid2(201.3, -1.0, 0.1);
-        anchor.anchor_on_match(&submap, &submap_from_node, &node);
+        anchor.anchor_on_match(&submap, &submap_from_node, &node, None);
         let at_node = anchor.pose(&node);
         assert_relative_eq!(at_node.translation.x, 201.3, epsilon = 1e-3);
         assert_relative_eq!(at_node.translation.y, 0.0, epsilon = 1e-3);
@@ -224,7 +232,7 @@ mod tests {
         for i in 1..=20 {
             node = rigid2(f64::from(i), 0.0, 0.0);
             anchor.advance(&node);
-            anchor.anchor_on_match(&Rigid2::identity(), &node, &node);
+            anchor.anchor_on_match(&Rigid2::identity(), &node, &node, None);
         }
         assert_relative_eq!(
             anchor.global_from_local(),
@@ -235,16 +243,39 @@ mod tests {
         // point 20 m ahead far less than 20 m × 1°.
         let one_degree = 1f64.to_radians();
         let turned_node = rigid2(20.0, 0.0, one_degree);
-        anchor.anchor_on_match(&Rigid2::identity(), &turned_node, &node);
+        anchor.anchor_on_match(&Rigid2::identity(), &turned_node, &node, None);
         let turned = anchor.pose(&node).theta();
         assert!(turned > 0.0 && turned < 0.5 * one_degree, "{turned}");
         let ahead = anchor.pose(&rigid2(40.0, 0.0, 0.0));
         assert!(ahead.translation.y.abs() < 0.5 * 20.0 * one_degree);
         // Matches that keep saying so win in the end.
         for _ in 0..200 {
-            anchor.anchor_on_match(&Rigid2::identity(), &turned_node, &node);
+            anchor.anchor_on_match(&Rigid2::identity(), &turned_node, &node, None);
         }
         assert_relative_eq!(anchor.pose(&node).theta(), one_degree, epsilon = 1e-3);
+    }
+
+    #[test]
+    fn a_match_in_a_corridor_moves_the_robot_across_it_not_along_it() {
+        let mut anchor = LiveAnchor::new(Rigid2::identity(), noise());
+        anchor.advance(&Rigid2::identity());
+        let node = rigid2(2.0, 0.0, 0.0);
+        anchor.advance(&node);
+        // A corridor along the robot's x: the match pins y 10× better than x (σ 0.03 m against 0.3 m).
+        let information = Matrix3::from_diagonal(&Vector3::new(
+            1.0 / 0.3f64.powi(2),
+            1.0 / 0.03f64.powi(2),
+            1.0 / 0.01f64.powi(2),
+        ));
+        anchor.anchor_on_match(
+            &Rigid2::identity(),
+            &rigid2(2.3, 0.05, 0.0),
+            &node,
+            Some(&information),
+        );
+        let moved = anchor.pose(&node).translation.vector - node.translation.vector;
+        assert!(moved.x.abs() < 0.05, "{moved:?}");
+        assert!(moved.y > 0.025, "{moved:?}");
     }
 
     #[test]

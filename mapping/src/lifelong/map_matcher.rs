@@ -11,7 +11,7 @@
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
 
-use nalgebra::Point2;
+use nalgebra::{Matrix3, Point2};
 
 use crate::geometry::Rigid2;
 use crate::global_slam::{
@@ -32,6 +32,8 @@ pub struct MapMatch {
     pub submap_from_node: Rigid2,
     /// Branch-and-bound score.
     pub score: f32,
+    /// Information over the error in the node's frame ([`crate::global_slam::LoopClosure::information`]).
+    pub information: Option<Matrix3<f64>>,
 }
 
 /// A global submap as the robot knows it.
@@ -172,14 +174,19 @@ impl MapMatcher {
                 submap: closure.submap,
                 submap_from_node: closure.submap_from_node,
                 score: closure.score,
+                information: closure.information,
             })
             .collect();
         matches.sort_by(|a, b| b.score.total_cmp(&a.score));
         if let Some(best) = matches.first()
             && let Some(known) = self.submaps.get(&best.submap)
         {
-            self.anchor
-                .anchor_on_match(&known.global_pose, &best.submap_from_node, local_pose);
+            self.anchor.anchor_on_match(
+                &known.global_pose,
+                &best.submap_from_node,
+                local_pose,
+                best.information.as_ref(),
+            );
         }
         matches
     }

@@ -368,7 +368,12 @@ fn live_anchor(
             node_local.get(&closure.node),
         )
     {
-        anchor.anchor_on_match(&global_from_submap, &closure.submap_from_node, node_pose);
+        anchor.anchor_on_match(
+            &global_from_submap,
+            &closure.submap_from_node,
+            node_pose,
+            closure.information.as_ref(),
+        );
     }
     anchor
 }
