@@ -8,8 +8,8 @@
 //! placement); this shell only feeds it nodes and matches and acts on its events. Its nodes localize by
 //! GLM against the older sessions' submaps while its own submaps join the map, and at its end stale
 //! submaps are trimmed per the policy (by a session whose placement was committed). The pose the robot
-//! has at each node (`SessionRecord::online`, what "at the time" scores) is anchored on its best match
-//! against the older sessions' map between optimizations, as the fleet's robots anchor theirs
+//! has at each node (`SessionRecord::online`, what "at the time" scores) fuses its best matches
+//! against the older sessions' map between optimizations, as the fleet's robots do
 //! ([`mapping::lifelong::LiveAnchor`]).
 //!
 //! As in `offline_slam`, LLO runs on the calling thread and the map (relocalization, GLM searches on two

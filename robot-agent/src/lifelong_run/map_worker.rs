@@ -95,8 +95,8 @@ pub(super) fn worker(
     // The current session's start (none for session 0, which defines the map) and its nodes' times.
     let mut start: Option<SessionStart> = None;
     let mut node_times: Vec<Timestamp> = Vec::new();
-    // The current session's pose as the robot has it: anchored on its best match against the earlier
-    // sessions' map after each node, on the graph's after each optimization or start decision.
+    // The current session's pose as the robot has it: each node's best match against the earlier
+    // sessions' map fused in, the graph's after each optimization or start decision.
     let mut live: Option<LiveAnchor> = None;
     // Acts on session `$session`'s start decisions `$decisions` with this worker's books
     // (`$first_search`: they come from its first whole-map search); see `act_on_start`.

@@ -15,9 +15,9 @@ pub struct SessionRecord {
     /// Time of the session's first event.
     pub start_time: Timestamp,
     /// `map_from_base` of each matched scan as the robot estimated it at that scan: its node's pose as the
-    /// robot had it right after the map took the node in (the graph's `global_from_local`, re-anchored on
-    /// the best match against the older sessions' map since the last optimization or start decision:
-    /// `mapping::lifelong::LiveAnchor`), composed with LLO's motion since. Only scans while the session
+    /// robot had it right after the map took the node in (the graph's `global_from_local`, with the best match
+    /// of each node against the older sessions' map since the last optimization or start decision fused
+    /// in: `mapping::lifelong::LiveAnchor`), composed with LLO's motion since. Only scans while the session
     /// was placed (on probation — the robot navigates with a tentative placement too — or committed) have
     /// one (session 0: every scan).
     pub online: Vec<(Timestamp, Rigid2)>,

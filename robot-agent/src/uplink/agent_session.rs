@@ -142,7 +142,7 @@ pub struct SessionTrace {
     /// Scan time of every node, in node order (node `i` of the session has `node_times[i]`).
     pub node_times: Vec<Timestamp>,
     /// The robot's own estimate of every node's global pose (`world_from_tracking`) at the time of the
-    /// node, in node order: the prior, re-anchored by GLM on the robot as it matches; `None` before the
+    /// node, in node order: the prior, with GLM's matches on the robot fused in as it matches; `None` before the
     /// start was decided (the held-back nodes but the last) and when the start was not relocalized.
     pub node_estimates: Vec<Option<Rigid2>>,
     /// The first node's local pose (`local_from_tracking`).
