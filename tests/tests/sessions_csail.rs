@@ -31,12 +31,13 @@ fn csail_in_two_sessions_localizes_across_sessions() -> anyhow::Result<()> {
     assert_eq!(verdicts.len(), 1, "{verdicts:?}");
     assert_eq!(verdicts[0].placed.verdict, Verdict::Right, "{verdicts:?}");
     assert_eq!(verdicts[0].held.verdict, Verdict::Right, "{verdicts:?}");
-    // Measured (release, 2026-12-04): 101 relations; at the time 0.046 m mean with the map's matches fused
-    // into the pose (`mapping::lifelong::LiveAnchor`; 0.047 m re-anchored on each best match, 0.096 m on
-    // the graph's pose alone).
+    // Measured (release, 2026-12-04): 101 relations; at the time 0.046 m mean, 0.19 m largest, with the
+    // map's matches fused into the pose (`mapping::lifelong::LiveAnchor`; 0.047 m and 0.30 m re-anchored on
+    // each best match, 0.096 m on the graph's pose alone).
     assert!(verdicts[0].held.relations > 80, "{verdicts:?}");
     let at_the_time = relation_error_stats(&at_the_time, cross.len() - at_the_time.len());
     assert!(at_the_time.trans_abs_mean_m < 0.075, "{at_the_time:?}");
+    assert!(at_the_time.trans_abs_max_m < 0.27, "{at_the_time:?}");
     let all = relations_error(&run.scan_poses, &relations);
     let cross = relations_error(&run.scan_poses, &cross);
     eprintln!(
