@@ -48,11 +48,10 @@ impl LiveAnchorNoise {
 
     /// A match's covariance, in the node's frame.
     fn match_covariance(&self) -> Matrix3<f64> {
-        let (t, r) = (
+        pose_covariance(
             self.match_translation_sigma.powi(2),
             self.match_rotation_sigma.powi(2),
-        );
-        Matrix3::from_diagonal(&Vector3::new(t, t, r))
+        )
     }
 
     /// The drift LLO adds as its path since the last match grows from `from` to `to` metres: drift grows
@@ -60,12 +59,16 @@ impl LiveAnchorNoise {
     /// grows with the path's square.
     fn drift_covariance(&self, from: f64, to: f64) -> Matrix3<f64> {
         let grown = to.powi(2) - from.powi(2);
-        let (t, r) = (
+        pose_covariance(
             self.drift_translation_per_m.powi(2) * grown,
             self.drift_rotation_per_m.powi(2) * grown,
-        );
-        Matrix3::from_diagonal(&Vector3::new(t, t, r))
+        )
     }
+}
+
+/// A covariance over `(x, y, θ)` with `translation` variance (m²) on each axis and `rotation` variance (rad²).
+fn pose_covariance(translation: f64, rotation: f64) -> Matrix3<f64> {
+    Matrix3::from_diagonal(&Vector3::new(translation, translation, rotation))
 }
 
 /// σ of a placement the matches have not yet spoken on (m): nothing a match says is unlikely.
@@ -88,20 +91,9 @@ pub struct LiveAnchor {
 
 /// The adjoint of `pose` on SE(2) right perturbations: `pose · exp(δ) = exp(Ad · δ) · pose`.
 fn adjoint(pose: &Rigid2) -> Matrix3<f64> {
-    let r = pose.rotation.to_rotation_matrix();
-    let r = r.matrix();
+    let (c, s) = (pose.rotation.cos_angle(), pose.rotation.sin_angle());
     let t = pose.translation.vector;
-    Matrix3::new(
-        r[(0, 0)],
-        r[(0, 1)],
-        t.y,
-        r[(1, 0)],
-        r[(1, 1)],
-        -t.x,
-        0.0,
-        0.0,
-        1.0,
-    )
+    Matrix3::new(c, -s, t.y, s, c, -t.x, 0.0, 0.0, 1.0)
 }
 
 /// `covariance` of a perturbation at a pose, seen at that pose composed with `motion`.
@@ -126,11 +118,10 @@ impl LiveAnchor {
     /// good as the start search's grid; the matches that follow it are refined).
     pub fn placed(global_from_local: Rigid2, noise: LiveAnchorNoise) -> Self {
         Self {
-            covariance: Matrix3::from_diagonal(&Vector3::new(
-                UNKNOWN_TRANSLATION_SIGMA.powi(2),
+            covariance: pose_covariance(
                 UNKNOWN_TRANSLATION_SIGMA.powi(2),
                 UNKNOWN_ROTATION_SIGMA.powi(2),
-            )),
+            ),
             ..Self::new(global_from_local, noise)
         }
     }
