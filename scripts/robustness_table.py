@@ -7,14 +7,15 @@ issue 32: a relation over 1 m; a mean over 0.10 m (hard: 0.15 m); for a mild var
 the clean run's. `slow` (scans at least 0.7 s apart) and `thin` (`sparse` + `slow`) are scored on the scans the engine had
 (`relations_at_scans` of report.json: relations whose two stamps both have a scan), since at the stamps it
 has no scan for, the interpolated pose's own error is a floor no engine goes below; the cell names the
-relations scored.  Usage: robustness_table.py OUT_DIR
+relations scored. The combined rows (`range4,odom`, `range4,slip`, `range4,lag`: a 4-m scanner with one
+odometry fault each) are judged by the general bounds.  Usage: robustness_table.py OUT_DIR
 """
 import json
 import sys
 from pathlib import Path
 
 MILD = {"range8", "sparse", "odom", "slow", "clutter", "late", "noise", "stall", "lag", "burst", "scanburst"}
-ORDER = ["clean", "range8", "range4", "sparse", "odom", "slip", "slow", "clutter", "late", "noise", "stall", "hard", "thin", "lag", "burst", "scanburst"]
+ORDER = ["clean", "range8", "range4", "sparse", "odom", "slip", "slow", "clutter", "late", "noise", "stall", "hard", "thin", "lag", "burst", "scanburst", "range4,odom", "range4,slip", "range4,lag"]
 AT_SCANS = {"slow", "thin"}
 
 
