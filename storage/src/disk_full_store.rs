@@ -94,8 +94,10 @@ impl DiskFullStore {
         }
         if self.full.load(Ordering::SeqCst) {
             self.failures.fetch_add(1, Ordering::SeqCst);
+            let cause = out_of_space();
             return Err(StorageError::Wedged {
-                cause: out_of_space().to_string(),
+                cause: cause.to_string(),
+                source: Some(Arc::new(cause)),
                 out_of_space: true,
             });
         }

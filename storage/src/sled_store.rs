@@ -98,6 +98,8 @@ pub struct SledStore {
 #[derive(Debug)]
 struct Wedge {
     cause: String,
+    /// The error behind `cause`, if any.
+    source: Option<Arc<StorageError>>,
     out_of_space: bool,
     /// The failure, or the last reopen attempt.
     since: Instant,
@@ -216,6 +218,7 @@ impl SledStore {
                     *wedge = Some(Wedge {
                         cause: format!("reopening the database to bound its memory: {error}"),
                         out_of_space: error.is_out_of_space(),
+                        source: Some(Arc::new(error)),
                         since: Instant::now(),
                     });
                 }
@@ -257,6 +260,7 @@ impl SledStore {
             if w.since.elapsed() < interval {
                 return Err(StorageError::Wedged {
                     cause: w.cause.clone(),
+                    source: w.source.clone(),
                     out_of_space: w.out_of_space,
                 });
             }
@@ -271,6 +275,7 @@ impl SledStore {
             .clone()
             .ok_or_else(|| StorageError::Wedged {
                 cause: "the database is not open".to_owned(),
+                source: None,
                 out_of_space: false,
             })
     }
@@ -293,17 +298,31 @@ impl SledStore {
 
     /// Notes a failed write: an I/O failure wedges the database (see the module docs).
     fn note_failure(&self, error: &StorageError) {
-        let (StorageError::Io(_) | StorageError::Sled(sled::Error::Io(_))) = error else {
-            return;
+        // The caller returns `error` itself: the wedge keeps a copy.
+        let copy = match error {
+            StorageError::Io(io) => StorageError::Io(copy_io_error(io)),
+            StorageError::Sled(sled::Error::Io(io)) => {
+                StorageError::Sled(sled::Error::Io(copy_io_error(io)))
+            }
+            _ => return,
         };
         let mut wedge = self.wedge.lock().unwrap_or_else(PoisonError::into_inner);
         if wedge.is_none() {
             *wedge = Some(Wedge {
                 cause: error.to_string(),
+                source: Some(Arc::new(copy)),
                 out_of_space: error.is_out_of_space(),
                 since: Instant::now(),
             });
         }
+    }
+}
+
+/// A copy of an I/O error (`std::io::Error` is not `Clone`) with its kind, OS error code and message.
+fn copy_io_error(error: &std::io::Error) -> std::io::Error {
+    match error.raw_os_error() {
+        Some(code) => std::io::Error::from_raw_os_error(code),
+        None => std::io::Error::new(error.kind(), error.to_string()),
     }
 }
 
@@ -746,6 +765,11 @@ mod tests {
         assert!(
             matches!(error, StorageError::Wedged { .. }) && error.is_out_of_space(),
             "{error}"
+        );
+        assert_eq!(
+            std::error::Error::source(&error).map(ToString::to_string),
+            Some("I/O error: No space left on device (os error 28)".to_owned()),
+            "the typed cause is kept"
         );
         assert!(store.flush().unwrap_err().is_out_of_space());
         assert_eq!(store.map_version("depot").unwrap(), 1);

@@ -1,6 +1,7 @@
 //! The one error type of this crate.
 
 use std::path::PathBuf;
+use std::sync::Arc;
 
 use thiserror::Error;
 
@@ -120,6 +121,8 @@ pub enum StorageError {
     Wedged {
         /// The failure that wedged it.
         cause: String,
+        /// The error `cause` quotes, when one wedged it: shared by every refusal until the reopen.
+        source: Option<Arc<StorageError>>,
         /// The failure was a full disk.
         out_of_space: bool,
     },

@@ -7,14 +7,14 @@
 //! factorization is kept as long as the block pattern stays the same.
 
 use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
-use faer::linalg::cholesky::llt::factor::LltRegularization;
+use faer::linalg::cholesky::llt::factor::{LltError, LltRegularization};
 use faer::perm::PermRef;
 use faer::reborrow::Reborrow as _;
 use faer::sparse::linalg::amd;
 use faer::sparse::linalg::cholesky::{
     CholeskySymbolicParams, SymbolicCholesky, SymmetricOrdering, factorize_symbolic_cholesky,
 };
-use faer::sparse::{SparseColMatRef, SymbolicSparseColMat, SymbolicSparseColMatRef};
+use faer::sparse::{FaerError, SparseColMatRef, SymbolicSparseColMat, SymbolicSparseColMatRef};
 use faer::{Conj, MatMut, Par, Side, Spec};
 use nalgebra::Matrix3;
 
@@ -22,12 +22,15 @@ use nalgebra::Matrix3;
 pub(crate) const NO_BLOCK: u32 = u32::MAX;
 
 /// Why the linear system could not be set up or solved.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, thiserror::Error)]
 pub(crate) enum LinearSystemError {
-    /// faer could not allocate or order the matrix.
-    Symbolic,
-    /// The damped matrix is not numerically positive definite.
-    NotPositiveDefinite,
+    /// faer could not allocate or order the matrix (a failed scratch allocation arrives as faer's own
+    /// `FaerError::OutOfMemory`, its `From<AllocError>`).
+    #[error("could not order or analyse the linear system's sparsity pattern")]
+    Symbolic(#[source] FaerError),
+    /// The damped matrix is not numerically positive definite (faer's error names the failing pivot).
+    #[error("the damped linear system is not numerically positive definite")]
+    NotPositiveDefinite(#[source] LltError),
 }
 
 /// Sparsity pattern of the upper triangle of a block-symmetric matrix with 3×3 blocks.
@@ -153,7 +156,7 @@ impl BlockPattern {
         let pattern =
             SymbolicSparseColMatRef::new_checked(n, n, &self.block_col_ptr, None, &self.block_rows);
         let mut mem = MemBuffer::try_new(amd::order_scratch::<usize>(n, self.block_rows.len()))
-            .map_err(|_| LinearSystemError::Symbolic)?;
+            .map_err(|e| LinearSystemError::Symbolic(FaerError::from(e)))?;
         amd::order(
             &mut block_perm,
             &mut block_perm_inv,
@@ -161,7 +164,7 @@ impl BlockPattern {
             amd::Control::default(),
             MemStack::new(&mut mem),
         )
-        .map_err(|_| LinearSystemError::Symbolic)?;
+        .map_err(LinearSystemError::Symbolic)?;
         let forward: Vec<usize> = block_perm
             .iter()
             .flat_map(|&b| [3 * b, 3 * b + 1, 3 * b + 2])
@@ -212,12 +215,13 @@ impl SparseCholesky {
             SymmetricOrdering::Custom(perm),
             CholeskySymbolicParams::default(),
         )
-        .map_err(|_| LinearSystemError::Symbolic)?;
+        .map_err(LinearSystemError::Symbolic)?;
         let req = StackReq::any_of(&[
             symbolic.factorize_numeric_llt_scratch::<f64>(Par::Seq, Spec::default()),
             symbolic.solve_in_place_scratch::<f64>(1, Par::Seq),
         ]);
-        let mem = MemBuffer::try_new(req).map_err(|_| LinearSystemError::Symbolic)?;
+        let mem =
+            MemBuffer::try_new(req).map_err(|e| LinearSystemError::Symbolic(FaerError::from(e)))?;
         let factor_values = vec![0.0; symbolic.len_val()];
         Ok(Self {
             pattern,
@@ -260,7 +264,7 @@ impl SparseCholesky {
                 stack,
                 Spec::default(),
             )
-            .map_err(|_| LinearSystemError::NotPositiveDefinite)?;
+            .map_err(LinearSystemError::NotPositiveDefinite)?;
         let stack = MemStack::new(&mut self.mem);
         llt.solve_in_place_with_conj(
             Conj::No,
@@ -365,9 +369,11 @@ mod tests {
         }
         let mut solver = SparseCholesky::new(pattern).unwrap();
         let mut rhs = vec![1.0; 6];
-        assert_eq!(
+        assert!(matches!(
             solver.solve(&values, &mut rhs),
-            Err(LinearSystemError::NotPositiveDefinite)
-        );
+            Err(LinearSystemError::NotPositiveDefinite(
+                LltError::NonPositivePivot { .. }
+            ))
+        ));
     }
 }

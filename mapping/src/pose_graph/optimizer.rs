@@ -579,7 +579,9 @@ fn levenberg_marquardt(
         let solved = solver.solve(work.damped, work.step);
         let step_ok = match solved {
             Ok(()) => work.step.iter().all(|s| s.is_finite()),
-            Err(LinearSystemError::NotPositiveDefinite | LinearSystemError::Symbolic) => false,
+            Err(LinearSystemError::NotPositiveDefinite(_) | LinearSystemError::Symbolic(_)) => {
+                false
+            }
         };
         if step_ok {
             let step_norm = work.step.iter().map(|s| s * s).sum::<f64>().sqrt();

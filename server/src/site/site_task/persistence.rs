@@ -116,6 +116,7 @@ impl SiteTask {
             self.rebuild(generation).await?;
             return Err(SiteError::Storage(storage::StorageError::Wedged {
                 cause: "the store was reopened before the change was durable".into(),
+                source: None,
                 out_of_space: false,
             }));
         }
