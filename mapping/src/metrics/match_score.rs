@@ -36,8 +36,8 @@ impl MatchScorer {
         }
     }
 
-    /// The best [`match_score`] of `points` (tracking frame) within the window around
-    /// `map_from_tracking`. 0 for no points.
+    /// The best [`mean_probability`](crate::scan_matching::mean_probability) of `points` (tracking
+    /// frame) within the window around `map_from_tracking`. 0 for no points.
     pub fn score(&self, points: &[Point2<f32>], map_from_tracking: &Rigid2) -> f64 {
         if points.is_empty() {
             return 0.0;
