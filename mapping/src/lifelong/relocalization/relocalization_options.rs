@@ -30,36 +30,29 @@ pub struct RelocalizationOptions {
     pub min_score: f32,
     /// Depth of the branch-and-bound precomputation. Default 7.
     pub branch_and_bound_depth: u32,
-    /// The whole-map searches tried in turn, each on a coarse grid of this many map cells per cell along each
-    /// axis ([`RelocalizerOptions::coarse_factor`], each 1..=16; at least one); the next one searches again
-    /// when a search could not rank its candidates ([`crate::scan_matching::Relocalization::unrefined_bound`]
-    /// within `min_score_margin` of its best). Default `[4, 2]`. Why: `docs/TUNING.md#reloc-coarse-factors`.
+    /// The whole-map searches tried in turn, as map cells per coarse-grid cell along each axis (each
+    /// 1..=16; at least one). Default `[4, 2]`. Why: `docs/TUNING.md#reloc-coarse-factors`.
     pub coarse_factors: Vec<u32>,
-    /// Whole-map candidates scoring more than this below the best on the coarse grid are not looked for
-    /// ([`RelocalizerOptions::coarse_score_window`]; score units ≥ 0, `inf` for no bound). Default infinite.
-    /// Why: `docs/TUNING.md#reloc-candidate-score-window`.
+    /// Coarse-grid score below the best past which whole-map candidates are not looked for, score units ≥ 0
+    /// (`inf`: no bound). Default infinite. Why: `docs/TUNING.md#reloc-candidate-score-window`.
     pub candidate_score_window: f32,
-    /// Refuse a match whose runner-up ([`crate::scan_matching::Relocalization::runner_up_score`]) scores
-    /// within this much of it (score units; 0 = accept ties). Default 0.03.
-    /// Why: `docs/TUNING.md#reloc-min-score-margin`.
+    /// Refuse a match whose runner-up scores within this much of it (score units; 0 = accept ties).
+    /// Default 0.03. Why: `docs/TUNING.md#reloc-min-score-margin`.
     pub min_score_margin: f32,
-    /// How far (metres) a point may fall from a surface the map saw and still count as a hit while searching
-    /// (the map is max-filtered by this; 0 scores cell-exactly). Default 0.15 m.
-    /// Why: `docs/TUNING.md#reloc-match-tolerance`.
+    /// How far (metres) a point may fall from a surface the map saw and still count as a hit while
+    /// searching (0: cell-exactly). Default 0.15 m. Why: `docs/TUNING.md#reloc-match-tolerance`.
     pub match_tolerance: f64,
-    /// The paired statistic `Σd / √(Σd²)` the best pose must reach against every other candidate before
-    /// [`StartSearch::search_again`] places an ambiguous start (clouds of at most `long_route_scans`
-    /// scans). Unitless (about standard errors). Default 3. Why: `docs/TUNING.md#reloc-min-disambiguation-z`.
+    /// Paired z a retry's best candidate must reach against every other (clouds of at most
+    /// `long_route_scans` scans). Default 3. Why: `docs/TUNING.md#reloc-min-disambiguation-z`.
     pub min_disambiguation_z: f64,
     /// The paired test's bar (as `min_disambiguation_z`) for a cloud of more than `long_route_scans` scans.
     /// Unitless. Default 4. Why: `docs/TUNING.md#reloc-long-route-min-disambiguation-z`.
     pub long_route_min_disambiguation_z: f64,
-    /// Clouds of more scans than this (one per node; about 0.2 m of driving each in the simulated
-    /// store) are tested at `long_route_min_disambiguation_z`. Count. Default 200 (about 40 m).
+    /// Clouds of more scans (one per node) than this are tested at `long_route_min_disambiguation_z`.
+    /// Count. Default 200 (about 40 m of driving in the simulated store).
     pub long_route_scans: usize,
-    /// Block size of the paired tests over a session's route ([`StartSearch::search_again`],
-    /// [`StartSearch::contest`]; [`blocked_paired_z`]), metres ≥ 0 (0: per point; one-shot answers stay per
-    /// point). Default 1.2 m. Why: `docs/TUNING.md#reloc-route-block-m`.
+    /// Block size of the route's paired tests ([`crate::scan_matching::blocked_paired_z`]), metres ≥ 0
+    /// (0: per point). Default 1.2 m. Why: `docs/TUNING.md#reloc-route-block-m`.
     pub route_block_m: f64,
     /// The paired test of `min_disambiguation_z` for a one-shot answer ([`StartSearch::decide`]). Unitless.
     /// Default 4. Why: `docs/TUNING.md#reloc-min-answer-z`.
@@ -67,9 +60,8 @@ pub struct RelocalizationOptions {
     /// Smallest mean probability of the cloud at the best pose on the unfiltered map for a one-shot answer
     /// ([`StartSearch::decide`]). Default 0.4. Why: `docs/TUNING.md#reloc-min-unfiltered-score`.
     pub min_unfiltered_score: f32,
-    /// Largest shift (metres) of the first scan's own refinement from the pose the whole cloud gave it
-    /// ([`SearchEvidence::first_scan_shift_m`]) for a one-shot answer ([`StartSearch::decide`]). Default
-    /// 0.18 m. Why: `docs/TUNING.md#reloc-max-first-scan-shift`.
+    /// Largest [`SearchEvidence::first_scan_shift_m`] (metres) of a one-shot answer. Default 0.18 m.
+    /// Why: `docs/TUNING.md#reloc-max-first-scan-shift`.
     pub max_first_scan_shift: f64,
     /// Distinct coarse candidates refined at full resolution (count ≥ 1; see [`RelocalizerOptions`]).
     /// Default 8. Why: `docs/TUNING.md#reloc-max-candidates`.
