@@ -8,8 +8,8 @@ use std::time::Instant;
 use mapping::geometry::Rigid2;
 use mapping::grid::ProbabilityGrid;
 use mapping::lifelong::{
-    LifelongEvent, LifelongMap, LiveAnchor, LiveAnchorNoise, SessionStart, StartSearch,
-    render_submaps_max,
+    LifelongEvent, LifelongMap, LiveAnchor, LiveAnchorNoise, SessionStart, SessionStartEvent,
+    StartSearch, render_submaps_max,
 };
 use mapping::local_slam::LloNode;
 use mapping::metrics::MatchScorer;
@@ -75,232 +75,311 @@ fn poses_of_scans(
 }
 
 pub(super) fn worker(
-    mut map: LifelongMap,
+    map: LifelongMap,
     config: &SessionsConfig,
-    mut probes: MapProbes,
+    probes: MapProbes,
     receiver: &mpsc::Receiver<Message>,
     on_session_end: &mut (dyn FnMut(&SessionEnd<'_>) + Send),
 ) -> Result<WorkerOutput, SessionsError> {
-    let relocalization = &config.lifelong.relocalization;
-    let mut sessions: Vec<SessionSummary> = Vec::new();
-    let mut retired: BTreeMap<NodeId, Rigid2> = BTreeMap::new();
-    let mut records: Vec<SessionRecord> = Vec::new();
-    // The current session's: node local poses, node poses as the robot had them when each was added,
-    // and the map of the finished sessions as it was at its start (for the match scores).
-    let mut node_local: BTreeMap<NodeId, Rigid2> = BTreeMap::new();
-    let mut online_nodes: BTreeMap<NodeId, Rigid2> = BTreeMap::new();
-    let mut map_at_start: Option<MatchScorer> = None;
-    let mut priors: BTreeMap<u32, (Rigid2, Rigid2)> = BTreeMap::new();
-    let mut scores: Vec<f32> = Vec::new();
-    // The current session's start (none for session 0, which defines the map) and its nodes' times.
-    let mut start: Option<SessionStart> = None;
-    let mut node_times: Vec<Timestamp> = Vec::new();
-    // The current session's pose as the robot has it: each node's best match against the earlier
-    // sessions' map fused in, the graph's after each optimization or start decision.
-    let mut live: Option<LiveAnchor> = None;
-    // Acts on session `$session`'s start decisions `$decisions` with this worker's books
-    // (`$first_search`: they come from its first whole-map search); see `act_on_start`.
-    macro_rules! act_on_start {
-        ($session:expr, $first_search:expr, $decisions:expr) => {
-            act_on_start(
-                &mut map,
-                $session,
-                $first_search,
-                $decisions,
-                &node_times,
-                &node_local,
-                sessions.last_mut(),
-                records.last_mut(),
-                &mut priors,
-            )?
-        };
-    }
+    let mut worker = MapWorker::new(map, config, probes);
     for message in receiver {
         match message {
             Message::Start {
                 session,
                 start_time,
                 from_dock,
-            } => {
-                scores.clear();
-                node_local.clear();
-                live = None;
-                // Where the robot was at the end of its last session, as it had it then: its dock.
-                let dock = online_nodes.values().next_back().copied();
-                online_nodes.clear();
-                node_times.clear();
-                map_at_start = None;
-                start = None;
-                if session > 0 {
-                    // AMS scores every scan against everything the map holds (each cell at the
-                    // highest value any submap gives it: the definition every earlier figure used);
-                    // the session start searches the map as `map_cells` renders it.
-                    map_at_start =
-                        render_submaps_max(map.placed_submaps(), relocalization.resolution)
-                            .map(|grid| MatchScorer::new(&grid, config.scoring.match_window));
-                    start = Some(session_start(&map, config, dock.filter(|_| from_dock))?);
-                }
-                // Every later session starts unplaced; its `SessionStart` places it.
-                map.start_session(session, None)?;
-                sessions.push(SessionSummary {
-                    session,
-                    ..SessionSummary::default()
-                });
-                records.push(SessionRecord {
-                    session,
-                    start_time,
-                    ..SessionRecord::default()
-                });
-            }
-            Message::Node { session, node } => {
-                let (time, local_pose) = (node.time, node.local_pose);
-                // The scans before this node were estimated from the map as it stands now.
-                probes.answer_before(time, |id| map.global().node_pose(id));
-                let scored_points = (session > 0).then(|| node.points.clone());
-                let start_points = start.as_ref().map(|_| node.points.clone());
-                let (id, events) = map.add_node(session, node)?;
-                node_local.insert(id, local_pose);
-                node_times.push(time);
-                let mut decisions = Vec::new();
-                let mut first_search = false;
-                if let (Some(start), Some(points)) = (start.as_mut(), start_points) {
-                    let began = Instant::now();
-                    let searches = start.searches();
-                    decisions = start.add_node(local_pose, points);
-                    if let Some(summary) = sessions.last_mut() {
-                        summary.first_node_time = node_times.first().copied();
-                        if start.searches() > searches {
-                            let ms = began.elapsed().as_secs_f64() * 1e3;
-                            first_search = searches == 0;
-                            if first_search {
-                                summary.relocalization_ms = ms;
-                            }
-                            summary.relocalization_ms_total += ms;
-                            summary.relocalization_retries = start.searches() - 1;
-                        }
-                    }
-                }
-                act_on_start!(session, first_search, &decisions);
-                let mut events_after = run_search_jobs(&mut map);
-                events_after.extend(events);
-                // The matches of this session's nodes against the existing map judge its placement.
-                let mut later_decisions = Vec::new();
-                if let Some(start) = start.as_mut() {
-                    later_decisions = start.add_matches_from(&map, session, &events_after);
-                    act_on_start!(session, false, &later_decisions);
-                }
-                if let Some(summary) = sessions.last_mut() {
-                    summary.nodes_added += 1;
-                    count_closures(summary, &events_after, &mut scores);
-                }
-                // What the robot has now, at this scan: placed (on probation or committed) or not, and
-                // where.
-                let decided = !decisions.is_empty() || !later_decisions.is_empty();
-                let online = map.is_placed(session).then(|| {
-                    let anchor = live_anchor(
-                        &map,
-                        session,
-                        live,
-                        decided,
-                        &events_after,
-                        &node_local,
-                        &local_pose,
-                    );
-                    live = Some(anchor);
-                    anchor.pose(&local_pose)
-                });
-                if let Some(pose) = online {
-                    online_nodes.insert(id, pose);
-                }
-                if let (Some(points), Some(record)) = (scored_points, records.last_mut()) {
-                    let score = match (online, &map_at_start) {
-                        (Some(pose), Some(scorer)) => scorer.score(&points, &pose),
-                        _ => 0.0,
-                    };
-                    record.match_scores.push(score);
-                }
-            }
+            } => worker.start(session, start_time, from_dock)?,
+            Message::Node { session, node } => worker.node(session, node)?,
             Message::Finish {
                 session,
                 active_submaps,
                 scans,
-            } => {
-                if let Some(last) = scans.last() {
-                    probes
-                        .answer_before(Timestamp(last.time.0 + 1), |id| map.global().node_pose(id));
-                }
-                map.finish_submaps(session, active_submaps)?;
-                let events = run_search_jobs(&mut map);
-                // Every node's pose before pose graph refinement: what a node `finish_session` removes
-                // (trimmed, or its session dropped) keeps; the rest are updated after it.
-                let mut at_session_end = BTreeMap::new();
-                let mut note_poses = |map: &LifelongMap| {
-                    for (id, _, pose) in map.node_poses() {
-                        retired.insert(id, pose);
-                        if id.trajectory == session {
-                            at_session_end.insert(id, pose);
-                        }
+            } => worker.finish(session, active_submaps, &scans, on_session_end)?,
+        }
+    }
+    Ok(worker.into_output())
+}
+
+/// The worker's state: the map, what it noted of every session so far, and the current session's books.
+/// One method per [`Message`].
+struct MapWorker<'a> {
+    map: LifelongMap,
+    config: &'a SessionsConfig,
+    probes: MapProbes,
+    sessions: Vec<SessionSummary>,
+    retired: BTreeMap<NodeId, Rigid2>,
+    records: Vec<SessionRecord>,
+    // The current session's: node local poses, node poses as the robot had them when each was added,
+    // and the map of the finished sessions as it was at its start (for the match scores).
+    node_local: BTreeMap<NodeId, Rigid2>,
+    online_nodes: BTreeMap<NodeId, Rigid2>,
+    map_at_start: Option<MatchScorer>,
+    priors: BTreeMap<u32, (Rigid2, Rigid2)>,
+    scores: Vec<f32>,
+    // The current session's start (none for session 0, which defines the map) and its nodes' times.
+    start: Option<SessionStart>,
+    node_times: Vec<Timestamp>,
+    // The current session's pose as the robot has it: each node's best match against the earlier
+    // sessions' map fused in, the graph's after each optimization or start decision.
+    live: Option<LiveAnchor>,
+}
+
+impl<'a> MapWorker<'a> {
+    fn new(map: LifelongMap, config: &'a SessionsConfig, probes: MapProbes) -> Self {
+        Self {
+            map,
+            config,
+            probes,
+            sessions: Vec::new(),
+            retired: BTreeMap::new(),
+            records: Vec::new(),
+            node_local: BTreeMap::new(),
+            online_nodes: BTreeMap::new(),
+            map_at_start: None,
+            priors: BTreeMap::new(),
+            scores: Vec::new(),
+            start: None,
+            node_times: Vec::new(),
+            live: None,
+        }
+    }
+
+    /// Acts on session `session`'s start decisions `decisions` with this worker's books
+    /// (`first_search`: they come from its first whole-map search); see [`act_on_start`].
+    fn act_on_start(
+        &mut self,
+        session: u32,
+        first_search: bool,
+        decisions: &[SessionStartEvent],
+    ) -> Result<(), SessionsError> {
+        act_on_start(
+            &mut self.map,
+            session,
+            first_search,
+            decisions,
+            &self.node_times,
+            &self.node_local,
+            self.sessions.last_mut(),
+            self.records.last_mut(),
+            &mut self.priors,
+        )
+    }
+
+    /// [`Message::Start`]: a new session, its books cleared; every session after the first gets its start.
+    fn start(
+        &mut self,
+        session: u32,
+        start_time: Timestamp,
+        from_dock: bool,
+    ) -> Result<(), SessionsError> {
+        let relocalization = &self.config.lifelong.relocalization;
+        self.scores.clear();
+        self.node_local.clear();
+        self.live = None;
+        // Where the robot was at the end of its last session, as it had it then: its dock.
+        let dock = self.online_nodes.values().next_back().copied();
+        self.online_nodes.clear();
+        self.node_times.clear();
+        self.map_at_start = None;
+        self.start = None;
+        if session > 0 {
+            // AMS scores every scan against everything the map holds (each cell at the
+            // highest value any submap gives it: the definition every earlier figure used);
+            // the session start searches the map as `map_cells` renders it.
+            self.map_at_start =
+                render_submaps_max(self.map.placed_submaps(), relocalization.resolution)
+                    .map(|grid| MatchScorer::new(&grid, self.config.scoring.match_window));
+            self.start = Some(session_start(
+                &self.map,
+                self.config,
+                dock.filter(|_| from_dock),
+            )?);
+        }
+        // Every later session starts unplaced; its `SessionStart` places it.
+        self.map.start_session(session, None)?;
+        self.sessions.push(SessionSummary {
+            session,
+            ..SessionSummary::default()
+        });
+        self.records.push(SessionRecord {
+            session,
+            start_time,
+            ..SessionRecord::default()
+        });
+        Ok(())
+    }
+
+    /// [`Message::Node`]: the node into the map and the session start, its matches judged, its pose as
+    /// the robot has it and its match score noted.
+    fn node(&mut self, session: u32, node: LloNode) -> Result<(), SessionsError> {
+        let (time, local_pose) = (node.time, node.local_pose);
+        // The scans before this node were estimated from the map as it stands now.
+        self.probes
+            .answer_before(time, |id| self.map.global().node_pose(id));
+        let scored_points = (session > 0).then(|| node.points.clone());
+        let start_points = self.start.as_ref().map(|_| node.points.clone());
+        let (id, events) = self.map.add_node(session, node)?;
+        self.node_local.insert(id, local_pose);
+        self.node_times.push(time);
+        let mut decisions = Vec::new();
+        let mut first_search = false;
+        if let (Some(start), Some(points)) = (self.start.as_mut(), start_points) {
+            let began = Instant::now();
+            let searches = start.searches();
+            decisions = start.add_node(local_pose, points);
+            if let Some(summary) = self.sessions.last_mut() {
+                summary.first_node_time = self.node_times.first().copied();
+                if start.searches() > searches {
+                    let ms = began.elapsed().as_secs_f64() * 1e3;
+                    first_search = searches == 0;
+                    if first_search {
+                        summary.relocalization_ms = ms;
                     }
-                };
-                note_poses(&map);
-                // What the session's end decides of its start (a dock placement never disputed).
-                if let Some(start) = start.as_mut() {
-                    let decisions = start.finish();
-                    act_on_start!(session, false, &decisions);
-                    if let (Some(summary), Some(record)) = (sessions.last_mut(), records.last()) {
-                        summary.probation_timeline = ProbationStepFigures::timed(
-                            start.probation_timeline(),
-                            &node_times,
-                            record.start_time,
-                        );
-                    }
-                }
-                let on_probation = map.is_on_probation(session);
-                let start_ms = Instant::now();
-                let start_cpu_ms = thread_cpu_ms();
-                let events_finish = map.finish_session(session)?;
-                let finish_ms = start_ms.elapsed().as_secs_f64() * 1e3;
-                let finish_cpu_ms = thread_cpu_ms()
-                    .zip(start_cpu_ms)
-                    .map(|(end, start)| end - start);
-                note_poses(&map);
-                let placed = map.is_placed(session) && !on_probation;
-                let counts = map.counts();
-                let offset = relocalization_offset(&priors, &retired, session);
-                if let Some(summary) = sessions.last_mut() {
-                    count_closures(summary, &events, &mut scores);
-                    count_trims(summary, &events_finish);
-                    summary.placed = placed;
-                    summary.ended_on_probation = on_probation;
-                    summary.counts = counts;
-                    summary.finish_ms = finish_ms;
-                    summary.finish_cpu_ms = finish_cpu_ms;
-                    summary.finish_optimizations = optimization_figures(&events_finish);
-                    summary.relocalization_offset_m = offset;
-                    summary.peak_rss_mb = crate::process_stats::peak_rss_mb();
-                    summary.rss_mb = crate::process_stats::current_rss_mb();
-                }
-                probes.add_ended_session(&scans, &node_local);
-                if let (Some(summary), Some(record)) = (sessions.last(), records.last_mut()) {
-                    record.online = poses_of_scans(&scans, &node_local, &online_nodes);
-                    record.smoothed = poses_of_scans(&scans, &node_local, &at_session_end);
-                    on_session_end(&SessionEnd {
-                        summary,
-                        record,
-                        map: &map,
-                    });
+                    summary.relocalization_ms_total += ms;
+                    summary.relocalization_retries = start.searches() - 1;
                 }
             }
         }
+        self.act_on_start(session, first_search, &decisions)?;
+        let mut events_after = run_search_jobs(&mut self.map);
+        events_after.extend(events);
+        // The matches of this session's nodes against the existing map judge its placement.
+        let mut later_decisions = Vec::new();
+        if let Some(start) = self.start.as_mut() {
+            later_decisions = start.add_matches_from(&self.map, session, &events_after);
+            self.act_on_start(session, false, &later_decisions)?;
+        }
+        if let Some(summary) = self.sessions.last_mut() {
+            summary.nodes_added += 1;
+            count_closures(summary, &events_after, &mut self.scores);
+        }
+        // What the robot has now, at this scan: placed (on probation or committed) or not, and
+        // where.
+        let decided = !decisions.is_empty() || !later_decisions.is_empty();
+        let online = self.map.is_placed(session).then(|| {
+            let anchor = live_anchor(
+                &self.map,
+                session,
+                self.live,
+                decided,
+                &events_after,
+                &self.node_local,
+                &local_pose,
+            );
+            self.live = Some(anchor);
+            anchor.pose(&local_pose)
+        });
+        if let Some(pose) = online {
+            self.online_nodes.insert(id, pose);
+        }
+        if let (Some(points), Some(record)) = (scored_points, self.records.last_mut()) {
+            let score = match (online, &self.map_at_start) {
+                (Some(pose), Some(scorer)) => scorer.score(&points, &pose),
+                _ => 0.0,
+            };
+            record.match_scores.push(score);
+        }
+        Ok(())
     }
-    // Nodes still in the map report their final pose; `retired` keeps the rest.
-    Ok(WorkerOutput {
-        map,
-        sessions,
-        retired,
-        records,
-        probe_poses: probes.into_answers(),
-    })
+
+    /// [`Message::Finish`]: the session's last submaps in and the session finished (pose graph
+    /// refinement, trimming), its summary and record completed and handed to `on_session_end`.
+    fn finish(
+        &mut self,
+        session: u32,
+        active_submaps: Vec<(usize, ProbabilityGrid)>,
+        scans: &[ScanAnchor],
+        on_session_end: &mut (dyn FnMut(&SessionEnd<'_>) + Send),
+    ) -> Result<(), SessionsError> {
+        if let Some(last) = scans.last() {
+            self.probes.answer_before(Timestamp(last.time.0 + 1), |id| {
+                self.map.global().node_pose(id)
+            });
+        }
+        self.map.finish_submaps(session, active_submaps)?;
+        let events = run_search_jobs(&mut self.map);
+        // Every node's pose before pose graph refinement: what a node `finish_session` removes
+        // (trimmed, or its session dropped) keeps; the rest are updated after it.
+        let mut at_session_end = BTreeMap::new();
+        note_poses(&self.map, session, &mut self.retired, &mut at_session_end);
+        // What the session's end decides of its start (a dock placement never disputed).
+        // (Taken out while `act_on_start` borrows the worker, and put back.)
+        if let Some(mut start) = self.start.take() {
+            let decisions = start.finish();
+            self.act_on_start(session, false, &decisions)?;
+            if let (Some(summary), Some(record)) = (self.sessions.last_mut(), self.records.last()) {
+                summary.probation_timeline = ProbationStepFigures::timed(
+                    start.probation_timeline(),
+                    &self.node_times,
+                    record.start_time,
+                );
+            }
+            self.start = Some(start);
+        }
+        let on_probation = self.map.is_on_probation(session);
+        let start_ms = Instant::now();
+        let start_cpu_ms = thread_cpu_ms();
+        let events_finish = self.map.finish_session(session)?;
+        let finish_ms = start_ms.elapsed().as_secs_f64() * 1e3;
+        let finish_cpu_ms = thread_cpu_ms()
+            .zip(start_cpu_ms)
+            .map(|(end, start)| end - start);
+        note_poses(&self.map, session, &mut self.retired, &mut at_session_end);
+        let placed = self.map.is_placed(session) && !on_probation;
+        let counts = self.map.counts();
+        let offset = relocalization_offset(&self.priors, &self.retired, session);
+        if let Some(summary) = self.sessions.last_mut() {
+            count_closures(summary, &events, &mut self.scores);
+            count_trims(summary, &events_finish);
+            summary.placed = placed;
+            summary.ended_on_probation = on_probation;
+            summary.counts = counts;
+            summary.finish_ms = finish_ms;
+            summary.finish_cpu_ms = finish_cpu_ms;
+            summary.finish_optimizations = optimization_figures(&events_finish);
+            summary.relocalization_offset_m = offset;
+            summary.peak_rss_mb = crate::process_stats::peak_rss_mb();
+            summary.rss_mb = crate::process_stats::current_rss_mb();
+        }
+        self.probes.add_ended_session(scans, &self.node_local);
+        if let (Some(summary), Some(record)) = (self.sessions.last(), self.records.last_mut()) {
+            record.online = poses_of_scans(scans, &self.node_local, &self.online_nodes);
+            record.smoothed = poses_of_scans(scans, &self.node_local, &at_session_end);
+            on_session_end(&SessionEnd {
+                summary,
+                record,
+                map: &self.map,
+            });
+        }
+        Ok(())
+    }
+
+    /// What the worker hands back when the channel closes. Nodes still in the map report their final
+    /// pose; `retired` keeps the rest.
+    fn into_output(self) -> WorkerOutput {
+        WorkerOutput {
+            map: self.map,
+            sessions: self.sessions,
+            retired: self.retired,
+            records: self.records,
+            probe_poses: self.probes.into_answers(),
+        }
+    }
+}
+
+/// Notes every node's pose in `map` in `retired`, and those of `session`'s nodes in `at_session_end`.
+fn note_poses(
+    map: &LifelongMap,
+    session: u32,
+    retired: &mut BTreeMap<NodeId, Rigid2>,
+    at_session_end: &mut BTreeMap<NodeId, Rigid2>,
+) {
+    for (id, _, pose) in map.node_poses() {
+        retired.insert(id, pose);
+        if id.trajectory == session {
+            at_session_end.insert(id, pose);
+        }
+    }
 }
 
 /// The session start of a session after the first: the whole-map search over the map as it stands
