@@ -8,6 +8,8 @@
 //! Both also encode map pictures here ([`encode_png`]: the `GetMapImage` reply's PNG, the agent's
 //! picture files, the web console's images).
 //!
+//! [`testing`] (feature `testing`): shared test values for this crate's tests and its users'.
+//!
 //! Conversions from the wire are `TryFrom` and check everything a peer could get wrong (missing fields,
 //! NaN or infinite numbers, sizes that do not match, unknown `format_version`), returning a
 //! [`ConversionError`]; conversions to the wire are infallible. Conversions do no I/O.
@@ -31,6 +33,8 @@ pub mod logging;
 mod map_delta;
 mod png_image;
 mod site_checkpoint;
+#[cfg(any(test, feature = "testing"))]
+pub mod testing;
 mod upload_batch;
 mod zenoh_link_options;
 mod zenoh_tls_options;

@@ -18,6 +18,8 @@ pub mod metrics_endpoint;
 pub mod server_config;
 pub mod server_metrics;
 pub mod site;
+#[cfg(test)]
+mod testing;
 pub mod zenoh_front;
 
 pub use console::HttpConfig;

@@ -354,17 +354,16 @@ impl ServerMetrics {
 mod tests {
     use std::sync::Arc;
 
-    use mapping::geometry::{Rigid2, rigid2};
-    use mapping::grid::{CellIndex, MapLimits, ProbabilityGrid};
+    use mapping::geometry::Rigid2;
     use mapping::lifelong::LifelongOptions;
-    use mapping::pose_graph::SubmapId;
-    use proto::{NodeAdded, UploadBatch, UploadItem};
+    use proto::{UploadBatch, UploadItem};
     use storage::{MapStore, MemStore};
     use tokio::io::{AsyncReadExt as _, AsyncWriteExt as _};
 
     use super::*;
     use crate::metrics_endpoint::{bind_metrics, serve_metrics};
     use crate::site::{SiteTask, SiteTaskOptions};
+    use crate::testing::{grid, match_to_submap, node};
 
     #[test]
     fn counters_appear_in_the_exposition() {
@@ -383,19 +382,12 @@ mod tests {
 
     /// Node `k` of a straight route (x = 0.1 k), inserted into submap `k`, with that submap finished.
     fn node_and_submap(k: u32) -> [UploadItem; 2] {
-        let mut grid = ProbabilityGrid::new(MapLimits::new(0.05, [-1.0, -1.0].into(), 40, 40));
-        for i in 0..40 {
-            grid.set_probability(&CellIndex::new(i, 30), 0.9);
-        }
         [
-            UploadItem::NodeAdded(NodeAdded {
-                time: mapping::sensor::Timestamp(i64::from(k) * 100_000_000),
-                local_pose: rigid2(0.1 * f64::from(k), 0.0, 0.0),
-                points: vec![[1.0, 0.5].into(), [1.0, -0.5].into()],
-                insertion_submaps: vec![(k, rigid2(f64::from(k), 0.0, 0.0))],
-                recovered: false,
-            }),
-            UploadItem::SubmapFinished { index: k, grid },
+            node(k, &[k]),
+            UploadItem::SubmapFinished {
+                index: k,
+                grid: grid(),
+            },
         ]
     }
 
@@ -442,14 +434,7 @@ mod tests {
         for k in 0..6 {
             b.extend(node_and_submap(k));
             if k % 2 == 0 {
-                b.push(UploadItem::GlobalMatch {
-                    submap: SubmapId {
-                        trajectory: 0,
-                        index: k,
-                    },
-                    submap_from_node: rigid2(0.1 * f64::from(k) - f64::from(k), 0.0, 0.0),
-                    score: 0.9,
-                });
+                b.push(match_to_submap(k));
             }
         }
         site.upload(batch("b", b)).await.unwrap();

@@ -10,10 +10,10 @@
 
 use std::path::Path;
 
-use storage::{
-    CheckpointRetention, MapStore as _, RecordKind, SledStore, SledStoreOptions, WriteBatch,
-};
-use test_support::noise;
+use storage::{CheckpointRetention, MapStore as _, RecordKind, SledStore, SledStoreOptions};
+use support::site_log_version;
+
+mod support;
 
 /// (files, bytes) under `<db>/blobs`.
 fn blobs(db: &Path) -> (usize, u64) {
@@ -50,14 +50,7 @@ fn a_compacted_site_log_leaves_no_blobs_behind() {
     let mut state = 7_u64;
     let mut most_blobs = (0, 0);
     for version in 1..=VERSIONS {
-        let mut batch = WriteBatch::new("site");
-        batch
-            .put(
-                RecordKind::Trajectory,
-                version,
-                noise(&mut state, ENTRY_BYTES),
-            )
-            .bump_map_version();
+        let batch = site_log_version(&mut state, version, ENTRY_BYTES);
         store.apply_durable(&batch).expect("apply");
         if version % 15 == 0 {
             store

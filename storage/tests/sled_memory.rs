@@ -10,9 +10,11 @@
 use peak_alloc::PeakAlloc;
 use storage::{
     DEFAULT_REOPEN_AFTER_BYTES, MAX_INLINE_VALUE_BYTES, MapStore as _, RecordKind, SledStore,
-    SledStoreOptions, WriteBatch,
+    SledStoreOptions,
 };
-use test_support::noise;
+use support::site_log_version;
+
+mod support;
 
 #[global_allocator]
 static HEAP: PeakAlloc = PeakAlloc;
@@ -31,15 +33,8 @@ fn a_growing_site_log_does_not_stay_in_memory() {
     // 48 MB of site log in the largest values sled holds, flushed every 8 batches (the store reopens at
     // a flush).
     for version in 1..=VERSIONS {
-        let mut batch = WriteBatch::new("site");
-        batch
-            .put(
-                RecordKind::Trajectory,
-                version,
-                noise(&mut state, MAX_INLINE_VALUE_BYTES),
-            )
-            .bump_map_version()
-            .for_session(format!("session-{}", version / 1500), version);
+        let mut batch = site_log_version(&mut state, version, MAX_INLINE_VALUE_BYTES);
+        batch.for_session(format!("session-{}", version / 1500), version);
         store.apply(&batch).expect("apply");
         if version % 8 == 0 {
             store.flush().expect("flush");

@@ -258,15 +258,7 @@ fn the_servers_part_of_a_checkpoint_round_trips_bit_for_bit() {
         dropped_sessions: 2,
         robot_revoked: [3, 5].into_iter().collect(),
         base: Some(0),
-        session_starts: SessionStartCounts {
-            priors: 1,
-            placed: 2,
-            refused: 3,
-            retries: 4,
-            committed: 5,
-            revoked: 6,
-            gave_up: 7,
-        },
+        session_starts: crate::testing::distinct_session_start_counts(),
         ..SiteServerState::default()
     };
     site.sessions.insert(

@@ -212,7 +212,6 @@ mod tests {
     use mapping::geometry::rigid2;
     use storage::{MemStore, WriteBatch};
 
-    use super::super::SessionStartCounts;
     use super::*;
 
     fn summary(version: u64, open_sessions: u64) -> SiteSummary {
@@ -253,15 +252,7 @@ mod tests {
             loop_closures_outvoted: 7,
             loop_closures_beyond_drift: 2,
             loop_closures_retracted: 3,
-            session_starts: SessionStartCounts {
-                priors: 1,
-                placed: 2,
-                refused: 3,
-                retries: 4,
-                committed: 5,
-                revoked: 6,
-                gave_up: 7,
-            },
+            session_starts: proto::testing::distinct_session_start_counts(),
             open_sessions,
         };
         SiteSummary::of(VersionInfo { version, counts }, &view)

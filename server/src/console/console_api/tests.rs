@@ -306,15 +306,8 @@ async fn a_new_version_reaches_the_event_stream() {
         .open_session("r", "session-b")
         .await
         .unwrap();
-    let chunk = tokio::time::timeout(std::time::Duration::from_secs(10), stream.next())
-        .await
-        .expect("an event within 10 s")
-        .unwrap()
-        .unwrap();
-    let text = String::from_utf8(chunk.to_vec()).unwrap();
-    assert!(text.starts_with("event: version\ndata: "), "{text}");
-    let data: Value =
-        serde_json::from_str(text.lines().nth(1).unwrap().trim_start_matches("data: ")).unwrap();
+    let (name, data) = next_event(&mut stream).await;
+    assert_eq!(name, "version", "{data}");
     assert_eq!(data["site"], "s");
     assert_eq!(data["version"], 1);
     assert_eq!(data["open_sessions"], 1);
@@ -324,7 +317,8 @@ async fn a_new_version_reaches_the_event_stream() {
     }
 }
 
-/// The next event of an SSE body: its name and its data.
+/// The next event of an SSE body (`event: <name>` then `data: <json>`, within 10 s): its name and its
+/// data.
 async fn next_event(
     stream: &mut (impl tokio_stream::Stream<Item = Result<axum::body::Bytes, axum::Error>> + Unpin),
 ) -> (String, Value) {
@@ -337,11 +331,14 @@ async fn next_event(
     let mut lines = text.lines();
     let name = lines
         .next()
-        .unwrap()
-        .trim_start_matches("event: ")
+        .and_then(|line| line.strip_prefix("event: "))
+        .unwrap_or_else(|| panic!("no event line: {text}"))
         .to_owned();
-    let data = serde_json::from_str(lines.next().unwrap().trim_start_matches("data: ")).unwrap();
-    (name, data)
+    let data = lines
+        .next()
+        .and_then(|line| line.strip_prefix("data: "))
+        .unwrap_or_else(|| panic!("no data line: {text}"));
+    (name, serde_json::from_str(data).unwrap())
 }
 
 // Reference: issue 34 item 4 — the console shows loaded and unloaded sites, live.

@@ -1,30 +1,7 @@
 use mapping::geometry::rigid2;
-use mapping::grid::{CellIndex, MapLimits};
-use mapping::sensor::Timestamp;
-use nalgebra::{Point2, Vector2};
 
 use super::*;
-
-fn grid() -> ProbabilityGrid {
-    let mut grid = ProbabilityGrid::new(MapLimits::new(0.05, Vector2::new(-1.0, -1.0), 40, 40));
-    for i in 0..40 {
-        grid.set_probability(&CellIndex::new(i, 30), 0.9);
-    }
-    grid
-}
-
-fn node(i: u32, submaps: &[u32]) -> UploadItem {
-    UploadItem::NodeAdded(NodeAdded {
-        time: Timestamp(i64::from(i) * 100_000_000),
-        local_pose: rigid2(0.1 * f64::from(i), 0.0, 0.0),
-        points: vec![Point2::new(1.0, 0.5), Point2::new(1.0, -0.5)],
-        insertion_submaps: submaps
-            .iter()
-            .map(|s| (*s, rigid2(f64::from(*s), 0.0, 0.0)))
-            .collect(),
-        recovered: false,
-    })
-}
+use crate::testing::{grid, match_to_submap, node};
 
 fn batch(session: &str, seq: u64, items: Vec<UploadItem>) -> UploadBatch {
     UploadBatch {
@@ -560,14 +537,7 @@ fn agreeing_robot_matches_commit_a_prior_and_publish_its_submaps() {
         });
         if k % 2 == 0 {
             // Submap k of a sits at x = k (see `node`), node k at x = 0.1 k.
-            items.push(UploadItem::GlobalMatch {
-                submap: SubmapId {
-                    trajectory: 0,
-                    index: k,
-                },
-                submap_from_node: rigid2(0.1 * f64::from(k) - f64::from(k), 0.0, 0.0),
-                score: 0.9,
-            });
+            items.push(match_to_submap(k));
         }
     }
     apply(&mut map, &batch("b", 1, items));

@@ -16,7 +16,7 @@ use storage::{MapStore, MemStore};
 use super::*;
 use crate::ServerMetrics;
 use crate::site::site_task::{LoadTimes, Loaded, load, restore_checkpoint};
-use crate::site::{CheckpointOptions, SITE_LOG_KIND, SiteTask, SiteTaskOptions};
+use crate::site::{CheckpointOptions, SITE_LOG_KIND, SiteHandle, SiteTask, SiteTaskOptions};
 
 const SITE: &str = "store";
 const ROBOT: &str = "robot-1";
@@ -229,6 +229,23 @@ struct Fed {
     partial: usize,
 }
 
+impl Fed {
+    /// A site task started on the checkpointed store under `options`, as a restarted server starts it.
+    async fn restart(
+        &self,
+        options: LifelongOptions,
+    ) -> Result<(SiteHandle, tokio::task::JoinHandle<()>), SiteError> {
+        SiteTask::spawn(
+            SITE,
+            options,
+            Arc::clone(&self.checkpointed),
+            Arc::new(ServerMetrics::default()),
+            task_options(OFTEN),
+        )
+        .await
+    }
+}
+
 /// Sessions 0–2 and the first half of session 3, fed to two stores: one checkpointed every 5 versions
 /// (and compacted), one never.
 async fn fed_sites() -> Fed {
@@ -304,15 +321,10 @@ async fn a_site_restored_from_its_checkpoint_equals_a_full_replay_bit_for_bit() 
     assert_restored_equals_replayed(restored, replayed, &fed);
 
     // And through the task: a restart serves the same version and counts.
-    let (site, _task) = SiteTask::spawn(
-        SITE,
-        checkpoint_sessions::options(),
-        Arc::clone(&fed.checkpointed),
-        Arc::new(ServerMetrics::default()),
-        task_options(OFTEN),
-    )
-    .await
-    .expect("restart");
+    let (site, _task) = fed
+        .restart(checkpoint_sessions::options())
+        .await
+        .expect("restart");
     let whole = load_site(fed.whole.as_ref(), false).expect("replay").map;
     assert_eq!(site.current().version, whole.version());
     assert_eq!(site.current().counts, whole.counts());
@@ -412,15 +424,7 @@ async fn a_checkpoint_an_older_build_wrote_restores_under_the_options_configured
     assert_eq!(restored.map.version(), same.version());
     assert_eq!(restored.map.node_poses(), same.node_poses());
     // And the task serves it.
-    let (site, _task) = SiteTask::spawn(
-        SITE,
-        other,
-        Arc::clone(&fed.checkpointed),
-        Arc::new(ServerMetrics::default()),
-        task_options(OFTEN),
-    )
-    .await
-    .expect("the task starts");
+    let (site, _task) = fed.restart(other).await.expect("the task starts");
     assert_eq!(site.current().version, same.version());
     site.shutdown().await;
 }
@@ -448,14 +452,7 @@ async fn a_checkpoint_of_an_unknown_format_version_stops_the_site_with_an_error_
         "{text}"
     );
     // The task refuses to start on it too.
-    let spawned = SiteTask::spawn(
-        SITE,
-        checkpoint_sessions::options(),
-        Arc::clone(&fed.checkpointed),
-        Arc::new(ServerMetrics::default()),
-        task_options(OFTEN),
-    )
-    .await;
+    let spawned = fed.restart(checkpoint_sessions::options()).await;
     assert!(matches!(
         spawned.err(),
         Some(SiteError::CheckpointRefused { .. })
@@ -464,7 +461,7 @@ async fn a_checkpoint_of_an_unknown_format_version_stops_the_site_with_an_error_
 
 /// Everything a client can ask a site task, as text: its published version and counts, its whole
 /// delta, its node poses and its rendered map.
-async fn answers(site: &crate::site::SiteHandle) -> String {
+async fn answers(site: &SiteHandle) -> String {
     let delta = site.delta_since(0).await.expect("delta");
     let poses = site.node_poses().await.expect("poses");
     let rendered = site.render(0.0).await.expect("render");
