@@ -25,6 +25,7 @@
 //! | `lag` | every odometry reading stamped 0.1 s late (its clock ahead of the scanner's, or its driver's latency stamped at arrival; against their scans, ACES's own odometry is stamped 0.09 s early and MIT CSAIL's 0.14 s early, as `mapping::sensor::OdometryClock` estimates them) |
 //! | `burst` | the logger stalls for 0.5–2 s every 10–40 s: what the sensors sent meanwhile is stamped when it resumes, in a burst 0.5 ms apart, in the order it came (Intel's own stamps do this) |
 //! | `scanburst` | the same stalls, of the scanner's driver alone: scans stamped in bursts, the odometry on time |
+//! | `clock` | the odometry's clock off the scanner's by a constant drawn per seed, uniform in ±20 ms (two drivers' clocks, never quite in step): a deterministic variant made one draw of many, so a seed says how often a near-threshold decision goes each way |
 //!
 //! `burst` moves scans' stamps away from when they were taken; [`PerturbationReport::capture_time`] gives
 //! each scan's own, and a run is scored at those ([`PerturbationReport::relations_at_stamps`] the other
@@ -61,6 +62,7 @@ pub const VARIANTS: &[&str] = &[
     "lag",
     "burst",
     "scanburst",
+    "clock",
 ];
 
 /// Odometry that is wrong the way wheel odometry is: a scale error, a heading drift with distance, and
@@ -154,6 +156,9 @@ pub struct Perturbation {
     pub odometry_lag_s: Option<f64>,
     /// Logger stalls, after which messages come stamped in bursts.
     pub logger_stalls: Option<LoggerStalls>,
+    /// The odometry's clock off the scanner's by a constant offset drawn per seed, uniform in ±this
+    /// (seconds), on top of `odometry_lag_s`.
+    pub odometry_clock_offset_s: Option<f64>,
 }
 
 /// A variant name [`Perturbation::parse`] does not know.
@@ -186,6 +191,8 @@ pub struct PerturbationReport {
     pub logger_stalls: usize,
     /// Messages stamped later than taken, in bursts.
     pub messages_restamped: usize,
+    /// The odometry clock's offset drawn (seconds, positive: stamped late), 0 without `clock`.
+    pub odometry_clock_offset_s: f64,
     /// Each restamped scan's stamp and the stamp of when it was taken.
     #[serde(skip)]
     pub scan_capture_times: BTreeMap<Timestamp, Timestamp>,
@@ -265,6 +272,7 @@ impl Perturbation {
             "late" => self.drop_first_share = Some(0.2),
             "noise" => self.range_noise_m = Some(0.03),
             "lag" => self.odometry_lag_s = Some(0.1),
+            "clock" => self.odometry_clock_offset_s = Some(0.02),
             "burst" | "scanburst" => {
                 self.logger_stalls = Some(LoggerStalls {
                     every_s: (10.0, 40.0),
@@ -331,7 +339,11 @@ impl Perturbation {
             (report.stalls, report.stalled_readings) =
                 stall_odometry(&stalls, &mut events, &mut rng(5));
         }
-        if let Some(lag) = self.odometry_lag_s {
+        if let Some(max) = self.odometry_clock_offset_s {
+            report.odometry_clock_offset_s = rng(7).random_range(-max..=max);
+        }
+        let lag = self.odometry_lag_s.unwrap_or(0.0) + report.odometry_clock_offset_s;
+        if lag != 0.0 {
             for event in &mut events {
                 if let SensorEvent::Odometry(reading) = event {
                     reading.time = reading.time.offset_by(lag);
@@ -690,6 +702,44 @@ mod tests {
             assert_eq!(p0, p1);
         }
         assert_eq!(scans(&lagged).len(), scans(&recording).len());
+        assert!(lagged.events.windows(2).all(|w| w[0].time() <= w[1].time()));
+    }
+
+    #[test]
+    fn clock_moves_every_odometry_stamp_by_one_offset_within_its_bound_drawn_per_seed() {
+        let recording = drive(10);
+        let clock = Perturbation::parse("clock").unwrap();
+        let offset = |seed| {
+            let (moved, report) = clock.apply(&recording, seed);
+            let stamps = |r: &Recording| -> Vec<Timestamp> {
+                r.events
+                    .iter()
+                    .filter_map(|e| match e {
+                        SensorEvent::Odometry(o) => Some(o.time),
+                        _ => None,
+                    })
+                    .collect()
+            };
+            let (before, after) = (stamps(&recording), stamps(&moved));
+            assert_eq!(before.len(), after.len());
+            for (t0, t1) in before.iter().zip(&after) {
+                assert!((t1.seconds_since(*t0) - report.odometry_clock_offset_s).abs() < 1e-6);
+            }
+            assert!(moved.events.windows(2).all(|w| w[0].time() <= w[1].time()));
+            assert_eq!(scans(&moved), scans(&recording));
+            report.odometry_clock_offset_s
+        };
+        let offsets: Vec<f64> = (1..=8).map(offset).collect();
+        assert!(offsets.iter().all(|o| o.abs() <= 0.02), "{offsets:?}");
+        assert!(
+            offsets.iter().any(|&o| o > 0.005) && offsets.iter().any(|&o| o < -0.005),
+            "{offsets:?}"
+        );
+        assert_eq!(offset(3), offsets[2]);
+        let (lagged, report) = Perturbation::parse("lag,clock")
+            .unwrap()
+            .apply(&recording, 2);
+        assert_eq!(report.odometry_clock_offset_s, offsets[1]);
         assert!(lagged.events.windows(2).all(|w| w[0].time() <= w[1].time()));
     }
 
