@@ -649,6 +649,16 @@ mod tests {
             .collect()
     }
 
+    fn odometry(r: &Recording) -> Vec<&OdometryReading> {
+        r.events
+            .iter()
+            .filter_map(|e| match e {
+                SensorEvent::Odometry(o) => Some(o),
+                _ => None,
+            })
+            .collect()
+    }
+
     fn last_odometry(r: &Recording) -> Rigid2 {
         r.events
             .iter()
@@ -686,20 +696,11 @@ mod tests {
     fn lag_stamps_every_odometry_reading_later_and_keeps_the_events_in_time_order() {
         let recording = drive(10);
         let (lagged, _) = Perturbation::parse("lag").unwrap().apply(&recording, 1);
-        let odometry = |r: &Recording| -> Vec<(Timestamp, Rigid2)> {
-            r.events
-                .iter()
-                .filter_map(|e| match e {
-                    SensorEvent::Odometry(o) => Some((o.time, o.pose)),
-                    _ => None,
-                })
-                .collect()
-        };
         let (before, after) = (odometry(&recording), odometry(&lagged));
         assert_eq!(before.len(), after.len());
-        for ((t0, p0), (t1, p1)) in before.iter().zip(&after) {
-            assert!((t1.seconds_since(*t0) - 0.1).abs() < 1e-6);
-            assert_eq!(p0, p1);
+        for (a, b) in before.iter().zip(&after) {
+            assert!((b.time.seconds_since(a.time) - 0.1).abs() < 1e-6);
+            assert_eq!(a.pose, b.pose);
         }
         assert_eq!(scans(&lagged).len(), scans(&recording).len());
         assert!(lagged.events.windows(2).all(|w| w[0].time() <= w[1].time()));
@@ -711,19 +712,12 @@ mod tests {
         let clock = Perturbation::parse("clock").unwrap();
         let offset = |seed| {
             let (moved, report) = clock.apply(&recording, seed);
-            let stamps = |r: &Recording| -> Vec<Timestamp> {
-                r.events
-                    .iter()
-                    .filter_map(|e| match e {
-                        SensorEvent::Odometry(o) => Some(o.time),
-                        _ => None,
-                    })
-                    .collect()
-            };
-            let (before, after) = (stamps(&recording), stamps(&moved));
+            let (before, after) = (odometry(&recording), odometry(&moved));
             assert_eq!(before.len(), after.len());
-            for (t0, t1) in before.iter().zip(&after) {
-                assert!((t1.seconds_since(*t0) - report.odometry_clock_offset_s).abs() < 1e-6);
+            for (a, b) in before.iter().zip(&after) {
+                assert!(
+                    (b.time.seconds_since(a.time) - report.odometry_clock_offset_s).abs() < 1e-6
+                );
             }
             assert!(moved.events.windows(2).all(|w| w[0].time() <= w[1].time()));
             assert_eq!(scans(&moved), scans(&recording));
@@ -792,15 +786,7 @@ mod tests {
                     > 0.19
         }));
         // The odometry says what it said, only later.
-        let poses = |r: &Recording| -> Vec<Rigid2> {
-            r.events
-                .iter()
-                .filter_map(|e| match e {
-                    SensorEvent::Odometry(o) => Some(o.pose),
-                    _ => None,
-                })
-                .collect()
-        };
+        let poses = |r| odometry(r).iter().map(|o| o.pose).collect::<Vec<_>>();
         assert_eq!(poses(&burst), poses(&recording));
     }
 
