@@ -5,7 +5,9 @@
 //! instead (integrated yaw rate). Without either, a constant-velocity model from matched poses is used.
 //! Velocities are only ever estimated over at least `MIN_VELOCITY_WINDOW_S`: recordings deliver
 //! messages in bursts (Intel: thousands of intervals under 5 ms), and a velocity from a 0.2 ms gap is
-//! noise. Readings that go back in time are dropped and counted.
+//! noise. Readings that go back in time are dropped and counted. An odometry stream that stalls (repeats one
+//! pose while the matched poses move) and comes back with its backlog has that backlog composed on the
+//! last pose before the stall, not counted a second time.
 
 use std::collections::VecDeque;
 
@@ -20,6 +22,13 @@ const MIN_VELOCITY_WINDOW_S: f64 = 0.05;
 const MAX_ODOMETRY_HOLD_S: f64 = 0.5;
 /// How much history is kept before the last matched pose, seconds.
 const HISTORY_S: f64 = 2.0;
+/// Matched motion while the odometry repeated one pose beyond which the robot was moving, not standing
+/// still: metres …
+const STALL_MIN_TRANSLATION_M: f64 = 0.1;
+/// … or radians (5°).
+const STALL_MIN_ROTATION_RAD: f64 = 5.0 * std::f64::consts::PI / 180.0;
+/// Shortest span the odometry's rate before a stall is measured over, seconds.
+const STALL_RATE_SPAN_S: f64 = 0.2;
 
 /// How the extrapolator predicts.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -30,12 +39,17 @@ pub struct PoseExtrapolatorOptions {
     /// odometry, one scan's error is otherwise multiplied). Why:
     /// `docs/TUNING.md#llo-min-velocity-span-per-horizon`.
     pub min_velocity_span_per_horizon: f64,
+    /// After the odometry stalled (repeated one pose while the matched poses moved) and resumed with
+    /// its backlog, compose its motion on the last pose before the stall. Default true. Why:
+    /// `docs/TUNING.md#llo-resume-from-before-a-stall`.
+    pub resume_from_before_a_stall: bool,
 }
 
 impl Default for PoseExtrapolatorOptions {
     fn default() -> Self {
         Self {
             min_velocity_span_per_horizon: 0.5,
+            resume_from_before_a_stall: true,
         }
     }
 }
@@ -152,11 +166,17 @@ impl PoseExtrapolator {
         {
             self.poses.pop_front();
         }
-        // Keep one odometry reading at or before the last pose, for interpolation.
-        while self.odometry.len() > 2 && self.odometry.get(1).is_some_and(|o| o.time <= last) {
+        // Keep one odometry reading at or before the last pose (the oldest pose kept, when a stall's backlog
+        // may be composed on a pose before it), for interpolation.
+        let keep_from = if self.options.resume_from_before_a_stall {
+            self.poses.front().map_or(last, |(t, _)| *t)
+        } else {
+            last
+        };
+        while self.odometry.len() > 2 && self.odometry.get(1).is_some_and(|o| o.time <= keep_from) {
             self.odometry.pop_front();
         }
-        while self.imu.len() > 1 && self.imu.get(1).is_some_and(|i| i.time <= last) {
+        while self.imu.len() > 1 && self.imu.get(1).is_some_and(|i| i.time <= keep_from) {
             self.imu.pop_front();
         }
     }
@@ -247,9 +267,106 @@ impl PoseExtrapolator {
         last_pose * self.constant_velocity_motion(time.seconds_since(last_time))
     }
 
+    /// The matched pose the odometry's motion up to `time` is composed on: the last one, or the last one
+    /// before a stall the stream has come back from with its backlog.
+    fn odometry_anchor(&self, time: Timestamp) -> Option<(Timestamp, Rigid2)> {
+        let last = *self.poses.back()?;
+        if !self.options.resume_from_before_a_stall {
+            return Some(last);
+        }
+        Some(self.pose_before_a_resumed_stall(last, time).unwrap_or(last))
+    }
+
+    /// The last matched pose before the odometry stalled, if the stream repeated one pose while the matched
+    /// poses up to `last` moved, has resumed by `time`, and resumed with the stall's backlog.
+    fn pose_before_a_resumed_stall(
+        &self,
+        (last_time, last_pose): (Timestamp, Rigid2),
+        time: Timestamp,
+    ) -> Option<(Timestamp, Rigid2)> {
+        let frozen = self.odometry_at(last_time)?;
+        if self.odometry_at(time)? == frozen {
+            // Still stalled, or standing still: nothing has come back to count twice.
+            return None;
+        }
+        let mut first_frozen = (last_time, last_pose);
+        let mut before = None;
+        for &(t, pose) in self.poses.iter().rev().skip(1) {
+            if self.odometry_at(t)? != frozen {
+                before = Some((t, pose));
+                break;
+            }
+            first_frozen = (t, pose);
+        }
+        let before = before?;
+        let arrived = self
+            .odometry
+            .iter()
+            .any(|o| o.time > first_frozen.0 && o.time <= last_time);
+        let moved = first_frozen.1.inverse() * last_pose;
+        let moving = moved.translation.vector.norm() > STALL_MIN_TRANSLATION_M
+            || normalize_angle(moved.theta()).abs() > STALL_MIN_ROTATION_RAD;
+        (arrived && moving && self.resumed_with_a_backlog(last_time, frozen)).then_some(before)
+    }
+
+    /// Whether the stream, frozen at `frozen` at `last_time`, came back carrying the motion of its stall
+    /// rather than having lost it: a stalled driver either delivers the ticks it held back or drops them.
+    /// The jump of the first reading off `frozen` is judged against the stream's own rate before the stall,
+    /// carried over the stall and that reading's step (held back) or over the step alone (dropped),
+    /// whichever it is nearer (metres plus radians). `false` where the rate cannot be measured.
+    fn resumed_with_a_backlog(&self, last_time: Timestamp, frozen: Rigid2) -> bool {
+        let Some(r) = self
+            .odometry
+            .iter()
+            .position(|o| o.time > last_time && o.pose != frozen)
+        else {
+            return false;
+        };
+        let Some(last_frozen) = r.checked_sub(1).map(|k| &self.odometry[k]) else {
+            return false;
+        };
+        if last_frozen.pose != frozen {
+            return false;
+        }
+        let first = self
+            .odometry
+            .iter()
+            .take(r)
+            .rposition(|o| o.pose != frozen)
+            .map_or(0, |k| k + 1);
+        let (resumed, stall_start) = (&self.odometry[r], &self.odometry[first]);
+        let Some(rate_from) = self
+            .odometry
+            .iter()
+            .take(first)
+            .rev()
+            .find(|o| stall_start.time.seconds_since(o.time) >= STALL_RATE_SPAN_S)
+            .or_else(|| self.odometry.front().filter(|o| o.time < stall_start.time))
+        else {
+            return false;
+        };
+        let span = stall_start.time.seconds_since(rate_from.time);
+        let rate = rate_from.pose.inverse() * stall_start.pose;
+        let at_rate = |seconds: f64| {
+            let k = seconds / span;
+            rigid2(
+                rate.x() * k,
+                rate.y() * k,
+                normalize_angle(rate.theta()) * k,
+            )
+        };
+        let jump = frozen.inverse() * resumed.pose;
+        let gap = |expected: Rigid2| {
+            let d = expected.inverse() * jump;
+            d.translation.vector.norm() + normalize_angle(d.theta()).abs()
+        };
+        gap(at_rate(resumed.time.seconds_since(stall_start.time)))
+            < gap(at_rate(resumed.time.seconds_since(last_frozen.time)))
+    }
+
     /// Predicted `local_from_tracking` at `time` (identity before the first matched pose).
     pub fn extrapolate(&self, time: Timestamp) -> Rigid2 {
-        let Some(&(last_time, last_pose)) = self.poses.back() else {
+        let Some((last_time, last_pose)) = self.odometry_anchor(time) else {
             return Rigid2::identity();
         };
         let mut motion = match (self.odometry_at(last_time), self.odometry_at(time)) {
@@ -289,6 +406,85 @@ mod tests {
         assert_relative_eq!(
             e.extrapolate(s(0.5)),
             rigid2(10.0, 0.5, std::f64::consts::FRAC_PI_2),
+            epsilon = 1e-9
+        );
+    }
+
+    /// Turning at 1 rad/s, scans every 0.2 s matched right up to 0.8 s; the odometry stream repeats its
+    /// pose from 0.3 s to 0.9 s, then (unless `until` stops it first) its reading at 1.0 s says `resumed`.
+    fn stalled_turn(resume: bool, until: u32, resumed: f64) -> PoseExtrapolator {
+        let mut e = PoseExtrapolator::with_options(PoseExtrapolatorOptions {
+            resume_from_before_a_stall: resume,
+            ..PoseExtrapolatorOptions::default()
+        });
+        for k in 0..=until {
+            let t = 0.1 * f64::from(k);
+            let reported = match k {
+                3..=9 => 0.3,
+                10 => resumed,
+                _ => t,
+            };
+            e.add_odometry(&OdometryReading {
+                time: s(t),
+                pose: rigid2(0.0, 0.0, reported),
+            });
+            if k % 2 == 0 && k < 10 {
+                e.add_pose(s(t), rigid2(0.0, 0.0, t));
+            }
+        }
+        e
+    }
+
+    #[test]
+    fn a_stalled_streams_backlog_is_composed_on_the_pose_before_the_stall() {
+        // The reading at 1.0 s carries the backlog: the whole turn since 0.3 s.
+        let e = stalled_turn(true, 10, 1.0);
+        assert_relative_eq!(e.extrapolate(s(1.0)), rigid2(0.0, 0.0, 1.0), epsilon = 1e-9);
+        // Composed on the last matched pose, the backlog counts the stall's turn twice.
+        let counted_twice = stalled_turn(false, 10, 1.0);
+        assert_relative_eq!(
+            counted_twice.extrapolate(s(1.0)).theta(),
+            1.5,
+            epsilon = 1e-9
+        );
+    }
+
+    #[test]
+    fn a_stall_that_lost_its_ticks_is_composed_on_the_last_pose() {
+        // The driver dropped the ticks of the stall: 0.1 rad after it, not the 0.7 of the turn since 0.3 s.
+        let e = stalled_turn(true, 10, 0.4);
+        assert_relative_eq!(e.extrapolate(s(1.0)), rigid2(0.0, 0.0, 0.9), epsilon = 1e-9);
+    }
+
+    #[test]
+    fn a_stream_still_stalled_predicts_from_the_last_pose() {
+        // Nothing has come back yet: the prediction is not pulled back to before the stall.
+        let e = stalled_turn(true, 9, 0.0);
+        assert_relative_eq!(e.extrapolate(s(0.9)), rigid2(0.0, 0.0, 0.8), epsilon = 1e-9);
+    }
+
+    #[test]
+    fn a_robot_standing_still_is_not_a_stall() {
+        let mut e = PoseExtrapolator::new();
+        for k in 0..=10 {
+            let t = 0.1 * f64::from(k);
+            let x = match k {
+                0..=2 => t,
+                10 => 0.35,
+                _ => 0.3,
+            };
+            e.add_odometry(&OdometryReading {
+                time: s(t),
+                pose: rigid2(x, 0.0, 0.0),
+            });
+            if k % 2 == 0 && k < 10 {
+                // LLO sees the robot stop 2 cm short of where the odometry says.
+                e.add_pose(s(t), rigid2(x.min(0.28), 0.0, 0.0));
+            }
+        }
+        assert_relative_eq!(
+            e.extrapolate(s(1.0)),
+            rigid2(0.33, 0.0, 0.0),
             epsilon = 1e-9
         );
     }
@@ -351,9 +547,11 @@ mod tests {
         // last 0.3 s, by 20°.
         let mut e = PoseExtrapolator::with_options(PoseExtrapolatorOptions {
             min_velocity_span_per_horizon: 0.5,
+            ..PoseExtrapolatorOptions::default()
         });
         let mut plain = PoseExtrapolator::with_options(PoseExtrapolatorOptions {
             min_velocity_span_per_horizon: 0.0,
+            ..PoseExtrapolatorOptions::default()
         });
         for k in 0..=10 {
             let pose = rigid2(0.1 * f64::from(k), 0.0, 0.0);
