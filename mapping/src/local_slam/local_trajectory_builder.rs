@@ -920,7 +920,7 @@ mod tests {
             insert_recovered_scans: true,
             pose_extrapolator: PoseExtrapolatorOptions {
                 min_velocity_span_per_horizon: 0.0,
-                resume_from_before_a_stall: false,
+                ..PoseExtrapolatorOptions::default()
             },
             ..LocalTrajectoryBuilderOptions::default()
         }

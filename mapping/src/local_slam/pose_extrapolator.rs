@@ -5,9 +5,9 @@
 //! instead (integrated yaw rate). Without either, a constant-velocity model from matched poses is used.
 //! Velocities are only ever estimated over at least `MIN_VELOCITY_WINDOW_S`: recordings deliver
 //! messages in bursts (Intel: thousands of intervals under 5 ms), and a velocity from a 0.2 ms gap is
-//! noise. Readings that go back in time are dropped and counted. An odometry stream that stalls (repeats one
-//! pose while the matched poses move) and comes back with its backlog has that backlog composed on the
-//! last pose before the stall, not counted a second time.
+//! noise. Readings that go back in time are dropped and counted. With `resume_from_before_a_stall`, an
+//! odometry stream that stalls (repeats one pose while the matched poses move) and comes back with its
+//! backlog has that backlog composed on the last pose before the stall, not counted a second time.
 
 use std::collections::VecDeque;
 
@@ -40,7 +40,8 @@ pub struct PoseExtrapolatorOptions {
     /// `docs/TUNING.md#llo-min-velocity-span-per-horizon`.
     pub min_velocity_span_per_horizon: f64,
     /// After the odometry stalled (repeated one pose while the matched poses moved) and resumed with
-    /// its backlog, compose its motion on the last pose before the stall. Default true. Why:
+    /// its backlog, compose its motion on the last pose before the stall. Default false (measured, not
+    /// a default). Why:
     /// `docs/TUNING.md#llo-resume-from-before-a-stall`.
     pub resume_from_before_a_stall: bool,
 }
@@ -49,7 +50,7 @@ impl Default for PoseExtrapolatorOptions {
     fn default() -> Self {
         Self {
             min_velocity_span_per_horizon: 0.5,
-            resume_from_before_a_stall: true,
+            resume_from_before_a_stall: false,
         }
     }
 }
@@ -465,7 +466,10 @@ mod tests {
 
     #[test]
     fn a_robot_standing_still_is_not_a_stall() {
-        let mut e = PoseExtrapolator::new();
+        let mut e = PoseExtrapolator::with_options(PoseExtrapolatorOptions {
+            resume_from_before_a_stall: true,
+            ..PoseExtrapolatorOptions::default()
+        });
         for k in 0..=10 {
             let t = 0.1 * f64::from(k);
             let x = match k {
