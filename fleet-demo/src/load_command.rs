@@ -205,45 +205,14 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
     );
 
     // 2. LLO and the session start of every cleaning session, ahead of time.
-    eprintln!(
-        "phase 2/3: LLO of the cleaning sessions of {} robots ahead of time",
-        fleet.robots.len()
-    );
-    let prepare_started = Instant::now();
     let session_plan = session_lengths(args.duration_s, args.session_s);
-    // The maturing sessions come first, on the robots' earlier days, as long as the measured ones.
-    let lengths: Vec<f64> = std::iter::repeat_n(session_plan[0], args.mature_sessions)
-        .chain(session_plan.iter().copied())
-        .collect();
-    let Prepared {
-        sessions: mut prepared,
+    let CleaningSessions {
+        measured: prepared,
+        maturing,
         glm_matches,
-    } = prepare_sessions(
-        &fleet.robots,
-        &worlds,
-        &lengths,
-        args.agents.div_ceil(args.sites),
-        args.glm_on_server,
-    )
-    .await?;
-    let maturing: Vec<Vec<PreparedSession>> = prepared
-        .iter_mut()
-        .map(|sessions| sessions.drain(..args.mature_sessions).collect())
-        .collect();
-    let sessions = || prepared.iter().flatten();
-    let placed = sessions().filter(|p| p.prior.is_some()).count();
-    let data_seconds: f64 = sessions().map(|p| p.duration_s).sum();
-    eprintln!(
-        "  prepared in {:.0} s: {} nodes, {placed}/{} sessions placed at their start, {}",
-        prepare_started.elapsed().as_secs_f64(),
-        sessions().map(|p| p.steps.len()).sum::<usize>(),
-        sessions().count(),
-        if args.glm_on_server {
-            "GLM on the server".to_owned()
-        } else {
-            format!("{glm_matches} GLM matches found on the robots")
-        }
-    );
+        placed,
+        data_seconds,
+    } = prepare_cleaning_sessions(args, &fleet, &worlds, &session_plan).await?;
 
     // 2b. Not measured: the sites mature.
     let maturing_growth = if args.mature_sessions > 0 {
@@ -263,20 +232,7 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
     // Validated in `run`: 10..=3600 s of robot time at 0.1..=20× real time.
     let measured_wall =
         Duration::try_from_secs_f64(args.duration_s / args.speed).unwrap_or(Duration::ZERO);
-    let idle_probes = (!fleet.idle_sites.is_empty() && args.idle_probes > 0).then(|| {
-        let handles: BTreeMap<String, server::site::SiteHandle> = fleet
-            .idle_sites
-            .iter()
-            .filter_map(|s| Some((s.id.clone(), fleet.server.site(&s.id)?.clone())))
-            .collect();
-        tokio::spawn(idle_sites::probe_idle_sites(
-            fleet.url.clone(),
-            fleet.idle_sites.clone(),
-            args.idle_probes,
-            measured_wall / u32::try_from(args.idle_probes + 1).unwrap_or(u32::MAX),
-            move |site| handles.get(site).is_some_and(|h| !h.is_loaded()),
-        ))
-    });
+    let idle_probes = spawn_idle_probes(args, &fleet, measured_wall);
     let window = stream_measured(args, &mut fleet, prepared).await?;
     let idle_probes = match idle_probes {
         Some(task) => task.await.context("idle probes task")??,
@@ -345,6 +301,97 @@ async fn load(args: &LoadArgs) -> anyhow::Result<()> {
     fleet.server.shutdown().await?;
     print_summary(args, &report, &path);
     Ok(())
+}
+
+/// The cleaning sessions of every robot, simulated with LLO and their session start ahead of time.
+struct CleaningSessions {
+    /// Per robot, the sessions streamed in the measured phase.
+    measured: Vec<Vec<PreparedSession>>,
+    /// Per robot, the maturing sessions streamed before it (not measured).
+    maturing: Vec<Vec<PreparedSession>>,
+    /// GLM matches the robots found ahead of time.
+    glm_matches: u64,
+    /// Measured sessions placed at their start.
+    placed: usize,
+    /// Robot time of the measured sessions, seconds.
+    data_seconds: f64,
+}
+
+/// Phase 2: LLO and the session start of every robot's sessions (`--mature-sessions` maturing ones on
+/// the robots' earlier days, as long as the measured ones, then `session_plan`), ahead of time.
+async fn prepare_cleaning_sessions(
+    args: &LoadArgs,
+    fleet: &Fleet,
+    worlds: &[Store],
+    session_plan: &[f64],
+) -> anyhow::Result<CleaningSessions> {
+    eprintln!(
+        "phase 2/3: LLO of the cleaning sessions of {} robots ahead of time",
+        fleet.robots.len()
+    );
+    let prepare_started = Instant::now();
+    let lengths: Vec<f64> = std::iter::repeat_n(session_plan[0], args.mature_sessions)
+        .chain(session_plan.iter().copied())
+        .collect();
+    let Prepared {
+        sessions: mut prepared,
+        glm_matches,
+    } = prepare_sessions(
+        &fleet.robots,
+        worlds,
+        &lengths,
+        args.agents.div_ceil(args.sites),
+        args.glm_on_server,
+    )
+    .await?;
+    let maturing: Vec<Vec<PreparedSession>> = prepared
+        .iter_mut()
+        .map(|sessions| sessions.drain(..args.mature_sessions).collect())
+        .collect();
+    let sessions = || prepared.iter().flatten();
+    let placed = sessions().filter(|p| p.prior.is_some()).count();
+    let data_seconds: f64 = sessions().map(|p| p.duration_s).sum();
+    eprintln!(
+        "  prepared in {:.0} s: {} nodes, {placed}/{} sessions placed at their start, {}",
+        prepare_started.elapsed().as_secs_f64(),
+        sessions().map(|p| p.steps.len()).sum::<usize>(),
+        sessions().count(),
+        if args.glm_on_server {
+            "GLM on the server".to_owned()
+        } else {
+            format!("{glm_matches} GLM matches found on the robots")
+        }
+    );
+    Ok(CleaningSessions {
+        measured: prepared,
+        maturing,
+        glm_matches,
+        placed,
+        data_seconds,
+    })
+}
+
+/// With `--idle-store` and `--idle-probes`, the task that probes the idle sites over the measured
+/// phase (`measured_wall` of wall time), each probe noting whether its site was unloaded.
+fn spawn_idle_probes(
+    args: &LoadArgs,
+    fleet: &Fleet,
+    measured_wall: Duration,
+) -> Option<tokio::task::JoinHandle<anyhow::Result<Vec<IdleProbe>>>> {
+    (!fleet.idle_sites.is_empty() && args.idle_probes > 0).then(|| {
+        let handles: BTreeMap<String, server::site::SiteHandle> = fleet
+            .idle_sites
+            .iter()
+            .filter_map(|s| Some((s.id.clone(), fleet.server.site(&s.id)?.clone())))
+            .collect();
+        tokio::spawn(idle_sites::probe_idle_sites(
+            fleet.url.clone(),
+            fleet.idle_sites.clone(),
+            args.idle_probes,
+            measured_wall / u32::try_from(args.idle_probes + 1).unwrap_or(u32::MAX),
+            move |site| handles.get(site).is_some_and(|h| !h.is_loaded()),
+        ))
+    })
 }
 
 /// Site 0's robot last seen halfway through the site's life (its session count then half of what it is

@@ -23,7 +23,7 @@ use std::sync::mpsc;
 use mapping::geometry::Rigid2;
 use mapping::grid::ProbabilityGrid;
 use mapping::lifelong::LifelongMap;
-use mapping::local_slam::{LloDriver, LloEvent, LocalTrajectoryBuilder};
+use mapping::local_slam::LocalTrajectoryBuilder;
 use mapping::pose_graph::NodeId;
 use mapping::sensor::{RangeData, ScanBacklog, ScanStamps, SensorEvent, Timestamp};
 
@@ -32,12 +32,14 @@ use crate::source::Recording;
 
 mod act_on_start;
 mod map_worker;
+mod session_feed;
 mod session_record;
 mod session_summary;
 mod sessions_config;
 mod sessions_error;
 
-use map_worker::{Message, WorkerOutput, worker};
+use map_worker::{Message, worker};
+use session_feed::SessionFeed;
 pub use session_record::SessionRecord;
 pub use session_summary::{
     DockCheckFigures, OptimizationFigures, ProbationStepFigures, SearchFigures, SessionSummary,
@@ -218,133 +220,22 @@ pub fn run_session_inputs(
             })
             .map_err(SessionsError::Spawn)?;
 
-        let mut anchors: Vec<(u32, ScanAnchor)> = Vec::new();
-        let mut session_anchors: Vec<ScanAnchor> = Vec::new();
-        let mut node_data: BTreeMap<NodeId, (Rigid2, RangeData)> = BTreeMap::new();
-        let mut scans_per_session: Vec<usize> = Vec::new();
-        let mut boundaries: Vec<Timestamp> = Vec::new();
-        let mut data_duration_s = 0.0;
-        let mut scans_done = 0;
+        let mut feed = SessionFeed::default();
         let send = |m: Message| sender.send(m).is_ok();
         for (session, input) in inputs.enumerate() {
             let session = u32::try_from(session)
                 .map_err(|_| SessionsError::Config("too many sessions".into()))?;
-            let (Some(first), Some(last)) = (input.events.first(), input.events.last()) else {
-                // An empty session still exists (its id is used) but adds nothing.
-                scans_per_session.push(0);
-                boundaries.push(boundaries.last().copied().unwrap_or_default());
-                continue;
-            };
-            boundaries.push(first.time());
-            data_duration_s += last.time().seconds_since(first.time());
-            let mut scans = 0usize;
-            let mut llo = LloDriver::new(config.local.clone());
-            let mut next_index = 0u32;
-            let mut last_node: Option<NodeId> = None;
-            let mut alive = send(Message::Start {
-                session,
-                start_time: first.time(),
-                from_dock: input.from_dock,
-            });
-            for event in mapping::sensor::collate_for_llo(&input.events) {
-                if matches!(event, SensorEvent::Scan(_)) {
-                    scans_done += 1;
-                    scans += 1;
-                }
-                let LloEvent::ScanMatched {
-                    result, range_data, ..
-                } = llo.add_event(event, &input.base_from_laser)
-                else {
-                    continue;
-                };
-                if let Some(insertion) = result.insertion {
-                    let id = NodeId {
-                        trajectory: session,
-                        index: next_index,
-                    };
-                    next_index += 1;
-                    last_node = Some(id);
-                    node_data.insert(id, (result.local_pose, range_data));
-                    let message = Message::Node {
-                        session,
-                        node: insertion.into_llo_node(),
-                    };
-                    alive = alive && send(message);
-                    if !alive {
-                        break;
-                    }
-                }
-                let anchor = ScanAnchor {
-                    time: result.time,
-                    local_pose: result.local_pose,
-                    node: last_node,
-                };
-                anchors.push((session, anchor));
-                session_anchors.push(anchor);
-                if scans_done % 64 == 0 {
-                    progress(scans_done);
-                }
-            }
-            scans_per_session.push(scans);
-            alive = alive
-                && send(Message::Finish {
-                    session,
-                    active_submaps: active_grids(llo.builder()),
-                    scans: std::mem::take(&mut session_anchors),
-                });
-            if !alive {
+            if !feed.feed(session, &input, config, &send, progress) {
                 // The worker stopped; its error is reported by `join` below.
                 break;
             }
         }
-        progress(scans_done);
+        progress(feed.scans_done);
         drop(sender);
         let output = worker
             .join()
             .map_err(|_| SessionsError::Worker("the lifelong map thread panicked".into()))??;
-        let WorkerOutput {
-            map,
-            mut sessions,
-            retired,
-            records,
-            probe_poses,
-        } = output;
-
-        // Last known global pose of every node: the final map, else its pose when it was trimmed.
-        let mut node_pose: BTreeMap<NodeId, Rigid2> = retired;
-        for (id, _, pose) in map.node_poses() {
-            node_pose.insert(id, pose);
-        }
-        let scan_pose = |poses: &BTreeMap<NodeId, Rigid2>, a: &ScanAnchor| {
-            let node = a.node?;
-            let global = poses.get(&node)?;
-            let (local, _) = node_data.get(&node)?;
-            Some((a.time, global * local.inverse() * a.local_pose))
-        };
-        let scan_poses = anchors
-            .iter()
-            .filter_map(|(_, a)| scan_pose(&node_pose, a))
-            .collect();
-        for summary in &mut sessions {
-            let k = summary.session as usize;
-            summary.start_time = boundaries[k];
-            summary.scans = scans_per_session[k];
-        }
-        let node_range_data = node_data
-            .into_iter()
-            .filter_map(|(id, (_, data))| Some((id, (*node_pose.get(&id)?, data))))
-            .collect();
-        Ok(SessionsRun {
-            scan_poses,
-            boundaries,
-            sessions,
-            map,
-            node_range_data,
-            data_duration_s,
-            records,
-            probe_poses,
-            scans_retimed: 0,
-        })
+        Ok(feed.into_run(output))
     })
 }
 

@@ -4,6 +4,7 @@ mod closure_acceptance;
 mod correction_probation;
 mod global_slam_state;
 mod match_decision;
+mod node_insertion;
 mod optimization;
 mod search_queue;
 mod submap_bend;
@@ -25,8 +26,8 @@ use crate::geometry::Rigid2;
 use crate::grid::ProbabilityGrid;
 use crate::local_slam::LloNode;
 use crate::pose_graph::{
-    Constraint, ConstraintId, ConstraintKind, NodeId, OptimizationSummary, Optimizer, PoseGraph,
-    PoseGraphError, RobustLoss, SubmapId, VariableId,
+    Constraint, ConstraintId, NodeId, OptimizationSummary, Optimizer, PoseGraph, PoseGraphError,
+    SubmapId, VariableId,
 };
 use crate::sensor::Timestamp;
 pub use correction_probation::CorrectionProbation;
@@ -297,91 +298,16 @@ impl GlobalSlam {
                 .map_err(graph_error)?;
         }
 
-        let path_m = self
-            .last_node
-            .get(&trajectory)
-            .and_then(|p| self.nodes.get(p))
-            .map_or(0.0, |previous| {
-                previous.path_m
-                    + (local_pose.translation.vector - previous.local_pose.translation.vector)
-                        .norm()
-            });
-        let mut node_submaps = Vec::with_capacity(insertion_submaps.len());
-        for &(submap_index, local_from_submap) in &insertion_submaps {
-            let sid = SubmapId {
-                trajectory,
-                index: submap_index as u32,
-            };
-            if !self.submaps.contains_key(&sid) {
-                self.graph
-                    .add_variable(
-                        VariableId::Submap(sid),
-                        global_from_local * local_from_submap,
-                    )
-                    .map_err(graph_error)?;
-                self.submaps.insert(
-                    sid,
-                    SubmapRecord {
-                        local_pose: local_from_submap,
-                        grid: None,
-                        nodes: Vec::new(),
-                    },
-                );
-                self.samplers.insert(
-                    sid,
-                    FixedRatioSampler::new(self.options.constraint_builder.sampling_ratio),
-                );
-                events.push(GlobalSlamEvent::SubmapAdded(sid));
-            }
-            let Some(submap) = self.submaps.get_mut(&sid) else {
-                continue;
-            };
-            // LLO drifted over the path from the submap's first node to this one, and the graph holds the
-            // submap rigid: the farther along, the less the node's pose in it says about the world.
-            let span_m = submap
-                .nodes
-                .first()
-                .and_then(|n| self.nodes.get(n))
-                .map_or(0.0, |first| (path_m - first.path_m).abs());
-            let intra_information = submap_bend::intra_submap_information(
-                &self.options,
-                self.bent_submaps.get(&sid).copied(),
-                span_m,
-            );
-            submap.nodes.push(id);
-            self.graph
-                .add_constraint(Constraint {
-                    kind: ConstraintKind::NodeToSubmapIntra,
-                    from: VariableId::Submap(sid),
-                    to: VariableId::Node(id),
-                    from_from_to: submap.local_pose.inverse() * local_pose,
-                    information: intra_information,
-                    loss: RobustLoss::Trivial,
-                })
-                .map_err(graph_error)?;
-            node_submaps.push(sid);
-        }
-
-        if let Some(previous) = self
-            .last_node
-            .get(&trajectory)
-            .and_then(|p| self.nodes.get(p).map(|r| (*p, r)))
-        {
-            let (previous_id, previous_record) = previous;
-            self.graph
-                .add_constraint(Constraint {
-                    kind: ConstraintKind::Odometry,
-                    from: VariableId::Node(previous_id),
-                    to: VariableId::Node(id),
-                    from_from_to: previous_record.local_pose.inverse() * local_pose,
-                    information: information(
-                        self.options.odometry_translation_sigma,
-                        self.options.odometry_rotation_sigma,
-                    ),
-                    loss: RobustLoss::Trivial,
-                })
-                .map_err(graph_error)?;
-        }
+        let path_m = self.path_m_at(trajectory, &local_pose);
+        let node_submaps = self.insert_into_submaps(
+            id,
+            local_pose,
+            path_m,
+            global_from_local,
+            &insertion_submaps,
+            &mut events,
+        )?;
+        self.add_odometry_constraint(id, local_pose)?;
         self.nodes.insert(
             id,
             NodeRecord {

@@ -185,7 +185,7 @@ impl Optimizer {
             summary.termination = Termination::Failed(FailureReason::SymbolicFactorization);
             return summary;
         }
-        let (termination, cost, chi2, iterations, accepted) = levenberg_marquardt(
+        let (termination, progress) = levenberg_marquardt(
             &self.options,
             &mut problem,
             &mut factorization,
@@ -194,10 +194,10 @@ impl Optimizer {
         );
         summary.termination = termination;
         summary.pruned_constraints = problem.edges.iter().filter(|e| !e.active).count();
-        summary.final_cost = cost;
-        summary.final_chi2 = chi2;
-        summary.iterations = iterations;
-        summary.accepted_steps = accepted;
+        summary.final_cost = progress.cost;
+        summary.final_chi2 = progress.chi2;
+        summary.iterations = progress.iterations;
+        summary.accepted_steps = progress.accepted;
         summary.factor_nonzeros = factorization
             .solver
             .as_ref()
@@ -487,162 +487,195 @@ fn retract(pose: &Vector3<f64>, dx: f64, dy: f64, dtheta: f64) -> Vector3<f64> {
     )
 }
 
-/// The Levenberg–Marquardt loop; returns (termination, cost, χ², iterations, accepted steps).
+/// Where the Levenberg–Marquardt loop stands: the cost and χ² at the current poses, the iterations
+/// made and the steps accepted.
+struct LmProgress {
+    cost: f64,
+    chi2: f64,
+    iterations: usize,
+    accepted: usize,
+}
+
+/// What one damped step did.
+enum StepOutcome {
+    /// Taken: the cost fell by `rho` times the model's prediction.
+    Accepted { rho: f64 },
+    /// Not taken (no decrease, or the damped system had no finite solution): damp harder.
+    Rejected,
+    /// The loop is done: the step or the decrease is below its tolerance.
+    Converged(ConvergenceCriterion),
+}
+
+/// The Levenberg–Marquardt loop: relinearize after each accepted step, damp harder after each rejected
+/// one, until a tolerance, the iteration limit or the damping limit ends it.
 fn levenberg_marquardt(
     options: &OptimizerOptions,
     problem: &mut Problem,
     factorization: &mut Factorization<'_>,
     work: &mut Work<'_>,
     initial_cost: f64,
-) -> (Termination, f64, f64, usize, usize) {
+) -> (Termination, LmProgress) {
     let n = factorization.solver().pattern().dim();
     work.gradient.resize(n, 0.0);
     work.step.resize(n, 0.0);
     work.damping_diagonal.resize(n, 0.0);
     let mut candidate = problem.poses.clone();
 
-    let mut cost = initial_cost;
-    let mut chi2 = problem.cost_and_chi2(&problem.poses).1;
+    let mut progress = LmProgress {
+        cost: initial_cost,
+        chi2: problem.cost_and_chi2(&problem.poses).1,
+        iterations: 0,
+        accepted: 0,
+    };
     let mut lambda = options.initial_lambda;
     let mut nu = 2.0;
-    let mut iterations = 0;
-    let mut accepted = 0;
     let mut relinearize = true;
     loop {
         if relinearize {
-            // The active set follows the poses; a changed set means a new pattern (and ordering).
-            if problem.update_active(options.prune_weight)
-                && factorization.prepare(problem).is_none()
-            {
-                return (
-                    Termination::Failed(FailureReason::SymbolicFactorization),
-                    cost,
-                    chi2,
-                    iterations,
-                    accepted,
-                );
-            }
-            let nnz = factorization.solver().pattern().nnz();
-            work.hessian.resize(nnz, 0.0);
-            work.damped.resize(nnz, 0.0);
-            let solver = factorization.solver();
-            problem.linearize(solver.pattern(), work.hessian, work.gradient);
-            if work
-                .gradient
-                .iter()
-                .all(|g| g.abs() <= options.gradient_tolerance)
-            {
-                return (
-                    Termination::Converged(ConvergenceCriterion::GradientTolerance),
-                    cost,
-                    chi2,
-                    iterations,
-                    accepted,
-                );
-            }
-            for (d, &offset) in work
-                .damping_diagonal
-                .iter_mut()
-                .zip(solver.pattern().diagonal_offsets())
-            {
-                *d = work.hessian[offset].clamp(options.min_diagonal, options.max_diagonal);
+            if let Some(termination) = linearize(options, problem, factorization, work) {
+                return (termination, progress);
             }
             relinearize = false;
         }
-        if iterations >= options.max_iterations {
-            return (Termination::MaxIterations, cost, chi2, iterations, accepted);
+        if progress.iterations >= options.max_iterations {
+            return (Termination::MaxIterations, progress);
         }
         if lambda > options.max_lambda {
             return (
                 Termination::Failed(FailureReason::DampingExhausted),
-                cost,
-                chi2,
-                iterations,
-                accepted,
+                progress,
             );
         }
-        iterations += 1;
-
-        let solver = factorization.solver();
-        work.damped.copy_from_slice(work.hessian);
-        for (&offset, &d) in solver
-            .pattern()
-            .diagonal_offsets()
-            .iter()
-            .zip(work.damping_diagonal.iter())
-        {
-            work.damped[offset] += lambda * d;
-        }
-        for (s, g) in work.step.iter_mut().zip(work.gradient.iter()) {
-            *s = -g;
-        }
-        let solved = solver.solve(work.damped, work.step);
-        let step_ok = match solved {
-            Ok(()) => work.step.iter().all(|s| s.is_finite()),
-            Err(LinearSystemError::NotPositiveDefinite(_) | LinearSystemError::Symbolic(_)) => {
-                false
+        progress.iterations += 1;
+        match damped_step(
+            options,
+            problem,
+            factorization,
+            work,
+            &mut candidate,
+            lambda,
+            &mut progress,
+        ) {
+            StepOutcome::Converged(criterion) => {
+                return (Termination::Converged(criterion), progress);
             }
-        };
-        if step_ok {
-            let step_norm = work.step.iter().map(|s| s * s).sum::<f64>().sqrt();
-            let x_norm = problem.free_norm();
-            if step_norm <= options.parameter_tolerance * (x_norm + options.parameter_tolerance) {
-                return (
-                    Termination::Converged(ConvergenceCriterion::ParameterTolerance),
-                    cost,
-                    chi2,
-                    iterations,
-                    accepted,
-                );
-            }
-            problem.apply_step(work.step, &mut candidate);
-            let (new_cost, new_chi2) = problem.cost_and_chi2(&candidate);
-            // Predicted decrease of the (weighted) quadratic model: −gᵀh + λ hᵀDh.
-            let predicted: f64 = work
-                .step
-                .iter()
-                .zip(work.gradient.iter())
-                .zip(work.damping_diagonal.iter())
-                .map(|((h, g), d)| -g * h + lambda * d * h * h)
-                .sum();
-            let actual = cost - new_cost;
-            if new_cost.is_finite() && actual > 0.0 && predicted > 0.0 {
-                let rho = actual / predicted;
-                std::mem::swap(&mut problem.poses, &mut candidate);
-                accepted += 1;
-                let old_cost = cost;
-                cost = new_cost;
-                chi2 = new_chi2;
+            StepOutcome::Accepted { rho } => {
                 lambda *= (1.0 - (2.0 * rho - 1.0).powi(3)).max(1.0 / 3.0);
                 nu = 2.0;
-                if actual <= options.function_tolerance * old_cost {
-                    return (
-                        Termination::Converged(ConvergenceCriterion::FunctionTolerance),
-                        cost,
-                        chi2,
-                        iterations,
-                        accepted,
-                    );
-                }
                 relinearize = true;
-                continue;
             }
-            // Neither the model nor the cost can decrease by more than the tolerance: round-off level.
-            if predicted <= options.function_tolerance * cost
-                && actual.abs() <= options.function_tolerance * cost
-            {
-                return (
-                    Termination::Converged(ConvergenceCriterion::FunctionTolerance),
-                    cost,
-                    chi2,
-                    iterations,
-                    accepted,
-                );
+            StepOutcome::Rejected => {
+                lambda *= nu;
+                nu *= 2.0;
             }
         }
-        lambda *= nu;
-        nu *= 2.0;
     }
+}
+
+/// Linearizes the problem at its poses into `work` (a new sparsity pattern when the active constraints
+/// changed) and sets the damping diagonal. `Some` ends the loop: the pattern could not be factorized, or
+/// the gradient is already within tolerance.
+fn linearize(
+    options: &OptimizerOptions,
+    problem: &mut Problem,
+    factorization: &mut Factorization<'_>,
+    work: &mut Work<'_>,
+) -> Option<Termination> {
+    // The active set follows the poses; a changed set means a new pattern (and ordering).
+    if problem.update_active(options.prune_weight) && factorization.prepare(problem).is_none() {
+        return Some(Termination::Failed(FailureReason::SymbolicFactorization));
+    }
+    let nnz = factorization.solver().pattern().nnz();
+    work.hessian.resize(nnz, 0.0);
+    work.damped.resize(nnz, 0.0);
+    let solver = factorization.solver();
+    problem.linearize(solver.pattern(), work.hessian, work.gradient);
+    if work
+        .gradient
+        .iter()
+        .all(|g| g.abs() <= options.gradient_tolerance)
+    {
+        return Some(Termination::Converged(
+            ConvergenceCriterion::GradientTolerance,
+        ));
+    }
+    for (d, &offset) in work
+        .damping_diagonal
+        .iter_mut()
+        .zip(solver.pattern().diagonal_offsets())
+    {
+        *d = work.hessian[offset].clamp(options.min_diagonal, options.max_diagonal);
+    }
+    None
+}
+
+/// Solves the system damped by `lambda`, tries the step on `candidate` and, if the cost falls, takes it
+/// (the poses, cost and χ² in `progress`).
+fn damped_step(
+    options: &OptimizerOptions,
+    problem: &mut Problem,
+    factorization: &mut Factorization<'_>,
+    work: &mut Work<'_>,
+    candidate: &mut Vec<Vector3<f64>>,
+    lambda: f64,
+    progress: &mut LmProgress,
+) -> StepOutcome {
+    let solver = factorization.solver();
+    work.damped.copy_from_slice(work.hessian);
+    for (&offset, &d) in solver
+        .pattern()
+        .diagonal_offsets()
+        .iter()
+        .zip(work.damping_diagonal.iter())
+    {
+        work.damped[offset] += lambda * d;
+    }
+    for (s, g) in work.step.iter_mut().zip(work.gradient.iter()) {
+        *s = -g;
+    }
+    let step_ok = match solver.solve(work.damped, work.step) {
+        Ok(()) => work.step.iter().all(|s| s.is_finite()),
+        Err(LinearSystemError::NotPositiveDefinite(_) | LinearSystemError::Symbolic(_)) => false,
+    };
+    if !step_ok {
+        return StepOutcome::Rejected;
+    }
+    let step_norm = work.step.iter().map(|s| s * s).sum::<f64>().sqrt();
+    let x_norm = problem.free_norm();
+    if step_norm <= options.parameter_tolerance * (x_norm + options.parameter_tolerance) {
+        return StepOutcome::Converged(ConvergenceCriterion::ParameterTolerance);
+    }
+    problem.apply_step(work.step, candidate);
+    let (new_cost, new_chi2) = problem.cost_and_chi2(candidate);
+    // Predicted decrease of the (weighted) quadratic model: −gᵀh + λ hᵀDh.
+    let predicted: f64 = work
+        .step
+        .iter()
+        .zip(work.gradient.iter())
+        .zip(work.damping_diagonal.iter())
+        .map(|((h, g), d)| -g * h + lambda * d * h * h)
+        .sum();
+    let cost = progress.cost;
+    let actual = cost - new_cost;
+    if new_cost.is_finite() && actual > 0.0 && predicted > 0.0 {
+        std::mem::swap(&mut problem.poses, candidate);
+        progress.accepted += 1;
+        progress.cost = new_cost;
+        progress.chi2 = new_chi2;
+        if actual <= options.function_tolerance * cost {
+            return StepOutcome::Converged(ConvergenceCriterion::FunctionTolerance);
+        }
+        return StepOutcome::Accepted {
+            rho: actual / predicted,
+        };
+    }
+    // Neither the model nor the cost can decrease by more than the tolerance: round-off level.
+    if predicted <= options.function_tolerance * cost
+        && actual.abs() <= options.function_tolerance * cost
+    {
+        return StepOutcome::Converged(ConvergenceCriterion::FunctionTolerance);
+    }
+    StepOutcome::Rejected
 }
 
 #[cfg(test)]

@@ -5,6 +5,7 @@ use super::*;
 use crate::geometry::rigid2;
 use crate::global_slam::ConstraintBuilderOptions;
 use crate::grid::MapLimits;
+use crate::pose_graph::ConstraintKind;
 
 /// One trajectory driving along x in 0.2 m steps, 0.1 s apart; submap 0 holds its first 11 nodes and is
 /// finished at node 11.
