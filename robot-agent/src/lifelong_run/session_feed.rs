@@ -15,8 +15,8 @@ use super::{ScanAnchor, SessionInput, SessionsConfig, SessionsRun, active_grids}
 /// What LLO produced over the sessions fed so far.
 #[derive(Default)]
 pub(super) struct SessionFeed {
-    /// Every matched scan, with its session.
-    anchors: Vec<(u32, ScanAnchor)>,
+    /// Every matched scan, in order.
+    anchors: Vec<ScanAnchor>,
     /// Each node's LLO pose and range data.
     node_data: BTreeMap<NodeId, (Rigid2, RangeData)>,
     /// Scans per session.
@@ -92,7 +92,7 @@ impl SessionFeed {
                 local_pose: result.local_pose,
                 node: last_node,
             };
-            self.anchors.push((session, anchor));
+            self.anchors.push(anchor);
             session_anchors.push(anchor);
             if self.scans_done.is_multiple_of(64) {
                 progress(self.scans_done);
@@ -131,7 +131,7 @@ impl SessionFeed {
         let scan_poses = self
             .anchors
             .iter()
-            .filter_map(|(_, a)| scan_pose(&node_pose, a))
+            .filter_map(|a| scan_pose(&node_pose, a))
             .collect();
         for summary in &mut sessions {
             let k = summary.session as usize;
