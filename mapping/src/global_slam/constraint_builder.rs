@@ -96,6 +96,12 @@ pub struct ConstraintBuilderOptions {
     /// The weakest translation direction of a match keeps at least this fraction of the strongest's
     /// information (see [`match_information`]). Default 0.01 (10× the sigma).
     pub min_information_ratio: f64,
+    /// A windowed match whose best pose lies within this many cells of its translation window's boundary
+    /// (count; 0 = never) is a slope the window cut rather than a peak it contained: the search is made
+    /// again in a window twice as wide, and refused if that one's best is on its edge too. Default 0 (off;
+    /// 2, the outermost ring and the one inside it, was measured and not kept).
+    /// Why: `docs/TUNING.md#cb-window-edge-cells`.
+    pub window_edge_cells: u32,
     /// Refinement of accepted matches. Defaults here: occupied space 20, translation 10, rotation 1.
     pub least_squares: LeastSquaresScanMatcherOptions,
 }
@@ -139,6 +145,7 @@ impl Default for ConstraintBuilderOptions {
             agreement_rotation: 0.035,
             degenerate_ratio: 0.1,
             min_information_ratio: 0.01,
+            window_edge_cells: 0,
         }
     }
 }
@@ -327,6 +334,25 @@ fn along_weak_axis(
         && turned.abs() < 5f64.to_radians()
 }
 
+/// Whether `best` lies within `edge_cells` cells of the boundary of the square window of half-width
+/// `linear_window` (m) around `center`, searched in cells of `resolution` (m): the window's rings are
+/// `ceil(linear_window / resolution)` cells out, and `best` is on one of its outer `edge_cells` rings.
+fn on_window_edge(
+    center: &Rigid2,
+    best: &Rigid2,
+    linear_window: f64,
+    resolution: f64,
+    edge_cells: u32,
+) -> bool {
+    if edge_cells == 0 || !(resolution > 0.0) {
+        return false;
+    }
+    let rings = (linear_window / resolution).ceil();
+    let offset = best.translation.vector - center.translation.vector;
+    let ring = (offset.x.abs().max(offset.y.abs()) / resolution).round();
+    ring > rings - f64::from(edge_cells)
+}
+
 /// Rivals of a match are looked for down to this much below its score (score units): enough to report
 /// near misses in the diagnostics, few enough that the second search stays cheap.
 pub const RUNNER_UP_RANGE: f32 = 0.1;
@@ -426,10 +452,12 @@ impl ConstraintBuilder {
             linear_m: self.options.fast_correlative.linear_search_window,
             angular_rad: self.options.fast_correlative.angular_search_window,
         };
-        let window = job.window.unwrap_or(default_window);
+        let mut window = job.window.unwrap_or(default_window);
         // First the best pose alone (most searches find nothing and stop here, pruned as hard as one
         // search can be), then, for a match, its rivals: other peaks within `RUNNER_UP_RANGE` of it.
-        let search = |min_score: f32, count: usize| match &job.submap_from_node_estimate {
+        let search = |window: SearchWindow, min_score: f32, count: usize| match &job
+            .submap_from_node_estimate
+        {
             Some(estimate) => matcher.match_within_candidates(
                 &(entry.local_from_submap * estimate),
                 &job.points,
@@ -445,7 +473,33 @@ impl ConstraintBuilder {
         } else {
             self.options.global_localization_min_score
         };
-        let found = *search(min_score, 1).first()?;
+        let mut found = *search(window, min_score, 1).first()?;
+        // A best pose on the window's edge is a slope the window cut, not a peak: look once in a window
+        // twice as wide, and refuse if its best is on that one's edge too.
+        if let Some(estimate) = &job.submap_from_node_estimate {
+            let center = entry.local_from_submap * estimate;
+            let resolution = entry.grid.limits().resolution;
+            let edge_cells = self.options.window_edge_cells;
+            if on_window_edge(
+                &center,
+                &found.pose,
+                window.linear_m,
+                resolution,
+                edge_cells,
+            ) {
+                window.linear_m *= 2.0;
+                found = *search(window, min_score, 1).first()?;
+                if on_window_edge(
+                    &center,
+                    &found.pose,
+                    window.linear_m,
+                    resolution,
+                    edge_cells,
+                ) {
+                    return None;
+                }
+            }
+        }
         let (refined, summary) = self.least_squares.match_pose(
             &found.pose.translation.vector,
             &found.pose,
@@ -453,7 +507,7 @@ impl ConstraintBuilder {
             &entry.grid,
         );
         // The runner-up: the best other peak that is not the same corridor position shifted along it.
-        let runner_up_score = search((found.score - RUNNER_UP_RANGE).max(min_score), 3)
+        let runner_up_score = search(window, (found.score - RUNNER_UP_RANGE).max(min_score), 3)
             .iter()
             .skip(1)
             .find(|m| {
@@ -488,8 +542,26 @@ impl ConstraintBuilder {
 
 #[cfg(test)]
 mod tests {
+
     use super::*;
     use crate::geometry::rigid2;
+
+    #[test]
+    fn a_best_pose_on_the_windows_outer_rings_is_on_its_edge() {
+        let center = rigid2(1.0, 2.0, 0.3);
+        let at = |dx: f64, dy: f64| rigid2(1.0 + dx, 2.0 + dy, 0.3);
+        // 1.5 m at 0.05 m: rings 0..=30.
+        assert!(on_window_edge(&center, &at(1.5, 0.0), 1.5, 0.05, 2));
+        assert!(on_window_edge(&center, &at(0.2, -1.45), 1.5, 0.05, 2));
+        assert!(!on_window_edge(&center, &at(1.4, 1.4), 1.5, 0.05, 2));
+        assert!(!on_window_edge(&center, &at(1.45, 0.0), 1.5, 0.05, 1));
+        assert!(!on_window_edge(&center, &at(0.0, 0.0), 1.5, 0.05, 2));
+        // A window not a whole number of cells: 1.52 m → 31 rings.
+        assert!(on_window_edge(&center, &at(-1.55, 0.3), 1.52, 0.05, 1));
+        assert!(!on_window_edge(&center, &at(-1.5, 0.3), 1.52, 0.05, 1));
+        // Off.
+        assert!(!on_window_edge(&center, &at(1.5, 0.0), 1.5, 0.05, 0));
+    }
 
     /// A corridor along the grid's x axis: the scan pins y well and x hardly at all.
     fn corridor_information() -> Matrix3<f64> {

@@ -469,6 +469,33 @@ fn write_loop_closures(
 /// Writes `glm_matches.csv`: every GLM match that reached the acceptance rules, in order, with the rule
 /// that decided it, where it ended, its anchor (the submap's node nearest it) and, with a reference
 /// trajectory, its error against it and whether that makes it right.
+/// How well a match pins its weakest translation direction against its strongest (eigenvalues of its
+/// information's translation block; 1 = a room, near 0 = a corridor) and how far along that weakest
+/// direction it moves its node (m). No information: (1, 0).
+fn weak_axis(information: Option<&nalgebra::Matrix3<f64>>, innovation: &Rigid2) -> (f64, f64) {
+    let Some(information) = information else {
+        return (1.0, 0.0);
+    };
+    let eigen = information
+        .fixed_view::<2, 2>(0, 0)
+        .into_owned()
+        .symmetric_eigen();
+    let (weak, strong) = if eigen.eigenvalues[0] <= eigen.eigenvalues[1] {
+        (0, 1)
+    } else {
+        (1, 0)
+    };
+    if !(eigen.eigenvalues[strong] > 0.0) {
+        return (1.0, 0.0);
+    }
+    let along = eigen
+        .eigenvectors
+        .column(weak)
+        .dot(&innovation.translation.vector)
+        .abs();
+    (eigen.eigenvalues[weak] / eigen.eigenvalues[strong], along)
+}
+
 fn write_glm_matches(
     path: &Path,
     global: &GlobalSlam,
@@ -477,7 +504,7 @@ fn write_glm_matches(
     let start = global.nodes().values().next().map(|n| n.time);
     let since_start = |t: Timestamp| start.map_or(f64::NAN, |s| t.seconds_since(s));
     let mut csv = String::from(
-        "node_time_s,node,submap_trajectory,submap,anchor_time_s,decision,fate,score,innovation_m,innovation_deg,error_m,error_deg,right\n",
+        "node_time_s,node,submap_trajectory,submap,anchor_time_s,decision,fate,score,innovation_m,innovation_deg,pinned_ratio,innovation_along_weak_m,error_m,error_deg,right\n",
     );
     for j in judged {
         let c = &j.decided.closure;
@@ -489,9 +516,10 @@ fn write_glm_matches(
             ),
             None => (String::new(), String::new(), String::new()),
         };
+        let (pinned_ratio, along_weak) = weak_axis(c.information.as_ref(), &j.decided.innovation);
         writeln!(
             csv,
-            "{:.3},{},{},{},{:.3},{},{},{:.4},{:.4},{:.3},{},{},{}",
+            "{:.3},{},{},{},{:.3},{},{},{:.4},{:.4},{:.3},{:.4},{:.4},{},{},{}",
             since_start(j.node_time),
             c.node.index,
             c.submap.trajectory,
@@ -502,6 +530,8 @@ fn write_glm_matches(
             c.score,
             j.decided.acceptance.innovation_translation_m,
             j.decided.acceptance.innovation_rotation_rad.to_degrees(),
+            pinned_ratio,
+            along_weak,
             error_m,
             error_deg,
             right,

@@ -89,18 +89,25 @@ impl GlobalSlam {
         let outvoted = self.outvoted(&results);
         let mut accepted: Vec<(LoopClosure, Acceptance)> = Vec::new();
         let mut confirmed_any = false;
-        let mut decided = |closure: &LoopClosure, acceptance: Acceptance, decision| {
-            events.push(GlobalSlamEvent::MatchDecided(MatchDecided {
-                closure: closure.clone(),
-                acceptance,
-                decision,
-            }));
-        };
+        let mut decided =
+            |closure: &LoopClosure, acceptance: Acceptance, innovation: Rigid2, decision| {
+                events.push(GlobalSlamEvent::MatchDecided(MatchDecided {
+                    closure: closure.clone(),
+                    acceptance,
+                    innovation,
+                    decision,
+                }));
+            };
         for (closure, outvoted) in results.into_iter().zip(outvoted) {
             self.judge_corrections_by_match(&closure);
             if outvoted {
                 self.closures_outvoted += 1;
-                decided(&closure, self.acceptance(&closure), MatchDecision::Outvoted);
+                decided(
+                    &closure,
+                    self.acceptance(&closure),
+                    self.innovation(&closure),
+                    MatchDecision::Outvoted,
+                );
                 continue;
             }
             if !self.nodes.contains_key(&closure.node)
@@ -130,13 +137,23 @@ impl GlobalSlam {
                     .collect();
                 let needed = self.options.constraint_builder.beyond_drift_confirmations;
                 if needed == 0 || nodes.len() < needed || submaps.len() < 2 {
-                    decided(&closure, acceptance, MatchDecision::HeldBeyondDrift);
+                    decided(
+                        &closure,
+                        acceptance,
+                        self.innovation(&closure),
+                        MatchDecision::HeldBeyondDrift,
+                    );
                     self.pending_beyond_drift.append(&mut agreeing);
                     self.pending_beyond_drift.push((closure, acceptance));
                     self.closures_beyond_drift += 1;
                     continue;
                 }
-                decided(&closure, acceptance, MatchDecision::ConfirmedBeyondDrift);
+                decided(
+                    &closure,
+                    acceptance,
+                    self.innovation(&closure),
+                    MatchDecision::ConfirmedBeyondDrift,
+                );
                 confirmed_any = true;
                 self.closures_beyond_drift -= agreeing.len();
                 accepted.extend(self.confirm_group(agreeing, closure, acceptance));
@@ -145,16 +162,31 @@ impl GlobalSlam {
             if self.needs_confirmation(&closure, &acceptance) {
                 let agreeing = self.take_agreeing(&closure, false);
                 if agreeing.is_empty() {
-                    decided(&closure, acceptance, MatchDecision::HeldUnconfirmed);
+                    decided(
+                        &closure,
+                        acceptance,
+                        self.innovation(&closure),
+                        MatchDecision::HeldUnconfirmed,
+                    );
                     self.pending_unconfirmed.push((closure, acceptance));
                     continue;
                 }
-                decided(&closure, acceptance, MatchDecision::Confirmed);
+                decided(
+                    &closure,
+                    acceptance,
+                    self.innovation(&closure),
+                    MatchDecision::Confirmed,
+                );
                 confirmed_any = true;
                 accepted.extend(self.confirm_group(agreeing, closure, acceptance));
                 continue;
             }
-            decided(&closure, acceptance, MatchDecision::Accepted);
+            decided(
+                &closure,
+                acceptance,
+                self.innovation(&closure),
+                MatchDecision::Accepted,
+            );
             accepted.push((closure, acceptance));
         }
         for (closure, acceptance) in accepted {
@@ -270,15 +302,26 @@ impl GlobalSlam {
             .collect()
     }
 
-    /// How far a match would move its node from its current estimate (in the submap's frame).
-    fn acceptance(&self, closure: &LoopClosure) -> Acceptance {
-        let (Some(submap), Some(node)) = (
+    /// The match's pose of its node relative to the node's current estimate, in the estimate's frame
+    /// (identity for unknown nodes or submaps).
+    fn innovation(&self, closure: &LoopClosure) -> Rigid2 {
+        match (
             self.submap_pose(closure.submap),
             self.node_pose(closure.node),
-        ) else {
+        ) {
+            (Some(submap), Some(node)) => {
+                (submap.inverse() * node).inverse() * closure.submap_from_node
+            }
+            _ => Rigid2::identity(),
+        }
+    }
+
+    /// How far a match would move its node from its current estimate (in the submap's frame).
+    fn acceptance(&self, closure: &LoopClosure) -> Acceptance {
+        if self.submap_pose(closure.submap).is_none() || self.node_pose(closure.node).is_none() {
             return Acceptance::default();
-        };
-        let innovation = (submap.inverse() * node).inverse() * closure.submap_from_node;
+        }
+        let innovation = self.innovation(closure);
         Acceptance {
             innovation_translation_m: innovation.translation.vector.norm(),
             innovation_rotation_rad: innovation.rotation.angle().abs(),

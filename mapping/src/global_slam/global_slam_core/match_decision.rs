@@ -6,6 +6,7 @@
 use serde::Serialize;
 
 use super::Acceptance;
+use crate::geometry::Rigid2;
 use crate::global_slam::LoopClosure;
 
 /// The rule that decided a match on arrival.
@@ -62,6 +63,9 @@ pub struct MatchDecided {
     pub closure: LoopClosure,
     /// How far it would move its node from the estimate of the moment.
     pub acceptance: Acceptance,
+    /// The match's pose of its node relative to the node's estimate of the moment, in the estimate's frame
+    /// (the frame of the match's information): the innovation as a vector, not only its size.
+    pub innovation: Rigid2,
     /// The rule that decided it.
     pub decision: MatchDecision,
 }
