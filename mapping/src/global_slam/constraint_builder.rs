@@ -344,7 +344,7 @@ fn on_window_edge(
     resolution: f64,
     edge_cells: u32,
 ) -> bool {
-    if edge_cells == 0 || !(resolution > 0.0) {
+    if edge_cells == 0 || resolution.is_nan() || resolution <= 0.0 {
         return false;
     }
     let rings = (linear_window / resolution).ceil();

@@ -485,7 +485,7 @@ fn weak_axis(information: Option<&nalgebra::Matrix3<f64>>, innovation: &Rigid2) 
     } else {
         (1, 0)
     };
-    if !(eigen.eigenvalues[strong] > 0.0) {
+    if eigen.eigenvalues[strong].is_nan() || eigen.eigenvalues[strong] <= 0.0 {
         return (1.0, 0.0);
     }
     let along = eigen
