@@ -480,22 +480,13 @@ impl ConstraintBuilder {
             let center = entry.local_from_submap * estimate;
             let resolution = entry.grid.limits().resolution;
             let edge_cells = self.options.window_edge_cells;
-            if on_window_edge(
-                &center,
-                &found.pose,
-                window.linear_m,
-                resolution,
-                edge_cells,
-            ) {
+            let on_edge = |best: &Rigid2, linear_m: f64| {
+                on_window_edge(&center, best, linear_m, resolution, edge_cells)
+            };
+            if on_edge(&found.pose, window.linear_m) {
                 window.linear_m *= 2.0;
                 found = *search(window, min_score, 1).first()?;
-                if on_window_edge(
-                    &center,
-                    &found.pose,
-                    window.linear_m,
-                    resolution,
-                    edge_cells,
-                ) {
+                if on_edge(&found.pose, window.linear_m) {
                     return None;
                 }
             }
@@ -542,7 +533,6 @@ impl ConstraintBuilder {
 
 #[cfg(test)]
 mod tests {
-
     use super::*;
     use crate::geometry::rigid2;
 

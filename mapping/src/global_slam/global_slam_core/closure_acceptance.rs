@@ -100,12 +100,13 @@ impl GlobalSlam {
             };
         for (closure, outvoted) in results.into_iter().zip(outvoted) {
             self.judge_corrections_by_match(&closure);
+            let innovation = self.innovation(&closure).unwrap_or_else(Rigid2::identity);
             if outvoted {
                 self.closures_outvoted += 1;
                 decided(
                     &closure,
                     self.acceptance(&closure),
-                    self.innovation(&closure),
+                    innovation,
                     MatchDecision::Outvoted,
                 );
                 continue;
@@ -140,7 +141,7 @@ impl GlobalSlam {
                     decided(
                         &closure,
                         acceptance,
-                        self.innovation(&closure),
+                        innovation,
                         MatchDecision::HeldBeyondDrift,
                     );
                     self.pending_beyond_drift.append(&mut agreeing);
@@ -151,7 +152,7 @@ impl GlobalSlam {
                 decided(
                     &closure,
                     acceptance,
-                    self.innovation(&closure),
+                    innovation,
                     MatchDecision::ConfirmedBeyondDrift,
                 );
                 confirmed_any = true;
@@ -165,28 +166,18 @@ impl GlobalSlam {
                     decided(
                         &closure,
                         acceptance,
-                        self.innovation(&closure),
+                        innovation,
                         MatchDecision::HeldUnconfirmed,
                     );
                     self.pending_unconfirmed.push((closure, acceptance));
                     continue;
                 }
-                decided(
-                    &closure,
-                    acceptance,
-                    self.innovation(&closure),
-                    MatchDecision::Confirmed,
-                );
+                decided(&closure, acceptance, innovation, MatchDecision::Confirmed);
                 confirmed_any = true;
                 accepted.extend(self.confirm_group(agreeing, closure, acceptance));
                 continue;
             }
-            decided(
-                &closure,
-                acceptance,
-                self.innovation(&closure),
-                MatchDecision::Accepted,
-            );
+            decided(&closure, acceptance, innovation, MatchDecision::Accepted);
             accepted.push((closure, acceptance));
         }
         for (closure, acceptance) in accepted {
@@ -303,25 +294,18 @@ impl GlobalSlam {
     }
 
     /// The match's pose of its node relative to the node's current estimate, in the estimate's frame
-    /// (identity for unknown nodes or submaps).
-    fn innovation(&self, closure: &LoopClosure) -> Rigid2 {
-        match (
-            self.submap_pose(closure.submap),
-            self.node_pose(closure.node),
-        ) {
-            (Some(submap), Some(node)) => {
-                (submap.inverse() * node).inverse() * closure.submap_from_node
-            }
-            _ => Rigid2::identity(),
-        }
+    /// (`None` for unknown nodes or submaps).
+    fn innovation(&self, closure: &LoopClosure) -> Option<Rigid2> {
+        let submap = self.submap_pose(closure.submap)?;
+        let node = self.node_pose(closure.node)?;
+        Some((submap.inverse() * node).inverse() * closure.submap_from_node)
     }
 
     /// How far a match would move its node from its current estimate (in the submap's frame).
     fn acceptance(&self, closure: &LoopClosure) -> Acceptance {
-        if self.submap_pose(closure.submap).is_none() || self.node_pose(closure.node).is_none() {
+        let Some(innovation) = self.innovation(closure) else {
             return Acceptance::default();
-        }
-        let innovation = self.innovation(closure);
+        };
         Acceptance {
             innovation_translation_m: innovation.translation.vector.norm(),
             innovation_rotation_rad: innovation.rotation.angle().abs(),
