@@ -18,9 +18,11 @@
 //!    ([`crate::sparsification`], policy `clt`), or simply deleted with every constraint touching them
 //!    (`delete`, Cartographer's behaviour). `keep` trims nothing (the graph grows without bound) and
 //!    `frozen` never changes the first session's map (later sessions only localize against it and are
-//!    dropped when they end). The graph is re-optimized, with at most `sparsification_max_iterations`
-//!    steps, after a session's batch of trims once `optimize_every_n_sparsifications` sparsifications
-//!    have accumulated.
+//!    dropped when they end). The trees are built at the optimum of the session's final optimization;
+//!    by default nothing re-optimizes after the trims (the next session's optimizations do). With
+//!    `optimize_every_n_sparsifications` ≥ 1 (the paper's 5) the graph is re-optimized, with at most
+//!    `sparsification_max_iterations` steps, after a session's batch of trims once that many
+//!    sparsifications have accumulated.
 //!
 //! Everything here is pure: no I/O, clocks or threads. Search jobs ([`LifelongMap::take_search_jobs`])
 //! are run by the caller, anywhere, with [`LifelongMap::constraint_builder`].

@@ -86,6 +86,18 @@ pub struct Acceptance {
     pub confirmed_by_agreement: bool,
 }
 
+impl Acceptance {
+    /// How far a match moves its node: `innovation` is the match's pose of the node relative to the
+    /// node's estimate (`None` for unknown nodes or submaps, which move nothing).
+    pub fn of_innovation(innovation: Option<&Rigid2>) -> Self {
+        innovation.map_or_else(Self::default, |innovation| Self {
+            innovation_translation_m: innovation.translation.vector.norm(),
+            innovation_rotation_rad: innovation.rotation.angle().abs(),
+            confirmed_by_agreement: false,
+        })
+    }
+}
+
 /// Where an accepted loop closure stands.
 #[derive(Clone, Debug, PartialEq)]
 pub enum ClosureState {

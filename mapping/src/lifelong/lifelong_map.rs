@@ -642,7 +642,7 @@ impl LifelongMap {
     }
 
     /// Re-optimizes (at most `sparsification_max_iterations` steps) once `optimize_every_n_sparsifications`
-    /// sparsifications have accumulated: after a session's whole batch of trims, not inside it. Each tree
+    /// (≥ 1) sparsifications have accumulated: after a session's whole batch of trims, not inside it. Each tree
     /// keeps its blanket's marginal at the point it was linearized at, so the optimum hardly moves between
     /// two trims of a batch (χ² 508 → 506 and 497 → 493 in the two optimizations inside session 10's
     /// seven trims, store seed 1), while a step on a graph this size costs tens of milliseconds (a session
@@ -650,7 +650,8 @@ impl LifelongMap {
     /// seed 3's session 20 spent 18 steps and 1.8 s on its 16 trims (docs/BENCHMARK-HISTORY.md,
     /// session 18).
     fn optimize_if_sparsified_enough(&mut self) -> Option<LifelongEvent> {
-        if self.sparsifications_since_optimization < self.options.optimize_every_n_sparsifications {
+        let every = self.options.optimize_every_n_sparsifications;
+        if every == 0 || self.sparsifications_since_optimization < every {
             return None;
         }
         self.sparsifications_since_optimization = 0;

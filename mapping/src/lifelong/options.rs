@@ -158,8 +158,11 @@ pub struct LifelongOptions {
     pub trimmer: SubmapTrimmerOptions,
     /// What trimming does. Default `clt`.
     pub policy: TrimPolicy,
-    /// Optimize the graph once this many sparsifications have accumulated, after the batch of trims of
-    /// the session end that reached it (count, ≥ 1). Default 5 (the paper's).
+    /// Optimize the graph again once this many sparsifications have accumulated, after the batch of trims
+    /// of the session end that reached it (count; 0 = never: the session's final optimization, just before
+    /// its trims, is the optimum every tree is built at, and the next session's optimizations take up what
+    /// the trees approximate). Default 0 (the paper's is 5).
+    /// Why: `docs/TUNING.md#ll-optimize-every-n-sparsifications`.
     pub optimize_every_n_sparsifications: usize,
     /// Iteration cap of those optimizations (count, ≥ 1). Default 50 (the paper's).
     pub sparsification_max_iterations: usize,
@@ -179,7 +182,7 @@ impl Default for LifelongOptions {
             session_start: super::SessionStartOptions::default(),
             trimmer: SubmapTrimmerOptions::default(),
             policy: TrimPolicy::default(),
-            optimize_every_n_sparsifications: 5,
+            optimize_every_n_sparsifications: 0,
             sparsification_max_iterations: 50,
             sparsification: SparsificationOptions::default(),
             whole_graph_kld: false,
@@ -195,12 +198,6 @@ impl LifelongOptions {
         self.session_start.validate()?;
         self.trimmer.validate()?;
         self.sparsification.validate()?;
-        if self.optimize_every_n_sparsifications == 0 {
-            return Err(LifelongOptionsError::OutOfRange {
-                field: "optimize_every_n_sparsifications",
-                reason: "must be at least 1",
-            });
-        }
         if self.sparsification_max_iterations == 0 {
             return Err(LifelongOptionsError::OutOfRange {
                 field: "sparsification_max_iterations",
@@ -255,10 +252,15 @@ mod tests {
                 .contains("min_fresher_submaps")
         );
         let bad = LifelongOptions {
-            optimize_every_n_sparsifications: 0,
+            sparsification_max_iterations: 0,
             ..LifelongOptions::default()
         };
-        assert!(bad.validate().is_err());
+        assert!(
+            bad.validate()
+                .unwrap_err()
+                .to_string()
+                .contains("sparsification_max_iterations")
+        );
     }
 
     #[test]

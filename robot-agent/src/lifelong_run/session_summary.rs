@@ -189,8 +189,9 @@ pub struct SessionSummary {
     /// CPU time of that refinement on the thread that ran it, milliseconds (what it costs, however
     /// loaded the machine is; `None` where the platform does not report it).
     pub finish_cpu_ms: Option<f64>,
-    /// Each optimization `finish_ms` covers, in order (the session's final one, then one after its trims
-    /// once `optimize_every_n_sparsifications` have accumulated): where the steps went.
+    /// Each optimization `finish_ms` covers, in order (the session's final one, then, where
+    /// `optimize_every_n_sparsifications` ≥ 1, one after its trims once that many have accumulated):
+    /// where the steps went.
     pub finish_optimizations: Vec<OptimizationFigures>,
     /// Every whole-map search of the session start, in order: what it answered and how decisively.
     pub searches: Vec<SearchFigures>,

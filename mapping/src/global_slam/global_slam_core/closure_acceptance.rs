@@ -100,15 +100,12 @@ impl GlobalSlam {
             };
         for (closure, outvoted) in results.into_iter().zip(outvoted) {
             self.judge_corrections_by_match(&closure);
-            let innovation = self.innovation(&closure).unwrap_or_else(Rigid2::identity);
+            let innovation = self.innovation(&closure);
+            let acceptance = Acceptance::of_innovation(innovation.as_ref());
+            let innovation = innovation.unwrap_or_else(Rigid2::identity);
             if outvoted {
                 self.closures_outvoted += 1;
-                decided(
-                    &closure,
-                    self.acceptance(&closure),
-                    innovation,
-                    MatchDecision::Outvoted,
-                );
+                decided(&closure, acceptance, innovation, MatchDecision::Outvoted);
                 continue;
             }
             if !self.nodes.contains_key(&closure.node)
@@ -121,7 +118,6 @@ impl GlobalSlam {
             {
                 continue; // never queued: an unplaced submap says nothing about placed nodes yet
             }
-            let acceptance = self.acceptance(&closure);
             if self.beyond_drift(&closure, &acceptance) {
                 // A sudden LLO slip also moves a node farther than drift explains: its repair waits for
                 // several nodes' matches against more than one submap to agree on it.
@@ -299,18 +295,6 @@ impl GlobalSlam {
         let submap = self.submap_pose(closure.submap)?;
         let node = self.node_pose(closure.node)?;
         Some((submap.inverse() * node).inverse() * closure.submap_from_node)
-    }
-
-    /// How far a match would move its node from its current estimate (in the submap's frame).
-    fn acceptance(&self, closure: &LoopClosure) -> Acceptance {
-        let Some(innovation) = self.innovation(closure) else {
-            return Acceptance::default();
-        };
-        Acceptance {
-            innovation_translation_m: innovation.translation.vector.norm(),
-            innovation_rotation_rad: innovation.rotation.angle().abs(),
-            confirmed_by_agreement: false,
-        }
     }
 
     /// Whether a match would move its node farther from its current estimate (in the submap's frame) than
