@@ -67,6 +67,8 @@ struct Site {
     /// Counts after each session.
     counts: Vec<GraphCounts>,
     trims: Vec<(SubmapId, usize, Option<f64>)>,
+    /// Optimizations of each session's end, and whether it trimmed anything.
+    session_ends: Vec<(usize, bool)>,
 }
 
 impl Site {
@@ -77,6 +79,7 @@ impl Site {
             starts: Vec::new(),
             counts: Vec::new(),
             trims: Vec::new(),
+            session_ends: Vec::new(),
         }
     }
 
@@ -176,6 +179,14 @@ impl Site {
             .unwrap();
         self.record(events);
         let events = self.map.finish_session(session).unwrap();
+        let optimizations = events
+            .iter()
+            .filter(|e| matches!(e, LifelongEvent::Optimized(_)))
+            .count();
+        let trimmed = events
+            .iter()
+            .any(|e| matches!(e, LifelongEvent::SubmapTrimmed { dropped: false, .. }));
+        self.session_ends.push((optimizations, trimmed));
         self.record(events);
         self.counts.push(self.map.counts());
     }
@@ -257,6 +268,29 @@ fn keep_grows_while_clt_and_delete_stay_bounded_and_session_zero_survives() {
             let error = (pose.translation.vector - truth.translation.vector).norm();
             assert!(error < 0.15, "node {id:?} off by {error} m");
         }
+    }
+}
+
+#[test]
+fn trims_are_re_optimized_only_when_asked() {
+    // Default: the session's final optimization only, trims or not.
+    let never = run(TrimPolicy::Clt, 5);
+    assert!(never.session_ends.iter().any(|&(_, trimmed)| trimmed));
+    assert!(
+        never.session_ends.iter().all(|&(n, _)| n == 1),
+        "{:?}",
+        never.session_ends
+    );
+    // Every sparsification: a second optimization after each batch of trims.
+    let mut site = Site::new(LifelongOptions {
+        optimize_every_n_sparsifications: 1,
+        ..options(TrimPolicy::Clt)
+    });
+    for s in 0..5 {
+        site.run_session(s, 3 * s as usize, s != 1);
+    }
+    for &(n, trimmed) in &site.session_ends {
+        assert_eq!(n, if trimmed { 2 } else { 1 }, "{:?}", site.session_ends);
     }
 }
 
