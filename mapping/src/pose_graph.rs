@@ -27,6 +27,7 @@
 //! ```
 
 mod constraint;
+mod constraint_merge;
 mod graph;
 mod ids;
 mod linear_system;
@@ -37,6 +38,7 @@ mod tests;
 
 pub(crate) use constraint::PreparedMeasurement;
 pub use constraint::{Constraint, ConstraintKind, RobustLoss};
+pub(crate) use constraint_merge::merged;
 pub use graph::{PoseGraph, PoseGraphError};
 pub use ids::{ConstraintId, NodeId, SubmapId, VariableId};
 pub use optimizer::{

@@ -35,6 +35,9 @@
 //!    [`ConstraintKind::SubmapToSubmap`], or [`ConstraintKind::NodeToSubmapInter`] oriented
 //!    submap → node as loop closures are).
 //!
+//! A tree edge on a pair of variables that already carries an earlier tree's edge is summed into it
+//! ([`apply`]): successive trims around the same blanket would otherwise stack parallel constraints.
+//!
 //! Blankets split into connected components of the removed constraints are handled one component at a
 //! time (each with its own root). A component with one blanket pose gets no constraint.
 //!
@@ -69,6 +72,7 @@ use self::marginalization::pseudo_inverse;
 use crate::geometry::{Rigid2, Rigid2Ext as _};
 use crate::pose_graph::{
     Constraint, ConstraintId, ConstraintKind, PoseGraph, PoseGraphError, RobustLoss, VariableId,
+    merged,
 };
 
 /// Errors of sparsification, deletion and divergence computations.
@@ -222,8 +226,10 @@ pub fn sparsify(
 }
 
 /// Carries out a [`SparsificationResult`] on the graph it was computed from: removes the eliminated
-/// variables with every constraint touching them, and adds the tree constraints. Returns the new
-/// constraints' ids. Everything is checked before the graph is touched, so on error it is unchanged.
+/// variables with every constraint touching them, and adds the tree constraints; a tree constraint on a
+/// pair that already has a plain least-squares constraint of its kind (an earlier tree's edge) is summed
+/// into it instead (exact, see `pose_graph::constraint_merge`). Returns the ids of the tree's
+/// constraints, merged or new. Everything is checked before the graph is touched, so on error it is unchanged.
 pub fn apply(
     graph: &mut PoseGraph,
     result: &SparsificationResult,
@@ -252,11 +258,34 @@ pub fn apply(
     for &id in &eliminated {
         graph.remove_variable(id)?;
     }
-    result
-        .new_constraints
-        .iter()
-        .map(|c| graph.add_constraint(c.clone()).map_err(Into::into))
-        .collect()
+    let mut ids = Vec::with_capacity(result.new_constraints.len());
+    for constraint in &result.new_constraints {
+        // An earlier tree's edge on the same pair absorbs this one: the sum of two Gaussians on a pair is
+        // one Gaussian, so the graph keeps one constraint per pair instead of growing with every trim.
+        let parallel = graph
+            .constraints_of(constraint.from)
+            .iter()
+            .find_map(|&id| {
+                let existing = graph.constraint(id)?;
+                let same_pair = (existing.from == constraint.to && existing.to == constraint.from)
+                    || (existing.from == constraint.from && existing.to == constraint.to);
+                if !same_pair || existing.kind != constraint.kind {
+                    return None;
+                }
+                merged(existing, constraint).map(|sum| (id, sum))
+            });
+        let added = match parallel {
+            Some((id, sum)) => {
+                // Re-added under a new id, so that the next optimization sees it as new.
+                let added = graph.add_constraint(sum)?;
+                graph.remove_constraint(id)?;
+                added
+            }
+            None => graph.add_constraint(constraint.clone())?,
+        };
+        ids.push(added);
+    }
+    Ok(ids)
 }
 
 /// The baseline: removes the variables and every constraint touching them, replacing nothing. Returns

@@ -222,6 +222,55 @@ fn two_pose_blanket_gives_the_dense_marginal_as_one_constraint() {
 }
 
 #[test]
+fn a_second_tree_edge_on_a_pair_is_summed_into_the_first() {
+    // Two detours between nodes 0 and 1 (through 5 and through 6), trimmed one after the other: each
+    // trim's tree is one edge 0 → 1; the second is summed into the first, and the graph optimizes to the
+    // same poses as with both edges side by side.
+    let mut rng = Pcg64::seed_from_u64(11);
+    let mut graph = PoseGraph::new();
+    for id in [0, 1, 5, 6] {
+        graph.add_variable(node(id), random_pose(&mut rng)).unwrap();
+    }
+    graph.set_fixed(node(0), true).unwrap();
+    for (x, y, noise) in [
+        (node(0), node(5), rigid2(0.02, -0.01, 0.01)),
+        (node(5), node(1), rigid2(-0.01, 0.03, -0.02)),
+        (node(0), node(6), rigid2(-0.03, 0.02, 0.015)),
+        (node(6), node(1), rigid2(0.01, -0.02, -0.01)),
+    ] {
+        let information = random_information(&mut rng, 20.0);
+        link(
+            &mut graph,
+            x,
+            y,
+            ConstraintKind::NodeToNode,
+            information,
+            noise,
+            RobustLoss::Trivial,
+        );
+    }
+    let first = sparsify(&graph, &[node(5)], &SparsificationOptions::DEFAULT).unwrap();
+    apply(&mut graph, &first).unwrap();
+    assert_eq!(graph.num_constraints(), 3);
+    let second = sparsify(&graph, &[node(6)], &SparsificationOptions::DEFAULT).unwrap();
+    assert_eq!(second.new_constraints.len(), 1);
+    let mut side_by_side = graph.clone();
+    side_by_side.remove_variable(node(6)).unwrap();
+    side_by_side
+        .add_constraint(second.new_constraints[0].clone())
+        .unwrap();
+    assert_eq!(side_by_side.num_constraints(), 2);
+    let ids = apply(&mut graph, &second).unwrap();
+    assert_eq!(graph.num_constraints(), 1, "summed, not stacked");
+    assert_eq!(graph.constraints_of(node(1)), ids.as_slice());
+    let mut optimizer = Optimizer::new(OptimizerOptions::default()).unwrap();
+    optimizer.optimize(&mut graph);
+    optimizer.optimize(&mut side_by_side);
+    let (translation, rotation) = graph.largest_shift(&side_by_side);
+    assert!(translation < 1e-9 && rotation < 1e-9, "{translation} m, {rotation} rad");
+}
+
+#[test]
 fn one_pose_blanket_and_disconnected_components() {
     let mut rng = Pcg64::seed_from_u64(5);
     let mut graph = PoseGraph::new();
