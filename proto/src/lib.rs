@@ -8,6 +8,9 @@
 //! Both also encode map pictures here ([`encode_png`]: the `GetMapImage` reply's PNG, the agent's
 //! picture files, the web console's images).
 //!
+//! [`memory_release`]: handing memory freed by a session's end back to the system, for the server's sites
+//! and the agent's lifelong runs alike.
+//!
 //! [`testing`] (feature `testing`): shared test values for this crate's tests and its users'.
 //!
 //! Conversions from the wire are `TryFrom` and check everything a peer could get wrong (missing fields,
@@ -31,6 +34,7 @@ mod convert;
 mod error_report;
 pub mod logging;
 mod map_delta;
+pub mod memory_release;
 mod png_image;
 mod site_checkpoint;
 #[cfg(any(test, feature = "testing"))]

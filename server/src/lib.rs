@@ -13,7 +13,6 @@ pub mod console;
 pub mod fleet_server;
 pub mod grpc;
 pub mod map_image_bytes;
-pub mod memory_release;
 pub mod metrics_endpoint;
 pub mod server_config;
 pub mod server_metrics;

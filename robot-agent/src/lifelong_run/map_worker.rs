@@ -324,6 +324,9 @@ impl<'a> MapWorker<'a> {
         let finish_cpu_ms = thread_cpu_ms()
             .zip(start_cpu_ms)
             .map(|(end, start)| end - start);
+        // The trims freed grids and nodes: hand the pages back as the server's sites do, so that resident
+        // memory follows the map and not the largest the allocator ever held.
+        proto::memory_release::release_freed_memory_in_background();
         note_poses(&self.map, session, &mut self.retired, &mut at_session_end);
         let placed = self.map.is_placed(session) && !on_probation;
         let counts = self.map.counts();

@@ -567,7 +567,7 @@ impl SiteMap {
                 self.dropped_sessions += 1;
             }
             // The trims freed the stale submaps' grids and matchers: give the pages back.
-            crate::memory_release::release_freed_memory_in_background();
+            proto::memory_release::release_freed_memory_in_background();
         }
         if let Some(session) = self.sessions.get_mut(session_uuid) {
             session.closed = true;

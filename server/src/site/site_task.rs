@@ -50,7 +50,7 @@
 //! (writing one if the last does not cover it; with checkpoints disabled, or when one cannot be
 //! written or the store may differ from the map, the site stays loaded and tries again after another
 //! idle period), then drops its [`SiteMap`] — graph, grids, branch-and-bound precomputations, history —
-//! and hands the freed pages back to the system ([`crate::memory_release`]). What stays answers
+//! and hands the freed pages back to the system ([`proto::memory_release`]). What stays answers
 //! without the map: the published [`VersionInfo`] (version and counts: `Watch`, metrics, the console's
 //! site list) and the view's session list without trajectories ([`SiteView::unloaded`]). The next
 //! request of any kind first restores the site from its checkpoint plus the log after it (the same

@@ -82,7 +82,7 @@ impl SiteTask {
         // Freeing a big map takes a while: beside the task, then the pages go back to the system.
         drop(tokio::task::spawn_blocking(move || {
             drop(map);
-            crate::memory_release::release_all_freed_memory_in_background();
+            proto::memory_release::release_all_freed_memory_in_background();
         }));
         true
     }

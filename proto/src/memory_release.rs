@@ -1,4 +1,5 @@
-//! Handing memory the server freed back to the operating system.
+//! Handing memory a session's end freed back to the operating system (the server's sites and the agent's
+//! lifelong runs).
 //!
 //! A session's end trims the map: the stale submaps go, with their nodes, grids and branch-and-bound
 //! precomputations — hundreds of MiB on a busy site. glibc's allocator keeps what is freed in its arenas
