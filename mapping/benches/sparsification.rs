@@ -19,7 +19,8 @@ use mapping::pose_graph::{
     Constraint, ConstraintId, NodeId, Optimizer, OptimizerOptions, PoseGraph, VariableId,
 };
 use mapping::sparsification::{
-    EdgeModel, SparsificationOptions, SparsificationResult, apply, delete, kl_divergence, sparsify,
+    EdgeModel, ParallelMerge, SparsificationOptions, SparsificationResult, apply, delete,
+    kl_divergence, sparsify,
 };
 
 type BoxError = Box<dyn std::error::Error>;
@@ -111,7 +112,7 @@ fn main() -> Result<(), BoxError> {
                         let mut g = graph.clone();
                         match result {
                             Some(r) => {
-                                apply(&mut g, r)?;
+                                apply(&mut g, r, ParallelMerge::EveryPlain)?;
                             }
                             None => {
                                 delete(&mut g, &eliminate)?;
@@ -139,7 +140,7 @@ fn main() -> Result<(), BoxError> {
                     s_del.1,
                 );
                 let seq = sparsify(&sequential, &eliminate, &o)?;
-                apply(&mut sequential, &seq)?;
+                apply(&mut sequential, &seq, ParallelMerge::EveryPlain)?;
                 all_eliminated.extend(eliminate);
             }
             ratios.sort_by(f64::total_cmp);

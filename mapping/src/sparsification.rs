@@ -35,8 +35,9 @@
 //!    [`ConstraintKind::SubmapToSubmap`], or [`ConstraintKind::NodeToSubmapInter`] oriented
 //!    submap → node as loop closures are).
 //!
-//! A tree edge on a pair of variables that already carries an earlier tree's edge is summed into it
-//! ([`apply`]): successive trims around the same blanket would otherwise stack parallel constraints.
+//! A tree edge on a pair of variables that already carries a plain least-squares constraint is summed
+//! into it ([`apply`], [`ParallelMerge`]): trees would otherwise stack parallel constraints beside the
+//! node-to-submap constraints of the blanket and beside earlier trees' edges, trim after trim.
 //!
 //! Blankets split into connected components of the removed constraints are handled one component at a
 //! time (each with its own root). A component with one blanket pose gets no constraint.
@@ -225,14 +226,28 @@ pub fn sparsify(
     })
 }
 
+/// Which constraints already in the graph take in a tree edge on their pair ([`apply`]). Summing two
+/// plain least-squares constraints on one pair is exact (`pose_graph::constraint_merge`); robust ones
+/// (loop closures) are never summed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ParallelMerge {
+    /// Only an earlier tree's edge (a plain constraint of the same kind): for graphs whose owner rewrites
+    /// other constraints' information later (GLM's bends rewrite node-to-submap constraints).
+    TreeEdges,
+    /// Every plain least-squares constraint on the pair, whatever made it (a node-to-submap constraint
+    /// LLO made, odometry, an earlier tree's edge); the merged constraint keeps the existing one's kind.
+    EveryPlain,
+}
+
 /// Carries out a [`SparsificationResult`] on the graph it was computed from: removes the eliminated
 /// variables with every constraint touching them, and adds the tree constraints; a tree constraint on a
-/// pair that already has a plain least-squares constraint of its kind (an earlier tree's edge) is summed
-/// into it instead (exact, see `pose_graph::constraint_merge`). Returns the ids of the tree's
-/// constraints, merged or new. Everything is checked before the graph is touched, so on error it is unchanged.
+/// pair that already has a plain least-squares constraint `merge` allows is summed into it instead (the
+/// merged constraint replaces it under a new id). Returns the ids of the tree's constraints, merged or
+/// new. Everything is checked before the graph is touched, so on error it is unchanged.
 pub fn apply(
     graph: &mut PoseGraph,
     result: &SparsificationResult,
+    merge: ParallelMerge,
 ) -> Result<Vec<ConstraintId>, SparsificationError> {
     let eliminated: BTreeSet<VariableId> = result.eliminated.iter().copied().collect();
     for &id in &eliminated {
@@ -260,8 +275,8 @@ pub fn apply(
     }
     let mut ids = Vec::with_capacity(result.new_constraints.len());
     for constraint in &result.new_constraints {
-        // An earlier tree's edge on the same pair absorbs this one: the sum of two Gaussians on a pair is
-        // one Gaussian, so the graph keeps one constraint per pair instead of growing with every trim.
+        // A plain constraint already on the pair absorbs this one: the sum of two Gaussians on a pair is
+        // one Gaussian, so the graph does not grow a parallel constraint with every trim.
         let parallel = graph
             .constraints_of(constraint.from)
             .iter()
@@ -269,7 +284,11 @@ pub fn apply(
                 let existing = graph.constraint(id)?;
                 let same_pair = (existing.from == constraint.to && existing.to == constraint.from)
                     || (existing.from == constraint.from && existing.to == constraint.to);
-                if !same_pair || existing.kind != constraint.kind {
+                let allowed = match merge {
+                    ParallelMerge::TreeEdges => existing.kind == constraint.kind,
+                    ParallelMerge::EveryPlain => true,
+                };
+                if !same_pair || !allowed {
                     return None;
                 }
                 merged(existing, constraint).map(|sum| (id, sum))

@@ -24,7 +24,7 @@ use crate::pose_graph::{
     Constraint, ConstraintId, NodeId, OptimizationSummary, SubmapId, VariableId,
 };
 use crate::sensor::Timestamp;
-use crate::sparsification::{self, SparsificationError};
+use crate::sparsification::{self, ParallelMerge, SparsificationError};
 
 /// Errors of [`LifelongMap`].
 #[derive(Debug, Error)]
@@ -608,7 +608,14 @@ impl LifelongMap {
             } else {
                 result.diagnostics.kl_divergence
             };
-            sparsification::apply(self.global.graph_mut(), &result).map_err(error)?;
+            // GLM's bends rewrite node-to-submap constraints' information: with bends, only earlier
+            // trees' edges take in a new one.
+            let merge = if self.global.rewrites_intra_submap_information() {
+                ParallelMerge::TreeEdges
+            } else {
+                ParallelMerge::EveryPlain
+            };
+            sparsification::apply(self.global.graph_mut(), &result, merge).map_err(error)?;
             (result.new_constraints.len(), Some(kld))
         } else {
             let kld = if options.whole_graph_kld {

@@ -250,7 +250,7 @@ fn a_second_tree_edge_on_a_pair_is_summed_into_the_first() {
         );
     }
     let first = sparsify(&graph, &[node(5)], &SparsificationOptions::DEFAULT).unwrap();
-    apply(&mut graph, &first).unwrap();
+    apply(&mut graph, &first, ParallelMerge::EveryPlain).unwrap();
     assert_eq!(graph.num_constraints(), 3);
     let second = sparsify(&graph, &[node(6)], &SparsificationOptions::DEFAULT).unwrap();
     assert_eq!(second.new_constraints.len(), 1);
@@ -260,14 +260,81 @@ fn a_second_tree_edge_on_a_pair_is_summed_into_the_first() {
         .add_constraint(second.new_constraints[0].clone())
         .unwrap();
     assert_eq!(side_by_side.num_constraints(), 2);
-    let ids = apply(&mut graph, &second).unwrap();
+    let ids = apply(&mut graph, &second, ParallelMerge::EveryPlain).unwrap();
     assert_eq!(graph.num_constraints(), 1, "summed, not stacked");
     assert_eq!(graph.constraints_of(node(1)), ids.as_slice());
     let mut optimizer = Optimizer::new(OptimizerOptions::default()).unwrap();
     optimizer.optimize(&mut graph);
     optimizer.optimize(&mut side_by_side);
     let (translation, rotation) = graph.largest_shift(&side_by_side);
-    assert!(translation < 1e-9 && rotation < 1e-9, "{translation} m, {rotation} rad");
+    assert!(
+        translation < 1e-9 && rotation < 1e-9,
+        "{translation} m, {rotation} rad"
+    );
+}
+
+#[test]
+fn a_tree_edge_beside_another_plain_constraint_is_summed_into_it_only_when_allowed() {
+    // Nodes 0 and 1 tied by odometry and by a detour through 5; trimming 5 puts a tree edge 0 → 1 beside
+    // the odometry.
+    let mut rng = Pcg64::seed_from_u64(12);
+    let mut graph = PoseGraph::new();
+    for id in [0, 1, 5] {
+        graph.add_variable(node(id), random_pose(&mut rng)).unwrap();
+    }
+    graph.set_fixed(node(0), true).unwrap();
+    for (x, y, kind, noise) in [
+        (
+            node(0),
+            node(1),
+            ConstraintKind::Odometry,
+            rigid2(0.02, 0.01, -0.01),
+        ),
+        (
+            node(0),
+            node(5),
+            ConstraintKind::NodeToNode,
+            rigid2(-0.01, 0.02, 0.01),
+        ),
+        (
+            node(5),
+            node(1),
+            ConstraintKind::NodeToNode,
+            rigid2(0.01, -0.03, 0.02),
+        ),
+    ] {
+        let information = random_information(&mut rng, 20.0);
+        link(
+            &mut graph,
+            x,
+            y,
+            kind,
+            information,
+            noise,
+            RobustLoss::Trivial,
+        );
+    }
+    let result = sparsify(&graph, &[node(5)], &SparsificationOptions::DEFAULT).unwrap();
+    let mut beside = graph.clone();
+    apply(&mut beside, &result, ParallelMerge::TreeEdges).unwrap();
+    assert_eq!(beside.num_constraints(), 2, "odometry is not a tree edge");
+    let mut summed = graph.clone();
+    apply(&mut summed, &result, ParallelMerge::EveryPlain).unwrap();
+    assert_eq!(summed.num_constraints(), 1);
+    let (_, only) = summed.constraints().next().unwrap();
+    assert_eq!(
+        only.kind,
+        ConstraintKind::Odometry,
+        "the merged constraint keeps its kind"
+    );
+    let mut optimizer = Optimizer::new(OptimizerOptions::default()).unwrap();
+    optimizer.optimize(&mut beside);
+    optimizer.optimize(&mut summed);
+    let (translation, rotation) = summed.largest_shift(&beside);
+    assert!(
+        translation < 1e-9 && rotation < 1e-9,
+        "{translation} m, {rotation} rad"
+    );
 }
 
 #[test]
@@ -353,7 +420,7 @@ fn rank_deficient_marginal_is_reported_and_stays_finite() {
     // Node 2's relative position is unknown, so the star's marginal is a clique in θ only.
     assert!(result.diagnostics.kl_divergence.is_finite());
     let mut applied = graph.clone();
-    apply(&mut applied, &result).unwrap();
+    apply(&mut applied, &result, ParallelMerge::EveryPlain).unwrap();
     assert_eq!(applied.num_constraints(), 2);
 }
 
@@ -630,7 +697,7 @@ fn reoptimized_sparsified_graph_stays_near_the_full_optimum() {
         };
         let mut sparsified = graph.clone();
         let result = sparsify(&graph, &eliminate, &options).unwrap();
-        let added = apply(&mut sparsified, &result).unwrap();
+        let added = apply(&mut sparsified, &result, ParallelMerge::EveryPlain).unwrap();
         assert_eq!(added.len(), result.new_constraints.len());
         assert!(
             eliminate
@@ -670,11 +737,11 @@ fn apply_checks_before_editing() {
     let graph = two_lap_world();
     let result = sparsify(&graph, &submap_two(), &SparsificationOptions::DEFAULT).unwrap();
     let mut edited = graph.clone();
-    apply(&mut edited, &result).unwrap();
+    apply(&mut edited, &result, ParallelMerge::EveryPlain).unwrap();
     // Applying twice fails without touching the graph.
     let before = edited.num_constraints();
     assert!(matches!(
-        apply(&mut edited, &result),
+        apply(&mut edited, &result, ParallelMerge::EveryPlain),
         Err(SparsificationError::UnknownVariable(_))
     ));
     assert_eq!(edited.num_constraints(), before);

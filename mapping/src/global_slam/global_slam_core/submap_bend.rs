@@ -88,6 +88,12 @@ pub(super) fn fixed_growth(options: &GlobalSlamOptions) -> BendGrowth {
 }
 
 impl GlobalSlam {
+    /// Whether GLM may rewrite the information of node-to-submap constraints LLO gave it (bends are on):
+    /// whoever edits the graph must then leave those constraints as they are.
+    pub fn rewrites_intra_submap_information(&self) -> bool {
+        self.bends_enabled()
+    }
+
     fn bends_enabled(&self) -> bool {
         self.options.bent_submap_translation_sigma_per_m > 0.0
             || self.options.bent_submap_rotation_sigma_per_m > 0.0
