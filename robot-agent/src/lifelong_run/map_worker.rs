@@ -325,8 +325,9 @@ impl<'a> MapWorker<'a> {
             .zip(start_cpu_ms)
             .map(|(end, start)| end - start);
         // The trims freed grids and nodes: hand the pages back as the server's sites do, so that resident
-        // memory follows the map and not the largest the allocator ever held.
-        proto::memory_release::release_freed_memory_in_background();
+        // memory follows the map and not the largest the allocator ever held. Here at once, not on a
+        // thread of its own: the resident memory reported below is then the map's.
+        proto::memory_release::release_freed_memory();
         note_poses(&self.map, session, &mut self.retired, &mut at_session_end);
         let placed = self.map.is_placed(session) && !on_probation;
         let counts = self.map.counts();
