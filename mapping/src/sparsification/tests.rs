@@ -221,6 +221,19 @@ fn two_pose_blanket_gives_the_dense_marginal_as_one_constraint() {
     assert!(error < 0.05 * prior, "{error} vs {prior}");
 }
 
+/// Optimizes both graphs and checks that they end at the same poses (a summed constraint costs what the
+/// two it replaced did, up to a constant).
+fn assert_same_optimum(a: &mut PoseGraph, b: &mut PoseGraph) {
+    let mut optimizer = Optimizer::new(OptimizerOptions::default()).unwrap();
+    optimizer.optimize(a);
+    optimizer.optimize(b);
+    let (translation, rotation) = a.largest_shift(b);
+    assert!(
+        translation < 1e-9 && rotation < 1e-9,
+        "{translation} m, {rotation} rad"
+    );
+}
+
 #[test]
 fn a_second_tree_edge_on_a_pair_is_summed_into_the_first() {
     // Two detours between nodes 0 and 1 (through 5 and through 6), trimmed one after the other: each
@@ -263,14 +276,7 @@ fn a_second_tree_edge_on_a_pair_is_summed_into_the_first() {
     let ids = apply(&mut graph, &second, ParallelMerge::EveryPlain).unwrap();
     assert_eq!(graph.num_constraints(), 1, "summed, not stacked");
     assert_eq!(graph.constraints_of(node(1)), ids.as_slice());
-    let mut optimizer = Optimizer::new(OptimizerOptions::default()).unwrap();
-    optimizer.optimize(&mut graph);
-    optimizer.optimize(&mut side_by_side);
-    let (translation, rotation) = graph.largest_shift(&side_by_side);
-    assert!(
-        translation < 1e-9 && rotation < 1e-9,
-        "{translation} m, {rotation} rad"
-    );
+    assert_same_optimum(&mut graph, &mut side_by_side);
 }
 
 #[test]
@@ -327,14 +333,7 @@ fn a_tree_edge_beside_another_plain_constraint_is_summed_into_it_only_when_allow
         ConstraintKind::Odometry,
         "the merged constraint keeps its kind"
     );
-    let mut optimizer = Optimizer::new(OptimizerOptions::default()).unwrap();
-    optimizer.optimize(&mut beside);
-    optimizer.optimize(&mut summed);
-    let (translation, rotation) = summed.largest_shift(&beside);
-    assert!(
-        translation < 1e-9 && rotation < 1e-9,
-        "{translation} m, {rotation} rad"
-    );
+    assert_same_optimum(&mut summed, &mut beside);
 }
 
 #[test]
