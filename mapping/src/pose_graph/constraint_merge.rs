@@ -30,28 +30,31 @@ fn error_rotation(theta: f64) -> Matrix3<f64> {
     a
 }
 
-/// The same measurement seen from the other end, `j → i`, with its information carried over to first
-/// order at the measurement (exact in the information's eigen-directions for small errors).
-pub(crate) fn reversed(constraint: &Constraint) -> Constraint {
-    let z = constraint.from_from_to;
-    let (tx, ty, theta) = (z.x(), z.y(), z.theta());
-    let (s, c) = theta.sin_cos();
-    // r' = r⁻¹: t' = −R(−θ) t, θ' = −θ. Its Jacobian at r = z.
+/// The Jacobian of the inversion `r ↦ r⁻¹` (`t' = −R(−θ) t`, `θ' = −θ`) at `r = z`. The inversion is its
+/// own inverse, so the Jacobian at `z⁻¹` is this one's inverse.
+fn inversion_jacobian(z: &Rigid2) -> Matrix3<f64> {
+    let (tx, ty) = (z.x(), z.y());
+    let (s, c) = z.theta().sin_cos();
     #[rustfmt::skip]
-    let inverse_jacobian = Matrix3::new(
+    let j = Matrix3::new(
         -c, -s, s * tx - c * ty,
         s,  -c, c * tx + s * ty,
         0.0, 0.0, -1.0,
     );
+    j
+}
+
+/// The same measurement seen from the other end, `j → i`, with its information carried over to first
+/// order at the measurement.
+fn reversed(constraint: &Constraint) -> Constraint {
+    let z = constraint.from_from_to;
     let inverse = z.inverse();
-    // e' = A' (r' − z') ≈ A' J (r − z); want e'ᵀ Ω' e' = (r − z)ᵀ M (r − z), M = Aᵀ Ω A.
-    let a = error_rotation(theta);
+    // e' = A' (r' − z') ≈ A' J (r − z); want e'ᵀ Ω' e' = (r − z)ᵀ M (r − z) with M = Aᵀ Ω A, so
+    // Ω' = K⁻ᵀ M K⁻¹ with K = A' J, K⁻¹ = J(z⁻¹) A'ᵀ.
+    let a = error_rotation(z.theta());
     let m = a.transpose() * constraint.information * a;
-    let k = error_rotation(inverse.theta()) * inverse_jacobian;
-    let information = match k.try_inverse() {
-        Some(k_inverse) => k_inverse.transpose() * m * k_inverse,
-        None => constraint.information,
-    };
+    let k_inverse = inversion_jacobian(&inverse) * error_rotation(inverse.theta()).transpose();
+    let information = k_inverse.transpose() * m * k_inverse;
     Constraint {
         kind: constraint.kind,
         from: constraint.to,
