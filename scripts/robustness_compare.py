@@ -26,7 +26,7 @@ import statistics
 import sys
 from pathlib import Path
 
-from robustness_table import AT_SCANS, MILD
+from robustness_table import AT_SCANS, breaks_bound
 
 
 def load(out: Path) -> dict:
@@ -37,13 +37,10 @@ def load(out: Path) -> dict:
         at_scans = variant in AT_SCANS and rep.get("relations_at_scans") is not None
         rel = rep["relations_at_scans"] if at_scans else rep["relations"]
         cells[(rec, variant)] = (rel["trans_abs_mean_m"], rel["trans_abs_max_m"])
-    for (rec, variant), (mean, worst) in list(cells.items()):
-        clean = cells.get((rec, "clean"))
-        ok = worst <= 1.0 and mean <= (0.15 if variant == "hard" else 0.10)
-        if variant in MILD and clean is not None:
-            ok = ok and mean <= 2.0 * clean[0]
-        cells[(rec, variant)] = (mean, worst, not ok)
-    return cells
+    return {
+        (rec, variant): (mean, worst, breaks_bound(variant, mean, worst, cells.get((rec, "clean"), (None,))[0]))
+        for (rec, variant), (mean, worst) in cells.items()
+    }
 
 
 def side(dirs: str) -> list:

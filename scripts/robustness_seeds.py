@@ -13,7 +13,7 @@ import statistics
 import sys
 from pathlib import Path
 
-from robustness_table import ORDER
+from robustness_table import ORDER, breaks_bound
 
 
 def main() -> int:
@@ -39,8 +39,7 @@ def main() -> int:
                 cells.append("")
                 continue
             means = [m for m, _ in seeds]
-            bound = 0.15 if v == "hard" else 0.10
-            broken = sum(m > bound or x > 1.0 for m, x in seeds)
+            broken = sum(breaks_bound(v, m, x, None) for m, x in seeds)
             verdict = f"{broken} of {len(seeds)} ✘" if broken else "✔"
             cells.append(f"{statistics.median(means):.3f} / {max(means):.3f} "
                          f"({max(x for _, x in seeds):.2f}) {verdict}")
