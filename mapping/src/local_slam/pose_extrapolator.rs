@@ -5,9 +5,10 @@
 //! instead (integrated yaw rate). Without either, a constant-velocity model from matched poses is used.
 //! Velocities are only ever estimated over at least `MIN_VELOCITY_WINDOW_S`: recordings deliver
 //! messages in bursts (Intel: thousands of intervals under 5 ms), and a velocity from a 0.2 ms gap is
-//! noise. Readings that go back in time are dropped and counted. With `resume_from_before_a_stall`, an
-//! odometry stream that stalls (repeats one pose while the matched poses move) and comes back with its
-//! backlog has that backlog composed on the last pose before the stall, not counted a second time.
+//! noise. Readings that go back in time are dropped and counted. With `resume_from_before_a_stall` (the
+//! default), an odometry stream that stalls (repeats one pose while the matched poses move) and comes
+//! back with its backlog has that backlog composed on the last pose before the stall, not counted a
+//! second time.
 
 use std::collections::VecDeque;
 
@@ -40,8 +41,9 @@ pub struct PoseExtrapolatorOptions {
     /// `docs/TUNING.md#llo-min-velocity-span-per-horizon`.
     pub min_velocity_span_per_horizon: f64,
     /// After the odometry stalled (repeated one pose while the matched poses moved) and resumed with
-    /// its backlog, compose its motion on the last pose before the stall. Default false (measured, not
-    /// a default). Why:
+    /// its backlog, compose its motion on the last pose before the stall. Default true (on nine draws of
+    /// the robustness suite, MIT CSAIL's `range4` runs over a bound 22 → 2, no cell's median 5 %
+    /// worse). Why:
     /// `docs/TUNING.md#llo-resume-from-before-a-stall`.
     pub resume_from_before_a_stall: bool,
 }
@@ -50,7 +52,7 @@ impl Default for PoseExtrapolatorOptions {
     fn default() -> Self {
         Self {
             min_velocity_span_per_horizon: 0.5,
-            resume_from_before_a_stall: false,
+            resume_from_before_a_stall: true,
         }
     }
 }
