@@ -1,6 +1,8 @@
 //! The two overlapping submaps LLO inserts into: every scan goes into both, a new submap starts when
 //! the newer one has `num_range_data` scans, and the older is finished when it has twice that — so
-//! consecutive submaps overlap by half and every finished submap has the same amount of data.
+//! consecutive submaps overlap by half and every finished submap has the same amount of data. With
+//! `max_path_m`, a submap is also bounded by the path it was built over (the scans' origins), so a slow
+//! scanner's submaps do not span several times the path a fast one's do.
 
 use nalgebra::Vector2;
 use serde::{Deserialize, Serialize};
@@ -16,6 +18,10 @@ use crate::sensor::RangeData;
 pub struct SubmapsOptions {
     /// Scans after which a new submap starts; each finished submap holds twice this. Default 90.
     pub num_range_data: usize,
+    /// Path (m, along the inserted scans' origins) after which a new submap starts even if it has fewer
+    /// than `num_range_data` scans; the older finishes at twice this. 0: by scans only. Default 0
+    /// (measured, not a default). Why: `docs/TUNING.md#llo-max-path-m`.
+    pub max_path_m: f64,
     /// Cell size in metres. Default 0.05 m.
     pub resolution: f64,
     /// Hit/miss update strengths.
@@ -26,6 +32,7 @@ impl Default for SubmapsOptions {
     fn default() -> Self {
         Self {
             num_range_data: 90,
+            max_path_m: 0.0,
             resolution: 0.05,
             range_data_inserter: RangeDataInserterOptions::default(),
         }
@@ -39,6 +46,10 @@ pub struct ActiveSubmaps {
     inserter: RangeDataInserter,
     /// `(index, submap)`, oldest first; at most two.
     submaps: Vec<(usize, Submap)>,
+    /// The path (m) each active submap was built over, in the order of `submaps`.
+    paths_m: Vec<f64>,
+    /// The origin of the last inserted scan.
+    last_origin: Option<Vector2<f64>>,
     next_index: usize,
 }
 
@@ -50,6 +61,8 @@ impl ActiveSubmaps {
             options,
             inserter,
             submaps: Vec::new(),
+            paths_m: Vec::new(),
+            last_origin: None,
             next_index: 0,
         }
     }
@@ -82,6 +95,7 @@ impl ActiveSubmaps {
                 finished: false,
             },
         ));
+        self.paths_m.push(0.0);
         self.next_index += 1;
     }
 
@@ -91,10 +105,15 @@ impl ActiveSubmaps {
         if self.submaps.is_empty() {
             self.add_submap(range_data.origin);
         }
+        let step_m = self
+            .last_origin
+            .map_or(0.0, |last| (range_data.origin - last).norm());
+        self.last_origin = Some(range_data.origin);
         let mut inserted = Vec::with_capacity(2);
-        for (index, submap) in &mut self.submaps {
+        for ((index, submap), path_m) in self.submaps.iter_mut().zip(&mut self.paths_m) {
             self.inserter.insert(range_data, &mut submap.grid);
             submap.num_range_data += 1;
+            *path_m += step_m;
             inserted.push(SubmapRef {
                 index: *index,
                 local_pose: submap.local_pose,
@@ -102,21 +121,25 @@ impl ActiveSubmaps {
         }
         let mut finished = Vec::new();
         let n = self.options.num_range_data;
+        let max_path_m = self.options.max_path_m;
+        let full = |scans: usize, path_m: f64, times: usize| {
+            scans >= times * n || (max_path_m > 0.0 && path_m >= times as f64 * max_path_m)
+        };
         if self
             .submaps
             .first()
-            .is_some_and(|(_, s)| s.num_range_data >= 2 * n)
+            .is_some_and(|(_, s)| full(s.num_range_data, self.paths_m[0], 2))
         {
             let (index, mut submap) = self.submaps.remove(0);
+            self.paths_m.remove(0);
             submap.finished = true;
             submap.grid = submap.grid.cropped_to_known();
             finished.push((index, submap));
         }
-        if self
-            .submaps
-            .last()
-            .is_some_and(|(_, s)| s.num_range_data >= n)
-            && self.submaps.len() < 2
+        if self.submaps.len() < 2
+            && self.submaps.last().is_some_and(|(_, s)| {
+                full(s.num_range_data, self.paths_m[self.paths_m.len() - 1], 1)
+            })
         {
             self.add_submap(range_data.origin);
         }
@@ -158,5 +181,46 @@ mod tests {
                 .all(|(_, s)| s.finished && s.num_range_data == 6)
         );
         assert_eq!(active.submaps().len(), 2);
+    }
+
+    #[test]
+    fn a_slow_scanners_submaps_are_bounded_by_path() {
+        let options = SubmapsOptions {
+            num_range_data: 90,
+            max_path_m: 3.0,
+            ..Default::default()
+        };
+        // Scans 1 m apart: far fewer than 90 scans, but 3 m of path, start the next submap.
+        let scan = |k: u32| RangeData {
+            origin: Vector2::new(f64::from(k), 0.0),
+            returns: vec![Point2::new(f64::from(k) as f32 + 1.0, 0.0)],
+            misses: vec![],
+        };
+        let mut active = ActiveSubmaps::new(options.clone());
+        let mut inserted_counts = Vec::new();
+        let mut finished = Vec::new();
+        for k in 0..10 {
+            let (inserted, done) = active.insert(&scan(k));
+            inserted_counts.push(inserted.len());
+            finished.extend(done);
+        }
+        // Submap 1 starts after the scan 3 m from submap 0's first; submap 0 finishes at 6 m, and so on.
+        assert_eq!(inserted_counts, vec![1, 1, 1, 1, 2, 2, 2, 2, 2, 2]);
+        let indices: Vec<usize> = finished.iter().map(|(i, _)| *i).collect();
+        assert_eq!(indices, vec![0, 1]);
+        // Submap 0 holds the scans at 0–6 m; submap 1, started at 3 m, those at 4–9 m.
+        let scans: Vec<usize> = finished.iter().map(|(_, s)| s.num_range_data).collect();
+        assert_eq!(scans, vec![7, 6]);
+        assert!(finished.iter().all(|(_, s)| s.finished));
+        // Without the bound the same scans stay in one submap.
+        let mut by_scans = ActiveSubmaps::new(SubmapsOptions {
+            max_path_m: 0.0,
+            ..options
+        });
+        for k in 0..10 {
+            let (inserted, done) = by_scans.insert(&scan(k));
+            assert_eq!(inserted.len(), 1);
+            assert!(done.is_empty());
+        }
     }
 }

@@ -229,9 +229,11 @@ impl LocalTrajectoryBuilderOptions {
         }
         if !(self.submaps.resolution > 0.0 && self.submaps.resolution.is_finite())
             || self.submaps.num_range_data == 0
+            || !(self.submaps.max_path_m >= 0.0 && self.submaps.max_path_m.is_finite())
         {
             return Err(err(
-                "submaps: resolution must be positive and num_range_data at least 1",
+                "submaps: resolution must be positive, num_range_data at least 1 and max_path_m finite and \
+                 not negative",
             ));
         }
         let av = &self.adaptive_voxel_filter;
