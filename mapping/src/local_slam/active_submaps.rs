@@ -138,7 +138,11 @@ impl ActiveSubmaps {
         }
         if self.submaps.len() < 2
             && self.submaps.last().is_some_and(|(_, s)| {
-                full(s.num_range_data, self.paths_m[self.paths_m.len() - 1], 1)
+                full(
+                    s.num_range_data,
+                    self.paths_m.last().copied().unwrap_or(0.0),
+                    1,
+                )
             })
         {
             self.add_submap(range_data.origin);

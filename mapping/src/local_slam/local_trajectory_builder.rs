@@ -1174,6 +1174,12 @@ mod tests {
         ] {
             assert!(broken.validate().is_err());
         }
+        for max_path_m in [-1.0, f64::NAN, f64::INFINITY] {
+            let mut broken = LocalTrajectoryBuilderOptions::default();
+            broken.submaps.max_path_m = max_path_m;
+            let error = broken.validate().unwrap_err();
+            assert!(error.to_string().contains("max_path_m"), "{error}");
+        }
         assert!(LocalTrajectoryBuilderOptions::default().validate().is_ok());
     }
 
