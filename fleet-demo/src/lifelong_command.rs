@@ -19,8 +19,8 @@ use indicatif::{ProgressBar, ProgressStyle};
 use mapping::geometry::{Rigid2, Rigid2Ext as _};
 use mapping::grid::ProbabilityGrid;
 use mapping::lifelong::{
-    LifelongMap, MAP_CHANGE_TOLERANCE_M, MapChange, TrimPolicy, map_change_rate,
-    render_submaps_newest,
+    ConstraintKindCounts, LifelongMap, MAP_CHANGE_TOLERANCE_M, MapChange, TrimPolicy,
+    map_change_rate, render_submaps_newest,
 };
 use mapping::metrics::{
     MAP_WORLD_TOLERANCE_M, MapWorldAgreement, ScoringOptions, SessionScore, align_to_truth,
@@ -93,6 +93,8 @@ struct SessionRow {
     nodes: usize,
     submaps: usize,
     constraints: usize,
+    /// Those constraints by kind (LLO's, GLM's and trees' node-to-submap, odometry, trees' others).
+    constraints_by_kind: ConstraintKindCounts,
     trimmed_total: usize,
     /// Submaps of sessions that did not update the map (never placed; `frozen`), dropped so far.
     dropped_total: usize,
@@ -220,6 +222,7 @@ impl Reporter<'_> {
             nodes: counts.nodes,
             submaps: counts.submaps,
             constraints: counts.constraints,
+            constraints_by_kind: counts.constraints_by_kind,
             trimmed_total: counts.trimmed_total,
             dropped_total: counts.dropped_total,
             pgr_ms: s.finish_ms,

@@ -41,7 +41,8 @@ mod submap_trimmer;
 mod tests;
 
 pub use lifelong_map::{
-    GraphCounts, LifelongError, LifelongEvent, LifelongMap, LifelongMapState, SessionProgress,
+    ConstraintKindCounts, GraphCounts, LifelongError, LifelongEvent, LifelongMap, LifelongMapState,
+    SessionProgress,
 };
 pub use live_anchor::{LiveAnchor, LiveAnchorNoise};
 pub use map_change::{

@@ -21,7 +21,8 @@ use crate::global_slam::{
 use crate::grid::ProbabilityGrid;
 use crate::local_slam::LloNode;
 use crate::pose_graph::{
-    Constraint, ConstraintId, NodeId, OptimizationSummary, SubmapId, VariableId,
+    Constraint, ConstraintId, ConstraintKind, NodeId, OptimizationSummary, PoseGraph, SubmapId,
+    VariableId,
 };
 use crate::sensor::Timestamp;
 use crate::sparsification::{self, ParallelMerge, SparsificationError};
@@ -121,11 +122,46 @@ pub struct GraphCounts {
     pub submaps: usize,
     /// Constraints.
     pub constraints: usize,
+    /// Those constraints by where they come from (what grows when the graph's size per node does).
+    pub constraints_by_kind: ConstraintKindCounts,
     /// Stale submaps trimmed since the map was created (`clt`, `delete`).
     pub trimmed_total: usize,
     /// Submaps of sessions that did not update the map, dropped at their end (a session never placed;
     /// every later session with `frozen`).
     pub dropped_total: usize,
+}
+
+/// A pose graph's constraints counted by [`ConstraintKind`]. Sparsification's tree edges are node-to-node,
+/// submap-to-submap or node-to-submap (`inter`, beside GLM's loop closures).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+pub struct ConstraintKindCounts {
+    /// A node against a submap of its own trajectory while the submap was built (LLO).
+    pub node_to_submap_intra: usize,
+    /// A node against a submap by GLM, or a tree edge between a node and a submap.
+    pub node_to_submap_inter: usize,
+    /// Consecutive nodes' odometry.
+    pub odometry: usize,
+    /// Node to node (tree edges).
+    pub node_to_node: usize,
+    /// Submap to submap (tree edges).
+    pub submap_to_submap: usize,
+}
+
+impl ConstraintKindCounts {
+    /// Counts `graph`'s constraints.
+    pub fn of(graph: &PoseGraph) -> Self {
+        let mut counts = Self::default();
+        for (_, constraint) in graph.constraints() {
+            *match constraint.kind {
+                ConstraintKind::NodeToSubmapIntra => &mut counts.node_to_submap_intra,
+                ConstraintKind::NodeToSubmapInter => &mut counts.node_to_submap_inter,
+                ConstraintKind::Odometry => &mut counts.odometry,
+                ConstraintKind::NodeToNode => &mut counts.node_to_node,
+                ConstraintKind::SubmapToSubmap => &mut counts.submap_to_submap,
+            } += 1;
+        }
+        counts
+    }
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -746,6 +782,7 @@ impl LifelongMap {
             nodes: self.global.nodes().len(),
             submaps: self.global.submaps().len(),
             constraints: self.global.graph().num_constraints(),
+            constraints_by_kind: ConstraintKindCounts::of(self.global.graph()),
             trimmed_total: self.trimmed_total,
             dropped_total: self.dropped_total,
         }

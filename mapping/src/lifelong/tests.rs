@@ -406,3 +406,45 @@ fn no_trimming_before_enough_fresh_submaps_or_without_enough_coverage() {
         );
     }
 }
+
+#[test]
+fn constraints_are_counted_by_kind() {
+    use crate::lifelong::ConstraintKindCounts;
+    use crate::pose_graph::{Constraint, ConstraintKind, PoseGraph, RobustLoss, VariableId};
+    let node = |index| {
+        VariableId::Node(crate::pose_graph::NodeId {
+            trajectory: 0,
+            index,
+        })
+    };
+    let mut graph = PoseGraph::new();
+    for index in 0..3 {
+        graph
+            .add_variable(node(index), rigid2(0.0, 0.0, 0.0))
+            .unwrap();
+    }
+    for (kind, from, to) in [
+        (ConstraintKind::Odometry, 0, 1),
+        (ConstraintKind::Odometry, 1, 2),
+        (ConstraintKind::NodeToNode, 0, 2),
+    ] {
+        graph
+            .add_constraint(Constraint {
+                kind,
+                from: node(from),
+                to: node(to),
+                from_from_to: rigid2(1.0, 0.0, 0.0),
+                information: nalgebra::Matrix3::identity(),
+                loss: RobustLoss::Trivial,
+            })
+            .unwrap();
+    }
+    assert_eq!(
+        ConstraintKindCounts::of(&graph),
+        ConstraintKindCounts {
+            odometry: 2,
+            node_to_node: 1,
+            ..Default::default()
+        }
+    );
+}
