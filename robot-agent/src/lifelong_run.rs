@@ -31,6 +31,7 @@ use crate::map_probes::{MapProbe, MapProbes};
 use crate::source::Recording;
 
 mod act_on_start;
+mod carried_nodes;
 mod map_worker;
 mod session_feed;
 mod session_record;

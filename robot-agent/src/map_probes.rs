@@ -45,6 +45,25 @@ pub fn cross_session_probes(
         .unzip()
 }
 
+/// The relations that score the map a multi-session run leaves: those within one session, and those
+/// between two sessions that are both in the map (`in_map[k]`: session `k`, which starts at
+/// `boundaries[k]`, ended placed and committed). A relation touching a session dropped at its end (never
+/// placed, or its placement never committed) is left out, and counted: that session's scans float in a
+/// frame nothing ties to the site, so its error says nothing of the map (a refusal, not an error).
+pub fn relations_in_the_map(
+    relations: &[Relation],
+    boundaries: &[Timestamp],
+    in_map: &[bool],
+) -> (Vec<Relation>, usize) {
+    let session_of = |t: Timestamp| boundaries.partition_point(|b| *b <= t).saturating_sub(1);
+    let kept_session = |k: usize| in_map.get(k).copied().unwrap_or(false);
+    let (kept, left_out): (Vec<&Relation>, Vec<&Relation>) = relations.iter().partition(|r| {
+        let (a, b) = (session_of(r.t1), session_of(r.t2));
+        a == b || (kept_session(a) && kept_session(b))
+    });
+    (kept.into_iter().cloned().collect(), left_out.len())
+}
+
 /// Each relation's error as the robot lived it: its later scan's estimate at the time (`online`,
 /// time-ordered `map_from_base`) against `answers`, the map's pose of its earlier scan at that moment
 /// (the run's answers to `probes`). Relations without either pose are left out.
@@ -162,6 +181,33 @@ mod tests {
 
     fn s(secs: f64) -> Timestamp {
         Timestamp::from_secs_f64(secs)
+    }
+
+    #[test]
+    fn relations_touching_a_dropped_session_are_left_out_and_counted() {
+        let relation = |t1: f64, t2: f64| Relation {
+            t1: s(t1),
+            t2: s(t2),
+            delta: Rigid2::identity(),
+        };
+        // Sessions start at 0, 10 and 20 s; the second was dropped.
+        let boundaries = [s(0.0), s(10.0), s(20.0)];
+        let relations = [
+            relation(1.0, 2.0),   // within session 0
+            relation(11.0, 12.0), // within the dropped session: self-consistent, kept
+            relation(1.0, 21.0),  // between two sessions in the map
+            relation(2.0, 12.0),  // to the dropped session
+            relation(12.0, 22.0), // from the dropped session
+        ];
+        let (kept, left_out) = relations_in_the_map(&relations, &boundaries, &[true, false, true]);
+        let stamps: Vec<_> = kept.iter().map(|r| (r.t1, r.t2)).collect();
+        assert_eq!(
+            stamps,
+            vec![(s(1.0), s(2.0)), (s(11.0), s(12.0)), (s(1.0), s(21.0))]
+        );
+        assert_eq!(left_out, 2);
+        let (kept, left_out) = relations_in_the_map(&relations, &boundaries, &[true, true, true]);
+        assert_eq!((kept.len(), left_out), (5, 0));
     }
 
     #[test]

@@ -73,8 +73,9 @@ pub enum LifelongEvent {
         /// Whether it was dropped with its own session, which does not update the map (never placed, or
         /// any later session with `frozen`), rather than trimmed as stale.
         dropped: bool,
-        /// How many of its nodes went with it.
-        nodes_removed: usize,
+        /// The nodes that went with it, each at the pose the map held it at when it went (after the
+        /// optimization that precedes the trim): where a trajectory's trimmed scans stay.
+        removed_nodes: Vec<(NodeId, Rigid2)>,
         /// Chow–Liu tree constraints added in their place (0 for `delete` and `frozen`).
         tree_edges: usize,
         /// KL divergence (nats) of the replacement against the exact marginal: over the blanket for
@@ -603,6 +604,14 @@ impl LifelongMap {
     }
 
     /// The nodes that go with `submap`: those all of whose insertion submaps are `submap` or gone.
+    /// `nodes` at the poses the graph holds them at now.
+    fn node_poses_of(&self, nodes: &[NodeId]) -> Vec<(NodeId, Rigid2)> {
+        nodes
+            .iter()
+            .filter_map(|&n| Some((n, self.global.node_pose(n)?)))
+            .collect()
+    }
+
     fn own_nodes(&self, submap: SubmapId) -> Vec<NodeId> {
         let Some(record) = self.global.submaps().get(&submap) else {
             return Vec::new();
@@ -624,6 +633,7 @@ impl LifelongMap {
     /// Removes one submap and its own nodes per the policy (`clt` or `delete`).
     fn trim(&mut self, submap: SubmapId) -> Result<LifelongEvent, LifelongError> {
         let nodes = self.own_nodes(submap);
+        let removed_nodes = self.node_poses_of(&nodes);
         let eliminate: Vec<VariableId> = std::iter::once(VariableId::Submap(submap))
             .chain(nodes.iter().map(|n| VariableId::Node(*n)))
             .collect();
@@ -678,7 +688,7 @@ impl LifelongMap {
         Ok(LifelongEvent::SubmapTrimmed {
             submap,
             dropped: false,
-            nodes_removed: nodes.len(),
+            removed_nodes,
             tree_edges,
             kld,
         })
@@ -716,6 +726,7 @@ impl LifelongMap {
         let mut events = Vec::new();
         for submap in submaps {
             let nodes = self.own_nodes(submap);
+            let removed_nodes = self.node_poses_of(&nodes);
             let eliminate: Vec<VariableId> = std::iter::once(VariableId::Submap(submap))
                 .chain(nodes.iter().map(|n| VariableId::Node(*n)))
                 .collect();
@@ -727,7 +738,7 @@ impl LifelongMap {
             events.push(LifelongEvent::SubmapTrimmed {
                 submap,
                 dropped: true,
-                nodes_removed: nodes.len(),
+                removed_nodes,
                 tree_edges: 0,
                 kld: None,
             });

@@ -121,12 +121,12 @@ impl Site {
         for event in events {
             if let LifelongEvent::SubmapTrimmed {
                 submap,
-                nodes_removed,
+                removed_nodes,
                 kld,
                 ..
             } = event
             {
-                self.trims.push((submap, nodes_removed, kld));
+                self.trims.push((submap, removed_nodes.len(), kld));
             }
         }
     }

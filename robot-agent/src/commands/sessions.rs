@@ -2,6 +2,10 @@
 //! scored over the relations whose two stamps fall in different sessions, and over all.
 //!
 //! - `relations_cross_session`: the final map's trajectory (smoothed after the fact).
+//! - `relations_all` and `relations_cross_session` score the map the fleet is left with: a relation
+//!   between a session dropped at its end (never placed, or its placement never committed: its scans float
+//!   in a frame nothing ties to the site) and another session says nothing of that map, and is counted
+//!   apart (`relations_across_dropped_sessions`): a refusal, not an error.
 //! - `relations_cross_session_at_the_time`: each such relation as the robot lived it, its later scan's
 //!   estimate at that scan against the earlier scan's pose in the map as the map stood at that moment
 //!   (the map the robot was placed on; see `mapping::metrics::judge_placements`). Scans before a session
@@ -27,7 +31,9 @@ use mapping::metrics::{
 };
 use mapping::sensor::Timestamp;
 use robot_agent::lifelong_run::{SessionsConfig, run_sessions, session_boundaries};
-use robot_agent::map_probes::{cross_session_probes, relation_errors_at_the_time};
+use robot_agent::map_probes::{
+    cross_session_probes, relation_errors_at_the_time, relations_in_the_map,
+};
 use robot_agent::offline_slam::render_range_data;
 use robot_agent::{map_image, process_stats, source};
 use serde_json::json;
@@ -145,10 +151,24 @@ pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
         .collect();
     online.sort_by_key(|(t, _)| *t);
     let at_the_time = relation_errors_at_the_time(&cross, &probes, &run.probe_poses, &online);
+    // The first session, and each later one that ended placed and committed, are in the final map.
+    let in_map: Vec<bool> = (0..args.split)
+        .map(|k| {
+            run.sessions
+                .iter()
+                .any(|s| s.session as usize == k && s.placed)
+        })
+        .collect();
+    let (relations_scored, across_dropped) = relations_in_the_map(
+        relations.as_deref().unwrap_or_default(),
+        &boundaries,
+        &in_map,
+    );
+    let (cross_scored, _) = relations_in_the_map(&cross, &boundaries, &in_map);
     let (all, cross_smoothed, cross_online) = match &relations {
-        Some(relations) => (
-            Some(relations_error(&run.scan_poses, relations)),
-            Some(relations_error(&run.scan_poses, &cross)),
+        Some(_) => (
+            Some(relations_error(&run.scan_poses, &relations_scored)),
+            Some(relations_error(&run.scan_poses, &cross_scored)),
             Some(relation_error_stats(
                 &at_the_time,
                 cross.len() - at_the_time.len(),
@@ -217,6 +237,7 @@ pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
         "relations_all": all,
         "relations_cross_session": cross_smoothed,
         "relations_cross_session_at_the_time": cross_online,
+        "relations_across_dropped_sessions": across_dropped,
         "session_scores": scores,
         "placements": placement_counts,
         "scan_poses": run.scan_poses.len(),
@@ -231,6 +252,7 @@ pub fn run(args: &SessionsArgs) -> anyhow::Result<()> {
     println!(
         "{}",
         json!({"relations_all": report["relations_all"], "relations_cross_session": report["relations_cross_session"],
+               "relations_across_dropped_sessions": across_dropped,
                "relations_cross_session_at_the_time": report["relations_cross_session_at_the_time"],
                "placements": placement_counts,
                "wall_time_s": wall_time_s, "final": counts})

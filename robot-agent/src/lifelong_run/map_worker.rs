@@ -17,6 +17,7 @@ use mapping::pose_graph::NodeId;
 use mapping::sensor::Timestamp;
 
 use super::act_on_start::act_on_start;
+use super::carried_nodes::{CarriedNode, carry};
 use super::{
     OptimizationFigures, ProbationStepFigures, ScanAnchor, SessionEnd, SessionRecord,
     SessionSummary, SessionsConfig, SessionsError,
@@ -52,6 +53,8 @@ pub(super) struct WorkerOutput {
     pub(super) sessions: Vec<SessionSummary>,
     /// Every node's pose when the last session that saw it in the map ended.
     pub(super) retired: BTreeMap<NodeId, Rigid2>,
+    /// Every trimmed node, in the order they went, tied to the nearest node the map kept.
+    pub(super) carried: Vec<CarriedNode>,
     pub(super) records: Vec<SessionRecord>,
     pub(super) probe_poses: Vec<Option<Rigid2>>,
 }
@@ -108,6 +111,7 @@ struct MapWorker<'a> {
     probes: MapProbes,
     sessions: Vec<SessionSummary>,
     retired: BTreeMap<NodeId, Rigid2>,
+    carried: Vec<CarriedNode>,
     records: Vec<SessionRecord>,
     // The current session's: node local poses, node poses as the robot had them when each was added,
     // and the map of the finished sessions as it was at its start (for the match scores).
@@ -132,6 +136,7 @@ impl<'a> MapWorker<'a> {
             probes,
             sessions: Vec::new(),
             retired: BTreeMap::new(),
+            carried: Vec::new(),
             records: Vec::new(),
             node_local: BTreeMap::new(),
             online_nodes: BTreeMap::new(),
@@ -329,6 +334,22 @@ impl<'a> MapWorker<'a> {
         // thread of its own: the resident memory reported below is then the map's.
         proto::memory_release::release_freed_memory();
         note_poses(&self.map, session, &mut self.retired, &mut at_session_end);
+        // A node trimmed or dropped keeps the pose the map held it at when it went: after the session's
+        // final optimization, not before it.
+        note_removed_poses(
+            &events_finish,
+            session,
+            &mut self.retired,
+            &mut at_session_end,
+        );
+        self.carried.extend(carry(
+            &trimmed_nodes(&events_finish),
+            &self
+                .map
+                .node_poses()
+                .map(|(id, _, pose)| (id, pose))
+                .collect::<Vec<_>>(),
+        ));
         let placed = self.map.is_placed(session) && !on_probation;
         let counts = self.map.counts();
         let offset = relocalization_offset(&self.priors, &self.retired, session);
@@ -365,6 +386,7 @@ impl<'a> MapWorker<'a> {
             map: self.map,
             sessions: self.sessions,
             retired: self.retired,
+            carried: self.carried,
             records: self.records,
             probe_poses: self.probes.into_answers(),
         }
@@ -384,6 +406,43 @@ fn note_poses(
             at_session_end.insert(id, pose);
         }
     }
+}
+
+/// Notes the pose each node removed by `events` (trimmed, or dropped with its session) had when it went,
+/// in `retired`, and those of `session`'s nodes in `at_session_end`.
+fn note_removed_poses(
+    events: &[LifelongEvent],
+    session: u32,
+    retired: &mut BTreeMap<NodeId, Rigid2>,
+    at_session_end: &mut BTreeMap<NodeId, Rigid2>,
+) {
+    for event in events {
+        if let LifelongEvent::SubmapTrimmed { removed_nodes, .. } = event {
+            for &(id, pose) in removed_nodes {
+                retired.insert(id, pose);
+                if id.trajectory == session {
+                    at_session_end.insert(id, pose);
+                }
+            }
+        }
+    }
+}
+
+/// The nodes `events` trimmed as stale (not those dropped with their own session, whose frame nothing
+/// ties to the site), at their poses when they went.
+fn trimmed_nodes(events: &[LifelongEvent]) -> Vec<(NodeId, Rigid2)> {
+    events
+        .iter()
+        .filter_map(|e| match e {
+            LifelongEvent::SubmapTrimmed {
+                dropped: false,
+                removed_nodes,
+                ..
+            } => Some(removed_nodes.iter().copied()),
+            _ => None,
+        })
+        .flatten()
+        .collect()
 }
 
 /// The session start of a session after the first: the whole-map search over the map as it stands
@@ -492,7 +551,7 @@ fn count_trims(summary: &mut SessionSummary, events: &[LifelongEvent]) {
     for event in events {
         if let LifelongEvent::SubmapTrimmed {
             dropped,
-            nodes_removed,
+            removed_nodes,
             tree_edges,
             kld,
             ..
@@ -503,7 +562,7 @@ fn count_trims(summary: &mut SessionSummary, events: &[LifelongEvent]) {
                 continue;
             }
             summary.trimmed += 1;
-            summary.nodes_trimmed += nodes_removed;
+            summary.nodes_trimmed += removed_nodes.len();
             summary.tree_edges += tree_edges;
             klds.extend(*kld);
         }

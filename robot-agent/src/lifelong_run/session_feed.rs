@@ -9,6 +9,7 @@ use mapping::local_slam::{LloDriver, LloEvent};
 use mapping::pose_graph::NodeId;
 use mapping::sensor::{RangeData, SensorEvent, Timestamp};
 
+use super::carried_nodes::place_carried;
 use super::map_worker::{Message, WorkerOutput};
 use super::{ScanAnchor, SessionInput, SessionsConfig, SessionsRun, active_grids};
 
@@ -107,13 +108,15 @@ impl SessionFeed {
             })
     }
 
-    /// The run: each scan's final global pose (from the final map where its node is still there, else
-    /// from the last estimate before its node was trimmed), each session's span and scan count.
+    /// The run: each scan's final global pose (from the final map where its node is still there; a
+    /// trimmed node carried with the nearest node the map kept, see [`super::carried_nodes`]; else the last
+    /// estimate before its node went), each session's span and scan count.
     pub(super) fn into_run(self, output: WorkerOutput) -> SessionsRun {
         let WorkerOutput {
             map,
             mut sessions,
             retired,
+            carried,
             records,
             probe_poses,
         } = output;
@@ -121,6 +124,7 @@ impl SessionFeed {
         for (id, _, pose) in map.node_poses() {
             node_pose.insert(id, pose);
         }
+        place_carried(&mut node_pose, &carried);
         let node_data = self.node_data;
         let scan_pose = |poses: &BTreeMap<NodeId, Rigid2>, a: &ScanAnchor| {
             let node = a.node?;
