@@ -3,11 +3,17 @@
 equal time spans of the trajectory (what `evermap-agent sessions --split N` calls cross-session relations),
 so a single-session `offline` run can be compared with a multi-session run on the same subsets.
 Same metric as mapping::metrics::relations_metric (nearest pose within 0.1 s, component-wise error).
+With --sessions-report (a `sessions` run's report.json), the sessions are that run's (its start times) and
+relations touching a session it dropped (never placed or never committed) are left out, as `sessions`
+scores its own `relations_cross_session`.
 
     python3 scripts/relations_by_session.py out/intel/trajectory.tum ../shared/datasets/relations/intel.relations --split 3
+    python3 scripts/relations_by_session.py out/intel/trajectory.tum ../shared/datasets/relations/intel.relations \
+        --sessions-report out/sessions/intel-3/report.json
 """
 import argparse
 import bisect
+import json
 import math
 import statistics
 
@@ -21,6 +27,7 @@ def main():
     parser.add_argument("trajectory")
     parser.add_argument("relations")
     parser.add_argument("--split", type=int, default=3)
+    parser.add_argument("--sessions-report", help="a `sessions` run's report.json: its sessions, its dropped ones left out")
     args = parser.parse_args()
     rows = [
         list(map(float, line.split()))
@@ -40,6 +47,15 @@ def main():
     def part(t):
         return min(args.split - 1, int((t - stamps[0]) / span))
 
+    kept = None
+    if args.sessions_report:
+        report = json.load(open(args.sessions_report))
+        starts = [s["start_time"] / 1e9 for s in report["sessions"]]
+        kept = {s["session"] for s in report["sessions"] if s["placed"]}
+
+        def part(t):  # noqa: F811 (the run's own sessions)
+            return max(0, bisect.bisect_right(starts, t) - 1)
+
     subsets = {"all": ([], []), "cross_session": ([], [])}
     for line in open(args.relations):
         if not line.strip():
@@ -47,6 +63,8 @@ def main():
         t1, t2, x, y, _, _, _, yaw = map(float, line.split()[:8])
         a, b = nearest(t1), nearest(t2)
         if a is None or b is None:
+            continue
+        if kept is not None and part(t1) != part(t2) and not (part(t1) in kept and part(t2) in kept):
             continue
         xa, ya, tha = poses[a]
         xb, yb, thb = poses[b]
