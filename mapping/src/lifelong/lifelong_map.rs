@@ -603,7 +603,6 @@ impl LifelongMap {
         doomed
     }
 
-    /// The nodes that go with `submap`: those all of whose insertion submaps are `submap` or gone.
     /// `nodes` at the poses the graph holds them at now.
     fn node_poses_of(&self, nodes: &[NodeId]) -> Vec<(NodeId, Rigid2)> {
         nodes
@@ -612,6 +611,7 @@ impl LifelongMap {
             .collect()
     }
 
+    /// The nodes that go with `submap`: those all of whose insertion submaps are `submap` or gone.
     fn own_nodes(&self, submap: SubmapId) -> Vec<NodeId> {
         let Some(record) = self.global.submaps().get(&submap) else {
             return Vec::new();
