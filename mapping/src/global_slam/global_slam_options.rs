@@ -65,10 +65,10 @@ pub struct GlobalSlamOptions {
     /// added in quadrature), instead of `intra_submap_translation_sigma_per_m`, in a submap a confirmed
     /// correction says LLO bent: one built along the correction's drift path, for as long as one of the
     /// correction's matches is in the graph (see `SubmapBend`). 0 with `bent_submap_rotation_sigma_per_m`
-    /// 0: no submap is ever bent. Default 0 (measured, not a default: it breaks the suite's keep rule).
-    /// Why: `docs/TUNING.md#gs-bent-submap-sigma-per-m`.
+    /// 0: no submap is ever bent. Default 0.1 m/m (since session 86: judged on three draws a side of the
+    /// robustness suite and on the 25-session store). Why: `docs/TUNING.md#gs-bent-submap-sigma-per-m`.
     pub bent_submap_translation_sigma_per_m: f64,
-    /// The same growth of `intra_submap_rotation_sigma` in a bent submap (rad per m). Default 0.
+    /// The same growth of `intra_submap_rotation_sigma` in a bent submap (rad per m). Default 0.01.
     pub bent_submap_rotation_sigma_per_m: f64,
     /// With m > 0, a bend grows at m times the drift rate its correction measured (the median innovation
     /// of its matches over the drift path, translation and rotation apart), capped by
@@ -115,8 +115,8 @@ impl Default for GlobalSlamOptions {
             intra_submap_rotation_sigma: 0.1,
             intra_submap_translation_sigma_per_m: 0.0,
             intra_submap_rotation_sigma_per_m: 0.0,
-            bent_submap_translation_sigma_per_m: 0.0,
-            bent_submap_rotation_sigma_per_m: 0.0,
+            bent_submap_translation_sigma_per_m: 0.1,
+            bent_submap_rotation_sigma_per_m: 0.01,
             bend_drift_rate_multiple: 0.0,
             odometry_translation_sigma: 0.02,
             odometry_rotation_sigma: 0.01,

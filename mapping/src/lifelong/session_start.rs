@@ -31,8 +31,8 @@
 //!    most [`SessionStartOptions::probation_max_view_overlap`] of what the other saw (a robot that turns
 //!    sees new walls without driving) — and that saw something the cloud that placed it did not (that far
 //!    past the node the placement was decided at, or as little overlap with that cloud), against at least
-//!    [`SessionStartOptions::probation_min_submaps`] different submaps (a finished
-//!    submap spans tens of metres of an aisle, so one per match would wait for most of a session). A
+//!    [`SessionStartOptions::probation_min_submaps`] different submaps (by default one: what makes
+//!    matches independent is the route and the view, and a finished submap spans tens of metres). A
 //!    match agrees when the node pose it implies lies within `agreement_translation_m` (+
 //!    `agreement_growth` per metre of route from the placement's node, for LLO's drift) and
 //!    `agreement_rotation_rad` (+ `agreement_rotation_growth` per metre) of the node's pose under the

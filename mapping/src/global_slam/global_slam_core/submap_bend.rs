@@ -104,6 +104,11 @@ impl GlobalSlam {
     /// `drift_path`), except the matched ones and those up to the newest matched submap of the same
     /// trajectory (the map the correction was made against). Takes effect at [`Self::sync_bends`], once
     /// the matches are in the graph.
+    ///
+    /// Only the group's matches against the corrected trajectory's own submaps are evidence of a bend: two
+    /// visits of one trajectory that disagree measure the drift LLO accumulated between them. A match
+    /// against another trajectory's submap measures where this trajectory sits in that one's frame as
+    /// well, which is not LLO's drift (a session being placed on the site's map); it grants nothing.
     pub(super) fn bend_along_drift<'a>(
         &mut self,
         group: impl Iterator<Item = &'a (LoopClosure, Acceptance)>,
@@ -111,7 +116,9 @@ impl GlobalSlam {
         if !self.bends_enabled() {
             return;
         }
-        let group: Vec<&(LoopClosure, Acceptance)> = group.collect();
+        let group: Vec<&(LoopClosure, Acceptance)> = group
+            .filter(|(c, _)| c.submap.trajectory == c.node.trajectory)
+            .collect();
         let Some((newest, _)) = group.iter().max_by_key(|(c, _)| c.node) else {
             return;
         };
@@ -384,6 +391,39 @@ mod tests {
         // Twice the multiple, twice the growth (nothing capped here).
         let twice = rate_bent_run(4.0).submap_bends()[0].growth;
         assert!((twice.translation_per_m - 2.0 * growth.translation_per_m).abs() < 1e-12);
+    }
+
+    #[test]
+    fn a_correction_against_another_trajectory_bends_nothing() {
+        // Trajectory 1 placed beside the map, then two of its nodes 2 m apart confirm a correction 0.6 m
+        // from their estimates against trajectory 0's submap 0: where trajectory 1 sits in the map, not a
+        // drift of its own submaps.
+        use super::super::tests::{drive_second_trajectory, placed_second_trajectory};
+        let mut global = placed_second_trajectory();
+        global.options.bent_submap_translation_sigma_per_m = 0.1;
+        global.options.bent_submap_rotation_sigma_per_m = 0.01;
+        global.options.loop_closure_retraction_chi2 = 0.0;
+        drive_second_trajectory(&mut global, 250..300);
+        let across = |node: u32, error: Rigid2| LoopClosure {
+            node: NodeId {
+                trajectory: 1,
+                index: node,
+            },
+            submap_from_node: rigid2(-48.0 + 0.2 * f64::from(node), 0.0, 0.0) * error,
+            ..wide_closure(node, error)
+        };
+        global.add_search_results([across(280, drift())]);
+        global.add_search_results([across(290, drift() * rigid2(0.02, 0.01, 0.002))]);
+        let confirmed = global
+            .accepted_loop_closures
+            .iter()
+            .zip(&global.closure_states)
+            .filter(|(c, state)| {
+                c.node.trajectory == 1 && matches!(state, ClosureState::InGraph(_))
+            })
+            .count();
+        assert_eq!(confirmed, 2);
+        assert!(global.submap_bends().is_empty() && global.bent_submaps().is_empty());
     }
 
     #[test]

@@ -455,7 +455,7 @@ fn a_placed_trajectory_is_searched_as_if_it_had_just_closed_a_loop() {
 
 /// [`straight_run`]'s map (trajectory 0) and a second trajectory driven 50 m beside it, placed at its
 /// newest node.
-fn placed_second_trajectory() -> GlobalSlam {
+pub(super) fn placed_second_trajectory() -> GlobalSlam {
     let mut global = straight_run(20);
     global.start_trajectory(1, None).expect("new trajectory");
     drive_second_trajectory(&mut global, 0..250);
@@ -464,7 +464,7 @@ fn placed_second_trajectory() -> GlobalSlam {
 }
 
 /// Adds the nodes `indices` of trajectory 1, along x in 0.2 m steps, all in its submap 0.
-fn drive_second_trajectory(global: &mut GlobalSlam, indices: std::ops::Range<u32>) {
+pub(super) fn drive_second_trajectory(global: &mut GlobalSlam, indices: std::ops::Range<u32>) {
     for i in indices {
         let node = LloNode {
             time: Timestamp(1_000_000_000_000 + i64::from(i) * 100_000_000),

@@ -43,7 +43,9 @@ pub struct SessionStartOptions {
     /// route alone decides). Default 0.5. Why: `docs/TUNING.md#ss-probation-max-view-overlap`.
     pub probation_max_view_overlap: f64,
     /// The agreeing matches that commit a placement must be of at least this many different submaps
-    /// (count ≥ 1; capped by `probation_matches`). Default 2.
+    /// (count ≥ 1; capped by `probation_matches`). Default 1: independence is the route's and the view's
+    /// (`probation_min_separation_m`, `probation_max_view_overlap`), not the submap's. Why:
+    /// `docs/TUNING.md#ss-probation-min-submaps`.
     pub probation_min_submaps: usize,
     /// Distance (metres > 0, plus `agreement_growth` per metre of route) within which a match agrees with
     /// the placement. Default 1 m. Why: `docs/TUNING.md#ss-agreement-translation-m`.
@@ -98,7 +100,7 @@ impl Default for SessionStartOptions {
             probation_matches: 3,
             probation_min_separation_m: 3.0,
             probation_max_view_overlap: 0.5,
-            probation_min_submaps: 2,
+            probation_min_submaps: 1,
             agreement_translation_m: 1.0,
             agreement_rotation_rad: 5f64.to_radians(),
             agreement_growth: 0.01,

@@ -176,12 +176,24 @@ fn a_session_that_starts_off_the_map_is_placed_soon_after_it_drives_onto_it() {
 #[test]
 fn a_placement_is_committed_after_independent_agreeing_matches() {
     let placed = rigid2(10.0, 5.0, 0.3);
-    let mut start = on_probation(options(), placed, 12);
     let agreeing = |k: usize| placed * local(k) * rigid2(0.05, -0.05, 0.01);
+    // By default two independent matches of one submap commit.
+    let mut start = on_probation(options(), placed, 12);
+    assert!(start.add_match(4, agreeing(4), submap(1)).is_empty());
+    let events = start.add_match(10, agreeing(10), submap(1));
+    assert!(
+        matches!(events[..], [SessionStartEvent::Committed { node: 10, .. }]),
+        "{events:?}"
+    );
+    let two_submaps = SessionStartOptions {
+        probation_min_submaps: 2,
+        ..options()
+    };
+    let mut start = on_probation(two_submaps, placed, 12);
     // Node 1 lies only 0.5 m past the placement's node: its cloud placed the session.
     assert!(start.add_match(1, agreeing(1), submap(0)).is_empty());
     assert!(start.add_match(4, agreeing(4), submap(1)).is_empty());
-    // Another of the same submap counts, but two submaps are needed; one 0.5 m from a counted one is
+    // Another of the same submap counts, but two submaps are asked for; one 0.5 m from a counted one is
     // not independent.
     assert!(start.add_match(10, agreeing(10), submap(1)).is_empty());
     assert!(start.add_match(5, agreeing(5), submap(2)).is_empty());
@@ -853,7 +865,11 @@ fn match_steps(start: &SessionStart) -> Vec<&ProbationMatch> {
 #[test]
 fn the_probation_timeline_says_which_matches_counted_and_why_the_others_did_not() {
     let placed = rigid2(10.0, 5.0, 0.3);
-    let mut start = on_probation(options(), placed, 12);
+    let two_submaps = SessionStartOptions {
+        probation_min_submaps: 2,
+        ..options()
+    };
+    let mut start = on_probation(two_submaps, placed, 12);
     let agreeing = |k: usize| placed * local(k) * rigid2(0.05, -0.05, 0.01);
     let elsewhere = rigid2(0.0, 4.0, 0.0) * placed * local(3);
     // The matches of `a_placement_is_committed_after_independent_agreeing_matches`, and one
