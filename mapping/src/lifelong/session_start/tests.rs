@@ -22,6 +22,14 @@ fn options() -> SessionStartOptions {
     }
 }
 
+/// [`options`] with the committing matches of at least two submaps.
+fn two_submaps() -> SessionStartOptions {
+    SessionStartOptions {
+        probation_min_submaps: 2,
+        ..options()
+    }
+}
+
 /// The room prepared for whole-map searches.
 fn room_search() -> StartSearch {
     // The room is a handful of paired-test blocks across: compare it point by point.
@@ -185,11 +193,7 @@ fn a_placement_is_committed_after_independent_agreeing_matches() {
         matches!(events[..], [SessionStartEvent::Committed { node: 10, .. }]),
         "{events:?}"
     );
-    let two_submaps = SessionStartOptions {
-        probation_min_submaps: 2,
-        ..options()
-    };
-    let mut start = on_probation(two_submaps, placed, 12);
+    let mut start = on_probation(two_submaps(), placed, 12);
     // Node 1 lies only 0.5 m past the placement's node: its cloud placed the session.
     assert!(start.add_match(1, agreeing(1), submap(0)).is_empty());
     assert!(start.add_match(4, agreeing(4), submap(1)).is_empty());
@@ -865,11 +869,7 @@ fn match_steps(start: &SessionStart) -> Vec<&ProbationMatch> {
 #[test]
 fn the_probation_timeline_says_which_matches_counted_and_why_the_others_did_not() {
     let placed = rigid2(10.0, 5.0, 0.3);
-    let two_submaps = SessionStartOptions {
-        probation_min_submaps: 2,
-        ..options()
-    };
-    let mut start = on_probation(two_submaps, placed, 12);
+    let mut start = on_probation(two_submaps(), placed, 12);
     let agreeing = |k: usize| placed * local(k) * rigid2(0.05, -0.05, 0.01);
     let elsewhere = rigid2(0.0, 4.0, 0.0) * placed * local(3);
     // The matches of `a_placement_is_committed_after_independent_agreeing_matches`, and one
