@@ -72,8 +72,8 @@ use self::linearization::{LinearFactor, linearize};
 use self::marginalization::pseudo_inverse;
 use crate::geometry::{Rigid2, Rigid2Ext as _};
 use crate::pose_graph::{
-    Constraint, ConstraintId, ConstraintKind, PoseGraph, PoseGraphError, RobustLoss, VariableId,
-    merged,
+    Constraint, ConstraintId, ConstraintKind, PoseGraph, PoseGraphError, RobustLoss, SubmapId,
+    VariableId, merged,
 };
 
 /// Errors of sparsification, deletion and divergence computations.
@@ -228,15 +228,30 @@ pub fn sparsify(
 
 /// Which constraints already in the graph take in a tree edge on their pair ([`apply`]). Summing two
 /// plain least-squares constraints on one pair is exact (`pose_graph::constraint_merge`); robust ones
-/// (loop closures) are never summed.
+/// (loop closures) are never summed. The merged constraint keeps the existing one's kind.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum ParallelMerge {
-    /// Only an earlier tree's edge (a plain constraint of the same kind): for graphs whose owner rewrites
-    /// other constraints' information later (GLM's bends rewrite node-to-submap constraints).
-    TreeEdges,
+pub enum ParallelMerge<'a> {
     /// Every plain least-squares constraint on the pair, whatever made it (a node-to-submap constraint
-    /// LLO made, odometry, an earlier tree's edge); the merged constraint keeps the existing one's kind.
+    /// LLO made, odometry, an earlier tree's edge).
     EveryPlain,
+    /// Every plain constraint but the node-to-submap constraints LLO made on these submaps: those whose
+    /// information the graph's owner may still rewrite (GLM's bends), which must stay as LLO made them.
+    EveryPlainBut(&'a BTreeSet<SubmapId>),
+}
+
+impl ParallelMerge<'_> {
+    /// Whether `existing` may take in a tree edge on its pair.
+    fn takes_in(self, existing: &Constraint) -> bool {
+        match self {
+            Self::EveryPlain => true,
+            Self::EveryPlainBut(rewritable) => {
+                existing.kind != ConstraintKind::NodeToSubmapIntra
+                    || ![existing.from, existing.to]
+                        .iter()
+                        .any(|end| matches!(end, VariableId::Submap(s) if rewritable.contains(s)))
+            }
+        }
+    }
 }
 
 /// Carries out a [`SparsificationResult`] on the graph it was computed from: removes the eliminated
@@ -247,7 +262,7 @@ pub enum ParallelMerge {
 pub fn apply(
     graph: &mut PoseGraph,
     result: &SparsificationResult,
-    merge: ParallelMerge,
+    merge: ParallelMerge<'_>,
 ) -> Result<Vec<ConstraintId>, SparsificationError> {
     let eliminated: BTreeSet<VariableId> = result.eliminated.iter().copied().collect();
     for &id in &eliminated {
@@ -284,11 +299,7 @@ pub fn apply(
                 let existing = graph.constraint(id)?;
                 let same_pair = (existing.from == constraint.to && existing.to == constraint.from)
                     || (existing.from == constraint.from && existing.to == constraint.to);
-                let allowed = match merge {
-                    ParallelMerge::TreeEdges => existing.kind == constraint.kind,
-                    ParallelMerge::EveryPlain => true,
-                };
-                if !same_pair || !allowed {
+                if !same_pair || !merge.takes_in(existing) {
                     return None;
                 }
                 merged(existing, constraint).map(|sum| (id, sum))

@@ -12,7 +12,8 @@
 //!    is refused as ambiguous).
 //! 2. **Retries.** While unplaced, the whole map is searched again with every node since the start (at
 //!    most the latest [`SessionStartOptions::max_search_nodes`]) after `retry_every_n_nodes` nodes, then
-//!    twice, four times ... as many ([`StartSearch::search_again`]: placed when the best pose fits the
+//!    twice, four times ... as many, never more than [`SessionStartOptions::max_retry_interval_nodes`]
+//!    apart ([`StartSearch::search_again`]: placed when the best pose fits the
 //!    map well enough and beats every other candidate in the paired test over the route's blocks, or,
 //!    where the whole route leaves a rival undecided, in pieces of
 //!    [`SessionStartOptions::search_piece_m`] of route each refined on its own). Between them, every
@@ -672,7 +673,8 @@ impl SessionStart {
         let first = self.searches == 0 && count >= self.options.hold_back_nodes;
         let every = self.options.retry_every_n_nodes;
         let retry_step = self.searches > 0 && every > 0 && since.is_multiple_of(every);
-        let scheduled = retry_step && (since / every).is_power_of_two();
+        let scheduled =
+            retry_step && is_scheduled_retry(since, every, self.options.max_retry_interval_nodes);
         let recent = self.options.recent_search_nodes;
         let arrival = retry_step && self.found_nothing && recent > 0;
         let recheck = self.options.recheck_every_n_nodes;
@@ -924,6 +926,17 @@ fn rival_offset(placed: &Rigid2, rival: &Rigid2, local_pose: &Rigid2) -> [f64; 3
         offset.translation.vector.y,
         offset.rotation.angle().to_degrees(),
     ]
+}
+
+/// Whether a retry is due `since` nodes into the schedule: at `every`, then each time after as many nodes
+/// as the schedule has run (20, 40, 80, 160 ...), but never more than `cap` nodes apart (0 = no cap:
+/// with 40, 20, 40, 80, 120, 160 ...).
+fn is_scheduled_retry(since: usize, every: usize, cap: usize) -> bool {
+    let mut due = every;
+    while due < since {
+        due += if cap > 0 { due.min(cap) } else { due };
+    }
+    due == since
 }
 
 #[cfg(test)]

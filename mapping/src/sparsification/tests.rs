@@ -280,7 +280,7 @@ fn a_second_tree_edge_on_a_pair_is_summed_into_the_first() {
 }
 
 #[test]
-fn a_tree_edge_beside_another_plain_constraint_is_summed_into_it_only_when_allowed() {
+fn a_tree_edge_beside_another_plain_constraint_is_summed_into_it() {
     // Nodes 0 and 1 tied by odometry and by a detour through 5; trimming 5 puts a tree edge 0 → 1 beside
     // the odometry.
     let mut rng = Pcg64::seed_from_u64(12);
@@ -322,8 +322,11 @@ fn a_tree_edge_beside_another_plain_constraint_is_summed_into_it_only_when_allow
     }
     let result = sparsify(&graph, &[node(5)], &SparsificationOptions::DEFAULT).unwrap();
     let mut beside = graph.clone();
-    apply(&mut beside, &result, ParallelMerge::TreeEdges).unwrap();
-    assert_eq!(beside.num_constraints(), 2, "odometry is not a tree edge");
+    beside.remove_variable(node(5)).unwrap();
+    for constraint in &result.new_constraints {
+        beside.add_constraint(constraint.clone()).unwrap();
+    }
+    assert_eq!(beside.num_constraints(), 2);
     let mut summed = graph.clone();
     apply(&mut summed, &result, ParallelMerge::EveryPlain).unwrap();
     assert_eq!(summed.num_constraints(), 1);
@@ -333,6 +336,64 @@ fn a_tree_edge_beside_another_plain_constraint_is_summed_into_it_only_when_allow
         ConstraintKind::Odometry,
         "the merged constraint keeps its kind"
     );
+    assert_same_optimum(&mut summed, &mut beside);
+}
+
+#[test]
+fn a_node_to_submap_constraint_its_owner_may_rewrite_takes_in_no_tree_edge() {
+    // Submap 0 holds node 1 (LLO's node-to-submap constraint) and node 5, which odometry ties to node 1;
+    // trimming 5 puts a tree edge 0 → 1 beside LLO's constraint.
+    let mut rng = Pcg64::seed_from_u64(13);
+    let mut graph = PoseGraph::new();
+    graph
+        .add_variable(submap(0), random_pose(&mut rng))
+        .unwrap();
+    for id in [1, 5] {
+        graph.add_variable(node(id), random_pose(&mut rng)).unwrap();
+    }
+    graph.set_fixed(submap(0), true).unwrap();
+    for (x, y, kind) in [
+        (submap(0), node(1), ConstraintKind::NodeToSubmapIntra),
+        (submap(0), node(5), ConstraintKind::NodeToSubmapIntra),
+        (node(5), node(1), ConstraintKind::Odometry),
+    ] {
+        let information = random_information(&mut rng, 20.0);
+        link(
+            &mut graph,
+            x,
+            y,
+            kind,
+            information,
+            rigid2(0.01, -0.02, 0.01),
+            RobustLoss::Trivial,
+        );
+    }
+    let result = sparsify(&graph, &[node(5)], &SparsificationOptions::DEFAULT).unwrap();
+    let VariableId::Submap(held) = submap(0) else {
+        unreachable!()
+    };
+    let mut beside = graph.clone();
+    apply(
+        &mut beside,
+        &result,
+        ParallelMerge::EveryPlainBut(&BTreeSet::from([held])),
+    )
+    .unwrap();
+    assert_eq!(
+        beside.num_constraints(),
+        2,
+        "LLO's constraint stays as it was"
+    );
+    let mut summed = graph.clone();
+    apply(
+        &mut summed,
+        &result,
+        ParallelMerge::EveryPlainBut(&BTreeSet::new()),
+    )
+    .unwrap();
+    assert_eq!(summed.num_constraints(), 1);
+    let (_, only) = summed.constraints().next().unwrap();
+    assert_eq!(only.kind, ConstraintKind::NodeToSubmapIntra);
     assert_same_optimum(&mut summed, &mut beside);
 }
 

@@ -89,7 +89,8 @@ pub(super) fn fixed_growth(options: &GlobalSlamOptions) -> BendGrowth {
 
 impl GlobalSlam {
     /// Whether GLM may rewrite the information of node-to-submap constraints LLO gave it (bends are on):
-    /// whoever edits the graph must then leave those constraints as they are.
+    /// whoever edits the graph must then leave those constraints as they are, but for the submaps of a
+    /// settled trajectory that no bend in [`Self::submap_bends`] names.
     pub fn rewrites_intra_submap_information(&self) -> bool {
         self.bends_enabled()
     }
@@ -109,6 +110,8 @@ impl GlobalSlam {
     /// visits of one trajectory that disagree measure the drift LLO accumulated between them. A match
     /// against another trajectory's submap measures where this trajectory sits in that one's frame as
     /// well, which is not LLO's drift (a session being placed on the site's map); it grants nothing.
+    /// Neither does a correction of a settled trajectory: its route is over, and the node-to-submap
+    /// constraints of its submaps no bend names are final (a lifelong map sums trees' edges into them).
     pub(super) fn bend_along_drift<'a>(
         &mut self,
         group: impl Iterator<Item = &'a (LoopClosure, Acceptance)>,
@@ -123,6 +126,9 @@ impl GlobalSlam {
             return;
         };
         let trajectory = newest.node.trajectory;
+        if self.settled.contains(&trajectory) {
+            return;
+        }
         let (Some(record), Some(submap)) = (
             self.nodes.get(&newest.node),
             self.submaps.get(&newest.submap),
@@ -359,6 +365,21 @@ mod tests {
         super::super::tests::drive_on(&mut global, 171..181);
         let expected = 0.5f64.hypot(0.1 * 33.8);
         assert!((intra_sigma_x(&global, 180) - expected).abs() < 1e-9);
+    }
+
+    #[test]
+    fn a_settled_trajectory_is_granted_no_bend() {
+        let mut global = straight_run(171);
+        global.options.bent_submap_translation_sigma_per_m = 0.1;
+        global.options.bent_submap_rotation_sigma_per_m = 0.01;
+        global.options.loop_closure_retraction_chi2 = 0.0;
+        global.options.correction_probation_nodes = 20;
+        global.set_trajectory_settled(0, true);
+        global.add_search_results([wide_closure(140, rigid2(0.05, -0.03, 0.004))]);
+        global.add_search_results([wide_closure(160, drift())]);
+        global.add_search_results([wide_closure(170, drift() * rigid2(0.02, 0.01, 0.002))]);
+        assert!(global.submap_bends().is_empty());
+        assert!((intra_sigma_x(&global, 160) - 0.5).abs() < 1e-9);
     }
 
     /// [`straight_run`] to node 170 with bends capped at 0.1 m/m and 0.01 rad/m growing at `multiple`

@@ -992,3 +992,21 @@ fn a_rivals_offset_is_where_it_puts_the_robot_seen_from_the_placement() {
     assert!((x - 1.5).abs() < 1e-9 && y.abs() < 1e-9, "{x} {y}");
     assert!((heading - 12.0).abs() < 1e-9, "{heading}");
 }
+
+#[test]
+fn retries_double_until_the_cap_then_come_at_the_cap() {
+    let due = |every, cap| {
+        (1..=200)
+            .filter(|&since| is_scheduled_retry(since, every, cap))
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(due(20, 0), [20, 40, 80, 160]);
+    assert_eq!(due(20, 40), [20, 40, 80, 120, 160, 200]);
+    assert_eq!(due(20, 30), [20, 40, 70, 100, 130, 160, 190]);
+    assert_eq!(
+        due(20, 10),
+        [
+            20, 30, 40, 50, 60, 70, 80, 90, 100, 110, 120, 130, 140, 150, 160, 170, 180, 190, 200
+        ]
+    );
+}
