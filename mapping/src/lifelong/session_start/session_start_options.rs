@@ -19,8 +19,8 @@ pub struct SessionStartOptions {
     /// many (count; 0 = never retry). Default 20. Why: `docs/TUNING.md#ss-retry-every-n-nodes`.
     pub retry_every_n_nodes: usize,
     /// Longest gap between two scheduled retries (count; 0 = the doubling is never capped): once
-    /// doubling would leave more nodes than this between retries, retry every this many nodes. Default 0.
-    /// Why: `docs/TUNING.md#ss-max-retry-interval-nodes`.
+    /// doubling would leave more nodes than this between retries, retry every this many nodes. Default 40
+    /// (about 8 m of driving). Why: `docs/TUNING.md#ss-max-retry-interval-nodes`.
     pub max_retry_interval_nodes: usize,
     /// Between retries, every this many nodes retry at once if the route now tells the last search's
     /// candidates apart (count; 0 = never). Default 10. Why: `docs/TUNING.md#ss-recheck-every-n-nodes`.
@@ -96,7 +96,7 @@ impl Default for SessionStartOptions {
         Self {
             hold_back_nodes: 10,
             retry_every_n_nodes: 20,
-            max_retry_interval_nodes: 0,
+            max_retry_interval_nodes: 40,
             recheck_every_n_nodes: 10,
             max_search_nodes: 400,
             recent_search_nodes: 40,
