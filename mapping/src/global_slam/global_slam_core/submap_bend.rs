@@ -336,11 +336,17 @@ mod tests {
     /// correction 0.6 m from the estimates against submap 0 (see `correction_probation`'s tests);
     /// `retraction_chi2` for the optimization the confirmation triggers.
     fn bent_run(retraction_chi2: f64, probation_nodes: usize) -> GlobalSlam {
+        bent_run_settled(retraction_chi2, probation_nodes, false)
+    }
+
+    /// [`bent_run`], with trajectory 0 `settled` before the matches come.
+    fn bent_run_settled(retraction_chi2: f64, probation_nodes: usize, settled: bool) -> GlobalSlam {
         let mut global = straight_run(171);
         global.options.bent_submap_translation_sigma_per_m = 0.1;
         global.options.bent_submap_rotation_sigma_per_m = 0.01;
         global.options.loop_closure_retraction_chi2 = retraction_chi2;
         global.options.correction_probation_nodes = probation_nodes;
+        global.set_trajectory_settled(0, settled);
         global.add_search_results([wide_closure(140, rigid2(0.05, -0.03, 0.004))]);
         global.add_search_results([wide_closure(160, drift())]);
         global.add_search_results([wide_closure(170, drift() * rigid2(0.02, 0.01, 0.002))]);
@@ -369,15 +375,7 @@ mod tests {
 
     #[test]
     fn a_settled_trajectory_is_granted_no_bend() {
-        let mut global = straight_run(171);
-        global.options.bent_submap_translation_sigma_per_m = 0.1;
-        global.options.bent_submap_rotation_sigma_per_m = 0.01;
-        global.options.loop_closure_retraction_chi2 = 0.0;
-        global.options.correction_probation_nodes = 20;
-        global.set_trajectory_settled(0, true);
-        global.add_search_results([wide_closure(140, rigid2(0.05, -0.03, 0.004))]);
-        global.add_search_results([wide_closure(160, drift())]);
-        global.add_search_results([wide_closure(170, drift() * rigid2(0.02, 0.01, 0.002))]);
+        let global = bent_run_settled(0.0, 20, true);
         assert!(global.submap_bends().is_empty());
         assert!((intra_sigma_x(&global, 160) - 0.5).abs() < 1e-9);
     }
