@@ -444,8 +444,11 @@ impl LifelongMap {
             }
             TrimPolicy::Clt | TrimPolicy::Delete => {
                 let doomed = self.submaps_to_trim(session);
+                // GLM's bends rewrite node-to-submap constraints' information: those it still may keep
+                // what LLO made them and take in no tree edge. The trims change no bend.
+                let rewritable = self.global.intra_submap_rewritable(session);
                 for &submap in &doomed {
-                    events.push(self.trim(submap, session)?);
+                    events.push(self.trim(submap, &rewritable)?);
                 }
                 events.extend(self.optimize_if_sparsified_enough());
             }
@@ -630,33 +633,14 @@ impl LifelongMap {
             .collect()
     }
 
-    /// The submaps whose node-to-submap constraints GLM may still rewrite while `finishing` ends: with
-    /// bends on, every submap of a session still going (`finishing` is over: it gets no node and so no
-    /// bend any more: GLM grants none to a settled trajectory) and every submap a recorded bend names
-    /// (retracting its matches unbends it).
-    fn intra_submap_rewritable(&self, finishing: u32) -> BTreeSet<SubmapId> {
-        if !self.global.rewrites_intra_submap_information() {
-            return BTreeSet::new();
-        }
-        let named: BTreeSet<SubmapId> = self
-            .global
-            .submap_bends()
-            .iter()
-            .flat_map(|bend| bend.submaps.iter().copied())
-            .collect();
-        self.global
-            .submaps()
-            .keys()
-            .filter(|sid| {
-                let over = sid.trajectory == finishing || self.is_finished(sid.trajectory);
-                !over || named.contains(sid)
-            })
-            .copied()
-            .collect()
-    }
-
-    /// Removes one submap and its own nodes per the policy (`clt` or `delete`), as `finishing` ends.
-    fn trim(&mut self, submap: SubmapId, finishing: u32) -> Result<LifelongEvent, LifelongError> {
+    /// Removes one submap and its own nodes per the policy (`clt` or `delete`); a `clt` tree's edges are
+    /// summed into the plain constraints already on their pairs but those on the `rewritable` submaps
+    /// (see [`GlobalSlam::intra_submap_rewritable`]).
+    fn trim(
+        &mut self,
+        submap: SubmapId,
+        rewritable: &BTreeSet<SubmapId>,
+    ) -> Result<LifelongEvent, LifelongError> {
         let nodes = self.own_nodes(submap);
         let removed_nodes = self.node_poses_of(&nodes);
         let eliminate: Vec<VariableId> = std::iter::once(VariableId::Submap(submap))
@@ -679,13 +663,10 @@ impl LifelongMap {
             } else {
                 result.diagnostics.kl_divergence
             };
-            // GLM's bends rewrite node-to-submap constraints' information: those it still may keep
-            // what LLO made them and take in no tree edge.
-            let rewritable = self.intra_submap_rewritable(finishing);
             sparsification::apply(
                 self.global.graph_mut(),
                 &result,
-                ParallelMerge::EveryPlainBut(&rewritable),
+                ParallelMerge::EveryPlainBut(rewritable),
             )
             .map_err(error)?;
             (result.new_constraints.len(), Some(kld))

@@ -88,11 +88,28 @@ pub(super) fn fixed_growth(options: &GlobalSlamOptions) -> BendGrowth {
 }
 
 impl GlobalSlam {
-    /// Whether GLM may rewrite the information of node-to-submap constraints LLO gave it (bends are on):
-    /// whoever edits the graph must then leave those constraints as they are, but for the submaps of a
-    /// settled trajectory that no bend in [`Self::submap_bends`] names.
-    pub fn rewrites_intra_submap_information(&self) -> bool {
-        self.bends_enabled()
+    /// The submaps whose node-to-submap constraints GLM may still rewrite (a bend changes their
+    /// information), so whoever edits the graph must leave those constraints as LLO made them: none with
+    /// bends off; with bends on, every submap of a trajectory not settled but `settling` (about to be: it
+    /// gets no node, so no bend, any more; GLM grants none to a settled trajectory) and every submap a
+    /// recorded bend in [`Self::submap_bends`] names (retracting its matches unbends it).
+    pub fn intra_submap_rewritable(&self, settling: u32) -> BTreeSet<SubmapId> {
+        if !self.bends_enabled() {
+            return BTreeSet::new();
+        }
+        let named: BTreeSet<SubmapId> = self
+            .submap_bends
+            .iter()
+            .flat_map(|bend| bend.submaps.iter().copied())
+            .collect();
+        self.submaps
+            .keys()
+            .filter(|sid| {
+                let over = sid.trajectory == settling || self.settled.contains(&sid.trajectory);
+                !over || named.contains(sid)
+            })
+            .copied()
+            .collect()
     }
 
     fn bends_enabled(&self) -> bool {
@@ -378,6 +395,27 @@ mod tests {
         let global = bent_run_settled(0.0, 20, true);
         assert!(global.submap_bends().is_empty());
         assert!((intra_sigma_x(&global, 160) - 0.5).abs() < 1e-9);
+    }
+
+    #[test]
+    fn only_a_running_trajectorys_submaps_and_bent_ones_may_be_rewritten() {
+        let all: BTreeSet<SubmapId> = straight_run(171).submaps().keys().copied().collect();
+        assert_eq!(all, BTreeSet::from([submap(0), submap(1)]));
+        // Bends off: GLM rewrites nothing.
+        let mut unbent = straight_run(171);
+        unbent.options.bent_submap_translation_sigma_per_m = 0.0;
+        unbent.options.bent_submap_rotation_sigma_per_m = 0.0;
+        assert!(unbent.intra_submap_rewritable(1).is_empty());
+        // Running: every submap; settling or settled: only the submap the bend names.
+        let mut global = bent_run(0.0, 20);
+        assert_eq!(global.intra_submap_rewritable(1), all);
+        let bent = BTreeSet::from([submap(1)]);
+        assert_eq!(global.intra_submap_rewritable(0), bent);
+        global.set_trajectory_settled(0, true);
+        assert_eq!(global.intra_submap_rewritable(1), bent);
+        // Settled with no bend: none.
+        let settled = bent_run_settled(0.0, 20, true);
+        assert!(settled.intra_submap_rewritable(1).is_empty());
     }
 
     /// [`straight_run`] to node 170 with bends capped at 0.1 m/m and 0.01 rad/m growing at `multiple`
