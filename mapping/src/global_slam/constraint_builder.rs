@@ -89,6 +89,14 @@ pub struct ConstraintBuilderOptions {
     pub agreement_translation: f64,
     /// … and this rotation (rad). Default 0.035 rad (2°).
     pub agreement_rotation: f64,
+    /// Two matches of one node that do not agree outvote each other only as rivals: where they put the
+    /// node differs by more than this (m) or `rival_rotation`. Closer, they are one place seen through
+    /// submaps the estimate does not yet hold consistent, and neither outvotes the other (each goes on to
+    /// the drift and confirmation gates alone). 0 with `rival_rotation` 0: every match that does not agree
+    /// is a rival. Default 0. Why: `docs/TUNING.md#cb-rival-translation`.
+    pub rival_translation: f64,
+    /// … or this rotation (rad). Default 0.
+    pub rival_rotation: f64,
     /// A match whose scan pins one translation direction less than this fraction as well as the other
     /// (eigenvalues of its least-squares information) lies in a corridor: a runner-up shifted along the
     /// corridor is the same place, not a rival. Default 0.1.
@@ -143,6 +151,8 @@ impl Default for ConstraintBuilderOptions {
             agreement_path_length: 30.0,
             agreement_translation: 0.15,
             agreement_rotation: 0.035,
+            rival_translation: 0.0,
+            rival_rotation: 0.0,
             degenerate_ratio: 0.1,
             min_information_ratio: 0.01,
             window_edge_cells: 0,
@@ -194,6 +204,8 @@ impl ConstraintBuilderOptions {
             ("min_loop_length", "m", self.min_loop_length),
             ("agreement_path_length", "m", self.agreement_path_length),
             ("recovery_heading_doubt", "rad", self.recovery_heading_doubt),
+            ("rival_translation", "m", self.rival_translation),
+            ("rival_rotation", "rad", self.rival_rotation),
         ] {
             if !(value.is_finite() && value >= 0.0) {
                 return Err(GlobalSlamOptionsError::Invalid(format!(

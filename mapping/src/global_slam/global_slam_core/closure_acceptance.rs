@@ -237,10 +237,11 @@ impl GlobalSlam {
     }
 
     /// Matches of one node against several submaps must agree on where the node is (within
-    /// `agreement_translation` and `agreement_rotation`, through the submaps' current poses). A match is
-    /// outvoted when another match of its node has more matches agreeing with it, or when its node has
-    /// other matches and none agrees with it: two places that fit one scan about equally well cannot both be
-    /// right, and which one is wrong is not known.
+    /// `agreement_translation` and `agreement_rotation`, through the submaps' current poses). A match with
+    /// a rival (another match of its node farther from it than `rival_translation` or `rival_rotation`)
+    /// is outvoted when another match of its node has more matches agreeing with it, or when none agrees
+    /// with it: two places that fit one scan about equally well cannot both be right, and which one is
+    /// wrong is not known.
     fn outvoted(&self, results: &[LoopClosure]) -> Vec<bool> {
         let cb = &self.options.constraint_builder;
         let implied: Vec<Option<Rigid2>> = results
@@ -252,31 +253,38 @@ impl GlobalSlam {
             d.translation.vector.norm() <= cb.agreement_translation
                 && d.rotation.angle().abs() <= cb.agreement_rotation
         };
-        // Per match: (matches of the same node, of which agreeing with it, itself included).
-        let support: Vec<(usize, usize)> = (0..results.len())
+        let rivals = |a: &Rigid2, b: &Rigid2| {
+            let d = a.inverse() * b;
+            d.translation.vector.norm() > cb.rival_translation
+                || d.rotation.angle().abs() > cb.rival_rotation
+        };
+        // Per match: (whether a match of the same node is its rival, matches of the same node agreeing
+        // with it, itself included).
+        let support: Vec<(bool, usize)> = (0..results.len())
             .map(|i| {
                 let Some(pi) = implied[i] else {
-                    return (1, 1);
+                    return (false, 1);
                 };
-                let mut same = 1;
+                let mut rivalled = false;
                 let mut agreeing = 1;
                 for (j, pj) in implied.iter().enumerate() {
                     if j == i || results[j].node != results[i].node {
                         continue;
                     }
                     let Some(pj) = pj else { continue };
-                    same += 1;
                     if agree(&pi, pj) {
                         agreeing += 1;
+                    } else if rivals(&pi, pj) {
+                        rivalled = true;
                     }
                 }
-                (same, agreeing)
+                (rivalled, agreeing)
             })
             .collect();
         (0..results.len())
             .map(|i| {
-                let (same, agreeing) = support[i];
-                if same == 1 {
+                let (rivalled, agreeing) = support[i];
+                if !rivalled {
                     return false;
                 }
                 let best = (0..results.len())

@@ -529,3 +529,31 @@ fn each_match_is_reported_once_with_the_rule_that_decided_it() {
     }]);
     assert_eq!(decisions(&fifth), [(5, ConfirmedBeyondDrift)]);
 }
+
+#[test]
+fn matches_of_one_node_outvote_each_other_only_as_rivals() {
+    use MatchDecision::*;
+    let pair = |global: &mut GlobalSlam, apart: f64| {
+        decisions(&global.add_search_results([
+            wide_closure(140, Rigid2::identity()),
+            wide_closure(140, rigid2(apart, 0.0, 0.0)),
+        ]))
+    };
+    // 0.3 m apart: they do not agree, and by default every match that does not agree is a rival.
+    assert_eq!(
+        pair(&mut straight_run(200), 0.3),
+        [(140, Outvoted), (140, Outvoted)]
+    );
+    // Rivals only beyond 0.5 m or 3°: 0.3 m apart is one place, each judged alone (both near the estimate).
+    let rivals_beyond = |global: &mut GlobalSlam| {
+        global.options.constraint_builder.rival_translation = 0.5;
+        global.options.constraint_builder.rival_rotation = 3f64.to_radians();
+    };
+    let mut global = straight_run(200);
+    rivals_beyond(&mut global);
+    assert_eq!(pair(&mut global, 0.3), [(140, Accepted), (140, Accepted)]);
+    // 1 m apart they are still two places, and neither is believed.
+    let mut global = straight_run(200);
+    rivals_beyond(&mut global);
+    assert_eq!(pair(&mut global, 1.0), [(140, Outvoted), (140, Outvoted)]);
+}
