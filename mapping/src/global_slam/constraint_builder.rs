@@ -550,6 +550,24 @@ mod tests {
     use crate::geometry::rigid2;
 
     #[test]
+    fn a_rival_distance_below_zero_is_refused_by_name() {
+        assert!(ConstraintBuilderOptions::default().validate().is_ok());
+        for options in [
+            ConstraintBuilderOptions {
+                rival_translation: -0.1,
+                ..Default::default()
+            },
+            ConstraintBuilderOptions {
+                rival_rotation: f64::NAN,
+                ..Default::default()
+            },
+        ] {
+            let error = options.validate().unwrap_err().to_string();
+            assert!(error.contains("rival_"), "{error}");
+        }
+    }
+
+    #[test]
     fn a_best_pose_on_the_windows_outer_rings_is_on_its_edge() {
         let center = rigid2(1.0, 2.0, 0.3);
         let at = |dx: f64, dy: f64| rigid2(1.0 + dx, 2.0 + dy, 0.3);
