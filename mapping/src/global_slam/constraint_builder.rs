@@ -93,10 +93,10 @@ pub struct ConstraintBuilderOptions {
     /// node differs by more than this (m) or `rival_rotation`. Closer, they are one place seen through
     /// submaps the estimate does not yet hold consistent, and neither outvotes the other (each goes on to
     /// the drift and confirmation gates alone). 0 with `rival_rotation` 0: every match that does not agree
-    /// is a rival. Default 0.5 m (`max_unconfirmed_translation`: a place that near is the estimate's own).
+    /// is a rival. Default 0 (0.5 m and 3° measured on the robustness suite, not kept: it tore ACES `range4`).
     /// Why: `docs/TUNING.md#cb-rival-translation`.
     pub rival_translation: f64,
-    /// … or this rotation (rad). Default 0.052 rad (3°, `max_unconfirmed_rotation`).
+    /// … or this rotation (rad). Default 0.
     pub rival_rotation: f64,
     /// A match whose scan pins one translation direction less than this fraction as well as the other
     /// (eigenvalues of its least-squares information) lies in a corridor: a runner-up shifted along the
@@ -152,8 +152,8 @@ impl Default for ConstraintBuilderOptions {
             agreement_path_length: 30.0,
             agreement_translation: 0.15,
             agreement_rotation: 0.035,
-            rival_translation: 0.5,
-            rival_rotation: 0.052,
+            rival_translation: 0.0,
+            rival_rotation: 0.0,
             degenerate_ratio: 0.1,
             min_information_ratio: 0.01,
             window_edge_cells: 0,

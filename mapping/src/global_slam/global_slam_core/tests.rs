@@ -539,20 +539,21 @@ fn matches_of_one_node_outvote_each_other_only_as_rivals() {
             wide_closure(140, rigid2(apart, 0.0, 0.0)),
         ]))
     };
-    // 0.3 m apart (beyond agreement, within the default rivals' 0.5 m): one place, each match judged alone
-    // (both near the estimate).
+    // 0.3 m apart: they do not agree, and by default every match that does not agree is a rival.
     assert_eq!(
         pair(&mut straight_run(200), 0.3),
-        [(140, Accepted), (140, Accepted)]
-    );
-    // 1 m apart they are two places, and neither is believed.
-    assert_eq!(
-        pair(&mut straight_run(200), 1.0),
         [(140, Outvoted), (140, Outvoted)]
     );
-    // With every match that does not agree a rival (0, 0), 0.3 m apart outvote each other too.
+    // Rivals only beyond 0.5 m or 3°: 0.3 m apart is one place, each judged alone (both near the estimate).
+    let rivals_beyond = |global: &mut GlobalSlam| {
+        global.options.constraint_builder.rival_translation = 0.5;
+        global.options.constraint_builder.rival_rotation = 3f64.to_radians();
+    };
     let mut global = straight_run(200);
-    global.options.constraint_builder.rival_translation = 0.0;
-    global.options.constraint_builder.rival_rotation = 0.0;
-    assert_eq!(pair(&mut global, 0.3), [(140, Outvoted), (140, Outvoted)]);
+    rivals_beyond(&mut global);
+    assert_eq!(pair(&mut global, 0.3), [(140, Accepted), (140, Accepted)]);
+    // 1 m apart they are still two places, and neither is believed.
+    let mut global = straight_run(200);
+    rivals_beyond(&mut global);
+    assert_eq!(pair(&mut global, 1.0), [(140, Outvoted), (140, Outvoted)]);
 }
