@@ -28,13 +28,16 @@ use mapping::metrics::{
 };
 use mapping::sensor::Timestamp;
 use robot_agent::lifelong_run::{
-    SessionEnd, SessionInput, SessionRecord, SessionSummary, SessionsConfig, run_session_inputs,
+    RunResume, SessionEnd, SessionInput, SessionRecord, SessionSummary, SessionsConfig,
+    resume_session_inputs, run_session_inputs,
 };
 use robot_agent::line_chart::{LineChart, Series};
 use robot_agent::{map_image, process_stats};
 use serde::Serialize;
 use serde_json::json;
 use simulator::{SessionOptions, Store, World};
+
+use crate::lifelong_resume::{self, RunIdentity};
 
 /// Arguments of `lifelong`.
 #[derive(Args)]
@@ -68,6 +71,11 @@ pub struct LifelongArgs {
     /// place instead), and the robot checks the last pose it had first (`SessionStart::from_dock`).
     #[arg(long)]
     dock_starts: bool,
+    /// Continue the run in `--out` after its last ended session, from the resume point it wrote there
+    /// (`resume/`), up to `--sessions`. Every other argument and the configuration must be the run's.
+    /// `report.json` goes on with the sessions before; `trajectories.csv` holds the resumed sessions.
+    #[arg(long)]
+    resume: bool,
 }
 
 /// What one session scored and did, as `report.json` lists it.
@@ -164,6 +172,11 @@ struct Reporter<'a> {
     /// The latest map change (after the last session that ended), for the picture.
     last_change: Option<(MapChange, ProbabilityGrid)>,
     started: Instant,
+    /// What the run was started with, kept with its resume points.
+    identity: RunIdentity,
+    /// The rows and details of the sessions before a resumed run, as its report had them.
+    earlier_rows: Vec<serde_json::Value>,
+    earlier_details: Vec<serde_json::Value>,
 }
 
 impl Reporter<'_> {
@@ -304,20 +317,50 @@ impl Reporter<'_> {
                 .map_or("-".to_string(), |ms| format!("{ms:.0}")),
             s.finish_iterations()
         );
-        self.write_report(false, None)
+        // The report first: a resume point never names a session the report does not hold.
+        self.write_report(false, None)?;
+        lifelong_resume::write(
+            &self.args.out,
+            &self.identity,
+            k,
+            end.map,
+            &world_from_map,
+            end.dock.as_ref(),
+        )
+    }
+
+    /// Every session's row so far, the resumed run's earlier ones first.
+    fn all_rows(&self) -> anyhow::Result<Vec<serde_json::Value>> {
+        let mut rows = self.earlier_rows.clone();
+        for row in &self.rows {
+            rows.push(serde_json::to_value(row)?);
+        }
+        Ok(rows)
     }
 
     /// The report of the sessions ended so far; `complete` once the run is over.
-    fn report(&self, complete: bool, data_duration_s: Option<f64>) -> serde_json::Value {
-        let later: Vec<SessionScore> = self
-            .rows
-            .iter()
-            .filter(|r| r.session > 0)
-            .map(|r| r.score)
-            .collect();
+    fn report(
+        &self,
+        complete: bool,
+        data_duration_s: Option<f64>,
+    ) -> anyhow::Result<serde_json::Value> {
+        let rows = self.all_rows()?;
+        let mut later: Vec<SessionScore> = Vec::new();
+        for row in &rows {
+            if row["session"].as_u64().is_some_and(|k| k > 0) {
+                later.push(
+                    serde_json::from_value(row.clone())
+                        .context("a session row of the report holds no session score")?,
+                );
+            }
+        }
         let run = score_run(&later);
+        let mut details = self.earlier_details.clone();
+        for d in &self.details {
+            details.push(serde_json::to_value(d)?);
+        }
         let last = self.rows.last();
-        json!({
+        Ok(json!({
             "world": self.args.world.name(),
             "seed": self.args.seed,
             "policy": self.config.lifelong.policy.name(),
@@ -329,7 +372,7 @@ impl Reporter<'_> {
                 "rate": c.rate, "unchanged": c.unchanged, "removed": c.removed, "added": c.added,
             })),
             "summary": {
-                "sessions_ended": self.rows.len(),
+                "sessions_ended": rows.len(),
                 "score": run,
                 // The figures the reports quote, at the top level.
                 "cri": run.cri,
@@ -353,26 +396,28 @@ impl Reporter<'_> {
                     "trimmed_total": r.trimmed_total, "dropped_total": r.dropped_total,
                 })),
                 "dock_starts": self.options.dock_starts.then(|| {
-                    let later = self.rows.iter().filter(|r| r.session > 0);
-                    let count = |keep: &dyn Fn(&SessionRow) -> bool| later.clone().filter(|r| keep(r)).count();
+                    let later = rows.iter().filter(|r| r["session"].as_u64().is_some_and(|k| k > 0));
+                    let at_end = |r: &serde_json::Value| r["starts_at_previous_end"].as_bool();
+                    let at_dock = |r: &serde_json::Value| r["dock_agreed"].as_bool() == Some(true);
+                    let count = |keep: &dyn Fn(&serde_json::Value) -> bool| later.clone().filter(|r| keep(r)).count();
                     json!({
-                        "at_previous_end": count(&|r| r.starts_at_previous_end == Some(true)),
-                        "at_previous_end_placed_at_dock": count(&|r| r.starts_at_previous_end == Some(true) && r.dock_agreed == Some(true)),
-                        "carried": count(&|r| r.starts_at_previous_end == Some(false)),
-                        "carried_placed_at_dock": count(&|r| r.starts_at_previous_end == Some(false) && r.dock_agreed == Some(true)),
+                        "at_previous_end": count(&|r| at_end(r) == Some(true)),
+                        "at_previous_end_placed_at_dock": count(&|r| at_end(r) == Some(true) && at_dock(r)),
+                        "carried": count(&|r| at_end(r) == Some(false)),
+                        "carried_placed_at_dock": count(&|r| at_end(r) == Some(false) && at_dock(r)),
                     })
                 }),
                 "wall_time_s": self.started.elapsed().as_secs_f64(),
                 "data_duration_s": data_duration_s,
                 "peak_rss_mb": process_stats::peak_rss_mb(),
             },
-            "sessions": self.rows,
-            "session_details": self.details,
-        })
+            "sessions": rows,
+            "session_details": details,
+        }))
     }
 
     fn write_report(&self, complete: bool, data_duration_s: Option<f64>) -> anyhow::Result<()> {
-        let report = self.report(complete, data_duration_s);
+        let report = self.report(complete, data_duration_s)?;
         let path = self.args.out.join("report.json");
         let temporary = self.args.out.join("report.json.partial");
         std::fs::write(&temporary, serde_json::to_string_pretty(&report)? + "\n")
@@ -423,6 +468,35 @@ pub fn run(args: &LifelongArgs) -> anyhow::Result<()> {
     options.validate()?;
     let start = Instant::now();
     let store = Store::generate(args.world.options(), args.seed)?;
+    let identity = RunIdentity {
+        world: args.world.name().to_string(),
+        seed: args.seed,
+        policy: config.lifelong.policy.name().to_string(),
+        session_duration_s: args.session_duration_s,
+        mapping_duration_s: args.mapping_duration_s,
+        dock_starts: args.dock_starts,
+        config_fingerprint: crc32fast::hash(format!("{config:?}").as_bytes()),
+    };
+    let resume = if args.resume {
+        let point = lifelong_resume::read(&args.out, &identity, config.lifelong.clone())?;
+        if point.next_session > args.sessions {
+            anyhow::bail!(
+                "the run in {} has already ended session {}: nothing to resume up to --sessions {}",
+                args.out.display(),
+                point.next_session - 1,
+                args.sessions
+            );
+        }
+        eprintln!(
+            "resuming {} at session {}",
+            args.out.display(),
+            point.next_session
+        );
+        Some(point)
+    } else {
+        None
+    };
+    let first_session = resume.as_ref().map_or(0, |r| r.next_session);
 
     let bar = ProgressBar::new(0);
     bar.set_style(
@@ -431,10 +505,12 @@ pub fn run(args: &LifelongArgs) -> anyhow::Result<()> {
         )
         .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
-    let truths: Mutex<Vec<Vec<(Timestamp, Rigid2)>>> = Mutex::new(Vec::new());
+    // Indexed by session: a resumed run's earlier sessions are not simulated again.
+    let truths: Mutex<Vec<Vec<(Timestamp, Rigid2)>>> =
+        Mutex::new(vec![Vec::new(); first_session as usize]);
     let failure: RefCell<Option<anyhow::Error>> = RefCell::new(None);
-    let starts_at_previous_end: Mutex<Vec<bool>> = Mutex::new(Vec::new());
-    let inputs = (0..=args.sessions).map_while(|k| {
+    let starts_at_previous_end: Mutex<Vec<bool>> = Mutex::new(vec![false; first_session as usize]);
+    let inputs = (first_session..=args.sessions).map_while(|k| {
         bar.set_message(format!("simulating session {k}/{}", args.sessions));
         match store.session(k, &options) {
             Ok(session) => {
@@ -477,27 +553,41 @@ pub fn run(args: &LifelongArgs) -> anyhow::Result<()> {
         scoring: config.scoring,
         truths: &truths,
         starts_at_previous_end: &starts_at_previous_end,
-        world_from_map: None,
+        world_from_map: resume.as_ref().map(|r| r.world_from_map),
         truth_day_zero: store.occupancy(0, resolution).surface_grid(),
         rows: Vec::new(),
         details: Vec::new(),
         last_change: None,
         started: start,
+        identity,
+        earlier_rows: Vec::new(),
+        earlier_details: Vec::new(),
     };
+    if resume.is_some() {
+        (reporter.earlier_rows, reporter.earlier_details) =
+            earlier_report(&args.out, first_session)?;
+    }
     let mut report_failure: Option<anyhow::Error> = None;
-    let run = run_session_inputs(
-        inputs,
-        &config,
-        &[],
-        &mut |done| {
-            bar.set_position(done as u64);
-        },
-        &mut |end| {
-            if let Err(e) = reporter.session_ended(end) {
-                report_failure.get_or_insert(e);
-            }
-        },
-    )?;
+    let mut progress = |done: usize| bar.set_position(done as u64);
+    let mut on_end = |end: &SessionEnd<'_>| {
+        if let Err(e) = reporter.session_ended(end) {
+            report_failure.get_or_insert(e);
+        }
+    };
+    let run = match resume {
+        Some(point) => resume_session_inputs(
+            RunResume {
+                map: point.map,
+                first_session,
+                dock: point.dock,
+            },
+            inputs,
+            &config,
+            &mut progress,
+            &mut on_end,
+        )?,
+        None => run_session_inputs(inputs, &config, &[], &mut progress, &mut on_end)?,
+    };
     bar.finish_and_clear();
     if let Some(e) = failure.into_inner() {
         return Err(e.context("the simulator failed"));
@@ -512,7 +602,7 @@ pub fn run(args: &LifelongArgs) -> anyhow::Result<()> {
         let (w, h, pixels) = map_image::grid_to_gray(after);
         map_image::write_gray_png(&args.out.join("map.png"), w, h, &pixels)?;
     }
-    write_charts(&args.out, &reporter.rows)?;
+    write_charts(&args.out, &reporter.all_rows()?)?;
     let truths = truths
         .lock()
         .map_err(|_| anyhow::anyhow!("the truth lock is poisoned"))?
@@ -523,12 +613,47 @@ pub fn run(args: &LifelongArgs) -> anyhow::Result<()> {
         &truths,
         &reporter.world_from_map.unwrap_or_else(Rigid2::identity),
     )?;
-    let report = reporter.report(true, Some(run.data_duration_s));
+    let report = reporter.report(true, Some(run.data_duration_s))?;
     println!(
         "{}",
         json!({"policy": config.lifelong.policy.name(), "summary": report["summary"]})
     );
     Ok(())
+}
+
+/// The rows and details of sessions before `first_session` in the report of the run in `out`.
+fn earlier_report(
+    out: &Path,
+    first_session: u32,
+) -> anyhow::Result<(Vec<serde_json::Value>, Vec<serde_json::Value>)> {
+    let path = out.join("report.json");
+    let text = std::fs::read_to_string(&path)
+        .with_context(|| format!("cannot read {}", path.display()))?;
+    let report: serde_json::Value =
+        serde_json::from_str(&text).with_context(|| format!("{} is not JSON", path.display()))?;
+    let earlier = |key: &str| -> anyhow::Result<Vec<serde_json::Value>> {
+        let rows = report[key]
+            .as_array()
+            .with_context(|| format!("{} has no `{key}`", path.display()))?;
+        let rows: Vec<serde_json::Value> = rows
+            .iter()
+            .filter(|r| {
+                r["session"]
+                    .as_u64()
+                    .is_some_and(|k| k < u64::from(first_session))
+            })
+            .cloned()
+            .collect();
+        if rows.len() != first_session as usize {
+            anyhow::bail!(
+                "{} holds {} of the {first_session} sessions before the resume point in `{key}`",
+                path.display(),
+                rows.len()
+            );
+        }
+        Ok(rows)
+    };
+    Ok((earlier("sessions")?, earlier("session_details")?))
 }
 
 /// Writes every scan's pose smoothed at its session's end (in the truth's frame, through
@@ -576,13 +701,14 @@ fn write_trajectories(
     std::fs::write(path, csv).with_context(|| format!("cannot write {}", path.display()))
 }
 
-fn write_charts(out: &Path, scores: &[SessionRow]) -> anyhow::Result<()> {
-    let series = |name: &str, color: [u8; 3], f: &dyn Fn(&SessionRow) -> Option<f64>| Series {
+/// The charts of every session's row (`report.json`'s `sessions`).
+fn write_charts(out: &Path, rows: &[serde_json::Value]) -> anyhow::Result<()> {
+    let series = |name: &str, color: [u8; 3], field: &str, scale: f64| Series {
         name: name.to_string(),
         color,
-        points: scores
+        points: rows
             .iter()
-            .filter_map(|s| Some((f64::from(s.session), f(s)?)))
+            .filter_map(|r| Some((r["session"].as_f64()?, scale * r[field].as_f64()?)))
             .collect(),
     };
     let graph = LineChart {
@@ -590,13 +716,9 @@ fn write_charts(out: &Path, scores: &[SessionRow]) -> anyhow::Result<()> {
         x_label: "session".into(),
         y_label: "count".into(),
         series: vec![
-            series("nodes", [30, 90, 200], &|s| Some(s.nodes as f64)),
-            series("submaps x10", [0, 150, 0], &|s| {
-                Some(10.0 * s.submaps as f64)
-            }),
-            series("constraints", [200, 40, 40], &|s| {
-                Some(s.constraints as f64)
-            }),
+            series("nodes", [30, 90, 200], "nodes", 1.0),
+            series("submaps x10", [0, 150, 0], "submaps", 10.0),
+            series("constraints", [200, 40, 40], "constraints", 1.0),
         ],
         y_min: Some(0.0),
     };
@@ -607,12 +729,10 @@ fn write_charts(out: &Path, scores: &[SessionRow]) -> anyhow::Result<()> {
         x_label: "session".into(),
         y_label: "score / rate".into(),
         series: vec![
-            series("AMS", [30, 90, 200], &|s| s.score.ams),
-            series("MRCL", [0, 150, 0], &|s| Some(s.score.mrcl)),
-            series("MCR", [200, 40, 40], &|s| s.mcr),
-            series("world change", [150, 150, 150], &|s| {
-                Some(s.world_change_rate)
-            }),
+            series("AMS", [30, 90, 200], "ams", 1.0),
+            series("MRCL", [0, 150, 0], "mrcl", 1.0),
+            series("MCR", [200, 40, 40], "mcr", 1.0),
+            series("world change", [150, 150, 150], "world_change_rate", 1.0),
         ],
         y_min: Some(0.0),
     };

@@ -9,6 +9,7 @@ mod command_runtime;
 mod demo_command;
 mod idle_sites;
 mod lifelong_command;
+mod lifelong_resume;
 mod load_command;
 mod load_fleet;
 mod memory_attribution;

@@ -70,6 +70,21 @@ pub struct SessionEnd<'a> {
     pub record: &'a SessionRecord,
     /// The map right after the session ended (trimmed).
     pub map: &'a LifelongMap,
+    /// The robot's last pose of the session as it had it then (its dock for the next session), if the
+    /// session was placed; what a resumed run needs besides the map ([`RunResume::dock`]).
+    pub dock: Option<Rigid2>,
+}
+
+/// Where a run picks up from an earlier one (`evermap-demo lifelong --resume`): the map as it stood after
+/// the earlier run's last ended session, restored from its checkpoint (`proto::SiteCheckpoint`), and the
+/// robot's dock then. Fed the same later sessions, the resumed run does what the uninterrupted one did.
+pub struct RunResume {
+    /// The map after session `first_session - 1`.
+    pub map: LifelongMap,
+    /// The id of the first session the run feeds.
+    pub first_session: u32,
+    /// [`SessionEnd::dock`] of session `first_session - 1`.
+    pub dock: Option<Rigid2>,
 }
 
 /// What a multi-session run produced.
@@ -196,6 +211,30 @@ pub fn run_session_inputs(
     progress: &mut dyn FnMut(usize),
     on_session_end: &mut (dyn FnMut(&SessionEnd<'_>) + Send),
 ) -> Result<SessionsRun, SessionsError> {
+    run_from(None, inputs, config, probes, progress, on_session_end)
+}
+
+/// [`run_session_inputs`] picking up where an earlier run left off (see [`RunResume`]): `inputs` are
+/// sessions `resume.first_session`, `resume.first_session + 1`, ... The run's outputs cover those
+/// sessions only.
+pub fn resume_session_inputs(
+    resume: RunResume,
+    inputs: impl Iterator<Item = SessionInput>,
+    config: &SessionsConfig,
+    progress: &mut dyn FnMut(usize),
+    on_session_end: &mut (dyn FnMut(&SessionEnd<'_>) + Send),
+) -> Result<SessionsRun, SessionsError> {
+    run_from(Some(resume), inputs, config, &[], progress, on_session_end)
+}
+
+fn run_from(
+    resume: Option<RunResume>,
+    inputs: impl Iterator<Item = SessionInput>,
+    config: &SessionsConfig,
+    probes: &[MapProbe],
+    progress: &mut dyn FnMut(usize),
+    on_session_end: &mut (dyn FnMut(&SessionEnd<'_>) + Send),
+) -> Result<SessionsRun, SessionsError> {
     config
         .local
         .validate()
@@ -204,7 +243,10 @@ pub fn run_session_inputs(
         .scoring
         .validate()
         .map_err(|e| SessionsError::Options(e.into()))?;
-    let map = LifelongMap::new(config.lifelong.clone())?;
+    let (map, first_session, dock) = match resume {
+        Some(r) => (r.map, r.first_session, r.dock),
+        None => (LifelongMap::new(config.lifelong.clone())?, 0, None),
+    };
 
     let (sender, receiver) = mpsc::sync_channel::<Message>(256);
     std::thread::scope(|scope| {
@@ -213,6 +255,7 @@ pub fn run_session_inputs(
             .spawn_scoped(scope, move || {
                 worker(
                     map,
+                    dock,
                     config,
                     MapProbes::new(probes),
                     &receiver,
@@ -221,11 +264,13 @@ pub fn run_session_inputs(
             })
             .map_err(SessionsError::Spawn)?;
 
-        let mut feed = SessionFeed::default();
+        let mut feed = SessionFeed::starting_at(first_session);
         let send = |m: Message| sender.send(m).is_ok();
         for (session, input) in inputs.enumerate() {
             let session = u32::try_from(session)
-                .map_err(|_| SessionsError::Config("too many sessions".into()))?;
+                .ok()
+                .and_then(|k| k.checked_add(first_session))
+                .ok_or_else(|| SessionsError::Config("too many sessions".into()))?;
             if !feed.feed(session, &input, config, &send, progress) {
                 // The worker stopped; its error is reported by `join` below.
                 break;

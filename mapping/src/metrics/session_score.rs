@@ -29,7 +29,7 @@
 //! Everything is measured in the truth's (world) frame through `world_from_map`, the rigid alignment of
 //! the mapping session to its truth ([`align_to_truth`](super::align_to_truth)).
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use super::{
     ScoringOptions, TrajectoryAccuracy, pose_error, trajectory_accuracy, wrong_distance_m,
@@ -78,7 +78,7 @@ pub struct SessionTrack<'a> {
 }
 
 /// The scores of one session (see the module docs).
-#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct SessionScore {
     /// MRCL of the estimate the robot had at the time of each scan.
     pub mrcl: f64,
@@ -131,11 +131,10 @@ pub struct SessionScore {
     /// every method. 0 when no search's best was correct; `None` without recorded searches.
     pub mrcl_ceiling: Option<f64>,
     /// Good distance (metres within tolerance, estimate at the time) and its smoothed counterpart, kept to
-    /// weigh MRCL over a run by distance.
-    #[serde(skip)]
+    /// weigh MRCL over a run by distance (in the report, so that a resumed run weighs the sessions before
+    /// it too).
     good_distance_m: [f64; 2],
     /// Distance driven while wrongly localized (estimate at the time), metres, to weigh `mrwl` over a run.
-    #[serde(skip)]
     wrong_distance_m: f64,
 }
 

@@ -79,12 +79,23 @@ fn poses_of_scans(
 
 pub(super) fn worker(
     map: LifelongMap,
+    dock: Option<Rigid2>,
     config: &SessionsConfig,
     probes: MapProbes,
     receiver: &mpsc::Receiver<Message>,
     on_session_end: &mut (dyn FnMut(&SessionEnd<'_>) + Send),
 ) -> Result<WorkerOutput, SessionsError> {
     let mut worker = MapWorker::new(map, config, probes);
+    if let Some(dock) = dock {
+        // A resumed run: the robot's last pose of the session before, as the next start reads it.
+        worker.online_nodes.insert(
+            NodeId {
+                trajectory: u32::MAX,
+                index: 0,
+            },
+            dock,
+        );
+    }
     for message in receiver {
         match message {
             Message::Start {
@@ -374,6 +385,7 @@ impl<'a> MapWorker<'a> {
                 summary,
                 record,
                 map: &self.map,
+                dock: self.online_nodes.values().next_back().copied(),
             });
         }
         Ok(())

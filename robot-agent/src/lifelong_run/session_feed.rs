@@ -28,9 +28,20 @@ pub(super) struct SessionFeed {
     data_duration_s: f64,
     /// Scans fed, all sessions.
     pub(super) scans_done: usize,
+    /// The id of the first session fed (a resumed run's: see [`super::RunResume`]); the books above are
+    /// per session from it.
+    pub(super) first_session: u32,
 }
 
 impl SessionFeed {
+    /// A feed whose first session is `first_session`.
+    pub(super) fn starting_at(first_session: u32) -> Self {
+        Self {
+            first_session,
+            ..Self::default()
+        }
+    }
+
     /// Drives a fresh LLO over `input` as session `session`, sending `send` its start, each node and its
     /// end. `false` once the worker has stopped (its error is reported by joining it).
     pub(super) fn feed(
@@ -138,7 +149,7 @@ impl SessionFeed {
             .filter_map(|a| scan_pose(&node_pose, a))
             .collect();
         for summary in &mut sessions {
-            let k = summary.session as usize;
+            let k = (summary.session - self.first_session) as usize;
             summary.start_time = self.boundaries[k];
             summary.scans = self.scans_per_session[k];
         }
