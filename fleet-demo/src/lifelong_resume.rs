@@ -148,6 +148,48 @@ mod tests {
     use super::*;
     use mapping::geometry::rigid2;
 
+    fn identity() -> RunIdentity {
+        RunIdentity {
+            world: "store".into(),
+            seed: 1,
+            policy: "clt".into(),
+            session_duration_s: Some(120.0),
+            mapping_duration_s: None,
+            dock_starts: false,
+            config_fingerprint: 7,
+        }
+    }
+
+    #[test]
+    fn a_resume_point_is_read_back_and_refused_to_another_run() {
+        let dir = tempfile::tempdir().unwrap();
+        let options = mapping::lifelong::LifelongOptions::default();
+        let map = LifelongMap::new(options.clone()).unwrap();
+        let (frame, dock) = (rigid2(2.0, -1.0, 0.3), rigid2(10.0, 4.0, -2.0));
+        write(dir.path(), &identity(), 3, &map, &frame, Some(&dock)).unwrap();
+        let point = read(dir.path(), &identity(), options.clone()).unwrap();
+        assert_eq!(point.next_session, 4);
+        assert_eq!(point.world_from_map, frame);
+        assert_eq!(point.dock, Some(dock));
+        assert_eq!(point.map.counts(), map.counts());
+        let other = RunIdentity {
+            seed: 2,
+            ..identity()
+        };
+        let refused = read(dir.path(), &other, options.clone())
+            .err()
+            .expect("refused");
+        assert!(
+            refused.to_string().contains("same world, seed"),
+            "{refused}"
+        );
+        // The next session's point replaces this one and its checkpoint.
+        write(dir.path(), &identity(), 4, &map, &frame, None).unwrap();
+        assert!(!dir.path().join("resume/checkpoint-3.pb").exists());
+        let point = read(dir.path(), &identity(), options).unwrap();
+        assert_eq!((point.next_session, point.dock), (5, None));
+    }
+
     #[test]
     fn a_pose_keeps_its_bits_through_the_resume_file() {
         let pose = rigid2(1.0 / 3.0, -2.5e-7, 0.123_456_789);
