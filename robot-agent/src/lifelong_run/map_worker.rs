@@ -85,17 +85,7 @@ pub(super) fn worker(
     receiver: &mpsc::Receiver<Message>,
     on_session_end: &mut (dyn FnMut(&SessionEnd<'_>) + Send),
 ) -> Result<WorkerOutput, SessionsError> {
-    let mut worker = MapWorker::new(map, config, probes);
-    if let Some(dock) = dock {
-        // A resumed run: the robot's last pose of the session before, as the next start reads it.
-        worker.online_nodes.insert(
-            NodeId {
-                trajectory: u32::MAX,
-                index: 0,
-            },
-            dock,
-        );
-    }
+    let mut worker = MapWorker::new(map, dock, config, probes);
     for message in receiver {
         match message {
             Message::Start {
@@ -128,6 +118,9 @@ struct MapWorker<'a> {
     // and the map of the finished sessions as it was at its start (for the match scores).
     node_local: BTreeMap<NodeId, Rigid2>,
     online_nodes: BTreeMap<NodeId, Rigid2>,
+    /// Where the robot was at the end of its last session, as it had it then: its dock (a resumed run's
+    /// from its resume point).
+    dock: Option<Rigid2>,
     map_at_start: Option<MatchScorer>,
     priors: BTreeMap<u32, (Rigid2, Rigid2)>,
     scores: Vec<f32>,
@@ -140,7 +133,12 @@ struct MapWorker<'a> {
 }
 
 impl<'a> MapWorker<'a> {
-    fn new(map: LifelongMap, config: &'a SessionsConfig, probes: MapProbes) -> Self {
+    fn new(
+        map: LifelongMap,
+        dock: Option<Rigid2>,
+        config: &'a SessionsConfig,
+        probes: MapProbes,
+    ) -> Self {
         Self {
             map,
             config,
@@ -151,6 +149,7 @@ impl<'a> MapWorker<'a> {
             records: Vec::new(),
             node_local: BTreeMap::new(),
             online_nodes: BTreeMap::new(),
+            dock,
             map_at_start: None,
             priors: BTreeMap::new(),
             scores: Vec::new(),
@@ -192,8 +191,7 @@ impl<'a> MapWorker<'a> {
         self.scores.clear();
         self.node_local.clear();
         self.live = None;
-        // Where the robot was at the end of its last session, as it had it then: its dock.
-        let dock = self.online_nodes.values().next_back().copied();
+        let dock = self.dock;
         self.online_nodes.clear();
         self.node_times.clear();
         self.map_at_start = None;
@@ -378,6 +376,8 @@ impl<'a> MapWorker<'a> {
             summary.rss_mb = crate::process_stats::current_rss_mb();
         }
         self.probes.add_ended_session(scans, &self.node_local);
+        // Where the robot ends this session, as it has it: the next session's dock.
+        self.dock = self.online_nodes.values().next_back().copied();
         if let (Some(summary), Some(record)) = (self.sessions.last(), self.records.last_mut()) {
             record.online = poses_of_scans(scans, &self.node_local, &self.online_nodes);
             record.smoothed = poses_of_scans(scans, &self.node_local, &at_session_end);
@@ -385,7 +385,7 @@ impl<'a> MapWorker<'a> {
                 summary,
                 record,
                 map: &self.map,
-                dock: self.online_nodes.values().next_back().copied(),
+                dock: self.dock,
             });
         }
         Ok(())
