@@ -51,7 +51,9 @@
 //!    `probation_min_z`: matches revoked it, and the whole route now says it is the place).
 //!    That test is made only once matches agree, and a wrong placement gets no match near a pose the robot
 //!    is not at: while no match has agreed with a placement and the latest nodes fit the map below its
-//!    floor there, the whole map is searched again every `retry_every_n_nodes` nodes
+//!    floor there, the whole map is searched again after `retry_every_n_nodes` nodes on probation, then
+//!    twice, four times ... as many, never more than
+//!    [`SessionStartOptions::max_second_opinion_interval_nodes`] apart
 //!    ([`SessionStartOptions::search_while_unconfirmed`]), and an answer elsewhere that the route fits
 //!    decisively better replaces it.
 //!
@@ -291,7 +293,11 @@ impl SessionStart {
                     && self.agreeing.is_empty()
                     && every > 0
                     && node > placement.node
-                    && (node - placement.node).is_multiple_of(every)
+                    && is_scheduled_retry(
+                        node - placement.node,
+                        every,
+                        self.options.max_second_opinion_interval_nodes,
+                    )
                     && self.misfits(&placement)
                 {
                     self.second_opinion(placement, node)

@@ -83,6 +83,12 @@ pub struct SessionStartOptions {
     /// Search the whole map again while a placement on probation has no agreeing match and its latest nodes
     /// fit the map poorly there. Default true. Why: `docs/TUNING.md#ss-search-while-unconfirmed`.
     pub search_while_unconfirmed: bool,
+    /// Those searches come after `retry_every_n_nodes` nodes on probation, then twice, four times ... as
+    /// many, never more than this many nodes apart (count; 0 = the doubling is never capped;
+    /// `retry_every_n_nodes` = every `retry_every_n_nodes`). Default 0: a search of the route's latest
+    /// `max_search_nodes` costs seconds, and the route that has not decided a placement in its first
+    /// minutes rarely decides it in the next few nodes. Why: `docs/TUNING.md#ss-max-second-opinion-interval-nodes`.
+    pub max_second_opinion_interval_nodes: usize,
     /// Commit at its end ([`SessionStart::finish`]) a dock placement still on probation that nothing
     /// disputes. Default true. Why: `docs/TUNING.md#ss-commit-dock-at-end`.
     pub commit_dock_placement_at_end: bool,
@@ -117,6 +123,7 @@ impl Default for SessionStartOptions {
             contest_piece_m: 4.0,
             search_piece_m: 4.0,
             search_while_unconfirmed: true,
+            max_second_opinion_interval_nodes: 0,
             commit_dock_placement_at_end: true,
             defer_contested_dock_check: true,
         }

@@ -1010,3 +1010,33 @@ fn retries_double_until_the_cap_then_come_at_the_cap() {
         ]
     );
 }
+
+#[test]
+fn second_opinions_come_on_the_doubling_schedule_up_to_their_cap() {
+    // The robot sees a small ring where the map has open floor: the placement misfits, and every due
+    // second opinion searches the whole map (and finds nothing the route fits better).
+    let ring: Vec<Point2<f32>> = (0..36)
+        .map(|i| {
+            let a = (i as f32 * 10.0).to_radians();
+            Point2::new(0.25 * a.cos(), 0.25 * a.sin())
+        })
+        .collect();
+    let searches = |cap: usize| {
+        let options = SessionStartOptions {
+            max_second_opinion_interval_nodes: cap,
+            ..options()
+        };
+        let (mut start, _) =
+            SessionStart::with_placement(options, Some(room_search()), rigid2(2.7, 2.2, 0.4), 0)
+                .unwrap();
+        for k in 0..17u32 {
+            let events = start.add_node(rigid2(0.01 * f64::from(k), 0.0, 0.0), ring.clone());
+            assert!(events.is_empty(), "{events:?}");
+        }
+        start.searches()
+    };
+    // Every `retry_every_n_nodes` (4): nodes 4, 8, 12 and 16.
+    assert_eq!(searches(4), 4);
+    // Doubling, uncapped: nodes 4, 8 and 16.
+    assert_eq!(searches(0), 3);
+}
