@@ -85,9 +85,9 @@ pub struct SessionStartOptions {
     pub search_while_unconfirmed: bool,
     /// Those searches come after `retry_every_n_nodes` nodes on probation, then twice, four times ... as
     /// many, never more than this many nodes apart (count; 0 = the doubling is never capped;
-    /// `retry_every_n_nodes` = every `retry_every_n_nodes`). Default 0: a search of the route's latest
-    /// `max_search_nodes` costs seconds, and the route that has not decided a placement in its first
-    /// minutes rarely decides it in the next few nodes. Why: `docs/TUNING.md#ss-max-second-opinion-interval-nodes`.
+    /// `retry_every_n_nodes` = every `retry_every_n_nodes`). Default 0: each is a whole-map search of up
+    /// to `max_search_nodes` nodes of route, and uncapped they placed and committed every measured session
+    /// as before with fewer searches (the store, seeds 1–3: 30–49 % fewer). Why: `docs/TUNING.md#ss-max-second-opinion-interval-nodes`.
     pub max_second_opinion_interval_nodes: usize,
     /// Commit at its end ([`SessionStart::finish`]) a dock placement still on probation that nothing
     /// disputes. Default true. Why: `docs/TUNING.md#ss-commit-dock-at-end`.
