@@ -318,6 +318,29 @@ fn translation_eigen(information: &Matrix3<f64>) -> nalgebra::SymmetricEigen<f64
         .symmetric_eigen()
 }
 
+/// The weakly and the strongly pinned translation directions (unit vectors, in `information`'s frame) of a
+/// least-squares or match information over `(tx, ty, θ)`, if its translation block is degenerate: its
+/// eigenvalues differ by more than `1 / degenerate_ratio` (a corridor, pinned across but hardly along).
+pub(crate) fn weak_axis(
+    information: &Matrix3<f64>,
+    degenerate_ratio: f64,
+) -> Option<(nalgebra::Vector2<f64>, nalgebra::Vector2<f64>)> {
+    let eigen = translation_eigen(information);
+    let (weak, strong) = if eigen.eigenvalues[0] <= eigen.eigenvalues[1] {
+        (0, 1)
+    } else {
+        (1, 0)
+    };
+    (eigen.eigenvalues[strong] > 0.0
+        && eigen.eigenvalues[weak].max(0.0) < degenerate_ratio * eigen.eigenvalues[strong])
+        .then(|| {
+            (
+                eigen.eigenvectors.column(weak).into_owned(),
+                eigen.eigenvectors.column(strong).into_owned(),
+            )
+        })
+}
+
 /// Whether `other` lies from `best` along `best`'s weakly pinned direction (a corridor's axis), so that it
 /// is the same place seen with the along-corridor position unknown rather than another place: the
 /// translation block's eigenvalues differ by more than `1 / degenerate_ratio`, the offset points within
@@ -328,19 +351,10 @@ fn along_weak_axis(
     other: &Rigid2,
     degenerate_ratio: f64,
 ) -> bool {
-    let eigen = translation_eigen(scan_information);
-    let (weak, strong) = if eigen.eigenvalues[0] <= eigen.eigenvalues[1] {
-        (0, 1)
-    } else {
-        (1, 0)
-    };
-    if !(eigen.eigenvalues[strong] > 0.0
-        && eigen.eigenvalues[weak].max(0.0) < degenerate_ratio * eigen.eigenvalues[strong])
-    {
+    let Some((axis, _)) = weak_axis(scan_information, degenerate_ratio) else {
         return false;
-    }
+    };
     let offset = other.translation.vector - best.translation.vector;
-    let axis = eigen.eigenvectors.column(weak);
     let turned = crate::geometry::normalize_angle(other.rotation.angle() - best.rotation.angle());
     offset.norm() > 0.0
         && axis.dot(&offset).abs() >= 20f64.to_radians().cos() * offset.norm()

@@ -8,7 +8,18 @@ use super::{
 };
 use crate::geometry::Rigid2;
 use crate::global_slam::LoopClosure;
+use crate::global_slam::constraint_builder::weak_axis;
 use crate::pose_graph::{Constraint, ConstraintKind, NodeId, RobustLoss, SubmapId, VariableId};
+
+/// The cycle of two matches (see [`GlobalSlam::match_cycle`]).
+struct MatchCycle {
+    /// The cycle's translation (m) in the first match's node frame.
+    translation: nalgebra::Vector2<f64>,
+    /// The cycle's rotation (rad).
+    rotation: f64,
+    /// The path (m) driven between the two nodes.
+    path_m: f64,
+}
 
 /// `agreeing` pending matches and the `closure` that confirmed them, all marked confirmed by agreement.
 fn confirmed(
@@ -363,33 +374,51 @@ impl GlobalSlam {
         agreeing
     }
 
+    /// The cycle two matches of different nodes of one trajectory close: the relative pose of their nodes
+    /// through the two submaps against the one along the trajectory, its translation in `a`'s node frame.
+    fn match_cycle(&self, a: &LoopClosure, b: &LoopClosure) -> Option<MatchCycle> {
+        if a.node == b.node || a.node.trajectory != b.node.trajectory {
+            return None;
+        }
+        let path_m = (self.nodes.get(&a.node)?.path_m - self.nodes.get(&b.node)?.path_m).abs();
+        let through_submaps = (self.submap_pose(a.submap)? * a.submap_from_node).inverse()
+            * (self.submap_pose(b.submap)? * b.submap_from_node);
+        let along_trajectory = self.node_pose(a.node)?.inverse() * self.node_pose(b.node)?;
+        let cycle = along_trajectory.inverse() * through_submaps;
+        Some(MatchCycle {
+            translation: along_trajectory.rotation * cycle.translation.vector,
+            rotation: cycle.rotation.angle(),
+            path_m,
+        })
+    }
+
     /// Whether two matches of different nodes of one trajectory close a consistent cycle: the relative
     /// pose of their nodes through the two submaps equals the one along the trajectory, within
     /// `agreement_translation` (plus 2 % of the path between them) and `agreement_rotation`.
     pub(super) fn agree(&self, a: &LoopClosure, b: &LoopClosure) -> bool {
         let cb = &self.options.constraint_builder;
-        if a.node == b.node || a.node.trajectory != b.node.trajectory {
-            return false;
-        }
-        let (Some(ra), Some(rb)) = (self.nodes.get(&a.node), self.nodes.get(&b.node)) else {
+        self.match_cycle(a, b).is_some_and(|c| {
+            c.path_m <= cb.agreement_path_length
+                && c.translation.norm() <= cb.agreement_translation + 0.02 * c.path_m
+                && c.rotation.abs() <= cb.agreement_rotation
+        })
+    }
+
+    /// Whether `a` and `b` disagree only along `a`'s weakly pinned translation direction (a corridor's
+    /// axis, see `ConstraintBuilderOptions::degenerate_ratio`): across it and in rotation their cycle is
+    /// within the tolerances of [`Self::agree`]. A corridor match cannot testify to a position along its
+    /// corridor, so it neither confirms nor disputes one there.
+    pub(super) fn disagree_only_along_weak_axis(&self, a: &LoopClosure, b: &LoopClosure) -> bool {
+        let cb = &self.options.constraint_builder;
+        let Some((_, across)) = a
+            .information
+            .and_then(|information| weak_axis(&information, cb.degenerate_ratio))
+        else {
             return false;
         };
-        let path = (ra.path_m - rb.path_m).abs();
-        if path > cb.agreement_path_length {
-            return false;
-        }
-        let (Some(na), Some(nb), Some(sa), Some(sb)) = (
-            self.node_pose(a.node),
-            self.node_pose(b.node),
-            self.submap_pose(a.submap),
-            self.submap_pose(b.submap),
-        ) else {
-            return false;
-        };
-        let through_submaps = (sa * a.submap_from_node).inverse() * (sb * b.submap_from_node);
-        let along_trajectory = na.inverse() * nb;
-        let cycle = along_trajectory.inverse() * through_submaps;
-        cycle.translation.vector.norm() <= cb.agreement_translation + 0.02 * path
-            && cycle.rotation.angle().abs() <= cb.agreement_rotation
+        self.match_cycle(a, b).is_some_and(|c| {
+            across.dot(&c.translation).abs() <= cb.agreement_translation + 0.02 * c.path_m
+                && c.rotation.abs() <= cb.agreement_rotation
+        })
     }
 }

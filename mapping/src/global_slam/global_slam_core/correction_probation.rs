@@ -108,7 +108,7 @@ impl GlobalSlam {
             }
             if self.agree(closure, &p.newest) {
                 p.agreeing.insert(closure.node);
-            } else {
+            } else if !self.disagree_only_along_weak_axis(closure, &p.newest) {
                 p.disagreeing.insert(closure.node);
             }
             if p.agreeing.len() >= needed {
@@ -190,7 +190,8 @@ impl GlobalSlam {
 mod tests {
     use super::super::tests::{drive_on, straight_run, wide_closure};
     use super::*;
-    use crate::geometry::rigid2;
+    use crate::geometry::{Rigid2, rigid2};
+    use nalgebra::Vector2;
 
     /// A run whose nodes 160 and 170 confirm a correction 0.6 m from the estimates (see
     /// `a_match_far_from_the_estimate_waits_for_another_that_agrees_with_it`), with retraction so strict
@@ -288,6 +289,46 @@ mod tests {
             .map(|c| c.closure.node.index)
             .collect();
         assert_eq!(retracted, [160, 170]);
+    }
+
+    /// A match of node `node` seen through a corridor: pinned across the direction `along` (unit vector in
+    /// the node's frame) 1000 times more than along it.
+    fn corridor_closure(node: u32, error: Rigid2, along: nalgebra::Vector2<f64>) -> LoopClosure {
+        let across = nalgebra::Vector2::new(-along.y, along.x);
+        let translation = along * along.transpose() * 0.1 + across * across.transpose() * 100.0;
+        let mut information = nalgebra::Matrix3::zeros();
+        information
+            .fixed_view_mut::<2, 2>(0, 0)
+            .copy_from(&translation);
+        information[(2, 2)] = 1000.0;
+        LoopClosure {
+            information: Some(information),
+            ..wide_closure(node, error)
+        }
+    }
+
+    #[test]
+    fn a_corridor_match_does_not_testify_along_its_corridor() {
+        // Two later matches agree with the correction across x but not along it (0.5 m short).
+        let short = |node| corridor_closure(node, rigid2(0.0, 0.37, 0.002), Vector2::x());
+        let mut global = confirmed_correction(20);
+        drive_on(&mut global, 171..180);
+        global.options.loop_closure_retraction_chi2 = 0.0;
+        global.add_search_results([short(175)]);
+        global.add_search_results([short(178)]);
+        // Seen through a corridor along x, they cannot tell where along it the trajectory is.
+        let probation = &global.correction_probations()[0];
+        assert!(probation.disagreeing.is_empty(), "{probation:?}");
+        assert_eq!(&in_graph(&global)[..2], [160, 170]);
+        // Seen through a corridor along y, the same offset is across it: they retract the correction.
+        let across = |node| corridor_closure(node, rigid2(0.0, 0.37, 0.002), Vector2::y());
+        let mut global = confirmed_correction(20);
+        drive_on(&mut global, 171..180);
+        global.options.loop_closure_retraction_chi2 = 0.0;
+        global.add_search_results([across(175)]);
+        global.add_search_results([across(178)]);
+        assert!(global.correction_probations().is_empty());
+        assert!(!in_graph(&global).contains(&160), "{:?}", in_graph(&global));
     }
 
     #[test]
