@@ -52,8 +52,7 @@ def block_rows(sessions):
             "rss": f"{mean(s['rss_mb'] for s in block if s.get('rss_mb')):.0f} / "
                    f"{max((s.get('peak_rss_mb') or 0) for s in block):.0f}",
             "cri": f"{right}/{len(block)}",
-            "wrong": sum(1 for s in block if s.get("placed") and s.get("placement_error_m") is not None
-                         and not s.get("initialized") and s["placement_error_m"] > 1.0),
+            "wrong": sum(1 for s in block if s.get("wrong_placement")),
             "ams": f"{mean(s.get('ams') or 0.0 for s in block):.3f}",
             "mrcl": f"{mean(s['mrcl'] for s in block):.3f}",
         })
@@ -125,9 +124,14 @@ def main():
         print(f"{key}: block mean {last_first}–{sessions[-1]['session']} against 15–25: {g:+.1f} %")
     g, last_first = growth([s for s in sessions if s.get("rss_mb")], "rss_mb")
     print(f"rss_mb: block mean {last_first}–{sessions[-1]['session']} against 15–25: {g:+.1f} %")
-    wrong = sum(1 for s in sessions if s.get("placed") and (s.get("placement_error_m") or 0) > 1.0)
-    print(f"placements over 1 m off: {wrong}; never placed: "
-          f"{[s['session'] for s in sessions if not s.get('placed')]}")
+    # A placement the robot acted on, committed or not: the report's own verdict (`wrong_placement`,
+    # `mapping::metrics::placement_verdict`, 0.5 m or 5° by default); a session placed and then dropped on
+    # probation counts here too.
+    wrong = [s["session"] for s in sessions if s.get("wrong_placement")]
+    print(f"wrong placements acted on: {len(wrong)} {wrong}; never placed: "
+          f"{[s['session'] for s in sessions if s['session'] > 0 and s.get('placed_after_s') is None]}; "
+          f"placed but never committed: "
+          f"{[s['session'] for s in sessions if s.get('placed_after_s') is not None and not s.get('placed')]}")
     if "--charts" in args:
         out = args[args.index("--charts") + 1]
         pts = lambda f: [(s["session"], f(s)) for s in sessions if f(s) is not None]
