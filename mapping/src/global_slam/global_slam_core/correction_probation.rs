@@ -293,8 +293,8 @@ mod tests {
 
     /// A match of node `node` seen through a corridor: pinned across the direction `along` (unit vector in
     /// the node's frame) 1000 times more than along it.
-    fn corridor_closure(node: u32, error: Rigid2, along: nalgebra::Vector2<f64>) -> LoopClosure {
-        let across = nalgebra::Vector2::new(-along.y, along.x);
+    fn corridor_closure(node: u32, error: Rigid2, along: Vector2<f64>) -> LoopClosure {
+        let across = Vector2::new(-along.y, along.x);
         let translation = along * along.transpose() * 0.1 + across * across.transpose() * 100.0;
         let mut information = nalgebra::Matrix3::zeros();
         information
