@@ -52,7 +52,6 @@ def block_rows(sessions):
             "rss": f"{mean(s['rss_mb'] for s in block if s.get('rss_mb')):.0f} / "
                    f"{max((s.get('peak_rss_mb') or 0) for s in block):.0f}",
             "cri": f"{right}/{len(block)}",
-            "wrong": sum(1 for s in block if s.get("wrong_placement")),
             "ams": f"{mean(s.get('ams') or 0.0 for s in block):.3f}",
             "mrcl": f"{mean(s['mrcl'] for s in block):.3f}",
         })
