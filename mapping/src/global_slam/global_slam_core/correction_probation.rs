@@ -307,26 +307,27 @@ mod tests {
         }
     }
 
-    #[test]
-    fn a_corridor_match_does_not_testify_along_its_corridor() {
-        // Two later matches agree with the correction across x but not along it (0.5 m short).
-        let short = |node| corridor_closure(node, rigid2(0.0, 0.37, 0.002), Vector2::x());
+    /// [`confirmed_correction`] judged by two later matches seen through a corridor along `along` that
+    /// agree with the correction across x but not along it (0.5 m short).
+    fn judged_by_corridor_matches(along: Vector2<f64>) -> GlobalSlam {
+        let short = |node| corridor_closure(node, rigid2(0.0, 0.37, 0.002), along);
         let mut global = confirmed_correction(20);
         drive_on(&mut global, 171..180);
         global.options.loop_closure_retraction_chi2 = 0.0;
         global.add_search_results([short(175)]);
         global.add_search_results([short(178)]);
+        global
+    }
+
+    #[test]
+    fn a_corridor_match_does_not_testify_along_its_corridor() {
         // Seen through a corridor along x, they cannot tell where along it the trajectory is.
+        let global = judged_by_corridor_matches(Vector2::x());
         let probation = &global.correction_probations()[0];
         assert!(probation.disagreeing.is_empty(), "{probation:?}");
         assert_eq!(&in_graph(&global)[..2], [160, 170]);
         // Seen through a corridor along y, the same offset is across it: they retract the correction.
-        let across = |node| corridor_closure(node, rigid2(0.0, 0.37, 0.002), Vector2::y());
-        let mut global = confirmed_correction(20);
-        drive_on(&mut global, 171..180);
-        global.options.loop_closure_retraction_chi2 = 0.0;
-        global.add_search_results([across(175)]);
-        global.add_search_results([across(178)]);
+        let global = judged_by_corridor_matches(Vector2::y());
         assert!(global.correction_probations().is_empty());
         assert!(!in_graph(&global).contains(&160), "{:?}", in_graph(&global));
     }
