@@ -26,8 +26,13 @@ whose every draw is (a regression the draws agree on) is counted apart from the 
 two of those draws differ (a null change that touches nothing the cell decides, such as a loop closure's σ
 where no loop closes, draws the same run again: session 84).
 
+Either side's entries may also be draw files (JSON, a few kilobytes: each cell's scored mean and largest
+relation) that `--save` writes from a suite directory, so that a draw outlives the machine it ran on; the
+current engine's draws are kept in docs/robustness/.
+
 Usage: robustness_compare.py BEFORE[,BEFORE...] AFTER[,AFTER...]   (cells that keep the rule are listed
 too; the totals go to standard error)
+       robustness_compare.py --save SUITE_DIR DRAW.json
 """
 import json
 import statistics
@@ -37,7 +42,12 @@ from pathlib import Path
 from robustness_table import AT_SCANS, breaks_bound
 
 
-def load(out: Path) -> dict:
+def scored(out: Path) -> dict:
+    """Each cell's scored relations (mean and largest translational error, m) of a suite directory, or of
+    a draw file that `--save` wrote from one."""
+    if out.is_file():
+        draw = json.loads(out.read_text())
+        return {tuple(key.split("/", 1)): (cell["trans_abs_mean_m"], cell["trans_abs_max_m"]) for key, cell in draw.items()}
     cells = {}
     for path in sorted(out.glob("*/*/report.json")):
         rec, variant = path.parent.parent.name, path.parent.name
@@ -45,6 +55,26 @@ def load(out: Path) -> dict:
         at_scans = variant in AT_SCANS and rep.get("relations_at_scans") is not None
         rel = rep["relations_at_scans"] if at_scans else rep["relations"]
         cells[(rec, variant)] = (rel["trans_abs_mean_m"], rel["trans_abs_max_m"])
+    return cells
+
+
+def save(out: Path, draw: Path) -> int:
+    """Writes the scored cells of suite directory OUT as a draw file: the suite's runs are large and live
+    on one machine, the draw a later comparison needs is a few kilobytes kept in the repository."""
+    cells = scored(out)
+    if not cells:
+        print(f"no reports under {out}", file=sys.stderr)
+        return 1
+    draw.write_text(json.dumps(
+        {f"{rec}/{variant}": {"trans_abs_mean_m": mean, "trans_abs_max_m": worst}
+         for (rec, variant), (mean, worst) in sorted(cells.items())},
+        indent=1,
+    ) + "\n")
+    return 0
+
+
+def load(out: Path) -> dict:
+    cells = scored(out)
     return {
         (rec, variant): (mean, worst, breaks_bound(variant, mean, worst, cells.get((rec, "clean"), (None,))[0]))
         for (rec, variant), (mean, worst) in cells.items()
@@ -70,6 +100,8 @@ def summary(draws: list, cell: tuple) -> tuple:
 
 
 def main() -> int:
+    if len(sys.argv) == 4 and sys.argv[1] == "--save":
+        return save(Path(sys.argv[2]), Path(sys.argv[3]))
     if len(sys.argv) != 3:
         print(__doc__, file=sys.stderr)
         return 2
