@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """The session start's probation timeline, per session, from an `evermap-agent sessions` report.json
 (issue 33): each match judged while a placement was on probation (agreed? past the placing cloud?
-independent? counted? which submap?), each contest with each rival's z, each end, timed in seconds
+independent? counted? which submap?), each contest with each rival's z, each whole-map search made
+while the placement misfit (where its answer lay, its z, why it did not replace the placement), each end, timed in seconds
 after the session's start. By default only the matches that counted or disagreed; --all shows every one.
 
     python3 scripts/probation_timeline.py OUT_DIR/report.json [SESSION ...] [--all]
@@ -47,6 +48,11 @@ for s in r['sessions']:
             pz = ', '.join('-' if v is None else f'{v:.2f}' for v in st.get('piece_z', []))
             pieces = f" pieces [{pz}]" if pz else ''
             print(f"  {ts} CONTEST node {st['node']} (at {st['at_node']}) route {st['route_nodes']} nodes: z [{z}]{pieces} vs {st['min_z']} -> {st['decision']}")
+        elif st['step'] == 'second_opinion':
+            off = st['answer_offset']
+            where = '-' if off is None else f"({off[0]:.2f}, {off[1]:.2f}) m {off[2]:.1f}°"
+            z = '-' if st['z'] is None else f"{st['z']:.2f}"
+            print(f"  {ts} SECOND OPINION (at {st['at_node']}) route {st['route_nodes']} nodes: answer {where} z {z} -> {st['decision']}")
         else:
             print(f"  {ts} {st['step'].upper()} {dict((a,b) for a,b in st.items() if a not in ('step','time_s'))}")
     print(f"  matches {n_m}, agreeing {n_agree}, counted {n_counted}, agreeing-not-past {n_notpast}, agreeing-past-not-independent {n_notindep}; first agreeing at {first_agree}, first counted at {first_counted}")

@@ -58,8 +58,8 @@ pub use relocalization::{
 };
 pub use relocalization_map::{MapCells, render_relocalization_map};
 pub use session_start::{
-    ProbationContest, ProbationMatch, ProbationStep, RevokeReason, SessionStart, SessionStartEvent,
-    SessionStartOptions, SessionStartState, StartPlacement,
+    ProbationContest, ProbationMatch, ProbationSecondOpinion, ProbationStep, RevokeReason,
+    SessionStart, SessionStartEvent, SessionStartOptions, SessionStartState, StartPlacement,
 };
 pub use submap_render::{render_submaps_log_odds, render_submaps_max, render_submaps_newest};
 pub use submap_trimmer::{PlacedGrid, covered_fraction};

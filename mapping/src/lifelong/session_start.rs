@@ -76,7 +76,9 @@ mod scan_view;
 mod session_start_event;
 mod session_start_options;
 
-pub use self::probation_timeline::{ProbationContest, ProbationMatch, ProbationStep};
+pub use self::probation_timeline::{
+    ProbationContest, ProbationMatch, ProbationSecondOpinion, ProbationStep,
+};
 use self::scan_view::ScanView;
 pub use self::session_start_event::{
     RevokeReason, SessionStartEvent, SessionStartState, StartPlacement,
@@ -530,18 +532,44 @@ impl SessionStart {
         };
         let recent = self.options.recent_search_nodes;
         let scans = self.cloud.make_contiguous();
+        let latest = scans
+            .last()
+            .map_or_else(Rigid2::identity, |(pose, _)| *pose);
         let piece_m = self.options.search_piece_m;
+        let mut route_nodes = scans.len();
         let mut answer = search.search_again(scans, piece_m);
         if matches!(answer.outcome, RelocalizationOutcome::NotFound)
             && recent > 0
             && recent < scans.len()
         {
+            route_nodes = recent;
             answer = search.search_again(&scans[scans.len() - recent..], piece_m);
         }
         self.searches += 1;
-        let RelocalizationOutcome::Found(found) = answer.outcome else {
-            return Vec::new();
+        let mut step = ProbationSecondOpinion {
+            at_node: node,
+            route_nodes,
+            answer_offset: None,
+            z: None,
+            decision: "not_found",
         };
+        let found = match answer.outcome {
+            RelocalizationOutcome::Found(found) => found,
+            RelocalizationOutcome::Ambiguous { .. } => {
+                step.decision = "ambiguous";
+                self.timeline.push(ProbationStep::SecondOpinion(step));
+                return Vec::new();
+            }
+            RelocalizationOutcome::NotFound => {
+                self.timeline.push(ProbationStep::SecondOpinion(step));
+                return Vec::new();
+            }
+        };
+        step.answer_offset = Some(rival_offset(
+            &placement.global_from_local,
+            &found.global_from_local,
+            &latest,
+        ));
         let same_place = self.same_place(
             &placement.global_from_local,
             &found.global_from_local,
@@ -551,6 +579,12 @@ impl SessionStart {
             || (self.repeats_revoked(&found.global_from_local)
                 && !self.overrules_revocation(answer.weakest_z))
         {
+            step.decision = if same_place {
+                "same_place"
+            } else {
+                "revoked_before"
+            };
+            self.timeline.push(ProbationStep::SecondOpinion(step));
             return Vec::new();
         }
         let z = search.contest(
@@ -558,9 +592,14 @@ impl SessionStart {
             &found.global_from_local,
             &[placement.global_from_local],
         );
+        step.z = z;
         if !z.is_some_and(|z| z >= self.options.probation_min_z) {
+            step.decision = "undecided";
+            self.timeline.push(ProbationStep::SecondOpinion(step));
             return Vec::new();
         }
+        step.decision = "replaced";
+        self.timeline.push(ProbationStep::SecondOpinion(step));
         let mut events = self.revoke(placement, RevokeReason::Rival, node);
         let mut rivals = answer.rivals;
         rivals.push(placement.global_from_local);

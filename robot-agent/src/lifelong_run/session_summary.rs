@@ -74,7 +74,7 @@ pub struct SearchFigures {
 }
 
 /// One step of the session start's probation ([`ProbationStep`]: a match judged, a test against the
-/// placement's rivals, the probation's end) and when it was taken.
+/// placement's rivals, a whole-map search made while it misfit, the probation's end) and when it was taken.
 #[derive(Clone, Debug, Serialize)]
 pub struct ProbationStepFigures {
     /// Time of the session's latest node when it was taken, seconds after the session's first event
@@ -104,6 +104,7 @@ impl ProbationStepFigures {
                     }
                     ProbationStep::Match(m) => m.at_node,
                     ProbationStep::Contest(c) => c.at_node,
+                    ProbationStep::SecondOpinion(o) => o.at_node,
                 };
                 Self {
                     time_s: node_times

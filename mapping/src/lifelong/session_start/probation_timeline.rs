@@ -1,7 +1,8 @@
 //! What a placement's probation went through, step by step ([`ProbationStep`]): each GLM match
 //! [`SessionStart::add_match`] judged — whether it agreed, whether it counted toward the commit and, if
 //! not, which condition held it back — each test of the route against the placement's rivals
-//! ([`StartSearch::contest`], each rival's z), and how the probation ended.
+//! ([`StartSearch::contest`], each rival's z), each whole-map search made while the placement misfit and
+//! why it did not replace it, and how the probation ended.
 //!
 //! [`SessionStart`] keeps these steps as it decides ([`SessionStart::probation_timeline`]), so every
 //! shell reports the same account of why a placement was committed when it was, or not at all. They
@@ -35,6 +36,9 @@ pub enum ProbationStep {
     Match(ProbationMatch),
     /// The session's route was tested against the placement's rivals before a commit.
     Contest(ProbationContest),
+    /// The whole map was searched again while the placement's latest nodes misfit the map there
+    /// (`search_while_unconfirmed`).
+    SecondOpinion(ProbationSecondOpinion),
     /// The probation ended.
     Ended {
         /// The session's latest node when it ended.
@@ -90,6 +94,28 @@ pub struct ProbationMatch {
     pub agreeing_submaps: usize,
     /// Disagreeing matches counted so far, this one included.
     pub disagreeing: usize,
+}
+
+/// One whole-map search made while a placement was on probation and its latest nodes misfit the map
+/// there, and why it did or did not replace the placement.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct ProbationSecondOpinion {
+    /// The session's latest node when it was made.
+    pub at_node: usize,
+    /// Nodes of the route it searched (the latest `recent_search_nodes` where the whole route found
+    /// nothing).
+    pub route_nodes: usize,
+    /// Where its answer puts the robot at the latest node, seen from where the placement puts it (`[x, y]`
+    /// metres and heading in degrees); `None` when it found nothing.
+    pub answer_offset: Option<[f64; 3]>,
+    /// The paired test of the session's route, the answer against the placement (positive where the
+    /// answer fits better); `None` where no test was made or it could not be.
+    pub z: Option<f64>,
+    /// `not_found`, `ambiguous` (two places fit the route within the search's margin), `same_place` (the
+    /// answer is the placement), `revoked_before` (a placement revoked
+    /// earlier, below the bar that overrules a revocation), `undecided` (`z` below `probation_min_z`) or
+    /// `replaced`.
+    pub decision: &'static str,
 }
 
 /// One test of the session's route against the placement's rivals ([`crate::lifelong::StartSearch::contest`]),

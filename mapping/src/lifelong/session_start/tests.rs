@@ -1040,3 +1040,39 @@ fn second_opinions_come_on_the_doubling_schedule_up_to_their_cap() {
     // Doubling, uncapped: nodes 4, 8 and 16.
     assert_eq!(searches(0), 3);
 }
+
+#[test]
+fn the_probation_timeline_says_why_each_second_opinion_did_or_did_not_replace_the_placement() {
+    let truth = rigid2(2.7, 2.2, 0.4);
+    let wrong = rigid2(4.0, 1.0, 2.0);
+    let second_opinions = |placed: Rigid2| {
+        let (mut start, _) =
+            SessionStart::with_placement(options(), Some(room_search()), placed, 0).unwrap();
+        for k in 0..12 {
+            let (local_pose, points) = creeping(truth, k);
+            start.add_node(local_pose, points);
+        }
+        start
+            .probation_timeline()
+            .iter()
+            .filter_map(|step| match step {
+                ProbationStep::SecondOpinion(o) => Some(o.clone()),
+                _ => None,
+            })
+            .collect::<Vec<_>>()
+    };
+    let [replaced] = &second_opinions(wrong)[..] else {
+        panic!("one second opinion: {:?}", second_opinions(wrong));
+    };
+    assert_eq!(replaced.decision, "replaced");
+    assert_eq!(replaced.at_node, 4);
+    assert!(replaced.z.is_some_and(|z| z >= options().probation_min_z));
+    // The answer, seen from the wrong placement, is where the truth puts the robot at node 4.
+    let (local_pose, _) = creeping(truth, 4);
+    let expected = (wrong * local_pose).inverse() * (truth * local_pose);
+    let [x, y, _] = replaced.answer_offset.unwrap();
+    let offset_error = (x - expected.translation.vector.x).hypot(y - expected.translation.vector.y);
+    assert!(offset_error < 0.05, "{replaced:?} against {expected:?}");
+    // A right placement fits where it is placed: no second opinion is made.
+    assert!(second_opinions(truth).is_empty());
+}
