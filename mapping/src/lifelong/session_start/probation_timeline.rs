@@ -2,7 +2,7 @@
 //! [`SessionStart::add_match`] judged — whether it agreed, whether it counted toward the commit and, if
 //! not, which condition held it back — each test of the route against the placement's rivals
 //! ([`StartSearch::contest`], each rival's z), each whole-map search made while the placement misfit and
-//! why it did not replace it, and how the probation ended.
+//! whether and why it replaced it, and how the probation ended.
 //!
 //! [`SessionStart`] keeps these steps as it decides ([`SessionStart::probation_timeline`]), so every
 //! shell reports the same account of why a placement was committed when it was, or not at all. They
@@ -112,9 +112,8 @@ pub struct ProbationSecondOpinion {
     /// answer fits better); `None` where no test was made or it could not be.
     pub z: Option<f64>,
     /// `not_found`, `ambiguous` (two places fit the route within the search's margin), `same_place` (the
-    /// answer is the placement), `revoked_before` (a placement revoked
-    /// earlier, below the bar that overrules a revocation), `undecided` (`z` below `probation_min_z`) or
-    /// `replaced`.
+    /// answer is the placement), `revoked_before` (a placement revoked earlier, below the bar that
+    /// overrules a revocation), `undecided` (`z` below `probation_min_z`) or `replaced`.
     pub decision: &'static str,
 }
 
