@@ -212,11 +212,12 @@ impl PoseExtrapolator {
         {
             self.poses.pop_front();
         }
-        // Keep one odometry reading at or before the last pose (the oldest pose kept, when a stall's backlog
-        // may be composed on a pose before it), for interpolation.
+        // A gap the matched poses have passed is of no more use.
         if self.gap.is_some_and(|g| last >= g.to) {
             self.gap = None;
         }
+        // Keep one odometry reading at or before the last pose (the oldest pose kept, when a stall's backlog
+        // may be composed on a pose before it), for interpolation.
         let mut keep_from = if self.options.resume_from_before_a_stall {
             self.poses.front().map_or(last, |(t, _)| *t)
         } else {
@@ -328,7 +329,8 @@ impl PoseExtrapolator {
     }
 
     /// The matched pose the odometry's motion up to `time` is composed on: the last one, or the last one
-    /// before a stall the stream has come back from with its backlog.
+    /// before a stall the stream has come back from with its backlog, or the last one before a gap whose
+    /// motion came late (`resume_from_before_a_gap`).
     fn odometry_anchor(&self, time: Timestamp) -> Option<(Timestamp, Rigid2)> {
         let last = *self.poses.back()?;
         if self.options.resume_from_before_a_stall
