@@ -76,6 +76,11 @@ pub struct LifelongArgs {
     /// `report.json` goes on with the sessions before; `trajectories.csv` holds the resumed sessions.
     #[arg(long)]
     resume: bool,
+    /// With `--resume`: continue under the configuration given now although the run was started under
+    /// another (every other argument still the run's): an A/B test of later sessions from one resume
+    /// point. `report.json`'s `configuration_changed_at_sessions` lists the sessions from which it changed.
+    #[arg(long, requires = "resume")]
+    resume_under_new_config: bool,
 }
 
 /// What one session scored and did, as `report.json` lists it.
@@ -177,6 +182,9 @@ struct Reporter<'a> {
     /// The rows and details of the sessions before a resumed run, as its report had them.
     earlier_rows: Vec<serde_json::Value>,
     earlier_details: Vec<serde_json::Value>,
+    /// The sessions from which a resumed run went on under another configuration
+    /// (`--resume-under-new-config`), earlier resumes' first.
+    configuration_changed_at: Vec<u32>,
 }
 
 impl Reporter<'_> {
@@ -365,6 +373,7 @@ impl Reporter<'_> {
             "seed": self.args.seed,
             "policy": self.config.lifelong.policy.name(),
             "complete": complete,
+            "configuration_changed_at_sessions": self.configuration_changed_at,
             "session_options": self.options,
             "scoring": self.scoring,
             "map_change_tolerance_m": MAP_CHANGE_TOLERANCE_M,
@@ -478,7 +487,12 @@ pub fn run(args: &LifelongArgs) -> anyhow::Result<()> {
         config_fingerprint: crc32fast::hash(format!("{config:?}").as_bytes()),
     };
     let resume = if args.resume {
-        let point = lifelong_resume::read(&args.out, &identity, config.lifelong.clone())?;
+        let point = lifelong_resume::read(
+            &args.out,
+            &identity,
+            config.lifelong.clone(),
+            args.resume_under_new_config,
+        )?;
         if point.next_session > args.sessions {
             anyhow::bail!(
                 "the run in {} has already ended session {}: nothing to resume up to --sessions {}",
@@ -492,6 +506,12 @@ pub fn run(args: &LifelongArgs) -> anyhow::Result<()> {
             args.out.display(),
             point.next_session
         );
+        if point.config_fingerprint != identity.config_fingerprint {
+            eprintln!(
+                "under another configuration from session {} on (fingerprint {:#010x}, the run's was {:#010x})",
+                point.next_session, identity.config_fingerprint, point.config_fingerprint
+            );
+        }
         Some(point)
     } else {
         None
@@ -562,10 +582,15 @@ pub fn run(args: &LifelongArgs) -> anyhow::Result<()> {
         identity,
         earlier_rows: Vec::new(),
         earlier_details: Vec::new(),
+        configuration_changed_at: Vec::new(),
     };
-    if resume.is_some() {
-        (reporter.earlier_rows, reporter.earlier_details) =
-            earlier_report(&args.out, first_session)?;
+    if let Some(point) = &resume {
+        let earlier = earlier_report(&args.out, first_session)?;
+        (reporter.earlier_rows, reporter.earlier_details) = (earlier.rows, earlier.details);
+        reporter.configuration_changed_at = earlier.configuration_changed_at;
+        if point.config_fingerprint != reporter.identity.config_fingerprint {
+            reporter.configuration_changed_at.push(first_session);
+        }
     }
     let mut report_failure: Option<anyhow::Error> = None;
     let mut progress = |done: usize| bar.set_position(done as u64);
@@ -622,10 +647,16 @@ pub fn run(args: &LifelongArgs) -> anyhow::Result<()> {
 }
 
 /// The rows and details of sessions before `first_session` in the report of the run in `out`.
-fn earlier_report(
-    out: &Path,
-    first_session: u32,
-) -> anyhow::Result<(Vec<serde_json::Value>, Vec<serde_json::Value>)> {
+/// What a resumed run carries on from its earlier report.
+struct EarlierReport {
+    rows: Vec<serde_json::Value>,
+    details: Vec<serde_json::Value>,
+    /// The sessions from which an earlier resume went on under another configuration, before the resume
+    /// point.
+    configuration_changed_at: Vec<u32>,
+}
+
+fn earlier_report(out: &Path, first_session: u32) -> anyhow::Result<EarlierReport> {
     let path = out.join("report.json");
     let text = std::fs::read_to_string(&path)
         .with_context(|| format!("cannot read {}", path.display()))?;
@@ -653,7 +684,21 @@ fn earlier_report(
         }
         Ok(rows)
     };
-    Ok((earlier("sessions")?, earlier("session_details")?))
+    let configuration_changed_at = report["configuration_changed_at_sessions"]
+        .as_array()
+        .map(|sessions| {
+            sessions
+                .iter()
+                .filter_map(|k| k.as_u64().and_then(|k| u32::try_from(k).ok()))
+                .filter(|&k| k < first_session)
+                .collect()
+        })
+        .unwrap_or_default();
+    Ok(EarlierReport {
+        rows: earlier("sessions")?,
+        details: earlier("session_details")?,
+        configuration_changed_at,
+    })
 }
 
 /// Writes every scan's pose smoothed at its session's end (in the truth's frame, through

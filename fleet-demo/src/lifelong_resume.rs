@@ -7,7 +7,8 @@
 //! checkpoint is written first and `resume.json` replaces the old one by a rename, so a run killed at any
 //! point leaves a resume point that is whole (the last session's, or the one before). A resumed run must
 //! be started with the same world, seed, policy, durations, dock starts and configuration, and is refused
-//! by name otherwise.
+//! by name otherwise; `--resume-under-new-config` lets the configuration differ (an A/B test of later
+//! sessions from one resume point, which the report records).
 
 use std::path::{Path, PathBuf};
 
@@ -54,6 +55,9 @@ pub struct ResumePoint {
     pub world_from_map: Rigid2,
     /// The robot's last pose of the session before, if that session was placed.
     pub dock: Option<Rigid2>,
+    /// The configuration fingerprint the run was at the resume point (another one only where
+    /// `other_config` allowed it).
+    pub config_fingerprint: u32,
 }
 
 fn folder(out: &Path) -> PathBuf {
@@ -108,16 +112,25 @@ fn read_file(dir: &Path) -> anyhow::Result<ResumeFile> {
     serde_json::from_str(&text).with_context(|| format!("{} is not a resume point", path.display()))
 }
 
-/// The resume point in `out`, checked against what this run was started with; its map restored under
-/// `options`.
+/// The resume point in `out`, checked against what this run was started with (its configuration too,
+/// unless `other_config`); its map restored under `options`.
 pub fn read(
     out: &Path,
     run: &RunIdentity,
     options: mapping::lifelong::LifelongOptions,
+    other_config: bool,
 ) -> anyhow::Result<ResumePoint> {
     let dir = folder(out);
     let file = read_file(&dir)?;
-    if file.run != *run {
+    let expected = RunIdentity {
+        config_fingerprint: if other_config {
+            run.config_fingerprint
+        } else {
+            file.run.config_fingerprint
+        },
+        ..file.run.clone()
+    };
+    if expected != *run {
         anyhow::bail!(
             "{} was written by a run started with {:?}; this one is started with {:?}: resume it with the \
              same world, seed, policy, durations, dock starts and configuration",
@@ -140,6 +153,7 @@ pub fn read(
         map,
         world_from_map: file.world_from_map,
         dock: file.dock,
+        config_fingerprint: file.run.config_fingerprint,
     })
 }
 
@@ -167,7 +181,7 @@ mod tests {
         let map = LifelongMap::new(options.clone()).unwrap();
         let (frame, dock) = (rigid2(2.0, -1.0, 0.3), rigid2(10.0, 4.0, -2.0));
         write(dir.path(), &identity(), 3, &map, &frame, Some(&dock)).unwrap();
-        let point = read(dir.path(), &identity(), options.clone()).unwrap();
+        let point = read(dir.path(), &identity(), options.clone(), false).unwrap();
         assert_eq!(point.next_session, 4);
         assert_eq!(point.world_from_map, frame);
         assert_eq!(point.dock, Some(dock));
@@ -176,17 +190,26 @@ mod tests {
             seed: 2,
             ..identity()
         };
-        let refused = read(dir.path(), &other, options.clone())
+        let refused = read(dir.path(), &other, options.clone(), false)
             .err()
             .expect("refused");
         assert!(
             refused.to_string().contains("same world, seed"),
             "{refused}"
         );
+        // Another configuration is refused unless asked for, and then only the configuration may differ.
+        let reconfigured = RunIdentity {
+            config_fingerprint: 8,
+            ..identity()
+        };
+        assert!(read(dir.path(), &reconfigured, options.clone(), false).is_err());
+        let point = read(dir.path(), &reconfigured, options.clone(), true).unwrap();
+        assert_eq!(point.config_fingerprint, 7);
+        assert!(read(dir.path(), &other, options.clone(), true).is_err());
         // The next session's point replaces this one and its checkpoint.
         write(dir.path(), &identity(), 4, &map, &frame, None).unwrap();
         assert!(!dir.path().join("resume/checkpoint-3.pb").exists());
-        let point = read(dir.path(), &identity(), options).unwrap();
+        let point = read(dir.path(), &identity(), options, false).unwrap();
         assert_eq!((point.next_session, point.dock), (5, None));
     }
 
