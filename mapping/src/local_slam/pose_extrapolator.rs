@@ -602,33 +602,41 @@ mod tests {
         );
     }
 
-    /// A logger stalls 2.1 s, then stamps its backlog at once, the odometry 0.1 s after the scans: readings
-    /// every 0.1 s up to 0.3 s (x = t), then none until 2.5 s, where a burst brings the stall's metre; scans
-    /// matched at 0.2 s and, in the burst, at 2.40–2.42 s, already 1 m on. Handed over: the reading at 2.5
-    /// s (still 0.33 m), or with `whole_burst` the burst's too.
-    fn lagged_burst(option: bool, whole_burst: bool) -> PoseExtrapolator {
+    /// A reading of straight-line odometry at `x` metres.
+    fn reading_at(t: f64, x: f64) -> OdometryReading {
+        OdometryReading {
+            time: s(t),
+            pose: rigid2(x, 0.0, 0.0),
+        }
+    }
+
+    /// Readings every 0.1 s up to 0.3 s (x = t) and a pose matched at 0.2 s: the stream before a gap.
+    fn before_a_gap(option: bool) -> PoseExtrapolator {
         let mut e = PoseExtrapolator::with_options(PoseExtrapolatorOptions {
             resume_from_before_a_gap: option,
             ..PoseExtrapolatorOptions::default()
         });
-        let reading = |t: f64, x: f64| OdometryReading {
-            time: s(t),
-            pose: rigid2(x, 0.0, 0.0),
-        };
         for k in 0..=3 {
             let t = 0.1 * f64::from(k);
-            e.add_odometry(&reading(t, t));
-            if k == 2 {
-                e.add_pose(s(t), rigid2(t, 0.0, 0.0));
-            }
+            e.add_odometry(&reading_at(t, t));
         }
-        e.add_odometry(&reading(2.5, 0.33));
+        e.add_pose(s(0.2), rigid2(0.2, 0.0, 0.0));
+        e
+    }
+
+    /// A logger stalls 2.1 s, then stamps its backlog at once, the odometry 0.1 s after the scans: after
+    /// [`before_a_gap`], no reading until 2.5 s, where a burst brings the stall's metre; scans matched in
+    /// the burst at 2.40–2.42 s, already 1 m on. Handed over: the reading at 2.5 s (still 0.33 m), or with
+    /// `whole_burst` the burst's too.
+    fn lagged_burst(option: bool, whole_burst: bool) -> PoseExtrapolator {
+        let mut e = before_a_gap(option);
+        e.add_odometry(&reading_at(2.5, 0.33));
         for (t, x) in [(2.40, 1.0), (2.41, 1.1), (2.42, 1.2)] {
             e.add_pose(s(t), rigid2(x, 0.0, 0.0));
         }
         if whole_burst {
-            e.add_odometry(&reading(2.51, 1.3));
-            e.add_odometry(&reading(2.6, 1.4));
+            e.add_odometry(&reading_at(2.51, 1.3));
+            e.add_odometry(&reading_at(2.6, 1.4));
         }
         e
     }
@@ -646,24 +654,12 @@ mod tests {
 
     #[test]
     fn across_a_gap_the_odometry_got_wrong_the_last_pose_stays_the_anchor() {
-        // Readings up to 0.3 s (x = t), then none until 2.5 s, which says 0.6 m over the gap where the scans
+        // After [`before_a_gap`], no reading until 2.5 s, which says 0.6 m over the gap where the scans
         // matched 1.3 m (ACES, 540 s: a turn the odometry put at 61° and the scans at 81°).
-        let mut e = PoseExtrapolator::with_options(PoseExtrapolatorOptions {
-            resume_from_before_a_gap: true,
-            ..PoseExtrapolatorOptions::default()
-        });
-        let reading = |t: f64, x: f64| OdometryReading {
-            time: s(t),
-            pose: rigid2(x, 0.0, 0.0),
-        };
-        for k in 0..=3 {
-            let t = 0.1 * f64::from(k);
-            e.add_odometry(&reading(t, t));
-        }
-        e.add_pose(s(0.2), rigid2(0.2, 0.0, 0.0));
+        let mut e = before_a_gap(true);
         e.add_pose(s(2.4), rigid2(1.5, 0.0, 0.0));
-        e.add_odometry(&reading(2.5, 0.9));
-        e.add_odometry(&reading(2.6, 1.0));
+        e.add_odometry(&reading_at(2.5, 0.9));
+        e.add_odometry(&reading_at(2.6, 1.0));
         // By 2.6 s the odometry still falls 0.5 m short of the matched motion: not late, wrong. The last
         // pose plus the odometry interpolated since (0.3 + 0.6 × 2.1 / 2.2 at 2.4 s).
         let expected = 1.5 + 1.0 - (0.3 + 0.6 * 2.1 / 2.2);
