@@ -25,7 +25,7 @@ if [[ -n ${SEEDS:-} && $(wc -w <<<"$SEEDS") -gt 1 ]]; then
   exec python3 scripts/robustness_seeds.py "$out"
 fi
 recordings=${RECORDINGS:-"mit-csail aces intel"}
-variants=${VARIANTS:-"clean range8 range4 sparse odom slip slow clutter late noise stall hard thin lag burst scanburst clock range4,odom range4,slip range4,lag range4,clock"}
+variants=${VARIANTS:-"clean range8 range4 sparse odom slip slow clutter late noise stall hard thin lag burst scanburst clock dense range4,odom range4,slip range4,lag range4,clock"}
 seed=${SEED:-1}
 jobs=${JOBS:-2}
 agent=${AGENT:-target/release/evermap-agent}

@@ -13,6 +13,7 @@
 //! | `clean` | nothing |
 //! | `range8`, `range4` | no return beyond 8 m / 4 m: such readings become `+inf` (REP 117's "no return") |
 //! | `sparse` | every other beam |
+//! | `dense` | twice the beams, at half the angle: a beam between each two, on their surface where they share one, else the first's return (a 0.5° scanner, as unseen office buildings' SICK units are set) |
 //! | `odom` | odometry 3 % long in translation, 2° of heading drift per 10 m, and per-step noise |
 //! | `slip` | wheel slips the odometry never saw: 0.2–0.5 m and 3–8°, every 20–60 m of driving |
 //! | `slow` | scans at least 0.7 s apart |
@@ -63,6 +64,7 @@ pub const VARIANTS: &[&str] = &[
     "burst",
     "scanburst",
     "clock",
+    "dense",
 ];
 
 /// Odometry that is wrong the way wheel odometry is: a scale error, a heading drift with distance, and
@@ -137,6 +139,8 @@ pub struct Perturbation {
     pub max_range_m: Option<f32>,
     /// Keep every other beam.
     pub sparse: bool,
+    /// Twice the beams ([`densify`]).
+    pub dense: bool,
     /// Wheel odometry error.
     pub odometry: Option<OdometryError>,
     /// Wheel slips the odometry missed.
@@ -246,6 +250,7 @@ impl Perturbation {
             "range8" => self.max_range_m = Some(self.max_range_m.map_or(8.0, |r| r.min(8.0))),
             "range4" => self.max_range_m = Some(self.max_range_m.map_or(4.0, |r| r.min(4.0))),
             "sparse" => self.sparse = true,
+            "dense" => self.dense = true,
             "odom" => {
                 self.odometry = Some(OdometryError {
                     scale: 0.03,
@@ -456,6 +461,9 @@ impl Perturbation {
             scan.angle_increment *= 2.0;
             scan.time_increment *= 2.0;
         }
+        if self.dense {
+            densify(scan);
+        }
         let (range_min, range_max) = (scan.range_min, scan.range_max);
         let is_return = |r: f32| r.is_finite() && r < range_max;
         if let Some(sigma) = self.range_noise_m {
@@ -597,6 +605,32 @@ fn stamp_in_bursts(
     // Stable: a held scan now comes after the odometry of its stall.
     events.sort_by_key(SensorEvent::time);
     (count, changed, scan_capture_times)
+}
+
+/// Relative range difference (of the nearer return) under which two neighbouring beams are taken to lie
+/// on one surface, so that a beam between them lands on it.
+const SAME_SURFACE: f32 = 0.05;
+
+/// `scan` with a beam between each two of its beams: where both neighbours are returns on one surface
+/// (ranges within [`SAME_SURFACE`] of each other), the mean range; elsewhere (a depth edge, a missing
+/// return) the first neighbour's reading, as a finer scanner sees one side of the edge or the other.
+fn densify(scan: &mut LaserScan) {
+    let Some(&last) = scan.ranges.last() else {
+        return;
+    };
+    let range_max = scan.range_max;
+    let is_return = |r: f32| r.is_finite() && r < range_max;
+    let mut ranges = Vec::with_capacity(2 * scan.ranges.len());
+    for pair in scan.ranges.windows(2) {
+        let (a, b) = (pair[0], pair[1]);
+        ranges.push(a);
+        let same_surface = is_return(a) && is_return(b) && (a - b).abs() <= SAME_SURFACE * a.min(b);
+        ranges.push(if same_surface { 0.5 * (a + b) } else { a });
+    }
+    ranges.push(last);
+    scan.ranges = ranges;
+    scan.angle_increment *= 0.5;
+    scan.time_increment *= 0.5;
 }
 
 fn count_scans(events: &[SensorEvent]) -> usize {
@@ -842,6 +876,40 @@ mod tests {
         let s = scans(&sparse)[0];
         assert_eq!(s.ranges.len(), 91);
         assert!((s.angle_increment - 2f32.to_radians()).abs() < 1e-6);
+    }
+
+    #[test]
+    fn dense_puts_a_beam_between_each_two_on_their_surface_or_the_first_side_of_an_edge() {
+        let mut scan = scans(&drive(1))[0].clone();
+        scan.ranges = vec![2.0, 2.1, 5.0, f32::INFINITY, 3.0];
+        let increment = scan.angle_increment;
+        let recording = Recording {
+            events: vec![SensorEvent::Scan(scan)],
+            ..drive(1)
+        };
+        let (dense, _) = Perturbation::parse("dense").unwrap().apply(&recording, 1);
+        let s = scans(&dense)[0];
+        let expected = [
+            2.0,
+            2.05,
+            2.1,
+            2.1,
+            5.0,
+            5.0,
+            f32::INFINITY,
+            f32::INFINITY,
+            3.0,
+        ];
+        assert_eq!(s.ranges.len(), expected.len());
+        for (got, want) in s.ranges.iter().zip(expected) {
+            let same = if want.is_finite() {
+                (got - want).abs() < 1e-6
+            } else {
+                got.is_infinite()
+            };
+            assert!(same, "{:?} against {expected:?}", s.ranges);
+        }
+        assert!((s.angle_increment - 0.5 * increment).abs() < 1e-9);
     }
 
     #[test]
