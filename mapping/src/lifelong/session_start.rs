@@ -55,7 +55,9 @@
 //!    twice, four times ... as many, never more than
 //!    [`SessionStartOptions::max_second_opinion_interval_nodes`] apart
 //!    ([`SessionStartOptions::search_while_unconfirmed`]), and an answer elsewhere that the route fits
-//!    decisively better replaces it.
+//!    decisively better replaces it. A look-alike aisle's first matches may agree with a wrong placement
+//!    before the route leaves the look-alike part; with
+//!    [`SessionStartOptions::second_opinion_after_agreement`] those searches go on after a match agreed.
 //!
 //! 4. **The session's end.** A placement still on probation is dropped with the session, unless it was
 //!    the dock's and nothing disputed it ([`SessionStart::finish`],
@@ -292,7 +294,7 @@ impl SessionStart {
                 if timeout > 0.0 && past > timeout {
                     self.revoke(placement, RevokeReason::Timeout, node)
                 } else if self.options.search_while_unconfirmed
-                    && self.agreeing.is_empty()
+                    && (self.agreeing.is_empty() || self.options.second_opinion_after_agreement)
                     && every > 0
                     && node > placement.node
                     && is_scheduled_retry(
@@ -521,7 +523,8 @@ impl SessionStart {
             .is_some_and(|fit| !search.fits(fit.sharp_score))
     }
 
-    /// While no match has agreed with `placement` yet, a whole-map search of the route since the start
+    /// While no match has agreed with `placement` yet (or while it is on probation at all, with
+    /// `second_opinion_after_agreement`), a whole-map search of the route since the start
     /// (of its latest `recent_search_nodes` where that finds nothing), decided as a retry. An answer away
     /// from the placement that the route fits decisively better ([`StartSearch::contest`],
     /// `probation_min_z`) replaces it: the placement is revoked (`Rival`) and the answer placed, on

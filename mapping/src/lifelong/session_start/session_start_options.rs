@@ -9,6 +9,10 @@ use crate::lifelong::LifelongOptionsError;
 use crate::lifelong::StartSearch;
 
 /// Options of [`SessionStart`].
+#[allow(
+    clippy::struct_excessive_bools,
+    reason = "independent documented switches of a configuration file, not a state"
+)]
 #[derive(Clone, Debug, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct SessionStartOptions {
@@ -89,6 +93,10 @@ pub struct SessionStartOptions {
     /// to `max_search_nodes` nodes of route, and uncapped they placed and committed every measured session
     /// as before with fewer searches (the store, seeds 1–3: 30–49 % fewer). Why: `docs/TUNING.md#ss-max-second-opinion-interval-nodes`.
     pub max_second_opinion_interval_nodes: usize,
+    /// Those searches go on after a match agreed with the placement too (a look-alike aisle's first matches
+    /// may agree with a wrong placement before the route leaves the look-alike part). Default false: see
+    /// `docs/TUNING.md#ss-second-opinion-after-agreement`.
+    pub second_opinion_after_agreement: bool,
     /// Commit at its end ([`SessionStart::finish`]) a dock placement still on probation that nothing
     /// disputes. Default true. Why: `docs/TUNING.md#ss-commit-dock-at-end`.
     pub commit_dock_placement_at_end: bool,
@@ -124,6 +132,7 @@ impl Default for SessionStartOptions {
             search_piece_m: 4.0,
             search_while_unconfirmed: true,
             max_second_opinion_interval_nodes: 0,
+            second_opinion_after_agreement: false,
             commit_dock_placement_at_end: true,
             defer_contested_dock_check: true,
         }

@@ -1076,3 +1076,52 @@ fn the_probation_timeline_says_why_each_second_opinion_did_or_did_not_replace_th
     // A right placement fits where it is placed: no second opinion is made.
     assert!(second_opinions(truth).is_empty());
 }
+
+#[test]
+fn a_wrong_placement_a_match_agreed_with_is_replaced_only_with_second_opinions_after_agreement() {
+    // Seed 2's session 58 of the 100-session store: a look-alike aisle placed it, matches near the
+    // placement agreed with it, then none came, and the robot drove on it to the session's end.
+    let truth = rigid2(2.7, 2.2, 0.4);
+    let wrong = rigid2(4.0, 1.0, 2.0);
+    let run = |after_agreement: bool| {
+        let asked = SessionStartOptions {
+            probation_min_separation_m: 0.1,
+            second_opinion_after_agreement: after_agreement,
+            ..options()
+        };
+        let (mut start, events) =
+            SessionStart::with_placement(asked, Some(room_search()), wrong, 0).unwrap();
+        assert!(events.is_empty(), "{events:?}");
+        let mut events = Vec::new();
+        for k in 0..12 {
+            let (local_pose, points) = creeping(truth, k);
+            events.extend(start.add_node(local_pose, points));
+            if k == 2 {
+                // A match searched near the wrong placement agrees with it (counted: 0.1 m past its node).
+                let decisions = start.add_match(2, wrong * local_pose, submap(1));
+                assert!(decisions.is_empty(), "{decisions:?}");
+            }
+        }
+        events
+    };
+    let kept = run(false);
+    assert!(
+        kept.is_empty(),
+        "no second opinion once a match agreed: {kept:?}"
+    );
+    let events = run(true);
+    let [
+        SessionStartEvent::Revoked {
+            reason: RevokeReason::Rival,
+            node: 4,
+            ..
+        },
+        SessionStartEvent::Placed(replacement),
+    ] = events[..]
+    else {
+        panic!("replaced at the first search due (node 4): {events:?}");
+    };
+    let error =
+        (replacement.global_from_local.translation.vector - truth.translation.vector).norm();
+    assert!(error < 0.05, "replaced {error} m off");
+}
