@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 
 MILD = {"range8", "sparse", "odom", "slow", "clutter", "late", "noise", "stall", "lag", "burst", "scanburst", "clock", "dense"}
-ORDER = ["clean", "range8", "range4", "sparse", "odom", "slip", "slow", "clutter", "late", "noise", "stall", "hard", "thin", "lag", "burst", "scanburst", "clock", "range4,odom", "range4,slip", "range4,lag", "range4,clock"]
+ORDER = ["clean", "range8", "range4", "sparse", "odom", "slip", "slow", "clutter", "late", "noise", "stall", "hard", "thin", "lag", "burst", "scanburst", "clock", "dense", "range4,odom", "range4,slip", "range4,lag", "range4,clock"]
 AT_SCANS = {"slow", "thin"}
 
 
