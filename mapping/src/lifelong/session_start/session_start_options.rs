@@ -89,12 +89,12 @@ pub struct SessionStartOptions {
     pub search_while_unconfirmed: bool,
     /// Those searches come after `retry_every_n_nodes` nodes on probation, then twice, four times ... as
     /// many, never more than this many nodes apart (count; 0 = the doubling is never capped;
-    /// `retry_every_n_nodes` = every `retry_every_n_nodes`). Default 0: each is a whole-map search of up
-    /// to `max_search_nodes` nodes of route, and uncapped they placed and committed every measured session
-    /// as before with fewer searches (the store, seeds 1–3: 30–49 % fewer). Why: `docs/TUNING.md#ss-max-second-opinion-interval-nodes`.
+    /// `retry_every_n_nodes` = every `retry_every_n_nodes`). Default 80 (about 16 m of driving): a wrong
+    /// placement that a look-alike part of the route agreed with is replaced when the route has left that
+    /// part, not after a doubled interval the session may never reach. Why: `docs/TUNING.md#ss-max-second-opinion-interval-nodes`.
     pub max_second_opinion_interval_nodes: usize,
     /// Those searches go on after a match agreed with the placement too (a look-alike aisle's first matches
-    /// may agree with a wrong placement before the route leaves the look-alike part). Default false: see
+    /// may agree with a wrong placement before the route leaves the look-alike part). Default true. Why:
     /// `docs/TUNING.md#ss-second-opinion-after-agreement`.
     pub second_opinion_after_agreement: bool,
     /// Commit at its end ([`SessionStart::finish`]) a dock placement still on probation that nothing
@@ -131,8 +131,8 @@ impl Default for SessionStartOptions {
             contest_piece_m: 4.0,
             search_piece_m: 4.0,
             search_while_unconfirmed: true,
-            max_second_opinion_interval_nodes: 0,
-            second_opinion_after_agreement: false,
+            max_second_opinion_interval_nodes: 80,
+            second_opinion_after_agreement: true,
             commit_dock_placement_at_end: true,
             defer_contested_dock_check: true,
         }
