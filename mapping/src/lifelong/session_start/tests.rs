@@ -657,23 +657,34 @@ fn creeping_from(
     truth: Rigid2,
     placed: Rigid2,
 ) -> Vec<SessionStartEvent> {
+    creeping_from_with_agreement(options, truth, placed, None)
+}
+
+/// [`creeping_from`], with a match at node `agreeing_at` searched near the placement, which agrees with
+/// it (counted: `probation_min_separation_m` must be under 0.1 m, the route's length at node 2).
+fn creeping_from_with_agreement(
+    options: SessionStartOptions,
+    truth: Rigid2,
+    placed: Rigid2,
+    agreeing_at: Option<usize>,
+) -> Vec<SessionStartEvent> {
     let (mut start, events) =
         SessionStart::with_placement(options, Some(room_search()), placed, 0).unwrap();
     assert!(events.is_empty(), "{events:?}");
-    (0..12)
-        .flat_map(|k| {
-            let (local_pose, points) = creeping(truth, k);
-            start.add_node(local_pose, points)
-        })
-        .collect()
+    let mut events = Vec::new();
+    for (node, k) in (0..12).enumerate() {
+        let (local_pose, points) = creeping(truth, k);
+        events.extend(start.add_node(local_pose, points));
+        if agreeing_at == Some(node) {
+            let decisions = start.add_match(node, placed * local_pose, submap(1));
+            assert!(decisions.is_empty(), "{decisions:?}");
+        }
+    }
+    events
 }
 
-#[test]
-fn an_unconfirmed_wrong_placement_is_replaced_by_what_the_route_fits() {
-    let truth = rigid2(2.7, 2.2, 0.4);
-    let wrong = rigid2(4.0, 1.0, 2.0);
-    let asked = options();
-    let events = creeping_from(asked.clone(), truth, wrong);
+/// `events` revoke the placement for a rival at the first search due (node 4) and place `truth` instead.
+fn assert_replaced_at_node_4(events: &[SessionStartEvent], truth: Rigid2) {
     let [
         SessionStartEvent::Revoked {
             reason: RevokeReason::Rival,
@@ -681,13 +692,21 @@ fn an_unconfirmed_wrong_placement_is_replaced_by_what_the_route_fits() {
             ..
         },
         SessionStartEvent::Placed(replacement),
-    ] = events[..]
+    ] = events
     else {
         panic!("replaced at the first search due (node 4): {events:?}");
     };
     let error =
         (replacement.global_from_local.translation.vector - truth.translation.vector).norm();
     assert!(error < 0.05, "replaced {error} m off");
+}
+
+#[test]
+fn an_unconfirmed_wrong_placement_is_replaced_by_what_the_route_fits() {
+    let truth = rigid2(2.7, 2.2, 0.4);
+    let wrong = rigid2(4.0, 1.0, 2.0);
+    let asked = options();
+    assert_replaced_at_node_4(&creeping_from(asked.clone(), truth, wrong), truth);
     // Off, nothing but matches can undo it; and a right placement is left alone.
     let off = SessionStartOptions {
         search_while_unconfirmed: false,
@@ -1089,39 +1108,12 @@ fn a_wrong_placement_a_match_agreed_with_is_replaced_only_with_second_opinions_a
             second_opinion_after_agreement: after_agreement,
             ..options()
         };
-        let (mut start, events) =
-            SessionStart::with_placement(asked, Some(room_search()), wrong, 0).unwrap();
-        assert!(events.is_empty(), "{events:?}");
-        let mut events = Vec::new();
-        for k in 0..12 {
-            let (local_pose, points) = creeping(truth, k);
-            events.extend(start.add_node(local_pose, points));
-            if k == 2 {
-                // A match searched near the wrong placement agrees with it (counted: 0.1 m past its node).
-                let decisions = start.add_match(2, wrong * local_pose, submap(1));
-                assert!(decisions.is_empty(), "{decisions:?}");
-            }
-        }
-        events
+        creeping_from_with_agreement(asked, truth, wrong, Some(2))
     };
     let kept = run(false);
     assert!(
         kept.is_empty(),
         "no second opinion once a match agreed: {kept:?}"
     );
-    let events = run(true);
-    let [
-        SessionStartEvent::Revoked {
-            reason: RevokeReason::Rival,
-            node: 4,
-            ..
-        },
-        SessionStartEvent::Placed(replacement),
-    ] = events[..]
-    else {
-        panic!("replaced at the first search due (node 4): {events:?}");
-    };
-    let error =
-        (replacement.global_from_local.translation.vector - truth.translation.vector).norm();
-    assert!(error < 0.05, "replaced {error} m off");
+    assert_replaced_at_node_4(&run(true), truth);
 }
