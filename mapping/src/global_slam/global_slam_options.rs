@@ -98,9 +98,9 @@ pub struct GlobalSlamOptions {
     /// Why: `docs/TUNING.md#gs-unanchored-search-every-n-nodes`.
     pub unanchored_search_every_n_nodes: usize,
     /// Once trajectories are settled (`GlobalSlam::set_trajectory_settled`), optimize only the unsettled ones
-    /// and what lies within this many constraints (count) of what changed; `None`: the whole graph. Default
-    /// `None`. Why: `docs/TUNING.md#gs-settled-region-hops`.
-    pub settled_region_hops: Option<usize>,
+    /// and what lies within this many constraints (count) of what changed; 0 = the whole graph. Default 3.
+    /// Why: `docs/TUNING.md#gs-settled-region-hops`.
+    pub settled_region_hops: usize,
     /// Loop-closure search (GLM).
     pub constraint_builder: ConstraintBuilderOptions,
     /// Sparse Levenberg-Marquardt settings.
@@ -124,7 +124,7 @@ impl Default for GlobalSlamOptions {
             correction_probation_nodes: 20,
             correction_probation_matches: 2,
             unanchored_search_every_n_nodes: 0,
-            settled_region_hops: None,
+            settled_region_hops: 3,
             constraint_builder: ConstraintBuilderOptions::default(),
             optimizer: OptimizerOptions::default(),
         }

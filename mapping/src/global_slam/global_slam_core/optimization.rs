@@ -6,7 +6,8 @@ use crate::global_slam::optimization_region;
 use crate::pose_graph::{OptimizationSummary, Optimizer, VariableId};
 
 impl GlobalSlam {
-    /// Optimizes the whole graph now and updates each trajectory's `global_from_local`.
+    /// Optimizes the graph now (once trajectories are settled, the region `settled_region_hops` draws around
+    /// what changed) and updates each trajectory's `global_from_local`.
     pub fn optimize(&mut self) -> OptimizationSummary {
         let held = self.hold_settled();
         let mut summary = self.optimizer.optimize(&mut self.graph);
@@ -48,12 +49,10 @@ impl GlobalSlam {
     }
 
     /// Fixes, for one optimization, every free variable outside the optimization region (nothing when no
-    /// trajectory is settled); returns them for [`Self::release`].
+    /// trajectory is settled or `settled_region_hops` is 0); returns them for [`Self::release`].
     fn hold_settled(&mut self) -> Vec<VariableId> {
-        let Some(hops) = self.options.settled_region_hops else {
-            return Vec::new();
-        };
-        if self.settled.is_empty() {
+        let hops = self.options.settled_region_hops;
+        if hops == 0 || self.settled.is_empty() {
             return Vec::new();
         }
         let seeds: Vec<VariableId> = self

@@ -560,7 +560,7 @@ fn matches_of_one_node_outvote_each_other_only_as_rivals() {
 
 /// [`straight_run`]'s 200 nodes, optimized, settled, then a closure of node 140 that pulls it 3 cm aside
 /// and one more optimization; returns how far nodes 100 and 140 moved in it (metres).
-fn shifts_after_a_closure_once_settled(settled_region_hops: Option<usize>) -> (f64, f64) {
+fn shifts_after_a_closure_once_settled(settled_region_hops: usize) -> (f64, f64) {
     let mut global = GlobalSlam::new(GlobalSlamOptions {
         optimize_every_n_nodes: 0,
         settled_region_hops,
@@ -595,11 +595,11 @@ fn shifts_after_a_closure_once_settled(settled_region_hops: Option<usize>) -> (f
 fn once_settled_an_optimization_moves_only_what_lies_near_the_new_constraints() {
     // One hop from the closure's ends (node 140, submap 0): submap 0's nodes, nodes 139 and 141 and
     // submap 1 move; node 100 holds still, and so, nearly, does node 140 between its held neighbours.
-    let (far, near) = shifts_after_a_closure_once_settled(Some(1));
+    let (far, near) = shifts_after_a_closure_once_settled(1);
     assert!(far == 0.0, "node 100 held still: moved {far} m");
     assert!(near > 1e-5, "node 140 moved {near} m");
     // The whole graph: the closure's pull reaches node 100 too (about 1 cm).
-    let (far, near) = shifts_after_a_closure_once_settled(None);
+    let (far, near) = shifts_after_a_closure_once_settled(0);
     assert!(far > 5e-3, "node 100 moved {far} m");
     assert!(near > far, "node 140 moved {near} m");
 }
