@@ -594,7 +594,7 @@ fn shifts_after_a_closure_once_settled(settled_region_hops: usize) -> (f64, f64)
 #[test]
 fn once_settled_an_optimization_moves_only_what_lies_near_the_new_constraints() {
     // One hop from the closure's ends (node 140, submap 0): submap 0's nodes, nodes 139 and 141 and
-    // submap 1 move; node 100 holds still, and so, nearly, does node 140 between its held neighbours.
+    // submap 1 move; node 100 holds still, and node 140 moves a little, the chain held two nodes away.
     let (far, near) = shifts_after_a_closure_once_settled(1);
     assert!(far == 0.0, "node 100 held still: moved {far} m");
     assert!(near > 1e-5, "node 140 moved {near} m");
