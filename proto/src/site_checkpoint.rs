@@ -27,7 +27,7 @@ use crate::convert::constraint::{
     kind_from_pb, kind_to_pb, loss_from_pb, loss_to_pb, variable_in, variable_to_pb,
 };
 use crate::convert::{check_finite, points_from_pb, points_to_pb};
-use crate::{ConversionError, ErrorSource, grid_from_pb, grid_to_pb, pb};
+use crate::{ConversionError, ErrorSource, FieldValue, grid_from_pb, grid_to_pb, pb};
 
 mod site_server_state;
 
@@ -44,7 +44,10 @@ use site_server_state::{site_from_pb, site_to_pb};
 /// Version 3: `GlobalSlamState.recovery_path` (the heading doubt of LLO recoveries) added. A version-2
 /// checkpoint reads as version 3 with no recovery since any trajectory's last loop closure (the build
 /// that wrote it kept none): the doubt starts at each trajectory's next recovery.
-pub const CHECKPOINT_FORMAT_VERSION: u32 = 3;
+/// Version 4: `GlobalSlamState.placement_fits` (the nodes that fitted each search's placement) added.
+/// A version-2 or -3 checkpoint reads with none (the build that wrote it kept none): its trajectories'
+/// nodes are treated as those of a placement given without a search.
+pub const CHECKPOINT_FORMAT_VERSION: u32 = 4;
 
 /// The oldest `format_version` this build reads. A server upgraded across a format change must restore
 /// the sites it holds, whose log before their checkpoint compaction deleted: raise it only with a
@@ -132,8 +135,8 @@ impl TryFrom<&pb::SiteCheckpoint> for SiteCheckpoint {
     type Error = ConversionError;
 
     /// Checks the format version first (nothing else is read from a checkpoint of a version this build
-    /// does not read), then every field. Version 2 needs no conversion: the field version 3 added
-    /// (`GlobalSlamState.recovery_path`) decodes empty from it.
+    /// does not read), then every field. Versions 2 and 3 need no conversion: the fields versions 3 and 4
+    /// added (`GlobalSlamState.recovery_path`, `GlobalSlamState.placement_fits`) decode empty from them.
     fn try_from(c: &pb::SiteCheckpoint) -> Result<Self, ConversionError> {
         const M: &str = "SiteCheckpoint";
         check_checkpoint_format_version(c.format_version)?;
@@ -489,6 +492,15 @@ fn global_to_pb(g: &GlobalSlamState) -> pb::GlobalSlamState {
         matched_elsewhere: g.matched_elsewhere.iter().copied().collect(),
         last_loop_path: trajectory_paths_to_pb(&g.last_loop_path),
         recovery_path: trajectory_paths_to_pb(&g.recovery_path),
+        placement_fits: g
+            .placement_fits
+            .iter()
+            .map(|(&trajectory, &(first_node, last_node))| pb::PlacementFit {
+                trajectory,
+                first_node,
+                last_node,
+            })
+            .collect(),
         closures_beyond_drift: g.closures_beyond_drift as u64,
         pending_beyond_drift: pending_to_pb(&g.pending_beyond_drift),
         closures_outvoted: g.closures_outvoted as u64,
@@ -702,6 +714,21 @@ fn global_from_pb(g: Option<&pb::GlobalSlamState>) -> Result<GlobalSlamState, Co
     }
     let last_loop_path = trajectory_paths_from_pb(&g.last_loop_path)?;
     let recovery_path = trajectory_paths_from_pb(&g.recovery_path)?;
+    let placement_fits = g
+        .placement_fits
+        .iter()
+        .map(|f| {
+            if f.first_node > f.last_node {
+                return Err(ConversionError::OutOfRange {
+                    message: "PlacementFit",
+                    field: "first_node",
+                    value: FieldValue::Unsigned(f.first_node.into()),
+                    expected: "at most last_node",
+                });
+            }
+            Ok((f.trajectory, (f.first_node, f.last_node)))
+        })
+        .collect::<Result<BTreeMap<u32, (u32, u32)>, ConversionError>>()?;
     Ok(GlobalSlamState {
         graph: graph_from_pb(g.graph.as_ref())?,
         nodes,
@@ -724,6 +751,7 @@ fn global_from_pb(g: Option<&pb::GlobalSlamState>) -> Result<GlobalSlamState, Co
         matched_elsewhere: g.matched_elsewhere.iter().copied().collect(),
         last_loop_path,
         recovery_path,
+        placement_fits,
         closures_beyond_drift: to_usize(g.closures_beyond_drift, M, "closures_beyond_drift")?,
         pending_beyond_drift: pending_from_pb(&g.pending_beyond_drift)?,
         closures_outvoted: to_usize(g.closures_outvoted, M, "closures_outvoted")?,

@@ -256,15 +256,19 @@ impl LifelongMap {
         self.global.is_unanchored(session)
     }
 
-    /// Places an unplaced session at `global_from_local` (a relocalization found after its start); see
+    /// Places an unplaced session at `global_from_local` (a relocalization found after its start), fitted
+    /// with the scans of its nodes `fitted` (first and last index; `None`: placed without a search); see
     /// [`GlobalSlam::place_trajectory`]. Returns false when the session was already placed.
     pub fn place_session(
         &mut self,
         session: u32,
         global_from_local: Rigid2,
+        fitted: Option<(u32, u32)>,
     ) -> Result<bool, LifelongError> {
         self.active(session)?;
-        Ok(self.global.place_trajectory(session, global_from_local))
+        Ok(self
+            .global
+            .place_trajectory(session, global_from_local, fitted))
     }
 
     /// Puts a placed session on probation ([`super::SessionStart`]): GLM matches its nodes near their
@@ -300,7 +304,13 @@ impl LifelongMap {
     ) -> Result<(), LifelongError> {
         match decision {
             SessionStartEvent::Placed(placement) => {
-                self.place_session(session, placement.global_from_local)?;
+                let fitted = placement.fitted_from.and_then(|first| {
+                    Some((
+                        u32::try_from(first).ok()?,
+                        u32::try_from(placement.node).ok()?,
+                    ))
+                });
+                self.place_session(session, placement.global_from_local, fitted)?;
                 self.begin_probation(session)
             }
             SessionStartEvent::Committed { .. } => {

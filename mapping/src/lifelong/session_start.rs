@@ -26,7 +26,9 @@
 //!    onto mapped ground. After [`SessionStartOptions::give_up_after_nodes`] the session stops searching.
 //! 3. **Probation.** A placement is tentative: the shell places the session so that GLM can match its
 //!    nodes near their estimates, but its submaps stay out of the map robots relocalize against and it
-//!    trims nothing. It is committed once [`SessionStartOptions::probation_matches`] *independent*
+//!    trims nothing. The map is told which nodes' scans the search fitted ([`StartPlacement::fitted_from`]):
+//!    matches that would move those nodes beyond drift are refused there, not taken for an LLO slip to
+//!    repair, so only the matches counted here can overturn a placement. It is committed once [`SessionStartOptions::probation_matches`] *independent*
 //!    matches agree with it: matches of nodes that saw different things — at least
 //!    [`SessionStartOptions::probation_min_separation_m`] apart along the route, or whose scans share at
 //!    most [`SessionStartOptions::probation_max_view_overlap`] of what the other saw (a robot that turns
@@ -200,6 +202,7 @@ impl SessionStart {
         let placement = StartPlacement {
             global_from_local,
             node,
+            fitted_from: None,
             score: None,
             weakest_z: None,
             fit: None,
@@ -606,12 +609,21 @@ impl SessionStart {
         let mut events = self.revoke(placement, RevokeReason::Rival, node);
         let mut rivals = answer.rivals;
         rivals.push(placement.global_from_local);
-        events.extend(self.place_answer(&found, answer.weakest_z, answer.fit, rivals, node));
+        let fitted_from = self.nodes.len() - route_nodes;
+        events.extend(self.place_answer(
+            &found,
+            answer.weakest_z,
+            answer.fit,
+            rivals,
+            node,
+            fitted_from,
+        ));
         events
     }
 
-    /// Places the session on probation at a search's answer `found`, decided at `node`, with the
-    /// search's other candidates as its `rivals`: the `Placed` event and what placing decides.
+    /// Places the session on probation at a search's answer `found`, decided at `node` with the cloud of
+    /// the nodes from `fitted_from`, with the search's other candidates as its `rivals`: the `Placed`
+    /// event and what placing decides.
     fn place_answer(
         &mut self,
         found: &SessionRelocalization,
@@ -619,10 +631,12 @@ impl SessionStart {
         fit: Option<f32>,
         rivals: Vec<Rigid2>,
         node: usize,
+        fitted_from: usize,
     ) -> Vec<SessionStartEvent> {
         let placement = StartPlacement {
             global_from_local: found.global_from_local,
             node,
+            fitted_from: Some(fitted_from),
             score: Some(found.score),
             weakest_z,
             fit,
@@ -742,32 +756,36 @@ impl SessionStart {
             return Vec::new();
         }
         self.searches += 1;
-        let answer = match &self.search {
-            None => StartAnswer {
-                outcome: RelocalizationOutcome::NotFound,
-                best: None,
-                rivals: Vec::new(),
-                weakest_z: None,
-                fit: None,
-            },
+        // The answer and how many of the latest nodes the cloud it came from held.
+        let (answer, route_nodes) = match &self.search {
+            None => (
+                StartAnswer {
+                    outcome: RelocalizationOutcome::NotFound,
+                    best: None,
+                    rivals: Vec::new(),
+                    weakest_z: None,
+                    fit: None,
+                },
+                0,
+            ),
             Some(search) => {
                 let scans = self.cloud.make_contiguous();
                 let latest = &scans[scans.len().saturating_sub(recent)..];
                 let piece_m = self.options.search_piece_m;
                 if first {
-                    search.search(scans)
+                    (search.search(scans), scans.len())
                 } else if retry {
                     let answer = search.search_again(scans, piece_m);
                     if matches!(answer.outcome, RelocalizationOutcome::NotFound)
                         && recent > 0
                         && latest.len() < scans.len()
                     {
-                        search.search_again(latest, piece_m)
+                        (search.search_again(latest, piece_m), latest.len())
                     } else {
-                        answer
+                        (answer, scans.len())
                     }
                 } else {
-                    search.search_again(latest, piece_m)
+                    (search.search_again(latest, piece_m), latest.len())
                 }
             }
         };
@@ -779,7 +797,15 @@ impl SessionStart {
                 if !self.repeats_revoked(&found.global_from_local)
                     || self.overrules_revocation(answer.weakest_z) =>
             {
-                self.place_answer(&found, answer.weakest_z, answer.fit, answer.rivals, node)
+                let fitted_from = self.nodes.len() - route_nodes;
+                self.place_answer(
+                    &found,
+                    answer.weakest_z,
+                    answer.fit,
+                    answer.rivals,
+                    node,
+                    fitted_from,
+                )
             }
             outcome => {
                 // A revoked placement is no candidate: the recheck would bring it back every time.
@@ -827,6 +853,7 @@ impl SessionStart {
                 let placement = StartPlacement {
                     global_from_local: check.global_from_local,
                     node,
+                    fitted_from: Some(self.nodes.len() - self.cloud.len()),
                     score: None,
                     weakest_z: check.weakest_z,
                     fit: Some(check.fit),

@@ -73,6 +73,7 @@ mod tests {
         StartPlacement {
             global_from_local: rigid2(x, 0.0, 0.0),
             node,
+            fitted_from: None,
             score: None,
             weakest_z: None,
             fit: None,

@@ -513,3 +513,18 @@ fn the_path_of_an_llo_recovery_round_trips_and_a_non_finite_one_is_refused() {
     state.recovery_path.insert(4, f64::NAN);
     assert!(global_from_pb(Some(&global_to_pb(&state))).is_err());
 }
+
+#[test]
+fn the_nodes_that_fitted_a_placement_round_trip_and_a_reversed_span_is_refused() {
+    let map = LifelongMap::new(options()).expect("map");
+    let mut state = SiteCheckpoint::of(&map, 1, 1).map.global;
+    state.placement_fits = [(2, (0, 9)), (5, (120, 519))].into_iter().collect();
+    let decoded = global_from_pb(Some(&global_to_pb(&state))).expect("decode");
+    assert_eq!(decoded.placement_fits, state.placement_fits);
+    state.placement_fits.insert(6, (10, 9));
+    let error = global_from_pb(Some(&global_to_pb(&state))).expect_err("reversed span");
+    assert!(
+        error.to_string().contains("PlacementFit.first_node"),
+        "{error}"
+    );
+}

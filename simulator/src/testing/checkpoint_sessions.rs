@@ -148,7 +148,7 @@ pub fn feed(
             at.nodes += 1;
             if session == 1 && at.nodes == 5 {
                 let placed = map
-                    .place_session(session, input.map_from_local)
+                    .place_session(session, input.map_from_local, Some((0, 4)))
                     .expect("place");
                 log.push(format!("placed {placed}"));
             }

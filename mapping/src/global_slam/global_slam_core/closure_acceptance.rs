@@ -130,6 +130,17 @@ impl GlobalSlam {
                 continue; // never queued: an unplaced submap says nothing about placed nodes yet
             }
             if self.beyond_drift(&closure, &acceptance) {
+                if self.fitted_by_placement(&closure) {
+                    // Its placement vouches for the LLO it would repair: no chorus confirms it.
+                    decided(
+                        &closure,
+                        acceptance,
+                        innovation,
+                        MatchDecision::RefusedByPlacement,
+                    );
+                    self.closures_beyond_drift += 1;
+                    continue;
+                }
                 // A sudden LLO slip also moves a node farther than drift explains: its repair waits for
                 // several nodes' matches against more than one submap to agree on it.
                 let mut agreeing = self.take_agreeing(&closure, true);

@@ -8,7 +8,8 @@
 //!   next id), node and submap records (grids included), the per-submap samplers' counts, each
 //!   trajectory's `global_from_local` and last node, the queued searches, the accepted loop closures
 //!   with how they were accepted and where each stands, the matches waiting for agreement, the
-//!   unanchored, matched-elsewhere and settled trajectories, each trajectory's last loop's path, the
+//!   unanchored, matched-elsewhere and settled trajectories, each trajectory's last loop's path and the
+//!   nodes that fitted its placement, the
 //!   corrections on probation or kept, the bends confirmed corrections granted, the optimization bookkeeping (nodes since the last optimization, the first constraint new to the next
 //!   one, the variables changed since) and the counters;
 //! - rebuilt: which submaps a bend holds loosely now (from the bends and the closures' states; their
@@ -74,6 +75,9 @@ pub struct GlobalSlamState {
     pub last_loop_path: BTreeMap<u32, f64>,
     /// Per trajectory, the path (m) of the node before its first LLO recovery since its last loop.
     pub recovery_path: BTreeMap<u32, f64>,
+    /// Per trajectory placed by a search, the first and last index of the nodes whose scans fitted the
+    /// placement.
+    pub placement_fits: BTreeMap<u32, (u32, u32)>,
     /// Matches refused as beyond drift, still counted.
     pub closures_beyond_drift: usize,
     /// Matches beyond drift waiting for others to agree, in arrival order.
@@ -116,6 +120,7 @@ impl GlobalSlam {
             matched_elsewhere: self.matched_elsewhere.clone(),
             last_loop_path: self.last_loop_path.clone(),
             recovery_path: self.recovery_path.clone(),
+            placement_fits: self.placement_fits.clone(),
             closures_beyond_drift: self.closures_beyond_drift,
             pending_beyond_drift: self.pending_beyond_drift.clone(),
             closures_outvoted: self.closures_outvoted,
@@ -164,6 +169,7 @@ impl GlobalSlam {
             matched_elsewhere,
             last_loop_path,
             recovery_path,
+            placement_fits,
             closures_beyond_drift,
             pending_beyond_drift,
             closures_outvoted,
@@ -209,6 +215,7 @@ impl GlobalSlam {
             matched_elsewhere,
             last_loop_path,
             recovery_path,
+            placement_fits,
             closures_beyond_drift,
             pending_beyond_drift,
             closures_outvoted,

@@ -23,6 +23,10 @@ pub enum MatchDecision {
     HeldBeyondDrift,
     /// It completed such a chorus: it and the held matches agreeing with it were added to the graph.
     ConfirmedBeyondDrift,
+    /// Refused: beyond drift, of a node whose scan fitted its trajectory's placement, against another
+    /// trajectory's submap: the placement vouches for the LLO such a chorus would repair
+    /// ([`super::GlobalSlam::place_trajectory`]).
+    RefusedByPlacement,
     /// Held: within drift but far from the estimate (`max_unconfirmed_*`), it waits for a match of another
     /// node to agree with it (`agreement_*`).
     HeldUnconfirmed,
@@ -32,12 +36,13 @@ pub enum MatchDecision {
 
 impl MatchDecision {
     /// Every decision, in the order reports list them.
-    pub const ALL: [Self; 6] = [
+    pub const ALL: [Self; 7] = [
         Self::Accepted,
         Self::Confirmed,
         Self::ConfirmedBeyondDrift,
         Self::HeldUnconfirmed,
         Self::HeldBeyondDrift,
+        Self::RefusedByPlacement,
         Self::Outvoted,
     ];
 
@@ -48,6 +53,7 @@ impl MatchDecision {
             Self::Accepted => "accepted",
             Self::HeldBeyondDrift => "held_beyond_drift",
             Self::ConfirmedBeyondDrift => "confirmed_beyond_drift",
+            Self::RefusedByPlacement => "refused_by_placement",
             Self::HeldUnconfirmed => "held_unconfirmed",
             Self::Confirmed => "confirmed",
         }

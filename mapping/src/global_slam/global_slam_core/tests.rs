@@ -456,11 +456,73 @@ fn a_placed_trajectory_is_searched_as_if_it_had_just_closed_a_loop() {
 /// [`straight_run`]'s map (trajectory 0) and a second trajectory driven 50 m beside it, placed at its
 /// newest node.
 pub(super) fn placed_second_trajectory() -> GlobalSlam {
+    placed_second_trajectory_fitted(None)
+}
+
+/// [`placed_second_trajectory`], placed by a search that fitted the scans of its nodes `fitted`.
+fn placed_second_trajectory_fitted(fitted: Option<(u32, u32)>) -> GlobalSlam {
     let mut global = straight_run(20);
     global.start_trajectory(1, None).expect("new trajectory");
     drive_second_trajectory(&mut global, 0..250);
-    assert!(global.place_trajectory(1, rigid2(-48.0, 0.0, 0.0)));
+    assert!(global.place_trajectory(1, rigid2(-48.0, 0.0, 0.0), fitted));
     global
+}
+
+#[test]
+fn no_chorus_beyond_drift_moves_the_nodes_that_fitted_a_placement() {
+    use MatchDecision::*;
+    // Matches of trajectory 1's nodes 240–244 against the first trajectory's two submaps, all putting
+    // them 1 m from where the placement has them: beyond the drift a just-placed node may have.
+    let error = rigid2(1.0, 0.0, 0.0);
+    let chorus = |global: &mut GlobalSlam| -> Vec<MatchDecision> {
+        [(240, 0), (241, 0), (242, 0), (243, 0), (244, 1)]
+            .into_iter()
+            .flat_map(|(index, submap)| {
+                let submap_at = if submap == 0 { 0.0 } else { 2.2 };
+                let closure = LoopClosure {
+                    submap: SubmapId {
+                        trajectory: 0,
+                        index: submap,
+                    },
+                    node: NodeId {
+                        trajectory: 1,
+                        index,
+                    },
+                    submap_from_node: rigid2(-48.0 + 0.2 * f64::from(index) - submap_at, 0.0, 0.0)
+                        * error,
+                    score: 0.7,
+                    runner_up_score: None,
+                    information: None,
+                };
+                decisions(&global.add_search_results([closure]))
+            })
+            .map(|(_, decision)| decision)
+            .collect()
+    };
+    let a_chorus = [
+        HeldBeyondDrift,
+        HeldBeyondDrift,
+        HeldBeyondDrift,
+        HeldBeyondDrift,
+        ConfirmedBeyondDrift,
+    ];
+    // Placed without a search (a prior): the chorus repairs what it takes for an LLO slip.
+    assert_eq!(chorus(&mut placed_second_trajectory_fitted(None)), a_chorus);
+    // Placed by a search that fitted nodes 200–249 to the map: the placement vouches for their LLO,
+    // and the chorus contradicts it.
+    let mut global = placed_second_trajectory_fitted(Some((200, 249)));
+    assert_eq!(chorus(&mut global), [RefusedByPlacement; 5]);
+    assert!(global.accepted_loop_closures().is_empty());
+    // Fitted with nodes 245–249 only: LLO between 240–244 and them is the search's blind spot.
+    assert_eq!(
+        chorus(&mut placed_second_trajectory_fitted(Some((245, 249)))),
+        a_chorus
+    );
+    // Unplaced and placed again without a search: nothing vouches any more.
+    let mut global = placed_second_trajectory_fitted(Some((200, 249)));
+    assert!(global.unplace_trajectory(1));
+    assert!(global.place_trajectory(1, rigid2(-48.0, 0.0, 0.0), None));
+    assert_eq!(chorus(&mut global), a_chorus);
 }
 
 /// Adds the nodes `indices` of trajectory 1, along x in 0.2 m steps, all in its submap 0.

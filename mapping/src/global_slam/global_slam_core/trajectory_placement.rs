@@ -4,6 +4,8 @@
 
 use super::{ClosureState, GlobalSlam};
 use crate::geometry::Rigid2;
+#[cfg(doc)]
+use crate::global_slam::ConstraintBuilderOptions;
 use crate::global_slam::LoopClosure;
 use crate::pose_graph::{NodeId, SubmapId, VariableId};
 
@@ -39,9 +41,22 @@ impl GlobalSlam {
     /// relocalization after it started: moves its nodes and submaps there and queues the searches its nodes
     /// can now make near their estimates. The placement ties the trajectory's newest node to the map as a
     /// loop closure would: drift, and with it the search windows and the drift bound of its matches, grows
-    /// from that node again (as from the node of the first closure that anchors a trajectory). Returns
-    /// false (and changes nothing) when the trajectory is not unanchored.
-    pub fn place_trajectory(&mut self, trajectory: u32, global_from_local: Rigid2) -> bool {
+    /// from that node again (as from the node of the first closure that anchors a trajectory).
+    ///
+    /// `fitted`: the first and last index of the nodes whose scans, merged in their local frame, the
+    /// search fitted to the map at this placement (`None`: a placement given without a search, e.g. a
+    /// robot's prior). The placement vouches for LLO between those nodes: a slip there would have spoiled
+    /// the fit. So a chorus of matches beyond drift of those nodes against other trajectories' submaps
+    /// (what [`ConstraintBuilderOptions::beyond_drift_confirmations`] lets repair a slip) is never
+    /// confirmed: it contradicts the placement, and only the session start, which counts such matches
+    /// against it, may overturn that. Returns false (and changes nothing) when the trajectory is not
+    /// unanchored.
+    pub fn place_trajectory(
+        &mut self,
+        trajectory: u32,
+        global_from_local: Rigid2,
+        fitted: Option<(u32, u32)>,
+    ) -> bool {
         if !self.unanchored.contains(&trajectory) {
             return false;
         }
@@ -52,6 +67,10 @@ impl GlobalSlam {
         {
             self.last_loop_path.insert(trajectory, newest.path_m);
         }
+        match fitted {
+            Some(fitted) => self.placement_fits.insert(trajectory, fitted),
+            None => self.placement_fits.remove(&trajectory),
+        };
         let correction = global_from_local * self.global_from_local(trajectory).inverse();
         self.move_trajectory(trajectory, correction);
         true
@@ -104,8 +123,19 @@ impl GlobalSlam {
         self.sync_bends();
         self.last_loop_path.remove(&trajectory);
         self.recovery_path.remove(&trajectory);
+        self.placement_fits.remove(&trajectory);
         self.unanchored.insert(trajectory);
         true
+    }
+
+    /// Whether `closure` matches a node whose scan fitted its trajectory's placement (see
+    /// [`Self::place_trajectory`]) against another trajectory's submap.
+    pub(super) fn fitted_by_placement(&self, closure: &LoopClosure) -> bool {
+        closure.node.trajectory != closure.submap.trajectory
+            && self
+                .placement_fits
+                .get(&closure.node.trajectory)
+                .is_some_and(|&(first, last)| (first..=last).contains(&closure.node.index))
     }
 
     /// Stops treating `trajectory`'s cross-trajectory matches as found elsewhere (see

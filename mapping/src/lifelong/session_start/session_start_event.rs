@@ -12,6 +12,10 @@ pub struct StartPlacement {
     pub global_from_local: Rigid2,
     /// Index (in the session, from 0) of the node at which it was decided.
     pub node: usize,
+    /// Index of the first of the nodes (through `node`) whose scans the search fitted to the map at this
+    /// placement (`None`: given by the caller, e.g. a robot's prior). The map is told
+    /// ([`crate::global_slam::GlobalSlam::place_trajectory`]): the placement vouches for LLO between them.
+    pub fitted_from: Option<usize>,
     /// Branch-and-bound score of the search that found it (`None`: given by the caller, e.g. a robot's
     /// prior).
     pub score: Option<f32>,

@@ -84,6 +84,8 @@ fn the_held_back_nodes_place_the_session_on_probation() {
         panic!("placed at the third node: {events:?}");
     };
     assert_eq!(placement.node, 2);
+    // Fitted with the scans of every node so far: the map is told, so that it keeps their LLO.
+    assert_eq!(placement.fitted_from, Some(0));
     let error = (placement.global_from_local.translation.vector - truth.translation.vector).norm();
     assert!(error < 0.05, "placed {error} m off");
     assert_eq!(start.state(), SessionStartState::Probation(placement));
@@ -255,9 +257,16 @@ fn a_match_sees_nothing_new_when_the_cloud_that_placed_the_session_saw_it() {
         global_from_local: placed,
         score: 0.8,
     };
-    let events = start.place_answer(&found, None, None, Vec::new(), 3);
+    let events = start.place_answer(&found, None, None, Vec::new(), 3, 0);
     assert!(
-        matches!(events[..], [SessionStartEvent::Placed(_)]),
+        matches!(
+            events[..],
+            [SessionStartEvent::Placed(StartPlacement {
+                node: 3,
+                fitted_from: Some(0),
+                ..
+            })]
+        ),
         "{events:?}"
     );
     for k in 4..8 {
@@ -596,6 +605,7 @@ fn a_robot_at_its_dock_is_placed_there_at_the_dock_check() {
     else {
         panic!("placed at the dock check: {events:?}");
     };
+    assert_eq!(placement.fitted_from, Some(0), "checked with nodes 0 and 1");
     let error = (placement.global_from_local.translation.vector - truth.translation.vector).norm();
     assert!(error < 0.05, "placed {error} m off");
     assert!(events[2].is_empty(), "no search after: {events:?}");
