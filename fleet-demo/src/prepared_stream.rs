@@ -95,6 +95,7 @@ pub(crate) async fn stream_prepared(
                 global_from_local: prior,
                 glm_on_robot: !glm_on_server,
                 at_dock: false,
+                fitted: None,
             });
         }
         let mut nodes_in_batch = 0;

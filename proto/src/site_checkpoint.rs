@@ -27,7 +27,8 @@ use crate::convert::constraint::{
     kind_from_pb, kind_to_pb, loss_from_pb, loss_to_pb, variable_in, variable_to_pb,
 };
 use crate::convert::{check_finite, points_from_pb, points_to_pb};
-use crate::{ConversionError, ErrorSource, FieldValue, grid_from_pb, grid_to_pb, pb};
+use crate::upload_batch::{fitted_nodes_from_pb, fitted_nodes_to_pb};
+use crate::{ConversionError, ErrorSource, grid_from_pb, grid_to_pb, pb};
 
 mod site_server_state;
 
@@ -44,9 +45,10 @@ use site_server_state::{site_from_pb, site_to_pb};
 /// Version 3: `GlobalSlamState.recovery_path` (the heading doubt of LLO recoveries) added. A version-2
 /// checkpoint reads as version 3 with no recovery since any trajectory's last loop closure (the build
 /// that wrote it kept none): the doubt starts at each trajectory's next recovery.
-/// Version 4: `GlobalSlamState.placement_fits` (the nodes that fitted each search's placement) added.
-/// A version-2 or -3 checkpoint reads with none (the build that wrote it kept none): its trajectories'
-/// nodes are treated as those of a placement given without a search.
+/// Version 4: `GlobalSlamState.placement_fits` (the nodes that fitted each search's placement) and
+/// `SiteSessionState.prior_fitted` (those of a robot's prior) added. A version-2 or -3 checkpoint reads
+/// with none (the build that wrote it kept none): its trajectories' nodes are treated as those of a
+/// placement given without a search.
 pub const CHECKPOINT_FORMAT_VERSION: u32 = 4;
 
 /// The oldest `format_version` this build reads. A server upgraded across a format change must restore
@@ -136,7 +138,8 @@ impl TryFrom<&pb::SiteCheckpoint> for SiteCheckpoint {
 
     /// Checks the format version first (nothing else is read from a checkpoint of a version this build
     /// does not read), then every field. Versions 2 and 3 need no conversion: the fields versions 3 and 4
-    /// added (`GlobalSlamState.recovery_path`, `GlobalSlamState.placement_fits`) decode empty from them.
+    /// added (`GlobalSlamState.recovery_path`, `GlobalSlamState.placement_fits`,
+    /// `SiteSessionState.prior_fitted`) decode empty from them.
     fn try_from(c: &pb::SiteCheckpoint) -> Result<Self, ConversionError> {
         const M: &str = "SiteCheckpoint";
         check_checkpoint_format_version(c.format_version)?;
@@ -495,10 +498,9 @@ fn global_to_pb(g: &GlobalSlamState) -> pb::GlobalSlamState {
         placement_fits: g
             .placement_fits
             .iter()
-            .map(|(&trajectory, &(first_node, last_node))| pb::PlacementFit {
+            .map(|(&trajectory, &nodes)| pb::PlacementFit {
                 trajectory,
-                first_node,
-                last_node,
+                nodes: Some(fitted_nodes_to_pb(nodes)),
             })
             .collect(),
         closures_beyond_drift: g.closures_beyond_drift as u64,
@@ -718,15 +720,11 @@ fn global_from_pb(g: Option<&pb::GlobalSlamState>) -> Result<GlobalSlamState, Co
         .placement_fits
         .iter()
         .map(|f| {
-            if f.first_node > f.last_node {
-                return Err(ConversionError::OutOfRange {
-                    message: "PlacementFit",
-                    field: "first_node",
-                    value: FieldValue::Unsigned(f.first_node.into()),
-                    expected: "at most last_node",
-                });
-            }
-            Ok((f.trajectory, (f.first_node, f.last_node)))
+            let nodes = f.nodes.as_ref().ok_or(ConversionError::MissingField {
+                message: "PlacementFit",
+                field: "nodes",
+            })?;
+            Ok((f.trajectory, fitted_nodes_from_pb(nodes, "PlacementFit")?))
         })
         .collect::<Result<BTreeMap<u32, (u32, u32)>, ConversionError>>()?;
     Ok(GlobalSlamState {

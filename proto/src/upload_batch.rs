@@ -69,6 +69,9 @@ pub enum UploadItem {
         /// The prior is the robot's dock placement: where its last session ended, checked against the
         /// site map by the session's first nodes (see [`UploadItem::DockPlacementKept`]).
         at_dock: bool,
+        /// The first and last index of the session's nodes whose scans the robot's search fitted to the
+        /// site map at this placement (`None`: a prior given without such a search).
+        fitted: Option<(u32, u32)>,
     },
     /// GLM on the robot: the node before it (after that node's `SubmapFinished` items) matched a global
     /// submap of the site.
@@ -141,10 +144,12 @@ impl From<&UploadItem> for pb::UploadItem {
                 global_from_local,
                 glm_on_robot,
                 at_dock,
+                fitted,
             } => Item::SessionStartPrior(pb::SessionStartPrior {
                 global_from_local: Some(pose_to_pb(global_from_local)),
                 glm_on_robot: *glm_on_robot,
                 at_dock: *at_dock,
+                fitted: fitted.map(fitted_nodes_to_pb),
             }),
             UploadItem::GlobalMatch {
                 submap,
@@ -211,6 +216,11 @@ impl TryFrom<&pb::UploadItem> for UploadItem {
                 )?,
                 glm_on_robot: prior.glm_on_robot,
                 at_dock: prior.at_dock,
+                fitted: prior
+                    .fitted
+                    .as_ref()
+                    .map(|f| fitted_nodes_from_pb(f, "SessionStartPrior"))
+                    .transpose()?,
             }),
             Some(Item::GlobalMatch(m)) => {
                 const M: &str = "GlobalMatch";
@@ -340,6 +350,28 @@ impl TryFrom<&pb::UploadBatch> for UploadBatch {
     }
 }
 
+/// `(first, last)` node indices as a [`pb::FittedNodes`].
+pub(crate) fn fitted_nodes_to_pb((first, last): (u32, u32)) -> pb::FittedNodes {
+    pb::FittedNodes { first, last }
+}
+
+/// A [`pb::FittedNodes`] as `(first, last)`; refused when `first` is past `last` (`message` names where
+/// it was read).
+pub(crate) fn fitted_nodes_from_pb(
+    fitted: &pb::FittedNodes,
+    message: &'static str,
+) -> Result<(u32, u32), ConversionError> {
+    if fitted.first > fitted.last {
+        return Err(ConversionError::OutOfRange {
+            message,
+            field: "fitted.first",
+            value: crate::FieldValue::Unsigned(fitted.first.into()),
+            expected: "at most fitted.last",
+        });
+    }
+    Ok((fitted.first, fitted.last))
+}
+
 #[cfg(test)]
 mod tests {
     use mapping::geometry::rigid2;
@@ -361,6 +393,7 @@ mod tests {
                     global_from_local: rigid2(1.0, 2.0, 0.5),
                     glm_on_robot: true,
                     at_dock: true,
+                    fitted: Some((0, 9)),
                 },
                 UploadItem::NodeAdded(NodeAdded {
                     time: Timestamp(42),
@@ -460,6 +493,19 @@ mod tests {
             Err(ConversionError::NotFinite {
                 message: "NodeAdded",
                 field: "local_pose"
+            })
+        ));
+        // A prior's fitted nodes must run forward.
+        let mut reversed = good.clone();
+        if let Some(pb::upload_item::Item::SessionStartPrior(prior)) = &mut reversed.items[0].item {
+            prior.fitted = Some(pb::FittedNodes { first: 10, last: 9 });
+        }
+        assert!(matches!(
+            UploadBatch::try_from(&reversed),
+            Err(ConversionError::OutOfRange {
+                message: "SessionStartPrior",
+                field: "fitted.first",
+                ..
             })
         ));
         let mut blank = good;

@@ -430,6 +430,7 @@ mod tests {
             global_from_local: Rigid2::identity(),
             glm_on_robot: true,
             at_dock: false,
+            fitted: None,
         }];
         for k in 0..6 {
             b.extend(node_and_submap(k));

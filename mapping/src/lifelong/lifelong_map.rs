@@ -271,6 +271,18 @@ impl LifelongMap {
             .place_trajectory(session, global_from_local, fitted))
     }
 
+    /// Records that `session`, started at a prior, was placed there by a search on its robot that fitted
+    /// the scans of its nodes `fitted` (first and last index); see [`GlobalSlam::set_placement_fit`].
+    /// Returns false when the session is unplaced.
+    pub fn set_placement_fit(
+        &mut self,
+        session: u32,
+        fitted: (u32, u32),
+    ) -> Result<bool, LifelongError> {
+        self.active(session)?;
+        Ok(self.global.set_placement_fit(session, fitted))
+    }
+
     /// Puts a placed session on probation ([`super::SessionStart`]): GLM matches its nodes near their
     /// estimates as before, but its submaps leave [`Self::placed_submaps`] (what relocalization renders)
     /// and the trimmer's view, and if it ends on probation it is dropped like an unplaced session.
@@ -304,13 +316,11 @@ impl LifelongMap {
     ) -> Result<(), LifelongError> {
         match decision {
             SessionStartEvent::Placed(placement) => {
-                let fitted = placement.fitted_from.and_then(|first| {
-                    Some((
-                        u32::try_from(first).ok()?,
-                        u32::try_from(placement.node).ok()?,
-                    ))
-                });
-                self.place_session(session, placement.global_from_local, fitted)?;
+                self.place_session(
+                    session,
+                    placement.global_from_local,
+                    placement.fitted_nodes(),
+                )?;
                 self.begin_probation(session)
             }
             SessionStartEvent::Committed { .. } => {

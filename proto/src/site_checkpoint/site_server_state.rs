@@ -9,6 +9,7 @@ use mapping::geometry::Rigid2;
 use mapping::pose_graph::SubmapId;
 
 use super::{pose_from_exact, pose_to_exact, required, submap_in};
+use crate::upload_batch::{fitted_nodes_from_pb, fitted_nodes_to_pb};
 use crate::{ConversionError, pb};
 
 /// A robot's `SessionStartPrior` as the server keeps it.
@@ -18,6 +19,8 @@ pub struct RobotPrior {
     pub global_from_local: Rigid2,
     /// It is the robot's dock placement (`SessionStartPrior.at_dock`).
     pub at_dock: bool,
+    /// The nodes the robot's search fitted at it, first and last index (`SessionStartPrior.fitted`).
+    pub fitted: Option<(u32, u32)>,
 }
 
 /// One session of a site as the server keeps it.
@@ -97,6 +100,7 @@ pub(super) fn site_to_pb(s: &SiteServerState) -> pb::SiteServerState {
                 nodes: session.nodes,
                 dropped: session.dropped,
                 prior_at_dock: session.prior.is_some_and(|p| p.at_dock),
+                prior_fitted: session.prior.and_then(|p| p.fitted).map(fitted_nodes_to_pb),
             })
             .collect(),
         published: s
@@ -161,6 +165,11 @@ pub(super) fn site_from_pb(s: &pb::SiteServerState) -> Result<SiteServerState, C
                     Ok::<_, ConversionError>(RobotPrior {
                         global_from_local: pose_from_exact(Some(p), S, "prior")?,
                         at_dock: session.prior_at_dock,
+                        fitted: session
+                            .prior_fitted
+                            .as_ref()
+                            .map(|f| fitted_nodes_from_pb(f, S))
+                            .transpose()?,
                     })
                 })
                 .transpose()?,

@@ -271,6 +271,7 @@ fn the_servers_part_of_a_checkpoint_round_trips_bit_for_bit() {
             prior: Some(RobotPrior {
                 global_from_local: odd_pose,
                 at_dock: true,
+                fitted: Some((0, 11)),
             }),
             glm_on_robot: true,
             nodes: 99,
@@ -524,7 +525,7 @@ fn the_nodes_that_fitted_a_placement_round_trip_and_a_reversed_span_is_refused()
     state.placement_fits.insert(6, (10, 9));
     let error = global_from_pb(Some(&global_to_pb(&state))).expect_err("reversed span");
     assert!(
-        error.to_string().contains("PlacementFit.first_node"),
+        error.to_string().contains("PlacementFit.fitted.first"),
         "{error}"
     );
 }

@@ -129,6 +129,9 @@ pub struct SessionTrace {
     pub relocalization_attempted: bool,
     /// `global_from_local` sent as the session's prior.
     pub prior: Option<Rigid2>,
+    /// The nodes whose scans the search that placed it fitted, first and last index (sent with the
+    /// prior: the placement vouches for their LLO).
+    pub fitted: Option<(u32, u32)>,
     /// Its branch-and-bound score.
     pub score: Option<f32>,
     /// Wall time of the first whole-map search, milliseconds.
@@ -229,6 +232,7 @@ fn start_prior(trace: &SessionTrace, glm_on_robot: bool) -> Option<UploadItem> {
         global_from_local: trace.prior?,
         glm_on_robot,
         at_dock: trace.dock == DockOutcome::Placed,
+        fitted: trace.fitted,
     })
 }
 
@@ -674,6 +678,7 @@ impl<'o, 'a> SessionStream<'o, 'a> {
                     }
                     SessionStartEvent::Placed(placement) => {
                         self.trace.prior = Some(placement.global_from_local);
+                        self.trace.fitted = placement.fitted_nodes();
                         self.trace.score = placement.score;
                         decided = true;
                     }

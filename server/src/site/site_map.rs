@@ -345,10 +345,12 @@ impl SiteMap {
                     global_from_local,
                     glm_on_robot: on_robot,
                     at_dock,
+                    fitted,
                 } => {
                     prior = Some(RobotPrior {
                         global_from_local: *global_from_local,
                         at_dock: *at_dock,
+                        fitted: *fitted,
                     });
                     glm_on_robot = *on_robot;
                 }
@@ -408,6 +410,12 @@ impl SiteMap {
         self.map
             .start_session(trajectory, prior.map(|p| p.global_from_local))
             .map_err(SiteError::Rejected)?;
+        if let Some(fitted) = prior.and_then(|p| p.fitted) {
+            // The robot's search fitted those nodes' scans to the map at the prior.
+            self.map
+                .set_placement_fit(trajectory, fitted)
+                .map_err(SiteError::Rejected)?;
+        }
         // Only a placed session can be matched on the robot: it needs the prior.
         if glm_on_robot && prior.is_some() {
             self.map.set_matched_on_robot(trajectory);
@@ -428,6 +436,7 @@ impl SiteMap {
                 let RobotPrior {
                     global_from_local,
                     at_dock,
+                    ..
                 } = prior;
                 let (start, events) = if at_dock {
                     SessionStart::with_dock_placement(options, None, global_from_local, decided_at)

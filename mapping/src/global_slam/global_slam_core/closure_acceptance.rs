@@ -130,7 +130,7 @@ impl GlobalSlam {
                 continue; // never queued: an unplaced submap says nothing about placed nodes yet
             }
             if self.beyond_drift(&closure, &acceptance) {
-                if self.fitted_by_placement(&closure) {
+                if self.fitted_by_placement(closure.node, closure.submap) {
                     // Its placement vouches for the LLO it would repair: no chorus confirms it.
                     decided(
                         &closure,

@@ -136,7 +136,9 @@ impl GlobalSlam {
 
     /// The path (m) over which LLO's drift separates `node`'s estimate from `submap`'s: the path since the
     /// node's trajectory last closed a loop (or was placed by a relocalization) or, within one trajectory,
-    /// the path between the submap and the node, if shorter.
+    /// the path between the submap and the node, if shorter; none for a node whose scan fitted its
+    /// trajectory's placement, against another trajectory's submap (the placement pins it there: see
+    /// [`Self::place_trajectory`]).
     pub(super) fn drift_path(
         &self,
         node: NodeId,
@@ -144,6 +146,9 @@ impl GlobalSlam {
         sid: SubmapId,
         submap: &SubmapRecord,
     ) -> f64 {
+        if self.fitted_by_placement(node, sid) {
+            return 0.0;
+        }
         let since_loop = record.path_m
             - self
                 .last_loop_path

@@ -468,37 +468,39 @@ fn placed_second_trajectory_fitted(fitted: Option<(u32, u32)>) -> GlobalSlam {
     global
 }
 
+/// Matches of trajectory 1's nodes 240–244 against trajectory 0's two submaps (the last through submap
+/// 1), each putting its node 1 m from where [`placed_second_trajectory`] has it; what was decided of each.
+fn chorus_one_metre_off(global: &mut GlobalSlam) -> Vec<MatchDecision> {
+    let error = rigid2(1.0, 0.0, 0.0);
+    [(240, 0), (241, 0), (242, 0), (243, 0), (244, 1)]
+        .into_iter()
+        .flat_map(|(index, submap)| {
+            let submap_at = if submap == 0 { 0.0 } else { 2.2 };
+            let closure = LoopClosure {
+                submap: SubmapId {
+                    trajectory: 0,
+                    index: submap,
+                },
+                node: NodeId {
+                    trajectory: 1,
+                    index,
+                },
+                submap_from_node: rigid2(-48.0 + 0.2 * f64::from(index) - submap_at, 0.0, 0.0)
+                    * error,
+                score: 0.7,
+                runner_up_score: None,
+                information: None,
+            };
+            decisions(&global.add_search_results([closure]))
+        })
+        .map(|(_, decision)| decision)
+        .collect()
+}
+
 #[test]
 fn no_chorus_beyond_drift_moves_the_nodes_that_fitted_a_placement() {
     use MatchDecision::*;
-    // Matches of trajectory 1's nodes 240–244 against the first trajectory's two submaps, all putting
-    // them 1 m from where the placement has them: beyond the drift a just-placed node may have.
-    let error = rigid2(1.0, 0.0, 0.0);
-    let chorus = |global: &mut GlobalSlam| -> Vec<MatchDecision> {
-        [(240, 0), (241, 0), (242, 0), (243, 0), (244, 1)]
-            .into_iter()
-            .flat_map(|(index, submap)| {
-                let submap_at = if submap == 0 { 0.0 } else { 2.2 };
-                let closure = LoopClosure {
-                    submap: SubmapId {
-                        trajectory: 0,
-                        index: submap,
-                    },
-                    node: NodeId {
-                        trajectory: 1,
-                        index,
-                    },
-                    submap_from_node: rigid2(-48.0 + 0.2 * f64::from(index) - submap_at, 0.0, 0.0)
-                        * error,
-                    score: 0.7,
-                    runner_up_score: None,
-                    information: None,
-                };
-                decisions(&global.add_search_results([closure]))
-            })
-            .map(|(_, decision)| decision)
-            .collect()
-    };
+    // Just placed at node 249, nodes 240–244 are within 0.5 m of their estimates or beyond drift.
     let a_chorus = [
         HeldBeyondDrift,
         HeldBeyondDrift,
@@ -506,23 +508,51 @@ fn no_chorus_beyond_drift_moves_the_nodes_that_fitted_a_placement() {
         HeldBeyondDrift,
         ConfirmedBeyondDrift,
     ];
-    // Placed without a search (a prior): the chorus repairs what it takes for an LLO slip.
-    assert_eq!(chorus(&mut placed_second_trajectory_fitted(None)), a_chorus);
+    // Placed without a search: the chorus repairs what it takes for an LLO slip.
+    let mut global = placed_second_trajectory_fitted(None);
+    assert_eq!(chorus_one_metre_off(&mut global), a_chorus);
     // Placed by a search that fitted nodes 200–249 to the map: the placement vouches for their LLO,
     // and the chorus contradicts it.
     let mut global = placed_second_trajectory_fitted(Some((200, 249)));
-    assert_eq!(chorus(&mut global), [RefusedByPlacement; 5]);
+    assert_eq!(chorus_one_metre_off(&mut global), [RefusedByPlacement; 5]);
     assert!(global.accepted_loop_closures().is_empty());
     // Fitted with nodes 245–249 only: LLO between 240–244 and them is the search's blind spot.
-    assert_eq!(
-        chorus(&mut placed_second_trajectory_fitted(Some((245, 249)))),
-        a_chorus
-    );
+    let mut global = placed_second_trajectory_fitted(Some((245, 249)));
+    assert_eq!(chorus_one_metre_off(&mut global), a_chorus);
     // Unplaced and placed again without a search: nothing vouches any more.
     let mut global = placed_second_trajectory_fitted(Some((200, 249)));
     assert!(global.unplace_trajectory(1));
     assert!(global.place_trajectory(1, rigid2(-48.0, 0.0, 0.0), None));
-    assert_eq!(chorus(&mut global), a_chorus);
+    assert_eq!(chorus_one_metre_off(&mut global), a_chorus);
+}
+
+#[test]
+fn a_prior_found_by_a_search_elsewhere_pins_the_nodes_it_fitted_as_a_placement_here_does() {
+    use MatchDecision::*;
+    // Trajectory 1 started at its robot's placement, 50 m of route before it.
+    let started = |fitted: Option<(u32, u32)>| {
+        let mut global = straight_run(20);
+        global
+            .start_trajectory(1, Some(rigid2(-48.0, 0.0, 0.0)))
+            .expect("new trajectory");
+        if let Some(fitted) = fitted {
+            assert!(global.set_placement_fit(1, fitted));
+        }
+        drive_second_trajectory(&mut global, 0..250);
+        global
+    };
+    // A bare prior: drift grows from its first node, 48 m allow 1 m, and a second match confirms the
+    // first.
+    let decided = chorus_one_metre_off(&mut started(None));
+    assert_eq!(decided[..2], [HeldUnconfirmed, Confirmed]);
+    // The robot's search fitted nodes 0–249 at it: pinned there, the matches are refused.
+    let mut global = started(Some((0, 249)));
+    assert_eq!(chorus_one_metre_off(&mut global), [RefusedByPlacement; 5]);
+    assert!(global.accepted_loop_closures().is_empty());
+    // Unanchored, a trajectory has no placement to pin anything.
+    let mut global = straight_run(20);
+    global.start_trajectory(1, None).expect("new trajectory");
+    assert!(!global.set_placement_fit(1, (0, 9)));
 }
 
 /// Adds the nodes `indices` of trajectory 1, along x in 0.2 m steps, all in its submap 0.

@@ -44,13 +44,13 @@ impl GlobalSlam {
     /// from that node again (as from the node of the first closure that anchors a trajectory).
     ///
     /// `fitted`: the first and last index of the nodes whose scans, merged in their local frame, the
-    /// search fitted to the map at this placement (`None`: a placement given without a search, e.g. a
-    /// robot's prior). The placement vouches for LLO between those nodes: a slip there would have spoiled
-    /// the fit. So a chorus of matches beyond drift of those nodes against other trajectories' submaps
-    /// (what [`ConstraintBuilderOptions::beyond_drift_confirmations`] lets repair a slip) is never
-    /// confirmed: it contradicts the placement, and only the session start, which counts such matches
-    /// against it, may overturn that. Returns false (and changes nothing) when the trajectory is not
-    /// unanchored.
+    /// search fitted to the map at this placement (`None`: a placement given without a search). The
+    /// placement pins those nodes to the other trajectories' submaps, and vouches for LLO between them: a
+    /// slip there would have spoiled the fit. So no drift separates them from those submaps, and a chorus
+    /// of matches beyond that bound (what [`ConstraintBuilderOptions::beyond_drift_confirmations`] lets
+    /// repair a slip) is never confirmed: it contradicts the placement, and only the session start, which
+    /// counts such matches against it, may overturn that. Returns false (and changes nothing) when the
+    /// trajectory is not unanchored.
     pub fn place_trajectory(
         &mut self,
         trajectory: u32,
@@ -128,14 +128,26 @@ impl GlobalSlam {
         true
     }
 
-    /// Whether `closure` matches a node whose scan fitted its trajectory's placement (see
-    /// [`Self::place_trajectory`]) against another trajectory's submap.
-    pub(super) fn fitted_by_placement(&self, closure: &LoopClosure) -> bool {
-        closure.node.trajectory != closure.submap.trajectory
+    /// Whether `node`'s scan fitted its trajectory's placement (see [`Self::place_trajectory`]) and
+    /// `submap` is another trajectory's: what the placement fitted it to.
+    pub(super) fn fitted_by_placement(&self, node: NodeId, submap: SubmapId) -> bool {
+        node.trajectory != submap.trajectory
             && self
                 .placement_fits
-                .get(&closure.node.trajectory)
-                .is_some_and(|&(first, last)| (first..=last).contains(&closure.node.index))
+                .get(&node.trajectory)
+                .is_some_and(|&(first, last)| (first..=last).contains(&node.index))
+    }
+
+    /// Records that `trajectory`, started at a prior ([`Self::start_trajectory`]), was placed there by a
+    /// search made elsewhere (on its robot) that fitted the scans of its nodes `fitted` (first and last
+    /// index), as [`Self::place_trajectory`]'s `fitted` does for a search made here. Returns false (and
+    /// changes nothing) when the trajectory is unanchored.
+    pub fn set_placement_fit(&mut self, trajectory: u32, fitted: (u32, u32)) -> bool {
+        if self.unanchored.contains(&trajectory) {
+            return false;
+        }
+        self.placement_fits.insert(trajectory, fitted);
+        true
     }
 
     /// Stops treating `trajectory`'s cross-trajectory matches as found elsewhere (see

@@ -25,6 +25,16 @@ pub struct StartPlacement {
     pub fit: Option<f32>,
 }
 
+impl StartPlacement {
+    /// The first and last index of the nodes whose scans the search fitted (`fitted_from` through
+    /// `node`), as the map takes them ([`crate::global_slam::GlobalSlam::place_trajectory`]); `None` for a
+    /// placement given by the caller.
+    pub fn fitted_nodes(&self) -> Option<(u32, u32)> {
+        let first = u32::try_from(self.fitted_from?).ok()?;
+        Some((first, u32::try_from(self.node).ok()?))
+    }
+}
+
 /// Why a placement was revoked.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum RevokeReason {

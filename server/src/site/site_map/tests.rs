@@ -91,6 +91,7 @@ fn uploads_must_come_in_sequence_and_fit_the_session() {
             global_from_local: Rigid2::identity(),
             glm_on_robot: false,
             at_dock: false,
+            fitted: None,
         }],
     );
     assert!(matches!(
@@ -177,6 +178,7 @@ fn a_start_prior_places_the_session() {
                     global_from_local: prior,
                     glm_on_robot: false,
                     at_dock: false,
+                    fitted: None,
                 },
                 node(3, &[0]),
             ],
@@ -213,6 +215,7 @@ fn a_prior_placed_sessions_grids_are_drawn_at_the_prior() {
                     global_from_local: prior,
                     glm_on_robot: false,
                     at_dock: false,
+                    fitted: None,
                 },
                 node(3, &[0]),
                 UploadItem::SubmapFinished {
@@ -258,6 +261,7 @@ fn covering_session(submaps: u32, prior: Option<Rigid2>, end: bool) -> Vec<Uploa
             global_from_local,
             glm_on_robot: false,
             at_dock: false,
+            fitted: None,
         })
         .into_iter()
         .collect();
@@ -394,6 +398,7 @@ fn a_robot_matched_session_gets_the_robots_matches_and_no_cross_session_search()
                 global_from_local: Rigid2::identity(),
                 glm_on_robot,
                 at_dock: false,
+                fitted: None,
             },
             node(0, &[0]),
         ];
@@ -470,6 +475,7 @@ fn a_robots_dock_placement_is_kept_at_the_end_only_on_its_word() {
                 global_from_local: Rigid2::identity(),
                 glm_on_robot: true,
                 at_dock: true,
+                fitted: None,
             },
         );
         apply(&mut map, &batch("b", 1, items));
@@ -528,6 +534,7 @@ fn agreeing_robot_matches_commit_a_prior_and_publish_its_submaps() {
         global_from_local: Rigid2::identity(),
         glm_on_robot: true,
         at_dock: false,
+        fitted: None,
     }];
     for k in 0..6u32 {
         items.push(node(k, &[k]));
@@ -621,6 +628,7 @@ fn session_start_decisions_are_counted_and_replay_counts_them_alike() {
         global_from_local: Rigid2::identity(),
         glm_on_robot: false,
         at_dock: false,
+        fitted: None,
     }];
     c.extend((0..5).map(|i| node(i, &[0])));
     changes.push(("c", c));

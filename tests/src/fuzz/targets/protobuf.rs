@@ -43,6 +43,7 @@ pub(super) fn sample_upload_batch() -> UploadBatch {
                 global_from_local: rigid2(1.0, 2.0, 0.5),
                 glm_on_robot: true,
                 at_dock: true,
+                fitted: Some((0, 9)),
             },
             UploadItem::NodeAdded(NodeAdded {
                 time: Timestamp(1_700_000_000_123_456_789),

@@ -39,6 +39,7 @@ fn batches(session: usize, input: &SessionInput) -> Vec<UploadBatch> {
                 global_from_local: input.map_from_local,
                 glm_on_robot: false,
                 at_dock: false,
+                fitted: None,
             });
         }
         for node in chunk {
