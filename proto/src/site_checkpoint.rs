@@ -720,7 +720,7 @@ fn global_from_pb(g: Option<&pb::GlobalSlamState>) -> Result<GlobalSlamState, Co
         .placement_fits
         .iter()
         .map(|f| {
-            let nodes = f.nodes.as_ref().ok_or(ConversionError::MissingField {
+            let nodes = f.nodes.ok_or(ConversionError::MissingField {
                 message: "PlacementFit",
                 field: "nodes",
             })?;

@@ -218,7 +218,6 @@ impl TryFrom<&pb::UploadItem> for UploadItem {
                 at_dock: prior.at_dock,
                 fitted: prior
                     .fitted
-                    .as_ref()
                     .map(|f| fitted_nodes_from_pb(f, "SessionStartPrior"))
                     .transpose()?,
             }),
@@ -358,7 +357,7 @@ pub(crate) fn fitted_nodes_to_pb((first, last): (u32, u32)) -> pb::FittedNodes {
 /// A [`pb::FittedNodes`] as `(first, last)`; refused when `first` is past `last` (`message` names where
 /// it was read).
 pub(crate) fn fitted_nodes_from_pb(
-    fitted: &pb::FittedNodes,
+    fitted: pb::FittedNodes,
     message: &'static str,
 ) -> Result<(u32, u32), ConversionError> {
     if fitted.first > fitted.last {

@@ -167,7 +167,6 @@ pub(super) fn site_from_pb(s: &pb::SiteServerState) -> Result<SiteServerState, C
                         at_dock: session.prior_at_dock,
                         fitted: session
                             .prior_fitted
-                            .as_ref()
                             .map(|f| fitted_nodes_from_pb(f, S))
                             .transpose()?,
                     })
