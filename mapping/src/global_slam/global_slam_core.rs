@@ -168,9 +168,10 @@ pub struct GlobalSlam {
     /// Per trajectory, the path length (m) of the node before its first LLO recovery since its last loop
     /// closure (see `recovery_heading_doubt`).
     recovery_path: BTreeMap<u32, f64>,
-    /// Per trajectory placed by a search ([`GlobalSlam::place_trajectory`]): the first and last index
-    /// of the nodes whose scans the search fitted to the map at the placement. No chorus of matches
-    /// beyond drift moves them against other trajectories' submaps (see [`GlobalSlam::fitted_by_placement`]).
+    /// Per trajectory placed by a search ([`GlobalSlam::place_trajectory`], or on its robot:
+    /// [`GlobalSlam::set_placement_fit`]): the first and last index of the nodes whose scans the search
+    /// fitted to the map at the placement. No drift separates them from other trajectories' submaps, and
+    /// no chorus of matches beyond that bound moves them (see [`GlobalSlam::fitted_by_placement`]).
     placement_fits: BTreeMap<u32, (u32, u32)>,
     /// Matches refused because they moved their node farther than drift can explain: those still waiting
     /// for a chorus or given up, not those a chorus confirmed later.

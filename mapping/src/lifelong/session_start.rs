@@ -26,9 +26,10 @@
 //!    onto mapped ground. After [`SessionStartOptions::give_up_after_nodes`] the session stops searching.
 //! 3. **Probation.** A placement is tentative: the shell places the session so that GLM can match its
 //!    nodes near their estimates, but its submaps stay out of the map robots relocalize against and it
-//!    trims nothing. The map is told which nodes' scans the search fitted ([`StartPlacement::fitted_from`]):
-//!    matches that would move those nodes beyond drift are refused there, not taken for an LLO slip to
-//!    repair, so only the matches counted here can overturn a placement. It is committed once [`SessionStartOptions::probation_matches`] *independent*
+//!    trims nothing. The map is told which nodes' scans the search fitted
+//!    ([`StartPlacement::fitted_from`]): matches that would move those nodes beyond drift are refused
+//!    there, not taken for an LLO slip to repair, so only the matches counted here can overturn a
+//!    placement. It is committed once [`SessionStartOptions::probation_matches`] *independent*
 //!    matches agree with it: matches of nodes that saw different things — at least
 //!    [`SessionStartOptions::probation_min_separation_m`] apart along the route, or whose scans share at
 //!    most [`SessionStartOptions::probation_max_view_overlap`] of what the other saw (a robot that turns

@@ -500,7 +500,7 @@ fn chorus_one_metre_off(global: &mut GlobalSlam) -> Vec<MatchDecision> {
 #[test]
 fn no_chorus_beyond_drift_moves_the_nodes_that_fitted_a_placement() {
     use MatchDecision::*;
-    // Just placed at node 249, nodes 240–244 are within 0.5 m of their estimates or beyond drift.
+    // Placed at node 249, nodes 240–244 lie before it: 1 m off is beyond the drift they may have.
     let a_chorus = [
         HeldBeyondDrift,
         HeldBeyondDrift,
