@@ -16,7 +16,12 @@ import json
 import sys
 from pathlib import Path
 
-RULES = ["accepted", "confirmed", "confirmed_beyond_drift", "held_unconfirmed", "held_beyond_drift", "outvoted"]
+# `refused_by_placement` decides only matches of a placed session (never an offline run); reports of
+# builds before it lack the rule and count it as none.
+RULES = [
+    "accepted", "confirmed", "confirmed_beyond_drift", "held_unconfirmed", "held_beyond_drift",
+    "refused_by_placement", "outvoted",
+]
 FATES = ["in_graph", "retracted", "never_used"]
 
 
@@ -32,7 +37,7 @@ def load(out: Path):
 
 def table(name: str, tables: list) -> None:
     def total(rule: str, fate: str, key: str) -> int:
-        return sum(t[rule][fate][key] for t in tables)
+        return sum(t.get(rule, {}).get(fate, {}).get(key, 0) for t in tables)
 
     print(f"\n{name} ({len(tables)} runs)\n")
     print("| rule | matches | wrong | in graph: right / wrong | retracted: right / wrong | never used: right / wrong |")
