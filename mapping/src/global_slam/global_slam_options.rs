@@ -98,7 +98,7 @@ pub struct GlobalSlamOptions {
     /// Why: `docs/TUNING.md#gs-unanchored-search-every-n-nodes`.
     pub unanchored_search_every_n_nodes: usize,
     /// Once trajectories are settled (`GlobalSlam::set_trajectory_settled`), optimize only the unsettled ones
-    /// and what lies within this many constraints (count) of what changed; 0 = the whole graph. Default 0.
+    /// and what lies within this many constraints (count) of what changed; 0 = the whole graph. Default 3.
     /// Why: `docs/TUNING.md#gs-settled-region-hops`.
     pub settled_region_hops: usize,
     /// Loop-closure search (GLM).
@@ -124,7 +124,7 @@ impl Default for GlobalSlamOptions {
             correction_probation_nodes: 20,
             correction_probation_matches: 2,
             unanchored_search_every_n_nodes: 0,
-            settled_region_hops: 0,
+            settled_region_hops: 3,
             constraint_builder: ConstraintBuilderOptions::default(),
             optimizer: OptimizerOptions::default(),
         }
